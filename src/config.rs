@@ -1,0 +1,996 @@
+//! The configuration: the TOML file, `MBGW__` environment overrides, every default (defined once,
+//! in [`defaults`]), and validation whose errors name the key and the reason. Produces plain
+//! values; knows nothing of sockets, ports or tasks.
+
+use crate::rtu::{Parity, SerialFormat};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::fmt;
+use std::net::SocketAddr;
+use std::path::Path;
+use std::time::Duration;
+
+/// Where the daemon looks for its file unless told otherwise.
+pub const DEFAULT_PATH: &str = "/etc/modbus-gateway/gateway.toml";
+/// Environment variables starting with this override file keys: `MBGW__SERVER__LISTEN`,
+/// `MBGW__BUS__0__BAUD` (array entries by index).
+pub const ENV_PREFIX: &str = "MBGW__";
+const ENV_SEPARATOR: &str = "__";
+/// `device` value that selects the built-in simulated line.
+pub const SIM_DEVICE: &str = "sim";
+/// Highest unicast slave address on a serial line.
+pub const MAX_SLAVE_ADDRESS: u8 = 247;
+const MAX_RETRIES: u32 = 10;
+
+/// Every default, once.
+pub mod defaults {
+    use super::*;
+
+    pub fn listen() -> Vec<SocketAddr> {
+        vec![SocketAddr::from(([0, 0, 0, 0], 502))]
+    }
+    pub const MAX_CONNECTIONS: usize = 1024;
+    pub const IDLE_TIMEOUT: Duration = Duration::from_secs(600);
+    pub const PIPELINE_DEPTH: usize = 16;
+    pub fn metrics_listen() -> SocketAddr {
+        SocketAddr::from(([127, 0, 0, 1], 9502))
+    }
+    pub const LOG_LEVEL: &str = "info";
+
+    pub fn baud() -> u32 {
+        19_200
+    }
+    pub fn data_bits() -> u8 {
+        8
+    }
+    pub fn parity() -> Parity {
+        Parity::Even
+    }
+    pub fn response_timeout() -> Duration {
+        Duration::from_secs(1)
+    }
+    pub fn turnaround_delay() -> Duration {
+        Duration::from_millis(100)
+    }
+    pub fn broadcast_reply() -> bool {
+        true
+    }
+    pub fn queue_depth() -> usize {
+        256
+    }
+    pub fn queue_timeout() -> Duration {
+        Duration::from_secs(1)
+    }
+    pub fn reopen_delay() -> Duration {
+        Duration::from_millis(250)
+    }
+    pub fn reopen_delay_max() -> Duration {
+        Duration::from_secs(5)
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    #[serde(default)]
+    pub server: Server,
+    #[serde(default)]
+    pub metrics: Metrics,
+    #[serde(default)]
+    pub log: Log,
+    #[serde(default)]
+    pub bus: Vec<Bus>,
+    #[serde(default)]
+    pub route: Vec<Route>,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Server {
+    /// One address, a comma-separated string of them, or a list.
+    #[serde(with = "listen_list")]
+    pub listen: Vec<SocketAddr>,
+    /// TCP connections open at once, over all listeners; more are refused.
+    pub max_connections: usize,
+    /// A connection with no request and nothing pending for this long is closed ("0s": never).
+    #[serde(with = "duration")]
+    pub idle_timeout: Duration,
+    /// Requests one connection may have in flight; the gateway stops reading until one is answered.
+    pub pipeline_depth: usize,
+}
+
+impl Default for Server {
+    fn default() -> Self {
+        Server {
+            listen: defaults::listen(),
+            max_connections: defaults::MAX_CONNECTIONS,
+            idle_timeout: defaults::IDLE_TIMEOUT,
+            pipeline_depth: defaults::PIPELINE_DEPTH,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Metrics {
+    pub listen: SocketAddr,
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        Metrics {
+            listen: defaults::metrics_listen(),
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Log {
+    /// A tracing filter: `info`, `debug`, `modbus_gateway=trace`; `RUST_LOG` overrides it.
+    pub level: String,
+}
+
+impl Default for Log {
+    fn default() -> Self {
+        Log {
+            level: defaults::LOG_LEVEL.to_owned(),
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Bus {
+    pub name: String,
+    /// A serial device path, or "sim".
+    pub device: String,
+    #[serde(default = "defaults::baud")]
+    pub baud: u32,
+    #[serde(default = "defaults::data_bits")]
+    pub data_bits: u8,
+    #[serde(default = "defaults::parity")]
+    pub parity: Parity,
+    /// 1 or 2; left out: 1 with parity, 2 without (filled in by validation).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stop_bits: Option<u8>,
+    #[serde(default = "defaults::response_timeout", with = "duration")]
+    pub response_timeout: Duration,
+    /// Extra tries after a timeout or a corrupt reply, for reads (and writes with `retry_writes`).
+    #[serde(default)]
+    pub retries: u32,
+    #[serde(default)]
+    pub retry_writes: bool,
+    /// Silence before every frame, if longer than t3.5.
+    #[serde(
+        default,
+        with = "opt_duration",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub inter_frame_delay: Option<Duration>,
+    /// Silence that ends a reply of unknown length, if longer than t3.5 (USB adapters).
+    #[serde(
+        default,
+        with = "opt_duration",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub byte_timeout: Option<Duration>,
+    /// Silence after a broadcast, so slaves can carry it out.
+    #[serde(default = "defaults::turnaround_delay", with = "duration")]
+    pub turnaround_delay: Duration,
+    /// Answer a broadcast write with its normal response once it is sent.
+    #[serde(default = "defaults::broadcast_reply")]
+    pub broadcast_reply: bool,
+    #[serde(default = "defaults::queue_depth")]
+    pub queue_depth: usize,
+    /// A request not on the wire this long after it arrived gets exception 0x06.
+    #[serde(default = "defaults::queue_timeout", with = "duration")]
+    pub queue_timeout: Duration,
+    #[serde(default = "defaults::reopen_delay", with = "duration")]
+    pub reopen_delay: Duration,
+    #[serde(default = "defaults::reopen_delay_max", with = "duration")]
+    pub reopen_delay_max: Duration,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub slave: Vec<Slave>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub sim_slave: Vec<SimSlave>,
+}
+
+/// Per-slave overrides of the bus settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Slave {
+    pub address: u8,
+    #[serde(
+        default,
+        with = "opt_duration",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub response_timeout: Option<Duration>,
+}
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SimModel {
+    /// Four plain register banks.
+    #[default]
+    Registers,
+}
+
+/// Slaves on a simulated line.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimSlave {
+    /// One address, a list or ranges: 3, "1-4", "1,5-7".
+    pub address: UnitSet,
+    #[serde(default)]
+    pub model: SimModel,
+    /// Time the slave takes after recognising a request before it starts its reply.
+    #[serde(default, with = "duration")]
+    pub processing_delay: Duration,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Route {
+    pub units: UnitSet,
+    pub bus: String,
+    /// Every unit goes to this slave address.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub address: Option<u8>,
+    /// Slave address = unit + offset (neither given: offset 0).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub offset: Option<i32>,
+}
+
+impl Bus {
+    pub fn is_sim(&self) -> bool {
+        self.device == SIM_DEVICE
+    }
+
+    pub fn format(&self) -> SerialFormat {
+        SerialFormat {
+            baud: self.baud,
+            data_bits: self.data_bits,
+            parity: self.parity,
+            stop_bits: self
+                .stop_bits
+                .unwrap_or_else(|| SerialFormat::default_stop_bits(self.parity)),
+        }
+    }
+}
+
+impl Route {
+    /// The slave address `unit` goes to, if it is on the serial line's address range.
+    pub fn target(&self, unit: u8) -> Option<u8> {
+        let address = match (self.address, self.offset) {
+            (Some(address), _) => i64::from(address),
+            (None, offset) => i64::from(unit) + i64::from(offset.unwrap_or(0)),
+        };
+        u8::try_from(address)
+            .ok()
+            .filter(|&a| a <= MAX_SLAVE_ADDRESS)
+    }
+}
+
+/// A set of unit ids or slave addresses (0-255), written `5`, `"1-10,20"` or `[1, 2, 3]`.
+#[derive(Clone, Copy, PartialEq, Eq, Default)]
+pub struct UnitSet([u64; 4]);
+
+impl UnitSet {
+    pub fn insert(&mut self, unit: u8) {
+        self.0[usize::from(unit / 64)] |= 1 << (unit % 64);
+    }
+
+    pub fn contains(&self, unit: u8) -> bool {
+        self.0[usize::from(unit / 64)] & (1 << (unit % 64)) != 0
+    }
+
+    pub fn iter(&self) -> impl Iterator<Item = u8> + '_ {
+        (0..=255u8).filter(|&u| self.contains(u))
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.0 == [0; 4]
+    }
+}
+
+impl std::str::FromStr for UnitSet {
+    type Err = String;
+
+    fn from_str(text: &str) -> Result<Self, String> {
+        let number = |s: &str| -> Result<u8, String> {
+            s.trim()
+                .parse::<u8>()
+                .map_err(|_| format!("`{}` is not a number from 0 to 255", s.trim()))
+        };
+        let mut set = UnitSet::default();
+        for part in text.split(',') {
+            match part.split_once('-') {
+                Some((low, high)) => {
+                    let (low, high) = (number(low)?, number(high)?);
+                    if low > high {
+                        return Err(format!("range `{}` runs backwards", part.trim()));
+                    }
+                    (low..=high).for_each(|u| set.insert(u));
+                }
+                None => set.insert(number(part)?),
+            }
+        }
+        Ok(set)
+    }
+}
+
+impl fmt::Display for UnitSet {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let mut first = true;
+        let mut units = self.iter().peekable();
+        while let Some(low) = units.next() {
+            let mut high = low;
+            while units.peek() == Some(&high.wrapping_add(1)) && high != 255 {
+                high = units.next().unwrap_or(high);
+            }
+            let sep = if first { "" } else { "," };
+            first = false;
+            if low == high {
+                write!(f, "{sep}{low}")?;
+            } else {
+                write!(f, "{sep}{low}-{high}")?;
+            }
+        }
+        Ok(())
+    }
+}
+
+impl fmt::Debug for UnitSet {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "UnitSet({self})")
+    }
+}
+
+impl Serialize for UnitSet {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_str(self)
+    }
+}
+
+impl<'de> Deserialize<'de> for UnitSet {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct Visitor;
+        impl<'de> serde::de::Visitor<'de> for Visitor {
+            type Value = UnitSet;
+            fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+                f.write_str("a unit id, a list of them, or ranges like \"1-10,20\"")
+            }
+            fn visit_i64<E: serde::de::Error>(self, v: i64) -> Result<UnitSet, E> {
+                let unit = u8::try_from(v)
+                    .map_err(|_| E::custom(format!("{v} is not a number from 0 to 255")))?;
+                let mut set = UnitSet::default();
+                set.insert(unit);
+                Ok(set)
+            }
+            fn visit_u64<E: serde::de::Error>(self, v: u64) -> Result<UnitSet, E> {
+                self.visit_i64(i64::try_from(v).unwrap_or(i64::MAX))
+            }
+            fn visit_str<E: serde::de::Error>(self, v: &str) -> Result<UnitSet, E> {
+                v.parse().map_err(E::custom)
+            }
+            fn visit_seq<A: serde::de::SeqAccess<'de>>(
+                self,
+                mut seq: A,
+            ) -> Result<UnitSet, A::Error> {
+                let mut set = UnitSet::default();
+                while let Some(part) = seq.next_element::<UnitSet>()? {
+                    part.iter().for_each(|u| set.insert(u));
+                }
+                Ok(set)
+            }
+        }
+        d.deserialize_any(Visitor)
+    }
+}
+
+/// Durations as humantime strings: "1s", "250ms", "10m".
+mod duration {
+    use serde::{Deserialize, Deserializer, Serializer};
+    use std::time::Duration;
+
+    pub fn serialize<S: Serializer>(d: &Duration, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_str(&humantime::format_duration(*d))
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Duration, D::Error> {
+        let text = String::deserialize(d)?;
+        humantime::parse_duration(&text).map_err(|e| {
+            serde::de::Error::custom(format!("`{text}` is not a duration like \"500ms\": {e}"))
+        })
+    }
+}
+
+mod opt_duration {
+    use serde::{Deserializer, Serializer};
+    use std::time::Duration;
+
+    pub fn serialize<S: Serializer>(d: &Option<Duration>, s: S) -> Result<S::Ok, S::Error> {
+        match d {
+            Some(d) => super::duration::serialize(d, s),
+            None => s.serialize_none(),
+        }
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Option<Duration>, D::Error> {
+        super::duration::deserialize(d).map(Some)
+    }
+}
+
+/// Listen addresses: one string, a comma-separated string (handy in the environment), or a list.
+mod listen_list {
+    use serde::{Deserializer, Serializer};
+    use std::net::SocketAddr;
+
+    pub fn serialize<S: Serializer>(addrs: &[SocketAddr], s: S) -> Result<S::Ok, S::Error> {
+        s.collect_seq(addrs.iter().map(ToString::to_string))
+    }
+
+    fn parse<E: serde::de::Error>(text: &str, out: &mut Vec<SocketAddr>) -> Result<(), E> {
+        for part in text.split(',') {
+            out.push(part.trim().parse().map_err(|_| {
+                E::custom(format!(
+                    "`{}` is not a socket address like \"0.0.0.0:502\" or \"[::1]:502\"",
+                    part.trim()
+                ))
+            })?);
+        }
+        Ok(())
+    }
+
+    struct Visitor;
+
+    impl<'de> serde::de::Visitor<'de> for Visitor {
+        type Value = Vec<SocketAddr>;
+
+        fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+            f.write_str("an address like \"0.0.0.0:502\", or a list of them")
+        }
+
+        fn visit_str<E: serde::de::Error>(self, text: &str) -> Result<Self::Value, E> {
+            let mut out = Vec::new();
+            parse(text, &mut out)?;
+            Ok(out)
+        }
+
+        fn visit_seq<A: serde::de::SeqAccess<'de>>(
+            self,
+            mut seq: A,
+        ) -> Result<Self::Value, A::Error> {
+            let mut out = Vec::new();
+            while let Some(text) = seq.next_element::<String>()? {
+                parse(&text, &mut out)?;
+            }
+            Ok(out)
+        }
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<SocketAddr>, D::Error> {
+        d.deserialize_any(Visitor)
+    }
+}
+
+/// One thing wrong with the configuration: the key path and why.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ConfigError {
+    pub key: String,
+    pub reason: String,
+}
+
+impl fmt::Display for ConfigError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}: {}", self.key, self.reason)
+    }
+}
+
+/// Everything wrong with a configuration, reported together.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub struct ConfigErrors(pub Vec<ConfigError>);
+
+impl fmt::Display for ConfigErrors {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for (i, e) in self.0.iter().enumerate() {
+            if i > 0 {
+                writeln!(f)?;
+            }
+            write!(f, "{e}")?;
+        }
+        Ok(())
+    }
+}
+
+impl ConfigErrors {
+    fn one(key: impl Into<String>, reason: impl fmt::Display) -> Self {
+        ConfigErrors(vec![ConfigError {
+            key: key.into(),
+            reason: reason.to_string(),
+        }])
+    }
+}
+
+/// `SERVER__LISTEN` -> `server.listen`; `BUS__0__SLAVE__1__ADDRESS` -> `bus[0].slave[1].address`.
+fn env_key_path(rest: &str) -> String {
+    let mut path = String::new();
+    for part in rest.split(ENV_SEPARATOR) {
+        if !part.is_empty() && part.bytes().all(|b| b.is_ascii_digit()) {
+            path.push_str(&format!("[{part}]"));
+        } else {
+            if !path.is_empty() {
+                path.push('.');
+            }
+            path.push_str(&part.to_ascii_lowercase());
+        }
+    }
+    path
+}
+
+impl Config {
+    /// Read `path`, apply the `MBGW__` variables among `env`, fill in defaults and validate.
+    pub fn load(
+        path: &Path,
+        env: impl IntoIterator<Item = (String, String)>,
+    ) -> Result<Config, ConfigErrors> {
+        let file = config::File::from(path)
+            .format(config::FileFormat::Toml)
+            .required(true);
+        let mut builder = config::Config::builder().add_source(file);
+        for (name, value) in env {
+            let Some(rest) = name.strip_prefix(ENV_PREFIX) else {
+                continue;
+            };
+            let key = env_key_path(rest);
+            builder = builder
+                .set_override(&key, value)
+                .map_err(|e| ConfigErrors::one(&name, format!("cannot be used as `{key}`: {e}")))?;
+        }
+        let raw = builder
+            .build()
+            .map_err(|e| ConfigErrors::one(path.display().to_string(), e))?;
+        Self::finish(raw)
+    }
+
+    /// Parse TOML text with no environment, fill in defaults and validate.
+    pub fn from_toml_str(text: &str) -> Result<Config, ConfigErrors> {
+        let raw = config::Config::builder()
+            .add_source(config::File::from_str(text, config::FileFormat::Toml))
+            .build()
+            .map_err(|e| ConfigErrors::one("(config)", e))?;
+        Self::finish(raw)
+    }
+
+    fn finish(raw: config::Config) -> Result<Config, ConfigErrors> {
+        let mut config: Config = serde_path_to_error::deserialize(raw).map_err(|e| {
+            let path = e.path().to_string();
+            let path = if path == "." { String::new() } else { path };
+            let join = |field: &str| match path.as_str() {
+                "" => field.to_owned(),
+                p => format!("{p}.{field}"),
+            };
+            match e.into_inner() {
+                // config-rs names a missing field by its whole (unseparated) path: keep the field.
+                config::ConfigError::NotFound(missing) => {
+                    let field = missing.rsplit([']', '.']).next().unwrap_or(&missing);
+                    ConfigErrors::one(join(field), "is required")
+                }
+                other => {
+                    let mut reason = other.to_string();
+                    if let Some(at) = reason.find(" for key `") {
+                        reason.truncate(at);
+                    }
+                    let key = if path.is_empty() {
+                        "(top level)".to_owned()
+                    } else {
+                        path
+                    };
+                    ConfigErrors::one(key, reason)
+                }
+            }
+        })?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// The resolved configuration as TOML, defaults included.
+    pub fn to_toml(&self) -> String {
+        toml::to_string(self).unwrap_or_else(|e| format!("# cannot print the configuration: {e}\n"))
+    }
+
+    /// Check what serde cannot: ranges, names, references between sections. Fills in the
+    /// defaults that depend on other keys (stop bits).
+    pub fn validate(&mut self) -> Result<(), ConfigErrors> {
+        let mut errors = Vec::new();
+        let mut fail = |key: String, reason: String| errors.push(ConfigError { key, reason });
+
+        if self.server.listen.is_empty() {
+            fail("server.listen".into(), "needs at least one address".into());
+        }
+        if self.server.max_connections == 0 {
+            fail("server.max_connections".into(), "must be at least 1".into());
+        }
+        if self.server.pipeline_depth == 0 {
+            fail("server.pipeline_depth".into(), "must be at least 1".into());
+        }
+        if let Err(e) = tracing_subscriber::EnvFilter::try_new(&self.log.level) {
+            fail(
+                "log.level".into(),
+                format!("`{}` is not a log filter: {e}", self.log.level),
+            );
+        }
+        if self.bus.is_empty() {
+            fail("bus".into(), "at least one [[bus]] is needed".into());
+        }
+
+        let mut names = BTreeMap::new();
+        for (i, bus) in self.bus.iter_mut().enumerate() {
+            let key = |field: &str| format!("bus[{i}].{field}");
+            if bus.name.is_empty()
+                || !bus
+                    .name
+                    .bytes()
+                    .all(|b| b.is_ascii_alphanumeric() || b"_-.".contains(&b))
+            {
+                fail(
+                    key("name"),
+                    format!("`{}` must be letters, digits, `_`, `-` or `.`", bus.name),
+                );
+            } else if let Some(first) = names.insert(bus.name.clone(), i) {
+                fail(
+                    key("name"),
+                    format!("`{}` is already the name of bus[{first}]", bus.name),
+                );
+            }
+            if bus.device.is_empty() {
+                fail(
+                    key("device"),
+                    "needs a serial device path or \"sim\"".into(),
+                );
+            }
+            if bus.baud == 0 {
+                fail(key("baud"), "must be more than 0".into());
+            }
+            if !matches!(bus.data_bits, 7 | 8) {
+                fail(key("data_bits"), format!("{} is not 7 or 8", bus.data_bits));
+            }
+            match bus.stop_bits {
+                None => bus.stop_bits = Some(SerialFormat::default_stop_bits(bus.parity)),
+                Some(1 | 2) => {}
+                Some(n) => fail(key("stop_bits"), format!("{n} is not 1 or 2")),
+            }
+            for (field, value) in [
+                ("response_timeout", bus.response_timeout),
+                ("queue_timeout", bus.queue_timeout),
+                ("reopen_delay", bus.reopen_delay),
+            ] {
+                if value.is_zero() {
+                    fail(key(field), "must be longer than 0".into());
+                }
+            }
+            if bus.reopen_delay_max < bus.reopen_delay {
+                fail(
+                    key("reopen_delay_max"),
+                    "must not be shorter than reopen_delay".into(),
+                );
+            }
+            if bus.retries > MAX_RETRIES {
+                fail(
+                    key("retries"),
+                    format!("{} is more than {MAX_RETRIES}", bus.retries),
+                );
+            }
+            if bus.queue_depth == 0 {
+                fail(key("queue_depth"), "must be at least 1".into());
+            }
+            let mut seen = UnitSet::default();
+            for (j, slave) in bus.slave.iter().enumerate() {
+                let key = format!("bus[{i}].slave[{j}]");
+                if slave.address == 0 || slave.address > MAX_SLAVE_ADDRESS {
+                    fail(
+                        format!("{key}.address"),
+                        format!("{} is not a slave address 1-247", slave.address),
+                    );
+                } else if seen.contains(slave.address) {
+                    fail(
+                        format!("{key}.address"),
+                        format!("slave {} is configured twice", slave.address),
+                    );
+                }
+                seen.insert(slave.address);
+                if slave.response_timeout.is_some_and(|t| t.is_zero()) {
+                    fail(
+                        format!("{key}.response_timeout"),
+                        "must be longer than 0".into(),
+                    );
+                }
+            }
+            if !bus.sim_slave.is_empty() && !bus.is_sim() {
+                fail(
+                    key("sim_slave"),
+                    format!("only a bus with device = \"{SIM_DEVICE}\" has simulated slaves"),
+                );
+            }
+            let mut seen = UnitSet::default();
+            for (j, sim) in bus.sim_slave.iter().enumerate() {
+                let key = format!("bus[{i}].sim_slave[{j}].address");
+                if sim.address.is_empty() {
+                    fail(key.clone(), "names no address".into());
+                }
+                for address in sim.address.iter() {
+                    if address == 0 || address > MAX_SLAVE_ADDRESS {
+                        fail(
+                            key.clone(),
+                            format!("{address} is not a slave address 1-247"),
+                        );
+                        break;
+                    }
+                    if seen.contains(address) {
+                        fail(key.clone(), format!("slave {address} is simulated twice"));
+                        break;
+                    }
+                    seen.insert(address);
+                }
+            }
+        }
+
+        let mut routed: BTreeMap<u8, usize> = BTreeMap::new();
+        for (i, route) in self.route.iter().enumerate() {
+            let key = |field: &str| format!("route[{i}].{field}");
+            if !names.contains_key(&route.bus) {
+                fail(key("bus"), format!("there is no bus named `{}`", route.bus));
+            }
+            if route.address.is_some() && route.offset.is_some() {
+                fail(key("offset"), "give `address` or `offset`, not both".into());
+            }
+            if route.address.is_some_and(|a| a > MAX_SLAVE_ADDRESS) {
+                fail(key("address"), "must be a slave address 0-247".into());
+            }
+            if route.units.is_empty() {
+                fail(key("units"), "names no unit".into());
+            }
+            for unit in route.units.iter() {
+                if let Some(first) = routed.insert(unit, i) {
+                    fail(
+                        key("units"),
+                        format!("unit {unit} is already routed by route[{first}]"),
+                    );
+                    break;
+                }
+                if route.target(unit).is_none() {
+                    fail(
+                        key("offset"),
+                        format!("sends unit {unit} outside slave addresses 0-247"),
+                    );
+                    break;
+                }
+            }
+        }
+
+        if errors.is_empty() {
+            Ok(())
+        } else {
+            Err(ConfigErrors(errors))
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MINIMAL: &str = r#"
+        [[bus]]
+        name = "line1"
+        device = "/dev/ttyUSB0"
+    "#;
+
+    fn errors(text: &str) -> Vec<String> {
+        Config::from_toml_str(text)
+            .expect_err("config should be refused")
+            .0
+            .iter()
+            .map(ToString::to_string)
+            .collect()
+    }
+
+    #[test]
+    fn a_minimal_file_gets_every_default() {
+        let c = Config::from_toml_str(MINIMAL).unwrap();
+        assert_eq!(c.server, Server::default());
+        assert_eq!(c.metrics.listen, defaults::metrics_listen());
+        let bus = &c.bus[0];
+        assert_eq!(
+            (bus.baud, bus.data_bits, bus.parity),
+            (19_200, 8, Parity::Even)
+        );
+        assert_eq!(bus.stop_bits, Some(1), "parity even means one stop bit");
+        assert_eq!(bus.response_timeout, Duration::from_secs(1));
+        assert_eq!(bus.turnaround_delay, Duration::from_millis(100));
+        assert!(bus.broadcast_reply);
+        assert!(!bus.retry_writes);
+    }
+
+    #[test]
+    fn no_parity_defaults_to_two_stop_bits() {
+        let c = Config::from_toml_str(&format!("{MINIMAL}\nparity = \"none\"")).unwrap();
+        assert_eq!(c.bus[0].stop_bits, Some(2));
+        assert_eq!(c.bus[0].format().bits_per_char(), 11);
+    }
+
+    #[test]
+    fn an_unknown_key_is_named_with_its_path() {
+        let e = errors(&format!("{MINIMAL}\nbaud_rate = 9600"));
+        assert_eq!(e.len(), 1);
+        assert!(e[0].starts_with("bus[0]"), "{e:?}");
+        assert!(e[0].contains("baud_rate"), "{e:?}");
+    }
+
+    #[test]
+    fn a_wrong_value_is_named_with_its_path_and_reason() {
+        let e = errors(&format!("{MINIMAL}\nparity = \"evn\""));
+        assert!(e[0].starts_with("bus[0].parity:"), "{e:?}");
+        assert!(!e[0].contains("for key"), "{e:?}");
+        let e = errors(&format!("{MINIMAL}\nresponse_timeout = \"soon\""));
+        assert!(e[0].starts_with("bus[0].response_timeout:"), "{e:?}");
+        assert!(e[0].contains("soon"), "{e:?}");
+        let e = errors(&format!("[server]\nlisten = \"localhost\"\n{MINIMAL}"));
+        assert!(e[0].starts_with("server.listen:"), "{e:?}");
+    }
+
+    #[test]
+    fn semantic_errors_are_all_reported_with_their_keys() {
+        let e = errors(
+            r#"
+            [[bus]]
+            name = "a"
+            device = "sim"
+            data_bits = 6
+            stop_bits = 3
+            [[bus.slave]]
+            address = 248
+            [[bus]]
+            name = "a"
+            device = ""
+            [[route]]
+            units = "1-3"
+            bus = "nope"
+            "#,
+        );
+        let keys: Vec<&str> = e.iter().map(|s| s.split(':').next().unwrap()).collect();
+        assert_eq!(
+            keys,
+            [
+                "bus[0].data_bits",
+                "bus[0].stop_bits",
+                "bus[0].slave[0].address",
+                "bus[1].name",
+                "bus[1].device",
+                "route[0].bus"
+            ],
+            "{e:#?}"
+        );
+    }
+
+    #[test]
+    fn a_missing_required_key_is_named() {
+        let e = errors("[[bus]]\nname = \"a\"\n");
+        assert_eq!(e, ["bus[0].device: is required"]);
+    }
+
+    #[test]
+    fn a_config_without_buses_is_refused() {
+        assert_eq!(errors("")[0], "bus: at least one [[bus]] is needed");
+    }
+
+    #[test]
+    fn routes_may_not_overlap_or_leave_the_address_range() {
+        let e = errors(&format!(
+            "{MINIMAL}\n[[route]]\nunits = \"1-10\"\nbus = \"line1\"\noffset = 240\n\
+             [[route]]\nunits = [5, 6]\nbus = \"line1\"\naddress = 3\n"
+        ));
+        assert_eq!(e.len(), 2, "{e:?}");
+        assert!(e[0].starts_with("route[0].offset: sends unit 8"), "{e:?}");
+        assert!(
+            e[1].starts_with("route[1].units: unit 5 is already routed by route[0]"),
+            "{e:?}"
+        );
+    }
+
+    #[test]
+    fn sim_slaves_only_live_on_a_sim_bus() {
+        let e = errors(&format!(
+            "{MINIMAL}\n[[bus.sim_slave]]\naddress = \"1-4\"\n"
+        ));
+        assert!(e[0].starts_with("bus[0].sim_slave:"), "{e:?}");
+    }
+
+    #[test]
+    fn unit_sets_parse_ids_lists_and_ranges_and_print_canonically() {
+        let set: UnitSet = "1-4, 7,10-11".parse().unwrap();
+        assert_eq!(set.iter().collect::<Vec<_>>(), [1, 2, 3, 4, 7, 10, 11]);
+        assert_eq!(set.to_string(), "1-4,7,10-11");
+        assert_eq!("255".parse::<UnitSet>().unwrap().to_string(), "255");
+        assert_eq!("0-255".parse::<UnitSet>().unwrap().iter().count(), 256);
+        assert!("4-1".parse::<UnitSet>().is_err());
+        assert!("256".parse::<UnitSet>().is_err());
+        assert!("".parse::<UnitSet>().is_err());
+    }
+
+    #[test]
+    fn environment_variables_override_the_file_including_array_entries() {
+        let dir = std::env::temp_dir().join(format!("mbgw-config-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("gateway.toml");
+        std::fs::write(&path, MINIMAL).unwrap();
+        let env = [
+            ("MBGW__SERVER__LISTEN", "127.0.0.1:5020,[::1]:5020"),
+            ("MBGW__BUS__0__BAUD", "9600"),
+            ("MBGW__BUS__0__RETRY_WRITES", "true"),
+            ("MBGW__BUS__0__RESPONSE_TIMEOUT", "250ms"),
+            ("PATH", "/usr/bin"),
+        ]
+        .map(|(k, v)| (k.to_owned(), v.to_owned()));
+        let c = Config::load(&path, env).unwrap();
+        assert_eq!(c.server.listen.len(), 2);
+        assert_eq!(c.server.listen[1], "[::1]:5020".parse().unwrap());
+        assert_eq!(c.bus[0].baud, 9600);
+        assert!(c.bus[0].retry_writes);
+        assert_eq!(c.bus[0].response_timeout, Duration::from_millis(250));
+
+        let typo = [("MBGW__SERVER__LISTN".to_owned(), "x".to_owned())];
+        let e = Config::load(&path, typo).unwrap_err().to_string();
+        assert!(e.starts_with("server"), "{e}");
+        assert!(e.contains("listn"), "{e}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_missing_file_is_an_error_naming_it() {
+        let e = Config::load(Path::new("/nonexistent/gateway.toml"), []).unwrap_err();
+        assert!(
+            e.to_string().starts_with("/nonexistent/gateway.toml:"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn the_printed_configuration_reads_back_the_same() {
+        let text = format!(
+            "{MINIMAL}\ninter_frame_delay = \"5ms\"\n[[bus.slave]]\naddress = 3\nresponse_timeout = \"2s\"\n\
+             [[route]]\nunits = \"255\"\nbus = \"line1\"\naddress = 17\n"
+        );
+        let c = Config::from_toml_str(&text).unwrap();
+        let again = Config::from_toml_str(&c.to_toml()).unwrap();
+        assert_eq!(c, again, "{}", c.to_toml());
+    }
+
+    #[test]
+    fn routes_map_units_by_address_or_offset() {
+        let fixed = Route {
+            units: UnitSet::default(),
+            bus: "b".into(),
+            address: Some(17),
+            offset: None,
+        };
+        assert_eq!(fixed.target(255), Some(17));
+        let shifted = Route {
+            units: UnitSet::default(),
+            bus: "b".into(),
+            address: None,
+            offset: Some(-100),
+        };
+        assert_eq!(shifted.target(101), Some(1));
+        assert_eq!(shifted.target(99), None);
+        let same = Route {
+            units: UnitSet::default(),
+            bus: "b".into(),
+            address: None,
+            offset: None,
+        };
+        assert_eq!(same.target(248), None);
+    }
+}

@@ -1,0 +1,443 @@
+//! RTU frames as bytes: CRC-16, encoding, how long a frame is from its first bytes, and whether a
+//! received frame answers a given request. Pure functions; knows nothing of ports or time.
+
+use crate::pdu::EXCEPTION_BIT;
+use crc::{Crc, CRC_16_MODBUS};
+
+const CRC: Crc<u16> = Crc::<u16>::new(&CRC_16_MODBUS);
+
+/// Address, at most 253 bytes of PDU, two bytes of CRC.
+pub const MAX_FRAME_LEN: usize = 256;
+/// Address, function code and CRC: nothing shorter is a frame.
+pub const MIN_FRAME_LEN: usize = 4;
+/// Exception replies: address, function | 0x80, exception code, CRC.
+pub const EXCEPTION_FRAME_LEN: usize = 5;
+/// The slave address that every slave obeys and none answers.
+pub const BROADCAST: u8 = 0;
+
+pub fn crc16(bytes: &[u8]) -> u16 {
+    CRC.checksum(bytes)
+}
+
+/// Build the frame for `pdu` to `address` into `out` (cleared first). The CRC goes low byte first.
+pub fn encode_into(out: &mut Vec<u8>, address: u8, pdu: &[u8]) {
+    out.clear();
+    out.push(address);
+    out.extend_from_slice(pdu);
+    let crc = crc16(out);
+    out.extend_from_slice(&crc.to_le_bytes());
+}
+
+pub fn encode(address: u8, pdu: &[u8]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(pdu.len() + 3);
+    encode_into(&mut out, address, pdu);
+    out
+}
+
+/// True if the last two bytes are the CRC of the rest.
+pub fn crc_ok(frame: &[u8]) -> bool {
+    match frame.len().checked_sub(2) {
+        Some(body) if frame.len() >= MIN_FRAME_LEN => {
+            crc16(&frame[..body]) == u16::from_le_bytes([frame[body], frame[body + 1]])
+        }
+        _ => false,
+    }
+}
+
+/// The PDU inside a frame whose CRC has been checked.
+pub fn pdu_of(frame: &[u8]) -> &[u8] {
+    &frame[1..frame.len() - 2]
+}
+
+/// What the first bytes of a frame say about its length.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FrameLen {
+    /// The length is known once at least this many bytes are in.
+    Need(usize),
+    /// The frame is exactly this many bytes long.
+    Exact(usize),
+    /// The bytes cannot tell: the frame ends with t3.5 of silence.
+    BySilence,
+    /// The header announces more than a frame can hold: these bytes are not a frame.
+    Invalid,
+}
+
+/// Length of a frame whose byte count sits at `count_at` (one byte, or two big-endian bytes when
+/// `wide`), followed by that many bytes and the CRC.
+fn counted(buf: &[u8], count_at: usize, wide: bool) -> FrameLen {
+    let header = count_at + if wide { 2 } else { 1 };
+    if buf.len() < header {
+        return FrameLen::Need(header);
+    }
+    let count = if wide {
+        usize::from(u16::from_be_bytes([buf[count_at], buf[count_at + 1]]))
+    } else {
+        usize::from(buf[count_at])
+    };
+    exact(header + count + 2)
+}
+
+fn exact(len: usize) -> FrameLen {
+    if len > MAX_FRAME_LEN {
+        FrameLen::Invalid
+    } else {
+        FrameLen::Exact(len)
+    }
+}
+
+/// Length of a Read Device Identification reply: an eight-byte header, then `objects` times an
+/// id byte, a length byte and that many value bytes.
+fn device_id_len(buf: &[u8]) -> FrameLen {
+    const HEADER: usize = 8;
+    if buf.len() < HEADER {
+        return FrameLen::Need(HEADER);
+    }
+    let mut end = HEADER;
+    for _ in 0..buf[7] {
+        if buf.len() < end + 2 {
+            return FrameLen::Need(end + 2);
+        }
+        end += 2 + usize::from(buf[end + 1]);
+        if end + 2 > MAX_FRAME_LEN {
+            return FrameLen::Invalid;
+        }
+    }
+    exact(end + 2)
+}
+
+/// Length of a reply frame starting at `buf[0]`, as far as its bytes tell. `slave` and `request`
+/// (the PDU sent) settle the lengths that only the request knows, and only for a frame that
+/// claims to answer it.
+pub fn reply_len(buf: &[u8], slave: u8, request: &[u8]) -> FrameLen {
+    let Some(&function) = buf.get(1) else {
+        return FrameLen::Need(2);
+    };
+    if function & EXCEPTION_BIT != 0 {
+        return FrameLen::Exact(EXCEPTION_FRAME_LEN);
+    }
+    let answers_request = buf[0] == slave && request.first() == Some(&function);
+    match function {
+        0x01..=0x04 | 0x0C | 0x11 | 0x14 | 0x15 | 0x17 => counted(buf, 2, false),
+        0x05 | 0x06 | 0x0B | 0x0F | 0x10 => FrameLen::Exact(8),
+        0x07 => FrameLen::Exact(5),
+        0x16 => FrameLen::Exact(10),
+        0x18 => counted(buf, 2, true),
+        // Diagnostics echo the request's data, whatever its length.
+        0x08 if answers_request => exact(request.len() + 3),
+        0x2B => match buf.get(2) {
+            None => FrameLen::Need(3),
+            Some(0x0E) => device_id_len(buf),
+            Some(_) => FrameLen::BySilence,
+        },
+        _ => FrameLen::BySilence,
+    }
+}
+
+/// Length of a request frame starting at `buf[0]`, as a slave sees it.
+pub fn request_len(buf: &[u8]) -> FrameLen {
+    let Some(&function) = buf.get(1) else {
+        return FrameLen::Need(2);
+    };
+    match function {
+        0x01..=0x06 => FrameLen::Exact(8),
+        0x07 | 0x0B | 0x0C | 0x11 => FrameLen::Exact(4),
+        0x0F | 0x10 => counted(buf, 6, false),
+        0x14 | 0x15 => counted(buf, 2, false),
+        0x16 => FrameLen::Exact(10),
+        0x17 => counted(buf, 10, false),
+        0x18 => FrameLen::Exact(6),
+        0x2B => match buf.get(2) {
+            None => FrameLen::Need(3),
+            Some(0x0E) => FrameLen::Exact(7),
+            Some(_) => FrameLen::BySilence,
+        },
+        _ => FrameLen::BySilence,
+    }
+}
+
+/// What a received frame is to the request that is waiting for its answer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Verdict {
+    /// It answers the request (normally or with an exception).
+    Answer,
+    /// Intact, but not the answer: another slave's frame, or a reply that does not fit the
+    /// request (a late answer to an earlier one). Never delivered to anyone.
+    Foreign,
+    /// The CRC fails: noise, a collision, or a frame cut short.
+    Corrupt,
+}
+
+fn quantity(request: &[u8], at: usize) -> Option<usize> {
+    Some(usize::from(u16::from_be_bytes([
+        *request.get(at)?,
+        *request.get(at + 1)?,
+    ])))
+}
+
+/// True if a normal reply PDU (same function code as the request) has the shape the request asks
+/// for. Requests too short to say what they ask for accept any reply.
+fn fits_request(reply: &[u8], request: &[u8]) -> bool {
+    let byte_count = reply.get(1).map(|&b| usize::from(b));
+    match request[0] {
+        0x01 | 0x02 => quantity(request, 3).is_none_or(|q| byte_count == Some(q.div_ceil(8))),
+        0x03 | 0x04 => quantity(request, 3).is_none_or(|q| byte_count == Some(q * 2)),
+        0x17 => quantity(request, 3).is_none_or(|q| byte_count == Some(q * 2)),
+        // Writes echo the address they wrote (and the quantity, for the multiple writes).
+        0x05 | 0x06 | 0x16 => reply.get(1..3) == request.get(1..3),
+        0x0F | 0x10 => reply.get(1..5) == request.get(1..5),
+        // Diagnostics echo the sub-function; encapsulated interface transports echo the MEI type.
+        0x08 => reply.get(1..3) == request.get(1..3),
+        0x2B => reply.get(1) == request.get(1),
+        _ => true,
+    }
+}
+
+/// Judge a complete frame received after sending `request` (a PDU) to `slave`.
+pub fn check_reply(frame: &[u8], slave: u8, request: &[u8]) -> Verdict {
+    if !crc_ok(frame) {
+        return Verdict::Corrupt;
+    }
+    let Some(&request_function) = request.first() else {
+        return Verdict::Foreign;
+    };
+    if frame[0] != slave {
+        return Verdict::Foreign;
+    }
+    let pdu = pdu_of(frame);
+    if pdu[0] == request_function | EXCEPTION_BIT && frame.len() == EXCEPTION_FRAME_LEN {
+        return Verdict::Answer;
+    }
+    if pdu[0] == request_function && fits_request(pdu, request) {
+        Verdict::Answer
+    } else {
+        Verdict::Foreign
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Goodrive300 manual 10.4.1: read 2 words from 0004H of slave 01H.
+    const READ_REQUEST: [u8; 8] = [
+        0x01, // slave address
+        0x03, // read holding registers
+        0x00, 0x04, // start address 0004H
+        0x00, 0x02, // two words
+        0x85, 0xCA, // CRC, low byte first
+    ];
+    /// Its reply: 0004H = 1388H, 0005H = 0000H.
+    const READ_REPLY: [u8; 9] = [
+        0x01, // slave address
+        0x03, // read holding registers
+        0x04, // four data bytes
+        0x13, 0x88, // 0004H = 1388H (5000)
+        0x00, 0x00, // 0005H = 0000H
+        0x7E, 0x9D, // CRC
+    ];
+    /// Goodrive300 manual 10.4.2: write 1388H to 0004H of slave 02H; the reply is the echo.
+    const WRITE_REQUEST: [u8; 8] = [
+        0x02, // slave address
+        0x06, // write single register
+        0x00, 0x04, // register 0004H
+        0x13, 0x88, // value 5000
+        0xC5, 0x6E, // CRC
+    ];
+    /// Goodrive300 manual 10.4.3: diagnostics, return query data 12ABH to slave 01H.
+    const ECHO_REQUEST: [u8; 8] = [
+        0x01, // slave address
+        0x08, // diagnostics
+        0x00, 0x00, // sub-function 0000: return query data
+        0x12, 0xAB, // data
+        0xAD, 0x14, // CRC
+    ];
+
+    #[test]
+    fn encoding_reproduces_the_manual_frames_byte_for_byte() {
+        assert_eq!(encode(0x01, &READ_REQUEST[1..6]), READ_REQUEST);
+        assert_eq!(encode(0x01, &READ_REPLY[1..7]), READ_REPLY);
+        assert_eq!(encode(0x02, &WRITE_REQUEST[1..6]), WRITE_REQUEST);
+        assert_eq!(encode(0x01, &ECHO_REQUEST[1..6]), ECHO_REQUEST);
+    }
+
+    #[test]
+    fn crc_rejects_any_flipped_bit_and_frames_too_short() {
+        assert!(crc_ok(&READ_REPLY));
+        for i in 0..READ_REPLY.len() {
+            let mut bad = READ_REPLY;
+            bad[i] ^= 0x10;
+            assert!(!crc_ok(&bad), "flipped byte {i} passed");
+        }
+        assert!(!crc_ok(&[0x01, 0x03, 0x00]));
+        assert!(!crc_ok(&[]));
+    }
+
+    #[test]
+    fn reply_length_is_known_from_the_byte_count_byte_by_byte() {
+        let request = &READ_REQUEST[1..6];
+        assert_eq!(reply_len(&READ_REPLY[..0], 1, request), FrameLen::Need(2));
+        assert_eq!(reply_len(&READ_REPLY[..1], 1, request), FrameLen::Need(2));
+        assert_eq!(reply_len(&READ_REPLY[..2], 1, request), FrameLen::Need(3));
+        for n in 3..=READ_REPLY.len() {
+            assert_eq!(reply_len(&READ_REPLY[..n], 1, request), FrameLen::Exact(9));
+        }
+    }
+
+    #[test]
+    fn exception_replies_are_five_bytes_for_any_function() {
+        assert_eq!(reply_len(&[0x01, 0x83], 1, &[0x03]), FrameLen::Exact(5));
+        assert_eq!(reply_len(&[0x01, 0xC1], 1, &[0x41]), FrameLen::Exact(5));
+    }
+
+    #[test]
+    fn fixed_length_replies() {
+        for function in [0x05, 0x06, 0x0B, 0x0F, 0x10] {
+            assert_eq!(
+                reply_len(&[1, function], 1, &[function]),
+                FrameLen::Exact(8)
+            );
+        }
+        assert_eq!(reply_len(&[1, 0x07], 1, &[0x07]), FrameLen::Exact(5));
+        assert_eq!(reply_len(&[1, 0x16], 1, &[0x16]), FrameLen::Exact(10));
+    }
+
+    #[test]
+    fn diagnostics_replies_echo_the_request_length_only_when_they_answer_it() {
+        let request = &ECHO_REQUEST[1..6];
+        assert_eq!(
+            reply_len(&ECHO_REQUEST[..2], 1, request),
+            FrameLen::Exact(8)
+        );
+        assert_eq!(reply_len(&[0x05, 0x08], 1, request), FrameLen::BySilence);
+    }
+
+    #[test]
+    fn fifo_replies_carry_a_two_byte_count() {
+        assert_eq!(reply_len(&[1, 0x18, 0x00], 1, &[0x18]), FrameLen::Need(4));
+        assert_eq!(
+            reply_len(&[1, 0x18, 0x00, 0x06], 1, &[0x18]),
+            FrameLen::Exact(12)
+        );
+        assert_eq!(
+            reply_len(&[1, 0x18, 0x01, 0x00], 1, &[0x18]),
+            FrameLen::Invalid
+        );
+    }
+
+    #[test]
+    fn device_identification_length_follows_its_objects() {
+        // Reply header, then objects (id, length, value): "AB" and "C".
+        let reply = [
+            0x01, 0x2B, 0x0E, // slave, MEI transport, read device identification
+            0x01, 0x01, // read code basic, conformity basic
+            0x00, 0x00, // no more follows, next object 0
+            0x02, // two objects
+            0x00, 0x02, b'A', b'B', // object 0, two bytes
+            0x01, 0x01, b'C', // object 1, one byte
+        ];
+        let request = [0x2B, 0x0E, 0x01, 0x00];
+        assert_eq!(reply_len(&reply[..7], 1, &request), FrameLen::Need(8));
+        assert_eq!(reply_len(&reply[..8], 1, &request), FrameLen::Need(10));
+        assert_eq!(reply_len(&reply[..10], 1, &request), FrameLen::Need(14));
+        assert_eq!(reply_len(&reply[..14], 1, &request), FrameLen::Exact(17));
+        assert_eq!(reply_len(&reply, 1, &request), FrameLen::Exact(17));
+    }
+
+    #[test]
+    fn user_defined_functions_end_by_silence() {
+        assert_eq!(reply_len(&[1, 0x41, 9, 9], 1, &[0x41]), FrameLen::BySilence);
+        assert_eq!(request_len(&[1, 0x41, 9]), FrameLen::BySilence);
+    }
+
+    #[test]
+    fn byte_counts_past_the_frame_limit_are_invalid() {
+        assert_eq!(reply_len(&[1, 0x03, 0xFF], 1, &[0x03]), FrameLen::Invalid);
+        assert_eq!(
+            reply_len(&[1, 0x03, 0xFB], 1, &[0x03]),
+            FrameLen::Exact(256)
+        );
+    }
+
+    #[test]
+    fn request_lengths_as_a_slave_sees_them() {
+        assert_eq!(request_len(&READ_REQUEST), FrameLen::Exact(8));
+        assert_eq!(request_len(&[2, 0x10, 0, 4, 0, 2]), FrameLen::Need(7));
+        assert_eq!(request_len(&[2, 0x10, 0, 4, 0, 2, 4]), FrameLen::Exact(13));
+        assert_eq!(
+            request_len(&[1, 0x17, 0, 0, 0, 1, 0, 0, 0, 1, 2]),
+            FrameLen::Exact(15)
+        );
+        assert_eq!(request_len(&[1, 0x2B, 0x0E]), FrameLen::Exact(7));
+        assert_eq!(request_len(&[1, 0x11]), FrameLen::Exact(4));
+        assert_eq!(request_len(&[1]), FrameLen::Need(2));
+    }
+
+    #[test]
+    fn the_manual_reply_answers_its_request() {
+        assert_eq!(
+            check_reply(&READ_REPLY, 1, &READ_REQUEST[1..6]),
+            Verdict::Answer
+        );
+        assert_eq!(
+            check_reply(&WRITE_REQUEST, 2, &WRITE_REQUEST[1..6]),
+            Verdict::Answer
+        );
+        assert_eq!(
+            check_reply(&ECHO_REQUEST, 1, &ECHO_REQUEST[1..6]),
+            Verdict::Answer
+        );
+    }
+
+    #[test]
+    fn another_slaves_frame_is_foreign() {
+        assert_eq!(
+            check_reply(&READ_REPLY, 2, &READ_REQUEST[1..6]),
+            Verdict::Foreign
+        );
+    }
+
+    #[test]
+    fn a_reply_of_the_wrong_shape_or_function_is_foreign() {
+        // Asked for three words; a two-word reply is a late answer to something else.
+        assert_eq!(
+            check_reply(&READ_REPLY, 1, &[0x03, 0, 4, 0, 3]),
+            Verdict::Foreign
+        );
+        // Asked for input registers; holding-register reply.
+        assert_eq!(
+            check_reply(&READ_REPLY, 1, &[0x04, 0, 4, 0, 2]),
+            Verdict::Foreign
+        );
+        // A write echo for another register.
+        assert_eq!(
+            check_reply(&WRITE_REQUEST, 2, &[0x06, 0x00, 0x05, 0x13, 0x88]),
+            Verdict::Foreign
+        );
+    }
+
+    #[test]
+    fn exceptions_answer_only_their_own_function() {
+        let exception = encode(1, &[0x83, 0x02]);
+        assert_eq!(
+            check_reply(&exception, 1, &[0x03, 0, 0, 0, 1]),
+            Verdict::Answer
+        );
+        assert_eq!(
+            check_reply(&exception, 1, &[0x04, 0, 0, 0, 1]),
+            Verdict::Foreign
+        );
+        // Vendor exception codes pass as they are.
+        let vendor = encode(1, &[0x86, 0x07]);
+        assert_eq!(
+            check_reply(&vendor, 1, &[0x06, 0, 0, 0, 1]),
+            Verdict::Answer
+        );
+    }
+
+    #[test]
+    fn a_bad_crc_is_corrupt_whatever_else_it_says() {
+        let mut bad = READ_REPLY;
+        bad[4] ^= 0xFF;
+        assert_eq!(check_reply(&bad, 1, &READ_REQUEST[1..6]), Verdict::Corrupt);
+    }
+}

@@ -1,0 +1,507 @@
+//! One RTU transaction at a time on a [`Transport`], timed per Modbus over Serial Line V1.02:
+//! t3.5 of silence before every frame, the response timeout counted from the end of
+//! transmission, replies complete by length (or by silence when the length cannot be known),
+//! and only a frame that answers the request is ever returned. Retries, queues and broadcast
+//! policy belong to the caller.
+
+use super::frame::{self, FrameLen, Verdict, BROADCAST, MAX_FRAME_LEN};
+use super::timing::LineTiming;
+use super::Transport;
+use std::io;
+use std::time::Duration;
+use tokio::time::{sleep_until, Instant};
+
+/// The times the master keeps on its line.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MasterTiming {
+    pub line: LineTiming,
+    /// Silence before every frame: t3.5, or more if configured.
+    pub gap: Duration,
+    /// Silence that ends a reply whose length the bytes cannot tell: t3.5, or more if configured
+    /// (USB adapters deliver bytes in bursts).
+    pub silence: Duration,
+}
+
+impl MasterTiming {
+    /// The spec's timing for `line`, raised by the configured floors where they are longer.
+    pub fn new(line: LineTiming, gap_floor: Duration, silence_floor: Duration) -> Self {
+        MasterTiming {
+            line,
+            gap: line.t35.max(gap_floor),
+            silence: line.t35.max(silence_floor),
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum TxError {
+    #[error("no reply within the response timeout")]
+    Timeout,
+    #[error("reply failed its CRC check")]
+    Crc,
+    #[error("reply incomplete or malformed")]
+    Frame,
+    #[error("line never fell silent for the gap before the frame")]
+    LineBusy,
+    #[error("serial port lost: {0}")]
+    PortLost(io::Error),
+}
+
+/// What the master saw on the line that was not an answer; cumulative, for logs and metrics.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct LineCounters {
+    /// Intact frames that answered nothing: other slaves' replies, late replies.
+    pub foreign_frames: u64,
+    /// Bytes received while no reply was awaited.
+    pub stray_bytes: u64,
+}
+
+pub struct RtuMaster<T> {
+    port: T,
+    timing: MasterTiming,
+    /// Earliest moment the next frame may start: the last byte seen on the line plus the gap, or
+    /// the end of a broadcast plus its turnaround delay.
+    quiet_until: Instant,
+    tx: Vec<u8>,
+    rx: Vec<u8>,
+    counters: LineCounters,
+}
+
+fn device_gone() -> io::Error {
+    io::Error::new(
+        io::ErrorKind::UnexpectedEof,
+        "the port reads 0 bytes (device gone)",
+    )
+}
+
+fn port_lost(result: io::Result<usize>) -> Result<usize, TxError> {
+    match result {
+        Ok(0) => Err(TxError::PortLost(device_gone())),
+        Ok(n) => Ok(n),
+        Err(e) => Err(TxError::PortLost(e)),
+    }
+}
+
+impl<T: Transport> RtuMaster<T> {
+    /// A master on a freshly opened port. What the line was doing before is unknown, so the first
+    /// frame waits a full gap.
+    pub fn new(port: T, timing: MasterTiming) -> Self {
+        RtuMaster {
+            port,
+            timing,
+            quiet_until: Instant::now() + timing.gap,
+            tx: Vec::with_capacity(MAX_FRAME_LEN),
+            rx: Vec::with_capacity(MAX_FRAME_LEN),
+            counters: LineCounters::default(),
+        }
+    }
+
+    pub fn counters(&self) -> LineCounters {
+        self.counters
+    }
+
+    pub fn timing(&self) -> &MasterTiming {
+        &self.timing
+    }
+
+    /// Watch the line while no transaction runs: stray bytes push the next frame back by a gap,
+    /// and a lost port is reported. Returns only when the port is lost. Cancel-safe.
+    pub async fn watch_idle(&mut self) -> io::Error {
+        loop {
+            self.rx.clear();
+            match self.port.recv(&mut self.rx).await {
+                Ok(0) => return device_gone(),
+                Ok(n) => self.saw_stray_bytes(n),
+                Err(e) => return e,
+            }
+        }
+    }
+
+    fn saw_stray_bytes(&mut self, n: usize) {
+        self.counters.stray_bytes += n as u64;
+        self.quiet_until = Instant::now() + self.timing.gap;
+    }
+
+    /// Send `request` (a PDU) to `slave` and return the PDU of the frame that answers it, a normal
+    /// reply or the slave's exception, byte for byte.
+    pub async fn transact(
+        &mut self,
+        slave: u8,
+        request: &[u8],
+        response_timeout: Duration,
+    ) -> Result<Vec<u8>, TxError> {
+        let end_of_tx = self.send_frame(slave, request, response_timeout).await?;
+        self.read_reply(slave, request, end_of_tx, response_timeout)
+            .await
+    }
+
+    /// Send `request` to every slave. Nobody answers; the line stays silent for `turnaround`
+    /// after the frame so slaves can carry it out.
+    pub async fn broadcast(
+        &mut self,
+        request: &[u8],
+        turnaround: Duration,
+        busy_limit: Duration,
+    ) -> Result<(), TxError> {
+        let end_of_tx = self.send_frame(BROADCAST, request, busy_limit).await?;
+        self.quiet_until = self.quiet_until.max(end_of_tx + turnaround);
+        Ok(())
+    }
+
+    /// Wait for the gap, clear the input, send, and return when the last byte will have left the
+    /// wire (the kernel returns from write() before that).
+    async fn send_frame(
+        &mut self,
+        address: u8,
+        pdu: &[u8],
+        busy_limit: Duration,
+    ) -> Result<Instant, TxError> {
+        self.wait_for_gap(busy_limit).await?;
+        self.port.clear_input().map_err(TxError::PortLost)?;
+        frame::encode_into(&mut self.tx, address, pdu);
+        self.port.send(&self.tx).await.map_err(TxError::PortLost)?;
+        let end_of_tx = Instant::now() + self.timing.line.frame_time(self.tx.len());
+        self.quiet_until = end_of_tx + self.timing.gap;
+        Ok(end_of_tx)
+    }
+
+    /// Wait until the line has been silent for the gap, reading (and discarding) whatever
+    /// arrives meanwhile, since every byte restarts the gap. Gives up if stray bytes keep the line
+    /// busy for `busy_limit` past the moment it should have been quiet.
+    async fn wait_for_gap(&mut self, busy_limit: Duration) -> Result<(), TxError> {
+        let give_up_at = self.quiet_until.max(Instant::now()) + busy_limit;
+        while Instant::now() < self.quiet_until {
+            self.rx.clear();
+            tokio::select! {
+                biased;
+                received = self.port.recv(&mut self.rx) => {
+                    let n = port_lost(received)?;
+                    self.saw_stray_bytes(n);
+                    if self.quiet_until > give_up_at {
+                        return Err(TxError::LineBusy);
+                    }
+                }
+                () = sleep_until(self.quiet_until) => return Ok(()),
+            }
+        }
+        Ok(())
+    }
+
+    async fn read_reply(
+        &mut self,
+        slave: u8,
+        request: &[u8],
+        end_of_tx: Instant,
+        response_timeout: Duration,
+    ) -> Result<Vec<u8>, TxError> {
+        self.rx.clear();
+        // The reply must start within the response timeout; once it has, it gets the time its
+        // length needs on the wire, plus the silence allowance for bursty adapters.
+        let first_byte_by = end_of_tx + response_timeout;
+        let mut last_byte_at = end_of_tx;
+        loop {
+            let len = frame::reply_len(&self.rx, slave, request);
+            if let FrameLen::Exact(n) = len {
+                if self.rx.len() >= n {
+                    match frame::check_reply(&self.rx[..n], slave, request) {
+                        Verdict::Answer => return Ok(frame::pdu_of(&self.rx[..n]).to_vec()),
+                        Verdict::Foreign => {
+                            self.counters.foreign_frames += 1;
+                            self.rx.drain(..n);
+                            continue;
+                        }
+                        Verdict::Corrupt => return Err(TxError::Crc),
+                    }
+                }
+            }
+            let wait_until = match len {
+                _ if self.rx.is_empty() => first_byte_by,
+                FrameLen::Invalid => return Err(TxError::Frame),
+                FrameLen::Need(n) | FrameLen::Exact(n) => {
+                    first_byte_by + self.timing.line.frame_time(n) + self.timing.silence
+                }
+                FrameLen::BySilence => last_byte_at + self.timing.silence,
+            };
+            if self.rx.len() > MAX_FRAME_LEN {
+                return Err(TxError::Frame);
+            }
+            tokio::select! {
+                received = self.port.recv(&mut self.rx) => {
+                    port_lost(received)?;
+                    last_byte_at = Instant::now();
+                    self.quiet_until = last_byte_at + self.timing.gap;
+                }
+                () = sleep_until(wait_until) => {
+                    if self.rx.is_empty() {
+                        return Err(TxError::Timeout);
+                    }
+                    if len != FrameLen::BySilence {
+                        return Err(TxError::Frame);
+                    }
+                    match frame::check_reply(&self.rx, slave, request) {
+                        Verdict::Answer => return Ok(frame::pdu_of(&self.rx).to_vec()),
+                        Verdict::Foreign => {
+                            self.counters.foreign_frames += 1;
+                            self.rx.clear();
+                        }
+                        Verdict::Corrupt => return Err(TxError::Crc),
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rtu::{Parity, SerialFormat};
+    use crate::sim::{SimLine, SimPort, SimSlave, Transmission};
+    use std::collections::VecDeque;
+
+    /// tokio's timer wakes sleepers on whole milliseconds, paused clock included.
+    const TIMER_RESOLUTION: Duration = Duration::from_millis(1);
+    const TIMEOUT: Duration = Duration::from_millis(100);
+    const FOREVER: Duration = Duration::from_secs(3600);
+    /// Read two holding registers from 0004H (Goodrive300 manual 10.4.1).
+    const READ: [u8; 5] = [0x03, 0x00, 0x04, 0x00, 0x02];
+    /// Its answer: 0004H = 1388H, 0005H = 0.
+    const READ_ANSWER: [u8; 6] = [0x03, 0x04, 0x13, 0x88, 0x00, 0x00];
+
+    /// Answers each request to its own address with the next planned transmission; `None`
+    /// stays silent. Broadcasts use up no plan.
+    struct Scripted(VecDeque<Option<Transmission>>);
+
+    impl SimSlave for Scripted {
+        fn handle(&mut self, address: u8, _: &[u8], _: Instant) -> Option<Transmission> {
+            if address == frame::BROADCAST {
+                return None;
+            }
+            self.0.pop_front().flatten()
+        }
+    }
+
+    fn reply(address: u8, pdu: &[u8], delay: Duration) -> Option<Transmission> {
+        Some(Transmission {
+            bytes: frame::encode(address, pdu),
+            delay,
+        })
+    }
+
+    fn line(slaves: Vec<(u8, Vec<Option<Transmission>>)>) -> (SimLine, RtuMaster<SimPort>) {
+        let line = SimLine::new(LineTiming::new(&SerialFormat {
+            baud: 9600,
+            data_bits: 8,
+            parity: Parity::Even,
+            stop_bits: 1,
+        }));
+        for (address, plan) in slaves {
+            line.add_slave(address, Scripted(plan.into()));
+        }
+        let timing = MasterTiming::new(line.timing(), Duration::ZERO, Duration::ZERO);
+        let master = RtuMaster::new(line.open().unwrap(), timing);
+        (line, master)
+    }
+
+    /// Sends one request and returns the outcome with the time from the end of transmission.
+    async fn timed(
+        master: &mut RtuMaster<SimPort>,
+        slave: u8,
+        request: &[u8],
+        timeout: Duration,
+    ) -> (Result<Vec<u8>, TxError>, Duration) {
+        master.wait_for_gap(FOREVER).await.unwrap();
+        let sent_at = Instant::now();
+        let result = master.transact(slave, request, timeout).await;
+        let end_of_tx = sent_at + master.timing.line.frame_time(request.len() + 3);
+        (result, Instant::now() - end_of_tx)
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_silent_slave_times_out_after_its_timeout_counted_from_the_end_of_transmission() {
+        let (_line, mut master) = line(vec![(1, vec![None])]);
+        let (result, after) = timed(&mut master, 1, &READ, TIMEOUT).await;
+        assert!(matches!(result, Err(TxError::Timeout)), "{result:?}");
+        assert!(
+            after >= TIMEOUT,
+            "gave up {after:?} after the frame, before the timeout"
+        );
+        assert!(
+            after <= TIMEOUT + TIMER_RESOLUTION,
+            "gave up late: {after:?}"
+        );
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn an_exception_is_returned_as_soon_as_its_five_bytes_are_in() {
+        let (line, mut master) = line(vec![(1, vec![reply(1, &[0x83, 0x02], Duration::ZERO)])]);
+        let (result, after) = timed(&mut master, 1, &READ, FOREVER).await;
+        assert_eq!(result.unwrap(), [0x83, 0x02]);
+        let timing = line.timing();
+        assert!(
+            after <= timing.t35 + timing.frame_time(5) + TIMER_RESOLUTION,
+            "{after:?}"
+        );
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn vendor_exception_codes_pass_unchanged() {
+        let (_line, mut master) = line(vec![(1, vec![reply(1, &[0x86, 0x07], Duration::ZERO)])]);
+        let result = master
+            .transact(1, &[0x06, 0x20, 0x00, 0x00, 0x01], FOREVER)
+            .await;
+        assert_eq!(result.unwrap(), [0x86, 0x07]);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_reply_from_another_address_is_discarded() {
+        let (_line, mut master) = line(vec![(1, vec![reply(9, &READ_ANSWER, Duration::ZERO)])]);
+        let result = master.transact(1, &READ, TIMEOUT).await;
+        assert!(matches!(result, Err(TxError::Timeout)), "{result:?}");
+        assert_eq!(master.counters().foreign_frames, 1);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_foreign_frame_before_the_answer_does_not_hide_it() {
+        let mut both = frame::encode(9, &READ_ANSWER);
+        both.extend(frame::encode(1, &READ_ANSWER));
+        let plan = vec![Some(Transmission {
+            bytes: both,
+            delay: Duration::ZERO,
+        })];
+        let (_line, mut master) = line(vec![(1, plan)]);
+        assert_eq!(
+            master.transact(1, &READ, TIMEOUT).await.unwrap(),
+            READ_ANSWER
+        );
+        assert_eq!(master.counters().foreign_frames, 1);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_reply_with_a_bad_crc_is_not_returned() {
+        let mut bytes = frame::encode(1, &READ_ANSWER);
+        *bytes.last_mut().unwrap() ^= 0x01;
+        let plan = vec![Some(Transmission {
+            bytes,
+            delay: Duration::ZERO,
+        })];
+        let (_line, mut master) = line(vec![(1, plan)]);
+        let result = master.transact(1, &READ, FOREVER).await;
+        assert!(matches!(result, Err(TxError::Crc)), "{result:?}");
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_late_reply_never_answers_the_next_request() {
+        let late = TIMEOUT * 3 / 2;
+        let (line, mut master) = line(vec![
+            (1, vec![reply(1, &READ_ANSWER, late)]),
+            // Slave 2 answers the same request with other data, after the late reply has come.
+            (2, vec![reply(2, &[0x03, 0x04, 0, 2, 0, 2], TIMEOUT)]),
+        ]);
+        let first = master.transact(1, &READ, TIMEOUT).await;
+        assert!(matches!(first, Err(TxError::Timeout)), "{first:?}");
+        let second = master.transact(2, &READ, TIMEOUT * 2).await.unwrap();
+        assert_eq!(second, [0x03, 0x04, 0, 2, 0, 2]);
+        assert_eq!(
+            master.counters().foreign_frames,
+            1,
+            "the late reply was seen and dropped"
+        );
+        assert_eq!(line.stats().collisions, 0);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_late_reply_from_the_same_slave_does_not_answer_a_different_read() {
+        let late = TIMEOUT * 3 / 2;
+        let other_read = [0x03, 0x00, 0x10, 0x00, 0x01];
+        let (_line, mut master) = line(vec![(
+            1,
+            vec![
+                reply(1, &READ_ANSWER, late),
+                reply(1, &[0x03, 0x02, 0xAB, 0xCD], TIMEOUT),
+            ],
+        )]);
+        assert!(master.transact(1, &READ, TIMEOUT).await.is_err());
+        let second = master.transact(1, &other_read, TIMEOUT * 2).await.unwrap();
+        assert_eq!(second, [0x03, 0x02, 0xAB, 0xCD]);
+        assert_eq!(master.counters().foreign_frames, 1);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn user_defined_replies_end_after_t35_of_silence() {
+        let pdu = [0x41, 0xDE, 0xAD, 0xBE, 0xEF];
+        let (line, mut master) = line(vec![(1, vec![reply(1, &pdu, Duration::ZERO)])]);
+        let (result, after) = timed(&mut master, 1, &[0x41, 0x01], FOREVER).await;
+        assert_eq!(result.unwrap(), pdu);
+        let timing = line.timing();
+        let reply_done = timing.t35 + timing.frame_time(pdu.len() + 3);
+        assert!(after >= reply_done + timing.t35, "{after:?}");
+        assert!(
+            after <= reply_done + timing.t35 + 2 * TIMER_RESOLUTION,
+            "{after:?}"
+        );
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn every_frame_waits_t35_after_the_last_byte_on_the_line() {
+        let plan = (0..20)
+            .map(|_| reply(1, &READ_ANSWER, Duration::ZERO))
+            .collect();
+        let (line, mut master) = line(vec![(1, plan)]);
+        for _ in 0..20 {
+            master.transact(1, &READ, TIMEOUT).await.unwrap();
+        }
+        let stats = line.stats();
+        assert_eq!(stats.gap_violations, 0);
+        assert!(stats.min_gap.unwrap() >= line.timing().t35);
+        // No fixed pauses: the sim hands over the last byte on the next timer tick, and the gap
+        // sleep ends on a tick, so at most two ticks are added.
+        assert!(
+            stats.min_gap.unwrap() <= line.timing().t35 + 2 * TIMER_RESOLUTION,
+            "{:?}",
+            stats.min_gap
+        );
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_broadcast_keeps_the_line_silent_for_the_turnaround_delay() {
+        let (line, mut master) = line(vec![(1, vec![reply(1, &READ_ANSWER, Duration::ZERO)])]);
+        let turnaround = Duration::from_millis(100);
+        master
+            .broadcast(&[0x06, 0x00, 0x01, 0x00, 0x01], turnaround, FOREVER)
+            .await
+            .unwrap();
+        master.transact(1, &READ, TIMEOUT).await.unwrap();
+        let frames = line.frames();
+        assert_eq!(frames[0].bytes[0], 0, "the broadcast went to address 0");
+        let silence = frames[1].start - frames[0].end;
+        assert!(
+            silence >= turnaround && silence <= turnaround + TIMER_RESOLUTION,
+            "{silence:?}"
+        );
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn stray_bytes_push_the_next_frame_back() {
+        let (line, mut master) = line(vec![
+            (1, vec![reply(1, &READ_ANSWER, TIMEOUT * 3 / 2)]),
+            (2, vec![reply(2, &READ_ANSWER, Duration::ZERO)]),
+        ]);
+        assert!(master.transact(1, &READ, TIMEOUT).await.is_err());
+        // Slave 1's late reply goes on the wire while the master is idle.
+        let watching = tokio::time::timeout(TIMEOUT, master.watch_idle()).await;
+        assert!(watching.is_err(), "the port is still there");
+        assert!(master.counters().stray_bytes > 0);
+        master.transact(2, &READ, TIMEOUT).await.unwrap();
+        assert_eq!(line.stats().gap_violations, 0);
+        assert_eq!(line.stats().collisions, 0);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn an_unplugged_port_is_reported_lost() {
+        let (line, mut master) = line(vec![(1, vec![None])]);
+        line.unplug();
+        let result = master.transact(1, &READ, TIMEOUT).await;
+        assert!(matches!(result, Err(TxError::PortLost(_))), "{result:?}");
+    }
+}

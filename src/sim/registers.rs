@@ -1,0 +1,421 @@
+//! A plain simulated slave: four register banks and the standard function codes, answered per the
+//! Modbus Application Protocol V1.1b3 (quantity limits, exception codes, broadcast writes).
+//! Storage is sparse, so a line of 247 such slaves costs little.
+//!
+//! Contents: coils and holding registers start at 0 and keep what is written. Input register `a`
+//! reads `a`, and discrete input `a` is on when `a` is odd, so tests know what to expect.
+
+use super::{SimSlave, Transmission};
+use crate::pdu::EXCEPTION_BIT;
+use crate::rtu::frame;
+use std::collections::{BTreeMap, BTreeSet};
+use std::time::Duration;
+use tokio::time::Instant;
+
+const ILLEGAL_FUNCTION: u8 = 0x01;
+const ILLEGAL_DATA_ADDRESS: u8 = 0x02;
+const ILLEGAL_DATA_VALUE: u8 = 0x03;
+
+const MAX_READ_BITS: usize = 2000;
+const MAX_READ_REGISTERS: usize = 125;
+const MAX_WRITE_BITS: usize = 1968;
+const MAX_WRITE_REGISTERS: usize = 123;
+const MAX_READ_WRITE_REGISTERS: usize = 121;
+
+const VENDOR_NAME: &[u8] = b"modbus-gateway";
+const PRODUCT_CODE: &[u8] = b"SIM-REGISTERS";
+const REVISION: &[u8] = env!("CARGO_PKG_VERSION").as_bytes();
+
+#[derive(Debug, Default)]
+pub struct RegisterBank {
+    coils: BTreeSet<u16>,
+    holding: BTreeMap<u16, u16>,
+    processing_delay: Duration,
+}
+
+type Reply = Result<Vec<u8>, u8>;
+
+fn word(pdu: &[u8], at: usize) -> Option<u16> {
+    Some(u16::from_be_bytes([*pdu.get(at)?, *pdu.get(at + 1)?]))
+}
+
+/// Start address and quantity at bytes 1..5, checked against `max` and the end of the address space.
+fn range(pdu: &[u8], max: usize) -> Result<(u16, usize), u8> {
+    let (start, quantity) = match (word(pdu, 1), word(pdu, 3)) {
+        (Some(start), Some(quantity)) => (start, usize::from(quantity)),
+        _ => return Err(ILLEGAL_DATA_VALUE),
+    };
+    if quantity == 0 || quantity > max {
+        return Err(ILLEGAL_DATA_VALUE);
+    }
+    if usize::from(start) + quantity > 0x1_0000 {
+        return Err(ILLEGAL_DATA_ADDRESS);
+    }
+    Ok((start, quantity))
+}
+
+fn addresses(start: u16, quantity: usize) -> impl Iterator<Item = u16> {
+    (0..quantity).map(move |i| start.wrapping_add(i as u16))
+}
+
+fn pack_bits(bits: impl Iterator<Item = bool>, quantity: usize) -> Vec<u8> {
+    let mut bytes = vec![0u8; quantity.div_ceil(8)];
+    for (i, on) in bits.enumerate() {
+        if on {
+            bytes[i / 8] |= 1 << (i % 8);
+        }
+    }
+    bytes
+}
+
+fn with_count(function: u8, data: Vec<u8>) -> Vec<u8> {
+    let mut reply = Vec::with_capacity(data.len() + 2);
+    reply.push(function);
+    reply.push(data.len() as u8);
+    reply.extend(data);
+    reply
+}
+
+fn input_register(address: u16) -> u16 {
+    address
+}
+
+fn discrete_input(address: u16) -> bool {
+    address % 2 == 1
+}
+
+impl RegisterBank {
+    pub fn new(processing_delay: Duration) -> Self {
+        RegisterBank {
+            processing_delay,
+            ..RegisterBank::default()
+        }
+    }
+
+    fn holding(&self, address: u16) -> u16 {
+        self.holding.get(&address).copied().unwrap_or(0)
+    }
+
+    fn set_holding(&mut self, address: u16, value: u16) {
+        if value == 0 {
+            self.holding.remove(&address);
+        } else {
+            self.holding.insert(address, value);
+        }
+    }
+
+    fn set_coil(&mut self, address: u16, on: bool) {
+        if on {
+            self.coils.insert(address);
+        } else {
+            self.coils.remove(&address);
+        }
+    }
+
+    fn read_registers(&self, pdu: &[u8], read: impl Fn(&Self, u16) -> u16) -> Reply {
+        let (start, quantity) = range(pdu, MAX_READ_REGISTERS)?;
+        let data = addresses(start, quantity)
+            .flat_map(|a| read(self, a).to_be_bytes())
+            .collect();
+        Ok(with_count(pdu[0], data))
+    }
+
+    fn read_bits(&self, pdu: &[u8], read: impl Fn(&Self, u16) -> bool) -> Reply {
+        let (start, quantity) = range(pdu, MAX_READ_BITS)?;
+        let bits = addresses(start, quantity).map(|a| read(self, a));
+        Ok(with_count(pdu[0], pack_bits(bits, quantity)))
+    }
+
+    fn write_coil(&mut self, pdu: &[u8]) -> Reply {
+        let (Some(address), Some(value)) = (word(pdu, 1), word(pdu, 3)) else {
+            return Err(ILLEGAL_DATA_VALUE);
+        };
+        match value {
+            0xFF00 => self.set_coil(address, true),
+            0x0000 => self.set_coil(address, false),
+            _ => return Err(ILLEGAL_DATA_VALUE),
+        }
+        Ok(pdu[..5].to_vec())
+    }
+
+    fn write_register(&mut self, pdu: &[u8]) -> Reply {
+        let (Some(address), Some(value)) = (word(pdu, 1), word(pdu, 3)) else {
+            return Err(ILLEGAL_DATA_VALUE);
+        };
+        self.set_holding(address, value);
+        Ok(pdu[..5].to_vec())
+    }
+
+    fn write_coils(&mut self, pdu: &[u8]) -> Reply {
+        let (start, quantity) = range(pdu, MAX_WRITE_BITS)?;
+        let values = pdu.get(6..).ok_or(ILLEGAL_DATA_VALUE)?;
+        if usize::from(pdu[5]) != quantity.div_ceil(8) || values.len() != usize::from(pdu[5]) {
+            return Err(ILLEGAL_DATA_VALUE);
+        }
+        for (i, address) in addresses(start, quantity).enumerate() {
+            self.set_coil(address, values[i / 8] & (1 << (i % 8)) != 0);
+        }
+        Ok(pdu[..5].to_vec())
+    }
+
+    fn write_registers_at(&mut self, start: u16, quantity: usize, values: &[u8]) -> Result<(), u8> {
+        if values.len() != quantity * 2 {
+            return Err(ILLEGAL_DATA_VALUE);
+        }
+        for (address, value) in addresses(start, quantity).zip(values.chunks_exact(2)) {
+            self.set_holding(address, u16::from_be_bytes([value[0], value[1]]));
+        }
+        Ok(())
+    }
+
+    fn write_registers(&mut self, pdu: &[u8]) -> Reply {
+        let (start, quantity) = range(pdu, MAX_WRITE_REGISTERS)?;
+        let count = *pdu.get(5).ok_or(ILLEGAL_DATA_VALUE)?;
+        if usize::from(count) != quantity * 2 {
+            return Err(ILLEGAL_DATA_VALUE);
+        }
+        self.write_registers_at(start, quantity, &pdu[6..])?;
+        Ok(pdu[..5].to_vec())
+    }
+
+    fn mask_write_register(&mut self, pdu: &[u8]) -> Reply {
+        let (Some(address), Some(and), Some(or)) = (word(pdu, 1), word(pdu, 3), word(pdu, 5))
+        else {
+            return Err(ILLEGAL_DATA_VALUE);
+        };
+        let current = self.holding(address);
+        self.set_holding(address, (current & and) | (or & !and));
+        Ok(pdu[..7].to_vec())
+    }
+
+    fn read_write_registers(&mut self, pdu: &[u8]) -> Reply {
+        let (read_start, read_quantity) = range(pdu, MAX_READ_REGISTERS)?;
+        let (write_start, write_quantity) = range(&pdu[4..], MAX_READ_WRITE_REGISTERS)?;
+        let count = *pdu.get(9).ok_or(ILLEGAL_DATA_VALUE)?;
+        if usize::from(count) != write_quantity * 2 {
+            return Err(ILLEGAL_DATA_VALUE);
+        }
+        // The spec performs the write before the read.
+        self.write_registers_at(write_start, write_quantity, &pdu[10..])?;
+        let data = addresses(read_start, read_quantity)
+            .flat_map(|a| self.holding(a).to_be_bytes())
+            .collect();
+        Ok(with_count(pdu[0], data))
+    }
+
+    fn diagnostics(&self, pdu: &[u8]) -> Reply {
+        match word(pdu, 1) {
+            // Return query data: the request comes back unchanged.
+            Some(0x0000) => Ok(pdu.to_vec()),
+            _ => Err(ILLEGAL_FUNCTION),
+        }
+    }
+
+    fn report_server_id(&self, address: u8) -> Reply {
+        let mut data = vec![address, 0xFF];
+        data.extend_from_slice(PRODUCT_CODE);
+        Ok(with_count(0x11, data))
+    }
+
+    fn read_device_identification(&self, pdu: &[u8]) -> Reply {
+        let objects: [&[u8]; 3] = [VENDOR_NAME, PRODUCT_CODE, REVISION];
+        let (Some(&read_code), Some(&object_id)) = (pdu.get(2), pdu.get(3)) else {
+            return Err(ILLEGAL_DATA_VALUE);
+        };
+        let wanted: Vec<u8> = match read_code {
+            // Basic stream: every object from the one asked for.
+            0x01 => (object_id..3).collect(),
+            0x04 if usize::from(object_id) < objects.len() => vec![object_id],
+            0x04 => return Err(ILLEGAL_DATA_ADDRESS),
+            _ => return Err(ILLEGAL_DATA_VALUE),
+        };
+        let mut reply = vec![0x2B, 0x0E, read_code, 0x01, 0x00, 0x00, wanted.len() as u8];
+        for id in wanted {
+            let value = objects[usize::from(id)];
+            reply.push(id);
+            reply.push(value.len() as u8);
+            reply.extend_from_slice(value);
+        }
+        Ok(reply)
+    }
+
+    /// Answer a request PDU; `Err` carries the exception code.
+    pub fn respond(&mut self, address: u8, pdu: &[u8]) -> Reply {
+        let Some(&function) = pdu.first() else {
+            return Err(ILLEGAL_FUNCTION);
+        };
+        match function {
+            0x01 => self.read_bits(pdu, |bank, a| bank.coils.contains(&a)),
+            0x02 => self.read_bits(pdu, |_, a| discrete_input(a)),
+            0x03 => self.read_registers(pdu, RegisterBank::holding),
+            0x04 => self.read_registers(pdu, |_, a| input_register(a)),
+            0x05 => self.write_coil(pdu),
+            0x06 => self.write_register(pdu),
+            0x07 => Ok(vec![0x07, 0x00]),
+            0x08 => self.diagnostics(pdu),
+            0x0F => self.write_coils(pdu),
+            0x10 => self.write_registers(pdu),
+            0x11 => self.report_server_id(address),
+            0x16 => self.mask_write_register(pdu),
+            0x17 => self.read_write_registers(pdu),
+            0x2B if pdu.get(1) == Some(&0x0E) => self.read_device_identification(pdu),
+            _ => Err(ILLEGAL_FUNCTION),
+        }
+    }
+}
+
+impl SimSlave for RegisterBank {
+    fn handle(&mut self, address: u8, request: &[u8], _at: Instant) -> Option<Transmission> {
+        let reply = self.respond(address, request);
+        if address == frame::BROADCAST {
+            return None;
+        }
+        let pdu = reply.unwrap_or_else(|code| vec![request[0] | EXCEPTION_BIT, code]);
+        Some(Transmission {
+            bytes: frame::encode(address, &pdu),
+            delay: self.processing_delay,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn bank() -> RegisterBank {
+        RegisterBank::new(Duration::ZERO)
+    }
+
+    #[test]
+    fn holding_registers_keep_what_is_written() {
+        let mut b = bank();
+        assert_eq!(
+            b.respond(1, &[0x06, 0x00, 0x04, 0x13, 0x88]),
+            Ok(vec![0x06, 0x00, 0x04, 0x13, 0x88])
+        );
+        assert_eq!(
+            b.respond(1, &[0x10, 0x00, 0x05, 0x00, 0x01, 0x02, 0x00, 0x32]),
+            Ok(vec![0x10, 0x00, 0x05, 0x00, 0x01])
+        );
+        assert_eq!(
+            b.respond(1, &[0x03, 0x00, 0x04, 0x00, 0x02]),
+            Ok(vec![0x03, 0x04, 0x13, 0x88, 0x00, 0x32])
+        );
+    }
+
+    #[test]
+    fn input_registers_and_discrete_inputs_follow_their_address() {
+        let mut b = bank();
+        assert_eq!(
+            b.respond(1, &[0x04, 0x01, 0x00, 0x00, 0x02]),
+            Ok(vec![0x04, 0x04, 0x01, 0x00, 0x01, 0x01])
+        );
+        // Inputs 0..9: odd ones on -> 0b1010_1010, 0b10.
+        assert_eq!(
+            b.respond(1, &[0x02, 0x00, 0x00, 0x00, 0x0A]),
+            Ok(vec![0x02, 0x02, 0xAA, 0x02])
+        );
+    }
+
+    #[test]
+    fn coils_pack_lsb_first() {
+        let mut b = bank();
+        assert_eq!(
+            b.respond(1, &[0x05, 0x00, 0x02, 0xFF, 0x00]),
+            Ok(vec![0x05, 0x00, 0x02, 0xFF, 0x00])
+        );
+        assert_eq!(
+            b.respond(1, &[0x0F, 0x00, 0x08, 0x00, 0x02, 0x01, 0x03]),
+            Ok(vec![0x0F, 0x00, 0x08, 0x00, 0x02])
+        );
+        assert_eq!(
+            b.respond(1, &[0x01, 0x00, 0x00, 0x00, 0x0A]),
+            Ok(vec![0x01, 0x02, 0x04, 0x03])
+        );
+        assert_eq!(
+            b.respond(1, &[0x05, 0x00, 0x02, 0x12, 0x34]),
+            Err(ILLEGAL_DATA_VALUE)
+        );
+    }
+
+    #[test]
+    fn mask_write_and_read_write_follow_the_spec_examples() {
+        let mut b = bank();
+        b.respond(1, &[0x06, 0x00, 0x04, 0x00, 0x12]).unwrap();
+        // Spec 6.16: current 0x12, AND 0xF2, OR 0x25 -> 0x17.
+        b.respond(1, &[0x16, 0x00, 0x04, 0x00, 0xF2, 0x00, 0x25])
+            .unwrap();
+        assert_eq!(b.holding(4), 0x17);
+        assert_eq!(
+            b.respond(
+                1,
+                &[0x17, 0x00, 0x04, 0x00, 0x01, 0x00, 0x04, 0x00, 0x01, 0x02, 0xAB, 0xCD]
+            ),
+            Ok(vec![0x17, 0x02, 0xAB, 0xCD])
+        );
+    }
+
+    #[test]
+    fn misuse_gets_the_spec_exception() {
+        let mut b = bank();
+        assert_eq!(
+            b.respond(1, &[0x03, 0x00, 0x00, 0x00, 0x7E]),
+            Err(ILLEGAL_DATA_VALUE)
+        );
+        assert_eq!(
+            b.respond(1, &[0x03, 0x00, 0x00, 0x00, 0x00]),
+            Err(ILLEGAL_DATA_VALUE)
+        );
+        assert_eq!(
+            b.respond(1, &[0x03, 0xFF, 0xFF, 0x00, 0x02]),
+            Err(ILLEGAL_DATA_ADDRESS)
+        );
+        assert_eq!(
+            b.respond(1, &[0x10, 0x00, 0x00, 0x00, 0x02, 0x02, 0, 1]),
+            Err(ILLEGAL_DATA_VALUE)
+        );
+        assert_eq!(b.respond(1, &[0x41, 0x01]), Err(ILLEGAL_FUNCTION));
+        assert_eq!(
+            b.respond(1, &[0x08, 0x00, 0x01, 0x00, 0x00]),
+            Err(ILLEGAL_FUNCTION)
+        );
+        assert_eq!(b.respond(1, &[0x03]), Err(ILLEGAL_DATA_VALUE));
+    }
+
+    #[test]
+    fn identification_answers_report_server_id_and_device_id() {
+        let mut b = bank();
+        let id = b.respond(7, &[0x11]).unwrap();
+        assert_eq!(&id[..4], &[0x11, 2 + PRODUCT_CODE.len() as u8, 7, 0xFF]);
+        let device = b.respond(7, &[0x2B, 0x0E, 0x04, 0x01]).unwrap();
+        assert_eq!(
+            &device[..9],
+            &[
+                0x2B,
+                0x0E,
+                0x04,
+                0x01,
+                0x00,
+                0x00,
+                0x01,
+                0x01,
+                PRODUCT_CODE.len() as u8
+            ]
+        );
+        let framed = frame::encode(7, &device);
+        assert_eq!(
+            frame::reply_len(&framed, 7, &[0x2B, 0x0E, 0x04, 0x01]),
+            frame::FrameLen::Exact(framed.len())
+        );
+    }
+
+    #[test]
+    fn broadcast_writes_are_applied_and_never_answered() {
+        let mut b = bank();
+        let now = Instant::now();
+        assert_eq!(b.handle(0, &[0x06, 0x00, 0x01, 0x00, 0x09], now), None);
+        assert_eq!(b.holding(1), 9);
+        let answer = b.handle(3, &[0x03, 0x00, 0x01, 0x00, 0x01], now).unwrap();
+        assert_eq!(answer.bytes, frame::encode(3, &[0x03, 0x02, 0x00, 0x09]));
+    }
+}
