@@ -80,7 +80,7 @@ pub struct Config {
     pub log: Log,
     #[serde(default)]
     pub bus: Vec<Bus>,
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub route: Vec<Route>,
 }
 

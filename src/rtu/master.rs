@@ -135,8 +135,8 @@ impl<T: Transport> RtuMaster<T> {
             .await
     }
 
-    /// Send `request` to every slave. Nobody answers; the line stays silent for `turnaround`
-    /// after the frame so slaves can carry it out.
+    /// Send `request` to every slave and return once its last byte has left the wire. Nobody
+    /// answers; the line stays silent for `turnaround` after the frame so slaves can carry it out.
     pub async fn broadcast(
         &mut self,
         request: &[u8],
@@ -145,6 +145,7 @@ impl<T: Transport> RtuMaster<T> {
     ) -> Result<(), TxError> {
         let end_of_tx = self.send_frame(BROADCAST, request, busy_limit).await?;
         self.quiet_until = self.quiet_until.max(end_of_tx + turnaround);
+        sleep_until(end_of_tx).await;
         Ok(())
     }
 

@@ -1,0 +1,258 @@
+//! One task per RS-485 line, the only owner of its port. It takes requests from a fair queue
+//! ([`queue`]), skips those whose master has gone or whose deadline passed, runs each through the
+//! RTU master with the slave's timeout and the retry policy, sends broadcasts, and when the port
+//! is lost answers 0x0A at once while it reopens the port with backoff. Knows nothing of TCP.
+
+pub mod port;
+pub mod queue;
+
+pub use port::{Device, Port};
+pub use queue::{FairQueue, Job, MasterId};
+
+use crate::config;
+use crate::error::{Outcome, RequestError};
+use crate::pdu;
+use crate::rtu::frame::BROADCAST;
+use crate::rtu::{LineTiming, MasterTiming, RtuMaster, TxError};
+use std::io;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::sync::oneshot;
+use tokio::time::{sleep_until, Instant};
+use tracing::{debug, info, warn};
+
+/// What the rest of the gateway holds of a bus: its queue and whether its port is open.
+#[derive(Clone)]
+pub struct BusHandle {
+    name: Arc<str>,
+    queue: Arc<FairQueue>,
+    up: Arc<AtomicBool>,
+    queue_timeout: Duration,
+}
+
+impl BusHandle {
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// True while the bus holds an open port.
+    pub fn is_up(&self) -> bool {
+        self.up.load(Ordering::Acquire)
+    }
+
+    pub fn queue_len(&self) -> usize {
+        self.queue.len()
+    }
+
+    /// Queue `pdu` for `slave`. The receiver yields the outcome; refusals (port down, queue full)
+    /// are in it at once.
+    pub fn submit(&self, master: MasterId, slave: u8, pdu: Vec<u8>) -> oneshot::Receiver<Outcome> {
+        let (reply, outcome) = oneshot::channel();
+        if !self.is_up() {
+            let _ = reply.send(Err(RequestError::PortDown));
+            return outcome;
+        }
+        let job = Job {
+            master,
+            slave,
+            pdu,
+            deadline: Instant::now() + self.queue_timeout,
+            reply,
+        };
+        if let Err(job) = self.queue.push(job) {
+            let _ = job.reply.send(Err(RequestError::QueueFull));
+        }
+        outcome
+    }
+
+    /// Drop the queued requests of a master that has gone.
+    pub fn forget(&self, master: MasterId) {
+        self.queue.forget(master);
+    }
+}
+
+/// Everything the bus task needs, derived once from its configuration.
+pub struct Bus {
+    settings: config::Bus,
+    timing: MasterTiming,
+    /// Response timeout per slave address, overrides applied.
+    timeouts: Box<[Duration; 256]>,
+    device: Device,
+    handle: BusHandle,
+}
+
+impl Bus {
+    pub fn new(settings: config::Bus, device: Device) -> Self {
+        let line = LineTiming::new(&settings.format());
+        let timing = MasterTiming::new(
+            line,
+            settings.inter_frame_delay.unwrap_or_default(),
+            settings.byte_timeout.unwrap_or_default(),
+        );
+        let mut timeouts = Box::new([settings.response_timeout; 256]);
+        for slave in &settings.slave {
+            if let Some(timeout) = slave.response_timeout {
+                timeouts[usize::from(slave.address)] = timeout;
+            }
+        }
+        let handle = BusHandle {
+            name: settings.name.as_str().into(),
+            queue: Arc::new(FairQueue::new(settings.queue_depth)),
+            up: Arc::new(AtomicBool::new(false)),
+            queue_timeout: settings.queue_timeout,
+        };
+        Bus {
+            settings,
+            timing,
+            timeouts,
+            device,
+            handle,
+        }
+    }
+
+    pub fn handle(&self) -> BusHandle {
+        self.handle.clone()
+    }
+
+    fn set_up(&self, up: bool) {
+        self.handle.up.store(up, Ordering::Release);
+    }
+
+    /// Run forever: open the port, serve it until it is lost, answer 0x0A while it is down,
+    /// reopen with backoff.
+    pub async fn run(self) {
+        let bus = &*self.handle.name;
+        let device = &self.settings.device;
+        let mut delay = self.settings.reopen_delay;
+        let mut down_since: Option<(Instant, u32)> = None;
+        loop {
+            match self.device.open() {
+                Ok(port) => {
+                    match down_since.take() {
+                        None => info!(bus, device, "serial port open"),
+                        Some((since, attempts)) => info!(
+                            bus,
+                            device,
+                            attempts,
+                            down_s = since.elapsed().as_secs_f64(),
+                            "serial port reopened"
+                        ),
+                    }
+                    delay = self.settings.reopen_delay;
+                    self.set_up(true);
+                    let error = self.serve(RtuMaster::new(port, self.timing)).await;
+                    self.set_up(false);
+                    warn!(bus, device, %error, "serial port lost; answering 0x0A and reopening");
+                    down_since = Some((Instant::now(), 0));
+                }
+                Err(error) => match &mut down_since {
+                    None => {
+                        warn!(bus, device, %error, "cannot open serial port; answering 0x0A and retrying");
+                        down_since = Some((Instant::now(), 1));
+                    }
+                    Some((_, attempts)) => {
+                        *attempts += 1;
+                        debug!(bus, device, %error, "serial port still cannot be opened");
+                    }
+                },
+            }
+            self.refuse_until(Instant::now() + delay).await;
+            delay = (delay * 2).min(self.settings.reopen_delay_max);
+        }
+    }
+
+    /// While the port is down: answer everything queued, and everything that arrives, with 0x0A.
+    async fn refuse_until(&self, until: Instant) {
+        for job in self.handle.queue.drain() {
+            let _ = job.reply.send(Err(RequestError::PortDown));
+        }
+        loop {
+            tokio::select! {
+                job = self.handle.queue.pop() => {
+                    let _ = job.reply.send(Err(RequestError::PortDown));
+                }
+                () = sleep_until(until) => return,
+            }
+        }
+    }
+
+    /// Serve requests on an open port until it is lost.
+    async fn serve(&self, mut master: RtuMaster<Port>) -> io::Error {
+        loop {
+            let job = tokio::select! {
+                biased;
+                job = self.handle.queue.pop() => job,
+                error = master.watch_idle() => return error,
+            };
+            if job.reply.is_closed() {
+                continue;
+            }
+            if Instant::now() > job.deadline {
+                debug!(
+                    bus = &*self.handle.name,
+                    slave = job.slave,
+                    "request expired in the queue"
+                );
+                let _ = job.reply.send(Err(RequestError::Expired));
+                continue;
+            }
+            match self.execute(&mut master, &job).await {
+                Ok(outcome) => {
+                    if let Err(error) = &outcome {
+                        debug!(bus = &*self.handle.name, slave = job.slave, function = job.pdu[0], %error, "request failed");
+                    }
+                    let _ = job.reply.send(outcome);
+                }
+                Err(error) => {
+                    let _ = job.reply.send(Err(RequestError::PortDown));
+                    return error;
+                }
+            }
+        }
+    }
+
+    /// Run one request on the line. `Err` only when the port is lost.
+    async fn execute(&self, master: &mut RtuMaster<Port>, job: &Job) -> Result<Outcome, io::Error> {
+        let settings = &self.settings;
+        if job.slave == BROADCAST {
+            return match master
+                .broadcast(
+                    &job.pdu,
+                    settings.turnaround_delay,
+                    settings.response_timeout,
+                )
+                .await
+            {
+                Ok(()) => Ok(Ok(settings
+                    .broadcast_reply
+                    .then(|| pdu::broadcast_response(&job.pdu))
+                    .flatten())),
+                Err(TxError::PortLost(error)) => Err(error),
+                Err(last) => Ok(Err(RequestError::NoResponse { attempts: 1, last })),
+            };
+        }
+        // A write whose reply was lost may have been carried out: sending it again could do it
+        // twice, so writes are retried only when the configuration says so.
+        let retries = if pdu::is_read_only(&job.pdu) || settings.retry_writes {
+            settings.retries
+        } else {
+            0
+        };
+        let timeout = self.timeouts[usize::from(job.slave)];
+        let mut attempts = 0;
+        loop {
+            attempts += 1;
+            match master.transact(job.slave, &job.pdu, timeout).await {
+                Ok(reply) => return Ok(Ok(Some(reply))),
+                Err(TxError::PortLost(error)) => return Err(error),
+                Err(last) if attempts > retries || job.reply.is_closed() => {
+                    return Ok(Err(RequestError::NoResponse { attempts, last }));
+                }
+                Err(error) => {
+                    debug!(bus = &*self.handle.name, slave = job.slave, attempts, %error, "retrying");
+                }
+            }
+        }
+    }
+}

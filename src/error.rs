@@ -1,0 +1,44 @@
+//! What fails one request (session-level failures live in `tcp`), and the one place such a
+//! failure becomes the exception code the master sees.
+
+use crate::pdu::ExceptionCode;
+use crate::rtu::TxError;
+
+/// The answer a request gets: a PDU to send back (a slave's reply, normal or exception), nothing
+/// (a broadcast with `broadcast_reply = false`), or a failure the gateway answers itself.
+pub type Outcome = Result<Option<Vec<u8>>, RequestError>;
+
+#[derive(Debug, thiserror::Error)]
+pub enum RequestError {
+    #[error("function code {0:#04x} is not valid in a request")]
+    InvalidFunction(u8),
+    #[error("no route for unit {0}")]
+    NoRoute(u8),
+    #[error("function code {0:#04x} cannot be broadcast")]
+    NotBroadcastable(u8),
+    #[error("serial port is down")]
+    PortDown,
+    #[error("bus queue is full")]
+    QueueFull,
+    #[error("not sent within the queue timeout")]
+    Expired,
+    #[error("no valid reply after {attempts} attempt(s): {last}")]
+    NoResponse { attempts: u32, last: TxError },
+}
+
+impl RequestError {
+    /// The exception the gateway answers with. Everything the gateway refuses on its own goes
+    /// through here.
+    pub fn exception_code(&self) -> ExceptionCode {
+        match self {
+            RequestError::InvalidFunction(_) | RequestError::NotBroadcastable(_) => {
+                ExceptionCode::IllegalFunction
+            }
+            RequestError::NoRoute(_) | RequestError::PortDown => {
+                ExceptionCode::GatewayPathUnavailable
+            }
+            RequestError::QueueFull | RequestError::Expired => ExceptionCode::ServerDeviceBusy,
+            RequestError::NoResponse { .. } => ExceptionCode::GatewayTargetFailedToRespond,
+        }
+    }
+}

@@ -1,0 +1,114 @@
+//! Wires a validated configuration into running parts: the simulated lines, one task per bus, the
+//! dispatcher and the listeners. Owns their tasks: dropping the gateway stops them.
+
+use crate::bus::{Bus, Device};
+use crate::config::{Config, SimModel};
+use crate::dispatch::Dispatcher;
+use crate::routing::Router;
+use crate::rtu::LineTiming;
+use crate::sim::{RegisterBank, SimLine};
+use crate::tcp::server::Shared;
+use crate::tcp::{self, SessionLimits};
+use std::collections::BTreeMap;
+use std::io;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use tokio::task::JoinSet;
+use tracing::info;
+
+#[derive(Debug, thiserror::Error)]
+pub enum StartError {
+    #[error("cannot listen on {addr}: {source}")]
+    Listen { addr: SocketAddr, source: io::Error },
+}
+
+pub struct Gateway {
+    local_addrs: Vec<SocketAddr>,
+    sim_lines: BTreeMap<String, SimLine>,
+    shared: Arc<Shared>,
+    tasks: JoinSet<()>,
+}
+
+fn sim_line(bus: &crate::config::Bus) -> SimLine {
+    let line = SimLine::new(LineTiming::new(&bus.format()));
+    for sim in &bus.sim_slave {
+        for address in sim.address.iter() {
+            match sim.model {
+                SimModel::Registers => {
+                    line.add_slave(address, RegisterBank::new(sim.processing_delay))
+                }
+            }
+        }
+    }
+    line
+}
+
+impl Gateway {
+    /// Bind every listener and start every bus. Fails only if a listen address cannot be bound;
+    /// a serial port that cannot be opened yet is retried by its bus while the rest serves.
+    pub async fn start(config: &Config) -> Result<Gateway, StartError> {
+        let listeners = tcp::bind(&config.server.listen)
+            .await
+            .map_err(|(addr, source)| StartError::Listen { addr, source })?;
+        let mut tasks = JoinSet::new();
+        let mut sim_lines = BTreeMap::new();
+        let mut handles = Vec::with_capacity(config.bus.len());
+        for settings in &config.bus {
+            let device = if settings.is_sim() {
+                let line = sim_line(settings);
+                sim_lines.insert(settings.name.clone(), line.clone());
+                Device::Sim(line)
+            } else {
+                Device::Serial {
+                    path: settings.device.clone(),
+                    format: settings.format(),
+                }
+            };
+            let bus = Bus::new(settings.clone(), device);
+            handles.push(bus.handle());
+            tasks.spawn(bus.run());
+        }
+        let limits = SessionLimits {
+            pipeline_depth: config.server.pipeline_depth,
+            idle_timeout: Some(config.server.idle_timeout).filter(|t| !t.is_zero()),
+        };
+        let dispatcher = Dispatcher::new(Router::new(config), handles);
+        let shared = Arc::new(Shared::new(
+            dispatcher,
+            limits,
+            config.server.max_connections,
+        ));
+        let local_addrs = listeners.iter().map(|l| l.addr).collect();
+        for listener in listeners {
+            info!(listen = %listener.addr, "accepting Modbus TCP masters");
+            tasks.spawn(tcp::serve(listener, shared.clone()));
+        }
+        Ok(Gateway {
+            local_addrs,
+            sim_lines,
+            shared,
+            tasks,
+        })
+    }
+
+    /// The bound listen addresses (port 0 in the configuration becomes the real port here).
+    pub fn local_addrs(&self) -> &[SocketAddr] {
+        &self.local_addrs
+    }
+
+    /// The simulated line of bus `name`, for tests and demos.
+    pub fn sim_line(&self, name: &str) -> Option<&SimLine> {
+        self.sim_lines.get(name)
+    }
+
+    /// Whether bus `name` has its port open.
+    pub fn bus_up(&self, name: &str) -> Option<bool> {
+        let buses = self.shared.dispatcher.buses();
+        buses.iter().find(|b| b.name() == name).map(|b| b.is_up())
+    }
+
+    /// Stop every task.
+    pub async fn shutdown(mut self) {
+        self.tasks.shutdown().await;
+    }
+}

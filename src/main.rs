@@ -1,0 +1,175 @@
+//! The `modbus-gateway` command: `run` (the default) serves the configured gateway until SIGINT or
+//! SIGTERM; `check-config` validates the file and prints the resolved configuration.
+
+use clap::{Parser, Subcommand};
+use modbus_gateway::config::{Config, DEFAULT_PATH, ENV_PREFIX};
+use modbus_gateway::rtu::{LineTiming, MasterTiming, Parity};
+use modbus_gateway::Gateway;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use tracing::{error, info};
+use tracing_subscriber::EnvFilter;
+
+/// Exit status for a configuration that cannot be used.
+const EXIT_CONFIG: u8 = 2;
+
+#[derive(Parser)]
+#[command(version, about = "Modbus TCP to Modbus RTU (RS-485) gateway")]
+struct Cli {
+    /// Configuration file (TOML). MBGW__SECTION__KEY environment variables override it.
+    #[arg(long, short, global = true, default_value = DEFAULT_PATH)]
+    config: PathBuf,
+    #[command(subcommand)]
+    command: Option<Command>,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run the gateway (the default).
+    Run,
+    /// Validate the configuration and print it resolved, defaults included.
+    CheckConfig,
+}
+
+/// The environment as UTF-8 pairs. A `MBGW__` variable that is not UTF-8 is an error, not skipped.
+fn environment() -> Result<Vec<(String, String)>, String> {
+    let mut vars = Vec::new();
+    for (name, value) in std::env::vars_os() {
+        let Some(name) = name.to_str().map(str::to_owned) else {
+            continue;
+        };
+        match value.into_string() {
+            Ok(value) => vars.push((name, value)),
+            Err(_) if name.starts_with(ENV_PREFIX) => {
+                return Err(format!("{name}: is not valid UTF-8"));
+            }
+            Err(_) => {}
+        }
+    }
+    Ok(vars)
+}
+
+fn load(path: &Path) -> Result<Config, ExitCode> {
+    let refuse = |reason: &dyn std::fmt::Display| {
+        eprintln!("modbus-gateway: {}: {reason}", path.display());
+        ExitCode::from(EXIT_CONFIG)
+    };
+    let env = environment().map_err(|e| refuse(&e))?;
+    Config::load(path, env).map_err(|errors| {
+        for e in &errors.0 {
+            refuse(e);
+        }
+        ExitCode::from(EXIT_CONFIG)
+    })
+}
+
+fn format_name(parity: Parity) -> char {
+    match parity {
+        Parity::None => 'N',
+        Parity::Even => 'E',
+        Parity::Odd => 'O',
+    }
+}
+
+fn ms(d: std::time::Duration) -> String {
+    format!("{:.3} ms", d.as_secs_f64() * 1e3)
+}
+
+/// The resolved configuration, preceded by what it means on each line.
+fn describe(path: &Path, config: &Config) -> String {
+    let mut out = format!("# {} is valid.\n", path.display());
+    for bus in &config.bus {
+        let format = bus.format();
+        let line = LineTiming::new(&format);
+        let master = MasterTiming::new(
+            line,
+            bus.inter_frame_delay.unwrap_or_default(),
+            bus.byte_timeout.unwrap_or_default(),
+        );
+        out += &format!(
+            "# bus {}: {} baud {}{}{}, character {}, t3.5 {}; frames start {} after the line \
+             falls silent; replies of unknown length end after {} of silence.\n",
+            bus.name,
+            format.baud,
+            format.data_bits,
+            format_name(format.parity),
+            format.stop_bits,
+            ms(line.char_time),
+            ms(line.t35),
+            ms(master.gap),
+            ms(master.silence),
+        );
+    }
+    out + "\n" + &config.to_toml()
+}
+
+fn init_logging(level: &str) {
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(level));
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .init();
+}
+
+async fn stop_signal() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        match signal(SignalKind::terminate()) {
+            Ok(mut term) => tokio::select! {
+                _ = term.recv() => {}
+                _ = tokio::signal::ctrl_c() => {}
+            },
+            Err(_) => {
+                let _ = tokio::signal::ctrl_c().await;
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+    }
+}
+
+fn run(config: Config) -> ExitCode {
+    init_logging(&config.log.level);
+    let runtime = match tokio::runtime::Runtime::new() {
+        Ok(runtime) => runtime,
+        Err(e) => {
+            error!(error = %e, "cannot start the runtime");
+            return ExitCode::FAILURE;
+        }
+    };
+    runtime.block_on(async {
+        let gateway = match Gateway::start(&config).await {
+            Ok(gateway) => gateway,
+            Err(e) => {
+                error!(error = %e, "cannot start");
+                return ExitCode::FAILURE;
+            }
+        };
+        info!(
+            version = env!("CARGO_PKG_VERSION"),
+            "modbus-gateway running"
+        );
+        stop_signal().await;
+        info!("stopping");
+        gateway.shutdown().await;
+        ExitCode::SUCCESS
+    })
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let config = match load(&cli.config) {
+        Ok(config) => config,
+        Err(code) => return code,
+    };
+    match cli.command.unwrap_or(Command::Run) {
+        Command::CheckConfig => {
+            print!("{}", describe(&cli.config, &config));
+            ExitCode::SUCCESS
+        }
+        Command::Run => run(config),
+    }
+}

@@ -1,0 +1,170 @@
+//! MBAP framing (Modbus Messaging on TCP/IP Implementation Guide V1.0b, 3.1.3), written here
+//! rather than taken from tokio-modbus: the gateway forwards raw PDU bytes for every function code
+//! (user-defined ones included), and tokio-modbus's server decodes requests into typed values and
+//! does not hand back the bytes. Pure functions over buffers.
+
+use bytes::{Buf, BytesMut};
+
+/// Transaction id, protocol id, length, unit id.
+pub const HEADER_LEN: usize = 7;
+/// The length field counts the unit id and the PDU: at least a function code...
+pub const MIN_LENGTH: u16 = 2;
+/// ...and at most a 253-byte PDU.
+pub const MAX_LENGTH: u16 = 254;
+const MODBUS_PROTOCOL: u16 = 0;
+
+/// What a reply must echo.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Header {
+    pub transaction: u16,
+    pub unit: u8,
+}
+
+#[derive(Debug, PartialEq, Eq)]
+pub struct Request {
+    pub header: Header,
+    pub pdu: Vec<u8>,
+}
+
+/// A stream that is not Modbus TCP; the connection is closed.
+#[derive(Debug, PartialEq, Eq, thiserror::Error)]
+pub enum FrameError {
+    #[error("protocol id {0} is not 0 (Modbus)")]
+    Protocol(u16),
+    #[error("length field {0} is outside {MIN_LENGTH}-{MAX_LENGTH}")]
+    Length(u16),
+}
+
+/// Take one request off the front of `buf`: `Ok(None)` until a whole one is in.
+pub fn decode(buf: &mut BytesMut) -> Result<Option<Request>, FrameError> {
+    if buf.len() < HEADER_LEN - 1 {
+        return Ok(None);
+    }
+    let protocol = u16::from_be_bytes([buf[2], buf[3]]);
+    if protocol != MODBUS_PROTOCOL {
+        return Err(FrameError::Protocol(protocol));
+    }
+    let length = u16::from_be_bytes([buf[4], buf[5]]);
+    if !(MIN_LENGTH..=MAX_LENGTH).contains(&length) {
+        return Err(FrameError::Length(length));
+    }
+    let total = HEADER_LEN - 1 + usize::from(length);
+    if buf.len() < total {
+        return Ok(None);
+    }
+    let header = Header {
+        transaction: u16::from_be_bytes([buf[0], buf[1]]),
+        unit: buf[6],
+    };
+    let pdu = buf[HEADER_LEN..total].to_vec();
+    buf.advance(total);
+    Ok(Some(Request { header, pdu }))
+}
+
+/// Append the reply ADU for `pdu` to `out`.
+pub fn encode(header: Header, pdu: &[u8], out: &mut Vec<u8>) {
+    out.extend_from_slice(&header.transaction.to_be_bytes());
+    out.extend_from_slice(&MODBUS_PROTOCOL.to_be_bytes());
+    out.extend_from_slice(&(pdu.len() as u16 + 1).to_be_bytes());
+    out.push(header.unit);
+    out.extend_from_slice(pdu);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Read holding registers 0004H-0005H of unit 1, transaction 0x1234.
+    const READ: [u8; 12] = [
+        0x12, 0x34, // transaction id
+        0x00, 0x00, // protocol id: Modbus
+        0x00, 0x06, // length: unit + 5 PDU bytes
+        0x01, // unit id
+        0x03, 0x00, 0x04, 0x00, 0x02, // PDU: read 2 registers from 0004H
+    ];
+
+    fn expected() -> Request {
+        Request {
+            header: Header {
+                transaction: 0x1234,
+                unit: 1,
+            },
+            pdu: READ[7..].to_vec(),
+        }
+    }
+
+    #[test]
+    fn a_whole_frame_decodes() {
+        let mut buf = BytesMut::from(&READ[..]);
+        assert_eq!(decode(&mut buf), Ok(Some(expected())));
+        assert!(buf.is_empty());
+    }
+
+    #[test]
+    fn a_frame_fed_byte_by_byte_decodes_once_complete() {
+        let mut buf = BytesMut::new();
+        for (i, &byte) in READ.iter().enumerate() {
+            buf.extend_from_slice(&[byte]);
+            let result = decode(&mut buf);
+            if i + 1 < READ.len() {
+                assert_eq!(result, Ok(None), "after {} bytes", i + 1);
+            } else {
+                assert_eq!(result, Ok(Some(expected())));
+            }
+        }
+    }
+
+    #[test]
+    fn two_frames_in_one_buffer_come_out_in_order() {
+        let mut second = READ;
+        second[1] = 0x35;
+        let mut buf = BytesMut::from(&READ[..]);
+        buf.extend_from_slice(&second);
+        assert_eq!(
+            decode(&mut buf).unwrap().unwrap().header.transaction,
+            0x1234
+        );
+        assert_eq!(
+            decode(&mut buf).unwrap().unwrap().header.transaction,
+            0x1235
+        );
+        assert_eq!(decode(&mut buf), Ok(None));
+    }
+
+    #[test]
+    fn a_wrong_protocol_id_or_length_is_an_error() {
+        let mut bad = READ;
+        bad[3] = 1;
+        assert_eq!(
+            decode(&mut BytesMut::from(&bad[..])),
+            Err(FrameError::Protocol(1))
+        );
+        for length in [0u16, 1, 255, 0xFFFF] {
+            let mut bad = READ;
+            bad[4..6].copy_from_slice(&length.to_be_bytes());
+            assert_eq!(
+                decode(&mut BytesMut::from(&bad[..])),
+                Err(FrameError::Length(length))
+            );
+        }
+    }
+
+    #[test]
+    fn the_largest_frame_decodes() {
+        let mut frame = vec![0, 1, 0, 0, 0, 254, 9, 0x10];
+        frame.extend(std::iter::repeat_n(0xAB, 252));
+        let request = decode(&mut BytesMut::from(&frame[..])).unwrap().unwrap();
+        assert_eq!(request.pdu.len(), 253);
+    }
+
+    #[test]
+    fn replies_echo_the_header_with_their_own_length() {
+        let mut out = Vec::new();
+        let header = Header {
+            transaction: 0xBEEF,
+            unit: 0x11,
+        };
+        encode(header, &[0x83, 0x0B], &mut out);
+        assert_eq!(out, [0xBE, 0xEF, 0, 0, 0, 3, 0x11, 0x83, 0x0B]);
+    }
+}

@@ -1,0 +1,86 @@
+//! The listeners: accept masters on every `server.listen` address, refuse those beyond
+//! `max_connections` (accepted and closed at once, so they see the refusal instead of hanging in
+//! the backlog), set TCP_NODELAY, and run one session task per master.
+
+use super::session::{self, SessionError, SessionLimits};
+use crate::bus::MasterId;
+use crate::dispatch::Dispatcher;
+use std::io;
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::net::TcpListener;
+use tokio::sync::Semaphore;
+use tracing::{debug, warn};
+
+/// Pause after an accept error such as running out of file descriptors, so the loop does not spin.
+const ACCEPT_ERROR_PAUSE: Duration = Duration::from_millis(100);
+
+pub struct Listener {
+    pub addr: SocketAddr,
+    listener: TcpListener,
+}
+
+/// Bind every address, or fail naming the one that could not be bound.
+pub async fn bind(addrs: &[SocketAddr]) -> Result<Vec<Listener>, (SocketAddr, io::Error)> {
+    let mut listeners = Vec::with_capacity(addrs.len());
+    for &addr in addrs {
+        let listener = TcpListener::bind(addr).await.map_err(|e| (addr, e))?;
+        let addr = listener.local_addr().map_err(|e| (addr, e))?;
+        listeners.push(Listener { addr, listener });
+    }
+    Ok(listeners)
+}
+
+/// What every accept loop shares.
+pub struct Shared {
+    pub dispatcher: Dispatcher,
+    pub limits: SessionLimits,
+    pub connections: Arc<Semaphore>,
+    next_master: AtomicU64,
+}
+
+impl Shared {
+    pub fn new(dispatcher: Dispatcher, limits: SessionLimits, max_connections: usize) -> Self {
+        Shared {
+            dispatcher,
+            limits,
+            connections: Arc::new(Semaphore::new(max_connections)),
+            next_master: AtomicU64::new(1),
+        }
+    }
+}
+
+/// Accept masters on `listener` forever.
+pub async fn serve(listener: Listener, shared: Arc<Shared>) {
+    loop {
+        let (stream, peer) = match listener.listener.accept().await {
+            Ok(accepted) => accepted,
+            Err(error) => {
+                warn!(listen = %listener.addr, %error, "accept failed");
+                tokio::time::sleep(ACCEPT_ERROR_PAUSE).await;
+                continue;
+            }
+        };
+        let Ok(permit) = shared.connections.clone().try_acquire_owned() else {
+            warn!(listen = %listener.addr, %peer, "connection refused: max_connections reached");
+            drop(stream);
+            continue;
+        };
+        if let Err(error) = stream.set_nodelay(true) {
+            debug!(%peer, %error, "cannot set TCP_NODELAY");
+        }
+        let master: MasterId = shared.next_master.fetch_add(1, Ordering::Relaxed);
+        let shared = shared.clone();
+        tokio::spawn(async move {
+            debug!(master, %peer, "master connected");
+            let reason = session::run(stream, master, &shared.dispatcher, shared.limits).await;
+            match reason {
+                SessionError::Frame(_) => warn!(master, %peer, %reason, "connection closed"),
+                _ => debug!(master, %peer, %reason, "master disconnected"),
+            }
+            drop(permit);
+        });
+    }
+}

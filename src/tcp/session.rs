@@ -1,0 +1,131 @@
+//! One master's connection. Every whole request read is handed to the dispatcher at once, so
+//! pipelined requests queue (fairly) on the line right away; the answers go back in request
+//! order, each in its own MBAP header. A malformed header closes the connection; so does a
+//! connection idle for `idle_timeout`. When the master goes, its queued requests go too.
+
+use super::mbap::{self, FrameError, Header};
+use crate::bus::MasterId;
+use crate::dispatch::Dispatcher;
+use crate::error::{Outcome, RequestError};
+use crate::pdu::exception_pdu;
+use bytes::BytesMut;
+use std::collections::VecDeque;
+use std::io;
+use std::time::Duration;
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::sync::oneshot;
+use tokio::time::{sleep_until, Instant};
+
+/// Room for a few whole requests before a read must wait.
+const READ_BUFFER: usize = 1024;
+
+#[derive(Clone, Copy, Debug)]
+pub struct SessionLimits {
+    pub pipeline_depth: usize,
+    /// `None`: never close an idle connection.
+    pub idle_timeout: Option<Duration>,
+}
+
+/// Why a session ended.
+#[derive(Debug, thiserror::Error)]
+pub enum SessionError {
+    #[error("master closed the connection")]
+    Closed,
+    #[error("not Modbus TCP: {0}")]
+    Frame(#[from] FrameError),
+    #[error("idle for {0:?}")]
+    Idle(Duration),
+    #[error("socket error: {0}")]
+    Io(#[from] io::Error),
+}
+
+struct InFlight {
+    header: Header,
+    function: u8,
+    outcome: oneshot::Receiver<Outcome>,
+}
+
+/// The PDU a master gets for an outcome: the slave's own bytes, or the gateway's exception.
+fn reply_pdu(function: u8, outcome: Outcome) -> Option<Vec<u8>> {
+    match outcome {
+        Ok(reply) => reply,
+        Err(error) => Some(exception_pdu(function, error.exception_code()).to_vec()),
+    }
+}
+
+async fn next_outcome(in_flight: &mut VecDeque<InFlight>) -> Outcome {
+    match in_flight.front_mut() {
+        // A bus that stopped without answering has no port to answer with.
+        Some(front) => (&mut front.outcome)
+            .await
+            .unwrap_or(Err(RequestError::PortDown)),
+        None => std::future::pending().await,
+    }
+}
+
+/// Serve one master on `stream` (a TCP connection) until it leaves or breaks the protocol.
+pub async fn run<S: AsyncRead + AsyncWrite + Unpin>(
+    mut stream: S,
+    master: MasterId,
+    dispatcher: &Dispatcher,
+    limits: SessionLimits,
+) -> SessionError {
+    let error = serve(&mut stream, master, dispatcher, limits).await;
+    dispatcher.forget(master);
+    error
+}
+
+async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
+    stream: &mut S,
+    master: MasterId,
+    dispatcher: &Dispatcher,
+    limits: SessionLimits,
+) -> SessionError {
+    let mut inbound = BytesMut::with_capacity(READ_BUFFER);
+    let mut outbound = Vec::with_capacity(mbap::HEADER_LEN + crate::pdu::MAX_PDU_LEN);
+    let mut in_flight: VecDeque<InFlight> = VecDeque::with_capacity(limits.pipeline_depth);
+    let mut last_activity = Instant::now();
+    loop {
+        while in_flight.len() < limits.pipeline_depth {
+            match mbap::decode(&mut inbound) {
+                Ok(Some(request)) => {
+                    last_activity = Instant::now();
+                    let function = request.pdu[0];
+                    in_flight.push_back(InFlight {
+                        header: request.header,
+                        function,
+                        outcome: dispatcher.submit(master, request.header.unit, request.pdu),
+                    });
+                }
+                Ok(None) => break,
+                Err(error) => return error.into(),
+            }
+        }
+        let can_read = in_flight.len() < limits.pipeline_depth;
+        let idle_at = limits
+            .idle_timeout
+            .filter(|_| in_flight.is_empty())
+            .map(|timeout| last_activity + timeout);
+        tokio::select! {
+            outcome = next_outcome(&mut in_flight) => {
+                let Some(done) = in_flight.pop_front() else { continue };
+                if let Some(pdu) = reply_pdu(done.function, outcome) {
+                    outbound.clear();
+                    mbap::encode(done.header, &pdu, &mut outbound);
+                    if let Err(error) = stream.write_all(&outbound).await {
+                        return error.into();
+                    }
+                }
+                last_activity = Instant::now();
+            }
+            read = stream.read_buf(&mut inbound), if can_read => match read {
+                Ok(0) => return SessionError::Closed,
+                Ok(_) => {}
+                Err(error) => return error.into(),
+            },
+            () = sleep_until(idle_at.unwrap_or(last_activity)), if idle_at.is_some() => {
+                return SessionError::Idle(limits.idle_timeout.unwrap_or_default());
+            }
+        }
+    }
+}

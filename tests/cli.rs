@@ -1,0 +1,172 @@
+//! The `modbus-gateway` binary as a user runs it.
+
+use crate::support::{within, RawMaster};
+use std::path::PathBuf;
+use std::process::{Command, Output, Stdio};
+
+const BINARY: &str = env!("CARGO_BIN_EXE_modbus-gateway");
+
+fn temp_config(name: &str, text: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("mbgw-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join(name);
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+fn gateway(args: &[&str], env: &[(&str, &str)]) -> Output {
+    Command::new(BINARY)
+        .args(args)
+        .envs(env.iter().copied())
+        .env_remove("RUST_LOG")
+        .output()
+        .expect("binary runs")
+}
+
+fn demo() -> &'static str {
+    concat!(env!("CARGO_MANIFEST_DIR"), "/config/demo.toml")
+}
+
+#[test]
+fn check_config_prints_the_resolved_demo_config_with_its_line_timing() {
+    let out = gateway(&["--config", demo(), "check-config"], &[]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(
+        text.contains("9600 baud 8E1, character 1.146 ms, t3.5 4.010 ms"),
+        "{text}"
+    );
+    assert!(
+        text.contains("stop_bits = 1"),
+        "the default is filled in: {text}"
+    );
+    assert!(text.contains("listen = [\"127.0.0.1:5020\"]"), "{text}");
+    assert!(text.contains("listen = \"127.0.0.1:9020\""), "{text}");
+    assert!(text.contains("address = \"1-4\""), "{text}");
+}
+
+#[test]
+fn a_bad_config_exits_2_naming_the_key_and_the_reason() {
+    let path = temp_config(
+        "bad.toml",
+        "[[bus]]\nname = \"a\"\ndevice = \"sim\"\nparity = \"evn\"\n",
+    );
+    for command in ["check-config", "run"] {
+        let out = gateway(&["--config", path.to_str().unwrap(), command], &[]);
+        assert_eq!(out.status.code(), Some(2), "{command}");
+        let err = String::from_utf8(out.stderr).unwrap();
+        assert!(
+            err.contains("bus[0].parity: `evn` is not none, even or odd"),
+            "{err}"
+        );
+    }
+}
+
+#[test]
+fn a_missing_config_file_exits_2_naming_it() {
+    let out = gateway(
+        &["--config", "/nonexistent/gateway.toml", "check-config"],
+        &[],
+    );
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/gateway.toml"));
+}
+
+#[test]
+fn environment_variables_override_the_file() {
+    let out = gateway(
+        &["--config", demo(), "check-config"],
+        &[
+            ("MBGW__BUS__0__BAUD", "19200"),
+            ("MBGW__SERVER__LISTEN", "[::1]:1502"),
+        ],
+    );
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(text.contains("baud = 19200"), "{text}");
+    assert!(text.contains("listen = [\"[::1]:1502\"]"), "{text}");
+    let out = gateway(
+        &["--config", demo(), "check-config"],
+        &[("MBGW__BUS__0__BAUDRATE", "1")],
+    );
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("baudrate"));
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+fn signal(child: &std::process::Child, name: &str) {
+    let status = Command::new("kill")
+        .args(["-s", name, &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+}
+
+#[tokio::test]
+async fn run_serves_the_demo_line_and_stops_cleanly_on_sigterm() {
+    let port = free_port();
+    let listen = format!("127.0.0.1:{port}");
+    let mut child = Command::new(BINARY)
+        .args(["--config", demo(), "run"])
+        .env("MBGW__SERVER__LISTEN", &listen)
+        .env("MBGW__LOG__LEVEL", "warn")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut master = within("the gateway listens", async {
+        loop {
+            if let Ok(stream) = tokio::net::TcpStream::connect(&listen).await {
+                drop(stream);
+                return RawMaster::connect(listen.parse().unwrap()).await;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    assert_eq!(
+        master.call(1, 2, &[0x06, 0x00, 0x04, 0x13, 0x88]).await,
+        [0x06, 0x00, 0x04, 0x13, 0x88]
+    );
+    assert_eq!(
+        master.call(2, 2, &[0x03, 0x00, 0x04, 0x00, 0x01]).await,
+        [0x03, 0x02, 0x13, 0x88]
+    );
+    signal(&child, "TERM");
+    let status = within(
+        "the gateway exits",
+        tokio::task::spawn_blocking(move || child.wait()),
+    )
+    .await
+    .unwrap()
+    .unwrap();
+    assert_eq!(status.code(), Some(0));
+}
+
+#[test]
+fn run_exits_non_zero_naming_an_address_it_cannot_listen_on() {
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let listen = taken.local_addr().unwrap().to_string();
+    let out = gateway(
+        &["--config", demo(), "run"],
+        &[("MBGW__SERVER__LISTEN", listen.as_str())],
+    );
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains(&format!("cannot listen on {listen}")), "{err}");
+}

@@ -1,0 +1,364 @@
+//! The serial line discipline, driven at the bus (no TCP) on tokio's paused clock, against the
+//! simulated line's own record of what went on the wire and when.
+
+use modbus_gateway::bus::{Bus, BusHandle, Device};
+use modbus_gateway::error::{Outcome, RequestError};
+use modbus_gateway::rtu::frame;
+use modbus_gateway::rtu::TxError;
+use modbus_gateway::sim::{RegisterBank, SimLine, SimSlave, Source, Transmission};
+use modbus_gateway::Config;
+use std::collections::VecDeque;
+use std::time::Duration;
+use tokio::time::Instant;
+
+/// tokio's timer wakes sleepers on whole milliseconds, paused clock included.
+const TICK: Duration = Duration::from_millis(1);
+const READ_10: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x0A];
+
+/// A sim bus from `[[bus]]` keys, its line populated by `fill`, its task running.
+fn sim_bus(keys: &str, fill: impl FnOnce(&SimLine)) -> (SimLine, BusHandle) {
+    let text = format!("[[bus]]\nname = \"line\"\ndevice = \"sim\"\n{keys}\n");
+    let settings = Config::from_toml_str(&text)
+        .expect("test config")
+        .bus
+        .remove(0);
+    let line = SimLine::new(modbus_gateway::rtu::LineTiming::new(&settings.format()));
+    fill(&line);
+    let bus = Bus::new(settings, Device::Sim(line.clone()));
+    let handle = bus.handle();
+    tokio::spawn(bus.run());
+    (line, handle)
+}
+
+/// Let the bus open its port and the line fall quiet.
+async fn settle(handle: &BusHandle) {
+    for _ in 0..100 {
+        if handle.is_up() {
+            break;
+        }
+        tokio::task::yield_now().await;
+    }
+    assert!(handle.is_up(), "bus never opened its port");
+    tokio::time::sleep(Duration::from_millis(50)).await;
+}
+
+async fn call(handle: &BusHandle, slave: u8, pdu: &[u8]) -> (Outcome, Duration) {
+    let started = Instant::now();
+    let outcome = handle
+        .submit(1, slave, pdu.to_vec())
+        .await
+        .expect("bus answers");
+    (outcome, started.elapsed())
+}
+
+fn exception(outcome: &Outcome) -> Option<u8> {
+    match outcome {
+        Err(e) => Some(e.exception_code() as u8),
+        Ok(_) => None,
+    }
+}
+
+/// Answers each request to its own address with the next planned transmission (`None`: silent).
+struct Scripted(VecDeque<Option<Transmission>>);
+
+impl SimSlave for Scripted {
+    fn handle(&mut self, address: u8, _: &[u8], _: Instant) -> Option<Transmission> {
+        if address == frame::BROADCAST {
+            return None;
+        }
+        self.0.pop_front().flatten()
+    }
+}
+
+fn answer(address: u8, pdu: &[u8], delay: Duration) -> Option<Transmission> {
+    Some(Transmission {
+        bytes: frame::encode(address, pdu),
+        delay,
+    })
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_silent_slave_gets_0x0b_after_its_timeout_and_not_before() {
+    let (line, bus) = sim_bus("baud = 9600\nresponse_timeout = \"300ms\"", |_| {});
+    settle(&bus).await;
+    let (outcome, elapsed) = call(&bus, 9, &READ_10).await;
+    assert_eq!(exception(&outcome), Some(0x0B));
+    let on_wire = line.timing().frame_time(8);
+    let timeout = Duration::from_millis(300);
+    assert!(
+        elapsed >= on_wire + timeout,
+        "0x0B after {elapsed:?}, before the timeout"
+    );
+    assert!(
+        elapsed <= on_wire + timeout + 3 * line.timing().char_time,
+        "0x0B {elapsed:?} after the request: more than three characters late"
+    );
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_per_slave_timeout_overrides_the_bus_timeout() {
+    let keys = "baud = 9600\nresponse_timeout = \"300ms\"\n[[bus.slave]]\naddress = 7\nresponse_timeout = \"2s\"";
+    let (line, bus) = sim_bus(keys, |_| {});
+    settle(&bus).await;
+    let on_wire = line.timing().frame_time(8);
+    let (_, other) = call(&bus, 9, &READ_10).await;
+    let (outcome, overridden) = call(&bus, 7, &READ_10).await;
+    assert_eq!(exception(&outcome), Some(0x0B));
+    assert!(
+        other < on_wire + Duration::from_millis(300) + 3 * TICK,
+        "{other:?}"
+    );
+    assert!(
+        overridden >= on_wire + Duration::from_secs(2),
+        "{overridden:?}"
+    );
+    assert!(
+        overridden <= on_wire + Duration::from_secs(2) + 3 * TICK,
+        "{overridden:?}"
+    );
+}
+
+#[tokio::test(start_paused = true)]
+async fn an_exception_reply_is_forwarded_as_soon_as_its_five_bytes_are_in() {
+    let (line, bus) = sim_bus("baud = 9600\nresponse_timeout = \"1h\"", |line| {
+        line.add_slave(1, RegisterBank::new(Duration::ZERO));
+    });
+    settle(&bus).await;
+    // 200 registers is more than a read may ask for: the slave answers 0x03.
+    let (outcome, elapsed) = call(&bus, 1, &[0x03, 0x00, 0x00, 0x00, 0xC8]).await;
+    assert_eq!(outcome.unwrap(), Some(vec![0x83, 0x03]));
+    let t = line.timing();
+    assert!(
+        elapsed <= t.frame_time(8 + 5) + t.t35 + 2 * TICK,
+        "{elapsed:?}"
+    );
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_late_reply_never_answers_a_later_request() {
+    let timeout = Duration::from_millis(200);
+    let (line, bus) = sim_bus("baud = 9600\nresponse_timeout = \"200ms\"", |line| {
+        line.add_slave(
+            1,
+            Scripted(VecDeque::from([answer(
+                1,
+                &[0x03, 0x02, 0xDE, 0xAD],
+                timeout * 3 / 2,
+            )])),
+        );
+        line.add_slave(
+            2,
+            Scripted(VecDeque::from([answer(
+                2,
+                &[0x03, 0x02, 0x00, 0x02],
+                timeout / 2,
+            )])),
+        );
+    });
+    settle(&bus).await;
+    let read_one = [0x03, 0x00, 0x00, 0x00, 0x01];
+    let (first, _) = call(&bus, 1, &read_one).await;
+    assert!(matches!(
+        first,
+        Err(RequestError::NoResponse {
+            last: TxError::Timeout,
+            ..
+        })
+    ));
+    let (second, _) = call(&bus, 2, &read_one).await;
+    assert_eq!(second.unwrap(), Some(vec![0x03, 0x02, 0x00, 0x02]));
+    let late = line
+        .frames()
+        .iter()
+        .filter(|f| f.from == Source::Slave(1))
+        .count();
+    assert_eq!(late, 1, "the late reply did go on the wire");
+}
+
+#[tokio::test(start_paused = true)]
+async fn no_frame_starts_less_than_t35_after_the_previous_one() {
+    let keys = "baud = 9600\nresponse_timeout = \"100ms\"\nturnaround_delay = \"50ms\"\nqueue_timeout = \"1h\"";
+    let (line, bus) = sim_bus(keys, |line| {
+        for address in 1..=4 {
+            line.add_slave(address, RegisterBank::new(Duration::ZERO));
+        }
+    });
+    settle(&bus).await;
+    let requests: [(u8, &[u8]); 7] = [
+        (1, &READ_10),
+        (2, &[0x06, 0x00, 0x01, 0x12, 0x34]),
+        (0, &[0x06, 0x00, 0x02, 0x00, 0x01]),
+        (9, &READ_10),
+        (3, &[0x41, 0x00]),
+        (4, &[0x08, 0x00, 0x00, 0xAB, 0xCD]),
+        (1, &[0x03, 0x00, 0x00, 0x00, 0xC8]),
+    ];
+    let pending: Vec<_> = (0..5)
+        .flat_map(|_| requests.iter())
+        .map(|&(slave, pdu)| bus.submit(1, slave, pdu.to_vec()))
+        .collect();
+    for outcome in pending {
+        outcome.await.unwrap().ok();
+    }
+    let stats = line.stats();
+    assert_eq!(stats.master_frames, 35);
+    assert_eq!(stats.gap_violations, 0);
+    assert_eq!(stats.collisions, 0);
+    assert!(stats.min_gap.unwrap() >= line.timing().t35);
+    let frames = line.frames();
+    for pair in frames.windows(2) {
+        let silence = pair[1].start - pair[0].end;
+        if pair[0].bytes[0] == 0 && pair[0].from == Source::Master {
+            assert!(
+                silence >= Duration::from_millis(50),
+                "turnaround after broadcast: {silence:?}"
+            );
+        }
+    }
+}
+
+#[tokio::test(start_paused = true)]
+async fn one_master_polling_back_to_back_uses_at_least_90_percent_of_the_line() {
+    let (line, bus) = sim_bus("baud = 9600\nparity = \"even\"", |line| {
+        line.add_slave(1, RegisterBank::new(Duration::ZERO));
+    });
+    settle(&bus).await;
+    let t = line.timing();
+    let transactions = 200;
+    let started = Instant::now();
+    for _ in 0..transactions {
+        let (outcome, _) = call(&bus, 1, &READ_10).await;
+        assert_eq!(outcome.unwrap().unwrap().len(), 22);
+    }
+    let wall = started.elapsed();
+    // Physical minimum per transaction: 8 + 25 characters, the slave's turnaround (t3.5 to see
+    // the request end, no processing time) and the t3.5 gap before the next request.
+    let minimum = (t.frame_time(8 + 25) + t.t35 + t.t35) * transactions;
+    let efficiency = minimum.as_secs_f64() / wall.as_secs_f64();
+    assert!(efficiency >= 0.90, "bus efficiency {efficiency:.3}");
+    assert!(efficiency <= 1.0, "faster than physics: {efficiency:.3}");
+}
+
+#[tokio::test(start_paused = true)]
+async fn reads_are_retried_and_writes_only_with_retry_writes() {
+    for (retry_writes, write_frames) in [(false, 1), (true, 3)] {
+        let keys = format!(
+            "baud = 19200\nresponse_timeout = \"50ms\"\nretries = 2\nretry_writes = {retry_writes}"
+        );
+        let (line, bus) = sim_bus(&keys, |_| {});
+        settle(&bus).await;
+        let (read, _) = call(&bus, 5, &READ_10).await;
+        assert!(
+            matches!(read, Err(RequestError::NoResponse { attempts: 3, .. })),
+            "{read:?}"
+        );
+        let (write, _) = call(&bus, 5, &[0x06, 0x00, 0x01, 0x00, 0x01]).await;
+        assert_eq!(exception(&write), Some(0x0B));
+        let writes = line
+            .frames()
+            .iter()
+            .filter(|f| f.from == Source::Master && f.bytes[1] == 0x06)
+            .count();
+        assert_eq!(writes, write_frames, "retry_writes = {retry_writes}");
+        assert_eq!(line.stats().master_frames, 3 + write_frames as u64);
+    }
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_request_that_waits_past_queue_timeout_gets_0x06_and_is_never_sent() {
+    let keys = "baud = 9600\nresponse_timeout = \"500ms\"\nqueue_timeout = \"200ms\"";
+    let (line, bus) = sim_bus(keys, |_| {});
+    settle(&bus).await;
+    let first = bus.submit(1, 9, READ_10.to_vec());
+    let second = bus.submit(2, 9, vec![0x06, 0x00, 0x01, 0x00, 0x01]);
+    assert_eq!(exception(&first.await.unwrap()), Some(0x0B));
+    assert_eq!(exception(&second.await.unwrap()), Some(0x06));
+    assert_eq!(
+        line.stats().master_frames,
+        1,
+        "the expired write never went out"
+    );
+}
+
+#[tokio::test(start_paused = true)]
+async fn requests_of_a_master_that_left_are_never_sent() {
+    let (line, bus) = sim_bus("baud = 9600\nresponse_timeout = \"100ms\"", |line| {
+        line.add_slave(1, RegisterBank::new(Duration::ZERO));
+    });
+    settle(&bus).await;
+    let first = bus.submit(1, 1, READ_10.to_vec());
+    let gone: Vec<_> = (0..5).map(|_| bus.submit(2, 1, READ_10.to_vec())).collect();
+    drop(gone);
+    assert!(first.await.unwrap().is_ok());
+    let after = bus.submit(3, 1, READ_10.to_vec());
+    assert!(after.await.unwrap().is_ok());
+    assert_eq!(line.stats().master_frames, 2);
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_lost_port_answers_0x0a_at_once_and_serves_again_when_back() {
+    let keys = "baud = 9600\nresponse_timeout = \"1h\"\nreopen_delay = \"100ms\"\nreopen_delay_max = \"400ms\"";
+    let (line, bus) = sim_bus(keys, |line| {
+        line.add_slave(1, RegisterBank::new(Duration::ZERO));
+    });
+    settle(&bus).await;
+    assert!(call(&bus, 1, &READ_10).await.0.is_ok());
+    line.unplug();
+    // The bus notices while idle, without a request having to fail first.
+    tokio::time::sleep(Duration::from_millis(1)).await;
+    assert!(!bus.is_up());
+    let (outcome, elapsed) = call(&bus, 1, &READ_10).await;
+    assert_eq!(exception(&outcome), Some(0x0A));
+    assert_eq!(elapsed, Duration::ZERO, "0x0A at once, not after a timeout");
+    // Still down after several reopen attempts.
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    assert_eq!(exception(&call(&bus, 1, &READ_10).await.0), Some(0x0A));
+    line.plug();
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert!(bus.is_up(), "reopened within the longest backoff");
+    let (outcome, _) = call(&bus, 1, &READ_10).await;
+    assert_eq!(outcome.unwrap().unwrap().len(), 22);
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_port_lost_mid_transaction_answers_that_request_0x0a() {
+    let (line, bus) = sim_bus("baud = 9600\nresponse_timeout = \"1h\"", |_| {});
+    settle(&bus).await;
+    let waiting = bus.submit(1, 9, READ_10.to_vec());
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    line.unplug();
+    assert_eq!(exception(&waiting.await.unwrap()), Some(0x0A));
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_broadcast_is_answered_once_sent_and_the_line_stays_quiet_for_the_turnaround() {
+    let keys = "baud = 9600\nturnaround_delay = \"150ms\"";
+    let (line, bus) = sim_bus(keys, |line| {
+        line.add_slave(1, RegisterBank::new(Duration::ZERO));
+        line.add_slave(2, RegisterBank::new(Duration::ZERO));
+    });
+    settle(&bus).await;
+    let write = [0x10, 0x00, 0x05, 0x00, 0x01, 0x02, 0xAB, 0xCD];
+    let (outcome, elapsed) = call(&bus, 0, &write).await;
+    assert_eq!(outcome.unwrap(), Some(write[..5].to_vec()));
+    let on_wire = line.timing().frame_time(write.len() + 3);
+    assert!(
+        elapsed >= on_wire && elapsed <= on_wire + TICK,
+        "{elapsed:?}"
+    );
+    for slave in [1, 2] {
+        let (read, _) = call(&bus, slave, &[0x03, 0x00, 0x05, 0x00, 0x01]).await;
+        assert_eq!(
+            read.unwrap(),
+            Some(vec![0x03, 0x02, 0xAB, 0xCD]),
+            "slave {slave}"
+        );
+    }
+    let frames = line.frames();
+    assert!(frames[1].start - frames[0].end >= Duration::from_millis(150));
+    assert_eq!(
+        line.stats().slave_frames,
+        2,
+        "nobody answered the broadcast"
+    );
+}

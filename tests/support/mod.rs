@@ -1,0 +1,249 @@
+//! What the integration tests share: a gateway started from TOML text on a loopback port, a raw
+//! Modbus TCP master that sees every byte, and an RTU slave on a pty pair (the real serial path).
+
+use modbus_gateway::rtu::frame::{self, FrameLen};
+use modbus_gateway::sim::{RegisterBank, SimSlave};
+use modbus_gateway::{Config, Gateway};
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+use tokio::task::JoinHandle;
+use tokio_serial::{SerialPort, SerialStream};
+
+/// Upper bound for anything a test waits for; a test that hits it has failed, not passed.
+pub const PATIENCE: Duration = Duration::from_secs(20);
+/// A pty passes a frame in one write; a user-defined frame is taken as complete after this pause.
+const PTY_FRAME_PAUSE: Duration = Duration::from_millis(20);
+
+pub async fn within<F: std::future::Future>(what: &str, future: F) -> F::Output {
+    tokio::time::timeout(PATIENCE, future)
+        .await
+        .unwrap_or_else(|_| panic!("{what}: no result within {PATIENCE:?}"))
+}
+
+/// Start a gateway on `toml`, which should listen on 127.0.0.1:0.
+pub async fn start(toml: &str) -> Gateway {
+    let config = Config::from_toml_str(toml).unwrap_or_else(|e| panic!("test config: {e}"));
+    Gateway::start(&config).await.expect("gateway starts")
+}
+
+/// A gateway on one simulated 9600 8E1 line named "sim" with register-bank slaves 1-4, plus `extra`
+/// bus keys.
+pub async fn start_sim(extra: &str) -> Gateway {
+    start(&sim_config(extra)).await
+}
+
+pub fn sim_config(extra: &str) -> String {
+    format!(
+        "[server]\nlisten = \"127.0.0.1:0\"\n\
+         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 9600\nparity = \"even\"\n{extra}\n\
+         [[bus.sim_slave]]\naddress = \"1-4\"\n"
+    )
+}
+
+pub fn addr(gateway: &Gateway) -> SocketAddr {
+    gateway.local_addrs()[0]
+}
+
+/// A Modbus TCP master that writes and reads raw ADUs.
+pub struct RawMaster {
+    stream: TcpStream,
+}
+
+/// A reply as the master received it.
+#[derive(Debug, PartialEq, Eq)]
+pub struct Reply {
+    pub transaction: u16,
+    pub unit: u8,
+    pub pdu: Vec<u8>,
+}
+
+impl RawMaster {
+    pub async fn connect(addr: SocketAddr) -> Self {
+        let stream = within("connect", TcpStream::connect(addr))
+            .await
+            .expect("gateway accepts");
+        RawMaster { stream }
+    }
+
+    pub fn adu(transaction: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {
+        let mut adu = transaction.to_be_bytes().to_vec();
+        adu.extend_from_slice(&[0, 0]);
+        adu.extend_from_slice(&(pdu.len() as u16 + 1).to_be_bytes());
+        adu.push(unit);
+        adu.extend_from_slice(pdu);
+        adu
+    }
+
+    pub async fn send_raw(&mut self, bytes: &[u8]) {
+        self.stream.write_all(bytes).await.expect("send");
+    }
+
+    /// One request and its reply PDU; `None` if the gateway closed the connection instead.
+    pub async fn try_call(&mut self, transaction: u16, unit: u8, pdu: &[u8]) -> Option<Vec<u8>> {
+        self.stream
+            .write_all(&Self::adu(transaction, unit, pdu))
+            .await
+            .ok()?;
+        let reply = self.try_recv().await?;
+        assert_eq!((reply.transaction, reply.unit), (transaction, unit));
+        Some(reply.pdu)
+    }
+
+    pub async fn send(&mut self, transaction: u16, unit: u8, pdu: &[u8]) {
+        self.send_raw(&Self::adu(transaction, unit, pdu)).await;
+    }
+
+    pub async fn recv(&mut self) -> Reply {
+        self.try_recv()
+            .await
+            .expect("a reply, not a closed connection")
+    }
+
+    async fn try_recv(&mut self) -> Option<Reply> {
+        let mut header = [0u8; 7];
+        within("reply header", self.stream.read_exact(&mut header))
+            .await
+            .ok()?;
+        assert_eq!(&header[2..4], &[0, 0], "protocol id");
+        let length = usize::from(u16::from_be_bytes([header[4], header[5]]));
+        assert!((2..=254).contains(&length), "length field {length}");
+        let mut pdu = vec![0u8; length - 1];
+        within("reply body", self.stream.read_exact(&mut pdu))
+            .await
+            .ok()?;
+        Some(Reply {
+            transaction: u16::from_be_bytes([header[0], header[1]]),
+            unit: header[6],
+            pdu,
+        })
+    }
+
+    /// One request, one reply with the same transaction and unit ids; the reply PDU.
+    pub async fn call(&mut self, transaction: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {
+        self.send(transaction, unit, pdu).await;
+        let reply = self.recv().await;
+        assert_eq!((reply.transaction, reply.unit), (transaction, unit));
+        reply.pdu
+    }
+
+    /// True once the gateway has closed the connection (EOF or reset).
+    pub async fn is_closed(&mut self) -> bool {
+        let mut byte = [0u8; 1];
+        matches!(
+            tokio::time::timeout(PATIENCE, self.stream.read(&mut byte)).await,
+            Ok(Ok(0) | Err(_))
+        )
+    }
+}
+
+type Responder = Box<dyn FnMut(&[u8]) -> Option<Vec<u8>> + Send>;
+
+/// An RTU slave on the far end of a pty pair; the gateway opens `path` like a serial device.
+pub struct PtySlave {
+    pub path: String,
+    received: Arc<Mutex<Vec<Vec<u8>>>>,
+    task: JoinHandle<()>,
+    /// Kept open so the pty stays usable until the gateway opens it.
+    _tty: SerialStream,
+}
+
+impl PtySlave {
+    /// `respond` gets each whole request frame and returns the bytes to answer with, if any.
+    pub fn start(respond: impl FnMut(&[u8]) -> Option<Vec<u8>> + Send + 'static) -> Self {
+        let (mut master, tty) = SerialStream::pair().expect("pty pair");
+        let path = tty.name().expect("pty has a path");
+        let received = Arc::new(Mutex::new(Vec::new()));
+        let log = received.clone();
+        let mut respond: Responder = Box::new(respond);
+        let task = tokio::spawn(async move {
+            let mut buf = Vec::new();
+            let mut chunk = [0u8; 512];
+            loop {
+                let complete = match frame::request_len(&buf) {
+                    FrameLen::Exact(n) if buf.len() >= n => Some(n),
+                    FrameLen::Invalid => Some(buf.len()),
+                    _ => None,
+                };
+                if let Some(n) = complete {
+                    let request: Vec<u8> = buf.drain(..n).collect();
+                    log.lock().unwrap().push(request.clone());
+                    if let Some(reply) = respond(&request) {
+                        if master.write_all(&reply).await.is_err() {
+                            return;
+                        }
+                    }
+                    continue;
+                }
+                let by_silence = frame::request_len(&buf) == FrameLen::BySilence;
+                let read = master.read(&mut chunk);
+                let n = if by_silence {
+                    match tokio::time::timeout(PTY_FRAME_PAUSE, read).await {
+                        Ok(result) => result,
+                        Err(_) => {
+                            let request: Vec<u8> = std::mem::take(&mut buf);
+                            log.lock().unwrap().push(request.clone());
+                            if let Some(reply) = respond(&request) {
+                                if master.write_all(&reply).await.is_err() {
+                                    return;
+                                }
+                            }
+                            continue;
+                        }
+                    }
+                } else {
+                    read.await
+                };
+                match n {
+                    Ok(n) if n > 0 => buf.extend_from_slice(&chunk[..n]),
+                    _ => return,
+                }
+            }
+        });
+        PtySlave {
+            path,
+            received,
+            task,
+            _tty: tty,
+        }
+    }
+
+    /// Register-bank slaves at every address, answering like the simulated ones.
+    pub fn registers() -> Self {
+        let mut bank = RegisterBank::new(Duration::ZERO);
+        Self::start(move |request| {
+            if !frame::crc_ok(request) {
+                return None;
+            }
+            let now = tokio::time::Instant::now();
+            bank.handle(request[0], frame::pdu_of(request), now)
+                .map(|t| t.bytes)
+        })
+    }
+
+    /// Every request frame received so far, byte for byte.
+    pub fn received(&self) -> Vec<Vec<u8>> {
+        self.received.lock().unwrap().clone()
+    }
+
+    /// Pull the plug: the pty goes away and the gateway's reads fail.
+    pub fn unplug(self) {
+        self.task.abort();
+    }
+}
+
+impl Drop for PtySlave {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
+/// A gateway configuration with one serial bus named "pty" on `path` (8N2: ptys refuse parity).
+pub fn pty_config(path: &str, extra: &str) -> String {
+    format!(
+        "[server]\nlisten = \"127.0.0.1:0\"\n\
+         [[bus]]\nname = \"pty\"\ndevice = \"{path}\"\nbaud = 115200\nparity = \"none\"\n{extra}\n"
+    )
+}

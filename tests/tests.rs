@@ -1,0 +1,20 @@
+//! The integration tests, in one crate so they build once. Where a new test goes:
+//! - `cli`: the `modbus-gateway` binary: check-config, config errors, environment, run and stop.
+//! - `tcp`: the Modbus TCP side: pipelining, MBAP errors, connection limit, idle timeout, garbage.
+//! - `answers`: what the gateway answers itself: no route, broadcast, queue full, port down/back.
+//! - `transparency`: function codes and exceptions byte for byte, on the sim line and a pty.
+//! - `line`: the serial line discipline on the paused clock: timeouts, t3.5, retries, efficiency.
+//! - `fairness`: hundreds of masters at once.
+//! - `serial`: the real serial path on pty pairs, with a third-party client.
+//!
+//! `support` has the shared pieces: gateway start-up, a raw master, a pty slave.
+
+mod support;
+
+mod answers;
+mod cli;
+mod fairness;
+mod line;
+mod serial;
+mod tcp;
+mod transparency;
