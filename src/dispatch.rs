@@ -29,9 +29,9 @@ impl Dispatcher {
         &self.buses
     }
 
-    /// Route `pdu` (never empty: MBAP guarantees a function code) from `unit`.
+    /// Route `pdu` from `unit`.
     pub fn submit(&self, master: MasterId, unit: u8, pdu: Vec<u8>) -> oneshot::Receiver<Outcome> {
-        let function = pdu[0];
+        let function = pdu.first().copied().unwrap_or(0);
         if !pdu::is_valid_request_function(function) {
             return answered(Err(RequestError::InvalidFunction(function)));
         }

@@ -200,7 +200,8 @@ impl Bus {
             match self.execute(&mut master, &job).await {
                 Ok(outcome) => {
                     if let Err(error) = &outcome {
-                        debug!(bus = &*self.handle.name, slave = job.slave, function = job.pdu[0], %error, "request failed");
+                        let function = job.pdu.first().copied().unwrap_or(0);
+                        debug!(bus = &*self.handle.name, slave = job.slave, function, %error, "request failed");
                     }
                     let _ = job.reply.send(outcome);
                 }

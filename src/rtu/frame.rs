@@ -373,6 +373,25 @@ mod tests {
     }
 
     #[test]
+    fn no_bytes_whatever_make_the_frame_functions_panic() {
+        let mut x: u64 = 0x2545_F491_4F6C_DD1D;
+        for _ in 0..200_000 {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            let len = (x % 40) as usize;
+            let bytes: Vec<u8> = (0..len)
+                .map(|i| (x >> (i % 8 * 8)) as u8 ^ (i as u8))
+                .collect();
+            let request = &bytes[..len / 3];
+            let _ = reply_len(&bytes, 1, request);
+            let _ = request_len(&bytes);
+            let _ = check_reply(&bytes, bytes.first().copied().unwrap_or(0), request);
+            let _ = crc_ok(&bytes);
+        }
+    }
+
+    #[test]
     fn the_manual_reply_answers_its_request() {
         assert_eq!(
             check_reply(&READ_REPLY, 1, &READ_REQUEST[1..6]),

@@ -270,7 +270,8 @@ impl SimSlave for RegisterBank {
         if address == frame::BROADCAST {
             return None;
         }
-        let pdu = reply.unwrap_or_else(|code| vec![request[0] | EXCEPTION_BIT, code]);
+        let function = request.first().copied().unwrap_or(0);
+        let pdu = reply.unwrap_or_else(|code| vec![function | EXCEPTION_BIT, code]);
         Some(Transmission {
             bytes: frame::encode(address, &pdu),
             delay: self.processing_delay,
@@ -407,6 +408,28 @@ mod tests {
             frame::reply_len(&framed, 7, &[0x2B, 0x0E, 0x04, 0x01]),
             frame::FrameLen::Exact(framed.len())
         );
+    }
+
+    #[test]
+    fn no_request_whatever_its_bytes_makes_the_slave_panic() {
+        let mut b = bank();
+        let mut x: u64 = 0x9E37_79B9_7F4A_7C15;
+        for _ in 0..200_000 {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            let len = (x % 24) as usize;
+            let mut pdu: Vec<u8> = (0..len)
+                .map(|i| (x >> (i % 8 * 8)) as u8 ^ i as u8)
+                .collect();
+            if let Some(first) = pdu.first_mut() {
+                // Mostly real function codes, so the handlers behind them are reached.
+                *first = [
+                    0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x08, 0x0F, 0x10, 0x16, 0x17, 0x2B, *first,
+                ][(x >> 40) as usize % 13];
+            }
+            let _ = b.handle(1, &pdu, Instant::now());
+        }
     }
 
     #[test]
