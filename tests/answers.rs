@@ -2,8 +2,7 @@
 //! reads refused at the broadcast address (0x01), a full queue (0x06), a port that is down (0x0A
 //! at once) and back.
 
-use crate::support::{addr, start, start_sim, within, RawMaster};
-use std::time::Duration;
+use crate::support::{addr, start, start_sim, wait_for_bus, RawMaster};
 
 const READ: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x01];
 
@@ -148,20 +147,10 @@ async fn an_unplugged_adapter_gets_0x0a_at_once_and_is_served_again_when_back() 
     let mut master = RawMaster::connect(addr(&gateway)).await;
     assert_eq!(master.call(1, 1, &READ).await, [0x03, 0x02, 0x00, 0x00]);
     line.unplug();
-    within("bus notices the lost port", async {
-        while gateway.bus_up("sim") == Some(true) {
-            tokio::time::sleep(Duration::from_millis(5)).await;
-        }
-    })
-    .await;
+    wait_for_bus(&gateway, "sim", false).await;
     assert_eq!(master.call(2, 1, &READ).await, [0x83, 0x0A]);
     line.plug();
-    within("bus reopens the port", async {
-        while gateway.bus_up("sim") != Some(true) {
-            tokio::time::sleep(Duration::from_millis(5)).await;
-        }
-    })
-    .await;
+    wait_for_bus(&gateway, "sim", true).await;
     assert_eq!(
         master.call(3, 1, &READ).await,
         [0x03, 0x02, 0x00, 0x00],

@@ -3,11 +3,9 @@
 
 use modbus_gateway::bus::{Bus, BusHandle, Device};
 use modbus_gateway::error::{Outcome, RequestError};
-use modbus_gateway::rtu::frame;
 use modbus_gateway::rtu::TxError;
-use modbus_gateway::sim::{RegisterBank, SimLine, SimSlave, Source, Transmission};
+use modbus_gateway::sim::{RegisterBank, Scripted, SimLine, Source, Transmission};
 use modbus_gateway::Config;
-use std::collections::VecDeque;
 use std::time::Duration;
 use tokio::time::Instant;
 
@@ -58,23 +56,8 @@ fn exception(outcome: &Outcome) -> Option<u8> {
     }
 }
 
-/// Answers each request to its own address with the next planned transmission (`None`: silent).
-struct Scripted(VecDeque<Option<Transmission>>);
-
-impl SimSlave for Scripted {
-    fn handle(&mut self, address: u8, _: &[u8], _: Instant) -> Option<Transmission> {
-        if address == frame::BROADCAST {
-            return None;
-        }
-        self.0.pop_front().flatten()
-    }
-}
-
 fn answer(address: u8, pdu: &[u8], delay: Duration) -> Option<Transmission> {
-    Some(Transmission {
-        bytes: frame::encode(address, pdu),
-        delay,
-    })
+    Some(Transmission::frame(address, pdu, delay))
 }
 
 #[tokio::test(start_paused = true)]
@@ -140,19 +123,11 @@ async fn a_late_reply_never_answers_a_later_request() {
     let (line, bus) = sim_bus("baud = 9600\nresponse_timeout = \"200ms\"", |line| {
         line.add_slave(
             1,
-            Scripted(VecDeque::from([answer(
-                1,
-                &[0x03, 0x02, 0xDE, 0xAD],
-                timeout * 3 / 2,
-            )])),
+            Scripted::new([answer(1, &[0x03, 0x02, 0xDE, 0xAD], timeout * 3 / 2)]),
         );
         line.add_slave(
             2,
-            Scripted(VecDeque::from([answer(
-                2,
-                &[0x03, 0x02, 0x00, 0x02],
-                timeout / 2,
-            )])),
+            Scripted::new([answer(2, &[0x03, 0x02, 0x00, 0x02], timeout / 2)]),
         );
     });
     settle(&bus).await;

@@ -1,10 +1,9 @@
 //! The real serial path: the gateway opens a pty like a serial device; a third-party Modbus TCP
 //! client (tokio-modbus) on the other side.
 
-use crate::support::{addr, pty_config, start, start_sim, within, PtySlave, RawMaster};
+use crate::support::{addr, pty_config, start, start_sim, wait_for_bus, PtySlave, RawMaster};
 use modbus_gateway::rtu::frame;
 use std::path::PathBuf;
-use std::time::Duration;
 use tokio_modbus::client::{tcp, Reader, Writer};
 use tokio_modbus::Slave;
 
@@ -122,24 +121,14 @@ async fn a_serial_port_that_vanishes_gives_0x0a_at_once_and_is_reopened_when_bac
     );
 
     first.unplug();
-    within("the gateway notices the vanished port", async {
-        while gateway.bus_up("pty") == Some(true) {
-            tokio::time::sleep(Duration::from_millis(5)).await;
-        }
-    })
-    .await;
+    wait_for_bus(&gateway, "pty", false).await;
     // With a one-hour timeout, an answer at all is an answer at once.
     assert_eq!(master.call(2, 1, &READ).await, [0x83, 0x0A]);
 
     let second = PtySlave::registers();
     std::fs::remove_file(&device).unwrap();
     std::os::unix::fs::symlink(&second.path, &device).unwrap();
-    within("the gateway reopens the port", async {
-        while gateway.bus_up("pty") != Some(true) {
-            tokio::time::sleep(Duration::from_millis(5)).await;
-        }
-    })
-    .await;
+    wait_for_bus(&gateway, "pty", true).await;
     assert_eq!(
         master.call(3, 1, &READ).await,
         [0x03, 0x02, 0x00, 0x00],

@@ -163,18 +163,22 @@ async fn session_on_pipe(
     (client, task)
 }
 
+/// Read holding register 0 of unit 1 over the pipe; the reply PDU.
+async fn read_register_0(client: &mut tokio::io::DuplexStream) -> Vec<u8> {
+    let request = RawMaster::adu(1, 1, &[0x03, 0x00, 0x00, 0x00, 0x01]);
+    client.write_all(&request).await.unwrap();
+    let mut reply = [0u8; 11];
+    client.read_exact(&mut reply).await.unwrap();
+    reply[7..].to_vec()
+}
+
 #[tokio::test(start_paused = true)]
 async fn an_idle_connection_is_closed_after_idle_timeout_and_not_before() {
     let idle = Duration::from_secs(10);
     let (mut client, session) = session_on_pipe(idle, Duration::ZERO).await;
     tokio::time::sleep(idle - Duration::from_millis(10)).await;
     assert!(!session.is_finished());
-    client
-        .write_all(&RawMaster::adu(1, 1, &[0x03, 0x00, 0x00, 0x00, 0x01]))
-        .await
-        .unwrap();
-    let mut reply = [0u8; 11];
-    client.read_exact(&mut reply).await.unwrap();
+    read_register_0(&mut client).await;
     let answered = tokio::time::Instant::now();
     let reason = session.await.unwrap();
     assert!(matches!(reason, SessionError::Idle(_)), "{reason}");
@@ -189,12 +193,6 @@ async fn an_idle_connection_is_closed_after_idle_timeout_and_not_before() {
 async fn a_connection_waiting_for_a_slow_reply_is_not_idle() {
     let idle = Duration::from_millis(100);
     let (mut client, session) = session_on_pipe(idle, Duration::from_millis(500)).await;
-    client
-        .write_all(&RawMaster::adu(1, 1, &[0x03, 0x00, 0x00, 0x00, 0x01]))
-        .await
-        .unwrap();
-    let mut reply = [0u8; 11];
-    client.read_exact(&mut reply).await.unwrap();
-    assert_eq!(&reply[7..], &[0x03, 0x02, 0x00, 0x00]);
+    assert_eq!(read_register_0(&mut client).await, [0x03, 0x02, 0x00, 0x00]);
     assert!(matches!(session.await.unwrap(), SessionError::Idle(_)));
 }

@@ -257,8 +257,7 @@ impl<T: Transport> RtuMaster<T> {
 mod tests {
     use super::*;
     use crate::rtu::{Parity, SerialFormat};
-    use crate::sim::{SimLine, SimPort, SimSlave, Transmission};
-    use std::collections::VecDeque;
+    use crate::sim::{Scripted, SimLine, SimPort, Transmission};
 
     /// tokio's timer wakes sleepers on whole milliseconds, paused clock included.
     const TIMER_RESOLUTION: Duration = Duration::from_millis(1);
@@ -269,24 +268,8 @@ mod tests {
     /// Its answer: 0004H = 1388H, 0005H = 0.
     const READ_ANSWER: [u8; 6] = [0x03, 0x04, 0x13, 0x88, 0x00, 0x00];
 
-    /// Answers each request to its own address with the next planned transmission; `None`
-    /// stays silent. Broadcasts use up no plan.
-    struct Scripted(VecDeque<Option<Transmission>>);
-
-    impl SimSlave for Scripted {
-        fn handle(&mut self, address: u8, _: &[u8], _: Instant) -> Option<Transmission> {
-            if address == frame::BROADCAST {
-                return None;
-            }
-            self.0.pop_front().flatten()
-        }
-    }
-
     fn reply(address: u8, pdu: &[u8], delay: Duration) -> Option<Transmission> {
-        Some(Transmission {
-            bytes: frame::encode(address, pdu),
-            delay,
-        })
+        Some(Transmission::frame(address, pdu, delay))
     }
 
     fn line(slaves: Vec<(u8, Vec<Option<Transmission>>)>) -> (SimLine, RtuMaster<SimPort>) {
@@ -297,7 +280,7 @@ mod tests {
             stop_bits: 1,
         }));
         for (address, plan) in slaves {
-            line.add_slave(address, Scripted(plan.into()));
+            line.add_slave(address, Scripted::new(plan));
         }
         let timing = MasterTiming::new(line.timing(), Duration::ZERO, Duration::ZERO);
         let master = RtuMaster::new(line.open().unwrap(), timing);

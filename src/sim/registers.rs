@@ -272,10 +272,7 @@ impl SimSlave for RegisterBank {
         }
         let function = request.first().copied().unwrap_or(0);
         let pdu = reply.unwrap_or_else(|code| vec![function | EXCEPTION_BIT, code]);
-        Some(Transmission {
-            bytes: frame::encode(address, &pdu),
-            delay: self.processing_delay,
-        })
+        Some(Transmission::frame(address, &pdu, self.processing_delay))
     }
 }
 

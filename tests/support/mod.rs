@@ -47,6 +47,24 @@ pub fn addr(gateway: &Gateway) -> SocketAddr {
     gateway.local_addrs()[0]
 }
 
+/// Wait until bus `name` has (`up`) or has lost (`!up`) its port.
+pub async fn wait_for_bus(gateway: &Gateway, name: &str, up: bool) {
+    let what = format!(
+        "bus {name} {}",
+        if up {
+            "opens its port"
+        } else {
+            "loses its port"
+        }
+    );
+    within(&what, async {
+        while gateway.bus_up(name) != Some(up) {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    })
+    .await;
+}
+
 /// A Modbus TCP master that writes and reads raw ADUs.
 pub struct RawMaster {
     stream: TcpStream,
