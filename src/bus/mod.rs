@@ -41,10 +41,6 @@ impl BusHandle {
         self.up.load(Ordering::Acquire)
     }
 
-    pub fn queue_len(&self) -> usize {
-        self.queue.len()
-    }
-
     /// Queue `pdu` for `slave`. The receiver yields the outcome; refusals (port down, queue full)
     /// are in it at once.
     pub fn submit(&self, master: MasterId, slave: u8, pdu: Vec<u8>) -> oneshot::Receiver<Outcome> {
@@ -125,16 +121,17 @@ impl Bus {
         let bus = &*self.handle.name;
         let device = &self.settings.device;
         let mut delay = self.settings.reopen_delay;
+        // Since when the port is down, and how many opens have failed since.
         let mut down_since: Option<(Instant, u32)> = None;
         loop {
             match self.device.open() {
                 Ok(port) => {
                     match down_since.take() {
                         None => info!(bus, device, "serial port open"),
-                        Some((since, attempts)) => info!(
+                        Some((since, failed_opens)) => info!(
                             bus,
                             device,
-                            attempts,
+                            failed_opens,
                             down_s = since.elapsed().as_secs_f64(),
                             "serial port reopened"
                         ),
@@ -151,8 +148,8 @@ impl Bus {
                         warn!(bus, device, %error, "cannot open serial port; answering 0x0A and retrying");
                         down_since = Some((Instant::now(), 1));
                     }
-                    Some((_, attempts)) => {
-                        *attempts += 1;
+                    Some((_, failed_opens)) => {
+                        *failed_opens += 1;
                         debug!(bus, device, %error, "serial port still cannot be opened");
                     }
                 },

@@ -100,10 +100,6 @@ impl<T: Transport> RtuMaster<T> {
         self.counters
     }
 
-    pub fn timing(&self) -> &MasterTiming {
-        &self.timing
-    }
-
     /// Watch the line while no transaction runs: stray bytes push the next frame back by a gap,
     /// and a lost port is reported. Returns only when the port is lost. Cancel-safe.
     pub async fn watch_idle(&mut self) -> io::Error {
@@ -226,7 +222,9 @@ impl<T: Transport> RtuMaster<T> {
             if self.rx.len() > MAX_FRAME_LEN {
                 return Err(TxError::Frame);
             }
+            // Bytes first: a reply whose last byte is in when the deadline comes is still in time.
             tokio::select! {
+                biased;
                 received = self.port.recv(&mut self.rx) => {
                     port_lost(received)?;
                     last_byte_at = Instant::now();
