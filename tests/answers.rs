@@ -157,3 +157,31 @@ async fn an_unplugged_adapter_gets_0x0a_at_once_and_is_served_again_when_back() 
         "same connection"
     );
 }
+
+#[tokio::test]
+async fn a_lost_port_leaves_the_other_buses_serving() {
+    let gateway = start(
+        "[server]\nlisten = \"127.0.0.1:0\"\n\
+         [[bus]]\nname = \"a\"\ndevice = \"sim\"\nbaud = 115200\nresponse_timeout = \"1h\"\n\
+         [[bus.sim_slave]]\naddress = 1\n\
+         [[bus]]\nname = \"b\"\ndevice = \"sim\"\nbaud = 115200\n[[bus.sim_slave]]\naddress = 1\n\
+         [[route]]\nunits = \"1\"\nbus = \"a\"\n\
+         [[route]]\nunits = \"2\"\nbus = \"b\"\naddress = 1\n",
+    )
+    .await;
+    gateway.sim_line("a").unwrap().unplug();
+    wait_for_bus(&gateway, "a", false).await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    for tid in 0..5 {
+        assert_eq!(
+            master.call(tid, 1, &READ).await,
+            [0x83, 0x0A],
+            "bus a is down"
+        );
+        assert_eq!(
+            master.call(tid, 2, &READ).await,
+            [0x03, 0x02, 0x00, 0x00],
+            "bus b serves"
+        );
+    }
+}

@@ -261,6 +261,22 @@ mod tests {
     }
 
     #[test]
+    fn the_manuals_fc10_example_carries_the_fc06_crc_by_mistake() {
+        // Goodrive300 10.4.4 (and the GD20/GD10 manuals): write 1388H, 0032H to 0004H-0005H of
+        // slave 02H, printed with CRC C5 6E, which belongs to the FC 06 example. Not a fixture.
+        let printed = [
+            0x02, 0x10, 0x00, 0x04, 0x00, 0x02, 0x04, 0x13, 0x88, 0x00, 0x32, 0xC5, 0x6E,
+        ];
+        assert!(!crc_ok(&printed));
+        let request = encode(0x02, &printed[1..11]);
+        assert_eq!(&request[11..], &[0xF8, 0x63]);
+        assert_eq!(
+            encode(0x02, &[0x10, 0x00, 0x04, 0x00, 0x02]),
+            [0x02, 0x10, 0x00, 0x04, 0x00, 0x02, 0x00, 0x3A]
+        );
+    }
+
+    #[test]
     fn crc_rejects_any_flipped_bit_and_frames_too_short() {
         assert!(crc_ok(&READ_REPLY));
         for i in 0..READ_REPLY.len() {
