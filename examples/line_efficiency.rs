@@ -5,7 +5,6 @@
 //!
 //! Usage: cargo run --release --example line_efficiency -- [BAUD] [SECONDS]
 
-use modbus_gateway::rtu::LineTiming;
 use modbus_gateway::sim::Source;
 use modbus_gateway::{Config, Gateway};
 use std::net::SocketAddr;
@@ -16,7 +15,8 @@ use tokio::net::TcpStream;
 /// Read 10 holding registers of unit 1: 8 RTU bytes out, 25 back.
 const REQUEST: [u8; 12] = [0, 1, 0, 0, 0, 6, 1, 0x03, 0x00, 0x00, 0x00, 0x0A];
 const REPLY_LEN: usize = 7 + 22;
-const RTU_BYTES: usize = 8 + 25;
+const RTU_REQUEST: usize = 8;
+const RTU_REPLY: usize = 25;
 
 /// Poll until `seconds` have passed; the latency of each transaction.
 fn poll(at: SocketAddr, seconds: u64) -> std::io::Result<(Vec<Duration>, Duration)> {
@@ -52,14 +52,13 @@ async fn main() -> Result<(), Box<dyn std::error::Error>> {
         "[server]\nlisten = \"127.0.0.1:0\"\n[[bus]]\nname = \"sim\"\ndevice = \"sim\"\n\
          baud = {baud}\nparity = \"even\"\n[[bus.sim_slave]]\naddress = 1\n"
     ))?;
-    let timing = LineTiming::new(&config.bus[0].format());
+    let timing = config.bus[0].line_timing();
     let gateway = Gateway::start(&config).await?;
     let at = gateway.local_addrs()[0];
     let (latencies, wall) = tokio::task::spawn_blocking(move || poll(at, seconds)).await??;
 
-    // The sim slave answers t3.5 after the request (no processing time); the next request must
-    // wait t3.5 after the reply.
-    let minimum = timing.frame_time(RTU_BYTES) + timing.t35 + timing.t35;
+    // The sim slave answers t3.5 after the request, with no processing time.
+    let minimum = timing.transaction_minimum(RTU_REQUEST, RTU_REPLY, timing.t35);
     let n = latencies.len();
     let efficiency = (minimum * n as u32).as_secs_f64() / wall.as_secs_f64();
     let ms = |d: Duration| d.as_secs_f64() * 1e3;

@@ -2,7 +2,7 @@
 //! in [`defaults`]), and validation whose errors name the key and the reason. Produces plain
 //! values; knows nothing of sockets, ports or tasks.
 
-use crate::rtu::{Parity, SerialFormat};
+use crate::rtu::{LineTiming, MasterTiming, Parity, SerialFormat};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::fmt;
@@ -246,6 +246,20 @@ pub struct Route {
 impl Bus {
     pub fn is_sim(&self) -> bool {
         self.device == SIM_DEVICE
+    }
+
+    /// Character time and the spec's gaps at this bus's format.
+    pub fn line_timing(&self) -> LineTiming {
+        LineTiming::new(&self.format())
+    }
+
+    /// The gaps the master keeps: t3.5, raised by `inter_frame_delay` and `byte_timeout`.
+    pub fn master_timing(&self) -> MasterTiming {
+        MasterTiming::new(
+            self.line_timing(),
+            self.inter_frame_delay.unwrap_or_default(),
+            self.byte_timeout.unwrap_or_default(),
+        )
     }
 
     pub fn format(&self) -> SerialFormat {

@@ -5,7 +5,6 @@ use crate::bus::{Bus, Device};
 use crate::config::{Config, SimModel};
 use crate::dispatch::Dispatcher;
 use crate::routing::Router;
-use crate::rtu::LineTiming;
 use crate::sim::{RegisterBank, SimLine};
 use crate::tcp::server::Shared;
 use crate::tcp::{self, SessionLimits};
@@ -30,7 +29,7 @@ pub struct Gateway {
 }
 
 fn sim_line(bus: &crate::config::Bus) -> SimLine {
-    let line = SimLine::new(LineTiming::new(&bus.format()));
+    let line = SimLine::new(bus.line_timing());
     for sim in &bus.sim_slave {
         for address in sim.address.iter() {
             match sim.model {

@@ -3,7 +3,7 @@
 
 use clap::{Parser, Subcommand};
 use modbus_gateway::config::{Config, DEFAULT_PATH, ENV_PREFIX};
-use modbus_gateway::rtu::{LineTiming, MasterTiming, Parity};
+use modbus_gateway::rtu::Parity;
 use modbus_gateway::Gateway;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -80,12 +80,8 @@ fn describe(path: &Path, config: &Config) -> String {
     let mut out = format!("# {} is valid.\n", path.display());
     for bus in &config.bus {
         let format = bus.format();
-        let line = LineTiming::new(&format);
-        let master = MasterTiming::new(
-            line,
-            bus.inter_frame_delay.unwrap_or_default(),
-            bus.byte_timeout.unwrap_or_default(),
-        );
+        let master = bus.master_timing();
+        let line = master.line;
         out += &format!(
             "# bus {}: {} baud {}{}{}, character {}, t3.5 {}; frames start {} after the line \
              falls silent; replies of unknown length end after {} of silence.\n",

@@ -20,7 +20,7 @@ fn sim_bus(keys: &str, fill: impl FnOnce(&SimLine)) -> (SimLine, BusHandle) {
         .expect("test config")
         .bus
         .remove(0);
-    let line = SimLine::new(modbus_gateway::rtu::LineTiming::new(&settings.format()));
+    let line = SimLine::new(settings.line_timing());
     fill(&line);
     let bus = Bus::new(settings, Device::Sim(line.clone()));
     let handle = bus.handle();
@@ -206,9 +206,8 @@ async fn one_master_polling_back_to_back_uses_at_least_90_percent_of_the_line() 
         assert_eq!(outcome.unwrap().unwrap().len(), 22);
     }
     let wall = started.elapsed();
-    // Physical minimum per transaction: 8 + 25 characters, the slave's turnaround (t3.5 to see
-    // the request end, no processing time) and the t3.5 gap before the next request.
-    let minimum = (t.frame_time(8 + 25) + t.t35 + t.t35) * transactions;
+    // The simulated slave turns round in t3.5 (it sees the request end), with no processing time.
+    let minimum = t.transaction_minimum(8, 25, t.t35) * transactions;
     let efficiency = minimum.as_secs_f64() / wall.as_secs_f64();
     assert!(efficiency >= 0.90, "bus efficiency {efficiency:.3}");
     assert!(efficiency <= 1.0, "faster than physics: {efficiency:.3}");

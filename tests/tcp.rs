@@ -147,9 +147,7 @@ async fn session_on_pipe(
 ) {
     let config =
         Config::from_toml_str("[[bus]]\nname = \"line\"\ndevice = \"sim\"\nbaud = 9600\n").unwrap();
-    let line = SimLine::new(modbus_gateway::rtu::LineTiming::new(
-        &config.bus[0].format(),
-    ));
+    let line = SimLine::new(config.bus[0].line_timing());
     line.add_slave(1, RegisterBank::new(slave_delay));
     let bus = Bus::new(config.bus[0].clone(), Device::Sim(line));
     let dispatcher = Dispatcher::new(Router::new(&config), vec![bus.handle()]);

@@ -13,7 +13,7 @@ use crate::config;
 use crate::error::{Outcome, RequestError};
 use crate::pdu;
 use crate::rtu::frame::BROADCAST;
-use crate::rtu::{LineTiming, MasterTiming, RtuMaster, TxError};
+use crate::rtu::{MasterTiming, RtuMaster, TxError};
 use std::io;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -80,12 +80,7 @@ pub struct Bus {
 
 impl Bus {
     pub fn new(settings: config::Bus, device: Device) -> Self {
-        let line = LineTiming::new(&settings.format());
-        let timing = MasterTiming::new(
-            line,
-            settings.inter_frame_delay.unwrap_or_default(),
-            settings.byte_timeout.unwrap_or_default(),
-        );
+        let timing = settings.master_timing();
         let mut timeouts = Box::new([settings.response_timeout; 256]);
         for slave in &settings.slave {
             if let Some(timeout) = slave.response_timeout {

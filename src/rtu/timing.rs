@@ -97,6 +97,17 @@ impl LineTiming {
     pub fn frame_time(&self, bytes: usize) -> Duration {
         self.char_time * u32::try_from(bytes).unwrap_or(u32::MAX)
     }
+
+    /// The physical minimum of one transaction (DESIGN.md, "Performance model"): request and
+    /// reply on the wire, the slave's turnaround, and the t3.5 before the next request.
+    pub fn transaction_minimum(
+        &self,
+        request_bytes: usize,
+        reply_bytes: usize,
+        slave_turnaround: Duration,
+    ) -> Duration {
+        self.frame_time(request_bytes + reply_bytes) + slave_turnaround + self.t35
+    }
 }
 
 #[cfg(test)]
@@ -128,6 +139,11 @@ mod tests {
         assert_eq!(t.t35.as_nanos(), 4_010_416);
         assert_eq!(t.t15.as_nanos(), 1_718_750);
         assert_eq!(t.frame_time(8), t.char_time * 8);
+        // Read 10 registers from a slave that answers t3.5 after the request.
+        assert_eq!(
+            t.transaction_minimum(8, 25, t.t35),
+            t.char_time * 33 + t.t35 * 2
+        );
     }
 
     #[test]
