@@ -1,7 +1,7 @@
 //! The Modbus TCP side: pipelining, malformed MBAP headers, garbage, the connection limit and the
 //! idle timeout.
 
-use crate::support::{addr, start, start_sim, within, RawMaster};
+use crate::support::{addr, panics_on_this_thread, start, start_sim, within, RawMaster};
 use modbus_gateway::bus::{Bus, Device};
 use modbus_gateway::dispatch::Dispatcher;
 use modbus_gateway::routing::Router;
@@ -40,6 +40,7 @@ async fn pipelined_requests_come_back_in_order_with_their_own_transaction_ids() 
 
 #[tokio::test]
 async fn a_wrong_protocol_id_closes_that_connection_and_no_other() {
+    let panics = panics_on_this_thread();
     let gateway = start_sim("").await;
     let mut good = RawMaster::connect(addr(&gateway)).await;
     let mut bad = RawMaster::connect(addr(&gateway)).await;
@@ -51,10 +52,16 @@ async fn a_wrong_protocol_id_closes_that_connection_and_no_other() {
         good.call(7, 1, &[0x03, 0x00, 0x00, 0x00, 0x01]).await,
         [0x03, 0x02, 0, 0]
     );
+    assert_eq!(
+        panics_on_this_thread(),
+        panics,
+        "closed by the protocol, not by a panic"
+    );
 }
 
 #[tokio::test]
 async fn a_length_field_outside_2_to_254_closes_the_connection() {
+    let panics = panics_on_this_thread();
     let gateway = start_sim("").await;
     for length in [0u16, 1, 255, 0xFFFF] {
         let mut master = RawMaster::connect(addr(&gateway)).await;
@@ -68,6 +75,7 @@ async fn a_length_field_outside_2_to_254_closes_the_connection() {
         master.call(1, 1, &[0x03, 0x00, 0x00, 0x00, 0x01]).await,
         [0x03, 0x02, 0, 0]
     );
+    assert_eq!(panics_on_this_thread(), panics, "no session panicked");
 }
 
 /// xorshift64: reproducible noise without a dependency.
@@ -85,6 +93,7 @@ fn noise(seed: u64, len: usize) -> Vec<u8> {
 
 #[tokio::test]
 async fn random_bytes_never_take_the_gateway_down() {
+    let panics = panics_on_this_thread();
     let gateway = start_sim("response_timeout = \"20ms\"").await;
     for seed in 1..=64u64 {
         let mut stream = tokio::net::TcpStream::connect(addr(&gateway))
@@ -102,6 +111,7 @@ async fn random_bytes_never_take_the_gateway_down() {
         master.call(1, 2, &[0x04, 0x00, 0x09, 0x00, 0x01]).await,
         [0x04, 0x02, 0, 9]
     );
+    assert_eq!(panics_on_this_thread(), panics, "no session panicked");
 }
 
 #[tokio::test]

@@ -4,8 +4,9 @@
 use modbus_gateway::rtu::frame::{self, FrameLen};
 use modbus_gateway::sim::{RegisterBank, SimSlave};
 use modbus_gateway::{Config, Gateway};
+use std::cell::Cell;
 use std::net::SocketAddr;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, Once};
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
@@ -16,6 +17,25 @@ use tokio_serial::{SerialPort, SerialStream};
 pub const PATIENCE: Duration = Duration::from_secs(20);
 /// A pty passes a frame in one write; a user-defined frame is taken as complete after this pause.
 const PTY_FRAME_PAUSE: Duration = Duration::from_millis(20);
+
+thread_local! {
+    static PANICS: Cell<usize> = const { Cell::new(0) };
+}
+static COUNT_PANICS: Once = Once::new();
+
+/// Panics raised so far on this thread. A `#[tokio::test]` runtime runs the gateway's tasks on
+/// the test's own thread, and tokio turns a panicking session into a merely closed connection, so
+/// tests of hostile input compare this before and after.
+pub fn panics_on_this_thread() -> usize {
+    COUNT_PANICS.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            PANICS.with(|p| p.set(p.get() + 1));
+            previous(info);
+        }));
+    });
+    PANICS.with(Cell::get)
+}
 
 pub async fn within<F: std::future::Future>(what: &str, future: F) -> F::Output {
     tokio::time::timeout(PATIENCE, future)
