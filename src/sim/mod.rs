@@ -3,7 +3,10 @@
 //! gaps; [`registers`] holds plain register-bank slaves; [`scripted`] plays a script for tests. Knows nothing of TCP or the bus queue;
 //! the bus opens it like any port.
 
+pub mod drive;
+pub mod goodrive;
 pub mod line;
+pub mod pd_inverter;
 pub mod registers;
 pub mod scripted;
 

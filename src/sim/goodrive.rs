@@ -1,0 +1,1 @@
+//! Goodrive (GD20, GD300, GD10) drive model.

@@ -1,0 +1,1 @@
+//! Pd-series inverter model.
