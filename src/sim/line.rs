@@ -259,7 +259,9 @@ impl LineState {
         let mut at = start;
         for &byte in &reply.bytes {
             at += char_time;
-            self.inbound.push_back((at, byte));
+            // Bytes arrive in time order, even when a late reply was scheduled before this one.
+            let position = self.inbound.partition_point(|&(due, _)| due <= at);
+            self.inbound.insert(position, (at, byte));
         }
         self.stats.slave_frames += 1;
         self.record(WireFrame {
