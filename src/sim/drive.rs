@@ -475,7 +475,10 @@ mod tests {
     fn parameter_writes_follow_the_modify_marks_and_ranges_that_name_other_parameters() {
         let mut params = Params::new(TABLE);
         assert_eq!(params.write(0x0004, 5001, false), Err(Refusal::OutOfRange));
-        assert_eq!(params.write(0x0003, 10000, true), Err(Refusal::WhileRunning));
+        assert_eq!(
+            params.write(0x0003, 10000, true),
+            Err(Refusal::WhileRunning)
+        );
         assert_eq!(params.write(0x0003, 10000, false), Ok(()));
         assert_eq!(params.write(0x0004, 9000, false), Ok(()));
         assert_eq!(params.write(0x071B, 1, false), Err(Refusal::ReadOnly));
