@@ -3,6 +3,7 @@
 //! values; knows nothing of sockets, ports or tasks.
 
 use crate::rtu::{LineTiming, MasterTiming, Parity, SerialFormat};
+use crate::sim::{self, faults::Faults};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::fmt;
@@ -21,6 +22,8 @@ pub const SIM_DEVICE: &str = "sim";
 /// Highest unicast slave address on a serial line.
 pub const MAX_SLAVE_ADDRESS: u8 = 247;
 const MAX_RETRIES: u32 = 10;
+/// Most garbage a simulated slave may wrap a reply in: a frame's worth.
+const MAX_GARBAGE: usize = 256;
 
 /// Every default, once.
 pub mod defaults {
@@ -207,6 +210,26 @@ pub struct Slave {
         skip_serializing_if = "Option::is_none"
     )]
     pub response_timeout: Option<Duration>,
+    /// The slave may answer Read Holding Registers with a two-byte byte count (an inverter's
+    /// "non-standard Modbus" mode); the gateway reads both forms and passes on the standard one.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub wide_read_count: bool,
+}
+
+fn is_false(value: &bool) -> bool {
+    !value
+}
+
+fn is_zero(value: &Duration) -> bool {
+    value.is_zero()
+}
+
+fn is_zero_usize(value: &usize) -> bool {
+    *value == 0
+}
+
+fn is_zero_f64(value: &f64) -> bool {
+    *value == 0.0
 }
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -215,6 +238,21 @@ pub enum SimModel {
     /// Four plain register banks.
     #[default]
     Registers,
+    /// INVT Goodrive20.
+    Gd20,
+    /// INVT Goodrive300.
+    Gd300,
+    /// INVT Goodrive10.
+    Gd10,
+    /// The inverter with the Pd communication group (shared/reference/003).
+    #[serde(rename = "pd-inverter")]
+    PdInverter,
+}
+
+impl SimModel {
+    pub fn is_drive(self) -> bool {
+        self != SimModel::Registers
+    }
 }
 
 /// Slaves on a simulated line.
@@ -228,6 +266,52 @@ pub struct SimSlave {
     /// Time the slave takes after recognising a request before it starts its reply.
     #[serde(default, with = "duration")]
     pub processing_delay: Duration,
+    /// Drive models: parameters that differ from the factory defaults, by the manual's name,
+    /// in fieldbus units (`"P00.11" = 50` is 5.0 s).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub params: BTreeMap<String, u16>,
+    /// Drive models: the fault code the drive has tripped with at power-on.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub trip: Option<u16>,
+    /// Fault knob: never answers, carries nothing out.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub offline: bool,
+    /// Fault knob: added to every reply's delay.
+    #[serde(default, with = "duration", skip_serializing_if = "is_zero")]
+    pub extra_delay: Duration,
+    /// Fault knob: every reply starts this long after the request, whatever the slave's own delay.
+    #[serde(
+        default,
+        with = "opt_duration",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub late_reply: Option<Duration>,
+    /// Fault knob: fraction of replies (0 to 1) sent with a corrupted CRC.
+    #[serde(default, skip_serializing_if = "is_zero_f64")]
+    pub crc_error_rate: f64,
+    /// Fault knob: random bytes sent straight before every reply.
+    #[serde(default, skip_serializing_if = "is_zero_usize")]
+    pub garbage_before: usize,
+    /// Fault knob: random bytes sent straight after every reply.
+    #[serde(default, skip_serializing_if = "is_zero_usize")]
+    pub garbage_after: usize,
+    /// Fault knob: replies carry this address instead of the slave's own.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reply_address: Option<u8>,
+}
+
+impl SimSlave {
+    pub fn faults(&self) -> Faults {
+        Faults {
+            offline: self.offline,
+            extra_delay: self.extra_delay,
+            late_reply: self.late_reply,
+            crc_error_rate: self.crc_error_rate,
+            garbage_before: self.garbage_before,
+            garbage_after: self.garbage_after,
+            reply_address: self.reply_address,
+        }
+    }
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -729,24 +813,65 @@ impl Config {
                 );
             }
             let mut seen = UnitSet::default();
+            let format = bus.format();
             for (j, sim) in bus.sim_slave.iter().enumerate() {
-                let key = format!("bus[{i}].sim_slave[{j}].address");
+                let key = |field: &str| format!("bus[{i}].sim_slave[{j}].{field}");
                 if sim.address.is_empty() {
-                    fail(key.clone(), "names no address".into());
+                    fail(key("address"), "names no address".into());
                 }
                 for address in sim.address.iter() {
                     if address == 0 || address > MAX_SLAVE_ADDRESS {
                         fail(
-                            key.clone(),
+                            key("address"),
                             format!("{address} is not a slave address 1-247"),
                         );
                         break;
                     }
                     if seen.contains(address) {
-                        fail(key.clone(), format!("slave {address} is simulated twice"));
+                        fail(
+                            key("address"),
+                            format!("slave {address} is simulated twice"),
+                        );
                         break;
                     }
                     seen.insert(address);
+                }
+                if !(0.0..=1.0).contains(&sim.crc_error_rate) {
+                    fail(key("crc_error_rate"), "must be from 0 to 1".into());
+                }
+                for (field, bytes) in [
+                    ("garbage_before", sim.garbage_before),
+                    ("garbage_after", sim.garbage_after),
+                ] {
+                    if bytes > MAX_GARBAGE {
+                        fail(
+                            key(field),
+                            format!("{bytes} is more than {MAX_GARBAGE} bytes"),
+                        );
+                    }
+                }
+                if !sim.model.is_drive() {
+                    for (field, set) in [
+                        ("params", !sim.params.is_empty()),
+                        ("trip", sim.trip.is_some()),
+                    ] {
+                        if set {
+                            fail(
+                                key(field),
+                                "only drive models have parameters and faults".into(),
+                            );
+                        }
+                    }
+                } else if let Some(address) = sim.address.iter().next() {
+                    // The drive checks its own parameters; one power-on tells for every address.
+                    if let Err(e) = sim::build(sim, address, format) {
+                        let field = if e.param == "trip" {
+                            e.param
+                        } else {
+                            format!("params.\"{}\"", e.param)
+                        };
+                        fail(key(&field), e.reason);
+                    }
                 }
             }
         }

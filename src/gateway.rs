@@ -2,10 +2,10 @@
 //! dispatcher and the listeners. Owns their tasks: dropping the gateway stops them.
 
 use crate::bus::{Bus, Device};
-use crate::config::{Config, SimModel};
+use crate::config::Config;
 use crate::dispatch::Dispatcher;
 use crate::routing::Router;
-use crate::sim::{RegisterBank, SimLine};
+use crate::sim::{self, SimLine};
 use crate::tcp::server::Shared;
 use crate::tcp::{self, SessionLimits};
 use std::collections::BTreeMap;
@@ -19,6 +19,12 @@ use tracing::info;
 pub enum StartError {
     #[error("cannot listen on {addr}: {source}")]
     Listen { addr: SocketAddr, source: io::Error },
+    #[error("bus {bus}: simulated slave {address}: {reason}")]
+    SimSlave {
+        bus: String,
+        address: u8,
+        reason: String,
+    },
 }
 
 pub struct Gateway {
@@ -28,18 +34,21 @@ pub struct Gateway {
     tasks: JoinSet<()>,
 }
 
-fn sim_line(bus: &crate::config::Bus) -> SimLine {
+/// The simulated line of a `device = "sim"` bus, with its slaves powered on.
+pub fn sim_line(bus: &crate::config::Bus) -> Result<SimLine, StartError> {
     let line = SimLine::new(bus.line_timing());
-    for sim in &bus.sim_slave {
-        for address in sim.address.iter() {
-            match sim.model {
-                SimModel::Registers => {
-                    line.add_slave(address, RegisterBank::new(sim.processing_delay))
-                }
-            }
+    for slaves in &bus.sim_slave {
+        for address in slaves.address.iter() {
+            let slave =
+                sim::build(slaves, address, bus.format()).map_err(|e| StartError::SimSlave {
+                    bus: bus.name.clone(),
+                    address,
+                    reason: e.to_string(),
+                })?;
+            line.add_slave(address, slave);
         }
     }
-    line
+    Ok(line)
 }
 
 impl Gateway {
@@ -54,7 +63,7 @@ impl Gateway {
         let mut handles = Vec::with_capacity(config.bus.len());
         for settings in &config.bus {
             let device = if settings.is_sim() {
-                let line = sim_line(settings);
+                let line = sim_line(settings)?;
                 sim_lines.insert(settings.name.clone(), line.clone());
                 Device::Sim(line)
             } else {

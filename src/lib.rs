@@ -11,7 +11,8 @@
 //! - [`sim`]: the simulated RS-485 line and its slaves (`device = "sim"`).
 //!
 //! Shared by all: [`pdu`] (function and exception codes) and [`error`] (what fails a request, and
-//! the one place that turns it into an exception). [`gateway`] wires the parts together.
+//! the one place that turns it into an exception). [`gateway`] wires the parts together;
+//! [`simulate`] serves the simulated slaves on a real serial port instead.
 
 pub mod bus;
 pub mod config;
@@ -22,6 +23,7 @@ pub mod pdu;
 pub mod routing;
 pub mod rtu;
 pub mod sim;
+pub mod simulate;
 pub mod tcp;
 
 pub use config::Config;

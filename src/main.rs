@@ -1,10 +1,11 @@
 //! The `modbus-gateway` command: `run` (the default) serves the configured gateway until SIGINT or
-//! SIGTERM; `check-config` validates the file and prints the resolved configuration.
+//! SIGTERM; `check-config` validates the file and prints the resolved configuration; `simulate`
+//! serves a bus's simulated slaves on a real serial device or a pty.
 
 use clap::{Parser, Subcommand};
 use modbus_gateway::config::{Config, DEFAULT_PATH, ENV_PREFIX};
 use modbus_gateway::rtu::Parity;
-use modbus_gateway::Gateway;
+use modbus_gateway::{simulate, Gateway};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use tracing::{error, info};
@@ -29,6 +30,15 @@ enum Command {
     Run,
     /// Validate the configuration and print it resolved, defaults included.
     CheckConfig,
+    /// Serve a bus's simulated slaves as RTU slaves on a serial device, at its baud and format.
+    Simulate {
+        /// The serial device to answer on, or `pty` for a new pty pair (its path is printed).
+        #[arg(long)]
+        device: String,
+        /// The bus whose [[bus.sim_slave]] entries to serve (default: the only one with any).
+        #[arg(long)]
+        bus: Option<String>,
+    },
 }
 
 /// The environment as UTF-8 pairs. A `MBGW__` variable that is not UTF-8 is an error, not skipped.
@@ -155,6 +165,44 @@ fn run(config: Config) -> ExitCode {
     })
 }
 
+fn simulate(config: Config, bus: Option<&str>, device: &str) -> ExitCode {
+    let bus = match simulate::choose_bus(&config, bus) {
+        Ok(bus) => bus,
+        Err(e) => {
+            eprintln!("modbus-gateway: simulate: {e}");
+            return ExitCode::from(EXIT_CONFIG);
+        }
+    };
+    init_logging(&config.log.level);
+    let runtime = match tokio::runtime::Runtime::new() {
+        Ok(runtime) => runtime,
+        Err(e) => {
+            error!(error = %e, "cannot start the runtime");
+            return ExitCode::FAILURE;
+        }
+    };
+    runtime.block_on(async {
+        let announce = |path: &str| {
+            let format = bus.format();
+            println!(
+                "serving bus {} on {path} at {} baud {}{}{}",
+                bus.name,
+                format.baud,
+                format.data_bits,
+                format_name(format.parity),
+                format.stop_bits
+            );
+        };
+        tokio::select! {
+            error = simulate::serve(bus, device, announce) => {
+                error!(device, %error, "cannot serve the simulated slaves");
+                ExitCode::FAILURE
+            }
+            () = stop_signal() => ExitCode::SUCCESS,
+        }
+    })
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let config = match load(&cli.config) {
@@ -167,5 +215,6 @@ fn main() -> ExitCode {
             ExitCode::SUCCESS
         }
         Command::Run => run(config),
+        Command::Simulate { device, bus } => simulate(config, bus.as_deref(), &device),
     }
 }

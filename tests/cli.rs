@@ -1,6 +1,6 @@
 //! The `modbus-gateway` binary as a user runs it.
 
-use crate::support::{within, RawMaster};
+use crate::support::{demo_path, within, RawMaster};
 use std::path::PathBuf;
 use std::process::{Command, Output, Stdio};
 
@@ -23,13 +23,9 @@ fn gateway(args: &[&str], env: &[(&str, &str)]) -> Output {
         .expect("binary runs")
 }
 
-fn demo() -> &'static str {
-    concat!(env!("CARGO_MANIFEST_DIR"), "/config/demo.toml")
-}
-
 #[test]
 fn check_config_prints_the_resolved_demo_config_with_its_line_timing() {
-    let out = gateway(&["--config", demo(), "check-config"], &[]);
+    let out = gateway(&["--config", demo_path(), "check-config"], &[]);
     assert!(
         out.status.success(),
         "{}",
@@ -46,7 +42,29 @@ fn check_config_prints_the_resolved_demo_config_with_its_line_timing() {
     );
     assert!(text.contains("listen = [\"127.0.0.1:5020\"]"), "{text}");
     assert!(text.contains("listen = \"127.0.0.1:9020\""), "{text}");
-    assert!(text.contains("address = \"1-4\""), "{text}");
+    assert!(text.contains("model = \"pd-inverter\""), "{text}");
+    assert!(text.contains("wide_read_count = true"), "{text}");
+}
+
+#[test]
+fn a_drive_parameter_the_model_refuses_exits_2_naming_it() {
+    let path = temp_config(
+        "bad-param.toml",
+        "[[bus]]\nname = \"a\"\ndevice = \"sim\"\n\
+         [[bus.sim_slave]]\naddress = 1\nmodel = \"gd20\"\nparams = { \"P00.01\" = 3 }\n\
+         [[bus.sim_slave]]\naddress = 2\nmodel = \"registers\"\ntrip = 18\n",
+    );
+    let out = gateway(&["--config", path.to_str().unwrap(), "check-config"], &[]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(
+        err.contains("bus[0].sim_slave[0].params.\"P00.01\": 3 is outside 0..=2"),
+        "{err}"
+    );
+    assert!(
+        err.contains("bus[0].sim_slave[1].trip: only drive models"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -79,7 +97,7 @@ fn a_missing_config_file_exits_2_naming_it() {
 #[test]
 fn environment_variables_override_the_file() {
     let out = gateway(
-        &["--config", demo(), "check-config"],
+        &["--config", demo_path(), "check-config"],
         &[
             ("MBGW__BUS__0__BAUD", "19200"),
             ("MBGW__SERVER__LISTEN", "[::1]:1502"),
@@ -94,7 +112,7 @@ fn environment_variables_override_the_file() {
     assert!(text.contains("baud = 19200"), "{text}");
     assert!(text.contains("listen = [\"[::1]:1502\"]"), "{text}");
     let out = gateway(
-        &["--config", demo(), "check-config"],
+        &["--config", demo_path(), "check-config"],
         &[("MBGW__BUS__0__BAUDRATE", "1")],
     );
     assert_eq!(out.status.code(), Some(2));
@@ -122,7 +140,7 @@ async fn run_serves_the_demo_line_and_stops_cleanly_on_sigterm() {
     let port = free_port();
     let listen = format!("127.0.0.1:{port}");
     let mut child = Command::new(BINARY)
-        .args(["--config", demo(), "run"])
+        .args(["--config", demo_path(), "run"])
         .env("MBGW__SERVER__LISTEN", &listen)
         .env("MBGW__LOG__LEVEL", "warn")
         .stdout(Stdio::null())
@@ -163,7 +181,7 @@ fn run_exits_non_zero_naming_an_address_it_cannot_listen_on() {
     let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let listen = taken.local_addr().unwrap().to_string();
     let out = gateway(
-        &["--config", demo(), "run"],
+        &["--config", demo_path(), "run"],
         &[("MBGW__SERVER__LISTEN", listen.as_str())],
     );
     assert_eq!(out.status.code(), Some(1));

@@ -6,6 +6,8 @@ use modbus_gateway::error::{Outcome, RequestError};
 use modbus_gateway::rtu::TxError;
 use modbus_gateway::sim::{RegisterBank, Scripted, SimLine, Source, Transmission};
 use modbus_gateway::Config;
+
+use crate::support::{bus_call as call, settle};
 use std::time::Duration;
 use tokio::time::Instant;
 
@@ -26,27 +28,6 @@ fn sim_bus(keys: &str, fill: impl FnOnce(&SimLine)) -> (SimLine, BusHandle) {
     let handle = bus.handle();
     tokio::spawn(bus.run());
     (line, handle)
-}
-
-/// Let the bus open its port and the line fall quiet.
-async fn settle(handle: &BusHandle) {
-    for _ in 0..100 {
-        if handle.is_up() {
-            break;
-        }
-        tokio::task::yield_now().await;
-    }
-    assert!(handle.is_up(), "bus never opened its port");
-    tokio::time::sleep(Duration::from_millis(50)).await;
-}
-
-async fn call(handle: &BusHandle, slave: u8, pdu: &[u8]) -> (Outcome, Duration) {
-    let started = Instant::now();
-    let outcome = handle
-        .submit(1, slave, pdu.to_vec())
-        .await
-        .expect("bus answers");
-    (outcome, started.elapsed())
 }
 
 fn exception(outcome: &Outcome) -> Option<u8> {

@@ -5,7 +5,10 @@
 //! - `transparency`: function codes and exceptions byte for byte, on the sim line and a pty.
 //! - `line`: the serial line discipline on the paused clock: timeouts, t3.5, retries, efficiency.
 //! - `fairness`: hundreds of masters at once.
+//! - `drives`: the simulated drives of config/demo.toml: registers, exceptions, ramps, timing.
+//! - `faults`: each fault knob of a simulated slave and what the gateway makes of it.
 //! - `serial`: the real serial path on pty pairs, with a third-party client.
+//! - `simulate`: the `simulate` subcommand answering RTU masters on a pty.
 //!
 //! `support` has the shared pieces: gateway start-up, a raw master, a pty slave.
 
@@ -13,8 +16,11 @@ mod support;
 
 mod answers;
 mod cli;
+mod drives;
 mod fairness;
+mod faults;
 mod line;
 mod serial;
+mod simulate;
 mod tcp;
 mod transparency;

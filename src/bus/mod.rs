@@ -12,7 +12,7 @@ pub use queue::{FairQueue, Job, MasterId};
 use crate::config;
 use crate::error::{Outcome, RequestError};
 use crate::pdu;
-use crate::rtu::frame::BROADCAST;
+use crate::rtu::frame::{ReplyForm, BROADCAST};
 use crate::rtu::{MasterTiming, RtuMaster, TxError};
 use std::io;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -133,7 +133,11 @@ impl Bus {
                     }
                     delay = self.settings.reopen_delay;
                     self.set_up(true);
-                    let error = self.serve(RtuMaster::new(port, self.timing)).await;
+                    let mut master = RtuMaster::new(port, self.timing);
+                    for slave in self.settings.slave.iter().filter(|s| s.wide_read_count) {
+                        master.set_reply_form(slave.address, ReplyForm::WideReadCount);
+                    }
+                    let error = self.serve(master).await;
                     self.set_up(false);
                     warn!(bus, device, %error, "serial port lost; answering 0x0A and reopening");
                     down_since = Some((Instant::now(), 0));

@@ -49,6 +49,16 @@ pub fn pdu_of(frame: &[u8]) -> &[u8] {
     &frame[1..frame.len() - 2]
 }
 
+/// How a slave shapes its replies where it departs from the standard.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum ReplyForm {
+    #[default]
+    Standard,
+    /// Read Holding Registers (03) replies may carry their byte count as two bytes, big-endian
+    /// (the "non-standard Modbus" mode of some inverters). Standard replies are accepted too.
+    WideReadCount,
+}
+
 /// What the first bytes of a frame say about its length.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FrameLen {
@@ -109,6 +119,11 @@ fn device_id_len(buf: &[u8]) -> FrameLen {
 /// (the PDU sent) settle the lengths that only the request knows, and only for a frame that
 /// claims to answer it.
 pub fn reply_len(buf: &[u8], slave: u8, request: &[u8]) -> FrameLen {
+    reply_len_as(buf, slave, request, ReplyForm::Standard)
+}
+
+/// [`reply_len`] for a slave whose replies take `form`.
+pub fn reply_len_as(buf: &[u8], slave: u8, request: &[u8], form: ReplyForm) -> FrameLen {
     let Some(&function) = buf.get(1) else {
         return FrameLen::Need(2);
     };
@@ -116,6 +131,14 @@ pub fn reply_len(buf: &[u8], slave: u8, request: &[u8]) -> FrameLen {
         return FrameLen::Exact(EXCEPTION_FRAME_LEN);
     }
     let answers_request = buf[0] == slave && request.first() == Some(&function);
+    if form == ReplyForm::WideReadCount && function == 0x03 && answers_request {
+        // A standard count is never 0, so a 0 where it belongs is the high byte of a wide one.
+        return match buf.get(2) {
+            None => FrameLen::Need(3),
+            Some(0) => counted(buf, 2, true),
+            Some(_) => counted(buf, 2, false),
+        };
+    }
     match function {
         0x01..=0x04 | 0x0C | 0x11 | 0x14 | 0x15 | 0x17 => counted(buf, 2, false),
         0x05 | 0x06 | 0x0B | 0x0F | 0x10 => FrameLen::Exact(8),
@@ -194,6 +217,26 @@ fn fits_request(reply: &[u8], request: &[u8]) -> bool {
 
 /// Judge a complete frame received after sending `request` (a PDU) to `slave`.
 pub fn check_reply(frame: &[u8], slave: u8, request: &[u8]) -> Verdict {
+    check_reply_as(frame, slave, request, ReplyForm::Standard)
+}
+
+/// The PDU of a frame that [`check_reply_as`] found to be the answer, in standard form: a wide
+/// read count loses its high byte, so the master on TCP gets what the standard says.
+pub fn answer_pdu(frame: &[u8], form: ReplyForm) -> Vec<u8> {
+    let pdu = pdu_of(frame);
+    match pdu {
+        [0x03, 0x00, count, data @ ..] if form == ReplyForm::WideReadCount => {
+            let mut standard = Vec::with_capacity(pdu.len() - 1);
+            standard.extend_from_slice(&[0x03, *count]);
+            standard.extend_from_slice(data);
+            standard
+        }
+        _ => pdu.to_vec(),
+    }
+}
+
+/// [`check_reply`] for a slave whose replies take `form`.
+pub fn check_reply_as(frame: &[u8], slave: u8, request: &[u8], form: ReplyForm) -> Verdict {
     if !crc_ok(frame) {
         return Verdict::Corrupt;
     }
@@ -207,7 +250,7 @@ pub fn check_reply(frame: &[u8], slave: u8, request: &[u8]) -> Verdict {
     if pdu[0] == request_function | EXCEPTION_BIT && frame.len() == EXCEPTION_FRAME_LEN {
         return Verdict::Answer;
     }
-    if pdu[0] == request_function && fits_request(pdu, request) {
+    if pdu[0] == request_function && fits_request(&answer_pdu(frame, form), request) {
         Verdict::Answer
     } else {
         Verdict::Foreign
@@ -474,5 +517,52 @@ mod tests {
         let mut bad = READ_REPLY;
         bad[4] ^= 0xFF;
         assert_eq!(check_reply(&bad, 1, &READ_REQUEST[1..6]), Verdict::Corrupt);
+    }
+
+    #[test]
+    fn a_wide_read_count_is_read_whole_and_handed_on_in_standard_form() {
+        let request = [0x03, 0x30, 0x00, 0x00, 0x02];
+        let wide = encode(
+            4,
+            &[
+                0x03, // read holding registers
+                0x00, 0x04, // byte count as two bytes
+                0x13, 0x88, 0x00, 0x32, // two words
+            ],
+        );
+        let form = ReplyForm::WideReadCount;
+        assert_eq!(
+            reply_len_as(&wide[..2], 4, &request, form),
+            FrameLen::Need(3)
+        );
+        assert_eq!(
+            reply_len_as(&wide[..3], 4, &request, form),
+            FrameLen::Need(4)
+        );
+        assert_eq!(
+            reply_len_as(&wide[..4], 4, &request, form),
+            FrameLen::Exact(10)
+        );
+        assert_eq!(check_reply_as(&wide, 4, &request, form), Verdict::Answer);
+        assert_eq!(
+            answer_pdu(&wide, form),
+            [0x03, 0x04, 0x13, 0x88, 0x00, 0x32]
+        );
+        // The same slave switched to the standard form is still understood.
+        let standard = encode(4, &[0x03, 0x04, 0x13, 0x88, 0x00, 0x32]);
+        assert_eq!(
+            reply_len_as(&standard, 4, &request, form),
+            FrameLen::Exact(9)
+        );
+        assert_eq!(
+            check_reply_as(&standard, 4, &request, form),
+            Verdict::Answer
+        );
+        assert_eq!(answer_pdu(&standard, form), pdu_of(&standard));
+        // Without the option the wide reply is a malformed frame, never an answer.
+        assert_ne!(check_reply(&wide, 4, &request), Verdict::Answer);
+        // A wide reply with the wrong count does not fit the request.
+        let short = encode(4, &[0x03, 0x00, 0x02, 0x13, 0x88]);
+        assert_eq!(check_reply_as(&short, 4, &request, form), Verdict::Foreign);
     }
 }

@@ -4,7 +4,7 @@
 //! and only a frame that answers the request is ever returned. Retries, queues and broadcast
 //! policy belong to the caller.
 
-use super::frame::{self, FrameLen, Verdict, BROADCAST, MAX_FRAME_LEN};
+use super::frame::{self, FrameLen, ReplyForm, Verdict, BROADCAST, MAX_FRAME_LEN};
 use super::timing::LineTiming;
 use super::Transport;
 use std::io;
@@ -65,6 +65,8 @@ pub struct RtuMaster<T> {
     tx: Vec<u8>,
     rx: Vec<u8>,
     counters: LineCounters,
+    /// How each slave address shapes its replies.
+    forms: Box<[ReplyForm; 256]>,
 }
 
 fn device_gone() -> io::Error {
@@ -93,7 +95,13 @@ impl<T: Transport> RtuMaster<T> {
             tx: Vec::with_capacity(MAX_FRAME_LEN),
             rx: Vec::with_capacity(MAX_FRAME_LEN),
             counters: LineCounters::default(),
+            forms: Box::new([ReplyForm::Standard; 256]),
         }
+    }
+
+    /// Expect replies from `slave` in `form`; its answers are still returned in standard form.
+    pub fn set_reply_form(&mut self, slave: u8, form: ReplyForm) {
+        self.forms[usize::from(slave)] = form;
     }
 
     pub fn counters(&self) -> LineCounters {
@@ -192,16 +200,17 @@ impl<T: Transport> RtuMaster<T> {
         response_timeout: Duration,
     ) -> Result<Vec<u8>, TxError> {
         self.rx.clear();
+        let form = self.forms[usize::from(slave)];
         // The reply must start within the response timeout; once it has, it gets the time its
         // length needs on the wire, plus the silence allowance for bursty adapters.
         let first_byte_by = end_of_tx + response_timeout;
         let mut last_byte_at = end_of_tx;
         loop {
-            let len = frame::reply_len(&self.rx, slave, request);
+            let len = frame::reply_len_as(&self.rx, slave, request, form);
             if let FrameLen::Exact(n) = len {
                 if self.rx.len() >= n {
-                    match frame::check_reply(&self.rx[..n], slave, request) {
-                        Verdict::Answer => return Ok(frame::pdu_of(&self.rx[..n]).to_vec()),
+                    match frame::check_reply_as(&self.rx[..n], slave, request, form) {
+                        Verdict::Answer => return Ok(frame::answer_pdu(&self.rx[..n], form)),
                         Verdict::Foreign => {
                             self.counters.foreign_frames += 1;
                             self.rx.drain(..n);
@@ -237,8 +246,8 @@ impl<T: Transport> RtuMaster<T> {
                     if len != FrameLen::BySilence {
                         return Err(TxError::Frame);
                     }
-                    match frame::check_reply(&self.rx, slave, request) {
-                        Verdict::Answer => return Ok(frame::pdu_of(&self.rx).to_vec()),
+                    match frame::check_reply_as(&self.rx, slave, request, form) {
+                        Verdict::Answer => return Ok(frame::answer_pdu(&self.rx, form)),
                         Verdict::Foreign => {
                             self.counters.foreign_frames += 1;
                             self.rx.clear();

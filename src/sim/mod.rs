@@ -1,22 +1,78 @@
 //! The simulated RS-485 line (`device = "sim"`) and the slaves on it, so the whole gateway runs and
 //! is tested with no hardware: [`line`] times every frame at the configured baud and checks the
-//! gaps; [`registers`] holds plain register-bank slaves; [`scripted`] plays a script for tests. Knows nothing of TCP or the bus queue;
-//! the bus opens it like any port.
+//! gaps; [`registers`] holds plain register-bank slaves; [`goodrive`] and [`pd_inverter`] model the
+//! drives of the reference manuals on the shared core in [`drive`]; [`faults`] bends any slave's
+//! replies; [`scripted`] plays a script for tests; [`responder`] serves the slaves on a real serial
+//! port (`simulate`). Knows nothing of TCP or the bus queue; the bus opens the line like any port.
 
 pub mod drive;
+pub mod faults;
 pub mod goodrive;
 pub mod line;
 pub mod pd_inverter;
 pub mod registers;
+pub mod responder;
 pub mod scripted;
 
 pub use line::{LineStats, SimLine, SimPort, Source, WireFrame};
 pub use registers::RegisterBank;
 pub use scripted::Scripted;
 
-use crate::rtu::frame;
+use crate::config::{self, SimModel};
+use crate::rtu::{frame, SerialFormat};
+use drive::{DriveSettings, SetupError};
+use faults::{Faults, Faulty};
+use goodrive::{Goodrive, Variant};
+use pd_inverter::PdInverter;
 use std::time::Duration;
 use tokio::time::Instant;
+
+/// Power on the slave `spec` describes, at `address` on a line of `format`, with its fault knobs.
+/// Fails if the drive model refuses a configured parameter or trip.
+pub fn build(
+    spec: &config::SimSlave,
+    address: u8,
+    format: SerialFormat,
+) -> Result<Box<dyn SimSlave>, SetupError> {
+    let now = Instant::now();
+    let settings = DriveSettings {
+        address,
+        format,
+        processing_delay: spec.processing_delay,
+        params: spec.params.clone(),
+        trip: spec.trip,
+    };
+    let faults = spec.faults();
+    Ok(match spec.model {
+        SimModel::Registers => {
+            with_faults(RegisterBank::new(spec.processing_delay), faults, address)
+        }
+        SimModel::Gd20 => with_faults(
+            Goodrive::new(Variant::Gd20, &settings, now)?,
+            faults,
+            address,
+        ),
+        SimModel::Gd300 => with_faults(
+            Goodrive::new(Variant::Gd300, &settings, now)?,
+            faults,
+            address,
+        ),
+        SimModel::Gd10 => with_faults(
+            Goodrive::new(Variant::Gd10, &settings, now)?,
+            faults,
+            address,
+        ),
+        SimModel::PdInverter => with_faults(PdInverter::new(&settings, now)?, faults, address),
+    })
+}
+
+fn with_faults<S: SimSlave + 'static>(slave: S, faults: Faults, address: u8) -> Box<dyn SimSlave> {
+    if faults.is_none() {
+        Box::new(slave)
+    } else {
+        Box::new(Faulty::new(slave, faults, address))
+    }
+}
 
 /// What a simulated slave puts on the wire in answer to a request.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -43,4 +99,10 @@ pub trait SimSlave: Send {
     /// Act on `request` (a PDU) that ended on the wire at `at`. `address` is the frame's address:
     /// the slave's own, or 0 for a broadcast, whose answer the line never sends.
     fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission>;
+}
+
+impl<S: SimSlave + ?Sized> SimSlave for Box<S> {
+    fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission> {
+        (**self).handle(address, request, at)
+    }
 }

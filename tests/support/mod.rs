@@ -1,11 +1,14 @@
 //! What the integration tests share: a gateway started from TOML text on a loopback port, a raw
 //! Modbus TCP master that sees every byte, and an RTU slave on a pty pair (the real serial path).
 
+use modbus_gateway::bus::{Bus, BusHandle, Device};
+use modbus_gateway::error::Outcome;
 use modbus_gateway::rtu::frame::{self, FrameLen};
-use modbus_gateway::sim::{RegisterBank, SimSlave};
+use modbus_gateway::sim::{RegisterBank, SimLine, SimSlave};
 use modbus_gateway::{Config, Gateway};
 use std::cell::Cell;
 use std::net::SocketAddr;
+use std::path::Path;
 use std::sync::{Arc, Mutex, Once};
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -41,6 +44,53 @@ pub async fn within<F: std::future::Future>(what: &str, future: F) -> F::Output 
     tokio::time::timeout(PATIENCE, future)
         .await
         .unwrap_or_else(|_| panic!("{what}: no result within {PATIENCE:?}"))
+}
+
+/// Let a bus open its port and the line fall quiet (on the paused clock).
+pub async fn settle(handle: &BusHandle) {
+    for _ in 0..100 {
+        if handle.is_up() {
+            break;
+        }
+        tokio::task::yield_now().await;
+    }
+    assert!(handle.is_up(), "bus never opened its port");
+    tokio::time::sleep(Duration::from_millis(50)).await;
+}
+
+/// One request straight to a bus, as master 1; the outcome and how long it took.
+pub async fn bus_call(handle: &BusHandle, slave: u8, pdu: &[u8]) -> (Outcome, Duration) {
+    let started = tokio::time::Instant::now();
+    let outcome = handle
+        .submit(1, slave, pdu.to_vec())
+        .await
+        .expect("bus answers");
+    (outcome, started.elapsed())
+}
+
+/// The shipped demo configuration.
+pub fn demo_path() -> &'static str {
+    concat!(env!("CARGO_MANIFEST_DIR"), "/config/demo.toml")
+}
+
+/// The demo configuration as shipped, listening on a free loopback port instead of 5020.
+pub fn demo_config() -> Config {
+    let env = [("MBGW__SERVER__LISTEN".to_owned(), "127.0.0.1:0".to_owned())];
+    Config::load(Path::new(demo_path()), env).expect("config/demo.toml is valid")
+}
+
+/// The demo's bus with its simulated drives, its task running: call on the paused clock.
+pub fn demo_bus() -> (SimLine, BusHandle) {
+    sim_bus_of(demo_config().bus.remove(0))
+}
+
+/// A simulated bus from its settings, slaves powered on now, its task running.
+pub fn sim_bus_of(settings: modbus_gateway::config::Bus) -> (SimLine, BusHandle) {
+    let line = modbus_gateway::gateway::sim_line(&settings).expect("simulated slaves power on");
+    let bus = Bus::new(settings, Device::Sim(line.clone()));
+    let handle = bus.handle();
+    tokio::spawn(bus.run());
+    (line, handle)
 }
 
 /// Start a gateway on `toml`, which should listen on 127.0.0.1:0.

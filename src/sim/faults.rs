@@ -1,0 +1,200 @@
+//! Fault knobs for any simulated slave, so timeouts, late replies and noise can be tested without
+//! hardware: a slave that is offline, slow, late, corrupts its CRC, wraps its reply in garbage or
+//! answers with the wrong address. Wraps a model and bends what it puts on the wire; the model
+//! itself stays correct. Random choices come from a generator seeded by the slave's address, so a
+//! run repeats exactly.
+
+use super::{SimSlave, Transmission};
+use crate::rtu::frame::{self, BROADCAST};
+use std::time::Duration;
+use tokio::time::Instant;
+
+/// What is wrong with a slave. The default is nothing.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Faults {
+    /// Never answers and carries nothing out, as if unpowered or disconnected.
+    pub offline: bool,
+    /// Added to every reply's delay.
+    pub extra_delay: Duration,
+    /// Every reply starts this long after the slave recognised the request, whatever its own
+    /// delay: set it past the gateway's response timeout to get replies that arrive late.
+    pub late_reply: Option<Duration>,
+    /// Fraction of replies (0 to 1) whose CRC is corrupted.
+    pub crc_error_rate: f64,
+    /// Random bytes sent straight before every reply, as part of the same transmission.
+    pub garbage_before: usize,
+    /// Random bytes sent straight after every reply.
+    pub garbage_after: usize,
+    /// Replies carry this address instead of the slave's own (with a valid CRC).
+    pub reply_address: Option<u8>,
+}
+
+impl Faults {
+    pub fn is_none(&self) -> bool {
+        *self == Faults::default()
+    }
+}
+
+/// A slave with [`Faults`].
+pub struct Faulty<S> {
+    inner: S,
+    faults: Faults,
+    rng: fastrand::Rng,
+}
+
+impl<S: SimSlave> Faulty<S> {
+    pub fn new(inner: S, faults: Faults, address: u8) -> Self {
+        Faulty {
+            inner,
+            faults,
+            rng: fastrand::Rng::with_seed(u64::from(address)),
+        }
+    }
+
+    fn garbage(&mut self, n: usize) -> impl Iterator<Item = u8> + '_ {
+        (0..n).map(|_| self.rng.u8(..))
+    }
+}
+
+impl<S: SimSlave> SimSlave for Faulty<S> {
+    fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission> {
+        if self.faults.offline {
+            return None;
+        }
+        let mut reply = self.inner.handle(address, request, at)?;
+        if address == BROADCAST {
+            return Some(reply);
+        }
+        if let Some(wrong) = self.faults.reply_address {
+            if let Some(pdu) = reply.bytes.get(1..reply.bytes.len().saturating_sub(2)) {
+                reply.bytes = frame::encode(wrong, pdu);
+            }
+        }
+        if self.faults.crc_error_rate > 0.0 && self.rng.f64() < self.faults.crc_error_rate {
+            if let Some(last) = reply.bytes.last_mut() {
+                *last ^= 0x01;
+            }
+        }
+        if self.faults.garbage_before > 0 || self.faults.garbage_after > 0 {
+            let mut bytes: Vec<u8> = self.garbage(self.faults.garbage_before).collect();
+            bytes.append(&mut reply.bytes);
+            bytes.extend(self.garbage(self.faults.garbage_after).collect::<Vec<_>>());
+            reply.bytes = bytes;
+        }
+        reply.delay = match self.faults.late_reply {
+            Some(late) => late,
+            None => reply.delay + self.faults.extra_delay,
+        };
+        Some(reply)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::RegisterBank;
+
+    const READ: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x01];
+    const DELAY: Duration = Duration::from_millis(3);
+
+    fn slave(faults: Faults) -> Faulty<RegisterBank> {
+        Faulty::new(RegisterBank::new(DELAY), faults, 7)
+    }
+
+    fn answer(faults: Faults) -> Option<Transmission> {
+        slave(faults).handle(7, &READ, Instant::now())
+    }
+
+    #[test]
+    fn no_faults_leave_the_reply_alone() {
+        let clean = RegisterBank::new(DELAY).handle(7, &READ, Instant::now());
+        assert_eq!(answer(Faults::default()), clean);
+    }
+
+    #[test]
+    fn an_offline_slave_neither_answers_nor_carries_out_writes() {
+        let mut slave = slave(Faults {
+            offline: true,
+            ..Faults::default()
+        });
+        assert_eq!(slave.handle(7, &[0x06, 0, 0, 0, 9], Instant::now()), None);
+        assert_eq!(slave.inner.respond(7, &READ), Ok(vec![0x03, 0x02, 0, 0]));
+    }
+
+    #[test]
+    fn delays_add_up_unless_the_reply_is_late() {
+        let extra = Duration::from_millis(40);
+        let slow = answer(Faults {
+            extra_delay: extra,
+            ..Faults::default()
+        });
+        assert_eq!(slow.unwrap().delay, DELAY + extra);
+        let late = answer(Faults {
+            extra_delay: extra,
+            late_reply: Some(Duration::from_secs(2)),
+            ..Faults::default()
+        });
+        assert_eq!(late.unwrap().delay, Duration::from_secs(2));
+    }
+
+    #[test]
+    fn a_wrong_address_comes_with_a_valid_crc() {
+        let reply = answer(Faults {
+            reply_address: Some(9),
+            ..Faults::default()
+        })
+        .unwrap();
+        assert_eq!(reply.bytes[0], 9);
+        assert!(frame::crc_ok(&reply.bytes));
+    }
+
+    #[test]
+    fn the_crc_error_rate_corrupts_that_share_of_replies_repeatably() {
+        let faults = Faults {
+            crc_error_rate: 0.25,
+            ..Faults::default()
+        };
+        let run = || {
+            let mut slave = slave(faults.clone());
+            (0..400)
+                .map(|_| frame::crc_ok(&slave.handle(7, &READ, Instant::now()).unwrap().bytes))
+                .collect::<Vec<_>>()
+        };
+        let first = run();
+        let corrupt = first.iter().filter(|ok| !**ok).count();
+        assert!((70..=130).contains(&corrupt), "{corrupt} of 400 corrupt");
+        assert_eq!(first, run(), "the same seed gives the same run");
+        let always = answer(Faults {
+            crc_error_rate: 1.0,
+            ..Faults::default()
+        });
+        assert!(!frame::crc_ok(&always.unwrap().bytes));
+    }
+
+    #[test]
+    fn garbage_surrounds_an_intact_frame() {
+        let clean = answer(Faults::default()).unwrap().bytes;
+        let noisy = answer(Faults {
+            garbage_before: 3,
+            garbage_after: 2,
+            ..Faults::default()
+        })
+        .unwrap()
+        .bytes;
+        assert_eq!(noisy.len(), clean.len() + 5);
+        assert_eq!(&noisy[3..noisy.len() - 2], &clean[..]);
+    }
+
+    #[test]
+    fn broadcasts_stay_unanswered_whatever_the_faults() {
+        let mut slave = slave(Faults {
+            reply_address: Some(9),
+            garbage_before: 4,
+            ..Faults::default()
+        });
+        assert_eq!(
+            slave.handle(BROADCAST, &[0x06, 0, 1, 0, 5], Instant::now()),
+            None
+        );
+    }
+}

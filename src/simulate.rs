@@ -1,0 +1,124 @@
+//! The `simulate` subcommand: the simulated slaves of one bus, served as RTU slaves on a real
+//! serial device or on a fresh pty, at the bus's baud and format, until stopped. Picks the bus,
+//! powers the slaves on and reopens a lost device; the serving itself is [`crate::sim::responder`].
+
+use crate::bus::{Device, Port};
+use crate::config::{Bus, Config};
+use crate::rtu::Parity;
+use crate::sim::{self, responder::Responder};
+use std::io;
+use tokio::time::sleep;
+use tokio_serial::SerialPort;
+use tracing::{info, warn};
+
+/// `--device pty`: open a new pty pair and serve on it.
+pub const PTY: &str = "pty";
+
+/// The bus whose `[[bus.sim_slave]]` entries to serve: the one named, or the only one with any.
+pub fn choose_bus<'a>(config: &'a Config, name: Option<&str>) -> Result<&'a Bus, String> {
+    if let Some(name) = name {
+        let bus = config
+            .bus
+            .iter()
+            .find(|b| b.name == name)
+            .ok_or_else(|| format!("there is no bus named `{name}`"))?;
+        if bus.sim_slave.is_empty() {
+            return Err(format!("bus `{name}` has no [[bus.sim_slave]] to serve"));
+        }
+        return Ok(bus);
+    }
+    let mut simulated = config.bus.iter().filter(|b| !b.sim_slave.is_empty());
+    match (simulated.next(), simulated.next()) {
+        (Some(bus), None) => Ok(bus),
+        (None, _) => Err("no bus has [[bus.sim_slave]] entries to serve".into()),
+        (Some(_), Some(_)) => {
+            Err("several buses have simulated slaves: choose one with --bus".into())
+        }
+    }
+}
+
+/// The bus's slaves, powered on, behind one responder.
+pub fn responder(bus: &Bus) -> Result<Responder, String> {
+    let mut responder = Responder::new(bus.line_timing(), bus.master_timing().silence);
+    for slaves in &bus.sim_slave {
+        for address in slaves.address.iter() {
+            let slave = sim::build(slaves, address, bus.format())
+                .map_err(|e| format!("simulated slave {address}: {e}"))?;
+            responder.add_slave(address, slave);
+        }
+    }
+    Ok(responder)
+}
+
+/// Open `path` at the bus's format. A pty refuses even parity and drops odd, so if the format is
+/// refused with parity, the device is opened without it (and the user told).
+fn open(bus: &Bus, path: &str) -> io::Result<Port> {
+    let format = bus.format();
+    let device = |format| Device::Serial {
+        path: path.to_owned(),
+        format,
+    };
+    match device(format).open() {
+        Err(e) if format.parity != Parity::None && e.kind() == io::ErrorKind::InvalidInput => {
+            let port = device(crate::rtu::SerialFormat {
+                parity: Parity::None,
+                ..format
+            })
+            .open()?;
+            warn!(device = path, error = %e, "the device refuses parity (a pty?); serving without it");
+            Ok(port)
+        }
+        result => result,
+    }
+}
+
+/// Serve `bus`'s slaves on `device` (a path, or [`PTY`]) forever, reopening a lost device.
+/// `ready` gets the path masters should open, once the device is open. Returns only on an error
+/// that reopening cannot cure.
+pub async fn serve(bus: &Bus, device: &str, ready: impl FnOnce(&str)) -> io::Error {
+    let mut responder = match responder(bus) {
+        Ok(responder) => responder,
+        Err(e) => return io::Error::new(io::ErrorKind::InvalidInput, e),
+    };
+    let slaves = bus
+        .sim_slave
+        .iter()
+        .map(|s| s.address.iter().count())
+        .sum::<usize>();
+    if device == PTY {
+        let (master, tty) = match tokio_serial::SerialStream::pair() {
+            Ok(pair) => pair,
+            Err(e) => return e.into(),
+        };
+        let path = tty.name().unwrap_or_default();
+        info!(
+            device = path,
+            slaves,
+            bus = bus.name,
+            "serving simulated slaves on a new pty"
+        );
+        ready(&path);
+        // The far end stays open here too, so the pty lives while masters come and go.
+        let mut port = Port::Serial(master);
+        let error = responder.serve(&mut port).await;
+        drop(tty);
+        return error;
+    }
+    let mut ready = Some(ready);
+    loop {
+        match open(bus, device) {
+            Ok(mut port) => {
+                info!(device, slaves, bus = bus.name, "serving simulated slaves");
+                if let Some(ready) = ready.take() {
+                    ready(device);
+                }
+                let error = responder.serve(&mut port).await;
+                let stats = responder.stats();
+                warn!(device, %error, requests = stats.requests, replies = stats.replies, "serial port lost; reopening");
+            }
+            Err(e) if ready.is_some() => return e,
+            Err(e) => warn!(device, error = %e, "cannot reopen serial port"),
+        }
+        sleep(bus.reopen_delay).await;
+    }
+}
