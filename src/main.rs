@@ -137,14 +137,19 @@ async fn stop_signal() {
     }
 }
 
+/// Start logging at `level` and the runtime the daemon's work runs on.
+fn start_runtime(level: &str) -> Result<tokio::runtime::Runtime, ExitCode> {
+    init_logging(level);
+    tokio::runtime::Runtime::new().map_err(|e| {
+        error!(error = %e, "cannot start the runtime");
+        ExitCode::FAILURE
+    })
+}
+
 fn run(config: Config) -> ExitCode {
-    init_logging(&config.log.level);
-    let runtime = match tokio::runtime::Runtime::new() {
+    let runtime = match start_runtime(&config.log.level) {
         Ok(runtime) => runtime,
-        Err(e) => {
-            error!(error = %e, "cannot start the runtime");
-            return ExitCode::FAILURE;
-        }
+        Err(code) => return code,
     };
     runtime.block_on(async {
         let gateway = match Gateway::start(&config).await {
@@ -173,13 +178,9 @@ fn simulate(config: Config, bus: Option<&str>, device: &str) -> ExitCode {
             return ExitCode::from(EXIT_CONFIG);
         }
     };
-    init_logging(&config.log.level);
-    let runtime = match tokio::runtime::Runtime::new() {
+    let runtime = match start_runtime(&config.log.level) {
         Ok(runtime) => runtime,
-        Err(e) => {
-            error!(error = %e, "cannot start the runtime");
-            return ExitCode::FAILURE;
-        }
+        Err(code) => return code,
     };
     runtime.block_on(async {
         let announce = |path: &str| {
