@@ -1521,29 +1521,17 @@ mod tests {
             power_on(Variant::Gd300, 1, &params, t0),
             power_on(Variant::Gd10, 1, &params, t0),
         ];
-        let mut x: u64 = 0x9E37_79B9_7F4A_7C15;
+        // Mostly the function codes the drive knows, at addresses in the blocks that exist.
+        let functions = [0x03, 0x06, 0x08, 0x10];
+        let addresses = [
+            0x0001, 0x0003, 0x000B, 0x0012, 0x0114, 0x071B, 0x0E03, 0x0E06, 0x1D00, 0x2000, 0x2001,
+            0x200E, 0x2100, 0x2103, 0x3000, 0x3016, 0x5000, 0x8007, 0x800B,
+        ];
+        let mut rng = fastrand::Rng::with_seed(1);
         let mut at = t0;
         for i in 0..60_000u32 {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            let len = (x % 24) as usize;
-            let mut pdu: Vec<u8> = (0..len)
-                .map(|i| (x >> (i % 8 * 8)) as u8 ^ i as u8)
-                .collect();
-            if let Some(first) = pdu.first_mut() {
-                // Mostly the function codes the drive knows, so the handlers behind them run.
-                *first = [0x03, 0x06, 0x08, 0x10, *first][(x >> 40) as usize % 5];
-            }
-            if let Some(high) = pdu.get_mut(1) {
-                // Mostly addresses in the blocks that exist.
-                *high =
-                    [0x00, 0x07, 0x0E, 0x20, 0x21, 0x30, 0x50, 0x80, *high][(x >> 44) as usize % 9];
-            }
-            if let Some(low) = pdu.get_mut(2) {
-                *low %= [0x20, 0xFF][(x >> 48) as usize % 2];
-            }
-            at += Duration::from_millis((x >> 52) % 700);
+            let pdu = crate::sim::random_pdu(&mut rng, 24, &functions, &addresses);
+            at += Duration::from_millis(rng.u64(..700));
             let address = if i % 7 == 0 { 0 } else { 1 };
             let _ = drives[i as usize % 3].handle(address, &pdu, at);
         }

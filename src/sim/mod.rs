@@ -106,3 +106,29 @@ impl<S: SimSlave + ?Sized> SimSlave for Box<S> {
         (**self).handle(address, request, at)
     }
 }
+
+/// Input for the slaves' no-panic tests: a PDU of fewer than `max_len` random bytes whose function
+/// code is mostly one of `functions` and whose first word (a register address) is mostly one of
+/// `addresses`, so the handlers behind them run, not just the first check.
+#[cfg(test)]
+pub(crate) fn random_pdu(
+    rng: &mut fastrand::Rng,
+    max_len: usize,
+    functions: &[u8],
+    addresses: &[u16],
+) -> Vec<u8> {
+    let mut pdu: Vec<u8> = (0..rng.usize(..max_len)).map(|_| rng.u8(..)).collect();
+    if let (Some(first), Some(&function)) = (
+        pdu.first_mut(),
+        functions.get(rng.usize(..=functions.len())),
+    ) {
+        *first = function;
+    }
+    if let (Some(word), Some(address)) = (
+        pdu.get_mut(1..3),
+        addresses.get(rng.usize(..=addresses.len())),
+    ) {
+        word.copy_from_slice(&address.to_be_bytes());
+    }
+    pdu
+}

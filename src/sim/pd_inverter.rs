@@ -1289,28 +1289,17 @@ mod tests {
             0x2004, 0x3000, 0x8000, 0xF000, 0xF00A, 0xF011, 0xF013, 0xFD00, 0xFD03, 0xFD05, 0xFF00,
             0xFFFF,
         ];
-        let mut x: u64 = 0x9E37_79B9_7F4A_7C15;
+        let mut rng = fastrand::Rng::with_seed(1);
         for step in 0..50_000u64 {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            let len = (x % 9) as usize;
-            let mut pdu: Vec<u8> = (0..len).map(|i| (x >> (i * 7 % 56)) as u8).collect();
-            if pdu.len() >= 3 && x & 1 == 0 {
-                let address: u16 = interesting[(x >> 20) as usize % interesting.len()];
-                pdu[1..3].copy_from_slice(&address.to_be_bytes());
-            }
-            if pdu.len() >= 5 && x & 2 == 0 {
+            let mut pdu = crate::sim::random_pdu(&mut rng, 9, &[READ, WRITE, WRITE], &interesting);
+            if pdu.len() >= 5 && rng.bool() {
                 // Small values, so commands and in-range writes happen too.
                 pdu[3] = 0;
                 pdu[4] %= 16;
             }
-            if let Some(first) = pdu.first_mut() {
-                *first = [READ, WRITE, WRITE, *first][(x >> 40) as usize % 4];
-            }
-            let address = if x & 0x100 == 0 { 0 } else { 1 };
+            let address = if rng.bool() { 0 } else { 1 };
             // Mostly forward in time, sometimes past the timeout, now and then backwards.
-            let at = t0 + Duration::from_millis(step * 20 + (x >> 50) % 700);
+            let at = t0 + Duration::from_millis(step * 20 + rng.u64(..700));
             let _ = drive.handle(address, &pdu, at);
         }
     }
