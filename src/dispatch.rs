@@ -4,25 +4,26 @@
 
 use crate::bus::{BusHandle, MasterId};
 use crate::error::{Outcome, RequestError};
+use crate::metrics::Metrics;
 use crate::pdu;
 use crate::routing::Router;
 use crate::rtu::frame::BROADCAST;
+use std::sync::Arc;
 use tokio::sync::oneshot;
 
 pub struct Dispatcher {
     router: Router,
     buses: Vec<BusHandle>,
-}
-
-fn answered(outcome: Outcome) -> oneshot::Receiver<Outcome> {
-    let (reply, receiver) = oneshot::channel();
-    let _ = reply.send(outcome);
-    receiver
+    metrics: Arc<Metrics>,
 }
 
 impl Dispatcher {
-    pub fn new(router: Router, buses: Vec<BusHandle>) -> Self {
-        Dispatcher { router, buses }
+    pub fn new(router: Router, buses: Vec<BusHandle>, metrics: Arc<Metrics>) -> Self {
+        Dispatcher {
+            router,
+            buses,
+            metrics,
+        }
     }
 
     pub fn buses(&self) -> &[BusHandle] {
@@ -32,16 +33,29 @@ impl Dispatcher {
     /// Route `pdu` from `unit`.
     pub fn submit(&self, master: MasterId, unit: u8, pdu: Vec<u8>) -> oneshot::Receiver<Outcome> {
         let function = pdu.first().copied().unwrap_or(0);
-        if !pdu::is_valid_request_function(function) {
-            return answered(Err(RequestError::InvalidFunction(function)));
-        }
-        let Some(target) = self.router.resolve(unit) else {
-            return answered(Err(RequestError::NoRoute(unit)));
+        let target = self.router.resolve(unit);
+        let refusal = match target {
+            _ if !pdu::is_valid_request_function(function) => {
+                RequestError::InvalidFunction(function)
+            }
+            None => RequestError::NoRoute(unit),
+            Some(target)
+                if target.address == BROADCAST && pdu::broadcast_response(&pdu).is_none() =>
+            {
+                RequestError::NotBroadcastable(function)
+            }
+            Some(target) => return self.buses[target.bus].submit(master, target.address, pdu),
         };
-        if target.address == BROADCAST && pdu::broadcast_response(&pdu).is_none() {
-            return answered(Err(RequestError::NotBroadcastable(function)));
-        }
-        self.buses[target.bus].submit(master, target.address, pdu)
+        // Counted against the bus and slave the unit routes to, if any, else the unit id.
+        let (bus, slave) = match target {
+            Some(target) => (self.buses[target.bus].name(), target.address),
+            None => ("", unit),
+        };
+        let outcome = Err(refusal);
+        self.metrics.request(bus, slave, function, &outcome);
+        let (reply, receiver) = oneshot::channel();
+        let _ = reply.send(outcome);
+        receiver
     }
 
     /// A master has gone: drop whatever it still has queued.

@@ -1,9 +1,11 @@
-//! Wires a validated configuration into running parts: the simulated lines, one task per bus, the
-//! dispatcher and the listeners. Owns their tasks: dropping the gateway stops them.
+//! Wires a validated configuration into running parts: the metrics, the simulated lines, one task
+//! per bus, the dispatcher, the Modbus TCP listeners and the metrics endpoint. Owns their tasks:
+//! dropping the gateway stops them.
 
 use crate::bus::{Bus, Device};
 use crate::config::Config;
 use crate::dispatch::Dispatcher;
+use crate::metrics::{self, Metrics};
 use crate::routing::Router;
 use crate::sim::{self, SimLine};
 use crate::tcp::server::Shared;
@@ -12,6 +14,7 @@ use std::collections::BTreeMap;
 use std::io;
 use std::net::SocketAddr;
 use std::sync::Arc;
+use tokio::net::TcpListener;
 use tokio::task::JoinSet;
 use tracing::info;
 
@@ -29,6 +32,8 @@ pub enum StartError {
 
 pub struct Gateway {
     local_addrs: Vec<SocketAddr>,
+    metrics_addr: SocketAddr,
+    metrics: Arc<Metrics>,
     sim_lines: BTreeMap<String, SimLine>,
     shared: Arc<Shared>,
     tasks: JoinSet<()>,
@@ -58,6 +63,16 @@ impl Gateway {
         let listeners = tcp::bind(&config.server.listen)
             .await
             .map_err(|(addr, source)| StartError::Listen { addr, source })?;
+        let metrics_listen = config.metrics.listen;
+        let listen_error = |source| StartError::Listen {
+            addr: metrics_listen,
+            source,
+        };
+        let metrics_listener = TcpListener::bind(metrics_listen)
+            .await
+            .map_err(listen_error)?;
+        let metrics_addr = metrics_listener.local_addr().map_err(listen_error)?;
+        let metrics = Arc::new(Metrics::new());
         let mut tasks = JoinSet::new();
         let mut sim_lines = BTreeMap::new();
         let mut handles = Vec::with_capacity(config.bus.len());
@@ -72,7 +87,7 @@ impl Gateway {
                     format: settings.format(),
                 }
             };
-            let bus = Bus::new(settings.clone(), device);
+            let bus = Bus::new(settings.clone(), device, &metrics);
             handles.push(bus.handle());
             tasks.spawn(bus.run());
         }
@@ -80,11 +95,23 @@ impl Gateway {
             pipeline_depth: config.server.pipeline_depth,
             idle_timeout: Some(config.server.idle_timeout).filter(|t| !t.is_zero()),
         };
-        let dispatcher = Dispatcher::new(Router::new(config), handles);
+        let buses = handles.clone();
+        let not_ready: metrics::http::Readiness = Arc::new(move || {
+            let down = buses.iter().filter(|bus| !bus.is_up());
+            down.map(|bus| bus.name().to_owned()).collect()
+        });
+        info!(listen = %metrics_addr, "serving /metrics, /healthz and /readyz");
+        tasks.spawn(metrics::http::serve(
+            metrics_listener,
+            metrics.clone(),
+            not_ready,
+        ));
+        let dispatcher = Dispatcher::new(Router::new(config), handles, metrics.clone());
         let shared = Arc::new(Shared::new(
             dispatcher,
             limits,
             config.server.max_connections,
+            metrics.clone(),
         ));
         let local_addrs = listeners.iter().map(|l| l.addr).collect();
         for listener in listeners {
@@ -93,6 +120,8 @@ impl Gateway {
         }
         Ok(Gateway {
             local_addrs,
+            metrics_addr,
+            metrics,
             sim_lines,
             shared,
             tasks,
@@ -102,6 +131,16 @@ impl Gateway {
     /// The bound listen addresses (port 0 in the configuration becomes the real port here).
     pub fn local_addrs(&self) -> &[SocketAddr] {
         &self.local_addrs
+    }
+
+    /// The bound address of the metrics endpoint.
+    pub fn metrics_addr(&self) -> SocketAddr {
+        self.metrics_addr
+    }
+
+    /// The gateway's metrics, as `/metrics` serves them.
+    pub fn metrics(&self) -> &Metrics {
+        &self.metrics
     }
 
     /// The simulated line of bus `name`, for tests and demos.

@@ -9,6 +9,8 @@
 //!   broadcast.
 //! - [`rtu`]: the RTU master: CRC, frames, t3.5 timing, one transaction on a port.
 //! - [`sim`]: the simulated RS-485 line and its slaves (`device = "sim"`).
+//! - [`metrics`]: what all of the above count, and the HTTP endpoint that serves it with the
+//!   health checks.
 //!
 //! Shared by all: [`pdu`] (function and exception codes) and [`error`] (what fails a request, and
 //! the one place that turns it into an exception). [`gateway`] wires the parts together;
@@ -19,6 +21,7 @@ pub mod config;
 pub mod dispatch;
 pub mod error;
 pub mod gateway;
+pub mod metrics;
 pub mod pdu;
 pub mod routing;
 pub mod rtu;

@@ -142,6 +142,10 @@ async fn run_serves_the_demo_line_and_stops_cleanly_on_sigterm() {
     let mut child = Command::new(BINARY)
         .args(["--config", demo_path(), "run"])
         .env("MBGW__SERVER__LISTEN", &listen)
+        .env(
+            "MBGW__METRICS__LISTEN",
+            format!("127.0.0.1:{}", free_port()),
+        )
         .env("MBGW__LOG__LEVEL", "warn")
         .stdout(Stdio::null())
         .stderr(Stdio::null())

@@ -3,6 +3,7 @@
 
 use modbus_gateway::bus::{Bus, BusHandle, Device};
 use modbus_gateway::error::{Outcome, RequestError};
+use modbus_gateway::metrics::Metrics;
 use modbus_gateway::rtu::TxError;
 use modbus_gateway::sim::{RegisterBank, Scripted, SimLine, Source, Transmission};
 use modbus_gateway::Config;
@@ -24,7 +25,7 @@ fn sim_bus(keys: &str, fill: impl FnOnce(&SimLine)) -> (SimLine, BusHandle) {
         .remove(0);
     let line = SimLine::new(settings.line_timing());
     fill(&line);
-    let bus = Bus::new(settings, Device::Sim(line.clone()));
+    let bus = Bus::new(settings, Device::Sim(line.clone()), &Metrics::new());
     let handle = bus.handle();
     tokio::spawn(bus.run());
     (line, handle)

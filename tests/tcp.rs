@@ -4,11 +4,13 @@
 use crate::support::{addr, panics_on_this_thread, start, start_sim, within, RawMaster};
 use modbus_gateway::bus::{Bus, Device};
 use modbus_gateway::dispatch::Dispatcher;
+use modbus_gateway::metrics::Metrics;
 use modbus_gateway::routing::Router;
 use modbus_gateway::sim::{RegisterBank, SimLine};
 use modbus_gateway::tcp::session::{self, SessionError};
 use modbus_gateway::tcp::SessionLimits;
 use modbus_gateway::Config;
+use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
@@ -159,8 +161,9 @@ async fn session_on_pipe(
         Config::from_toml_str("[[bus]]\nname = \"line\"\ndevice = \"sim\"\nbaud = 9600\n").unwrap();
     let line = SimLine::new(config.bus[0].line_timing());
     line.add_slave(1, RegisterBank::new(slave_delay));
-    let bus = Bus::new(config.bus[0].clone(), Device::Sim(line));
-    let dispatcher = Dispatcher::new(Router::new(&config), vec![bus.handle()]);
+    let metrics = Arc::new(Metrics::new());
+    let bus = Bus::new(config.bus[0].clone(), Device::Sim(line), &metrics);
+    let dispatcher = Dispatcher::new(Router::new(&config), vec![bus.handle()], metrics);
     tokio::spawn(bus.run());
     let (client, server) = tokio::io::duplex(4096);
     let limits = SessionLimits {

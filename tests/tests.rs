@@ -9,6 +9,7 @@
 //! - `faults`: each fault knob of a simulated slave and what the gateway makes of it.
 //! - `serial`: the real serial path on pty pairs, with a third-party client.
 //! - `simulate`: the `simulate` subcommand answering RTU masters on a pty.
+//! - `metrics`: `/metrics`, `/healthz`, `/readyz` after known traffic; promtool; shipped rules.
 //!
 //! `support` has the shared pieces: gateway start-up, a raw master, a pty slave.
 
@@ -20,6 +21,7 @@ mod drives;
 mod fairness;
 mod faults;
 mod line;
+mod metrics;
 mod serial;
 mod simulate;
 mod tcp;

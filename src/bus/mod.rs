@@ -11,16 +11,17 @@ pub use queue::{FairQueue, Job, MasterId};
 
 use crate::config;
 use crate::error::{Outcome, RequestError};
+use crate::metrics::{BusMetrics, Metrics};
 use crate::pdu;
 use crate::rtu::frame::{ReplyForm, BROADCAST};
 use crate::rtu::{MasterTiming, RtuMaster, TxError};
 use std::io;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Weak};
 use std::time::Duration;
 use tokio::sync::oneshot;
 use tokio::time::{sleep_until, Instant};
-use tracing::{debug, info, warn};
+use tracing::debug;
 
 /// What the rest of the gateway holds of a bus: its queue and whether its port is open.
 #[derive(Clone)]
@@ -29,6 +30,7 @@ pub struct BusHandle {
     queue: Arc<FairQueue>,
     up: Arc<AtomicBool>,
     queue_timeout: Duration,
+    metrics: Arc<BusMetrics>,
 }
 
 impl BusHandle {
@@ -45,26 +47,35 @@ impl BusHandle {
     /// are in it at once.
     pub fn submit(&self, master: MasterId, slave: u8, pdu: Vec<u8>) -> oneshot::Receiver<Outcome> {
         let (reply, outcome) = oneshot::channel();
-        if !self.is_up() {
-            let _ = reply.send(Err(RequestError::PortDown));
-            return outcome;
-        }
+        let now = Instant::now();
         let job = Job {
             master,
             slave,
             pdu,
-            deadline: Instant::now() + self.queue_timeout,
+            queued_at: now,
+            deadline: now + self.queue_timeout,
             reply,
         };
-        if let Err(job) = self.queue.push(job) {
-            let _ = job.reply.send(Err(RequestError::QueueFull));
+        if !self.is_up() {
+            self.answer(job, Err(RequestError::PortDown));
+        } else if let Err(job) = self.queue.push(job) {
+            self.answer(job, Err(RequestError::QueueFull));
         }
         outcome
     }
 
-    /// Drop the queued requests of a master that has gone.
+    /// Drop the queued requests of a master that has gone; they are never sent.
     pub fn forget(&self, master: MasterId) {
-        self.queue.forget(master);
+        for job in self.queue.forget(master) {
+            self.metrics.request(job.slave, job.function(), None);
+        }
+    }
+
+    /// Every request ends here, or in [`BusHandle::forget`]: counted by outcome, then answered.
+    fn answer(&self, job: Job, outcome: Outcome) {
+        self.metrics
+            .request(job.slave, job.function(), Some(&outcome));
+        let _ = job.reply.send(outcome);
     }
 }
 
@@ -79,7 +90,8 @@ pub struct Bus {
 }
 
 impl Bus {
-    pub fn new(settings: config::Bus, device: Device) -> Self {
+    /// A bus whose metrics are registered in `metrics`.
+    pub fn new(settings: config::Bus, device: Device, metrics: &Metrics) -> Self {
         let timing = settings.master_timing();
         let mut timeouts = Box::new([settings.response_timeout; 256]);
         for slave in &settings.slave {
@@ -87,11 +99,19 @@ impl Bus {
                 timeouts[usize::from(slave.address)] = timeout;
             }
         }
+        let queue = Arc::new(FairQueue::new(settings.queue_depth));
+        let depth = metrics.queue_depth(&settings.name);
+        let weak: Weak<FairQueue> = Arc::downgrade(&queue);
+        metrics.on_scrape(move || {
+            let len = weak.upgrade().map_or(0, |queue| queue.len());
+            depth.set(i64::try_from(len).unwrap_or(i64::MAX));
+        });
         let handle = BusHandle {
             name: settings.name.as_str().into(),
-            queue: Arc::new(FairQueue::new(settings.queue_depth)),
+            queue,
             up: Arc::new(AtomicBool::new(false)),
             queue_timeout: settings.queue_timeout,
+            metrics: metrics.bus(&settings),
         };
         Bus {
             settings,
@@ -113,7 +133,7 @@ impl Bus {
     /// Run forever: open the port, serve it until it is lost, answer 0x0A while it is down,
     /// reopen with backoff.
     pub async fn run(self) {
-        let bus = &*self.handle.name;
+        let metrics = &self.handle.metrics;
         let device = &self.settings.device;
         let mut delay = self.settings.reopen_delay;
         // Since when the port is down, and how many opens have failed since.
@@ -121,16 +141,10 @@ impl Bus {
         loop {
             match self.device.open() {
                 Ok(port) => {
-                    match down_since.take() {
-                        None => info!(bus, device, "serial port open"),
-                        Some((since, failed_opens)) => info!(
-                            bus,
-                            device,
-                            failed_opens,
-                            down_s = since.elapsed().as_secs_f64(),
-                            "serial port reopened"
-                        ),
-                    }
+                    let down = down_since
+                        .take()
+                        .map(|(since, failed_opens)| (since.elapsed(), failed_opens));
+                    metrics.port_opened(device, down);
                     delay = self.settings.reopen_delay;
                     self.set_up(true);
                     let mut master = RtuMaster::new(port, self.timing);
@@ -139,19 +153,15 @@ impl Bus {
                     }
                     let error = self.serve(master).await;
                     self.set_up(false);
-                    warn!(bus, device, %error, "serial port lost; answering 0x0A and reopening");
+                    metrics.port_lost(device, &error);
                     down_since = Some((Instant::now(), 0));
                 }
-                Err(error) => match &mut down_since {
-                    None => {
-                        warn!(bus, device, %error, "cannot open serial port; answering 0x0A and retrying");
-                        down_since = Some((Instant::now(), 1));
-                    }
-                    Some((_, failed_opens)) => {
-                        *failed_opens += 1;
-                        debug!(bus, device, %error, "serial port still cannot be opened");
-                    }
-                },
+                Err(error) => {
+                    let first = down_since.is_none();
+                    metrics.open_failed(device, &error, first);
+                    let (_, failed_opens) = down_since.get_or_insert((Instant::now(), 0));
+                    *failed_opens += 1;
+                }
             }
             self.refuse_until(Instant::now() + delay).await;
             delay = (delay * 2).min(self.settings.reopen_delay_max);
@@ -161,12 +171,12 @@ impl Bus {
     /// While the port is down: answer everything queued, and everything that arrives, with 0x0A.
     async fn refuse_until(&self, until: Instant) {
         for job in self.handle.queue.drain() {
-            let _ = job.reply.send(Err(RequestError::PortDown));
+            self.handle.answer(job, Err(RequestError::PortDown));
         }
         loop {
             tokio::select! {
                 job = self.handle.queue.pop() => {
-                    let _ = job.reply.send(Err(RequestError::PortDown));
+                    self.handle.answer(job, Err(RequestError::PortDown));
                 }
                 () = sleep_until(until) => return,
             }
@@ -175,34 +185,49 @@ impl Bus {
 
     /// Serve requests on an open port until it is lost.
     async fn serve(&self, mut master: RtuMaster<Port>) -> io::Error {
+        let metrics = &self.handle.metrics;
+        let mut counted = master.counters();
         loop {
             let job = tokio::select! {
                 biased;
                 job = self.handle.queue.pop() => job,
-                error = master.watch_idle() => return error,
+                idle = master.watch_idle() => {
+                    let traffic = master.counters();
+                    metrics.line(&traffic.since(&counted));
+                    counted = traffic;
+                    match idle {
+                        Ok(_) => continue,
+                        Err(error) => return error,
+                    }
+                }
             };
             if job.reply.is_closed() {
+                metrics.request(job.slave, job.function(), None);
                 continue;
             }
+            metrics.dequeued(job.queued_at.elapsed());
             if Instant::now() > job.deadline {
                 debug!(
                     bus = &*self.handle.name,
                     slave = job.slave,
                     "request expired in the queue"
                 );
-                let _ = job.reply.send(Err(RequestError::Expired));
+                self.handle.answer(job, Err(RequestError::Expired));
                 continue;
             }
-            match self.execute(&mut master, &job).await {
+            let result = self.execute(&mut master, &job).await;
+            let traffic = master.counters();
+            metrics.line(&traffic.since(&counted));
+            counted = traffic;
+            match result {
                 Ok(outcome) => {
                     if let Err(error) = &outcome {
-                        let function = job.pdu.first().copied().unwrap_or(0);
-                        debug!(bus = &*self.handle.name, slave = job.slave, function, %error, "request failed");
+                        debug!(bus = &*self.handle.name, slave = job.slave, function = job.function(), %error, "request failed");
                     }
-                    let _ = job.reply.send(outcome);
+                    self.handle.answer(job, outcome);
                 }
                 Err(error) => {
-                    let _ = job.reply.send(Err(RequestError::PortDown));
+                    self.handle.answer(job, Err(RequestError::PortDown));
                     return error;
                 }
             }
@@ -238,18 +263,30 @@ impl Bus {
         };
         let timeout = self.timeouts[usize::from(job.slave)];
         let mut attempts = 0;
-        loop {
+        let mut first_sent_at = None;
+        let outcome = loop {
             attempts += 1;
-            match master.transact(job.slave, &job.pdu, timeout).await {
-                Ok(reply) => return Ok(Ok(Some(reply))),
+            let previous = master.sent_at();
+            let result = master.transact(job.slave, &job.pdu, timeout).await;
+            if master.sent_at() != previous {
+                first_sent_at.get_or_insert(master.sent_at());
+            }
+            match result {
+                Ok(reply) => break Ok(Some(reply)),
                 Err(TxError::PortLost(error)) => return Err(error),
                 Err(last) if attempts > retries || job.reply.is_closed() => {
-                    return Ok(Err(RequestError::NoResponse { attempts, last }));
+                    break Err(RequestError::NoResponse { attempts, last });
                 }
                 Err(error) => {
                     debug!(bus = &*self.handle.name, slave = job.slave, attempts, %error, "retrying");
                 }
             }
-        }
+        };
+        // A request the line was always too busy to send has no round trip.
+        let round_trip = first_sent_at.map(|sent| sent.elapsed());
+        self.handle
+            .metrics
+            .transaction(job.slave, attempts, round_trip, &outcome);
+        Ok(outcome)
     }
 }

@@ -17,9 +17,17 @@ pub struct Job {
     pub master: MasterId,
     pub slave: u8,
     pub pdu: Vec<u8>,
+    /// When it was queued.
+    pub queued_at: Instant,
     /// If the line has not started it by then, the master has been answered 0x06 instead.
     pub deadline: Instant,
     pub reply: oneshot::Sender<Outcome>,
+}
+
+impl Job {
+    pub fn function(&self) -> u8 {
+        self.pdu.first().copied().unwrap_or(0)
+    }
 }
 
 pub struct FairQueue {
@@ -103,15 +111,15 @@ impl FairQueue {
         jobs
     }
 
-    /// Drop the jobs of a master that has gone; returns how many.
-    pub fn forget(&self, master: MasterId) -> usize {
+    /// Take out the jobs of a master that has gone.
+    pub fn forget(&self, master: MasterId) -> VecDeque<Job> {
         let mut inner = self.lock();
         let Some(queue) = inner.queues.remove(&master) else {
-            return 0;
+            return VecDeque::new();
         };
         inner.turn.retain(|&m| m != master);
         inner.len -= queue.len();
-        queue.len()
+        queue
     }
 
     pub fn len(&self) -> usize {
@@ -133,6 +141,7 @@ mod tests {
             master,
             slave: 1,
             pdu: vec![0x03, tag],
+            queued_at: Instant::now(),
             deadline: Instant::now(),
             reply,
         };
@@ -185,8 +194,8 @@ mod tests {
             q.push(j).unwrap();
             keep.push(rx);
         }
-        assert_eq!(q.forget(1), 2);
-        assert_eq!(q.forget(1), 0);
+        assert_eq!(q.forget(1).len(), 2);
+        assert_eq!(q.forget(1).len(), 0);
         assert_eq!(q.len(), 2);
         assert_eq!(order(&q), [(2, 0), (2, 1)]);
     }

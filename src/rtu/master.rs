@@ -47,13 +47,30 @@ pub enum TxError {
     PortLost(io::Error),
 }
 
-/// What the master saw on the line that was not an answer; cumulative, for logs and metrics.
+/// What went over the line, and what the master saw there that was not an answer; cumulative,
+/// for metrics.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct LineCounters {
+    /// Bytes of every frame the master sent.
+    pub sent_bytes: u64,
+    /// Every byte read from the line: replies, other frames, noise.
+    pub received_bytes: u64,
     /// Intact frames that answered nothing: other slaves' replies, late replies.
     pub foreign_frames: u64,
     /// Bytes received while no reply was awaited.
     pub stray_bytes: u64,
+}
+
+impl LineCounters {
+    /// What was counted after `earlier`.
+    pub fn since(&self, earlier: &LineCounters) -> LineCounters {
+        LineCounters {
+            sent_bytes: self.sent_bytes - earlier.sent_bytes,
+            received_bytes: self.received_bytes - earlier.received_bytes,
+            foreign_frames: self.foreign_frames - earlier.foreign_frames,
+            stray_bytes: self.stray_bytes - earlier.stray_bytes,
+        }
+    }
 }
 
 pub struct RtuMaster<T> {
@@ -62,6 +79,8 @@ pub struct RtuMaster<T> {
     /// Earliest moment the next frame may start: the last byte seen on the line plus the gap, or
     /// the end of a broadcast plus its turnaround delay.
     quiet_until: Instant,
+    /// When the last frame was handed to the port.
+    sent_at: Instant,
     tx: Vec<u8>,
     rx: Vec<u8>,
     counters: LineCounters,
@@ -92,6 +111,7 @@ impl<T: Transport> RtuMaster<T> {
             port,
             timing,
             quiet_until: Instant::now() + timing.gap,
+            sent_at: Instant::now(),
             tx: Vec::with_capacity(MAX_FRAME_LEN),
             rx: Vec::with_capacity(MAX_FRAME_LEN),
             counters: LineCounters::default(),
@@ -108,21 +128,28 @@ impl<T: Transport> RtuMaster<T> {
         self.counters
     }
 
-    /// Watch the line while no transaction runs: stray bytes push the next frame back by a gap,
-    /// and a lost port is reported. Returns only when the port is lost. Cancel-safe.
-    pub async fn watch_idle(&mut self) -> io::Error {
-        loop {
-            self.rx.clear();
-            match self.port.recv(&mut self.rx).await {
-                Ok(0) => return device_gone(),
-                Ok(n) => self.saw_stray_bytes(n),
-                Err(e) => return e,
+    /// When the last frame was handed to the port: the start of its transaction on the wire.
+    pub fn sent_at(&self) -> Instant {
+        self.sent_at
+    }
+
+    /// Watch the line while no transaction runs: stray bytes push the next frame back by a gap.
+    /// Returns how many arrived, or the error when the port is lost. Cancel-safe.
+    pub async fn watch_idle(&mut self) -> io::Result<usize> {
+        self.rx.clear();
+        match self.port.recv(&mut self.rx).await {
+            Ok(0) => Err(device_gone()),
+            Ok(n) => {
+                self.saw_stray_bytes(n);
+                Ok(n)
             }
+            Err(e) => Err(e),
         }
     }
 
     fn saw_stray_bytes(&mut self, n: usize) {
         self.counters.stray_bytes += n as u64;
+        self.counters.received_bytes += n as u64;
         self.quiet_until = Instant::now() + self.timing.gap;
     }
 
@@ -165,7 +192,9 @@ impl<T: Transport> RtuMaster<T> {
         self.port.clear_input().map_err(TxError::PortLost)?;
         frame::encode_into(&mut self.tx, address, pdu);
         self.port.send(&self.tx).await.map_err(TxError::PortLost)?;
-        let end_of_tx = Instant::now() + self.timing.line.frame_time(self.tx.len());
+        self.sent_at = Instant::now();
+        self.counters.sent_bytes += self.tx.len() as u64;
+        let end_of_tx = self.sent_at + self.timing.line.frame_time(self.tx.len());
         self.quiet_until = end_of_tx + self.timing.gap;
         Ok(end_of_tx)
     }
@@ -235,7 +264,7 @@ impl<T: Transport> RtuMaster<T> {
             tokio::select! {
                 biased;
                 received = self.port.recv(&mut self.rx) => {
-                    port_lost(received)?;
+                    self.counters.received_bytes += port_lost(received)? as u64;
                     last_byte_at = Instant::now();
                     self.quiet_until = last_byte_at + self.timing.gap;
                 }
@@ -480,12 +509,40 @@ mod tests {
         ]);
         assert!(master.transact(1, &READ, TIMEOUT).await.is_err());
         // Slave 1's late reply goes on the wire while the master is idle.
-        let watching = tokio::time::timeout(TIMEOUT, master.watch_idle()).await;
+        let watching = tokio::time::timeout(TIMEOUT, async {
+            loop {
+                if let Err(lost) = master.watch_idle().await {
+                    return lost;
+                }
+            }
+        })
+        .await;
         assert!(watching.is_err(), "the port is still there");
-        assert!(master.counters().stray_bytes > 0);
+        let counters = master.counters();
+        assert_eq!(counters.stray_bytes, 3 + READ_ANSWER.len() as u64);
+        assert_eq!(counters.received_bytes, counters.stray_bytes);
         master.transact(2, &READ, TIMEOUT).await.unwrap();
         assert_eq!(line.stats().gap_violations, 0);
         assert_eq!(line.stats().collisions, 0);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn the_counters_tally_every_byte_each_way() {
+        let (_line, mut master) = line(vec![(
+            1,
+            vec![
+                reply(1, &READ_ANSWER, Duration::ZERO),
+                reply(1, &[0x83, 0x02], Duration::ZERO),
+            ],
+        )]);
+        master.transact(1, &READ, TIMEOUT).await.unwrap();
+        let first = master.counters();
+        master.transact(1, &READ, TIMEOUT).await.unwrap();
+        // Request: address + 5-byte PDU + CRC; replies: address + PDU + CRC.
+        assert_eq!((first.sent_bytes, first.received_bytes), (8, 9));
+        let second = master.counters().since(&first);
+        assert_eq!((second.sent_bytes, second.received_bytes), (8, 5));
+        assert_eq!((second.foreign_frames, second.stray_bytes), (0, 0));
     }
 
     #[tokio::test(start_paused = true)]

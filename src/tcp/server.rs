@@ -2,9 +2,10 @@
 //! `max_connections` (accepted and closed at once, so they see the refusal instead of hanging in
 //! the backlog), set TCP_NODELAY, and run one session task per master.
 
-use super::session::{self, SessionError, SessionLimits};
+use super::session::{self, SessionLimits};
 use crate::bus::MasterId;
 use crate::dispatch::Dispatcher;
+use crate::metrics::{Metrics, Rejection};
 use std::io;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -38,15 +39,22 @@ pub struct Shared {
     pub dispatcher: Dispatcher,
     pub limits: SessionLimits,
     pub connections: Arc<Semaphore>,
+    pub metrics: Arc<Metrics>,
     next_master: AtomicU64,
 }
 
 impl Shared {
-    pub fn new(dispatcher: Dispatcher, limits: SessionLimits, max_connections: usize) -> Self {
+    pub fn new(
+        dispatcher: Dispatcher,
+        limits: SessionLimits,
+        max_connections: usize,
+        metrics: Arc<Metrics>,
+    ) -> Self {
         Shared {
             dispatcher,
             limits,
             connections: Arc::new(Semaphore::new(max_connections)),
+            metrics,
             next_master: AtomicU64::new(1),
         }
     }
@@ -63,8 +71,9 @@ pub async fn serve(listener: Listener, shared: Arc<Shared>) {
                 continue;
             }
         };
+        let tcp = &shared.metrics.tcp;
         let Ok(permit) = shared.connections.clone().try_acquire_owned() else {
-            warn!(listen = %listener.addr, %peer, "connection refused: max_connections reached");
+            tcp.rejected(Rejection::MaxConnections, &listener.addr, &peer);
             drop(stream);
             continue;
         };
@@ -72,14 +81,14 @@ pub async fn serve(listener: Listener, shared: Arc<Shared>) {
             debug!(%peer, %error, "cannot set TCP_NODELAY");
         }
         let master: MasterId = shared.next_master.fetch_add(1, Ordering::Relaxed);
+        tcp.accepted(master, &peer);
         let shared = shared.clone();
         tokio::spawn(async move {
-            debug!(master, %peer, "master connected");
-            let reason = session::run(stream, master, &shared.dispatcher, shared.limits).await;
-            match reason {
-                SessionError::Frame(_) => warn!(master, %peer, %reason, "connection closed"),
-                _ => debug!(master, %peer, %reason, "master disconnected"),
-            }
+            let error = session::run(stream, master, &shared.dispatcher, shared.limits).await;
+            shared
+                .metrics
+                .tcp
+                .closed(error.closing(), master, &peer, &error);
             drop(permit);
         });
     }

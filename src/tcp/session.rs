@@ -7,6 +7,7 @@ use super::mbap::{self, FrameError, Header};
 use crate::bus::MasterId;
 use crate::dispatch::Dispatcher;
 use crate::error::{Outcome, RequestError};
+use crate::metrics::Closing;
 use crate::pdu::exception_pdu;
 use bytes::BytesMut;
 use std::collections::VecDeque;
@@ -37,6 +38,17 @@ pub enum SessionError {
     Idle(Duration),
     #[error("socket error: {0}")]
     Io(#[from] io::Error),
+}
+
+impl SessionError {
+    pub fn closing(&self) -> Closing {
+        match self {
+            SessionError::Closed => Closing::ByMaster,
+            SessionError::Frame(_) => Closing::ProtocolError,
+            SessionError::Idle(_) => Closing::Idle,
+            SessionError::Io(_) => Closing::IoError,
+        }
+    }
 }
 
 struct InFlight {

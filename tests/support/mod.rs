@@ -3,6 +3,7 @@
 
 use modbus_gateway::bus::{Bus, BusHandle, Device};
 use modbus_gateway::error::Outcome;
+use modbus_gateway::metrics::Metrics;
 use modbus_gateway::rtu::frame::{self, FrameLen};
 use modbus_gateway::sim::{RegisterBank, SimLine, SimSlave};
 use modbus_gateway::{Config, Gateway};
@@ -73,9 +74,12 @@ pub fn demo_path() -> &'static str {
     concat!(env!("CARGO_MANIFEST_DIR"), "/config/demo.toml")
 }
 
-/// The demo configuration as shipped, listening on a free loopback port instead of 5020.
+/// The demo configuration as shipped, listening on free loopback ports instead of 5020 and 9020.
 pub fn demo_config() -> Config {
-    let env = [("MBGW__SERVER__LISTEN".to_owned(), "127.0.0.1:0".to_owned())];
+    let env = [
+        ("MBGW__SERVER__LISTEN".to_owned(), "127.0.0.1:0".to_owned()),
+        ("MBGW__METRICS__LISTEN".to_owned(), "127.0.0.1:0".to_owned()),
+    ];
     Config::load(Path::new(demo_path()), env).expect("config/demo.toml is valid")
 }
 
@@ -87,15 +91,17 @@ pub fn demo_bus() -> (SimLine, BusHandle) {
 /// A simulated bus from its settings, slaves powered on now, its task running.
 pub fn sim_bus_of(settings: modbus_gateway::config::Bus) -> (SimLine, BusHandle) {
     let line = modbus_gateway::gateway::sim_line(&settings).expect("simulated slaves power on");
-    let bus = Bus::new(settings, Device::Sim(line.clone()));
+    let bus = Bus::new(settings, Device::Sim(line.clone()), &Metrics::new());
     let handle = bus.handle();
     tokio::spawn(bus.run());
     (line, handle)
 }
 
-/// Start a gateway on `toml`, which should listen on 127.0.0.1:0.
+/// Start a gateway on `toml`, which should listen on 127.0.0.1:0. Its metrics endpoint goes on a
+/// free loopback port too, so tests never contend for the default one.
 pub async fn start(toml: &str) -> Gateway {
-    let config = Config::from_toml_str(toml).unwrap_or_else(|e| panic!("test config: {e}"));
+    let mut config = Config::from_toml_str(toml).unwrap_or_else(|e| panic!("test config: {e}"));
+    config.metrics.listen = SocketAddr::from(([127, 0, 0, 1], 0));
     Gateway::start(&config).await.expect("gateway starts")
 }
 
@@ -334,4 +340,101 @@ pub fn pty_config(path: &str, extra: &str) -> String {
         "[server]\nlisten = \"127.0.0.1:0\"\n\
          [[bus]]\nname = \"pty\"\ndevice = \"{path}\"\nbaud = 115200\nparity = \"none\"\n{extra}\n"
     )
+}
+
+/// One HTTP/1.1 GET over a fresh connection: the status code and the body.
+pub async fn http_get(addr: SocketAddr, path: &str) -> (u16, String) {
+    let mut stream = within("connect to the metrics endpoint", TcpStream::connect(addr))
+        .await
+        .expect("metrics endpoint accepts");
+    let request = format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n");
+    stream.write_all(request.as_bytes()).await.expect("send");
+    let mut response = String::new();
+    within("HTTP response", stream.read_to_string(&mut response))
+        .await
+        .expect("read the response");
+    let (head, body) = response
+        .split_once("\r\n\r\n")
+        .unwrap_or_else(|| panic!("not an HTTP response: {response:?}"));
+    let status = head
+        .split(' ')
+        .nth(1)
+        .and_then(|code| code.parse().ok())
+        .unwrap_or_else(|| panic!("no status in {head:?}"));
+    (status, body.to_owned())
+}
+
+/// One scrape of `/metrics`, parsed: every sample by its series, `name{label="value",...}`, with
+/// labels sorted as the gateway writes them.
+pub struct Scrape {
+    pub text: String,
+    samples: std::collections::BTreeMap<String, f64>,
+}
+
+impl Scrape {
+    pub async fn of(gateway: &Gateway) -> Scrape {
+        let (status, text) = http_get(gateway.metrics_addr(), "/metrics").await;
+        assert_eq!(status, 200, "{text}");
+        Scrape::parse(text)
+    }
+
+    pub fn parse(text: String) -> Scrape {
+        let samples = text
+            .lines()
+            .filter(|line| !line.starts_with('#') && !line.is_empty())
+            .map(|line| {
+                let (series, value) = line
+                    .rsplit_once(' ')
+                    .unwrap_or_else(|| panic!("not a sample: {line}"));
+                let value = value
+                    .parse()
+                    .unwrap_or_else(|_| panic!("not a number: {line}"));
+                (series.to_owned(), value)
+            })
+            .collect();
+        Scrape { text, samples }
+    }
+
+    /// The value of `series`, if the gateway exports it.
+    pub fn get(&self, series: &str) -> Option<f64> {
+        self.samples.get(series).copied()
+    }
+
+    /// The value of `series`, which must be exported.
+    pub fn value(&self, series: &str) -> f64 {
+        self.get(series)
+            .unwrap_or_else(|| panic!("no series {series} in\n{}", self.text))
+    }
+
+    /// How much `series` grew since `before` (absent counts as 0).
+    pub fn delta(&self, before: &Scrape, series: &str) -> f64 {
+        self.get(series).unwrap_or(0.0) - before.get(series).unwrap_or(0.0)
+    }
+
+    /// Every series of metric `name` (any labels).
+    pub fn series_of(&self, name: &str) -> Vec<(&str, f64)> {
+        self.samples
+            .iter()
+            .filter(|(series, _)| series.split('{').next() == Some(name))
+            .map(|(series, value)| (series.as_str(), *value))
+            .collect()
+    }
+}
+
+/// An external tool on the PATH. Without it the calling test has nothing to check and says so;
+/// with `MBGW_REQUIRE_TOOLS=1` (as `.ci/run` sets) its absence fails the test instead.
+pub fn tool(name: &str) -> Option<std::path::PathBuf> {
+    let found = std::env::var_os("PATH").and_then(|path| {
+        std::env::split_paths(&path)
+            .map(|dir| dir.join(name))
+            .find(|candidate| candidate.is_file())
+    });
+    if found.is_none() {
+        assert!(
+            std::env::var_os("MBGW_REQUIRE_TOOLS").is_none(),
+            "{name} is required (MBGW_REQUIRE_TOOLS is set) but not on the PATH"
+        );
+        eprintln!("{name} is not on the PATH: this test checks nothing here");
+    }
+    found
 }

@@ -1,0 +1,348 @@
+//! What `/metrics`, `/healthz` and `/readyz` say about known traffic through a real gateway on
+//! the simulated line, read over a real HTTP connection, and promtool's verdict on the scrape.
+
+use crate::support::{addr, http_get, start, within, RawMaster, Scrape};
+use modbus_gateway::sim::Source;
+use modbus_gateway::Gateway;
+use std::time::Duration;
+
+/// Read two holding registers from 0000H: 8 bytes on the wire, 9 back from a register slave.
+const READ_2: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x02];
+/// 126 registers is one more than a read may ask for: the slave's exception 03, 5 bytes back.
+const READ_126: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x7E];
+
+/// One 9600 8E1 line "sim" with register slaves 1-4, and slave 5 configured but absent (silent),
+/// with a short timeout and one retry for reads.
+const LINE: &str = "[server]\nlisten = \"127.0.0.1:0\"\n\
+    [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 9600\nparity = \"even\"\nretries = 1\n\
+    reopen_delay = \"10ms\"\nreopen_delay_max = \"20ms\"\n\
+    [[bus.slave]]\naddress = 5\nresponse_timeout = \"50ms\"\n\
+    [[bus.sim_slave]]\naddress = \"1-4\"\n";
+
+/// `name{labels}` as the gateway writes a series: labels sorted by name.
+fn series(name: &str, labels: &[(&str, &str)]) -> String {
+    let mut labels = labels.to_vec();
+    labels.sort();
+    let inner: Vec<String> = labels.iter().map(|(k, v)| format!("{k}=\"{v}\"")).collect();
+    format!("{name}{{{}}}", inner.join(","))
+}
+
+fn requests(bus: &str, slave: &str, outcome: &str) -> String {
+    series(
+        "modbus_gateway_requests_total",
+        &[
+            ("bus", bus),
+            ("slave", slave),
+            ("function", "0x03"),
+            ("outcome", outcome),
+        ],
+    )
+}
+
+fn exceptions(bus: &str, slave: &str, source: &str, code: &str) -> String {
+    series(
+        "modbus_gateway_exceptions_total",
+        &[
+            ("bus", bus),
+            ("slave", slave),
+            ("source", source),
+            ("code", code),
+        ],
+    )
+}
+
+fn of_bus(name: &str) -> String {
+    series(name, &[("bus", "sim")])
+}
+
+fn of_slave(name: &str, slave: &str) -> String {
+    series(name, &[("bus", "sim"), ("slave", slave)])
+}
+
+fn sum(scrape: &Scrape, name: &str) -> f64 {
+    scrape.series_of(name).iter().map(|(_, v)| v).sum()
+}
+
+#[tokio::test]
+async fn known_traffic_moves_each_counter_and_histogram_by_exactly_what_it_caused() {
+    let gateway = start(LINE).await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    // Wait for the port, and a first answer, so the start-up itself is not in the figures.
+    assert_eq!(master.call(0, 1, &READ_2).await, [0x03, 0x04, 0, 0, 0, 0]);
+    let before = Scrape::of(&gateway).await;
+
+    for tid in 1..=3 {
+        assert_eq!(master.call(tid, 1, &READ_2).await, [0x03, 0x04, 0, 0, 0, 0]);
+    }
+    assert_eq!(master.call(4, 2, &READ_126).await, [0x83, 0x03]);
+    assert_eq!(master.call(5, 5, &READ_2).await, [0x83, 0x0B]);
+    assert_eq!(master.call(6, 250, &READ_2).await, [0x83, 0x0A]);
+    let after = Scrape::of(&gateway).await;
+
+    let increments = [
+        (requests("sim", "1", "ok"), 3.0),
+        (requests("sim", "2", "exception"), 1.0),
+        (exceptions("sim", "2", "slave", "0x03"), 1.0),
+        (requests("sim", "5", "timeout"), 1.0),
+        (exceptions("sim", "5", "gateway", "0x0B"), 1.0),
+        (of_slave("modbus_gateway_retries_total", "5"), 1.0),
+        (of_slave("modbus_gateway_retries_total", "1"), 0.0),
+        // No route: no bus, and the unit id in place of the slave address.
+        (requests("", "250", "no_route"), 1.0),
+        (exceptions("", "250", "gateway", "0x0A"), 1.0),
+        // Four requests answered on the line, one timed out twice.
+        (of_bus("modbus_gateway_round_trip_seconds_count"), 5.0),
+        (of_bus("modbus_gateway_queue_wait_seconds_count"), 5.0),
+        // 3 reads of 8 + 9 bytes, 8 + 5 for the exception, 2 x 8 unanswered.
+        (of_bus("modbus_gateway_line_sent_bytes_total"), 48.0),
+        (of_bus("modbus_gateway_line_received_bytes_total"), 32.0),
+        (of_bus("modbus_gateway_discarded_frames_total"), 0.0),
+        (of_bus("modbus_gateway_stray_bytes_total"), 0.0),
+    ];
+    for (series, increment) in &increments {
+        assert_eq!(after.delta(&before, series), *increment, "{series}");
+    }
+    // Nothing else was counted: six requests, three exceptions.
+    assert_eq!(
+        sum(&after, "modbus_gateway_requests_total")
+            - sum(&before, "modbus_gateway_requests_total"),
+        6.0
+    );
+    assert_eq!(
+        sum(&after, "modbus_gateway_exceptions_total")
+            - sum(&before, "modbus_gateway_exceptions_total"),
+        3.0
+    );
+
+    // The line was busy for exactly its 80 characters of 11 bits at 9600 baud.
+    let busy = after.delta(&before, &of_bus("modbus_gateway_line_busy_seconds_total"));
+    assert!((busy - 80.0 * 11.0 / 9600.0).abs() < 1e-6, "busy {busy} s");
+
+    // Physics bounds the round trips from below: at 9600 baud no exchange takes under 10 ms,
+    // and the timed-out read waited two 50 ms timeouts.
+    let bucket = |le: &str| {
+        let labels = [("bus", "sim"), ("le", le)];
+        after.delta(
+            &before,
+            &series("modbus_gateway_round_trip_seconds_bucket", &labels),
+        )
+    };
+    assert_eq!(bucket("0.01"), 0.0);
+    assert!(bucket("0.1") <= 4.0, "the timed-out read took over 100 ms");
+    assert_eq!(bucket("+Inf"), 5.0);
+    let round_trips = after.delta(&before, &of_bus("modbus_gateway_round_trip_seconds_sum"));
+    assert!(round_trips >= 0.1 + 4.0 * 0.013, "{round_trips}");
+
+    // Slaves that answered are up with the time of that answer; the silent one is down; those
+    // never asked stay at zero.
+    for (slave, up) in [("1", 1.0), ("2", 1.0), ("3", 0.0), ("4", 0.0), ("5", 0.0)] {
+        let at = after.value(&of_slave("modbus_gateway_slave_up", slave));
+        assert_eq!(at, up, "slave {slave} up");
+        let last = of_slave("modbus_gateway_slave_last_success_timestamp_seconds", slave);
+        assert_eq!(
+            after.value(&last) > 0.0,
+            up == 1.0,
+            "slave {slave} last success"
+        );
+    }
+    assert_eq!(after.value("modbus_gateway_tcp_connections"), 1.0);
+    assert_eq!(
+        after.value("modbus_gateway_tcp_connections_accepted_total"),
+        1.0
+    );
+}
+
+#[tokio::test]
+async fn readyz_turns_503_while_a_port_is_lost_and_200_when_it_is_back() {
+    let gateway = start(LINE).await;
+    let metrics = gateway.metrics_addr();
+    let ready = || async move { http_get(metrics, "/readyz").await };
+    let wait_for = |status: u16| async move {
+        within(&format!("/readyz answers {status}"), async {
+            loop {
+                let (code, body) = ready().await;
+                if code == status {
+                    return body;
+                }
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
+        })
+        .await
+    };
+    wait_for(200).await;
+    assert_eq!(http_get(metrics, "/healthz").await.0, 200);
+
+    let line = gateway.sim_line("sim").unwrap().clone();
+    line.unplug();
+    let body = wait_for(503).await;
+    assert!(body.contains("bus sim: port down"), "{body}");
+    assert_eq!(http_get(metrics, "/healthz").await.0, 200, "still alive");
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    assert_eq!(master.call(1, 1, &READ_2).await, [0x83, 0x0A]);
+    let down = Scrape::of(&gateway).await;
+    assert_eq!(down.value(&of_bus("modbus_gateway_port_up")), 0.0);
+    assert_eq!(down.value(&requests("sim", "1", "port_down")), 1.0);
+    assert_eq!(down.value(&exceptions("sim", "1", "gateway", "0x0A")), 1.0);
+
+    line.plug();
+    assert_eq!(wait_for(200).await, "ready\n");
+    let back = Scrape::of(&gateway).await;
+    assert_eq!(back.value(&of_bus("modbus_gateway_port_up")), 1.0);
+    assert_eq!(
+        back.value(&of_bus("modbus_gateway_port_reopens_total")),
+        1.0
+    );
+    assert_eq!(http_get(metrics, "/nothing-here").await.0, 404);
+}
+
+#[tokio::test]
+async fn requests_of_a_master_that_left_are_counted_dropped_and_never_sent() {
+    let gateway = start(
+        "[server]\nlisten = \"127.0.0.1:0\"\n\
+         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 9600\n\
+         [[bus.sim_slave]]\naddress = 1\nprocessing_delay = \"300ms\"\n",
+    )
+    .await;
+    let line = gateway.sim_line("sim").unwrap().clone();
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    for tid in 0..5 {
+        master.send(tid, 1, &READ_2).await;
+    }
+    within("the first request is on the wire", async {
+        while line.frames().is_empty() {
+            tokio::time::sleep(Duration::from_millis(1)).await;
+        }
+    })
+    .await;
+    drop(master);
+    let scrape = within("all five requests are counted", async {
+        loop {
+            let scrape = Scrape::of(&gateway).await;
+            if sum(&scrape, "modbus_gateway_requests_total") == 5.0 {
+                return scrape;
+            }
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    })
+    .await;
+    assert_eq!(scrape.value(&requests("sim", "1", "ok")), 1.0);
+    assert_eq!(scrape.value(&requests("sim", "1", "dropped")), 4.0);
+    let sent = line
+        .frames()
+        .iter()
+        .filter(|f| f.from == Source::Master)
+        .count();
+    assert_eq!(sent, 1, "only the request already on the wire was sent");
+    assert_eq!(
+        scrape.value("modbus_gateway_tcp_connections_closed_total{reason=\"by_master\"}"),
+        1.0
+    );
+    assert_eq!(scrape.value("modbus_gateway_tcp_connections"), 0.0);
+}
+
+#[tokio::test]
+async fn refused_and_broken_connections_are_counted_by_reason() {
+    let gateway = start(&LINE.replace(
+        "listen = \"127.0.0.1:0\"\n",
+        "listen = \"127.0.0.1:0\"\nmax_connections = 1\n",
+    ))
+    .await;
+    let mut first = RawMaster::connect(addr(&gateway)).await;
+    assert_eq!(first.call(1, 1, &READ_2).await.len(), 6);
+    let mut second = RawMaster::connect(addr(&gateway)).await;
+    assert!(second.is_closed().await, "over max_connections");
+    // Protocol id 1 is not Modbus: the connection is closed.
+    first.send_raw(&[0, 1, 0, 1, 0, 6, 1, 3, 0, 0, 0, 1]).await;
+    assert!(first.is_closed().await);
+    let scrape = within("the close is counted", async {
+        loop {
+            let scrape = Scrape::of(&gateway).await;
+            if scrape.value("modbus_gateway_tcp_connections") == 0.0 {
+                return scrape;
+            }
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    })
+    .await;
+    let reason = |name: &str, reason: &str| scrape.value(&series(name, &[("reason", reason)]));
+    let rejected = "modbus_gateway_tcp_connections_rejected_total";
+    let closed = "modbus_gateway_tcp_connections_closed_total";
+    assert_eq!(reason(rejected, "max_connections"), 1.0);
+    assert_eq!(reason(closed, "protocol_error"), 1.0);
+    assert_eq!(reason(closed, "by_master"), 0.0);
+    assert_eq!(
+        scrape.value("modbus_gateway_tcp_connections_accepted_total"),
+        1.0
+    );
+}
+
+#[tokio::test]
+async fn every_one_of_247_known_slaves_has_its_series_from_the_start() {
+    let gateway = start(
+        "[server]\nlisten = \"127.0.0.1:0\"\n\
+         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\n\
+         [[bus.sim_slave]]\naddress = \"1-247\"\n",
+    )
+    .await;
+    let scrape = Scrape::of(&gateway).await;
+    for name in [
+        "modbus_gateway_slave_up",
+        "modbus_gateway_slave_last_success_timestamp_seconds",
+        "modbus_gateway_retries_total",
+    ] {
+        let series = scrape.series_of(name);
+        assert_eq!(series.len(), 247, "{name}");
+        assert!(series.iter().all(|(_, v)| *v == 0.0), "{name}");
+    }
+}
+
+/// A gateway that has seen every kind of outcome and event the metrics describe.
+async fn gateway_after_mixed_traffic() -> Gateway {
+    let gateway = start(LINE).await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    assert_eq!(master.call(1, 1, &READ_2).await.len(), 6);
+    assert_eq!(master.call(2, 2, &READ_126).await, [0x83, 0x03]);
+    assert_eq!(master.call(3, 5, &READ_2).await, [0x83, 0x0B]);
+    assert_eq!(master.call(4, 250, &READ_2).await, [0x83, 0x0A]);
+    assert_eq!(master.call(5, 0, &READ_2).await, [0x83, 0x01]);
+    assert_eq!(
+        master.call(6, 0, &[0x06, 0, 1, 0, 7]).await,
+        [0x06, 0, 1, 0, 7]
+    );
+    gateway
+}
+
+#[tokio::test]
+async fn promtool_finds_nothing_to_lint_in_a_scrape() {
+    let Some(promtool) = crate::support::tool("promtool") else {
+        return;
+    };
+    let gateway = gateway_after_mixed_traffic().await;
+    let scrape = Scrape::of(&gateway).await;
+    let mut child = std::process::Command::new(promtool)
+        .args(["check", "metrics"])
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("promtool runs");
+    {
+        use std::io::Write;
+        let mut stdin = child.stdin.take().unwrap();
+        stdin.write_all(scrape.text.as_bytes()).unwrap();
+    }
+    let out = within(
+        "promtool",
+        tokio::task::spawn_blocking(move || child.wait_with_output()),
+    )
+    .await
+    .unwrap()
+    .unwrap();
+    let said = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(out.status.success(), "{said}");
+    assert_eq!(said.trim(), "", "promtool lint output");
+}
