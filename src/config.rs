@@ -132,12 +132,38 @@ impl Default for Metrics {
 pub struct Log {
     /// A tracing filter: `info`, `debug`, `modbus_gateway=trace`; `RUST_LOG` overrides it.
     pub level: String,
+    pub format: LogFormat,
+}
+
+/// How log lines are written to stderr.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LogFormat {
+    /// Human text; under systemd, without timestamps and with the journal's priority prefix.
+    #[default]
+    Text,
+    /// One JSON object per line.
+    Json,
+}
+
+impl<'de> Deserialize<'de> for LogFormat {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let text = String::deserialize(d)?;
+        match text.as_str() {
+            "text" => Ok(LogFormat::Text),
+            "json" => Ok(LogFormat::Json),
+            _ => Err(serde::de::Error::custom(format!(
+                "`{text}` is not text or json"
+            ))),
+        }
+    }
 }
 
 impl Default for Log {
     fn default() -> Self {
         Log {
             level: defaults::LOG_LEVEL.to_owned(),
+            format: LogFormat::default(),
         }
     }
 }
@@ -941,6 +967,10 @@ mod tests {
         let c = Config::from_toml_str(MINIMAL).unwrap();
         assert_eq!(c.server, Server::default());
         assert_eq!(c.metrics.listen, defaults::metrics_listen());
+        assert_eq!(
+            (c.log.level.as_str(), c.log.format),
+            ("info", LogFormat::Text)
+        );
         let bus = &c.bus[0];
         assert_eq!(
             (bus.baud, bus.data_bits, bus.parity),

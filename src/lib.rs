@@ -14,13 +14,15 @@
 //!
 //! Shared by all: [`pdu`] (function and exception codes) and [`error`] (what fails a request, and
 //! the one place that turns it into an exception). [`gateway`] wires the parts together;
-//! [`simulate`] serves the simulated slaves on a real serial port instead.
+//! [`simulate`] serves the simulated slaves on a real serial port instead; [`logging`] sets up
+//! the daemon's log output.
 
 pub mod bus;
 pub mod config;
 pub mod dispatch;
 pub mod error;
 pub mod gateway;
+pub mod logging;
 pub mod metrics;
 pub mod pdu;
 pub mod routing;

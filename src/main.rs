@@ -3,13 +3,12 @@
 //! serves a bus's simulated slaves on a real serial device or a pty.
 
 use clap::{Parser, Subcommand};
-use modbus_gateway::config::{Config, DEFAULT_PATH, ENV_PREFIX};
+use modbus_gateway::config::{self, Config, DEFAULT_PATH, ENV_PREFIX};
 use modbus_gateway::rtu::Parity;
-use modbus_gateway::{simulate, Gateway};
+use modbus_gateway::{logging, simulate, Gateway};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use tracing::{error, info};
-use tracing_subscriber::EnvFilter;
 
 /// Exit status for a configuration that cannot be used.
 const EXIT_CONFIG: u8 = 2;
@@ -109,14 +108,6 @@ fn describe(path: &Path, config: &Config) -> String {
     out + "\n" + &config.to_toml()
 }
 
-fn init_logging(level: &str) {
-    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(level));
-    tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .init();
-}
-
 async fn stop_signal() {
     #[cfg(unix)]
     {
@@ -137,9 +128,9 @@ async fn stop_signal() {
     }
 }
 
-/// Start logging at `level` and the runtime the daemon's work runs on.
-fn start_runtime(level: &str) -> Result<tokio::runtime::Runtime, ExitCode> {
-    init_logging(level);
+/// Start logging as configured and the runtime the daemon's work runs on.
+fn start_runtime(log: &config::Log) -> Result<tokio::runtime::Runtime, ExitCode> {
+    logging::init(&log.level, log.format);
     tokio::runtime::Runtime::new().map_err(|e| {
         error!(error = %e, "cannot start the runtime");
         ExitCode::FAILURE
@@ -147,7 +138,7 @@ fn start_runtime(level: &str) -> Result<tokio::runtime::Runtime, ExitCode> {
 }
 
 fn run(config: Config) -> ExitCode {
-    let runtime = match start_runtime(&config.log.level) {
+    let runtime = match start_runtime(&config.log) {
         Ok(runtime) => runtime,
         Err(code) => return code,
     };
@@ -178,7 +169,7 @@ fn simulate(config: Config, bus: Option<&str>, device: &str) -> ExitCode {
             return ExitCode::from(EXIT_CONFIG);
         }
     };
-    let runtime = match start_runtime(&config.log.level) {
+    let runtime = match start_runtime(&config.log) {
         Ok(runtime) => runtime,
         Err(code) => return code,
     };

@@ -192,3 +192,110 @@ fn run_exits_non_zero_naming_an_address_it_cannot_listen_on() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains(&format!("cannot listen on {listen}")), "{err}");
 }
+
+/// Run the demo gateway with `env` until it reports running, stop it, and return its stderr.
+async fn log_of_a_run(name: &str, env: &[(&str, String)]) -> String {
+    let path = std::env::temp_dir().join(format!("mbgw-log-{}-{name}", std::process::id()));
+    let stderr = std::fs::File::create(&path).unwrap();
+    let mut command = Command::new(BINARY);
+    command
+        .args(["--config", demo_path(), "run"])
+        .env("MBGW__SERVER__LISTEN", format!("127.0.0.1:{}", free_port()))
+        .env(
+            "MBGW__METRICS__LISTEN",
+            format!("127.0.0.1:{}", free_port()),
+        )
+        .env_remove("RUST_LOG")
+        .env_remove("JOURNAL_STREAM")
+        .stdout(Stdio::null())
+        .stderr(stderr);
+    for (key, value) in env {
+        command.env(key, value);
+    }
+    let child = command.spawn().unwrap();
+    within("the gateway reports running", async {
+        while !std::fs::read_to_string(&path)
+            .unwrap()
+            .contains("modbus-gateway running")
+        {
+            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    signal(&child, "TERM");
+    let mut child = child;
+    let status = within(
+        "the gateway exits",
+        tokio::task::spawn_blocking(move || child.wait()),
+    )
+    .await
+    .unwrap()
+    .unwrap();
+    assert!(status.success());
+    let log = std::fs::read_to_string(&path).unwrap();
+    let _ = std::fs::remove_file(&path);
+    log
+}
+
+#[tokio::test]
+async fn with_log_format_json_every_log_line_is_one_json_object() {
+    let log = log_of_a_run("json", &[("MBGW__LOG__FORMAT", "json".into())]).await;
+    let lines: Vec<serde_json::Value> = log
+        .lines()
+        .map(|line| serde_json::from_str(line).unwrap_or_else(|e| panic!("{e}: {line}")))
+        .collect();
+    let running = lines
+        .iter()
+        .find(|l| l["message"] == "modbus-gateway running")
+        .expect("the start-up line");
+    assert_eq!(running["level"], "INFO");
+    assert_eq!(running["version"], env!("CARGO_PKG_VERSION"));
+    assert!(running["timestamp"].is_string(), "{running}");
+    assert!(lines
+        .iter()
+        .any(|l| l["message"] == "serial port open" && l["bus"] == "demo"));
+}
+
+#[tokio::test]
+async fn under_the_journal_lines_carry_their_priority_and_no_timestamp() {
+    // systemd names the journal socket it gives as stderr; here stderr is a file, named the same way.
+    let path = std::env::temp_dir().join(format!("mbgw-log-{}-journal", std::process::id()));
+    std::fs::File::create(&path).unwrap();
+    let meta = std::fs::metadata(&path).unwrap();
+    let stream = {
+        use std::os::unix::fs::MetadataExt;
+        format!("{}:{}", meta.dev(), meta.ino())
+    };
+    let log = log_of_a_run("journal", &[("JOURNAL_STREAM", stream)]).await;
+    assert!(
+        log.lines()
+            .any(|l| l.starts_with("<6>") && l.contains("modbus-gateway running")),
+        "{log}"
+    );
+    for line in log.lines() {
+        assert!(line.starts_with('<'), "no priority: {line}");
+        assert!(!line.contains(" INFO "), "level named twice: {line}");
+        assert!(!line.starts_with("<6>20"), "timestamp: {line}");
+    }
+
+    let plain = log_of_a_run("plain", &[]).await;
+    let first = plain.lines().next().expect("a log line");
+    assert!(
+        first.starts_with("20") && first.contains(" INFO "),
+        "{first}"
+    );
+}
+
+#[test]
+fn an_unknown_log_format_exits_2_naming_the_key() {
+    let out = gateway(
+        &["--config", demo_path(), "check-config"],
+        &[("MBGW__LOG__FORMAT", "xml")],
+    );
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("log.format: `xml` is not text or json"),
+        "{err}"
+    );
+}
