@@ -1,9 +1,11 @@
 //! What `/metrics`, `/healthz` and `/readyz` say about known traffic through a real gateway on
-//! the simulated line, read over a real HTTP connection, and promtool's verdict on the scrape.
+//! the simulated line, read over a real HTTP connection; promtool's verdict on the scrape; and the
+//! shipped alert rules and dashboard naming only metrics the gateway exports.
 
 use crate::support::{addr, http_get, start, within, RawMaster, Scrape};
 use modbus_gateway::sim::Source;
 use modbus_gateway::Gateway;
+use std::collections::BTreeSet;
 use std::time::Duration;
 
 /// Read two holding registers from 0000H: 8 bytes on the wire, 9 back from a register slave.
@@ -345,4 +347,51 @@ async fn promtool_finds_nothing_to_lint_in_a_scrape() {
     );
     assert!(out.status.success(), "{said}");
     assert_eq!(said.trim(), "", "promtool lint output");
+}
+
+/// The `modbus_gateway_*` metric names a text mentions.
+fn names_in(text: &str) -> BTreeSet<String> {
+    let mut names = BTreeSet::new();
+    let mut rest = text;
+    while let Some(at) = rest.find("modbus_gateway_") {
+        let tail = &rest[at..];
+        let len = tail
+            .find(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
+            .unwrap_or(tail.len());
+        names.insert(tail[..len].to_owned());
+        rest = &tail[len..];
+    }
+    names
+}
+
+#[tokio::test]
+async fn the_shipped_alerts_and_dashboard_use_only_metrics_the_gateway_exports() {
+    let gateway = gateway_after_mixed_traffic().await;
+    let scrape = Scrape::of(&gateway).await;
+    let exported: BTreeSet<String> = scrape
+        .text
+        .lines()
+        .filter_map(|line| line.strip_prefix("# TYPE "))
+        .flat_map(|line| {
+            let mut words = line.split(' ');
+            let name = words.next().unwrap_or_default().to_owned();
+            let kind = words.next().unwrap_or_default();
+            let mut names = vec![name.clone()];
+            if kind == "histogram" {
+                names.extend(["_bucket", "_sum", "_count"].map(|s| format!("{name}{s}")));
+            }
+            names
+        })
+        .collect();
+    let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/config/prometheus");
+    let mut checked = 0;
+    for entry in std::fs::read_dir(dir).expect("config/prometheus exists") {
+        let path = entry.unwrap().path();
+        let text = std::fs::read_to_string(&path).unwrap();
+        let named = names_in(&text);
+        let unknown: Vec<_> = named.difference(&exported).collect();
+        assert!(unknown.is_empty(), "{}: {unknown:?}", path.display());
+        checked += named.len();
+    }
+    assert!(checked > 10, "the shipped files name the gateway's metrics");
 }
