@@ -183,14 +183,21 @@ async fn run_serves_the_demo_line_and_stops_cleanly_on_sigterm() {
 #[test]
 fn run_exits_non_zero_naming_an_address_it_cannot_listen_on() {
     let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    let listen = taken.local_addr().unwrap().to_string();
-    let out = gateway(
-        &["--config", demo_path(), "run"],
-        &[("MBGW__SERVER__LISTEN", listen.as_str())],
-    );
-    assert_eq!(out.status.code(), Some(1));
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains(&format!("cannot listen on {listen}")), "{err}");
+    let taken = taken.local_addr().unwrap().to_string();
+    let free = format!("127.0.0.1:{}", free_port());
+    // The Modbus TCP listener, then the metrics endpoint.
+    for (modbus, metrics) in [(&taken, &free), (&free, &taken)] {
+        let out = gateway(
+            &["--config", demo_path(), "run"],
+            &[
+                ("MBGW__SERVER__LISTEN", modbus.as_str()),
+                ("MBGW__METRICS__LISTEN", metrics.as_str()),
+            ],
+        );
+        assert_eq!(out.status.code(), Some(1));
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(&format!("cannot listen on {taken}")), "{err}");
+    }
 }
 
 /// Run the demo gateway with `env` until it reports running, stop it, and return its stderr.
