@@ -42,7 +42,7 @@ pub fn init(level: &str, format: LogFormat) {
 /// systemd sets `JOURNAL_STREAM` to the device and inode of the journal socket it connects to
 /// stdout and stderr. A child whose stderr was redirected inherits the variable, so it counts
 /// only if stderr is still that socket.
-fn stderr_is_journal() -> bool {
+pub fn stderr_is_journal() -> bool {
     use std::os::unix::fs::MetadataExt;
     let stderr = std::fs::metadata("/proc/self/fd/2")
         .ok()

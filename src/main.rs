@@ -59,8 +59,15 @@ fn environment() -> Result<Vec<(String, String)>, String> {
 }
 
 fn load(path: &Path) -> Result<Config, ExitCode> {
+    // Logging is configured by the file, so its errors are written before logging starts: in
+    // the journal, at error priority.
+    let priority = if logging::stderr_is_journal() {
+        "<3>"
+    } else {
+        ""
+    };
     let refuse = |reason: &dyn std::fmt::Display| {
-        eprintln!("modbus-gateway: {}: {reason}", path.display());
+        eprintln!("{priority}modbus-gateway: {}: {reason}", path.display());
         ExitCode::from(EXIT_CONFIG)
     };
     let env = environment().map_err(|e| refuse(&e))?;

@@ -306,3 +306,28 @@ fn an_unknown_log_format_exits_2_naming_the_key() {
         "{err}"
     );
 }
+
+#[test]
+fn config_errors_written_to_the_journal_carry_error_priority() {
+    let path = temp_config("journal-bad.toml", "[log]\nformat = \"xml\"\n");
+    let log = std::env::temp_dir().join(format!("mbgw-log-{}-bad", std::process::id()));
+    let stderr = std::fs::File::create(&log).unwrap();
+    let stream = {
+        use std::os::unix::fs::MetadataExt;
+        let meta = stderr.metadata().unwrap();
+        format!("{}:{}", meta.dev(), meta.ino())
+    };
+    let status = Command::new(BINARY)
+        .args(["--config", path.to_str().unwrap(), "run"])
+        .env("JOURNAL_STREAM", stream)
+        .stderr(stderr)
+        .status()
+        .unwrap();
+    assert_eq!(status.code(), Some(2));
+    let text = std::fs::read_to_string(&log).unwrap();
+    let _ = std::fs::remove_file(&log);
+    assert!(
+        text.starts_with("<3>modbus-gateway: ") && text.contains("log.format: `xml`"),
+        "{text}"
+    );
+}
