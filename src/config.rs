@@ -35,6 +35,7 @@ pub mod defaults {
     pub const MAX_CONNECTIONS: usize = 1024;
     pub const IDLE_TIMEOUT: Duration = Duration::from_secs(600);
     pub const PIPELINE_DEPTH: usize = 16;
+    pub const SHUTDOWN_TIMEOUT: Duration = Duration::from_secs(10);
     pub fn metrics_listen() -> SocketAddr {
         SocketAddr::from(([127, 0, 0, 1], 9502))
     }
@@ -100,6 +101,9 @@ pub struct Server {
     pub idle_timeout: Duration,
     /// Requests one connection may have in flight; the gateway stops reading until one is answered.
     pub pipeline_depth: usize,
+    /// On SIGTERM/SIGINT, how long queued requests may still be served; the rest get 0x0A.
+    #[serde(with = "duration")]
+    pub shutdown_timeout: Duration,
 }
 
 impl Default for Server {
@@ -109,6 +113,7 @@ impl Default for Server {
             max_connections: defaults::MAX_CONNECTIONS,
             idle_timeout: defaults::IDLE_TIMEOUT,
             pipeline_depth: defaults::PIPELINE_DEPTH,
+            shutdown_timeout: defaults::SHUTDOWN_TIMEOUT,
         }
     }
 }

@@ -22,6 +22,8 @@ pub enum RequestError {
     QueueFull,
     #[error("not sent within the queue timeout")]
     Expired,
+    #[error("the gateway is shutting down")]
+    ShuttingDown,
     #[error("no valid reply after {attempts} attempt(s): {last}")]
     NoResponse { attempts: u32, last: TxError },
 }
@@ -34,7 +36,7 @@ impl RequestError {
             RequestError::InvalidFunction(_) | RequestError::NotBroadcastable(_) => {
                 ExceptionCode::IllegalFunction
             }
-            RequestError::NoRoute(_) | RequestError::PortDown => {
+            RequestError::NoRoute(_) | RequestError::PortDown | RequestError::ShuttingDown => {
                 ExceptionCode::GatewayPathUnavailable
             }
             RequestError::QueueFull | RequestError::Expired => ExceptionCode::ServerDeviceBusy,

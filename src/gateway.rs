@@ -7,6 +7,7 @@ use crate::config::Config;
 use crate::dispatch::Dispatcher;
 use crate::metrics::{self, Metrics};
 use crate::routing::Router;
+use crate::shutdown::{self, Stop};
 use crate::sim::{self, SimLine};
 use crate::tcp::server::Shared;
 use crate::tcp::{self, SessionLimits};
@@ -14,9 +15,10 @@ use std::collections::BTreeMap;
 use std::io;
 use std::net::SocketAddr;
 use std::sync::Arc;
+use std::time::Duration;
 use tokio::net::TcpListener;
 use tokio::task::JoinSet;
-use tracing::info;
+use tracing::{info, warn};
 
 #[derive(Debug, thiserror::Error)]
 pub enum StartError {
@@ -30,10 +32,19 @@ pub enum StartError {
     },
 }
 
+/// Slack on top of the last transaction's own bound, for the sessions to write their answers.
+const LAST_TRANSACTION_MARGIN: Duration = Duration::from_secs(1);
+
 pub struct Gateway {
     local_addrs: Vec<SocketAddr>,
     metrics_addr: SocketAddr,
     metrics: Arc<Metrics>,
+    stop: Stop,
+    shutdown_timeout: Duration,
+    /// How long the transaction on the wire at the shutdown deadline may still take.
+    last_transaction: Duration,
+    listeners: JoinSet<()>,
+    buses: JoinSet<()>,
     sim_lines: BTreeMap<String, SimLine>,
     shared: Arc<Shared>,
     tasks: JoinSet<()>,
@@ -73,7 +84,10 @@ impl Gateway {
             .map_err(listen_error)?;
         let metrics_addr = metrics_listener.local_addr().map_err(listen_error)?;
         let metrics = Arc::new(Metrics::new());
+        let (stop, stopping) = shutdown::channel();
         let mut tasks = JoinSet::new();
+        let mut bus_tasks = JoinSet::new();
+        let mut listener_tasks = JoinSet::new();
         let mut sim_lines = BTreeMap::new();
         let mut handles = Vec::with_capacity(config.bus.len());
         for settings in &config.bus {
@@ -89,7 +103,7 @@ impl Gateway {
             };
             let bus = Bus::new(settings.clone(), device, &metrics);
             handles.push(bus.handle());
-            tasks.spawn(bus.run());
+            bus_tasks.spawn(bus.run(stopping.clone()));
         }
         let limits = SessionLimits {
             pipeline_depth: config.server.pipeline_depth,
@@ -112,16 +126,33 @@ impl Gateway {
             limits,
             config.server.max_connections,
             metrics.clone(),
+            stopping,
         ));
         let local_addrs = listeners.iter().map(|l| l.addr).collect();
         for listener in listeners {
             info!(listen = %listener.addr, "accepting Modbus TCP masters");
-            tasks.spawn(tcp::serve(listener, shared.clone()));
+            listener_tasks.spawn(tcp::serve(listener, shared.clone()));
         }
+        // A request started just before the deadline may wait its slave's timeout, after a
+        // gap the line may keep busy for as long again.
+        let longest_timeout = config
+            .bus
+            .iter()
+            .flat_map(|b| {
+                std::iter::once(b.response_timeout)
+                    .chain(b.slave.iter().filter_map(|s| s.response_timeout))
+            })
+            .max()
+            .unwrap_or_default();
         Ok(Gateway {
             local_addrs,
             metrics_addr,
             metrics,
+            stop,
+            shutdown_timeout: config.server.shutdown_timeout,
+            last_transaction: longest_timeout * 2 + LAST_TRANSACTION_MARGIN,
+            listeners: listener_tasks,
+            buses: bus_tasks,
             sim_lines,
             shared,
             tasks,
@@ -154,8 +185,24 @@ impl Gateway {
         buses.iter().find(|b| b.name() == name).map(|b| b.is_up())
     }
 
-    /// Stop every task.
+    /// Stop gracefully: accept no more masters; finish the transaction on the wire; serve the
+    /// queued requests until `shutdown_timeout` and answer the rest 0x0A; let every session
+    /// write its answers and close; then stop every task.
     pub async fn shutdown(mut self) {
+        self.listeners.shutdown().await;
+        let deadline = tokio::time::Instant::now() + self.shutdown_timeout;
+        self.stop.stop(deadline);
+        let shared = self.shared.clone();
+        let buses = &mut self.buses;
+        let drained = async {
+            while buses.join_next().await.is_some() {}
+            shared.sessions_ended().await;
+        };
+        let limit = deadline + self.last_transaction;
+        if tokio::time::timeout_at(limit, drained).await.is_err() {
+            warn!("shutdown: sessions still open after the shutdown timeout; closing them");
+        }
+        self.buses.shutdown().await;
         self.tasks.shutdown().await;
     }
 }

@@ -13,7 +13,8 @@
 //!   health checks.
 //!
 //! Shared by all: [`pdu`] (function and exception codes) and [`error`] (what fails a request, and
-//! the one place that turns it into an exception). [`gateway`] wires the parts together;
+//! the one place that turns it into an exception), [`shutdown`] (the stop signal). [`gateway`]
+//! wires the parts together;
 //! [`simulate`] serves the simulated slaves on a real serial port instead; [`logging`] sets up
 //! the daemon's log output.
 
@@ -27,6 +28,7 @@ pub mod metrics;
 pub mod pdu;
 pub mod routing;
 pub mod rtu;
+pub mod shutdown;
 pub mod sim;
 pub mod simulate;
 pub mod tcp;

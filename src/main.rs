@@ -162,8 +162,12 @@ fn run(config: Config) -> ExitCode {
             "modbus-gateway running"
         );
         stop_signal().await;
-        info!("stopping");
+        info!(
+            shutdown_timeout = %humantime::format_duration(config.server.shutdown_timeout),
+            "stopping: no new masters; serving what is queued"
+        );
         gateway.shutdown().await;
+        info!("stopped");
         ExitCode::SUCCESS
     })
 }

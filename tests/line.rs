@@ -5,6 +5,7 @@ use modbus_gateway::bus::{Bus, BusHandle, Device};
 use modbus_gateway::error::{Outcome, RequestError};
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::rtu::TxError;
+use modbus_gateway::shutdown::Stopping;
 use modbus_gateway::sim::{RegisterBank, Scripted, SimLine, Source, Transmission};
 use modbus_gateway::Config;
 
@@ -27,7 +28,7 @@ fn sim_bus(keys: &str, fill: impl FnOnce(&SimLine)) -> (SimLine, BusHandle) {
     fill(&line);
     let bus = Bus::new(settings, Device::Sim(line.clone()), &Metrics::new());
     let handle = bus.handle();
-    tokio::spawn(bus.run());
+    tokio::spawn(bus.run(Stopping::never()));
     (line, handle)
 }
 

@@ -6,6 +6,7 @@ use modbus_gateway::bus::{Bus, Device};
 use modbus_gateway::dispatch::Dispatcher;
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::routing::Router;
+use modbus_gateway::shutdown::Stopping;
 use modbus_gateway::sim::{RegisterBank, SimLine};
 use modbus_gateway::tcp::session::{self, SessionError};
 use modbus_gateway::tcp::SessionLimits;
@@ -164,13 +165,15 @@ async fn session_on_pipe(
     let metrics = Arc::new(Metrics::new());
     let bus = Bus::new(config.bus[0].clone(), Device::Sim(line), &metrics);
     let dispatcher = Dispatcher::new(Router::new(&config), vec![bus.handle()], metrics);
-    tokio::spawn(bus.run());
+    tokio::spawn(bus.run(Stopping::never()));
     let (client, server) = tokio::io::duplex(4096);
     let limits = SessionLimits {
         pipeline_depth: 4,
         idle_timeout: Some(idle_timeout),
     };
-    let task = tokio::spawn(async move { session::run(server, 1, &dispatcher, limits).await });
+    let task = tokio::spawn(async move {
+        session::run(server, 1, &dispatcher, limits, Stopping::never()).await
+    });
     (client, task)
 }
 

@@ -9,6 +9,7 @@
 //! - `faults`: each fault knob of a simulated slave and what the gateway makes of it.
 //! - `serial`: the real serial path on pty pairs, with a third-party client.
 //! - `simulate`: the `simulate` subcommand answering RTU masters on a pty.
+//! - `service`: the gateway under a service manager: graceful stop.
 //! - `metrics`: `/metrics`, `/healthz`, `/readyz` after known traffic; promtool; shipped rules.
 //!
 //! `support` has the shared pieces: gateway start-up, a raw master, a pty slave.
@@ -23,6 +24,7 @@ mod faults;
 mod line;
 mod metrics;
 mod serial;
+mod service;
 mod simulate;
 mod tcp;
 mod transparency;

@@ -15,13 +15,14 @@ use crate::metrics::{BusMetrics, Metrics};
 use crate::pdu;
 use crate::rtu::frame::{ReplyForm, BROADCAST};
 use crate::rtu::{MasterTiming, RtuMaster, TxError};
+use crate::shutdown::Stopping;
 use std::io;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Weak};
 use std::time::Duration;
 use tokio::sync::oneshot;
 use tokio::time::{sleep_until, Instant};
-use tracing::debug;
+use tracing::{debug, info};
 
 /// What the rest of the gateway holds of a bus: its queue and whether its port is open.
 #[derive(Clone)]
@@ -59,7 +60,12 @@ impl BusHandle {
         if !self.is_up() {
             self.answer(job, Err(RequestError::PortDown));
         } else if let Err(job) = self.queue.push(job) {
-            self.answer(job, Err(RequestError::QueueFull));
+            let refusal = if self.queue.is_closed() {
+                RequestError::ShuttingDown
+            } else {
+                RequestError::QueueFull
+            };
+            self.answer(job, Err(refusal));
         }
         outcome
     }
@@ -77,6 +83,12 @@ impl BusHandle {
             .request(job.slave, job.function(), Some(&outcome));
         let _ = job.reply.send(outcome);
     }
+}
+
+/// Why the bus task stopped serving an open port.
+enum End {
+    Lost(io::Error),
+    Stopped,
 }
 
 /// Everything the bus task needs, derived once from its configuration.
@@ -130,9 +142,9 @@ impl Bus {
         self.handle.up.store(up, Ordering::Release);
     }
 
-    /// Run forever: open the port, serve it until it is lost, answer 0x0A while it is down,
-    /// reopen with backoff.
-    pub async fn run(self) {
+    /// Run until `stopping`: open the port, serve it until it is lost, answer 0x0A while it is
+    /// down, reopen with backoff. Once stopped, whatever is still queued is answered 0x0A.
+    pub async fn run(self, mut stopping: Stopping) {
         let metrics = &self.handle.metrics;
         let device = &self.settings.device;
         let mut delay = self.settings.reopen_delay;
@@ -151,9 +163,12 @@ impl Bus {
                     for slave in self.settings.slave.iter().filter(|s| s.wide_read_count) {
                         master.set_reply_form(slave.address, ReplyForm::WideReadCount);
                     }
-                    let error = self.serve(master).await;
+                    let end = self.serve(master, &mut stopping).await;
                     self.set_up(false);
-                    metrics.port_lost(device, &error);
+                    match end {
+                        End::Lost(error) => metrics.port_lost(device, &error),
+                        End::Stopped => break,
+                    }
                     down_since = Some((Instant::now(), 0));
                 }
                 Err(error) => {
@@ -163,41 +178,76 @@ impl Bus {
                     *failed_opens += 1;
                 }
             }
-            self.refuse_until(Instant::now() + delay).await;
+            if self
+                .refuse_until(Instant::now() + delay, &mut stopping)
+                .await
+            {
+                break;
+            }
             delay = (delay * 2).min(self.settings.reopen_delay_max);
+        }
+        self.set_up(false);
+        let left = self.handle.queue.close();
+        info!(
+            bus = &*self.handle.name,
+            unserved = left.len(),
+            "bus stopped"
+        );
+        for job in left {
+            self.handle.answer(job, Err(RequestError::ShuttingDown));
         }
     }
 
-    /// While the port is down: answer everything queued, and everything that arrives, with 0x0A.
-    async fn refuse_until(&self, until: Instant) {
+    /// While the port is down: answer everything queued, and everything that arrives, with 0x0A,
+    /// until `until` (time to reopen), or a stop (returns true).
+    async fn refuse_until(&self, until: Instant, stopping: &mut Stopping) -> bool {
         for job in self.handle.queue.drain() {
             self.handle.answer(job, Err(RequestError::PortDown));
         }
         loop {
             tokio::select! {
+                biased;
+                _ = stopping.requested() => return true,
                 job = self.handle.queue.pop() => {
                     self.handle.answer(job, Err(RequestError::PortDown));
                 }
-                () = sleep_until(until) => return,
+                () = sleep_until(until) => return false,
             }
         }
     }
 
-    /// Serve requests on an open port until it is lost.
-    async fn serve(&self, mut master: RtuMaster<Port>) -> io::Error {
+    /// Serve requests on an open port until it is lost, or, once a stop is asked for, until the
+    /// queue is empty or the stop's deadline has passed.
+    async fn serve(&self, mut master: RtuMaster<Port>, stopping: &mut Stopping) -> End {
         let metrics = &self.handle.metrics;
         let mut counted = master.counters();
+        let mut deadline = stopping.deadline();
         loop {
-            let job = tokio::select! {
-                biased;
-                job = self.handle.queue.pop() => job,
-                idle = master.watch_idle() => {
-                    let traffic = master.counters();
-                    metrics.line(&traffic.since(&counted));
-                    counted = traffic;
-                    match idle {
-                        Ok(_) => continue,
-                        Err(error) => return error,
+            let job = if let Some(deadline) = deadline {
+                // Draining: no new request starts after the deadline.
+                if Instant::now() >= deadline {
+                    return End::Stopped;
+                }
+                match self.handle.queue.try_pop() {
+                    Some(job) => job,
+                    None => return End::Stopped,
+                }
+            } else {
+                tokio::select! {
+                    biased;
+                    at = stopping.requested() => {
+                        deadline = Some(at);
+                        continue;
+                    }
+                    job = self.handle.queue.pop() => job,
+                    idle = master.watch_idle() => {
+                        let traffic = master.counters();
+                        metrics.line(&traffic.since(&counted));
+                        counted = traffic;
+                        match idle {
+                            Ok(_) => continue,
+                            Err(error) => return End::Lost(error),
+                        }
                     }
                 }
             };
@@ -215,7 +265,7 @@ impl Bus {
                 self.handle.answer(job, Err(RequestError::Expired));
                 continue;
             }
-            let result = self.execute(&mut master, &job).await;
+            let result = self.execute(&mut master, &job, deadline).await;
             let traffic = master.counters();
             metrics.line(&traffic.since(&counted));
             counted = traffic;
@@ -228,14 +278,20 @@ impl Bus {
                 }
                 Err(error) => {
                     self.handle.answer(job, Err(RequestError::PortDown));
-                    return error;
+                    return End::Lost(error);
                 }
             }
         }
     }
 
-    /// Run one request on the line. `Err` only when the port is lost.
-    async fn execute(&self, master: &mut RtuMaster<Port>, job: &Job) -> Result<Outcome, io::Error> {
+    /// Run one request on the line; no retry starts after `stop_at`. `Err` only when the port is
+    /// lost.
+    async fn execute(
+        &self,
+        master: &mut RtuMaster<Port>,
+        job: &Job,
+        stop_at: Option<Instant>,
+    ) -> Result<Outcome, io::Error> {
         let settings = &self.settings;
         if job.slave == BROADCAST {
             return match master
@@ -274,7 +330,11 @@ impl Bus {
             match result {
                 Ok(reply) => break Ok(Some(reply)),
                 Err(TxError::PortLost(error)) => return Err(error),
-                Err(last) if attempts > retries || job.reply.is_closed() => {
+                Err(last)
+                    if attempts > retries
+                        || job.reply.is_closed()
+                        || stop_at.is_some_and(|at| Instant::now() >= at) =>
+                {
                     break Err(RequestError::NoResponse { attempts, last });
                 }
                 Err(error) => {

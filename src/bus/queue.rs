@@ -42,6 +42,8 @@ struct Inner {
     /// Exactly the masters with queued jobs, in serving order.
     turn: VecDeque<MasterId>,
     len: usize,
+    /// Closed for good: pushes are refused.
+    closed: bool,
 }
 
 impl FairQueue {
@@ -57,11 +59,11 @@ impl FairQueue {
         self.inner.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
-    /// Queue `job` behind its master's earlier ones; a full queue hands it back.
+    /// Queue `job` behind its master's earlier ones; a full or closed queue hands it back.
     pub fn push(&self, job: Job) -> Result<(), Job> {
         {
             let mut inner = self.lock();
-            if inner.len >= self.capacity {
+            if inner.len >= self.capacity || inner.closed {
                 return Err(job);
             }
             let master = job.master;
@@ -109,6 +111,16 @@ impl FairQueue {
         inner.turn.clear();
         inner.len = 0;
         jobs
+    }
+
+    /// Refuse every later push, and take every queued job.
+    pub fn close(&self) -> Vec<Job> {
+        self.lock().closed = true;
+        self.drain()
+    }
+
+    pub fn is_closed(&self) -> bool {
+        self.lock().closed
     }
 
     /// Take out the jobs of a master that has gone.
@@ -198,6 +210,17 @@ mod tests {
         assert_eq!(q.forget(1).len(), 0);
         assert_eq!(q.len(), 2);
         assert_eq!(order(&q), [(2, 0), (2, 1)]);
+    }
+
+    #[test]
+    fn a_closed_queue_hands_back_what_it_held_and_refuses_more() {
+        let q = FairQueue::new(4);
+        let (a, _ra) = job(1, 0);
+        q.push(a).unwrap();
+        assert_eq!(q.close().len(), 1);
+        let (b, _rb) = job(2, 0);
+        assert!(q.push(b).is_err());
+        assert!(q.is_closed() && q.is_empty());
     }
 
     #[tokio::test]

@@ -56,12 +56,14 @@ pub enum Fate {
     Expired,
     /// The bus had no open port (0x0A).
     PortDown,
+    /// Still queued when the shutdown timeout ran out (0x0A).
+    Shutdown,
     /// The master left before the request was sent; it was never sent.
     Dropped,
 }
 
 impl Fate {
-    pub const ALL: [Fate; 12] = [
+    pub const ALL: [Fate; 13] = [
         Fate::Ok,
         Fate::Exception,
         Fate::Timeout,
@@ -73,6 +75,7 @@ impl Fate {
         Fate::QueueFull,
         Fate::Expired,
         Fate::PortDown,
+        Fate::Shutdown,
         Fate::Dropped,
     ];
 
@@ -89,6 +92,7 @@ impl Fate {
             Fate::QueueFull => "queue_full",
             Fate::Expired => "expired",
             Fate::PortDown => "port_down",
+            Fate::Shutdown => "shutdown",
             Fate::Dropped => "dropped",
         }
     }
@@ -116,6 +120,7 @@ impl Fate {
                     RequestError::PortDown => Fate::PortDown,
                     RequestError::QueueFull => Fate::QueueFull,
                     RequestError::Expired => Fate::Expired,
+                    RequestError::ShuttingDown => Fate::Shutdown,
                     RequestError::NoResponse { last, .. } => match last {
                         TxError::Timeout => Fate::Timeout,
                         TxError::Crc => Fate::CrcError,
@@ -173,14 +178,17 @@ pub enum Closing {
     Idle,
     /// A socket error.
     IoError,
+    /// The gateway is stopping; the master's requests were answered first.
+    Shutdown,
 }
 
 impl Closing {
-    pub const ALL: [Closing; 4] = [
+    pub const ALL: [Closing; 5] = [
         Closing::ByMaster,
         Closing::ProtocolError,
         Closing::Idle,
         Closing::IoError,
+        Closing::Shutdown,
     ];
 
     pub fn label(self) -> &'static str {
@@ -189,6 +197,7 @@ impl Closing {
             Closing::ProtocolError => "protocol_error",
             Closing::Idle => "idle_timeout",
             Closing::IoError => "io_error",
+            Closing::Shutdown => "shutdown",
         }
     }
 }

@@ -6,6 +6,7 @@ use super::session::{self, SessionLimits};
 use crate::bus::MasterId;
 use crate::dispatch::Dispatcher;
 use crate::metrics::{Metrics, Rejection};
+use crate::shutdown::Stopping;
 use std::io;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -40,6 +41,8 @@ pub struct Shared {
     pub limits: SessionLimits,
     pub connections: Arc<Semaphore>,
     pub metrics: Arc<Metrics>,
+    pub stopping: Stopping,
+    max_connections: usize,
     next_master: AtomicU64,
 }
 
@@ -49,14 +52,23 @@ impl Shared {
         limits: SessionLimits,
         max_connections: usize,
         metrics: Arc<Metrics>,
+        stopping: Stopping,
     ) -> Self {
         Shared {
             dispatcher,
             limits,
             connections: Arc::new(Semaphore::new(max_connections)),
             metrics,
+            stopping,
+            max_connections,
             next_master: AtomicU64::new(1),
         }
+    }
+
+    /// Wait until every session has ended (each holds a connection permit while it runs).
+    pub async fn sessions_ended(&self) {
+        let all = u32::try_from(self.max_connections).unwrap_or(u32::MAX);
+        let _ = self.connections.acquire_many(all).await;
     }
 }
 
@@ -84,7 +96,9 @@ pub async fn serve(listener: Listener, shared: Arc<Shared>) {
         tcp.accepted(master, &peer);
         let shared = shared.clone();
         tokio::spawn(async move {
-            let error = session::run(stream, master, &shared.dispatcher, shared.limits).await;
+            let stopping = shared.stopping.clone();
+            let error =
+                session::run(stream, master, &shared.dispatcher, shared.limits, stopping).await;
             shared
                 .metrics
                 .tcp

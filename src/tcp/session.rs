@@ -9,6 +9,7 @@ use crate::dispatch::Dispatcher;
 use crate::error::{Outcome, RequestError};
 use crate::metrics::Closing;
 use crate::pdu::exception_pdu;
+use crate::shutdown::Stopping;
 use bytes::BytesMut;
 use std::collections::VecDeque;
 use std::io;
@@ -36,6 +37,8 @@ pub enum SessionError {
     Frame(#[from] FrameError),
     #[error("idle for {0:?}")]
     Idle(Duration),
+    #[error("the gateway is shutting down")]
+    Shutdown,
     #[error("socket error: {0}")]
     Io(#[from] io::Error),
 }
@@ -47,6 +50,7 @@ impl SessionError {
             SessionError::Frame(_) => Closing::ProtocolError,
             SessionError::Idle(_) => Closing::Idle,
             SessionError::Io(_) => Closing::IoError,
+            SessionError::Shutdown => Closing::Shutdown,
         }
     }
 }
@@ -75,14 +79,16 @@ async fn next_outcome(in_flight: &mut VecDeque<InFlight>) -> Outcome {
     }
 }
 
-/// Serve one master on `stream` (a TCP connection) until it leaves or breaks the protocol.
+/// Serve one master on `stream` (a TCP connection) until it leaves or breaks the protocol, or
+/// until a stop: then read no more, answer what was read, and close.
 pub async fn run<S: AsyncRead + AsyncWrite + Unpin>(
     mut stream: S,
     master: MasterId,
     dispatcher: &Dispatcher,
     limits: SessionLimits,
+    stopping: Stopping,
 ) -> SessionError {
-    let error = serve(&mut stream, master, dispatcher, limits).await;
+    let error = serve(&mut stream, master, dispatcher, limits, stopping).await;
     dispatcher.forget(master);
     error
 }
@@ -92,11 +98,13 @@ async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
     master: MasterId,
     dispatcher: &Dispatcher,
     limits: SessionLimits,
+    mut stopping: Stopping,
 ) -> SessionError {
     let mut inbound = BytesMut::with_capacity(READ_BUFFER);
     let mut outbound = Vec::with_capacity(mbap::HEADER_LEN + crate::pdu::MAX_PDU_LEN);
     let mut in_flight: VecDeque<InFlight> = VecDeque::with_capacity(limits.pipeline_depth);
     let mut last_activity = Instant::now();
+    let mut stopped = stopping.deadline().is_some();
     loop {
         while in_flight.len() < limits.pipeline_depth {
             match mbap::decode(&mut inbound) {
@@ -113,7 +121,10 @@ async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
                 Err(error) => return error.into(),
             }
         }
-        let can_read = in_flight.len() < limits.pipeline_depth;
+        if stopped && in_flight.is_empty() {
+            return SessionError::Shutdown;
+        }
+        let can_read = !stopped && in_flight.len() < limits.pipeline_depth;
         let idle_at = limits
             .idle_timeout
             .filter(|_| in_flight.is_empty())
@@ -138,6 +149,7 @@ async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
             () = sleep_until(idle_at.unwrap_or(last_activity)), if idle_at.is_some() => {
                 return SessionError::Idle(limits.idle_timeout.unwrap_or_default());
             }
+            _ = stopping.requested(), if !stopped => stopped = true,
         }
     }
 }

@@ -5,6 +5,7 @@ use modbus_gateway::bus::{Bus, BusHandle, Device};
 use modbus_gateway::error::Outcome;
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::rtu::frame::{self, FrameLen};
+use modbus_gateway::shutdown::Stopping;
 use modbus_gateway::sim::{RegisterBank, SimLine, SimSlave};
 use modbus_gateway::{Config, Gateway};
 use std::cell::Cell;
@@ -93,7 +94,7 @@ pub fn sim_bus_of(settings: modbus_gateway::config::Bus) -> (SimLine, BusHandle)
     let line = modbus_gateway::gateway::sim_line(&settings).expect("simulated slaves power on");
     let bus = Bus::new(settings, Device::Sim(line.clone()), &Metrics::new());
     let handle = bus.handle();
-    tokio::spawn(bus.run());
+    tokio::spawn(bus.run(Stopping::never()));
     (line, handle)
 }
 

@@ -1,0 +1,83 @@
+//! The stop signal a graceful shutdown sends to the bus tasks and the sessions: once given, it
+//! carries the deadline by which queued requests must have been served. Buses then serve what is
+//! queued until the deadline and answer the rest 0x0A; sessions stop reading and close once their
+//! requests are answered.
+
+use tokio::sync::watch;
+use tokio::time::Instant;
+
+/// The sending side, held by whoever decides to stop.
+pub struct Stop(watch::Sender<Option<Instant>>);
+
+/// The receiving side, one clone per task.
+#[derive(Clone)]
+pub struct Stopping(watch::Receiver<Option<Instant>>);
+
+pub fn channel() -> (Stop, Stopping) {
+    let (sender, receiver) = watch::channel(None);
+    (Stop(sender), Stopping(receiver))
+}
+
+impl Stop {
+    /// Ask every task to stop, serving queued work until `deadline`.
+    pub fn stop(&self, deadline: Instant) {
+        self.0.send_replace(Some(deadline));
+    }
+}
+
+impl Stopping {
+    /// A signal that never comes, for tasks run outside a gateway (tests, tools).
+    pub fn never() -> Self {
+        channel().1
+    }
+
+    /// The deadline, if a stop has been asked for.
+    pub fn deadline(&self) -> Option<Instant> {
+        *self.0.borrow()
+    }
+
+    /// Wait until a stop is asked for, and return its deadline. Cancel-safe; returns at once if
+    /// the stop came earlier, and never if it cannot come any more.
+    pub async fn requested(&mut self) -> Instant {
+        let asked = self
+            .0
+            .wait_for(Option::is_some)
+            .await
+            .map(|deadline| *deadline);
+        match asked {
+            Ok(Some(deadline)) => deadline,
+            _ => std::future::pending().await,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    #[tokio::test(start_paused = true)]
+    async fn every_clone_sees_the_stop_and_its_deadline() {
+        let (stop, stopping) = channel();
+        let mut a = stopping.clone();
+        let mut b = stopping;
+        let waiter = tokio::spawn(async move { a.requested().await });
+        tokio::task::yield_now().await;
+        assert_eq!(b.deadline(), None);
+        let deadline = Instant::now() + Duration::from_secs(3);
+        stop.stop(deadline);
+        assert_eq!(waiter.await.unwrap(), deadline);
+        assert_eq!(
+            b.requested().await,
+            deadline,
+            "a late waiter returns at once"
+        );
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn never_means_never() {
+        let mut never = Stopping::never();
+        let waited = tokio::time::timeout(Duration::from_secs(3600), never.requested()).await;
+        assert!(waited.is_err());
+    }
+}
