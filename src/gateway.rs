@@ -2,7 +2,7 @@
 //! per bus, the dispatcher, the Modbus TCP listeners and the metrics endpoint. Owns their tasks:
 //! dropping the gateway stops them.
 
-use crate::bus::{Bus, Device};
+use crate::bus::{Bus, BusHandle, Device};
 use crate::config::Config;
 use crate::dispatch::Dispatcher;
 use crate::metrics::{self, Metrics};
@@ -109,6 +109,10 @@ impl Gateway {
             pipeline_depth: config.server.pipeline_depth,
             idle_timeout: Some(config.server.idle_timeout).filter(|t| !t.is_zero()),
         };
+        // Started means each bus has tried its port once, so what is reported next is true.
+        for handle in &handles {
+            handle.first_open_attempt().await;
+        }
         let buses = handles.clone();
         let not_ready: metrics::http::Readiness = Arc::new(move || {
             let down = buses.iter().filter(|bus| !bus.is_up());
@@ -177,6 +181,31 @@ impl Gateway {
     /// The simulated line of bus `name`, for tests and demos.
     pub fn sim_line(&self, name: &str) -> Option<&SimLine> {
         self.sim_lines.get(name)
+    }
+
+    /// The buses whose task has stopped making progress, with how long it has been silent.
+    pub fn stalled_buses(&self) -> Vec<(String, Duration)> {
+        let buses = self.shared.dispatcher.buses();
+        buses
+            .iter()
+            .filter_map(|b| Some((b.name().to_owned(), b.stalled_for()?)))
+            .collect()
+    }
+
+    /// A one-line health summary for the service manager: connections, buses up and down.
+    pub fn status(&self) -> String {
+        let buses = self.shared.dispatcher.buses();
+        let (up, down): (Vec<&BusHandle>, Vec<&BusHandle>) = buses.iter().partition(|b| b.is_up());
+        let names =
+            |list: &[&BusHandle]| list.iter().map(|b| b.name()).collect::<Vec<_>>().join(", ");
+        let mut status = format!("{} masters connected", self.shared.connections_open());
+        if !up.is_empty() {
+            status += &format!("; serving {}", names(&up));
+        }
+        if !down.is_empty() {
+            status += &format!("; port down: {}", names(&down));
+        }
+        status
     }
 
     /// Whether bus `name` has its port open.

@@ -6,12 +6,17 @@ use clap::{Parser, Subcommand};
 use modbus_gateway::config::{self, Config, DEFAULT_PATH, ENV_PREFIX};
 use modbus_gateway::rtu::Parity;
 use modbus_gateway::{logging, simulate, Gateway};
+use sd_notify::NotifyState;
+use std::convert::Infallible;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::time::Duration;
 use tracing::{error, info};
 
 /// Exit status for a configuration that cannot be used.
 const EXIT_CONFIG: u8 = 2;
+/// How often the service manager's STATUS= line is refreshed when no watchdog asks for more.
+const STATUS_PERIOD: Duration = Duration::from_secs(5);
 
 #[derive(Parser)]
 #[command(version, about = "Modbus TCP to Modbus RTU (RS-485) gateway")]
@@ -28,7 +33,11 @@ enum Command {
     /// Run the gateway (the default).
     Run,
     /// Validate the configuration and print it resolved, defaults included.
-    CheckConfig,
+    CheckConfig {
+        /// Print nothing when the configuration is valid (errors still go to stderr).
+        #[arg(long)]
+        quiet: bool,
+    },
     /// Serve a bus's simulated slaves as RTU slaves on a serial device, at its baud and format.
     Simulate {
         /// The serial device to answer on, or `pty` for a new pty pair (its path is printed).
@@ -135,6 +144,43 @@ async fn stop_signal() {
     }
 }
 
+/// Keep the service manager's STATUS= line current and, when systemd runs a watchdog
+/// (`WatchdogSec=`), ping it at half its period, only while every bus task makes progress: a
+/// stuck bus task stops the pings and systemd restarts the gateway. Without systemd, only the
+/// stall is logged.
+async fn supervise(gateway: &Gateway) -> Infallible {
+    let watchdog = sd_notify::watchdog_enabled();
+    let period = watchdog.map_or(STATUS_PERIOD, |w| (w / 2).min(STATUS_PERIOD));
+    let mut withholding = false;
+    loop {
+        tokio::time::sleep(period).await;
+        let stalled = gateway.stalled_buses();
+        let status = gateway.status();
+        let mut states = vec![NotifyState::Status(&status)];
+        match stalled.first() {
+            None => {
+                if withholding {
+                    info!("every bus task is progressing again");
+                    withholding = false;
+                }
+                if watchdog.is_some() {
+                    states.push(NotifyState::Watchdog);
+                }
+            }
+            Some((bus, silent)) if !withholding => {
+                error!(
+                    bus,
+                    stalled_s = silent.as_secs_f64(),
+                    "bus task stalled; withholding watchdog pings so that systemd restarts the gateway"
+                );
+                withholding = true;
+            }
+            Some(_) => {}
+        }
+        let _ = sd_notify::notify(&states);
+    }
+}
+
 /// Start logging as configured and the runtime the daemon's work runs on.
 fn start_runtime(log: &config::Log) -> Result<tokio::runtime::Runtime, ExitCode> {
     logging::init(&log.level, log.format);
@@ -161,7 +207,12 @@ fn run(config: Config) -> ExitCode {
             version = env!("CARGO_PKG_VERSION"),
             "modbus-gateway running"
         );
-        stop_signal().await;
+        let _ = sd_notify::notify(&[NotifyState::Ready, NotifyState::Status(&gateway.status())]);
+        tokio::select! {
+            () = stop_signal() => {}
+            never = supervise(&gateway) => match never {},
+        }
+        let _ = sd_notify::notify(&[NotifyState::Stopping, NotifyState::Status("stopping")]);
         info!(
             shutdown_timeout = %humantime::format_duration(config.server.shutdown_timeout),
             "stopping: no new masters; serving what is queued"
@@ -213,8 +264,10 @@ fn main() -> ExitCode {
         Err(code) => return code,
     };
     match cli.command.unwrap_or(Command::Run) {
-        Command::CheckConfig => {
-            print!("{}", describe(&cli.config, &config));
+        Command::CheckConfig { quiet } => {
+            if !quiet {
+                print!("{}", describe(&cli.config, &config));
+            }
             ExitCode::SUCCESS
         }
         Command::Run => run(config),

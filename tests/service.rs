@@ -1,5 +1,7 @@
 //! The gateway as a service: a graceful stop that finishes the transaction on the wire and
-//! answers what is queued, in-process and as the binary receiving SIGTERM.
+//! answers what is queued, in-process and as the binary receiving SIGTERM; the binary talking to
+//! systemd over a notify socket (READY=1, STATUS=, watchdog pings, STOPPING=1, and no pings
+//! while a bus task is stuck); `check-config --quiet`.
 
 use crate::support::{addr, http_get, start, within, RawMaster, Scrape};
 use std::process::{Command, Stdio};
@@ -143,4 +145,207 @@ async fn sigterm_while_a_write_is_on_the_wire_still_delivers_the_slaves_reply_an
         "exited {:?} after SIGTERM, past the 3 s shutdown timeout",
         sent_term.elapsed()
     );
+}
+
+/// A notify socket like systemd's, bound at a fresh path.
+struct NotifySocket {
+    path: std::path::PathBuf,
+    socket: tokio::net::UnixDatagram,
+}
+
+impl NotifySocket {
+    fn bind(name: &str) -> Self {
+        let path = std::env::temp_dir().join(format!("mbgw-notify-{}-{name}", std::process::id()));
+        let _ = std::fs::remove_file(&path);
+        let socket = tokio::net::UnixDatagram::bind(&path).expect("bind notify socket");
+        NotifySocket { path, socket }
+    }
+
+    /// The next message, its lines.
+    async fn next(&self) -> Vec<String> {
+        let mut buf = vec![0u8; 4096];
+        let n = within("a notify message", self.socket.recv(&mut buf))
+            .await
+            .unwrap();
+        String::from_utf8_lossy(&buf[..n])
+            .lines()
+            .map(str::to_owned)
+            .collect()
+    }
+}
+
+impl Drop for NotifySocket {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.path);
+    }
+}
+
+#[tokio::test]
+async fn under_systemd_it_reports_ready_pings_the_watchdog_and_says_when_it_stops() {
+    let notify = NotifySocket::bind("ready");
+    let free = || {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap().to_string()
+    };
+    let mut child = Command::new(BINARY)
+        .args(["--config", crate::support::demo_path(), "run"])
+        .env("MBGW__SERVER__LISTEN", free())
+        .env("MBGW__METRICS__LISTEN", free())
+        .env("RUST_LOG", "warn")
+        .env("NOTIFY_SOCKET", &notify.path)
+        // A 200 ms watchdog: pings every 100 ms.
+        .env("WATCHDOG_USEC", "200000")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let first = notify.next().await;
+    assert!(first.contains(&"READY=1".to_owned()), "{first:?}");
+    let status = first
+        .iter()
+        .find(|l| l.starts_with("STATUS="))
+        .expect("a status");
+    assert_eq!(status, "STATUS=0 masters connected; serving demo");
+    let mut pings = 0;
+    while pings < 3 {
+        let message = notify.next().await;
+        assert!(
+            message.iter().any(|l| l.starts_with("STATUS=")),
+            "{message:?}"
+        );
+        pings += usize::from(message.contains(&"WATCHDOG=1".to_owned()));
+    }
+    let status = Command::new("kill")
+        .args(["-s", "TERM", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let stopping = within("STOPPING=1", async {
+        loop {
+            let message = notify.next().await;
+            if message.contains(&"STOPPING=1".to_owned()) {
+                return message;
+            }
+        }
+    })
+    .await;
+    assert!(
+        stopping.contains(&"STATUS=stopping".to_owned()),
+        "{stopping:?}"
+    );
+    let exit = within("exit", tokio::task::spawn_blocking(move || child.wait()))
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(exit.code(), Some(0));
+}
+
+/// Write 123 registers (the most one request may) from 0000H: a 255-byte frame.
+fn long_write() -> Vec<u8> {
+    let mut pdu = vec![0x10, 0x00, 0x00, 0x00, 123, 246];
+    pdu.resize(pdu.len() + 246, 0xA5);
+    pdu
+}
+
+#[tokio::test]
+async fn a_bus_task_stuck_on_its_port_stops_the_watchdog_pings_until_it_moves_again() {
+    use tokio::io::AsyncReadExt;
+    use tokio_serial::SerialPort;
+    // The far end of a pty that nobody reads: once its buffer is full, the gateway's write to
+    // the port never completes, as with a serial driver stuck on flow control.
+    let (mut far_end, tty) = tokio_serial::SerialStream::pair().expect("pty pair");
+    let device = tty.name().expect("pty path");
+    let free = || {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap()
+    };
+    let (listen, metrics) = (free(), free());
+    let path = std::env::temp_dir().join(format!("mbgw-stuck-{}.toml", std::process::id()));
+    std::fs::write(
+        &path,
+        format!(
+            "[server]\nlisten = \"{listen}\"\n[metrics]\nlisten = \"{metrics}\"\n\
+             [[bus]]\nname = \"pty\"\ndevice = \"{device}\"\nbaud = 921600\nparity = \"none\"\n\
+             response_timeout = \"1ms\"\nqueue_timeout = \"60s\"\n"
+        ),
+    )
+    .unwrap();
+    let notify = NotifySocket::bind("stuck");
+    let mut child = Command::new(BINARY)
+        .args(["--config", path.to_str().unwrap(), "run"])
+        .env("RUST_LOG", "warn")
+        .env("NOTIFY_SOCKET", &notify.path)
+        .env("WATCHDOG_USEC", "200000")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let is_ping = |message: &[String]| message.iter().any(|l| l == "WATCHDOG=1");
+    assert!(notify.next().await.contains(&"READY=1".to_owned()));
+    within("a first ping", async {
+        while !is_ping(&notify.next().await) {}
+    })
+    .await;
+
+    // 100 long writes fill the pty's 20 KB buffer and more; nobody answers them.
+    let mut master = RawMaster::connect(listen).await;
+    for tid in 0..100 {
+        master.send(tid, 1, &long_write()).await;
+    }
+    // STATUS= keeps coming every 100 ms; the pings stop.
+    within("the pings stop", async {
+        let mut without = 0;
+        while without < 5 {
+            without = if is_ping(&notify.next().await) {
+                0
+            } else {
+                without + 1
+            };
+        }
+    })
+    .await;
+
+    // Drain the pty: the write completes, the bus moves, the pings come back.
+    let drain = tokio::spawn(async move {
+        let mut buf = vec![0u8; 4096];
+        while far_end.read(&mut buf).await.is_ok_and(|n| n > 0) {}
+    });
+    within("the pings resume", async {
+        while !is_ping(&notify.next().await) {}
+    })
+    .await;
+
+    let _ = Command::new("kill")
+        .args(["-s", "KILL", &child.id().to_string()])
+        .status();
+    let _ = tokio::task::spawn_blocking(move || child.wait()).await;
+    drain.abort();
+    drop(tty);
+    let _ = std::fs::remove_file(&path);
+}
+
+#[test]
+fn check_config_quiet_prints_nothing_for_a_valid_file_and_the_errors_for_a_bad_one() {
+    let out = Command::new(BINARY)
+        .args([
+            "--config",
+            crate::support::demo_path(),
+            "check-config",
+            "--quiet",
+        ])
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    assert!(out.stdout.is_empty() && out.stderr.is_empty());
+    let out = Command::new(BINARY)
+        .args([
+            "--config",
+            "/nonexistent/gateway.toml",
+            "check-config",
+            "--quiet",
+        ])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/gateway.toml"));
 }

@@ -13,18 +13,30 @@ use crate::config;
 use crate::error::{Outcome, RequestError};
 use crate::metrics::{BusMetrics, Metrics};
 use crate::pdu;
-use crate::rtu::frame::{ReplyForm, BROADCAST};
+use crate::rtu::frame::{ReplyForm, BROADCAST, MAX_FRAME_LEN};
 use crate::rtu::{MasterTiming, RtuMaster, TxError};
 use crate::shutdown::Stopping;
 use std::io;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Weak};
+use std::sync::{Arc, Mutex, PoisonError, Weak};
 use std::time::Duration;
 use tokio::sync::oneshot;
-use tokio::time::{sleep_until, Instant};
+use tokio::time::{sleep, sleep_until, Instant};
 use tracing::{debug, info};
 
-/// What the rest of the gateway holds of a bus: its queue and whether its port is open.
+/// How often an idle bus task shows it is still running.
+const HEARTBEAT: Duration = Duration::from_secs(1);
+/// Slack on top of the longest a bus task may legitimately go without a heartbeat.
+const STALL_MARGIN: Duration = Duration::from_secs(1);
+
+/// When a bus task last showed it was running, and how long it may go without doing so.
+struct Heartbeat {
+    last: Mutex<Instant>,
+    stall_limit: Duration,
+}
+
+/// What the rest of the gateway holds of a bus: its queue, whether its port is open, whether its
+/// task is making progress.
 #[derive(Clone)]
 pub struct BusHandle {
     name: Arc<str>,
@@ -32,6 +44,9 @@ pub struct BusHandle {
     up: Arc<AtomicBool>,
     queue_timeout: Duration,
     metrics: Arc<BusMetrics>,
+    heartbeat: Arc<Heartbeat>,
+    /// Signalled once the task has made its first attempt to open the port.
+    attempted: Arc<tokio::sync::Notify>,
 }
 
 impl BusHandle {
@@ -42,6 +57,32 @@ impl BusHandle {
     /// True while the bus holds an open port.
     pub fn is_up(&self) -> bool {
         self.up.load(Ordering::Acquire)
+    }
+
+    /// How long the bus task has gone without a heartbeat, if longer than any transaction or
+    /// idle wait can take: the task is stuck (blocked thread, a driver that never returns).
+    pub fn stalled_for(&self) -> Option<Duration> {
+        let last = *self
+            .heartbeat
+            .last
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        let silent = last.elapsed();
+        (silent > self.heartbeat.stall_limit).then_some(silent)
+    }
+
+    /// Wait until the bus task has tried once to open its port (successfully or not). Meant for
+    /// one waiter, once.
+    pub async fn first_open_attempt(&self) {
+        self.attempted.notified().await;
+    }
+
+    fn beat(&self) {
+        *self
+            .heartbeat
+            .last
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = Instant::now();
     }
 
     /// Queue `pdu` for `slave`. The receiver yields the outcome; refusals (port down, queue full)
@@ -118,12 +159,27 @@ impl Bus {
             let len = weak.upgrade().map_or(0, |queue| queue.len());
             depth.set(i64::try_from(len).unwrap_or(i64::MAX));
         });
+        // The longest a bus task may legitimately go between heartbeats: one attempt, whose gap
+        // the line may hold busy for the timeout, then the timeout, two longest frames, the
+        // silence that ends a reply and a broadcast's turnaround; or an idle heartbeat.
+        let longest_timeout = timeouts.iter().copied().max().unwrap_or_default();
+        let stall_limit = HEARTBEAT
+            + longest_timeout * 2
+            + timing.line.frame_time(MAX_FRAME_LEN) * 2
+            + timing.silence
+            + settings.turnaround_delay
+            + STALL_MARGIN;
         let handle = BusHandle {
             name: settings.name.as_str().into(),
             queue,
             up: Arc::new(AtomicBool::new(false)),
             queue_timeout: settings.queue_timeout,
             metrics: metrics.bus(&settings),
+            heartbeat: Arc::new(Heartbeat {
+                last: Mutex::new(Instant::now()),
+                stall_limit,
+            }),
+            attempted: Arc::new(tokio::sync::Notify::new()),
         };
         Bus {
             settings,
@@ -151,14 +207,16 @@ impl Bus {
         // Since when the port is down, and how many opens have failed since.
         let mut down_since: Option<(Instant, u32)> = None;
         loop {
-            match self.device.open() {
+            let opened = self.device.open();
+            self.set_up(opened.is_ok());
+            self.handle.attempted.notify_one();
+            match opened {
                 Ok(port) => {
                     let down = down_since
                         .take()
                         .map(|(since, failed_opens)| (since.elapsed(), failed_opens));
                     metrics.port_opened(device, down);
                     delay = self.settings.reopen_delay;
-                    self.set_up(true);
                     let mut master = RtuMaster::new(port, self.timing);
                     for slave in self.settings.slave.iter().filter(|s| s.wide_read_count) {
                         master.set_reply_form(slave.address, ReplyForm::WideReadCount);
@@ -205,6 +263,7 @@ impl Bus {
             self.handle.answer(job, Err(RequestError::PortDown));
         }
         loop {
+            self.handle.beat();
             tokio::select! {
                 biased;
                 _ = stopping.requested() => return true,
@@ -212,6 +271,7 @@ impl Bus {
                     self.handle.answer(job, Err(RequestError::PortDown));
                 }
                 () = sleep_until(until) => return false,
+                () = sleep(HEARTBEAT) => {}
             }
         }
     }
@@ -223,6 +283,7 @@ impl Bus {
         let mut counted = master.counters();
         let mut deadline = stopping.deadline();
         loop {
+            self.handle.beat();
             let job = if let Some(deadline) = deadline {
                 // Draining: no new request starts after the deadline.
                 if Instant::now() >= deadline {
@@ -249,6 +310,7 @@ impl Bus {
                             Err(error) => return End::Lost(error),
                         }
                     }
+                    () = sleep(HEARTBEAT) => continue,
                 }
             };
             if job.reply.is_closed() {
@@ -322,6 +384,7 @@ impl Bus {
         let mut first_sent_at = None;
         let outcome = loop {
             attempts += 1;
+            self.handle.beat();
             let previous = master.sent_at();
             let result = master.transact(job.slave, &job.pdu, timeout).await;
             if master.sent_at() != previous {

@@ -65,6 +65,11 @@ impl Shared {
         }
     }
 
+    /// Sessions running now.
+    pub fn connections_open(&self) -> usize {
+        self.max_connections - self.connections.available_permits()
+    }
+
     /// Wait until every session has ended (each holds a connection permit while it runs).
     pub async fn sessions_ended(&self) {
         let all = u32::try_from(self.max_connections).unwrap_or(u32::MAX);
