@@ -8,32 +8,51 @@ use crate::metrics::Metrics;
 use crate::pdu;
 use crate::routing::Router;
 use crate::rtu::frame::BROADCAST;
-use std::sync::Arc;
+use std::sync::{Arc, PoisonError, RwLock};
 use tokio::sync::oneshot;
 
-pub struct Dispatcher {
+/// The routes and the buses they index, replaced whole on a reload.
+struct Table {
     router: Router,
     buses: Vec<BusHandle>,
+}
+
+pub struct Dispatcher {
+    table: RwLock<Arc<Table>>,
     metrics: Arc<Metrics>,
 }
 
 impl Dispatcher {
     pub fn new(router: Router, buses: Vec<BusHandle>, metrics: Arc<Metrics>) -> Self {
         Dispatcher {
-            router,
-            buses,
+            table: RwLock::new(Arc::new(Table { router, buses })),
             metrics,
         }
     }
 
-    pub fn buses(&self) -> &[BusHandle] {
-        &self.buses
+    fn table(&self) -> Arc<Table> {
+        self.table
+            .read()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+    }
+
+    /// Route by `router` to `buses` from the next request on; requests already queued stay where
+    /// they are.
+    pub fn replace(&self, router: Router, buses: Vec<BusHandle>) {
+        *self.table.write().unwrap_or_else(PoisonError::into_inner) =
+            Arc::new(Table { router, buses });
+    }
+
+    pub fn buses(&self) -> Vec<BusHandle> {
+        self.table().buses.clone()
     }
 
     /// Route `pdu` from `unit`.
     pub fn submit(&self, master: MasterId, unit: u8, pdu: Vec<u8>) -> oneshot::Receiver<Outcome> {
         let function = pdu.first().copied().unwrap_or(0);
-        let target = self.router.resolve(unit);
+        let table = self.table();
+        let target = table.router.resolve(unit);
         let refusal = match target {
             _ if !pdu::is_valid_request_function(function) => {
                 RequestError::InvalidFunction(function)
@@ -44,11 +63,11 @@ impl Dispatcher {
             {
                 RequestError::NotBroadcastable(function)
             }
-            Some(target) => return self.buses[target.bus].submit(master, target.address, pdu),
+            Some(target) => return table.buses[target.bus].submit(master, target.address, pdu),
         };
         // Counted against the bus and slave the unit routes to, if any, else the unit id.
         let (bus, slave) = match target {
-            Some(target) => (self.buses[target.bus].name(), target.address),
+            Some(target) => (table.buses[target.bus].name(), target.address),
             None => ("", unit),
         };
         let outcome = Err(refusal);
@@ -60,7 +79,7 @@ impl Dispatcher {
 
     /// A master has gone: drop whatever it still has queued.
     pub fn forget(&self, master: MasterId) {
-        for bus in &self.buses {
+        for bus in &self.table().buses {
             bus.forget(master);
         }
     }

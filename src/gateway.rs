@@ -1,9 +1,10 @@
 //! Wires a validated configuration into running parts: the metrics, the simulated lines, one task
-//! per bus, the dispatcher, the Modbus TCP listeners and the metrics endpoint. Owns their tasks:
+//! per bus, the dispatcher, the Modbus TCP listeners and the metrics endpoint; applies a reloaded
+//! configuration to them without closing connections; stops them gracefully. Owns their tasks:
 //! dropping the gateway stops them.
 
-use crate::bus::{Bus, BusHandle, Device};
-use crate::config::Config;
+use crate::bus::{Bus, BusHandle, BusUpdates, Device, Reconfigure};
+use crate::config::{self, Config};
 use crate::dispatch::Dispatcher;
 use crate::metrics::{self, Metrics};
 use crate::routing::Router;
@@ -11,13 +12,13 @@ use crate::shutdown::{self, Stop};
 use crate::sim::{self, SimLine};
 use crate::tcp::server::Shared;
 use crate::tcp::{self, SessionLimits};
-use std::collections::BTreeMap;
 use std::io;
 use std::net::SocketAddr;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 use tokio::net::TcpListener;
-use tokio::task::JoinSet;
+use tokio::task::{JoinHandle, JoinSet};
+use tokio::time::Instant;
 use tracing::{info, warn};
 
 #[derive(Debug, thiserror::Error)]
@@ -35,19 +36,40 @@ pub enum StartError {
 /// Slack on top of the last transaction's own bound, for the sessions to write their answers.
 const LAST_TRANSACTION_MARGIN: Duration = Duration::from_secs(1);
 
+/// One bus as the gateway runs it.
+struct Running {
+    settings: config::Bus,
+    device: Device,
+    handle: BusHandle,
+    updates: BusUpdates,
+    stop: Stop,
+    task: JoinHandle<()>,
+}
+
 pub struct Gateway {
     local_addrs: Vec<SocketAddr>,
     metrics_addr: SocketAddr,
     metrics: Arc<Metrics>,
+    /// The configuration in force: the one started with, or the last reloaded.
+    config: Mutex<Config>,
+    /// In configuration order, which the router's bus indices follow.
+    buses: Mutex<Vec<Running>>,
+    /// Buses removed by a reload that are still serving what they had queued.
+    retired: Mutex<Vec<JoinHandle<()>>>,
+    /// Tells the sessions to stop.
     stop: Stop,
-    shutdown_timeout: Duration,
-    /// How long the transaction on the wire at the shutdown deadline may still take.
-    last_transaction: Duration,
     listeners: JoinSet<()>,
-    buses: JoinSet<()>,
-    sim_lines: BTreeMap<String, SimLine>,
     shared: Arc<Shared>,
     tasks: JoinSet<()>,
+}
+
+/// What a reload did.
+#[derive(Debug, Default, PartialEq, Eq)]
+pub struct Reloaded {
+    /// One line per change applied: bus added, removed, reconfigured or reopened; routes; limits.
+    pub applied: Vec<String>,
+    /// Keys that changed but take a restart to apply.
+    pub need_restart: Vec<String>,
 }
 
 /// The simulated line of a `device = "sim"` bus, with its slaves powered on.
@@ -67,6 +89,34 @@ pub fn sim_line(bus: &crate::config::Bus) -> Result<SimLine, StartError> {
     Ok(line)
 }
 
+/// The device a bus's settings name; a simulated line is kept when its format and slaves are
+/// unchanged (`current`), so its slaves keep their state.
+fn device_for(
+    settings: &config::Bus,
+    current: Option<(&config::Bus, &Device)>,
+) -> Result<Device, StartError> {
+    if !settings.is_sim() {
+        return Ok(Device::Serial {
+            path: settings.device.clone(),
+            format: settings.format(),
+        });
+    }
+    if let Some((old, device @ Device::Sim(_))) = current {
+        if old.is_sim() && old.format() == settings.format() && old.sim_slave == settings.sim_slave
+        {
+            return Ok(device.clone());
+        }
+    }
+    sim_line(settings).map(Device::Sim)
+}
+
+fn session_limits(server: &config::Server) -> SessionLimits {
+    SessionLimits {
+        pipeline_depth: server.pipeline_depth,
+        idle_timeout: Some(server.idle_timeout).filter(|t| !t.is_zero()),
+    }
+}
+
 impl Gateway {
     /// Bind every listener and start every bus. Fails only if a listen address cannot be bound;
     /// a serial port that cannot be opened yet is retried by its bus while the rest serves.
@@ -84,37 +134,29 @@ impl Gateway {
             .map_err(listen_error)?;
         let metrics_addr = metrics_listener.local_addr().map_err(listen_error)?;
         let metrics = Arc::new(Metrics::new());
-        let (stop, stopping) = shutdown::channel();
-        let mut tasks = JoinSet::new();
-        let mut bus_tasks = JoinSet::new();
-        let mut listener_tasks = JoinSet::new();
-        let mut sim_lines = BTreeMap::new();
-        let mut handles = Vec::with_capacity(config.bus.len());
+        let mut buses = Vec::with_capacity(config.bus.len());
         for settings in &config.bus {
-            let device = if settings.is_sim() {
-                let line = sim_line(settings)?;
-                sim_lines.insert(settings.name.clone(), line.clone());
-                Device::Sim(line)
-            } else {
-                Device::Serial {
-                    path: settings.device.clone(),
-                    format: settings.format(),
-                }
-            };
-            let bus = Bus::new(settings.clone(), device, &metrics);
-            handles.push(bus.handle());
-            bus_tasks.spawn(bus.run(stopping.clone()));
+            let device = device_for(settings, None)?;
+            buses.push(Self::start_bus(settings, device, &metrics));
         }
-        let limits = SessionLimits {
-            pipeline_depth: config.server.pipeline_depth,
-            idle_timeout: Some(config.server.idle_timeout).filter(|t| !t.is_zero()),
-        };
         // Started means each bus has tried its port once, so what is reported next is true.
-        for handle in &handles {
-            handle.first_open_attempt().await;
+        for bus in &buses {
+            bus.handle.first_open_attempt().await;
         }
-        let buses = handles.clone();
+        let handles = buses.iter().map(|b| b.handle.clone()).collect();
+        let dispatcher = Dispatcher::new(Router::new(config), handles, metrics.clone());
+        let (stop, stopping) = shutdown::channel();
+        let shared = Arc::new(Shared::new(
+            dispatcher,
+            session_limits(&config.server),
+            config.server.max_connections,
+            metrics.clone(),
+            stopping,
+        ));
+        let mut tasks = JoinSet::new();
+        let readiness = shared.clone();
         let not_ready: metrics::http::Readiness = Arc::new(move || {
+            let buses = readiness.dispatcher.buses();
             let down = buses.iter().filter(|bus| !bus.is_up());
             down.map(|bus| bus.name().to_owned()).collect()
         });
@@ -124,43 +166,125 @@ impl Gateway {
             metrics.clone(),
             not_ready,
         ));
-        let dispatcher = Dispatcher::new(Router::new(config), handles, metrics.clone());
-        let shared = Arc::new(Shared::new(
-            dispatcher,
-            limits,
-            config.server.max_connections,
-            metrics.clone(),
-            stopping,
-        ));
         let local_addrs = listeners.iter().map(|l| l.addr).collect();
+        let mut listener_tasks = JoinSet::new();
         for listener in listeners {
             info!(listen = %listener.addr, "accepting Modbus TCP masters");
             listener_tasks.spawn(tcp::serve(listener, shared.clone()));
         }
-        // A request started just before the deadline may wait its slave's timeout, after a
-        // gap the line may keep busy for as long again.
-        let longest_timeout = config
-            .bus
-            .iter()
-            .flat_map(|b| {
-                std::iter::once(b.response_timeout)
-                    .chain(b.slave.iter().filter_map(|s| s.response_timeout))
-            })
-            .max()
-            .unwrap_or_default();
         Ok(Gateway {
             local_addrs,
             metrics_addr,
             metrics,
+            config: Mutex::new(config.clone()),
+            buses: Mutex::new(buses),
+            retired: Mutex::new(Vec::new()),
             stop,
-            shutdown_timeout: config.server.shutdown_timeout,
-            last_transaction: longest_timeout * 2 + LAST_TRANSACTION_MARGIN,
             listeners: listener_tasks,
-            buses: bus_tasks,
-            sim_lines,
             shared,
             tasks,
         })
+    }
+
+    fn start_bus(settings: &config::Bus, device: Device, metrics: &Metrics) -> Running {
+        let mut bus = Bus::new(settings.clone(), device.clone(), metrics);
+        let updates = bus.updates();
+        let handle = bus.handle();
+        let (stop, stopping) = shutdown::channel();
+        let task = tokio::spawn(bus.run(stopping));
+        Running {
+            settings: settings.clone(),
+            device,
+            handle,
+            updates,
+            stop,
+            task,
+        }
+    }
+
+    /// Apply `new` (validated) without closing any TCP connection: routes, timeouts, per-slave
+    /// settings, queue and connection limits change between transactions; a bus whose device or
+    /// serial format changed reopens its port; added buses start; removed ones serve what they
+    /// had queued (until `shutdown_timeout`) and stop. Listen addresses and logging take a
+    /// restart. On error nothing has changed.
+    pub fn reload(&self, new: &Config) -> Result<Reloaded, StartError> {
+        let mut config = self.config.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut running = self.buses.lock().unwrap_or_else(PoisonError::into_inner);
+        // Every device first, so that a failure leaves everything as it was.
+        let mut devices = Vec::with_capacity(new.bus.len());
+        for settings in &new.bus {
+            let current = running
+                .iter()
+                .find(|r| r.settings.name == settings.name)
+                .map(|r| (&r.settings, &r.device));
+            devices.push(device_for(settings, current)?);
+        }
+        let mut done = Reloaded::default();
+        let mut old: Vec<Running> = running.drain(..).collect();
+        for (settings, device) in new.bus.iter().zip(devices) {
+            let name = &settings.name;
+            let Some(at) = old.iter().position(|r| r.settings.name == *name) else {
+                running.push(Self::start_bus(settings, device, &self.metrics));
+                done.applied.push(format!("bus {name}: added"));
+                continue;
+            };
+            let mut bus = old.swap_remove(at);
+            if bus.settings != *settings || !bus.device.same_as(&device) {
+                let reopen = bus.updates.send(Reconfigure {
+                    settings: settings.clone(),
+                    device: device.clone(),
+                });
+                let what = if reopen { "reopened" } else { "reconfigured" };
+                done.applied.push(format!("bus {name}: {what}"));
+                bus.settings = settings.clone();
+                bus.device = device;
+            }
+            running.push(bus);
+        }
+        let deadline = Instant::now() + new.server.shutdown_timeout;
+        let mut retired = self.retired.lock().unwrap_or_else(PoisonError::into_inner);
+        retired.retain(|task| !task.is_finished());
+        for bus in old {
+            bus.stop.stop(deadline);
+            let metrics = self.metrics.clone();
+            let handle = bus.handle.clone();
+            let task = bus.task;
+            retired.push(tokio::spawn(async move {
+                let _ = task.await;
+                metrics.forget_bus(handle.metrics());
+            }));
+            done.applied
+                .push(format!("bus {}: removed", bus.settings.name));
+        }
+        if new.route != config.route {
+            done.applied.push("routes".to_owned());
+        }
+        let handles = running.iter().map(|r| r.handle.clone()).collect();
+        self.shared.dispatcher.replace(Router::new(new), handles);
+        let server = (&new.server, &config.server);
+        if server.0.max_connections != server.1.max_connections
+            || server.0.pipeline_depth != server.1.pipeline_depth
+            || server.0.idle_timeout != server.1.idle_timeout
+        {
+            done.applied
+                .push("connection limits (for new connections)".to_owned());
+        }
+        self.shared
+            .set_limits(session_limits(&new.server), new.server.max_connections);
+        if server.0.shutdown_timeout != server.1.shutdown_timeout {
+            done.applied.push("server.shutdown_timeout".to_owned());
+        }
+        if server.0.listen != server.1.listen {
+            done.need_restart.push("server.listen".to_owned());
+        }
+        if new.metrics != config.metrics {
+            done.need_restart.push("metrics.listen".to_owned());
+        }
+        if new.log != config.log {
+            done.need_restart.push("log".to_owned());
+        }
+        *config = new.clone();
+        Ok(done)
     }
 
     /// The bound listen addresses (port 0 in the configuration becomes the real port here).
@@ -179,8 +303,12 @@ impl Gateway {
     }
 
     /// The simulated line of bus `name`, for tests and demos.
-    pub fn sim_line(&self, name: &str) -> Option<&SimLine> {
-        self.sim_lines.get(name)
+    pub fn sim_line(&self, name: &str) -> Option<SimLine> {
+        let buses = self.buses.lock().unwrap_or_else(PoisonError::into_inner);
+        match &buses.iter().find(|b| b.settings.name == name)?.device {
+            Device::Sim(line) => Some(line.clone()),
+            Device::Serial { .. } => None,
+        }
     }
 
     /// The buses whose task has stopped making progress, with how long it has been silent.
@@ -219,19 +347,68 @@ impl Gateway {
     /// write its answers and close; then stop every task.
     pub async fn shutdown(mut self) {
         self.listeners.shutdown().await;
-        let deadline = tokio::time::Instant::now() + self.shutdown_timeout;
+        let config = self
+            .config
+            .get_mut()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone();
+        let deadline = Instant::now() + config.server.shutdown_timeout;
+        let buses = std::mem::take(self.buses.get_mut().unwrap_or_else(PoisonError::into_inner));
+        let mut retired = std::mem::take(
+            self.retired
+                .get_mut()
+                .unwrap_or_else(PoisonError::into_inner),
+        );
+        for bus in &buses {
+            bus.stop.stop(deadline);
+        }
         self.stop.stop(deadline);
         let shared = self.shared.clone();
-        let buses = &mut self.buses;
+        let mut tasks: Vec<JoinHandle<()>> = buses.into_iter().map(|b| b.task).collect();
+        tasks.append(&mut retired);
+        let aborts: Vec<_> = tasks.iter().map(JoinHandle::abort_handle).collect();
         let drained = async {
-            while buses.join_next().await.is_some() {}
+            for task in tasks {
+                let _ = task.await;
+            }
             shared.sessions_ended().await;
         };
-        let limit = deadline + self.last_transaction;
+        // A request started just before the deadline may wait its slave's timeout, after a
+        // gap the line may keep busy for as long again.
+        let longest_timeout = config
+            .bus
+            .iter()
+            .flat_map(|b| {
+                std::iter::once(b.response_timeout)
+                    .chain(b.slave.iter().filter_map(|s| s.response_timeout))
+            })
+            .max()
+            .unwrap_or_default();
+        let limit = deadline + longest_timeout * 2 + LAST_TRANSACTION_MARGIN;
         if tokio::time::timeout_at(limit, drained).await.is_err() {
             warn!("shutdown: sessions still open after the shutdown timeout; closing them");
         }
-        self.buses.shutdown().await;
+        for abort in aborts {
+            abort.abort();
+        }
         self.tasks.shutdown().await;
+    }
+}
+
+impl Drop for Gateway {
+    /// Bus tasks are spawned on their own (a reload replaces them one by one): stop them with
+    /// the gateway.
+    fn drop(&mut self) {
+        let buses = self.buses.get_mut().unwrap_or_else(PoisonError::into_inner);
+        for bus in buses.iter() {
+            bus.task.abort();
+        }
+        let retired = self
+            .retired
+            .get_mut()
+            .unwrap_or_else(PoisonError::into_inner);
+        for task in retired.iter() {
+            task.abort();
+        }
     }
 }

@@ -11,7 +11,7 @@ use std::convert::Infallible;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Duration;
-use tracing::{error, info};
+use tracing::{error, info, warn};
 
 /// Exit status for a configuration that cannot be used.
 const EXIT_CONFIG: u8 = 2;
@@ -67,6 +67,12 @@ fn environment() -> Result<Vec<(String, String)>, String> {
     Ok(vars)
 }
 
+/// The file and the environment, validated; or every problem, one line each.
+fn read_config(path: &Path) -> Result<Config, Vec<String>> {
+    let env = environment().map_err(|e| vec![e])?;
+    Config::load(path, env).map_err(|errors| errors.0.iter().map(ToString::to_string).collect())
+}
+
 fn load(path: &Path) -> Result<Config, ExitCode> {
     // Logging is configured by the file, so its errors are written before logging starts: in
     // the journal, at error priority.
@@ -75,17 +81,58 @@ fn load(path: &Path) -> Result<Config, ExitCode> {
     } else {
         ""
     };
-    let refuse = |reason: &dyn std::fmt::Display| {
-        eprintln!("{priority}modbus-gateway: {}: {reason}", path.display());
-        ExitCode::from(EXIT_CONFIG)
-    };
-    let env = environment().map_err(|e| refuse(&e))?;
-    Config::load(path, env).map_err(|errors| {
-        for e in &errors.0 {
-            refuse(e);
+    read_config(path).map_err(|errors| {
+        for e in &errors {
+            eprintln!("{priority}modbus-gateway: {}: {e}", path.display());
         }
         ExitCode::from(EXIT_CONFIG)
     })
+}
+
+/// SIGHUP: read the file again and apply it; on any error keep the configuration in force.
+fn reload(path: &Path, gateway: &Gateway) {
+    let mut reloading = vec![NotifyState::Reloading];
+    reloading.extend(NotifyState::monotonic_usec_now().ok());
+    let _ = sd_notify::notify(&reloading);
+    let file = path.display().to_string();
+    match read_config(path) {
+        Err(errors) => {
+            for e in &errors {
+                error!(file, error = %e, "configuration not reloaded; keeping the one in force");
+            }
+        }
+        Ok(config) => match gateway.reload(&config) {
+            Ok(done) => {
+                info!(file, applied = ?done.applied, "configuration reloaded");
+                if !done.need_restart.is_empty() {
+                    warn!(changed = ?done.need_restart, "these changes take a restart");
+                }
+            }
+            Err(e) => {
+                error!(file, error = %e, "configuration not reloaded; keeping the one in force")
+            }
+        },
+    }
+    let _ = sd_notify::notify(&[NotifyState::Ready, NotifyState::Status(&gateway.status())]);
+}
+
+/// A stream of SIGHUPs (never, where there are none).
+struct Hangups(Option<tokio::signal::unix::Signal>);
+
+impl Hangups {
+    fn new() -> Self {
+        use tokio::signal::unix::{signal, SignalKind};
+        Hangups(signal(SignalKind::hangup()).ok())
+    }
+
+    async fn next(&mut self) {
+        match &mut self.0 {
+            Some(signal) => {
+                signal.recv().await;
+            }
+            None => std::future::pending().await,
+        }
+    }
 }
 
 fn format_name(parity: Parity) -> char {
@@ -190,7 +237,7 @@ fn start_runtime(log: &config::Log) -> Result<tokio::runtime::Runtime, ExitCode>
     })
 }
 
-fn run(config: Config) -> ExitCode {
+fn run(path: &Path, config: Config) -> ExitCode {
     let runtime = match start_runtime(&config.log) {
         Ok(runtime) => runtime,
         Err(code) => return code,
@@ -208,15 +255,21 @@ fn run(config: Config) -> ExitCode {
             "modbus-gateway running"
         );
         let _ = sd_notify::notify(&[NotifyState::Ready, NotifyState::Status(&gateway.status())]);
-        tokio::select! {
-            () = stop_signal() => {}
-            never = supervise(&gateway) => match never {},
+        {
+            let mut hangups = Hangups::new();
+            let stop = stop_signal();
+            let supervisor = supervise(&gateway);
+            tokio::pin!(stop, supervisor);
+            loop {
+                tokio::select! {
+                    () = &mut stop => break,
+                    never = &mut supervisor => match never {},
+                    () = hangups.next() => reload(path, &gateway),
+                }
+            }
         }
         let _ = sd_notify::notify(&[NotifyState::Stopping, NotifyState::Status("stopping")]);
-        info!(
-            shutdown_timeout = %humantime::format_duration(config.server.shutdown_timeout),
-            "stopping: no new masters; serving what is queued"
-        );
+        info!("stopping: no new masters; serving what is queued");
         gateway.shutdown().await;
         info!("stopped");
         ExitCode::SUCCESS
@@ -270,7 +323,7 @@ fn main() -> ExitCode {
             }
             ExitCode::SUCCESS
         }
-        Command::Run => run(config),
+        Command::Run => run(&cli.config, config),
         Command::Simulate { device, bus } => simulate(config, bus.as_deref(), &device),
     }
 }

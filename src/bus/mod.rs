@@ -20,7 +20,7 @@ use std::io;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, PoisonError, Weak};
 use std::time::Duration;
-use tokio::sync::oneshot;
+use tokio::sync::{oneshot, watch};
 use tokio::time::{sleep, sleep_until, Instant};
 use tracing::{debug, info};
 
@@ -32,7 +32,7 @@ const STALL_MARGIN: Duration = Duration::from_secs(1);
 /// When a bus task last showed it was running, and how long it may go without doing so.
 struct Heartbeat {
     last: Mutex<Instant>,
-    stall_limit: Duration,
+    stall_limit: Mutex<Duration>,
 }
 
 /// What the rest of the gateway holds of a bus: its queue, whether its port is open, whether its
@@ -42,7 +42,7 @@ pub struct BusHandle {
     name: Arc<str>,
     queue: Arc<FairQueue>,
     up: Arc<AtomicBool>,
-    queue_timeout: Duration,
+    queue_timeout: Arc<Mutex<Duration>>,
     metrics: Arc<BusMetrics>,
     heartbeat: Arc<Heartbeat>,
     /// Signalled once the task has made its first attempt to open the port.
@@ -52,6 +52,10 @@ pub struct BusHandle {
 impl BusHandle {
     pub fn name(&self) -> &str {
         &self.name
+    }
+
+    pub fn metrics(&self) -> &BusMetrics {
+        &self.metrics
     }
 
     /// True while the bus holds an open port.
@@ -68,7 +72,12 @@ impl BusHandle {
             .lock()
             .unwrap_or_else(PoisonError::into_inner);
         let silent = last.elapsed();
-        (silent > self.heartbeat.stall_limit).then_some(silent)
+        let limit = *self
+            .heartbeat
+            .stall_limit
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        (silent > limit).then_some(silent)
     }
 
     /// Wait until the bus task has tried once to open its port (successfully or not). Meant for
@@ -95,7 +104,11 @@ impl BusHandle {
             slave,
             pdu,
             queued_at: now,
-            deadline: now + self.queue_timeout,
+            deadline: now
+                + *self
+                    .queue_timeout
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner),
             reply,
         };
         if !self.is_up() {
@@ -130,21 +143,44 @@ impl BusHandle {
 enum End {
     Lost(io::Error),
     Stopped,
+    /// The configuration names another device or format: open again.
+    Reopen,
 }
 
-/// Everything the bus task needs, derived once from its configuration.
-pub struct Bus {
-    settings: config::Bus,
+/// A running bus's new configuration: its settings and the device they name.
+#[derive(Clone)]
+pub struct Reconfigure {
+    pub settings: config::Bus,
+    pub device: Device,
+}
+
+/// The gateway's side of a running bus: where new configurations go.
+pub struct BusUpdates(watch::Sender<Option<Reconfigure>>);
+
+impl BusUpdates {
+    /// Apply `update` between transactions. Returns whether the port will be reopened (its
+    /// device or serial format changed); otherwise the new settings apply on the open port.
+    pub fn send(&self, update: Reconfigure) -> bool {
+        let reopen = self
+            .0
+            .borrow()
+            .as_ref()
+            .is_none_or(|current| !current.device.same_as(&update.device));
+        self.0.send_replace(Some(update));
+        reopen
+    }
+}
+
+/// What the bus task derives from its settings.
+struct Derived {
     timing: MasterTiming,
     /// Response timeout per slave address, overrides applied.
     timeouts: Box<[Duration; 256]>,
-    device: Device,
-    handle: BusHandle,
+    stall_limit: Duration,
 }
 
-impl Bus {
-    /// A bus whose metrics are registered in `metrics`.
-    pub fn new(settings: config::Bus, device: Device, metrics: &Metrics) -> Self {
+impl Derived {
+    fn of(settings: &config::Bus) -> Derived {
         let timing = settings.master_timing();
         let mut timeouts = Box::new([settings.response_timeout; 256]);
         for slave in &settings.slave {
@@ -152,13 +188,6 @@ impl Bus {
                 timeouts[usize::from(slave.address)] = timeout;
             }
         }
-        let queue = Arc::new(FairQueue::new(settings.queue_depth));
-        let depth = metrics.queue_depth(&settings.name);
-        let weak: Weak<FairQueue> = Arc::downgrade(&queue);
-        metrics.on_scrape(move || {
-            let len = weak.upgrade().map_or(0, |queue| queue.len());
-            depth.set(i64::try_from(len).unwrap_or(i64::MAX));
-        });
         // The longest a bus task may legitimately go between heartbeats: one attempt, whose gap
         // the line may hold busy for the timeout, then the timeout, two longest frames, the
         // silence that ends a reply and a broadcast's turnaround; or an idle heartbeat.
@@ -169,25 +198,69 @@ impl Bus {
             + timing.silence
             + settings.turnaround_delay
             + STALL_MARGIN;
+        Derived {
+            timing,
+            timeouts,
+            stall_limit,
+        }
+    }
+}
+
+/// Everything the bus task needs, derived from its configuration.
+pub struct Bus {
+    settings: config::Bus,
+    derived: Derived,
+    device: Device,
+    handle: BusHandle,
+    updates: watch::Receiver<Option<Reconfigure>>,
+    /// Kept so that `updates` never reports a closed channel when nobody reconfigures the bus.
+    updates_sender: Option<watch::Sender<Option<Reconfigure>>>,
+}
+
+impl Bus {
+    /// A bus whose metrics are registered in `metrics`.
+    pub fn new(settings: config::Bus, device: Device, metrics: &Metrics) -> Self {
+        let derived = Derived::of(&settings);
+        let queue = Arc::new(FairQueue::new(settings.queue_depth));
+        let depth = metrics.queue_depth(&settings.name);
+        let weak: Weak<FairQueue> = Arc::downgrade(&queue);
+        metrics.on_scrape(move || {
+            let len = weak.upgrade().map_or(0, |queue| queue.len());
+            depth.set(i64::try_from(len).unwrap_or(i64::MAX));
+        });
         let handle = BusHandle {
             name: settings.name.as_str().into(),
             queue,
             up: Arc::new(AtomicBool::new(false)),
-            queue_timeout: settings.queue_timeout,
+            queue_timeout: Arc::new(Mutex::new(settings.queue_timeout)),
             metrics: metrics.bus(&settings),
             heartbeat: Arc::new(Heartbeat {
                 last: Mutex::new(Instant::now()),
-                stall_limit,
+                stall_limit: Mutex::new(derived.stall_limit),
             }),
             attempted: Arc::new(tokio::sync::Notify::new()),
         };
+        let (sender, updates) = watch::channel(Some(Reconfigure {
+            settings: settings.clone(),
+            device: device.clone(),
+        }));
         Bus {
             settings,
-            timing,
-            timeouts,
+            derived,
             device,
             handle,
+            updates,
+            updates_sender: Some(sender),
         }
+    }
+
+    /// Where new configurations for this bus go; take it before running the bus.
+    pub fn updates(&mut self) -> BusUpdates {
+        let sender = self
+            .updates_sender
+            .take()
+            .unwrap_or_else(|| watch::channel(None).0);
+        BusUpdates(sender)
     }
 
     pub fn handle(&self) -> BusHandle {
@@ -198,11 +271,54 @@ impl Bus {
         self.handle.up.store(up, Ordering::Release);
     }
 
+    /// Take a new configuration. Returns whether the port must be reopened.
+    fn apply(&mut self, update: Reconfigure) -> bool {
+        let reopen = !self.device.same_as(&update.device);
+        self.derived = Derived::of(&update.settings);
+        *self
+            .handle
+            .heartbeat
+            .stall_limit
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = self.derived.stall_limit;
+        *self
+            .handle
+            .queue_timeout
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = update.settings.queue_timeout;
+        self.handle.queue.set_capacity(update.settings.queue_depth);
+        self.handle.metrics.reconfigured(&update.settings);
+        info!(bus = &*self.handle.name, reopen, "bus reconfigured");
+        self.settings = update.settings;
+        self.device = update.device;
+        reopen
+    }
+
+    /// A new configuration, if one came since the last look.
+    fn update(&mut self) -> Option<Reconfigure> {
+        if !self.updates.has_changed().unwrap_or(false) {
+            return None;
+        }
+        self.updates.borrow_and_update().clone()
+    }
+
+    /// Set the master's timing and reply forms from the settings.
+    fn configure(&self, master: &mut RtuMaster<Port>) {
+        master.set_timing(self.derived.timing);
+        for address in 0..=u8::MAX {
+            master.set_reply_form(address, ReplyForm::Standard);
+        }
+        for slave in self.settings.slave.iter().filter(|s| s.wide_read_count) {
+            master.set_reply_form(slave.address, ReplyForm::WideReadCount);
+        }
+    }
+
     /// Run until `stopping`: open the port, serve it until it is lost, answer 0x0A while it is
     /// down, reopen with backoff. Once stopped, whatever is still queued is answered 0x0A.
-    pub async fn run(self, mut stopping: Stopping) {
-        let metrics = &self.handle.metrics;
-        let device = &self.settings.device;
+    pub async fn run(mut self, mut stopping: Stopping) {
+        let metrics = self.handle.metrics.clone();
+        // The configuration it starts with is the one it was made with.
+        self.updates.borrow_and_update();
         let mut delay = self.settings.reopen_delay;
         // Since when the port is down, and how many opens have failed since.
         let mut down_since: Option<(Instant, u32)> = None;
@@ -215,32 +331,37 @@ impl Bus {
                     let down = down_since
                         .take()
                         .map(|(since, failed_opens)| (since.elapsed(), failed_opens));
-                    metrics.port_opened(device, down);
+                    metrics.port_opened(&self.settings.device, down);
                     delay = self.settings.reopen_delay;
-                    let mut master = RtuMaster::new(port, self.timing);
-                    for slave in self.settings.slave.iter().filter(|s| s.wide_read_count) {
-                        master.set_reply_form(slave.address, ReplyForm::WideReadCount);
-                    }
+                    let mut master = RtuMaster::new(port, self.derived.timing);
+                    self.configure(&mut master);
                     let end = self.serve(master, &mut stopping).await;
                     self.set_up(false);
                     match end {
-                        End::Lost(error) => metrics.port_lost(device, &error),
+                        End::Lost(error) => metrics.port_lost(&self.settings.device, &error),
                         End::Stopped => break,
+                        // Straight to the new device, as a first open.
+                        End::Reopen => continue,
                     }
                     down_since = Some((Instant::now(), 0));
                 }
                 Err(error) => {
                     let first = down_since.is_none();
-                    metrics.open_failed(device, &error, first);
+                    metrics.open_failed(&self.settings.device, &error, first);
                     let (_, failed_opens) = down_since.get_or_insert((Instant::now(), 0));
                     *failed_opens += 1;
                 }
             }
-            if self
+            match self
                 .refuse_until(Instant::now() + delay, &mut stopping)
                 .await
             {
-                break;
+                End::Stopped => break,
+                End::Reopen => {
+                    delay = self.settings.reopen_delay;
+                    continue;
+                }
+                End::Lost(_) => {}
             }
             delay = (delay * 2).min(self.settings.reopen_delay_max);
         }
@@ -257,20 +378,26 @@ impl Bus {
     }
 
     /// While the port is down: answer everything queued, and everything that arrives, with 0x0A,
-    /// until `until` (time to reopen), or a stop (returns true).
-    async fn refuse_until(&self, until: Instant, stopping: &mut Stopping) -> bool {
+    /// until `until` (time to try again: `Lost`), a new configuration (`Reopen`: try it at once)
+    /// or a stop.
+    async fn refuse_until(&mut self, until: Instant, stopping: &mut Stopping) -> End {
         for job in self.handle.queue.drain() {
             self.handle.answer(job, Err(RequestError::PortDown));
         }
         loop {
             self.handle.beat();
+            if let Some(update) = self.update() {
+                self.apply(update);
+                return End::Reopen;
+            }
             tokio::select! {
                 biased;
-                _ = stopping.requested() => return true,
+                _ = stopping.requested() => return End::Stopped,
+                _ = self.updates.changed() => {}
                 job = self.handle.queue.pop() => {
                     self.handle.answer(job, Err(RequestError::PortDown));
                 }
-                () = sleep_until(until) => return false,
+                () = sleep_until(until) => return End::Lost(io::ErrorKind::NotConnected.into()),
                 () = sleep(HEARTBEAT) => {}
             }
         }
@@ -278,12 +405,18 @@ impl Bus {
 
     /// Serve requests on an open port until it is lost, or, once a stop is asked for, until the
     /// queue is empty or the stop's deadline has passed.
-    async fn serve(&self, mut master: RtuMaster<Port>, stopping: &mut Stopping) -> End {
-        let metrics = &self.handle.metrics;
+    async fn serve(&mut self, mut master: RtuMaster<Port>, stopping: &mut Stopping) -> End {
+        let metrics = self.handle.metrics.clone();
         let mut counted = master.counters();
         let mut deadline = stopping.deadline();
         loop {
             self.handle.beat();
+            if let Some(update) = self.update() {
+                if self.apply(update) {
+                    return End::Reopen;
+                }
+                self.configure(&mut master);
+            }
             let job = if let Some(deadline) = deadline {
                 // Draining: no new request starts after the deadline.
                 if Instant::now() >= deadline {
@@ -300,6 +433,7 @@ impl Bus {
                         deadline = Some(at);
                         continue;
                     }
+                    _ = self.updates.changed() => continue,
                     job = self.handle.queue.pop() => job,
                     idle = master.watch_idle() => {
                         let traffic = master.counters();
@@ -379,7 +513,7 @@ impl Bus {
         } else {
             0
         };
-        let timeout = self.timeouts[usize::from(job.slave)];
+        let timeout = self.derived.timeouts[usize::from(job.slave)];
         let mut attempts = 0;
         let mut first_sent_at = None;
         let outcome = loop {

@@ -25,6 +25,18 @@ pub enum Port {
 }
 
 impl Device {
+    /// Whether `other` opens the same line the same way: the same serial device in the same
+    /// format, or the same simulated line.
+    pub fn same_as(&self, other: &Device) -> bool {
+        match (self, other) {
+            (Device::Serial { path, format }, Device::Serial { path: p, format: f }) => {
+                path == p && format == f
+            }
+            (Device::Sim(line), Device::Sim(other)) => line.same_line(other),
+            _ => false,
+        }
+    }
+
     /// Open the line. Serial ports are opened exclusively, so two gateways cannot share one.
     pub fn open(&self) -> io::Result<Port> {
         match self {

@@ -4,6 +4,7 @@
 
 use crate::error::Outcome;
 use std::collections::{HashMap, VecDeque};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Mutex, MutexGuard, PoisonError};
 use tokio::sync::{oneshot, Notify};
 use tokio::time::Instant;
@@ -33,7 +34,7 @@ impl Job {
 pub struct FairQueue {
     inner: Mutex<Inner>,
     ready: Notify,
-    capacity: usize,
+    capacity: AtomicUsize,
 }
 
 #[derive(Default)]
@@ -51,7 +52,7 @@ impl FairQueue {
         FairQueue {
             inner: Mutex::new(Inner::default()),
             ready: Notify::new(),
-            capacity,
+            capacity: AtomicUsize::new(capacity),
         }
     }
 
@@ -63,7 +64,7 @@ impl FairQueue {
     pub fn push(&self, job: Job) -> Result<(), Job> {
         {
             let mut inner = self.lock();
-            if inner.len >= self.capacity || inner.closed {
+            if inner.len >= self.capacity.load(Ordering::Relaxed) || inner.closed {
                 return Err(job);
             }
             let master = job.master;
@@ -111,6 +112,11 @@ impl FairQueue {
         inner.turn.clear();
         inner.len = 0;
         jobs
+    }
+
+    /// Hold up to `capacity` jobs from now on; jobs already queued stay.
+    pub fn set_capacity(&self, capacity: usize) {
+        self.capacity.store(capacity, Ordering::Relaxed);
     }
 
     /// Refuse every later push, and take every queued job.

@@ -427,12 +427,10 @@ impl Metrics {
     pub fn bus(&self, settings: &config::Bus) -> Arc<BusMetrics> {
         let name = settings.name.as_str();
         let labels = &[name];
-        self.queue_capacity
-            .with_label_values(labels)
-            .set(i64::try_from(settings.queue_depth).unwrap_or(i64::MAX));
         self.queue_depth.with_label_values(labels).set(0);
         let metrics = BusMetrics {
             name: name.into(),
+            queue_capacity: self.queue_capacity.with_label_values(labels),
             char_time: settings.line_timing().char_time.as_secs_f64(),
             counters: self.counters.clone(),
             round_trip: self.round_trip.with_label_values(labels),
@@ -450,11 +448,36 @@ impl Metrics {
             slave_last_success: self.slave_last_success.clone(),
             slaves: Box::new(std::array::from_fn(|_| OnceLock::new())),
         };
-        let sim_slaves = settings.sim_slave.iter().flat_map(|s| s.address.iter());
-        for address in settings.slave.iter().map(|s| s.address).chain(sim_slaves) {
-            metrics.slave(address);
-        }
+        metrics.reconfigured(settings);
         Arc::new(metrics)
+    }
+
+    /// Remove the series of a bus that is gone, so that none of them (its port down, say)
+    /// outlives it. Request and exception counters of past traffic stay.
+    pub fn forget_bus(&self, bus: &BusMetrics) {
+        let labels = &[&*bus.name];
+        for vec in [&self.queue_depth, &self.queue_capacity, &self.port_up] {
+            let _ = vec.remove_label_values(labels);
+        }
+        for vec in [
+            &self.sent,
+            &self.received,
+            &self.discarded_frames,
+            &self.stray_bytes,
+            &self.port_reopens,
+            &self.port_open_errors,
+        ] {
+            let _ = vec.remove_label_values(labels);
+        }
+        let _ = self.busy.remove_label_values(labels);
+        let _ = self.round_trip.remove_label_values(labels);
+        let _ = self.queue_wait.remove_label_values(labels);
+        for address in (0..=u8::MAX).filter(|a| bus.slaves[usize::from(*a)].get().is_some()) {
+            let labels = &[&*bus.name, decimal(address)];
+            let _ = self.slave_up.remove_label_values(labels);
+            let _ = self.slave_last_success.remove_label_values(labels);
+            let _ = self.retries.remove_label_values(labels);
+        }
     }
 
     /// The gauge of bus `name`'s queue depth, to be set by `hook` at every scrape.
@@ -505,6 +528,7 @@ const SLAVE_DOWN: u8 = 2;
 /// The metrics of one bus, label values resolved once. Shared by its handle and its task.
 pub struct BusMetrics {
     name: Arc<str>,
+    queue_capacity: IntGauge,
     /// Seconds per character on the line, to turn bytes into busy time.
     char_time: f64,
     counters: RequestCounters,
@@ -537,6 +561,17 @@ impl BusMetrics {
             slave.up.set(0);
             slave
         })
+    }
+
+    /// The bus's settings, at start or after a reload: its queue capacity, and series at zero for
+    /// its known slaves (`[[bus.slave]]` and simulated ones).
+    pub fn reconfigured(&self, settings: &config::Bus) {
+        self.queue_capacity
+            .set(i64::try_from(settings.queue_depth).unwrap_or(i64::MAX));
+        let sim_slaves = settings.sim_slave.iter().flat_map(|s| s.address.iter());
+        for address in settings.slave.iter().map(|s| s.address).chain(sim_slaves) {
+            self.slave(address);
+        }
     }
 
     /// Count a request's outcome; `None` if it was dropped unsent because its master left.

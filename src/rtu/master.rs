@@ -119,6 +119,11 @@ impl<T: Transport> RtuMaster<T> {
         }
     }
 
+    /// Keep to `timing` from the next frame on (a reconfigured line in the same format).
+    pub fn set_timing(&mut self, timing: MasterTiming) {
+        self.timing = timing;
+    }
+
     /// Expect replies from `slave` in `form`; its answers are still returned in standard form.
     pub fn set_reply_form(&mut self, slave: u8, form: ReplyForm) {
         self.forms[usize::from(slave)] = form;

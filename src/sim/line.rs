@@ -111,6 +111,11 @@ impl SimLine {
         }
     }
 
+    /// Whether `other` is a handle on this same line.
+    pub fn same_line(&self, other: &SimLine) -> bool {
+        Arc::ptr_eq(&self.shared, &other.shared)
+    }
+
     pub fn timing(&self) -> LineTiming {
         self.shared.lock().timing
     }

@@ -9,8 +9,8 @@ use crate::metrics::{Metrics, Rejection};
 use crate::shutdown::Stopping;
 use std::io;
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 use tokio::net::TcpListener;
 use tokio::sync::Semaphore;
@@ -38,11 +38,12 @@ pub async fn bind(addrs: &[SocketAddr]) -> Result<Vec<Listener>, (SocketAddr, io
 /// What every accept loop shares.
 pub struct Shared {
     pub dispatcher: Dispatcher,
-    pub limits: SessionLimits,
+    /// For sessions that start from now on.
+    limits: Mutex<SessionLimits>,
     pub connections: Arc<Semaphore>,
     pub metrics: Arc<Metrics>,
     pub stopping: Stopping,
-    max_connections: usize,
+    max_connections: AtomicUsize,
     next_master: AtomicU64,
 }
 
@@ -56,23 +57,54 @@ impl Shared {
     ) -> Self {
         Shared {
             dispatcher,
-            limits,
+            limits: Mutex::new(limits),
             connections: Arc::new(Semaphore::new(max_connections)),
             metrics,
             stopping,
-            max_connections,
+            max_connections: AtomicUsize::new(max_connections),
             next_master: AtomicU64::new(1),
+        }
+    }
+
+    pub fn limits(&self) -> SessionLimits {
+        *self.limits.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// New limits: sessions that start from now on get `limits`; connections beyond a lower
+    /// `max_connections` stay open, and new ones are refused until enough have closed.
+    pub fn set_limits(&self, limits: SessionLimits, max_connections: usize) {
+        *self.limits.lock().unwrap_or_else(PoisonError::into_inner) = limits;
+        let old = self
+            .max_connections
+            .swap(max_connections, Ordering::Relaxed);
+        if max_connections > old {
+            self.connections.add_permits(max_connections - old);
+        } else {
+            let mut owed = old - max_connections;
+            owed -= self.connections.forget_permits(owed);
+            // Permits still held by open sessions are taken back as those sessions end.
+            if owed > 0 {
+                let connections = self.connections.clone();
+                let owed = u32::try_from(owed).unwrap_or(u32::MAX);
+                tokio::spawn(async move {
+                    if let Ok(permits) = connections.acquire_many(owed).await {
+                        permits.forget();
+                    }
+                });
+            }
         }
     }
 
     /// Sessions running now.
     pub fn connections_open(&self) -> usize {
-        self.max_connections - self.connections.available_permits()
+        let max = self.max_connections.load(Ordering::Relaxed);
+        max.saturating_sub(self.connections.available_permits())
     }
 
     /// Wait until every session has ended (each holds a connection permit while it runs).
     pub async fn sessions_ended(&self) {
-        let all = u32::try_from(self.max_connections).unwrap_or(u32::MAX);
+        let all = self.max_connections.load(Ordering::Relaxed);
+        let all = u32::try_from(all).unwrap_or(u32::MAX);
         let _ = self.connections.acquire_many(all).await;
     }
 }
@@ -102,8 +134,8 @@ pub async fn serve(listener: Listener, shared: Arc<Shared>) {
         let shared = shared.clone();
         tokio::spawn(async move {
             let stopping = shared.stopping.clone();
-            let error =
-                session::run(stream, master, &shared.dispatcher, shared.limits, stopping).await;
+            let limits = shared.limits();
+            let error = session::run(stream, master, &shared.dispatcher, limits, stopping).await;
             shared
                 .metrics
                 .tcp
