@@ -1,7 +1,8 @@
 //! The gateway as a service: a graceful stop that finishes the transaction on the wire and
 //! answers what is queued, in-process and as the binary receiving SIGTERM; the binary talking to
 //! systemd over a notify socket (READY=1, STATUS=, watchdog pings, STOPPING=1, and no pings
-//! while a bus task is stuck); `check-config --quiet`.
+//! while a bus task is stuck); a reload on SIGHUP applied to open connections, and refused for a
+//! broken file; `check-config --quiet`.
 
 use crate::support::{addr, http_get, start, within, RawMaster, Scrape};
 use std::process::{Command, Stdio};
@@ -348,4 +349,117 @@ fn check_config_quiet_prints_nothing_for_a_valid_file_and_the_errors_for_a_bad_o
         .unwrap();
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/gateway.toml"));
+}
+
+/// Write `text` to `path` the way an editor saving over the file does.
+fn save(path: &std::path::Path, text: &str) {
+    std::fs::write(path, text).unwrap();
+}
+
+fn hangup(child: &std::process::Child) {
+    let status = Command::new("kill")
+        .args(["-s", "HUP", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+}
+
+/// Wait until the gateway's log (in `path`) says `what`.
+async fn until_logged(path: &std::path::Path, what: &str) {
+    within(&format!("the log says {what:?}"), async {
+        while !std::fs::read_to_string(path).unwrap().contains(what) {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+}
+
+const READ: [u8; 5] = [0x03, 0x00, 0x04, 0x00, 0x01];
+
+#[tokio::test]
+async fn sighup_applies_a_new_timeout_and_route_on_an_open_connection_and_keeps_them_on_a_broken_file(
+) {
+    let free = || {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap()
+    };
+    let (listen, metrics) = (free(), free());
+    // Slave 1 takes 200 ms to answer; its 100 ms timeout is too short. Unit 100 goes to slave
+    // 100, which does not exist.
+    let before = format!(
+        "[server]\nlisten = \"{listen}\"\n[metrics]\nlisten = \"{metrics}\"\n\
+         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nresponse_timeout = \"100ms\"\n\
+         [[bus.slave]]\naddress = 1\nresponse_timeout = \"100ms\"\n\
+         [[bus.sim_slave]]\naddress = 1\nprocessing_delay = \"200ms\"\n"
+    );
+    // Slave 1 gets 1 s; unit 100 is routed to slave 1.
+    let after = before.replace(
+        "address = 1\nresponse_timeout = \"100ms\"",
+        "address = 1\nresponse_timeout = \"1s\"",
+    ) + "[[route]]\nunits = \"100\"\nbus = \"sim\"\naddress = 1\n";
+    assert_ne!(before, after);
+    let path = std::env::temp_dir().join(format!("mbgw-reload-{}.toml", std::process::id()));
+    let log = std::env::temp_dir().join(format!("mbgw-reload-{}.log", std::process::id()));
+    save(&path, &before);
+    let mut child = Command::new(BINARY)
+        .args(["--config", path.to_str().unwrap(), "run"])
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let mut master = within("the gateway listens", async {
+        loop {
+            if let Ok(stream) = tokio::net::TcpStream::connect(listen).await {
+                drop(stream);
+                return RawMaster::connect(listen).await;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    let answer = [0x03, 0x02, 0x00, 0x00];
+    assert_eq!(
+        master.call(1, 1, &READ).await,
+        [0x83, 0x0B],
+        "100 ms is too short"
+    );
+    assert_eq!(
+        master.call(2, 100, &READ).await,
+        [0x83, 0x0B],
+        "no slave 100"
+    );
+
+    // Let slave 1's late replies to those pass before anything else is asked.
+    tokio::time::sleep(Duration::from_millis(300)).await;
+
+    save(&path, &after);
+    hangup(&child);
+    until_logged(&log, "configuration reloaded").await;
+    assert_eq!(master.call(3, 1, &READ).await, answer, "1 s is long enough");
+    assert_eq!(
+        master.call(4, 100, &READ).await,
+        answer,
+        "routed to slave 1"
+    );
+
+    // A broken file: the running configuration stays, and so does the connection.
+    save(&path, &after.replace("baud = 115200", "baud = \"fast\""));
+    hangup(&child);
+    until_logged(&log, "configuration not reloaded").await;
+    assert_eq!(master.call(5, 1, &READ).await, answer);
+    assert_eq!(master.call(6, 100, &READ).await, answer);
+
+    let _ = Command::new("kill")
+        .args(["-s", "TERM", &child.id().to_string()])
+        .status();
+    let status = within("exit", tokio::task::spawn_blocking(move || child.wait()))
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(status.code(), Some(0));
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert!(text.contains("bus[0].baud"), "the bad key is named: {text}");
+    let _ = std::fs::remove_file(&path);
+    let _ = std::fs::remove_file(&log);
 }

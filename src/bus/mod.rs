@@ -215,6 +215,8 @@ pub struct Bus {
     updates: watch::Receiver<Option<Reconfigure>>,
     /// Kept so that `updates` never reports a closed channel when nobody reconfigures the bus.
     updates_sender: Option<watch::Sender<Option<Reconfigure>>>,
+    /// Whoever reconfigured the bus is gone: stop listening for more.
+    updates_closed: bool,
 }
 
 impl Bus {
@@ -251,6 +253,7 @@ impl Bus {
             handle,
             updates,
             updates_sender: Some(sender),
+            updates_closed: false,
         }
     }
 
@@ -294,9 +297,10 @@ impl Bus {
         reopen
     }
 
-    /// A new configuration, if one came since the last look.
-    fn update(&mut self) -> Option<Reconfigure> {
-        if !self.updates.has_changed().unwrap_or(false) {
+    /// A new configuration, if one came since the last look (`changed`: `updates.changed()`
+    /// has just said so, and marked it seen).
+    fn update(&mut self, changed: bool) -> Option<Reconfigure> {
+        if !changed && !self.updates.has_changed().unwrap_or(false) {
             return None;
         }
         self.updates.borrow_and_update().clone()
@@ -384,16 +388,20 @@ impl Bus {
         for job in self.handle.queue.drain() {
             self.handle.answer(job, Err(RequestError::PortDown));
         }
+        let mut changed = false;
         loop {
             self.handle.beat();
-            if let Some(update) = self.update() {
+            if let Some(update) = self.update(std::mem::take(&mut changed)) {
                 self.apply(update);
                 return End::Reopen;
             }
             tokio::select! {
                 biased;
                 _ = stopping.requested() => return End::Stopped,
-                _ = self.updates.changed() => {}
+                seen = self.updates.changed(), if !self.updates_closed => {
+                    changed = seen.is_ok();
+                    self.updates_closed = seen.is_err();
+                }
                 job = self.handle.queue.pop() => {
                     self.handle.answer(job, Err(RequestError::PortDown));
                 }
@@ -409,9 +417,10 @@ impl Bus {
         let metrics = self.handle.metrics.clone();
         let mut counted = master.counters();
         let mut deadline = stopping.deadline();
+        let mut changed = false;
         loop {
             self.handle.beat();
-            if let Some(update) = self.update() {
+            if let Some(update) = self.update(std::mem::take(&mut changed)) {
                 if self.apply(update) {
                     return End::Reopen;
                 }
@@ -433,7 +442,11 @@ impl Bus {
                         deadline = Some(at);
                         continue;
                     }
-                    _ = self.updates.changed() => continue,
+                    seen = self.updates.changed(), if !self.updates_closed => {
+                        changed = seen.is_ok();
+                        self.updates_closed = seen.is_err();
+                        continue;
+                    }
                     job = self.handle.queue.pop() => job,
                     idle = master.watch_idle() => {
                         let traffic = master.counters();
