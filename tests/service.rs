@@ -463,3 +463,89 @@ async fn sighup_applies_a_new_timeout_and_route_on_an_open_connection_and_keeps_
     let _ = std::fs::remove_file(&path);
     let _ = std::fs::remove_file(&log);
 }
+
+#[tokio::test]
+async fn a_reload_reopens_only_a_changed_line_starts_added_buses_and_retires_removed_ones() {
+    let two_buses = "[server]\nlisten = \"127.0.0.1:0\"\n\
+        [[bus]]\nname = \"a\"\ndevice = \"sim\"\nbaud = 9600\n\
+        [[bus.sim_slave]]\naddress = 1\n\
+        [[bus]]\nname = \"b\"\ndevice = \"sim\"\nbaud = 9600\n\
+        [[bus.sim_slave]]\naddress = 1\n\
+        [[route]]\nunits = \"1\"\nbus = \"a\"\naddress = 1\n\
+        [[route]]\nunits = \"2\"\nbus = \"b\"\naddress = 1\n";
+    let gateway = start(two_buses).await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    let answer = [0x03, 0x02, 0x00, 0x00];
+    assert_eq!(master.call(1, 1, &READ).await, answer);
+    assert_eq!(master.call(2, 2, &READ).await, answer);
+    let (line_a, line_b) = (
+        gateway.sim_line("a").unwrap(),
+        gateway.sim_line("b").unwrap(),
+    );
+
+    // a: a new timeout (same line); b: a new baud rate (a new line); c: added, for unit 3.
+    let config = |text: &str| {
+        let mut config = modbus_gateway::Config::from_toml_str(text).unwrap();
+        config.metrics.listen = ([127, 0, 0, 1], 0).into();
+        config
+    };
+    let changed = two_buses
+        .replacen(
+            "baud = 9600\n",
+            "baud = 9600\nresponse_timeout = \"2s\"\n",
+            1,
+        )
+        .replacen(
+            "name = \"b\"\ndevice = \"sim\"\nbaud = 9600",
+            "name = \"b\"\ndevice = \"sim\"\nbaud = 19200",
+            1,
+        )
+        + "[[bus]]\nname = \"c\"\ndevice = \"sim\"\n[[bus.sim_slave]]\naddress = 1\n\
+           [[route]]\nunits = \"3\"\nbus = \"c\"\naddress = 1\n";
+    let done = gateway.reload(&config(&changed)).unwrap();
+    assert_eq!(
+        done.applied,
+        [
+            "bus a: reconfigured",
+            "bus b: reopened",
+            "bus c: added",
+            "routes"
+        ]
+    );
+    assert!(done.need_restart.is_empty());
+    assert!(
+        gateway.sim_line("a").unwrap().same_line(&line_a),
+        "a kept its line"
+    );
+    assert!(
+        !gateway.sim_line("b").unwrap().same_line(&line_b),
+        "b has a new one"
+    );
+    for unit in 1..=3 {
+        assert_eq!(
+            master.call(u16::from(unit), unit, &READ).await,
+            answer,
+            "unit {unit}"
+        );
+    }
+
+    // b removed: unit 2 has no route; its series go once it has stopped.
+    let without_b = changed.replace(
+        "[[bus]]\nname = \"b\"\ndevice = \"sim\"\nbaud = 19200\n[[bus.sim_slave]]\naddress = 1\n",
+        "",
+    ).replace("[[route]]\nunits = \"2\"\nbus = \"b\"\naddress = 1\n", "");
+    let done = gateway.reload(&config(&without_b)).unwrap();
+    assert_eq!(done.applied, ["bus b: removed", "routes"]);
+    assert_eq!(master.call(4, 2, &READ).await, [0x83, 0x0A]);
+    assert_eq!(master.call(5, 3, &READ).await, answer, "same connection");
+    within("b's series are gone", async {
+        while Scrape::of(&gateway)
+            .await
+            .get("modbus_gateway_port_up{bus=\"b\"}")
+            .is_some()
+        {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    })
+    .await;
+}
