@@ -331,3 +331,34 @@ fn config_errors_written_to_the_journal_carry_error_priority() {
         "{text}"
     );
 }
+
+#[test]
+fn the_installed_default_config_is_valid_and_names_every_key() {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/gateway.toml");
+    let text = std::fs::read_to_string(path).unwrap();
+    let config = modbus_gateway::Config::load(std::path::Path::new(path), Vec::new())
+        .expect("config/gateway.toml is valid");
+    // Every key the resolved configuration has, every default filled in; plus those of the
+    // optional tables, which the default leaves out.
+    let resolved = config.to_toml();
+    let mut keys: Vec<&str> = resolved
+        .lines()
+        .filter_map(|line| line.split_once(" = ").map(|(key, _)| key.trim()))
+        .collect();
+    keys.extend([
+        "address",
+        "response_timeout",
+        "wide_read_count",
+        "units",
+        "bus",
+        "offset",
+    ]);
+    for key in keys {
+        let set = format!("\n{key} = ");
+        let commented = format!("\n#{key} = ");
+        assert!(
+            text.contains(&set) || text.contains(&commented),
+            "config/gateway.toml does not name `{key}`"
+        );
+    }
+}
