@@ -1,6 +1,6 @@
 //! The `modbus-gateway` binary as a user runs it.
 
-use crate::support::{demo_path, within, RawMaster};
+use crate::support::{connect_when_listening, demo_path, exit_status, free_addr, signal, within};
 use std::path::PathBuf;
 use std::process::{Command, Output, Stdio};
 
@@ -119,48 +119,19 @@ fn environment_variables_override_the_file() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("baudrate"));
 }
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-fn signal(child: &std::process::Child, name: &str) {
-    let status = Command::new("kill")
-        .args(["-s", name, &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
-}
-
 #[tokio::test]
 async fn run_serves_the_demo_line_and_stops_cleanly_on_sigterm() {
-    let port = free_port();
-    let listen = format!("127.0.0.1:{port}");
-    let mut child = Command::new(BINARY)
+    let listen = free_addr();
+    let child = Command::new(BINARY)
         .args(["--config", demo_path(), "run"])
-        .env("MBGW__SERVER__LISTEN", &listen)
-        .env(
-            "MBGW__METRICS__LISTEN",
-            format!("127.0.0.1:{}", free_port()),
-        )
+        .env("MBGW__SERVER__LISTEN", listen.to_string())
+        .env("MBGW__METRICS__LISTEN", free_addr().to_string())
         .env("MBGW__LOG__LEVEL", "warn")
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
         .unwrap();
-    let mut master = within("the gateway listens", async {
-        loop {
-            if let Ok(stream) = tokio::net::TcpStream::connect(&listen).await {
-                drop(stream);
-                return RawMaster::connect(listen.parse().unwrap()).await;
-            }
-            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
-        }
-    })
-    .await;
+    let mut master = connect_when_listening(listen).await;
     assert_eq!(
         master.call(1, 2, &[0x06, 0x00, 0x04, 0x13, 0x88]).await,
         [0x06, 0x00, 0x04, 0x13, 0x88]
@@ -170,13 +141,7 @@ async fn run_serves_the_demo_line_and_stops_cleanly_on_sigterm() {
         [0x03, 0x02, 0x13, 0x88]
     );
     signal(&child, "TERM");
-    let status = within(
-        "the gateway exits",
-        tokio::task::spawn_blocking(move || child.wait()),
-    )
-    .await
-    .unwrap()
-    .unwrap();
+    let status = exit_status(child).await;
     assert_eq!(status.code(), Some(0));
 }
 
@@ -184,7 +149,7 @@ async fn run_serves_the_demo_line_and_stops_cleanly_on_sigterm() {
 fn run_exits_non_zero_naming_an_address_it_cannot_listen_on() {
     let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let taken = taken.local_addr().unwrap().to_string();
-    let free = format!("127.0.0.1:{}", free_port());
+    let free = free_addr().to_string();
     // The Modbus TCP listener, then the metrics endpoint.
     for (modbus, metrics) in [(&taken, &free), (&free, &taken)] {
         let out = gateway(
@@ -207,11 +172,8 @@ async fn log_of_a_run(name: &str, env: &[(&str, String)]) -> String {
     let mut command = Command::new(BINARY);
     command
         .args(["--config", demo_path(), "run"])
-        .env("MBGW__SERVER__LISTEN", format!("127.0.0.1:{}", free_port()))
-        .env(
-            "MBGW__METRICS__LISTEN",
-            format!("127.0.0.1:{}", free_port()),
-        )
+        .env("MBGW__SERVER__LISTEN", free_addr().to_string())
+        .env("MBGW__METRICS__LISTEN", free_addr().to_string())
         .env_remove("RUST_LOG")
         .env_remove("JOURNAL_STREAM")
         .stdout(Stdio::null())
@@ -230,14 +192,7 @@ async fn log_of_a_run(name: &str, env: &[(&str, String)]) -> String {
     })
     .await;
     signal(&child, "TERM");
-    let mut child = child;
-    let status = within(
-        "the gateway exits",
-        tokio::task::spawn_blocking(move || child.wait()),
-    )
-    .await
-    .unwrap()
-    .unwrap();
+    let status = exit_status(child).await;
     assert!(status.success());
     let log = std::fs::read_to_string(&path).unwrap();
     let _ = std::fs::remove_file(&path);

@@ -4,7 +4,10 @@
 //! while a bus task is stuck); a reload on SIGHUP applied to open connections, and refused for a
 //! broken file; `check-config --quiet`.
 
-use crate::support::{addr, http_get, start, within, RawMaster, Scrape};
+use crate::support::{
+    addr, connect_when_listening, exit_status, free_addr, http_get, signal, start, within,
+    RawMaster, Scrape,
+};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -97,48 +100,26 @@ async fn a_stop_serves_the_queue_until_the_timeout_then_answers_0x0a_and_closes(
 #[tokio::test]
 async fn sigterm_while_a_write_is_on_the_wire_still_delivers_the_slaves_reply_and_exits_0() {
     let path = std::env::temp_dir().join(format!("mbgw-stop-{}.toml", std::process::id()));
-    let listen = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    let metrics = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    let (listen_addr, metrics_addr) = (listen.local_addr().unwrap(), metrics.local_addr().unwrap());
-    drop((listen, metrics));
+    let (listen_addr, metrics_addr) = (free_addr(), free_addr());
     let config = slow_line("1s", "3s")
         .replacen("127.0.0.1:0", &listen_addr.to_string(), 1)
         .replacen("127.0.0.1:0", &metrics_addr.to_string(), 1);
     std::fs::write(&path, config).unwrap();
-    let mut child = Command::new(BINARY)
+    let child = Command::new(BINARY)
         .args(["--config", path.to_str().unwrap(), "run"])
         .env("RUST_LOG", "warn")
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
         .unwrap();
-    let mut master = within("the gateway listens", async {
-        loop {
-            if let Ok(stream) = tokio::net::TcpStream::connect(listen_addr).await {
-                drop(stream);
-                return RawMaster::connect(listen_addr).await;
-            }
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    })
-    .await;
+    let mut master = connect_when_listening(listen_addr).await;
     master.send(1, 1, &WRITE).await;
     until_taken(metrics_addr, 1.0).await;
     let sent_term = Instant::now();
-    let status = Command::new("kill")
-        .args(["-s", "TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
+    signal(&child, "TERM");
     assert_eq!(master.recv().await.pdu, WRITE, "the slave's own reply");
     assert!(master.is_closed().await);
-    let status = within(
-        "the gateway exits",
-        tokio::task::spawn_blocking(move || child.wait()),
-    )
-    .await
-    .unwrap()
-    .unwrap();
+    let status = exit_status(child).await;
     let _ = std::fs::remove_file(&path);
     assert_eq!(status.code(), Some(0));
     assert!(
@@ -184,14 +165,10 @@ impl Drop for NotifySocket {
 #[tokio::test]
 async fn under_systemd_it_reports_ready_pings_the_watchdog_and_says_when_it_stops() {
     let notify = NotifySocket::bind("ready");
-    let free = || {
-        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-        l.local_addr().unwrap().to_string()
-    };
-    let mut child = Command::new(BINARY)
+    let child = Command::new(BINARY)
         .args(["--config", crate::support::demo_path(), "run"])
-        .env("MBGW__SERVER__LISTEN", free())
-        .env("MBGW__METRICS__LISTEN", free())
+        .env("MBGW__SERVER__LISTEN", free_addr().to_string())
+        .env("MBGW__METRICS__LISTEN", free_addr().to_string())
         .env("RUST_LOG", "warn")
         .env("NOTIFY_SOCKET", &notify.path)
         // A 200 ms watchdog: pings every 100 ms.
@@ -216,11 +193,7 @@ async fn under_systemd_it_reports_ready_pings_the_watchdog_and_says_when_it_stop
         );
         pings += usize::from(message.contains(&"WATCHDOG=1".to_owned()));
     }
-    let status = Command::new("kill")
-        .args(["-s", "TERM", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
+    signal(&child, "TERM");
     let stopping = within("STOPPING=1", async {
         loop {
             let message = notify.next().await;
@@ -234,10 +207,7 @@ async fn under_systemd_it_reports_ready_pings_the_watchdog_and_says_when_it_stop
         stopping.contains(&"STATUS=stopping".to_owned()),
         "{stopping:?}"
     );
-    let exit = within("exit", tokio::task::spawn_blocking(move || child.wait()))
-        .await
-        .unwrap()
-        .unwrap();
+    let exit = exit_status(child).await;
     assert_eq!(exit.code(), Some(0));
 }
 
@@ -256,11 +226,7 @@ async fn a_bus_task_stuck_on_its_port_stops_the_watchdog_pings_until_it_moves_ag
     // the port never completes, as with a serial driver stuck on flow control.
     let (mut far_end, tty) = tokio_serial::SerialStream::pair().expect("pty pair");
     let device = tty.name().expect("pty path");
-    let free = || {
-        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-        l.local_addr().unwrap()
-    };
-    let (listen, metrics) = (free(), free());
+    let (listen, metrics) = (free_addr(), free_addr());
     let path = std::env::temp_dir().join(format!("mbgw-stuck-{}.toml", std::process::id()));
     std::fs::write(
         &path,
@@ -272,7 +238,7 @@ async fn a_bus_task_stuck_on_its_port_stops_the_watchdog_pings_until_it_moves_ag
     )
     .unwrap();
     let notify = NotifySocket::bind("stuck");
-    let mut child = Command::new(BINARY)
+    let child = Command::new(BINARY)
         .args(["--config", path.to_str().unwrap(), "run"])
         .env("RUST_LOG", "warn")
         .env("NOTIFY_SOCKET", &notify.path)
@@ -316,10 +282,8 @@ async fn a_bus_task_stuck_on_its_port_stops_the_watchdog_pings_until_it_moves_ag
     })
     .await;
 
-    let _ = Command::new("kill")
-        .args(["-s", "KILL", &child.id().to_string()])
-        .status();
-    let _ = tokio::task::spawn_blocking(move || child.wait()).await;
+    signal(&child, "KILL");
+    let _ = exit_status(child).await;
     drain.abort();
     drop(tty);
     let _ = std::fs::remove_file(&path);
@@ -356,14 +320,6 @@ fn save(path: &std::path::Path, text: &str) {
     std::fs::write(path, text).unwrap();
 }
 
-fn hangup(child: &std::process::Child) {
-    let status = Command::new("kill")
-        .args(["-s", "HUP", &child.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
-}
-
 /// Wait until the gateway's log (in `path`) says `what`.
 async fn until_logged(path: &std::path::Path, what: &str) {
     within(&format!("the log says {what:?}"), async {
@@ -379,11 +335,7 @@ const READ: [u8; 5] = [0x03, 0x00, 0x04, 0x00, 0x01];
 #[tokio::test]
 async fn sighup_applies_a_new_timeout_and_route_on_an_open_connection_and_keeps_them_on_a_broken_file(
 ) {
-    let free = || {
-        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-        l.local_addr().unwrap()
-    };
-    let (listen, metrics) = (free(), free());
+    let (listen, metrics) = (free_addr(), free_addr());
     // Slave 1 takes 200 ms to answer; its 100 ms timeout is too short. Unit 100 goes to slave
     // 100, which does not exist.
     let before = format!(
@@ -401,23 +353,14 @@ async fn sighup_applies_a_new_timeout_and_route_on_an_open_connection_and_keeps_
     let path = std::env::temp_dir().join(format!("mbgw-reload-{}.toml", std::process::id()));
     let log = std::env::temp_dir().join(format!("mbgw-reload-{}.log", std::process::id()));
     save(&path, &before);
-    let mut child = Command::new(BINARY)
+    let child = Command::new(BINARY)
         .args(["--config", path.to_str().unwrap(), "run"])
         .env("RUST_LOG", "info")
         .stdout(Stdio::null())
         .stderr(std::fs::File::create(&log).unwrap())
         .spawn()
         .unwrap();
-    let mut master = within("the gateway listens", async {
-        loop {
-            if let Ok(stream) = tokio::net::TcpStream::connect(listen).await {
-                drop(stream);
-                return RawMaster::connect(listen).await;
-            }
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    })
-    .await;
+    let mut master = connect_when_listening(listen).await;
     let answer = [0x03, 0x02, 0x00, 0x00];
     assert_eq!(
         master.call(1, 1, &READ).await,
@@ -434,7 +377,7 @@ async fn sighup_applies_a_new_timeout_and_route_on_an_open_connection_and_keeps_
     tokio::time::sleep(Duration::from_millis(300)).await;
 
     save(&path, &after);
-    hangup(&child);
+    signal(&child, "HUP");
     until_logged(&log, "configuration reloaded").await;
     assert_eq!(master.call(3, 1, &READ).await, answer, "1 s is long enough");
     assert_eq!(
@@ -445,18 +388,13 @@ async fn sighup_applies_a_new_timeout_and_route_on_an_open_connection_and_keeps_
 
     // A broken file: the running configuration stays, and so does the connection.
     save(&path, &after.replace("baud = 115200", "baud = \"fast\""));
-    hangup(&child);
+    signal(&child, "HUP");
     until_logged(&log, "configuration not reloaded").await;
     assert_eq!(master.call(5, 1, &READ).await, answer);
     assert_eq!(master.call(6, 100, &READ).await, answer);
 
-    let _ = Command::new("kill")
-        .args(["-s", "TERM", &child.id().to_string()])
-        .status();
-    let status = within("exit", tokio::task::spawn_blocking(move || child.wait()))
-        .await
-        .unwrap()
-        .unwrap();
+    signal(&child, "TERM");
+    let status = exit_status(child).await;
     assert_eq!(status.code(), Some(0));
     let text = std::fs::read_to_string(&log).unwrap();
     assert!(text.contains("bus[0].baud"), "the bad key is named: {text}");

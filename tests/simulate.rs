@@ -1,7 +1,7 @@
 //! The `simulate` subcommand as a user runs it: the demo's drives answering RTU masters on the far
 //! end of a pty, a real serial path.
 
-use crate::support::{demo_path, within};
+use crate::support::{demo_path, exit_status, within};
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -54,19 +54,13 @@ impl Simulator {
 
     /// SIGTERM, then the exit status must be 0.
     async fn stop(mut self) {
-        let mut child = self.child.take().expect("running");
+        let child = self.child.take().expect("running");
         let killed = Command::new("kill")
             .args(["-s", "TERM", &child.id().to_string()])
             .status()
             .unwrap();
         assert!(killed.success());
-        let status = within(
-            "simulate exits",
-            tokio::task::spawn_blocking(move || child.wait()),
-        )
-        .await
-        .unwrap()
-        .unwrap();
+        let status = exit_status(child).await;
         assert_eq!(status.code(), Some(0));
     }
 }

@@ -439,3 +439,43 @@ pub fn tool(name: &str) -> Option<std::path::PathBuf> {
     }
     found
 }
+
+/// A loopback address nobody listens on right now, for a gateway process to bind.
+pub fn free_addr() -> SocketAddr {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").expect("a free port");
+    listener.local_addr().expect("bound")
+}
+
+/// A raw master on a gateway process, once the process listens on `addr`.
+pub async fn connect_when_listening(addr: SocketAddr) -> RawMaster {
+    within("the gateway listens", async {
+        loop {
+            if let Ok(stream) = TcpStream::connect(addr).await {
+                drop(stream);
+                return RawMaster::connect(addr).await;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await
+}
+
+/// Send signal `name` (TERM, HUP, KILL...) to a child process.
+pub fn signal(child: &std::process::Child, name: &str) {
+    let status = std::process::Command::new("kill")
+        .args(["-s", name, &child.id().to_string()])
+        .status()
+        .expect("kill runs");
+    assert!(status.success(), "kill -s {name}");
+}
+
+/// Wait (bounded) for a child process to exit.
+pub async fn exit_status(mut child: std::process::Child) -> std::process::ExitStatus {
+    within(
+        "the gateway exits",
+        tokio::task::spawn_blocking(move || child.wait()),
+    )
+    .await
+    .expect("the waiting task runs")
+    .expect("wait for the child")
+}
