@@ -13,29 +13,51 @@ use tracing_subscriber::fmt::{FmtContext, FormatEvent, FormatFields};
 use tracing_subscriber::registry::LookupSpan;
 use tracing_subscriber::EnvFilter;
 
+/// Changes the level filter of the running logger (a reload of `log.level`).
+pub struct LevelSwitch(Option<Box<dyn Fn(EnvFilter) -> Result<(), String> + Send + Sync>>);
+
+impl LevelSwitch {
+    /// Log at `level` from now on. With `RUST_LOG` set, that wins and nothing changes.
+    pub fn set(&self, level: &str) -> Result<(), String> {
+        let Some(set) = &self.0 else {
+            return Ok(());
+        };
+        set(EnvFilter::try_new(level).map_err(|e| e.to_string())?)
+    }
+}
+
 /// Start logging. Call once, before anything logs.
-pub fn init(level: &str, format: LogFormat) {
-    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(level));
+pub fn init(level: &str, format: LogFormat) -> LevelSwitch {
+    let from_env = EnvFilter::try_from_default_env().ok();
+    let fixed = from_env.is_some();
+    let filter = from_env.unwrap_or_else(|| EnvFilter::new(level));
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr);
+    macro_rules! start {
+        ($builder:expr) => {{
+            let builder = $builder.with_filter_reloading();
+            let handle = builder.reload_handle();
+            builder.init();
+            let set = move |filter| handle.reload(filter).map_err(|e| e.to_string());
+            LevelSwitch((!fixed).then(|| Box::new(set) as _))
+        }};
+    }
     match format {
-        LogFormat::Json => builder
+        LogFormat::Json => start!(builder
             .json()
             .flatten_event(true)
             .with_current_span(false)
-            .with_span_list(false)
-            .init(),
-        LogFormat::Text if stderr_is_journal() => builder
-            .with_ansi(false)
-            .event_format(Prioritised(
+            .with_span_list(false)),
+        LogFormat::Text if stderr_is_journal() => {
+            start!(builder.with_ansi(false).event_format(Prioritised(
                 tracing_subscriber::fmt::format()
                     .without_time()
                     .with_level(false)
                     .with_ansi(false),
-            ))
-            .init(),
-        LogFormat::Text => builder.with_ansi(std::io::stderr().is_terminal()).init(),
+            )))
+        }
+        LogFormat::Text => start!(builder.with_ansi(std::io::stderr().is_terminal())),
     }
 }
 

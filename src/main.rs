@@ -89,8 +89,14 @@ fn load(path: &Path) -> Result<Config, ExitCode> {
     })
 }
 
+/// The running logger's level, which a reload may change.
+struct Logging {
+    switch: logging::LevelSwitch,
+    level: String,
+}
+
 /// SIGHUP: read the file again and apply it; on any error keep the configuration in force.
-fn reload(path: &Path, gateway: &Gateway) {
+fn reload(path: &Path, gateway: &Gateway, logging: &mut Logging) {
     let mut reloading = vec![NotifyState::Reloading];
     reloading.extend(NotifyState::monotonic_usec_now().ok());
     let _ = sd_notify::notify(&reloading);
@@ -102,7 +108,14 @@ fn reload(path: &Path, gateway: &Gateway) {
             }
         }
         Ok(config) => match gateway.reload(&config) {
-            Ok(done) => {
+            Ok(mut done) => {
+                if config.log.level != logging.level {
+                    match logging.switch.set(&config.log.level) {
+                        Ok(()) => done.applied.push("log.level".to_owned()),
+                        Err(e) => error!(error = %e, "cannot change the log level"),
+                    }
+                    logging.level = config.log.level.clone();
+                }
                 info!(file, applied = ?done.applied, "configuration reloaded");
                 if !done.need_restart.is_empty() {
                     warn!(changed = ?done.need_restart, "these changes take a restart");
@@ -229,18 +242,25 @@ async fn supervise(gateway: &Gateway) -> Infallible {
 }
 
 /// Start logging as configured and the runtime the daemon's work runs on.
-fn start_runtime(log: &config::Log) -> Result<tokio::runtime::Runtime, ExitCode> {
-    logging::init(&log.level, log.format);
-    tokio::runtime::Runtime::new().map_err(|e| {
+fn start_runtime(
+    log: &config::Log,
+) -> Result<(tokio::runtime::Runtime, logging::LevelSwitch), ExitCode> {
+    let level = logging::init(&log.level, log.format);
+    let runtime = tokio::runtime::Runtime::new().map_err(|e| {
         error!(error = %e, "cannot start the runtime");
         ExitCode::FAILURE
-    })
+    })?;
+    Ok((runtime, level))
 }
 
 fn run(path: &Path, config: Config) -> ExitCode {
-    let runtime = match start_runtime(&config.log) {
-        Ok(runtime) => runtime,
+    let (runtime, level) = match start_runtime(&config.log) {
+        Ok(started) => started,
         Err(code) => return code,
+    };
+    let mut logging = Logging {
+        switch: level,
+        level: config.log.level.clone(),
     };
     runtime.block_on(async {
         let gateway = match Gateway::start(&config).await {
@@ -264,7 +284,7 @@ fn run(path: &Path, config: Config) -> ExitCode {
                 tokio::select! {
                     () = &mut stop => break,
                     never = &mut supervisor => match never {},
-                    () = hangups.next() => reload(path, &gateway),
+                    () = hangups.next() => reload(path, &gateway, &mut logging),
                 }
             }
         }
@@ -284,8 +304,8 @@ fn simulate(config: Config, bus: Option<&str>, device: &str) -> ExitCode {
             return ExitCode::from(EXIT_CONFIG);
         }
     };
-    let runtime = match start_runtime(&config.log) {
-        Ok(runtime) => runtime,
+    let (runtime, _level) = match start_runtime(&config.log) {
+        Ok(started) => started,
         Err(code) => return code,
     };
     runtime.block_on(async {

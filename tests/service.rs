@@ -487,3 +487,39 @@ async fn a_reload_reopens_only_a_changed_line_starts_added_buses_and_retires_rem
     })
     .await;
 }
+
+#[tokio::test]
+async fn a_reload_changes_the_log_level_of_the_running_gateway() {
+    let listen = free_addr();
+    let config = |level: &str| {
+        format!(
+            "[server]\nlisten = \"{listen}\"\n[metrics]\nlisten = \"{}\"\n[log]\nlevel = \"{level}\"\n\
+             [[bus]]\nname = \"sim\"\ndevice = \"sim\"\n[[bus.sim_slave]]\naddress = 1\n",
+            free_addr()
+        )
+    };
+    let path = std::env::temp_dir().join(format!("mbgw-level-{}.toml", std::process::id()));
+    let log = std::env::temp_dir().join(format!("mbgw-level-{}.log", std::process::id()));
+    save(&path, &config("warn"));
+    let child = Command::new(BINARY)
+        .args(["--config", path.to_str().unwrap(), "run"])
+        .env_remove("RUST_LOG")
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    drop(connect_when_listening(listen).await);
+    let quiet = std::fs::read_to_string(&log).unwrap();
+    assert!(!quiet.contains("INFO"), "at warn, no info lines: {quiet}");
+    // The metrics address changes too: that one takes a restart, and the log says so.
+    save(&path, &config("info"));
+    signal(&child, "HUP");
+    until_logged(&log, "configuration reloaded").await;
+    let text = std::fs::read_to_string(&log).unwrap();
+    assert!(text.contains("log.level"), "{text}");
+    assert!(text.contains("metrics.listen"), "{text}");
+    signal(&child, "TERM");
+    assert_eq!(exit_status(child).await.code(), Some(0));
+    let _ = std::fs::remove_file(&path);
+    let _ = std::fs::remove_file(&log);
+}
