@@ -14,7 +14,9 @@ use tracing_subscriber::registry::LookupSpan;
 use tracing_subscriber::EnvFilter;
 
 /// Changes the level filter of the running logger (a reload of `log.level`).
-pub struct LevelSwitch(Option<Box<dyn Fn(EnvFilter) -> Result<(), String> + Send + Sync>>);
+pub struct LevelSwitch(Option<Box<SetFilter>>);
+
+type SetFilter = dyn Fn(EnvFilter) -> Result<(), String> + Send + Sync;
 
 impl LevelSwitch {
     /// Log at `level` from now on. With `RUST_LOG` set, that wins and nothing changes.
