@@ -1,0 +1,552 @@
+//! `modbus-gateway-bench`: measures the gateway against the physics of its line. For each
+//! scenario it starts the `modbus-gateway` binary (the one next to this one, or `--gateway`) on a
+//! generated configuration, drives N concurrent Modbus TCP masters from this process for a fixed
+//! time, and reports transactions per second, bus efficiency (the physical minimum of every
+//! completed transaction over the wall time), latency percentiles, fairness (Jain's index over the
+//! masters' completions), and the gateway process's own RSS and CPU per transaction (from
+//! /proc, so the masters' cost is not in it; the simulated slaves', inside the gateway, is).
+
+use clap::Parser;
+use modbus_gateway::rtu::frame::{self, FrameLen};
+use modbus_gateway::rtu::{LineTiming, Parity, SerialFormat};
+use modbus_gateway::sim::{RegisterBank, SimSlave};
+use serde::Serialize;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::process::{Child, Command, ExitCode, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+
+/// Read 10 holding registers from 0000H: 8 bytes on the wire, 25 back.
+const READ_10: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x0A];
+/// Write holding register 0001H: 8 bytes each way.
+const WRITE_1: [u8; 5] = [0x06, 0x00, 0x01, 0x12, 0x34];
+/// Slaves on the simulated line; masters spread their requests over them.
+const SLAVES: u8 = 247;
+
+#[derive(Parser)]
+#[command(about = "Benchmark modbus-gateway: bus efficiency, latency, fairness, memory, CPU")]
+struct Cli {
+    /// Scenarios to run: a name as listed by --list, or its leading part up to a `-` (`sim-9600`
+    /// selects every 9600 baud one); default: all.
+    scenarios: Vec<String>,
+    /// Measure each scenario at least this long, in seconds (longer when the masters need it to
+    /// each complete `--rounds` requests).
+    #[arg(long, default_value_t = 10.0)]
+    seconds: f64,
+    /// Requests each master should complete at least, so that fairness means something.
+    #[arg(long, default_value_t = 5)]
+    rounds: u32,
+    /// One JSON object per scenario instead of the table.
+    #[arg(long)]
+    json: bool,
+    /// List the scenarios and exit.
+    #[arg(long)]
+    list: bool,
+    /// The gateway binary (default: `modbus-gateway` next to this program).
+    #[arg(long)]
+    gateway: Option<PathBuf>,
+}
+
+#[derive(Clone, Copy, PartialEq)]
+enum Line {
+    /// The built-in simulated line, timed at its baud rate.
+    Sim,
+    /// A pty pair with an RTU slave in this process that answers at once: no line timing.
+    Pty,
+}
+
+#[derive(Clone, Copy, PartialEq)]
+enum Load {
+    /// Read 10 holding registers, back to back.
+    Read,
+    /// Every fourth request a write of one register, the rest reads of 10.
+    Mix,
+    /// Connected, sending nothing.
+    Idle,
+}
+
+struct Scenario {
+    name: String,
+    line: Line,
+    format: SerialFormat,
+    masters: usize,
+    load: Load,
+}
+
+fn scenarios() -> Vec<Scenario> {
+    let format = |baud, parity| SerialFormat {
+        baud,
+        data_bits: 8,
+        parity,
+        stop_bits: 1,
+    };
+    let mut all = Vec::new();
+    for (baud, parity, label) in [(9600, Parity::Even, "8E1"), (115_200, Parity::None, "8N1")] {
+        for masters in [1, 10, 100, 1000] {
+            all.push(Scenario {
+                name: format!("sim-{baud}-{label}-read-{masters}"),
+                line: Line::Sim,
+                format: format(baud, parity),
+                masters,
+                load: Load::Read,
+            });
+        }
+        all.push(Scenario {
+            name: format!("sim-{baud}-{label}-mix-100"),
+            line: Line::Sim,
+            format: format(baud, parity),
+            masters: 100,
+            load: Load::Mix,
+        });
+    }
+    all.push(Scenario {
+        name: "pty-115200-untimed-read-1".into(),
+        line: Line::Pty,
+        format: format(115_200, Parity::None),
+        masters: 1,
+        load: Load::Read,
+    });
+    for masters in [0, 1000] {
+        all.push(Scenario {
+            name: format!("idle-{masters}"),
+            line: Line::Sim,
+            format: format(9600, Parity::Even),
+            masters,
+            load: Load::Idle,
+        });
+    }
+    all
+}
+
+#[derive(Serialize)]
+struct Report {
+    scenario: String,
+    baud: u32,
+    masters: usize,
+    transactions: u64,
+    tx_per_s: f64,
+    /// Sum of the physical minimum of the completed transactions over the wall time (sim only).
+    efficiency: Option<f64>,
+    p50_ms: Option<f64>,
+    p99_ms: Option<f64>,
+    max_ms: Option<f64>,
+    /// Latency above the physical minimum at the median, for one master on the sim line.
+    added_p50_ms: Option<f64>,
+    added_p99_ms: Option<f64>,
+    fairness: Option<f64>,
+    rss_mb: f64,
+    cpu_us_per_tx: Option<f64>,
+    seconds: f64,
+}
+
+/// The physical minimum of one transaction: its characters at the line's speed, the slave's
+/// t3.5 before it answers and the master's t3.5 before the next frame.
+fn t_min(timing: &LineTiming, request_pdu: usize, reply_pdu: usize) -> Duration {
+    timing.frame_time(request_pdu + 3) + timing.frame_time(reply_pdu + 3) + timing.t35 * 2
+}
+
+fn free_addr() -> std::io::Result<SocketAddr> {
+    std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()
+}
+
+/// The gateway process, stopped when dropped.
+struct Gateway {
+    child: Child,
+    listen: SocketAddr,
+    _config: tempfile_path::TempPath,
+}
+
+impl Drop for Gateway {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A file removed when dropped.
+mod tempfile_path {
+    pub struct TempPath(pub std::path::PathBuf);
+    impl Drop for TempPath {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_file(&self.0);
+        }
+    }
+}
+
+impl Gateway {
+    async fn start(binary: &PathBuf, scenario: &Scenario, device: &str) -> Result<Gateway, String> {
+        let listen = free_addr().map_err(|e| e.to_string())?;
+        let metrics = free_addr().map_err(|e| e.to_string())?;
+        let f = &scenario.format;
+        let parity = match f.parity {
+            Parity::None => "none",
+            Parity::Even => "even",
+            Parity::Odd => "odd",
+        };
+        let masters = scenario.masters.max(1);
+        let mut config = format!(
+            "[server]\nlisten = \"{listen}\"\nmax_connections = {}\n\
+             [metrics]\nlisten = \"{metrics}\"\n[log]\nlevel = \"warn\"\n\
+             [[bus]]\nname = \"bench\"\ndevice = \"{device}\"\nbaud = {}\nparity = \"{parity}\"\n\
+             stop_bits = {}\nqueue_depth = {}\nqueue_timeout = \"1h\"\n",
+            masters + 16,
+            f.baud,
+            f.stop_bits,
+            masters * 2 + 16,
+        );
+        if scenario.line == Line::Sim {
+            config += &format!("[[bus.sim_slave]]\naddress = \"1-{SLAVES}\"\n");
+        }
+        let path = std::env::temp_dir().join(format!(
+            "mbgw-bench-{}-{}.toml",
+            std::process::id(),
+            scenario.name
+        ));
+        std::fs::write(&path, config).map_err(|e| e.to_string())?;
+        let child = Command::new(binary)
+            .args(["--config", &path.to_string_lossy(), "run"])
+            .env_remove("RUST_LOG")
+            .stdout(Stdio::null())
+            .spawn()
+            .map_err(|e| format!("{}: {e}", binary.display()))?;
+        let gateway = Gateway {
+            child,
+            listen,
+            _config: tempfile_path::TempPath(path),
+        };
+        let started = Instant::now();
+        while TcpStream::connect(listen).await.is_err() {
+            if started.elapsed() > Duration::from_secs(10) {
+                return Err("the gateway did not start listening within 10 s".into());
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        Ok(gateway)
+    }
+
+    fn pid(&self) -> u32 {
+        self.child.id()
+    }
+}
+
+/// CPU time of process `pid` so far, all its threads: the first field of each thread's
+/// schedstat, in nanoseconds (the tick counts of /proc/PID/stat are only 10 ms fine).
+fn cpu_time(pid: u32) -> Duration {
+    let Ok(threads) = std::fs::read_dir(format!("/proc/{pid}/task")) else {
+        return Duration::ZERO;
+    };
+    let nanos: u64 = threads
+        .filter_map(|t| {
+            let stat = std::fs::read_to_string(t.ok()?.path().join("schedstat")).ok()?;
+            stat.split_whitespace().next()?.parse::<u64>().ok()
+        })
+        .sum();
+    Duration::from_nanos(nanos)
+}
+
+/// Resident memory of process `pid` now, in MB.
+fn rss_mb(pid: u32) -> f64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
+        .map_or(0.0, |kb| kb / 1024.0)
+}
+
+/// An RTU slave on the far end of a pty that answers every request at once.
+fn untimed_slave() -> Result<(String, tokio::task::JoinHandle<()>), String> {
+    use tokio_serial::SerialPort;
+    let (mut far, tty) = tokio_serial::SerialStream::pair().map_err(|e| e.to_string())?;
+    let path = tty.name().ok_or("the pty has no path")?;
+    let task = tokio::spawn(async move {
+        let _tty = tty;
+        let mut bank = RegisterBank::new(Duration::ZERO);
+        let mut buf = Vec::new();
+        let mut chunk = [0u8; 512];
+        loop {
+            match frame::request_len(&buf) {
+                FrameLen::Exact(n) if buf.len() >= n => {
+                    let request: Vec<u8> = buf.drain(..n).collect();
+                    if !frame::crc_ok(&request) {
+                        continue;
+                    }
+                    let now = tokio::time::Instant::now();
+                    let pdu = frame::pdu_of(&request);
+                    if let Some(reply) = bank.handle(request[0], pdu, now) {
+                        if far.write_all(&reply.bytes).await.is_err() {
+                            return;
+                        }
+                    }
+                    continue;
+                }
+                FrameLen::Invalid => buf.clear(),
+                _ => {}
+            }
+            match far.read(&mut chunk).await {
+                Ok(n) if n > 0 => buf.extend_from_slice(&chunk[..n]),
+                _ => return,
+            }
+        }
+    });
+    Ok((path, task))
+}
+
+/// One master's loop: request, reply, again, until `stop`. Returns (completed at, latency).
+async fn master(
+    mut stream: TcpStream,
+    index: usize,
+    load: Load,
+    stop: Arc<AtomicBool>,
+) -> std::io::Result<Vec<(Instant, Duration, bool)>> {
+    let mut done = Vec::new();
+    let mut slave = (index % usize::from(SLAVES)) as u8 + 1;
+    let mut tid: u16 = 0;
+    let mut reply = vec![0u8; 260];
+    while !stop.load(Ordering::Relaxed) {
+        tid = tid.wrapping_add(1);
+        let write = load == Load::Mix && tid.is_multiple_of(4);
+        let pdu: &[u8] = if write { &WRITE_1 } else { &READ_10 };
+        let mut adu = Vec::with_capacity(12);
+        adu.extend_from_slice(&tid.to_be_bytes());
+        adu.extend_from_slice(&[0, 0, 0, pdu.len() as u8 + 1, slave]);
+        adu.extend_from_slice(pdu);
+        let sent = Instant::now();
+        stream.write_all(&adu).await?;
+        stream.read_exact(&mut reply[..7]).await?;
+        let len = usize::from(u16::from_be_bytes([reply[4], reply[5]]));
+        stream.read_exact(&mut reply[7..6 + len]).await?;
+        if reply[..2] != tid.to_be_bytes() || reply[7] & 0x80 != 0 {
+            return Err(std::io::Error::other(format!(
+                "master {index}: unexpected reply {:02X?}",
+                &reply[..6 + len]
+            )));
+        }
+        let now = Instant::now();
+        done.push((now, now - sent, write));
+        slave = slave % SLAVES + 1;
+    }
+    Ok(done)
+}
+
+fn percentile(sorted: &[Duration], p: f64) -> Option<f64> {
+    let last = sorted.len().checked_sub(1)?;
+    let rank = (last as f64 * p).round() as usize;
+    Some(sorted[rank].as_secs_f64() * 1e3)
+}
+
+async fn connect_all(addr: SocketAddr, n: usize) -> Result<Vec<TcpStream>, String> {
+    let mut streams = Vec::with_capacity(n);
+    for _ in 0..n {
+        let stream = TcpStream::connect(addr)
+            .await
+            .map_err(|e| format!("connect: {e} (raise `ulimit -n` for many masters)"))?;
+        stream.set_nodelay(true).map_err(|e| e.to_string())?;
+        streams.push(stream);
+    }
+    Ok(streams)
+}
+
+async fn run(cli: &Cli, binary: &PathBuf, s: &Scenario) -> Result<Report, String> {
+    let timing = LineTiming::new(&s.format);
+    let (device, slave) = match s.line {
+        Line::Sim => ("sim".to_owned(), None),
+        Line::Pty => {
+            let (path, task) = untimed_slave()?;
+            (path, Some(task))
+        }
+    };
+    let gateway = Gateway::start(binary, s, &device).await?;
+    let pid = gateway.pid();
+    let streams = connect_all(gateway.listen, s.masters).await?;
+    let mut report = Report {
+        scenario: s.name.clone(),
+        baud: s.format.baud,
+        masters: s.masters,
+        transactions: 0,
+        tx_per_s: 0.0,
+        efficiency: None,
+        p50_ms: None,
+        p99_ms: None,
+        max_ms: None,
+        added_p50_ms: None,
+        added_p99_ms: None,
+        fairness: None,
+        rss_mb: 0.0,
+        cpu_us_per_tx: None,
+        seconds: 0.0,
+    };
+    if s.load == Load::Idle {
+        tokio::time::sleep(Duration::from_secs(2)).await;
+        report.rss_mb = rss_mb(pid);
+        drop(streams);
+        if let Some(slave) = slave {
+            slave.abort();
+        }
+        return Ok(report);
+    }
+    let read_min = t_min(&timing, READ_10.len(), 2 + 20);
+    let write_min = t_min(&timing, WRITE_1.len(), WRITE_1.len());
+    // Long enough for every master to complete `rounds` requests at the line's pace.
+    let pace = if s.line == Line::Sim {
+        read_min
+    } else {
+        timing.t35
+    };
+    let needed = pace * (cli.rounds * u32::try_from(s.masters).unwrap_or(u32::MAX));
+    let length = Duration::from_secs_f64(cli.seconds).max(needed);
+    let warm_up = Duration::from_secs(1).max(pace * u32::try_from(s.masters).unwrap_or(1));
+
+    let stop = Arc::new(AtomicBool::new(false));
+    let tasks: Vec<_> = streams
+        .into_iter()
+        .enumerate()
+        .map(|(i, stream)| tokio::spawn(master(stream, i, s.load, stop.clone())))
+        .collect();
+    tokio::time::sleep(warm_up).await;
+    let (start, cpu_start) = (Instant::now(), cpu_time(pid));
+    tokio::time::sleep(length).await;
+    let (end, cpu_end) = (Instant::now(), cpu_time(pid));
+    report.rss_mb = rss_mb(pid);
+    stop.store(true, Ordering::Relaxed);
+
+    let mut latencies = Vec::new();
+    let mut per_master = Vec::with_capacity(s.masters);
+    let mut physical = Duration::ZERO;
+    for task in tasks {
+        let done = task
+            .await
+            .map_err(|e| e.to_string())?
+            .map_err(|e| e.to_string())?;
+        let within: Vec<_> = done
+            .into_iter()
+            .filter(|(at, _, _)| *at >= start && *at <= end)
+            .collect();
+        per_master.push(within.len() as f64);
+        for (_, latency, write) in within {
+            latencies.push(latency);
+            physical += if write { write_min } else { read_min };
+        }
+    }
+    if let Some(slave) = slave {
+        slave.abort();
+    }
+    let wall = (end - start).as_secs_f64();
+    let transactions = latencies.len() as u64;
+    latencies.sort();
+    let sum: f64 = per_master.iter().sum();
+    let squares: f64 = per_master.iter().map(|x| x * x).sum();
+    report.transactions = transactions;
+    report.tx_per_s = transactions as f64 / wall;
+    report.seconds = wall;
+    report.p50_ms = percentile(&latencies, 0.5);
+    report.p99_ms = percentile(&latencies, 0.99);
+    report.max_ms = latencies.last().map(|d| d.as_secs_f64() * 1e3);
+    report.fairness =
+        (s.masters > 1 && squares > 0.0).then(|| sum * sum / (per_master.len() as f64 * squares));
+    report.cpu_us_per_tx =
+        (transactions > 0).then(|| (cpu_end - cpu_start).as_secs_f64() * 1e6 / transactions as f64);
+    if s.line == Line::Sim {
+        report.efficiency = Some(physical.as_secs_f64() / wall);
+        if s.masters == 1 && s.load == Load::Read {
+            let floor = read_min.as_secs_f64() * 1e3;
+            report.added_p50_ms = report.p50_ms.map(|p| p - floor);
+            report.added_p99_ms = report.p99_ms.map(|p| p - floor);
+        }
+    }
+    Ok(report)
+}
+
+fn cell(value: Option<f64>, precision: usize) -> String {
+    value.map_or("-".into(), |v| format!("{v:.precision$}"))
+}
+
+#[tokio::main]
+async fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let all = scenarios();
+    if cli.list {
+        for s in &all {
+            println!("{}", s.name);
+        }
+        return ExitCode::SUCCESS;
+    }
+    let chosen: Vec<&Scenario> = all
+        .iter()
+        .filter(|s| {
+            cli.scenarios.is_empty()
+                || cli.scenarios.iter().any(|c| {
+                    s.name == *c
+                        || s.name
+                            .strip_prefix(c.as_str())
+                            .is_some_and(|r| r.starts_with('-'))
+                })
+        })
+        .collect();
+    if chosen.is_empty() {
+        eprintln!("modbus-gateway-bench: no scenario matches; see --list");
+        return ExitCode::from(2);
+    }
+    let binary = cli.gateway.clone().unwrap_or_else(|| {
+        std::env::current_exe()
+            .map(|exe| exe.with_file_name("modbus-gateway"))
+            .unwrap_or_else(|_| PathBuf::from("modbus-gateway"))
+    });
+    if !cli.json {
+        println!(
+            "{:<30} {:>7} {:>9} {:>6} {:>6} {:>8} {:>8} {:>8} {:>8} {:>6} {:>7} {:>8}",
+            "scenario",
+            "masters",
+            "tx",
+            "tx/s",
+            "eff",
+            "p50 ms",
+            "p99 ms",
+            "max ms",
+            "+p50 ms",
+            "jain",
+            "rss MB",
+            "cpu us/tx"
+        );
+    }
+    let mut failed = false;
+    for s in chosen {
+        match run(&cli, &binary, s).await {
+            Ok(r) if cli.json => match serde_json::to_string(&r) {
+                Ok(line) => println!("{line}"),
+                Err(e) => {
+                    eprintln!("{}: {e}", s.name);
+                    failed = true;
+                }
+            },
+            Ok(r) => println!(
+                "{:<30} {:>7} {:>9} {:>6.1} {:>6} {:>8} {:>8} {:>8} {:>8} {:>6} {:>7.1} {:>8}",
+                r.scenario,
+                r.masters,
+                r.transactions,
+                r.tx_per_s,
+                cell(r.efficiency, 3),
+                cell(r.p50_ms, 2),
+                cell(r.p99_ms, 2),
+                cell(r.max_ms, 1),
+                cell(r.added_p50_ms, 2),
+                cell(r.fairness, 3),
+                r.rss_mb,
+                cell(r.cpu_us_per_tx, 1),
+            ),
+            Err(e) => {
+                eprintln!("{}: {e}", s.name);
+                failed = true;
+            }
+        }
+    }
+    if failed {
+        ExitCode::FAILURE
+    } else {
+        ExitCode::SUCCESS
+    }
+}
