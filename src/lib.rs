@@ -13,7 +13,8 @@
 //!   health checks.
 //!
 //! Shared by all: [`pdu`] (function and exception codes) and [`error`] (what fails a request, and
-//! the one place that turns it into an exception), [`shutdown`] (the stop signal). [`gateway`]
+//! the one place that turns it into an exception), [`shutdown`] (the stop signal), [`timer`]
+//! (sleeps precise to well under a millisecond for the line's timing). [`gateway`]
 //! wires the parts together;
 //! [`simulate`] serves the simulated slaves on a real serial port instead; [`logging`] sets up
 //! the daemon's log output.
@@ -32,6 +33,7 @@ pub mod shutdown;
 pub mod sim;
 pub mod simulate;
 pub mod tcp;
+pub mod timer;
 
 pub use config::Config;
 pub use gateway::Gateway;

@@ -246,6 +246,9 @@ fn start_runtime(
     log: &config::Log,
 ) -> Result<(tokio::runtime::Runtime, logging::LevelSwitch), ExitCode> {
     let level = logging::init(&log.level, log.format);
+    // The daemon times a real line (or the simulated one in real time): keep t3.5 to the
+    // microsecond, not to tokio's millisecond.
+    modbus_gateway::timer::use_precise_timer();
     let runtime = tokio::runtime::Runtime::new().map_err(|e| {
         error!(error = %e, "cannot start the runtime");
         ExitCode::FAILURE

@@ -7,9 +7,10 @@
 use super::frame::{self, FrameLen, ReplyForm, Verdict, BROADCAST, MAX_FRAME_LEN};
 use super::timing::LineTiming;
 use super::Transport;
+use crate::timer::sleep_until;
 use std::io;
 use std::time::Duration;
-use tokio::time::{sleep_until, Instant};
+use tokio::time::Instant;
 
 /// The times the master keeps on its line.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

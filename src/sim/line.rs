@@ -10,12 +10,13 @@
 use super::{SimSlave, Transmission};
 use crate::rtu::frame::{self, BROADCAST};
 use crate::rtu::{LineTiming, Transport};
+use crate::timer::sleep_until;
 use std::collections::{BTreeMap, VecDeque};
 use std::io;
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
 use tokio::sync::Notify;
-use tokio::time::{sleep_until, Instant};
+use tokio::time::Instant;
 
 /// Frames the monitor remembers.
 const LOG_CAPACITY: usize = 4096;

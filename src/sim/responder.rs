@@ -8,10 +8,11 @@
 use super::SimSlave;
 use crate::rtu::frame::{self, FrameLen, BROADCAST, MAX_FRAME_LEN};
 use crate::rtu::{LineTiming, Transport};
+use crate::timer::sleep_until;
 use std::collections::BTreeMap;
 use std::io;
 use std::time::Duration;
-use tokio::time::{sleep_until, timeout, Instant};
+use tokio::time::{timeout, Instant};
 use tracing::debug;
 
 /// What the responder has seen, for its log line.
@@ -178,7 +179,7 @@ mod tests {
                 .incoming
                 .front()
                 .map_or(Duration::from_secs(10), |(due, _)| *due);
-            tokio::time::sleep_until(self.start + due).await;
+            sleep_until(self.start + due).await;
             match self.incoming.pop_front() {
                 Some((_, bytes)) => {
                     buf.extend_from_slice(&bytes);

@@ -1,0 +1,233 @@
+//! Sleeps that end on time. tokio's timer wakes on whole milliseconds (measured here 1.1-1.3 ms
+//! late), most of a 1.75 ms t3.5, so the line would idle a millisecond per gap. With precise
+//! timing switched on (the daemon does at start; in-process tests on tokio's paused clock leave
+//! it off and get tokio's sleeps), the last few milliseconds before a deadline are kept by one
+//! timer thread waiting on a condition variable, which wakes the task tens of microseconds late
+//! instead. Knows nothing of what it times.
+
+use std::cmp::Reverse;
+use std::collections::BinaryHeap;
+use std::future::Future;
+use std::pin::Pin;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Condvar, Mutex, OnceLock, PoisonError};
+use std::task::{Context, Poll, Waker};
+use std::time::{Duration, Instant};
+
+/// Deadlines further away than this are first waited for with tokio's timer.
+const PRECISE_WINDOW: Duration = Duration::from_millis(3);
+
+static PRECISE: AtomicBool = AtomicBool::new(false);
+
+/// Keep every later [`sleep_until`] to sub-millisecond precision. Not for tokio's paused clock.
+pub fn use_precise_timer() {
+    PRECISE.store(true, Ordering::Relaxed);
+}
+
+/// Sleep until `deadline`: tokio's timer, or, with [`use_precise_timer`], tokio's timer to
+/// within a few milliseconds and the timer thread for the rest. Cancel-safe.
+pub async fn sleep_until(deadline: tokio::time::Instant) {
+    if !PRECISE.load(Ordering::Relaxed) {
+        return tokio::time::sleep_until(deadline).await;
+    }
+    let deadline = deadline.into_std();
+    if let Some(early) = deadline.checked_sub(PRECISE_WINDOW) {
+        if early > Instant::now() {
+            tokio::time::sleep_until(early.into()).await;
+        }
+    }
+    precise_sleep_until(deadline).await;
+}
+
+/// Sleep until `deadline` on the timer thread alone.
+pub fn precise_sleep_until(deadline: Instant) -> PreciseSleep {
+    PreciseSleep {
+        deadline,
+        slot: None,
+    }
+}
+
+/// What the timer thread and one sleep share.
+#[derive(Default)]
+struct Slot {
+    waker: Mutex<Option<Waker>>,
+}
+
+struct Entry {
+    deadline: Instant,
+    slot: Arc<Slot>,
+}
+
+impl PartialEq for Entry {
+    fn eq(&self, other: &Self) -> bool {
+        self.deadline == other.deadline
+    }
+}
+impl Eq for Entry {}
+impl PartialOrd for Entry {
+    fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(other))
+    }
+}
+impl Ord for Entry {
+    fn cmp(&self, other: &Self) -> std::cmp::Ordering {
+        self.deadline.cmp(&other.deadline)
+    }
+}
+
+struct TimerThread {
+    due: Mutex<BinaryHeap<Reverse<Entry>>>,
+    changed: Condvar,
+}
+
+fn timer_thread() -> &'static TimerThread {
+    static TIMER: OnceLock<&'static TimerThread> = OnceLock::new();
+    TIMER.get_or_init(|| {
+        let timer: &'static TimerThread = Box::leak(Box::new(TimerThread {
+            due: Mutex::new(BinaryHeap::new()),
+            changed: Condvar::new(),
+        }));
+        std::thread::Builder::new()
+            .name("precise-timer".into())
+            .spawn(move || timer.run())
+            .expect("the timer thread starts");
+        timer
+    })
+}
+
+impl TimerThread {
+    fn run(&self) {
+        let mut due = self.due.lock().unwrap_or_else(PoisonError::into_inner);
+        loop {
+            let now = Instant::now();
+            while due.peek().is_some_and(|e| e.0.deadline <= now) {
+                if let Some(Reverse(entry)) = due.pop() {
+                    let waker = entry
+                        .slot
+                        .waker
+                        .lock()
+                        .unwrap_or_else(PoisonError::into_inner)
+                        .take();
+                    if let Some(waker) = waker {
+                        waker.wake();
+                    }
+                }
+            }
+            due = match due.peek().map(|e| e.0.deadline) {
+                Some(next) => {
+                    let wait = next.saturating_duration_since(now);
+                    self.changed
+                        .wait_timeout(due, wait)
+                        .unwrap_or_else(PoisonError::into_inner)
+                        .0
+                }
+                None => self
+                    .changed
+                    .wait(due)
+                    .unwrap_or_else(PoisonError::into_inner),
+            };
+        }
+    }
+
+    fn add(&self, deadline: Instant, slot: Arc<Slot>) {
+        let mut due = self.due.lock().unwrap_or_else(PoisonError::into_inner);
+        let earliest = due.peek().is_none_or(|e| deadline < e.0.deadline);
+        due.push(Reverse(Entry { deadline, slot }));
+        if earliest {
+            self.changed.notify_one();
+        }
+    }
+}
+
+/// A sleep kept by the timer thread.
+pub struct PreciseSleep {
+    deadline: Instant,
+    slot: Option<Arc<Slot>>,
+}
+
+impl Future for PreciseSleep {
+    type Output = ();
+
+    fn poll(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<()> {
+        if Instant::now() >= self.deadline {
+            return Poll::Ready(());
+        }
+        match &self.slot {
+            Some(slot) => {
+                *slot.waker.lock().unwrap_or_else(PoisonError::into_inner) =
+                    Some(cx.waker().clone());
+            }
+            None => {
+                let slot = Arc::new(Slot {
+                    waker: Mutex::new(Some(cx.waker().clone())),
+                });
+                timer_thread().add(self.deadline, slot.clone());
+                self.slot = Some(slot);
+            }
+        }
+        // The thread may have fired between the check above and the waker being stored.
+        if Instant::now() >= self.deadline {
+            return Poll::Ready(());
+        }
+        Poll::Pending
+    }
+}
+
+impl Drop for PreciseSleep {
+    /// A cancelled sleep wakes nobody; its entry leaves the heap at its deadline.
+    fn drop(&mut self) {
+        if let Some(slot) = &self.slot {
+            slot.waker
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner)
+                .take();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn a_precise_sleep_never_ends_before_its_deadline() {
+        for micros in [0, 50, 300, 1_750, 4_000] {
+            let deadline = Instant::now() + Duration::from_micros(micros);
+            precise_sleep_until(deadline).await;
+            assert!(Instant::now() >= deadline, "{micros} us");
+        }
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn concurrent_sleeps_end_in_deadline_order() {
+        let start = Instant::now();
+        let order = Arc::new(Mutex::new(Vec::new()));
+        let tasks: Vec<_> = [140u64, 40, 100, 20, 180, 60]
+            .into_iter()
+            .map(|ms| {
+                let order = order.clone();
+                tokio::spawn(async move {
+                    precise_sleep_until(start + Duration::from_millis(ms)).await;
+                    order.lock().unwrap().push(ms);
+                })
+            })
+            .collect();
+        for task in tasks {
+            task.await.unwrap();
+        }
+        assert_eq!(*order.lock().unwrap(), [20, 40, 60, 100, 140, 180]);
+    }
+
+    #[tokio::test]
+    async fn a_cancelled_sleep_does_not_disturb_the_next() {
+        let soon = Instant::now() + Duration::from_millis(2);
+        let cancelled = tokio::time::timeout(
+            Duration::from_micros(100),
+            precise_sleep_until(soon + Duration::from_secs(60)),
+        )
+        .await;
+        assert!(cancelled.is_err());
+        precise_sleep_until(soon).await;
+        assert!(Instant::now() >= soon);
+    }
+}
