@@ -1,5 +1,5 @@
 //! The integration tests, in one crate so they build once. Where a new test goes:
-//! - `cli`: the `modbus-gateway` binary: check-config, config errors, environment, run and stop.
+//! - `cli`: the binaries: check-config, config errors, environment, run and stop, logs, the bench.
 //! - `tcp`: the Modbus TCP side: pipelining, MBAP errors, connection limit, idle timeout, garbage.
 //! - `answers`: what the gateway answers itself: no route, broadcast, queue full, port down/back.
 //! - `transparency`: function codes and exceptions byte for byte, on the sim line and a pty.
