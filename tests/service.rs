@@ -143,6 +143,19 @@ impl NotifySocket {
         NotifySocket { path, socket }
     }
 
+    /// Start `command` as systemd would with this socket and a 200 ms watchdog (pings every
+    /// 100 ms).
+    fn run(&self, command: &mut Command) -> std::process::Child {
+        command
+            .env("RUST_LOG", "warn")
+            .env("NOTIFY_SOCKET", &self.path)
+            .env("WATCHDOG_USEC", "200000")
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("the gateway starts")
+    }
+
     /// The next message, its lines.
     async fn next(&self) -> Vec<String> {
         let mut buf = vec![0u8; 4096];
@@ -165,18 +178,12 @@ impl Drop for NotifySocket {
 #[tokio::test]
 async fn under_systemd_it_reports_ready_pings_the_watchdog_and_says_when_it_stops() {
     let notify = NotifySocket::bind("ready");
-    let child = Command::new(BINARY)
-        .args(["--config", crate::support::demo_path(), "run"])
-        .env("MBGW__SERVER__LISTEN", free_addr().to_string())
-        .env("MBGW__METRICS__LISTEN", free_addr().to_string())
-        .env("RUST_LOG", "warn")
-        .env("NOTIFY_SOCKET", &notify.path)
-        // A 200 ms watchdog: pings every 100 ms.
-        .env("WATCHDOG_USEC", "200000")
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
+    let child = notify.run(
+        Command::new(BINARY)
+            .args(["--config", crate::support::demo_path(), "run"])
+            .env("MBGW__SERVER__LISTEN", free_addr().to_string())
+            .env("MBGW__METRICS__LISTEN", free_addr().to_string()),
+    );
     let first = notify.next().await;
     assert!(first.contains(&"READY=1".to_owned()), "{first:?}");
     let status = first
@@ -238,15 +245,7 @@ async fn a_bus_task_stuck_on_its_port_stops_the_watchdog_pings_until_it_moves_ag
     )
     .unwrap();
     let notify = NotifySocket::bind("stuck");
-    let child = Command::new(BINARY)
-        .args(["--config", path.to_str().unwrap(), "run"])
-        .env("RUST_LOG", "warn")
-        .env("NOTIFY_SOCKET", &notify.path)
-        .env("WATCHDOG_USEC", "200000")
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
+    let child = notify.run(Command::new(BINARY).args(["--config", path.to_str().unwrap(), "run"]));
     let is_ping = |message: &[String]| message.iter().any(|l| l == "WATCHDOG=1");
     assert!(notify.next().await.contains(&"READY=1".to_owned()));
     within("a first ping", async {
