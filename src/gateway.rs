@@ -261,20 +261,20 @@ impl Gateway {
         }
         let handles = running.iter().map(|r| r.handle.clone()).collect();
         self.shared.dispatcher.replace(Router::new(new), handles);
-        let server = (&new.server, &config.server);
-        if server.0.max_connections != server.1.max_connections
-            || server.0.pipeline_depth != server.1.pipeline_depth
-            || server.0.idle_timeout != server.1.idle_timeout
+        let (server, was) = (&new.server, &config.server);
+        if server.max_connections != was.max_connections
+            || server.pipeline_depth != was.pipeline_depth
+            || server.idle_timeout != was.idle_timeout
         {
             done.applied
                 .push("connection limits (for new connections)".to_owned());
         }
         self.shared
             .set_limits(session_limits(&new.server), new.server.max_connections);
-        if server.0.shutdown_timeout != server.1.shutdown_timeout {
+        if server.shutdown_timeout != was.shutdown_timeout {
             done.applied.push("server.shutdown_timeout".to_owned());
         }
-        if server.0.listen != server.1.listen {
+        if server.listen != was.listen {
             done.need_restart.push("server.listen".to_owned());
         }
         if new.metrics != config.metrics {
@@ -296,11 +296,6 @@ impl Gateway {
     /// The bound address of the metrics endpoint.
     pub fn metrics_addr(&self) -> SocketAddr {
         self.metrics_addr
-    }
-
-    /// The gateway's metrics, as `/metrics` serves them.
-    pub fn metrics(&self) -> &Metrics {
-        &self.metrics
     }
 
     /// The simulated line of bus `name`, for tests and demos.

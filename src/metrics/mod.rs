@@ -63,22 +63,6 @@ pub enum Fate {
 }
 
 impl Fate {
-    pub const ALL: [Fate; 13] = [
-        Fate::Ok,
-        Fate::Exception,
-        Fate::Timeout,
-        Fate::CrcError,
-        Fate::FrameError,
-        Fate::LineBusy,
-        Fate::NoRoute,
-        Fate::Refused,
-        Fate::QueueFull,
-        Fate::Expired,
-        Fate::PortDown,
-        Fate::Shutdown,
-        Fate::Dropped,
-    ];
-
     pub fn label(self) -> &'static str {
         match self {
             Fate::Ok => "ok",
