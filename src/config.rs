@@ -4,10 +4,11 @@
 
 use crate::rtu::{LineTiming, MasterTiming, Parity, SerialFormat};
 use crate::sim::{self, faults::Faults};
+use ipnet::IpNet;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::fmt;
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::path::Path;
 use std::time::Duration;
 
@@ -22,6 +23,7 @@ pub const SIM_DEVICE: &str = "sim";
 /// Highest unicast slave address on a serial line.
 pub const MAX_SLAVE_ADDRESS: u8 = 247;
 const MAX_RETRIES: u32 = 10;
+const MIN_KEEPALIVE: Duration = Duration::from_secs(1);
 /// Most garbage a simulated slave may wrap a reply in: a frame's worth.
 const MAX_GARBAGE: usize = 256;
 
@@ -36,6 +38,8 @@ pub mod defaults {
     pub const IDLE_TIMEOUT: Duration = Duration::from_secs(600);
     pub const PIPELINE_DEPTH: usize = 16;
     pub const SHUTDOWN_TIMEOUT: Duration = Duration::from_secs(10);
+    pub const FRAME_TIMEOUT: Duration = Duration::from_secs(5);
+    pub const KEEPALIVE: Duration = Duration::from_secs(60);
     pub fn metrics_listen() -> SocketAddr {
         SocketAddr::from(([127, 0, 0, 1], 9502))
     }
@@ -71,6 +75,12 @@ pub mod defaults {
     pub fn reopen_delay_max() -> Duration {
         Duration::from_secs(5)
     }
+    pub fn slave_down_after() -> u32 {
+        3
+    }
+    pub fn slave_probe_interval() -> Duration {
+        Duration::from_secs(5)
+    }
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -92,7 +102,7 @@ pub struct Config {
 #[serde(deny_unknown_fields, default)]
 pub struct Server {
     /// One address, a comma-separated string of them, or a list.
-    #[serde(with = "listen_list")]
+    #[serde(with = "text_list")]
     pub listen: Vec<SocketAddr>,
     /// TCP connections open at once, over all listeners; more are refused.
     pub max_connections: usize,
@@ -104,6 +114,32 @@ pub struct Server {
     /// On SIGTERM/SIGINT, how long queued requests may still be served; the rest get 0x0A.
     #[serde(with = "duration")]
     pub shutdown_timeout: Duration,
+    /// What a new connection does at `max_connections`.
+    pub when_full: WhenFull,
+    /// A request's bytes must all be in this long after its first byte, or the connection closes.
+    #[serde(with = "duration")]
+    pub frame_timeout: Duration,
+    /// TCP keepalive: silence before the first probe of a connection's peer ("0s": off).
+    #[serde(with = "duration")]
+    pub keepalive: Duration,
+    /// Who may connect: addresses or networks; empty: anyone.
+    #[serde(with = "text_list", skip_serializing_if = "Vec::is_empty")]
+    pub allow: Vec<IpNet>,
+    /// Masters connecting from these may only read: anything else gets exception 0x01.
+    #[serde(with = "text_list", skip_serializing_if = "Vec::is_empty")]
+    pub read_only: Vec<IpNet>,
+}
+
+/// What a connection beyond `server.max_connections` does.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum WhenFull {
+    /// Close the connection that has been idle longest (nothing in flight), then accept; refuse
+    /// if every connection has a request in flight.
+    #[default]
+    CloseOldestIdle,
+    /// Refuse the new connection.
+    Refuse,
 }
 
 impl Default for Server {
@@ -114,6 +150,11 @@ impl Default for Server {
             idle_timeout: defaults::IDLE_TIMEOUT,
             pipeline_depth: defaults::PIPELINE_DEPTH,
             shutdown_timeout: defaults::SHUTDOWN_TIMEOUT,
+            when_full: WhenFull::default(),
+            frame_timeout: defaults::FRAME_TIMEOUT,
+            keepalive: defaults::KEEPALIVE,
+            allow: Vec::new(),
+            read_only: Vec::new(),
         }
     }
 }
@@ -224,6 +265,12 @@ pub struct Bus {
     pub reopen_delay: Duration,
     #[serde(default = "defaults::reopen_delay_max", with = "duration")]
     pub reopen_delay_max: Duration,
+    /// After this many requests in a row timed out, a slave is down: its requests get 0x0B at
+    /// once, without using the line, but for one probe per `slave_probe_interval` (0: never down).
+    #[serde(default = "defaults::slave_down_after")]
+    pub slave_down_after: u32,
+    #[serde(default = "defaults::slave_probe_interval", with = "duration")]
+    pub slave_probe_interval: Duration,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub slave: Vec<Slave>,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -552,34 +599,44 @@ mod opt_duration {
     }
 }
 
-/// Listen addresses: one string, a comma-separated string (handy in the environment), or a list.
-mod listen_list {
+/// Lists written as one string, a comma-separated string (handy in the environment), or a list
+/// of strings: listen addresses, allowed networks.
+mod text_list {
     use serde::{Deserializer, Serializer};
-    use std::net::SocketAddr;
+    use std::marker::PhantomData;
 
-    pub fn serialize<S: Serializer>(addrs: &[SocketAddr], s: S) -> Result<S::Ok, S::Error> {
-        s.collect_seq(addrs.iter().map(ToString::to_string))
+    /// An item of such a list.
+    pub trait Item: Sized + std::fmt::Display {
+        /// What one item looks like, for error messages.
+        const EXAMPLE: &'static str;
+        fn parse(text: &str) -> Option<Self>;
     }
 
-    fn parse<E: serde::de::Error>(text: &str, out: &mut Vec<SocketAddr>) -> Result<(), E> {
-        for part in text.split(',') {
-            out.push(part.trim().parse().map_err(|_| {
-                E::custom(format!(
-                    "`{}` is not a socket address like \"0.0.0.0:502\" or \"[::1]:502\"",
-                    part.trim()
-                ))
-            })?);
+    pub fn serialize<T: Item, S: Serializer>(items: &[T], s: S) -> Result<S::Ok, S::Error> {
+        s.collect_seq(items.iter().map(ToString::to_string))
+    }
+
+    fn parse<T: Item, E: serde::de::Error>(text: &str, out: &mut Vec<T>) -> Result<(), E> {
+        for part in text
+            .split(',')
+            .map(str::trim)
+            .filter(|part| !part.is_empty())
+        {
+            out.push(
+                T::parse(part)
+                    .ok_or_else(|| E::custom(format!("`{part}` is not {}", T::EXAMPLE)))?,
+            );
         }
         Ok(())
     }
 
-    struct Visitor;
+    struct Visitor<T>(PhantomData<T>);
 
-    impl<'de> serde::de::Visitor<'de> for Visitor {
-        type Value = Vec<SocketAddr>;
+    impl<'de, T: Item> serde::de::Visitor<'de> for Visitor<T> {
+        type Value = Vec<T>;
 
         fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-            f.write_str("an address like \"0.0.0.0:502\", or a list of them")
+            write!(f, "{}, or a list of them", T::EXAMPLE)
         }
 
         fn visit_str<E: serde::de::Error>(self, text: &str) -> Result<Self::Value, E> {
@@ -600,8 +657,26 @@ mod listen_list {
         }
     }
 
-    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<SocketAddr>, D::Error> {
-        d.deserialize_any(Visitor)
+    pub fn deserialize<'de, T: Item, D: Deserializer<'de>>(d: D) -> Result<Vec<T>, D::Error> {
+        d.deserialize_any(Visitor(PhantomData))
+    }
+}
+
+impl text_list::Item for SocketAddr {
+    const EXAMPLE: &'static str = "a socket address like \"0.0.0.0:502\" or \"[::1]:502\"";
+    fn parse(text: &str) -> Option<Self> {
+        text.parse().ok()
+    }
+}
+
+/// A network in `server.allow` or `server.read_only`: CIDR, or a single address.
+impl text_list::Item for IpNet {
+    const EXAMPLE: &'static str = "an address or a network like \"192.168.10.0/24\"";
+    fn parse(text: &str) -> Option<Self> {
+        text.parse()
+            .ok()
+            .or_else(|| text.parse::<IpAddr>().ok().map(IpNet::from))
+            .map(|net| net.trunc())
     }
 }
 
@@ -745,6 +820,18 @@ impl Config {
         if self.server.pipeline_depth == 0 {
             fail("server.pipeline_depth".into(), "must be at least 1".into());
         }
+        if self.server.frame_timeout.is_zero() {
+            fail(
+                "server.frame_timeout".into(),
+                "must be longer than 0".into(),
+            );
+        }
+        if !self.server.keepalive.is_zero() && self.server.keepalive < MIN_KEEPALIVE {
+            fail(
+                "server.keepalive".into(),
+                "must be \"0s\" (off) or at least 1s (TCP counts it in seconds)".into(),
+            );
+        }
         if let Err(e) = tracing_subscriber::EnvFilter::try_new(&self.log.level) {
             fail(
                 "log.level".into(),
@@ -795,6 +882,7 @@ impl Config {
                 ("response_timeout", bus.response_timeout),
                 ("queue_timeout", bus.queue_timeout),
                 ("reopen_delay", bus.reopen_delay),
+                ("slave_probe_interval", bus.slave_probe_interval),
             ] {
                 if value.is_zero() {
                     fail(key(field), "must be longer than 0".into());

@@ -1,6 +1,7 @@
 //! Between the TCP sessions and the buses: each request is refused at once by the gateway (bad
-//! function code, no route, a read to the broadcast address, port down, queue full) or queued on
-//! the bus its unit routes to. Either way the session gets a receiver for its outcome.
+//! function code, a write from a read-only master, no route, a read to the broadcast address,
+//! port down, queue full) or queued on the bus its unit routes to. Either way the session gets a
+//! receiver for its outcome.
 
 use crate::bus::{BusHandle, MasterId};
 use crate::error::{Outcome, RequestError};
@@ -8,8 +9,37 @@ use crate::metrics::Metrics;
 use crate::pdu;
 use crate::routing::Router;
 use crate::rtu::frame::BROADCAST;
+use std::net::SocketAddr;
 use std::sync::{Arc, PoisonError, RwLock};
 use tokio::sync::oneshot;
+
+/// What a master may ask for (`server.read_only`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Rights {
+    ReadWrite,
+    /// Only requests known to change nothing on a slave; anything else gets 0x01, unsent.
+    ReadOnly,
+}
+
+/// The master requests come from: one per connection.
+#[derive(Debug)]
+pub struct Client {
+    pub master: MasterId,
+    pub peer: SocketAddr,
+    pub rights: Rights,
+    refused: u64,
+}
+
+impl Client {
+    pub fn new(master: MasterId, peer: SocketAddr, rights: Rights) -> Self {
+        Client {
+            master,
+            peer,
+            rights,
+            refused: 0,
+        }
+    }
+}
 
 /// The routes and the buses they index, replaced whole on a reload.
 struct Table {
@@ -48,8 +78,13 @@ impl Dispatcher {
         self.table().buses.clone()
     }
 
-    /// Route `pdu` from `unit`.
-    pub fn submit(&self, master: MasterId, unit: u8, pdu: Vec<u8>) -> oneshot::Receiver<Outcome> {
+    /// Route `pdu` from `client` to `unit`.
+    pub fn submit(
+        &self,
+        client: &mut Client,
+        unit: u8,
+        pdu: Vec<u8>,
+    ) -> oneshot::Receiver<Outcome> {
         let function = pdu.first().copied().unwrap_or(0);
         let table = self.table();
         let target = table.router.resolve(unit);
@@ -57,13 +92,22 @@ impl Dispatcher {
             _ if !pdu::is_valid_request_function(function) => {
                 RequestError::InvalidFunction(function)
             }
+            _ if client.rights == Rights::ReadOnly && !pdu::is_read_only(&pdu) => {
+                client.refused += 1;
+                let first = client.refused == 1;
+                let tcp = &self.metrics.tcp;
+                tcp.write_refused(client.master, &client.peer, function, first);
+                RequestError::ReadOnly(function)
+            }
             None => RequestError::NoRoute(unit),
             Some(target)
                 if target.address == BROADCAST && pdu::broadcast_response(&pdu).is_none() =>
             {
                 RequestError::NotBroadcastable(function)
             }
-            Some(target) => return table.buses[target.bus].submit(master, target.address, pdu),
+            Some(target) => {
+                return table.buses[target.bus].submit(client.master, target.address, pdu)
+            }
         };
         // Counted against the bus and slave the unit routes to, if any, else the unit id.
         let (bus, slave) = match target {

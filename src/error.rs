@@ -12,6 +12,8 @@ pub type Outcome = Result<Option<Vec<u8>>, RequestError>;
 pub enum RequestError {
     #[error("function code {0:#04x} is not valid in a request")]
     InvalidFunction(u8),
+    #[error("function code {0:#04x} may change the slave, and the master is read-only")]
+    ReadOnly(u8),
     #[error("no route for unit {0}")]
     NoRoute(u8),
     #[error("function code {0:#04x} cannot be broadcast")]
@@ -24,6 +26,8 @@ pub enum RequestError {
     Expired,
     #[error("the gateway is shutting down")]
     ShuttingDown,
+    #[error("slave is down (timed out {timeouts} times in a row); not sent")]
+    SlaveDown { timeouts: u32 },
     #[error("no valid reply after {attempts} attempt(s): {last}")]
     NoResponse { attempts: u32, last: TxError },
 }
@@ -33,14 +37,16 @@ impl RequestError {
     /// through here.
     pub fn exception_code(&self) -> ExceptionCode {
         match self {
-            RequestError::InvalidFunction(_) | RequestError::NotBroadcastable(_) => {
-                ExceptionCode::IllegalFunction
-            }
+            RequestError::InvalidFunction(_)
+            | RequestError::NotBroadcastable(_)
+            | RequestError::ReadOnly(_) => ExceptionCode::IllegalFunction,
             RequestError::NoRoute(_) | RequestError::PortDown | RequestError::ShuttingDown => {
                 ExceptionCode::GatewayPathUnavailable
             }
             RequestError::QueueFull | RequestError::Expired => ExceptionCode::ServerDeviceBusy,
-            RequestError::NoResponse { .. } => ExceptionCode::GatewayTargetFailedToRespond,
+            RequestError::NoResponse { .. } | RequestError::SlaveDown { .. } => {
+                ExceptionCode::GatewayTargetFailedToRespond
+            }
         }
     }
 }

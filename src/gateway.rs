@@ -11,7 +11,7 @@ use crate::routing::Router;
 use crate::shutdown::{self, Stop};
 use crate::sim::{self, SimLine};
 use crate::tcp::server::Shared;
-use crate::tcp::{self, SessionLimits};
+use crate::tcp::{self, Policy};
 use std::io;
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex, PoisonError};
@@ -110,13 +110,6 @@ fn device_for(
     sim_line(settings).map(Device::Sim)
 }
 
-fn session_limits(server: &config::Server) -> SessionLimits {
-    SessionLimits {
-        pipeline_depth: server.pipeline_depth,
-        idle_timeout: Some(server.idle_timeout).filter(|t| !t.is_zero()),
-    }
-}
-
 impl Gateway {
     /// Bind every listener and start every bus. Fails only if a listen address cannot be bound;
     /// a serial port that cannot be opened yet is retried by its bus while the rest serves.
@@ -148,7 +141,7 @@ impl Gateway {
         let (stop, stopping) = shutdown::channel();
         let shared = Arc::new(Shared::new(
             dispatcher,
-            session_limits(&config.server),
+            Policy::of(&config.server),
             config.server.max_connections,
             metrics.clone(),
             stopping,
@@ -262,15 +255,19 @@ impl Gateway {
         let handles = running.iter().map(|r| r.handle.clone()).collect();
         self.shared.dispatcher.replace(Router::new(new), handles);
         let (server, was) = (&new.server, &config.server);
-        if server.max_connections != was.max_connections
-            || server.pipeline_depth != was.pipeline_depth
-            || server.idle_timeout != was.idle_timeout
-        {
+        // Everything in [server] but the listen addresses and the stop's timeout.
+        let policy = |server: &config::Server| {
+            let mut server = server.clone();
+            server.listen.clear();
+            server.shutdown_timeout = Duration::ZERO;
+            server
+        };
+        if policy(server) != policy(was) {
             done.applied
-                .push("connection limits (for new connections)".to_owned());
+                .push("connection limits and access (for new connections)".to_owned());
         }
         self.shared
-            .set_limits(session_limits(&new.server), new.server.max_connections);
+            .set_policy(Policy::of(&new.server), new.server.max_connections);
         if server.shutdown_timeout != was.shutdown_timeout {
             done.applied.push("server.shutdown_timeout".to_owned());
         }

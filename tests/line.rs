@@ -135,7 +135,8 @@ async fn a_late_reply_never_answers_a_later_request() {
 
 #[tokio::test(start_paused = true)]
 async fn no_frame_starts_less_than_t35_after_the_previous_one() {
-    let keys = "baud = 9600\nresponse_timeout = \"100ms\"\nturnaround_delay = \"50ms\"\nqueue_timeout = \"1h\"";
+    // Slave 9 is absent and asked five times: it stays on the wire (never marked down).
+    let keys = "baud = 9600\nresponse_timeout = \"100ms\"\nturnaround_delay = \"50ms\"\nqueue_timeout = \"1h\"\nslave_down_after = 0";
     let (line, bus) = sim_bus(keys, |line| {
         for address in 1..=4 {
             line.add_slave(address, RegisterBank::new(Duration::ZERO));
@@ -318,4 +319,109 @@ async fn a_broadcast_is_answered_once_sent_and_the_line_stays_quiet_for_the_turn
         2,
         "nobody answered the broadcast"
     );
+}
+
+/// For `run_for` on the paused clock, master 1 polls slave 1 (absent: nobody answers) every
+/// 50 ms while master 2 reads slave 2 back to back. Returns master 2's answers, the frames that
+/// went to slave 1, and the exception codes master 1 got.
+async fn a_dead_slave_beside_a_healthy_one(
+    keys: &str,
+    with_dead: bool,
+    run_for: Duration,
+) -> (usize, usize, Vec<u8>) {
+    let keys = format!("baud = 19200\nresponse_timeout = \"100ms\"\n{keys}");
+    let (line, bus) = sim_bus(&keys, |line| {
+        line.add_slave(2, RegisterBank::new(Duration::ZERO));
+    });
+    settle(&bus).await;
+    let end = Instant::now() + run_for;
+    let healthy = tokio::spawn({
+        let bus = bus.clone();
+        async move {
+            let mut answers = 0;
+            while Instant::now() < end {
+                let outcome = bus.submit(2, 2, READ_10.to_vec()).await.unwrap();
+                assert!(outcome.is_ok(), "the healthy slave answers: {outcome:?}");
+                answers += 1;
+            }
+            answers
+        }
+    });
+    let mut codes = Vec::new();
+    while with_dead && Instant::now() < end {
+        let outcome = bus.submit(1, 1, READ_10.to_vec()).await.unwrap();
+        codes.push(exception(&outcome).expect("the dead slave is answered by the gateway"));
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let answers = healthy.await.unwrap();
+    let to_dead = line
+        .frames()
+        .iter()
+        .filter(|f| f.from == Source::Master && f.bytes[0] == 1)
+        .count();
+    (answers, to_dead, codes)
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_slave_that_keeps_timing_out_is_only_probed_and_the_healthy_one_keeps_the_line() {
+    let run_for = Duration::from_secs(30);
+    let (alone, _, _) = a_dead_slave_beside_a_healthy_one("", false, run_for).await;
+    // The defaults: down after 3 timeouts in a row, probed every 5 s.
+    let (answers, to_dead, codes) = a_dead_slave_beside_a_healthy_one("", true, run_for).await;
+    assert!(codes.iter().all(|&code| code == 0x0B), "{codes:?}");
+    assert!(codes.len() > 400, "polled {} times", codes.len());
+    // 3 timeouts, then one probe per 5 s of the remaining 29.7 s.
+    assert!(
+        (8..=10).contains(&to_dead),
+        "{to_dead} frames to the dead slave"
+    );
+    assert!(
+        answers as f64 >= 0.95 * alone as f64,
+        "the healthy slave answered {answers} times beside the dead one, {alone} alone"
+    );
+}
+
+#[tokio::test(start_paused = true)]
+async fn without_the_down_policy_a_dead_slave_takes_most_of_the_line() {
+    let run_for = Duration::from_secs(10);
+    let (alone, _, _) = a_dead_slave_beside_a_healthy_one("", false, run_for).await;
+    let (answers, to_dead, codes) =
+        a_dead_slave_beside_a_healthy_one("slave_down_after = 0", true, run_for).await;
+    assert_eq!(to_dead, codes.len(), "every poll went on the wire");
+    assert!(
+        (answers as f64) < 0.5 * alone as f64,
+        "the healthy slave answered {answers} times beside the dead one, {alone} alone"
+    );
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_down_slave_that_answers_its_probe_is_served_normally_again() {
+    let keys = "baud = 19200\nresponse_timeout = \"100ms\"\nslave_probe_interval = \"2s\"";
+    let (line, bus) = sim_bus(keys, |_| {});
+    settle(&bus).await;
+    for _ in 0..3 {
+        let (outcome, elapsed) = call(&bus, 1, &READ_10).await;
+        assert_eq!(exception(&outcome), Some(0x0B));
+        assert!(elapsed >= Duration::from_millis(100), "{elapsed:?}");
+    }
+    let (outcome, elapsed) = call(&bus, 1, &READ_10).await;
+    assert!(
+        matches!(outcome, Err(RequestError::SlaveDown { timeouts: 3 })),
+        "{outcome:?}"
+    );
+    assert_eq!(elapsed, Duration::ZERO, "answered without the line");
+    assert_eq!(line.stats().master_frames, 3);
+    // The drive is powered again; its requests get 0x0B until its probe is due.
+    line.add_slave(1, RegisterBank::new(Duration::ZERO));
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let (outcome, _) = call(&bus, 1, &READ_10).await;
+    assert_eq!(exception(&outcome), Some(0x0B));
+    assert_eq!(line.stats().master_frames, 3);
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let (outcome, _) = call(&bus, 1, &READ_10).await;
+    assert!(outcome.is_ok(), "the probe is answered: {outcome:?}");
+    for _ in 0..5 {
+        assert!(call(&bus, 1, &READ_10).await.0.is_ok());
+    }
+    assert_eq!(line.stats().master_frames, 3 + 6);
 }

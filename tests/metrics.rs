@@ -246,7 +246,7 @@ async fn requests_of_a_master_that_left_are_counted_dropped_and_never_sent() {
 async fn refused_and_broken_connections_are_counted_by_reason() {
     let gateway = start(&LINE.replace(
         "listen = \"127.0.0.1:0\"\n",
-        "listen = \"127.0.0.1:0\"\nmax_connections = 1\n",
+        "listen = \"127.0.0.1:0\"\nmax_connections = 1\nwhen_full = \"refuse\"\n",
     ))
     .await;
     let mut first = RawMaster::connect(addr(&gateway)).await;

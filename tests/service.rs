@@ -240,7 +240,7 @@ async fn a_bus_task_stuck_on_its_port_stops_the_watchdog_pings_until_it_moves_ag
         format!(
             "[server]\nlisten = \"{listen}\"\n[metrics]\nlisten = \"{metrics}\"\n\
              [[bus]]\nname = \"pty\"\ndevice = \"{device}\"\nbaud = 921600\nparity = \"none\"\n\
-             response_timeout = \"1ms\"\nqueue_timeout = \"60s\"\n"
+             response_timeout = \"1ms\"\nqueue_timeout = \"60s\"\nslave_down_after = 0\n"
         ),
     )
     .unwrap();

@@ -1,14 +1,15 @@
-//! The Modbus TCP side: pipelining, malformed MBAP headers, garbage, the connection limit and the
-//! idle timeout.
+//! The Modbus TCP side, and masters that abuse it: pipelining and pipelined floods, malformed
+//! and lying MBAP headers, garbage, half-sent requests, the connection limit and its policies,
+//! the idle timeout, keepalive.
 
 use crate::support::{addr, panics_on_this_thread, start, start_sim, within, RawMaster};
 use modbus_gateway::bus::{Bus, Device};
-use modbus_gateway::dispatch::Dispatcher;
+use modbus_gateway::dispatch::{Client, Dispatcher, Rights};
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::routing::Router;
 use modbus_gateway::shutdown::Stopping;
 use modbus_gateway::sim::{RegisterBank, SimLine};
-use modbus_gateway::tcp::session::{self, SessionError};
+use modbus_gateway::tcp::session::{self, Activity, SessionError};
 use modbus_gateway::tcp::SessionLimits;
 use modbus_gateway::Config;
 use std::sync::Arc;
@@ -81,6 +82,9 @@ async fn a_length_field_outside_2_to_254_closes_the_connection() {
     assert_eq!(panics_on_this_thread(), panics, "no session panicked");
 }
 
+/// The frame timeout of sessions on an in-memory pipe.
+const FRAME_TIMEOUT: Duration = Duration::from_millis(200);
+
 /// xorshift64: reproducible noise without a dependency.
 fn noise(seed: u64, len: usize) -> Vec<u8> {
     let mut x = seed | 1;
@@ -118,10 +122,11 @@ async fn random_bytes_never_take_the_gateway_down() {
 }
 
 #[tokio::test]
-async fn connections_beyond_max_connections_are_refused_and_a_freed_slot_is_reused() {
+async fn with_when_full_refuse_connections_beyond_max_connections_are_refused_and_a_freed_slot_is_reused(
+) {
     let gateway = start(&crate::support::sim_config("").replace(
         "listen = \"127.0.0.1:0\"\n",
-        "listen = \"127.0.0.1:0\"\nmax_connections = 3\n",
+        "listen = \"127.0.0.1:0\"\nmax_connections = 3\nwhen_full = \"refuse\"\n",
     ))
     .await;
     let mut open = Vec::new();
@@ -170,9 +175,20 @@ async fn session_on_pipe(
     let limits = SessionLimits {
         pipeline_depth: 4,
         idle_timeout: Some(idle_timeout),
+        frame_timeout: FRAME_TIMEOUT,
     };
     let task = tokio::spawn(async move {
-        session::run(server, 1, &dispatcher, limits, Stopping::never()).await
+        let client = Client::new(1, "127.0.0.1:1502".parse().unwrap(), Rights::ReadWrite);
+        let activity = Activity::default();
+        session::run(
+            server,
+            client,
+            &activity,
+            &dispatcher,
+            limits,
+            Stopping::never(),
+        )
+        .await
     });
     (client, task)
 }

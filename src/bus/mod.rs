@@ -1,8 +1,10 @@
 //! One task per RS-485 line, the only owner of its port. It takes requests from a fair queue
 //! ([`queue`]), skips those whose master has gone or whose deadline passed, runs each through the
 //! RTU master with the slave's timeout and the retry policy, sends broadcasts, and when the port
-//! is lost answers 0x0A at once while it reopens the port with backoff. Knows nothing of TCP.
+//! is lost answers 0x0A at once while it reopens the port with backoff. A slave that keeps timing
+//! out is left alone but for probes ([`health`]). Knows nothing of TCP.
 
+pub mod health;
 pub mod port;
 pub mod queue;
 
@@ -16,6 +18,7 @@ use crate::pdu;
 use crate::rtu::frame::{ReplyForm, BROADCAST, MAX_FRAME_LEN};
 use crate::rtu::{MasterTiming, RtuMaster, TxError};
 use crate::shutdown::Stopping;
+use health::{Admission, Change, DownPolicy, Health, Response};
 use std::io;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, PoisonError, Weak};
@@ -177,6 +180,7 @@ struct Derived {
     /// Response timeout per slave address, overrides applied.
     timeouts: Box<[Duration; 256]>,
     stall_limit: Duration,
+    down: DownPolicy,
 }
 
 impl Derived {
@@ -202,6 +206,10 @@ impl Derived {
             timing,
             timeouts,
             stall_limit,
+            down: DownPolicy {
+                after: settings.slave_down_after,
+                probe_interval: settings.slave_probe_interval,
+            },
         }
     }
 }
@@ -217,6 +225,7 @@ pub struct Bus {
     updates_sender: Option<watch::Sender<Option<Reconfigure>>>,
     /// Whoever reconfigured the bus is gone: stop listening for more.
     updates_closed: bool,
+    health: Health,
 }
 
 impl Bus {
@@ -254,6 +263,7 @@ impl Bus {
             updates,
             updates_sender: Some(sender),
             updates_closed: false,
+            health: Health::default(),
         }
     }
 
@@ -474,7 +484,17 @@ impl Bus {
                 self.handle.answer(job, Err(RequestError::Expired));
                 continue;
             }
-            let result = self.execute(&mut master, &job, deadline).await;
+            let admission = match job.slave {
+                BROADCAST => Admission::Send,
+                slave => self.health.admit(slave, Instant::now(), self.derived.down),
+            };
+            if let Admission::Skip { timeouts } = admission {
+                self.handle
+                    .answer(job, Err(RequestError::SlaveDown { timeouts }));
+                continue;
+            }
+            let probe = admission == Admission::Probe;
+            let result = self.execute(&mut master, &job, deadline, probe).await;
             let traffic = master.counters();
             metrics.line(&traffic.since(&counted));
             counted = traffic;
@@ -493,13 +513,14 @@ impl Bus {
         }
     }
 
-    /// Run one request on the line; no retry starts after `stop_at`. `Err` only when the port is
-    /// lost.
+    /// Run one request on the line; no retry starts after `stop_at`, none at all for a `probe`
+    /// of a slave that is down. `Err` only when the port is lost.
     async fn execute(
-        &self,
+        &mut self,
         master: &mut RtuMaster<Port>,
         job: &Job,
         stop_at: Option<Instant>,
+        probe: bool,
     ) -> Result<Outcome, io::Error> {
         let settings = &self.settings;
         if job.slave == BROADCAST {
@@ -521,7 +542,9 @@ impl Bus {
         }
         // A write whose reply was lost may have been carried out: sending it again could do it
         // twice, so writes are retried only when the configuration says so.
-        let retries = if pdu::is_read_only(&job.pdu) || settings.retry_writes {
+        let retries = if probe {
+            0
+        } else if pdu::is_read_only(&job.pdu) || settings.retry_writes {
             settings.retries
         } else {
             0
@@ -557,6 +580,23 @@ impl Bus {
         self.handle
             .metrics
             .transaction(job.slave, attempts, round_trip, &outcome);
+        let response = match &outcome {
+            Ok(_) => Response::Answered,
+            Err(RequestError::NoResponse {
+                last: TxError::Timeout,
+                ..
+            }) => Response::TimedOut,
+            Err(_) => Response::Garbled,
+        };
+        let down = self.derived.down;
+        let change = self
+            .health
+            .record(job.slave, response, Instant::now(), down);
+        if let Change::Down { timeouts } = change {
+            self.handle
+                .metrics
+                .slave_down(job.slave, timeouts, down.probe_interval);
+        }
         Ok(outcome)
     }
 }

@@ -60,6 +60,11 @@ pub enum Fate {
     Shutdown,
     /// The master left before the request was sent; it was never sent.
     Dropped,
+    /// A request from a read-only master that may change the slave; never sent (0x01).
+    ReadOnly,
+    /// The slave is down (timed out again and again) and it was not its probe's turn; never
+    /// sent (0x0B).
+    SlaveDown,
 }
 
 impl Fate {
@@ -78,6 +83,8 @@ impl Fate {
             Fate::PortDown => "port_down",
             Fate::Shutdown => "shutdown",
             Fate::Dropped => "dropped",
+            Fate::ReadOnly => "read_only",
+            Fate::SlaveDown => "slave_down",
         }
     }
 
@@ -100,6 +107,8 @@ impl Fate {
                     RequestError::InvalidFunction(_) | RequestError::NotBroadcastable(_) => {
                         Fate::Refused
                     }
+                    RequestError::ReadOnly(_) => Fate::ReadOnly,
+                    RequestError::SlaveDown { .. } => Fate::SlaveDown,
                     RequestError::NoRoute(_) => Fate::NoRoute,
                     RequestError::PortDown => Fate::PortDown,
                     RequestError::QueueFull => Fate::QueueFull,
@@ -138,15 +147,19 @@ impl Source {
 /// Why a TCP connection was refused at accept: the `reason` label.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Rejection {
+    /// `max_connections` open, none of them idle (or `when_full = "refuse"`).
     MaxConnections,
+    /// The peer's address is outside `server.allow`.
+    NotAllowed,
 }
 
 impl Rejection {
-    pub const ALL: [Rejection; 1] = [Rejection::MaxConnections];
+    pub const ALL: [Rejection; 2] = [Rejection::MaxConnections, Rejection::NotAllowed];
 
     pub fn label(self) -> &'static str {
         match self {
             Rejection::MaxConnections => "max_connections",
+            Rejection::NotAllowed => "not_allowed",
         }
     }
 }
@@ -164,15 +177,21 @@ pub enum Closing {
     IoError,
     /// The gateway is stopping; the master's requests were answered first.
     Shutdown,
+    /// A request's bytes did not all arrive within `frame_timeout`.
+    FrameTimeout,
+    /// Idle longest of all when a new master came at `max_connections`.
+    Evicted,
 }
 
 impl Closing {
-    pub const ALL: [Closing; 5] = [
+    pub const ALL: [Closing; 7] = [
         Closing::ByMaster,
         Closing::ProtocolError,
         Closing::Idle,
         Closing::IoError,
         Closing::Shutdown,
+        Closing::FrameTimeout,
+        Closing::Evicted,
     ];
 
     pub fn label(self) -> &'static str {
@@ -182,6 +201,8 @@ impl Closing {
             Closing::Idle => "idle_timeout",
             Closing::IoError => "io_error",
             Closing::Shutdown => "shutdown",
+            Closing::FrameTimeout => "frame_timeout",
+            Closing::Evicted => "evicted",
         }
     }
 }
@@ -604,6 +625,14 @@ impl BusMetrics {
         }
     }
 
+    /// `slave` timed out `timeouts` times in a row: its requests are answered 0x0B unsent (and
+    /// counted `slave_down`) but for one probe per `probe_interval`.
+    pub fn slave_down(&self, slave: u8, timeouts: u32, probe_interval: Duration) {
+        let bus = &*self.name;
+        let probe_interval = humantime::format_duration(probe_interval).to_string();
+        warn!(target: BUS_EVENTS, bus, slave, timeouts, probe_interval, "slave down; answering 0x0B without sending, probing once per interval");
+    }
+
     /// What went over the line since the last call.
     pub fn line(&self, traffic: &LineCounters) {
         self.sent.inc_by(traffic.sent_bytes);
@@ -659,7 +688,12 @@ pub struct TcpMetrics {
     closed: IntCounterVec,
     /// Whether connections are being refused for `max_connections`, so a storm logs once.
     refusing: AtomicBool,
+    /// When a refusal for `server.allow` was last logged at warn, so a scan logs little.
+    not_allowed_logged: Mutex<Option<std::time::Instant>>,
 }
+
+/// At most one warning per this interval about masters outside `server.allow`.
+const NOT_ALLOWED_LOG_INTERVAL: Duration = Duration::from_secs(10);
 
 impl TcpMetrics {
     fn new(define: &Definer) -> Self {
@@ -699,24 +733,55 @@ impl TcpMetrics {
             rejected,
             closed,
             refusing: AtomicBool::new(false),
+            not_allowed_logged: Mutex::new(None),
         }
     }
 
-    pub fn accepted(&self, master: u64, peer: &dyn Display) {
+    pub fn accepted(&self, master: u64, peer: &dyn Display, read_only: bool) {
         self.accepted.inc();
         self.open.inc();
         self.refusing.store(false, Ordering::Relaxed);
-        debug!(target: TCP_EVENTS, master, %peer, "master connected");
+        debug!(target: TCP_EVENTS, master, %peer, read_only, "master connected");
     }
 
-    /// A connection refused at accept. Logged once until a connection is accepted again.
+    /// A connection refused at accept. For `max_connections`, logged once until a connection is
+    /// accepted again; for `server.allow`, at most once per ten seconds.
     pub fn rejected(&self, reason: Rejection, listen: &dyn Display, peer: &dyn Display) {
         self.rejected.with_label_values(&[reason.label()]).inc();
+        let warn = match reason {
+            Rejection::MaxConnections => !self.refusing.swap(true, Ordering::Relaxed),
+            Rejection::NotAllowed => {
+                let mut logged = self
+                    .not_allowed_logged
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner);
+                let due = logged.is_none_or(|at| at.elapsed() >= NOT_ALLOWED_LOG_INTERVAL);
+                if due {
+                    *logged = Some(std::time::Instant::now());
+                }
+                due
+            }
+        };
         let reason = reason.label();
-        if !self.refusing.swap(true, Ordering::Relaxed) {
-            warn!(target: TCP_EVENTS, %listen, %peer, reason, "refusing connections until one closes");
+        match reason {
+            _ if !warn => debug!(target: TCP_EVENTS, %listen, %peer, reason, "connection refused"),
+            "not_allowed" => {
+                warn!(target: TCP_EVENTS, %listen, %peer, reason, "refusing a master outside server.allow")
+            }
+            _ => {
+                warn!(target: TCP_EVENTS, %listen, %peer, reason, "refusing connections until one closes")
+            }
+        }
+    }
+
+    /// A read-only master asked for something that may change a slave (counted with the
+    /// request, as `read_only`). Logged at warn for the first on each connection.
+    pub fn write_refused(&self, master: u64, peer: &dyn Display, function: u8, first: bool) {
+        let function = hex(function);
+        if first {
+            warn!(target: TCP_EVENTS, master, %peer, function, "refusing writes from a read-only master (0x01)");
         } else {
-            debug!(target: TCP_EVENTS, %listen, %peer, reason, "connection refused");
+            debug!(target: TCP_EVENTS, master, %peer, function, "write refused");
         }
     }
 
@@ -725,8 +790,10 @@ impl TcpMetrics {
     pub fn closed(&self, reason: Closing, master: u64, peer: &dyn Display, error: &dyn Display) {
         self.open.dec();
         self.closed.with_label_values(&[reason.label()]).inc();
-        if reason == Closing::ProtocolError {
+        if matches!(reason, Closing::ProtocolError | Closing::FrameTimeout) {
             warn!(target: TCP_EVENTS, master, %peer, %error, "connection closed");
+        } else if reason == Closing::Evicted {
+            info!(target: TCP_EVENTS, master, %peer, "closed the connection idle longest to admit a new master");
         } else {
             debug!(target: TCP_EVENTS, master, %peer, %error, "master disconnected");
         }

@@ -1,23 +1,33 @@
-//! The listeners: accept masters on every `server.listen` address, refuse those beyond
-//! `max_connections` (accepted and closed at once, so they see the refusal instead of hanging in
-//! the backlog), set TCP_NODELAY, and run one session task per master.
+//! The listeners: accept masters on every `server.listen` address; refuse those outside
+//! `server.allow` and, at `max_connections`, make room by closing the connection idle longest
+//! (or refuse, with `when_full = "refuse"`). Refused masters are accepted and closed at once, so
+//! they see the refusal instead of hanging in the backlog. Each accepted connection gets
+//! TCP_NODELAY, keepalive probes, and one session task.
 
-use super::session::{self, SessionLimits};
+use super::access::Access;
+use super::session::{self, Activity, SessionLimits};
 use crate::bus::MasterId;
-use crate::dispatch::Dispatcher;
+use crate::config::{self, WhenFull};
+use crate::dispatch::{Client, Dispatcher, Rights};
 use crate::metrics::{Metrics, Rejection};
 use crate::shutdown::Stopping;
+use socket2::{SockRef, TcpKeepalive};
+use std::collections::HashMap;
 use std::io;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
-use tokio::net::TcpListener;
-use tokio::sync::Semaphore;
+use tokio::net::{TcpListener, TcpStream};
+use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 use tracing::{debug, warn};
 
 /// Pause after an accept error such as running out of file descriptors, so the loop does not spin.
 const ACCEPT_ERROR_PAUSE: Duration = Duration::from_millis(100);
+/// How long a new master waits for the connection closed to make room for it.
+const EVICTION_WAIT: Duration = Duration::from_secs(1);
+/// Keepalive probes a silent peer gets before its connection is dropped.
+const KEEPALIVE_PROBES: u32 = 3;
 
 pub struct Listener {
     pub addr: SocketAddr,
@@ -35,45 +45,77 @@ pub async fn bind(addrs: &[SocketAddr]) -> Result<Vec<Listener>, (SocketAddr, io
     Ok(listeners)
 }
 
+/// How connections are admitted and served: `[server]` minus the listen addresses.
+#[derive(Clone, Debug)]
+pub struct Policy {
+    pub limits: SessionLimits,
+    pub access: Access,
+    pub when_full: WhenFull,
+    /// `None`: no keepalive probes.
+    pub keepalive: Option<Duration>,
+}
+
+impl Policy {
+    pub fn of(server: &config::Server) -> Policy {
+        Policy {
+            limits: SessionLimits {
+                pipeline_depth: server.pipeline_depth,
+                idle_timeout: Some(server.idle_timeout).filter(|t| !t.is_zero()),
+                frame_timeout: server.frame_timeout,
+            },
+            access: Access::new(server.allow.clone(), server.read_only.clone()),
+            when_full: server.when_full,
+            keepalive: Some(server.keepalive).filter(|t| !t.is_zero()),
+        }
+    }
+}
+
 /// What every accept loop shares.
 pub struct Shared {
     pub dispatcher: Dispatcher,
-    /// For sessions that start from now on.
-    limits: Mutex<SessionLimits>,
+    /// For connections accepted from now on.
+    policy: Mutex<Arc<Policy>>,
     pub connections: Arc<Semaphore>,
     pub metrics: Arc<Metrics>,
     pub stopping: Stopping,
     max_connections: AtomicUsize,
     next_master: AtomicU64,
+    /// The running sessions, for making room at `max_connections`.
+    sessions: Mutex<HashMap<MasterId, Arc<Activity>>>,
 }
 
 impl Shared {
     pub fn new(
         dispatcher: Dispatcher,
-        limits: SessionLimits,
+        policy: Policy,
         max_connections: usize,
         metrics: Arc<Metrics>,
         stopping: Stopping,
     ) -> Self {
         Shared {
             dispatcher,
-            limits: Mutex::new(limits),
+            policy: Mutex::new(Arc::new(policy)),
             connections: Arc::new(Semaphore::new(max_connections)),
             metrics,
             stopping,
             max_connections: AtomicUsize::new(max_connections),
             next_master: AtomicU64::new(1),
+            sessions: Mutex::new(HashMap::new()),
         }
     }
 
-    pub fn limits(&self) -> SessionLimits {
-        *self.limits.lock().unwrap_or_else(PoisonError::into_inner)
+    pub fn policy(&self) -> Arc<Policy> {
+        self.policy
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
     }
 
-    /// New limits: sessions that start from now on get `limits`; connections beyond a lower
-    /// `max_connections` stay open, and new ones are refused until enough have closed.
-    pub fn set_limits(&self, limits: SessionLimits, max_connections: usize) {
-        *self.limits.lock().unwrap_or_else(PoisonError::into_inner) = limits;
+    /// A new policy for connections accepted from now on; connections beyond a lower
+    /// `max_connections` stay open, and new ones are refused (or make room) until enough have
+    /// closed.
+    pub fn set_policy(&self, policy: Policy, max_connections: usize) {
+        *self.policy.lock().unwrap_or_else(PoisonError::into_inner) = Arc::new(policy);
         let old = self
             .max_connections
             .swap(max_connections, Ordering::Relaxed);
@@ -107,6 +149,47 @@ impl Shared {
         let all = u32::try_from(all).unwrap_or(u32::MAX);
         let _ = self.connections.acquire_many(all).await;
     }
+
+    fn sessions(&self) -> std::sync::MutexGuard<'_, HashMap<MasterId, Arc<Activity>>> {
+        self.sessions.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// A connection slot: a free one, or, with `close_oldest_idle`, the one of the session idle
+    /// longest, once it has closed. `None` if every session has requests in flight.
+    async fn slot(&self, when_full: WhenFull) -> Option<OwnedSemaphorePermit> {
+        if let Ok(permit) = self.connections.clone().try_acquire_owned() {
+            return Some(permit);
+        }
+        if when_full == WhenFull::Refuse {
+            return None;
+        }
+        let oldest_idle = self
+            .sessions()
+            .values()
+            .filter_map(|activity| Some((activity.idle_since()?, activity.clone())))
+            .min_by_key(|(since, _)| *since)
+            .map(|(_, activity)| activity)?;
+        oldest_idle.evict();
+        tokio::time::timeout(EVICTION_WAIT, self.connections.clone().acquire_owned())
+            .await
+            .ok()?
+            .ok()
+    }
+}
+
+/// Probe a silent peer after `idle`, then every third of that, and drop the connection when
+/// `KEEPALIVE_PROBES` go unanswered, or when data sent to it stays unacknowledged as long: a
+/// master that lost power or its link no longer holds a connection slot.
+pub fn set_keepalive(stream: &TcpStream, idle: Duration) -> io::Result<()> {
+    let interval = (idle / 3).max(Duration::from_secs(1));
+    let socket = SockRef::from(stream);
+    socket.set_tcp_keepalive(
+        &TcpKeepalive::new()
+            .with_time(idle)
+            .with_interval(interval)
+            .with_retries(KEEPALIVE_PROBES),
+    )?;
+    socket.set_tcp_user_timeout(Some(idle + interval * KEEPALIVE_PROBES))
 }
 
 /// Accept masters on `listener` forever.
@@ -120,27 +203,59 @@ pub async fn serve(listener: Listener, shared: Arc<Shared>) {
                 continue;
             }
         };
+        let policy = shared.policy();
         let tcp = &shared.metrics.tcp;
-        let Ok(permit) = shared.connections.clone().try_acquire_owned() else {
-            tcp.rejected(Rejection::MaxConnections, &listener.addr, &peer);
-            drop(stream);
+        let Some(rights) = policy.access.admit(peer.ip()) else {
+            tcp.rejected(Rejection::NotAllowed, &listener.addr, &peer);
             continue;
         };
-        if let Err(error) = stream.set_nodelay(true) {
-            debug!(%peer, %error, "cannot set TCP_NODELAY");
-        }
-        let master: MasterId = shared.next_master.fetch_add(1, Ordering::Relaxed);
-        tcp.accepted(master, &peer);
+        // Making room may wait for a session to close: not in the accept loop.
         let shared = shared.clone();
+        let listen = listener.addr;
         tokio::spawn(async move {
-            let stopping = shared.stopping.clone();
-            let limits = shared.limits();
-            let error = session::run(stream, master, &shared.dispatcher, limits, stopping).await;
-            shared
-                .metrics
-                .tcp
-                .closed(error.closing(), master, &peer, &error);
+            let Some(permit) = shared.slot(policy.when_full).await else {
+                shared
+                    .metrics
+                    .tcp
+                    .rejected(Rejection::MaxConnections, &listen, &peer);
+                return;
+            };
+            run_session(stream, peer, rights, &policy, &shared).await;
             drop(permit);
         });
     }
+}
+
+async fn run_session(
+    stream: TcpStream,
+    peer: SocketAddr,
+    rights: Rights,
+    policy: &Policy,
+    shared: &Shared,
+) {
+    if let Err(error) = stream.set_nodelay(true) {
+        debug!(%peer, %error, "cannot set TCP_NODELAY");
+    }
+    if let Some(idle) = policy.keepalive {
+        if let Err(error) = set_keepalive(&stream, idle) {
+            debug!(%peer, %error, "cannot set TCP keepalive");
+        }
+    }
+    let master: MasterId = shared.next_master.fetch_add(1, Ordering::Relaxed);
+    let tcp = &shared.metrics.tcp;
+    tcp.accepted(master, &peer, rights == Rights::ReadOnly);
+    let activity = Arc::new(Activity::default());
+    shared.sessions().insert(master, activity.clone());
+    let client = Client::new(master, peer, rights);
+    let error = session::run(
+        stream,
+        client,
+        &activity,
+        &shared.dispatcher,
+        policy.limits,
+        shared.stopping.clone(),
+    )
+    .await;
+    shared.sessions().remove(&master);
+    tcp.closed(error.closing(), master, &peer, &error);
 }

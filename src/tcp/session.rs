@@ -1,11 +1,12 @@
 //! One master's connection. Every whole request read is handed to the dispatcher at once, so
 //! pipelined requests queue (fairly) on the line right away; the answers go back in request
 //! order, each in its own MBAP header. A malformed header closes the connection; so does a
-//! connection idle for `idle_timeout`. When the master goes, its queued requests go too.
+//! request whose bytes trickle in slower than `frame_timeout`, a connection idle for
+//! `idle_timeout`, or the listener making room for a new master. When the master goes, its
+//! queued requests go too.
 
 use super::mbap::{self, FrameError, Header};
-use crate::bus::MasterId;
-use crate::dispatch::Dispatcher;
+use crate::dispatch::{Client, Dispatcher};
 use crate::error::{Outcome, RequestError};
 use crate::metrics::Closing;
 use crate::pdu::exception_pdu;
@@ -13,9 +14,11 @@ use crate::shutdown::Stopping;
 use bytes::BytesMut;
 use std::collections::VecDeque;
 use std::io;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Mutex, PoisonError};
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
-use tokio::sync::oneshot;
+use tokio::sync::{oneshot, Notify};
 use tokio::time::{sleep_until, Instant};
 
 /// Room for a few whole requests before a read must wait.
@@ -26,6 +29,45 @@ pub struct SessionLimits {
     pub pipeline_depth: usize,
     /// `None`: never close an idle connection.
     pub idle_timeout: Option<Duration>,
+    /// Longest a request may take to arrive, from its first byte to its last.
+    pub frame_timeout: Duration,
+}
+
+/// What the listener sees of a session: when it last had a request or sent an answer, whether
+/// requests are in flight, and a way to ask it to close once it has none.
+#[derive(Debug)]
+pub struct Activity {
+    last: Mutex<Instant>,
+    busy: AtomicBool,
+    close: Notify,
+}
+
+impl Default for Activity {
+    fn default() -> Self {
+        Activity {
+            last: Mutex::new(Instant::now()),
+            busy: AtomicBool::new(false),
+            close: Notify::new(),
+        }
+    }
+}
+
+impl Activity {
+    fn touch(&self, busy: bool) {
+        *self.last.lock().unwrap_or_else(PoisonError::into_inner) = Instant::now();
+        self.busy.store(busy, Ordering::Relaxed);
+    }
+
+    /// When it last had a request or sent an answer, if it has nothing in flight now.
+    pub fn idle_since(&self) -> Option<Instant> {
+        let last = *self.last.lock().unwrap_or_else(PoisonError::into_inner);
+        (!self.busy.load(Ordering::Relaxed)).then_some(last)
+    }
+
+    /// Ask the session to close as soon as nothing is in flight.
+    pub fn evict(&self) {
+        self.close.notify_one();
+    }
 }
 
 /// Why a session ended.
@@ -37,6 +79,10 @@ pub enum SessionError {
     Frame(#[from] FrameError),
     #[error("idle for {0:?}")]
     Idle(Duration),
+    #[error("a request did not arrive whole within {0:?} of its first byte")]
+    FrameTimeout(Duration),
+    #[error("closed to make room for a new master")]
+    Evicted,
     #[error("the gateway is shutting down")]
     Shutdown,
     #[error("socket error: {0}")]
@@ -49,6 +95,8 @@ impl SessionError {
             SessionError::Closed => Closing::ByMaster,
             SessionError::Frame(_) => Closing::ProtocolError,
             SessionError::Idle(_) => Closing::Idle,
+            SessionError::FrameTimeout(_) => Closing::FrameTimeout,
+            SessionError::Evicted => Closing::Evicted,
             SessionError::Io(_) => Closing::IoError,
             SessionError::Shutdown => Closing::Shutdown,
         }
@@ -83,19 +131,29 @@ async fn next_outcome(in_flight: &mut VecDeque<InFlight>) -> Outcome {
 /// until a stop: then read no more, answer what was read, and close.
 pub async fn run<S: AsyncRead + AsyncWrite + Unpin>(
     mut stream: S,
-    master: MasterId,
+    mut client: Client,
+    activity: &Activity,
     dispatcher: &Dispatcher,
     limits: SessionLimits,
     stopping: Stopping,
 ) -> SessionError {
-    let error = serve(&mut stream, master, dispatcher, limits, stopping).await;
-    dispatcher.forget(master);
+    let error = serve(
+        &mut stream,
+        &mut client,
+        activity,
+        dispatcher,
+        limits,
+        stopping,
+    )
+    .await;
+    dispatcher.forget(client.master);
     error
 }
 
 async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
     stream: &mut S,
-    master: MasterId,
+    client: &mut Client,
+    activity: &Activity,
     dispatcher: &Dispatcher,
     limits: SessionLimits,
     mut stopping: Stopping,
@@ -104,18 +162,22 @@ async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
     let mut outbound = Vec::with_capacity(mbap::HEADER_LEN + crate::pdu::MAX_PDU_LEN);
     let mut in_flight: VecDeque<InFlight> = VecDeque::with_capacity(limits.pipeline_depth);
     let mut last_activity = Instant::now();
+    // Since when the start of a request has been waiting for the rest of it.
+    let mut partial_since: Option<Instant> = None;
     let mut stopped = stopping.deadline().is_some();
     loop {
         while in_flight.len() < limits.pipeline_depth {
             match mbap::decode(&mut inbound) {
                 Ok(Some(request)) => {
                     last_activity = Instant::now();
+                    partial_since = None;
                     let function = request.pdu[0];
                     in_flight.push_back(InFlight {
                         header: request.header,
                         function,
-                        outcome: dispatcher.submit(master, request.header.unit, request.pdu),
+                        outcome: dispatcher.submit(client, request.header.unit, request.pdu),
                     });
+                    activity.touch(true);
                 }
                 Ok(None) => break,
                 Err(error) => return error.into(),
@@ -125,6 +187,14 @@ async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
             return SessionError::Shutdown;
         }
         let can_read = !stopped && in_flight.len() < limits.pipeline_depth;
+        // Only bytes the session is waiting to complete count against the frame timeout, not
+        // whole requests held back while the pipeline is full.
+        partial_since = if can_read && !inbound.is_empty() {
+            Some(partial_since.unwrap_or_else(Instant::now))
+        } else {
+            None
+        };
+        let frame_due = partial_since.map(|since| since + limits.frame_timeout);
         let idle_at = limits
             .idle_timeout
             .filter(|_| in_flight.is_empty())
@@ -140,14 +210,21 @@ async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
                     }
                 }
                 last_activity = Instant::now();
+                activity.touch(!in_flight.is_empty());
             }
             read = stream.read_buf(&mut inbound), if can_read => match read {
                 Ok(0) => return SessionError::Closed,
                 Ok(_) => {}
                 Err(error) => return error.into(),
             },
+            () = sleep_until(frame_due.unwrap_or(last_activity)), if frame_due.is_some() => {
+                return SessionError::FrameTimeout(limits.frame_timeout);
+            }
             () = sleep_until(idle_at.unwrap_or(last_activity)), if idle_at.is_some() => {
                 return SessionError::Idle(limits.idle_timeout.unwrap_or_default());
+            }
+            () = activity.close.notified(), if in_flight.is_empty() => {
+                return SessionError::Evicted;
             }
             _ = stopping.requested(), if !stopped => stopped = true,
         }

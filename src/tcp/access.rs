@@ -1,0 +1,91 @@
+//! Who may connect (`server.allow`) and who may only read (`server.read_only`), decided from the
+//! peer's address alone. Pure: knows nothing of sockets or sessions.
+
+use crate::dispatch::Rights;
+use ipnet::IpNet;
+use std::net::IpAddr;
+
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Access {
+    /// Empty: anyone may connect.
+    allow: Vec<IpNet>,
+    read_only: Vec<IpNet>,
+}
+
+impl Access {
+    pub fn new(allow: Vec<IpNet>, read_only: Vec<IpNet>) -> Self {
+        Access { allow, read_only }
+    }
+
+    /// The rights of a master connecting from `peer`, or `None` if it may not connect.
+    pub fn admit(&self, peer: IpAddr) -> Option<Rights> {
+        // A dual-stack listener sees IPv4 masters as ::ffff:a.b.c.d; the lists name them as IPv4.
+        let peer = peer.to_canonical();
+        let listed = |nets: &[IpNet]| nets.iter().any(|net| net.contains(&peer));
+        if !self.allow.is_empty() && !listed(&self.allow) {
+            return None;
+        }
+        Some(if listed(&self.read_only) {
+            Rights::ReadOnly
+        } else {
+            Rights::ReadWrite
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn nets(list: &[&str]) -> Vec<IpNet> {
+        list.iter().map(|n| n.parse().unwrap()).collect()
+    }
+
+    fn ip(text: &str) -> IpAddr {
+        text.parse().unwrap()
+    }
+
+    #[test]
+    fn with_no_lists_everyone_may_read_and_write() {
+        let access = Access::default();
+        assert_eq!(access.admit(ip("203.0.113.9")), Some(Rights::ReadWrite));
+        assert_eq!(access.admit(ip("2001:db8::1")), Some(Rights::ReadWrite));
+    }
+
+    #[test]
+    fn an_allow_list_refuses_everyone_outside_it() {
+        let access = Access::new(nets(&["10.0.0.0/8", "2001:db8::/32"]), vec![]);
+        assert_eq!(access.admit(ip("10.20.30.40")), Some(Rights::ReadWrite));
+        assert_eq!(access.admit(ip("2001:db8:5::7")), Some(Rights::ReadWrite));
+        assert_eq!(access.admit(ip("11.0.0.1")), None);
+        assert_eq!(access.admit(ip("127.0.0.1")), None);
+        assert_eq!(access.admit(ip("2001:db9::1")), None);
+    }
+
+    #[test]
+    fn ipv4_masters_on_a_dual_stack_listener_match_ipv4_networks() {
+        let access = Access::new(nets(&["192.168.1.0/24"]), nets(&["192.168.1.7/32"]));
+        assert_eq!(
+            access.admit(ip("::ffff:192.168.1.20")),
+            Some(Rights::ReadWrite)
+        );
+        assert_eq!(
+            access.admit(ip("::ffff:192.168.1.7")),
+            Some(Rights::ReadOnly)
+        );
+        assert_eq!(access.admit(ip("::ffff:192.168.2.1")), None);
+    }
+
+    #[test]
+    fn read_only_networks_may_connect_but_only_read() {
+        let access = Access::new(vec![], nets(&["172.16.0.0/12"]));
+        assert_eq!(access.admit(ip("172.16.4.4")), Some(Rights::ReadOnly));
+        assert_eq!(access.admit(ip("172.32.0.1")), Some(Rights::ReadWrite));
+    }
+
+    #[test]
+    fn a_read_only_network_outside_the_allow_list_is_still_refused() {
+        let access = Access::new(nets(&["10.0.0.0/8"]), nets(&["192.168.0.0/16"]));
+        assert_eq!(access.admit(ip("192.168.1.1")), None);
+    }
+}
