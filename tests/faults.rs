@@ -381,6 +381,39 @@ async fn a_line_that_does_not_fall_silent_within_the_timeout_gets_0x0b_until_it_
 }
 
 #[tokio::test(start_paused = true)]
+async fn a_port_lost_in_the_middle_of_a_reply_answers_0x0a_and_the_rest_never_arrives() {
+    let (line, bus, metrics) = counted_line_with_faulty_slave_2(
+        "reopen_delay = \"50ms\"",
+        "reply_gap = \"100ms\"\nreply_gap_after = 3",
+    );
+    settle(&bus).await;
+    let waiting = bus.submit(1, 2, READ.to_vec());
+    // The request, t3.5 and three bytes are on the wire by 20 ms; the rest is 100 ms away.
+    tokio::time::sleep(Duration::from_millis(40)).await;
+    line.unplug();
+    let outcome = waiting.await.expect("bus answers");
+    assert!(
+        matches!(&outcome, Err(e) if e.exception_code() as u8 == 0x0A),
+        "{outcome:?}"
+    );
+    assert_eq!(counted(&metrics, 2, 0x03, "port_down"), 1.0);
+    line.plug();
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    assert!(bus.is_up(), "reopened");
+    let (outcome, _) = bus_call(&bus, 1, &READ_2).await;
+    assert_eq!(outcome.unwrap(), Some(ANSWER_2.to_vec()));
+    assert_eq!(
+        line_count(&metrics, "modbus_gateway_port_reopens_total"),
+        1.0
+    );
+    assert_eq!(
+        line_count(&metrics, "modbus_gateway_stray_bytes_total"),
+        0.0,
+        "nothing of the old reply came through the new port"
+    );
+}
+
+#[tokio::test(start_paused = true)]
 async fn each_older_fault_is_counted_under_its_outcome() {
     let text =
         "[[bus]]\nname = \"line\"\ndevice = \"sim\"\nbaud = 9600\nresponse_timeout = \"200ms\"\n\
