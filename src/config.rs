@@ -2,8 +2,9 @@
 //! in [`defaults`]), and validation whose errors name the key and the reason. Produces plain
 //! values; knows nothing of sockets, ports or tasks.
 
+use crate::pdu::EXCEPTION_BIT;
 use crate::rtu::{LineTiming, MasterTiming, Parity, SerialFormat};
-use crate::sim::{self, faults::Faults};
+use crate::sim::{self, faults::Faults, Pause};
 use ipnet::IpNet;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -376,6 +377,22 @@ pub struct SimSlave {
     /// Fault knob: replies carry this address instead of the slave's own.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reply_address: Option<u8>,
+    /// Fault knob: replies carry this function code (1-127) instead of the request's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reply_function: Option<u8>,
+    /// Fault knob: only the first this many bytes of every reply are sent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub truncate_reply: Option<usize>,
+    /// Fault knob: every reply falls silent for this long after `reply_gap_after` bytes.
+    #[serde(
+        default,
+        with = "opt_duration",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub reply_gap: Option<Duration>,
+    /// Fault knob: bytes of every reply sent before its `reply_gap`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reply_gap_after: Option<usize>,
 }
 
 impl SimSlave {
@@ -388,6 +405,12 @@ impl SimSlave {
             garbage_before: self.garbage_before,
             garbage_after: self.garbage_after,
             reply_address: self.reply_address,
+            reply_function: self.reply_function,
+            truncate_reply: self.truncate_reply,
+            reply_gap: self
+                .reply_gap
+                .zip(self.reply_gap_after)
+                .map(|(gap, after)| Pause { after, gap }),
         }
     }
 }
@@ -969,6 +992,31 @@ impl Config {
                         );
                     }
                 }
+                if sim
+                    .reply_function
+                    .is_some_and(|f| f == 0 || f & EXCEPTION_BIT != 0)
+                {
+                    fail(
+                        key("reply_function"),
+                        "must be a function code 1-127".into(),
+                    );
+                }
+                if sim.truncate_reply == Some(0) {
+                    fail(
+                        key("truncate_reply"),
+                        "must be at least 1 byte (a slave that sends nothing is `offline`)".into(),
+                    );
+                }
+                match (sim.reply_gap, sim.reply_gap_after) {
+                    (Some(_), None) => {
+                        fail(key("reply_gap_after"), "is required with reply_gap".into())
+                    }
+                    (None, Some(_)) => {
+                        fail(key("reply_gap"), "is required with reply_gap_after".into())
+                    }
+                    (_, Some(0)) => fail(key("reply_gap_after"), "must be at least 1 byte".into()),
+                    _ => {}
+                }
                 if !sim.model.is_drive() {
                     for (field, set) in [
                         ("params", !sim.params.is_empty()),
@@ -1168,6 +1216,71 @@ mod tests {
             "{MINIMAL}\n[[bus.sim_slave]]\naddress = \"1-4\"\n"
         ));
         assert!(e[0].starts_with("bus[0].sim_slave:"), "{e:?}");
+    }
+
+    const SIM_BUS: &str =
+        "[[bus]]\nname = \"sim\"\ndevice = \"sim\"\n[[bus.sim_slave]]\naddress = 2\n";
+
+    #[test]
+    fn the_new_fault_knobs_reach_the_slave_and_read_back_the_same() {
+        let text = format!(
+            "{SIM_BUS}reply_function = 4\ntruncate_reply = 5\nreply_gap = \"30ms\"\nreply_gap_after = 3\n"
+        );
+        let c = Config::from_toml_str(&text).unwrap();
+        let faults = c.bus[0].sim_slave[0].faults();
+        assert_eq!(faults.reply_function, Some(4));
+        assert_eq!(faults.truncate_reply, Some(5));
+        assert_eq!(
+            faults.reply_gap,
+            Some(Pause {
+                after: 3,
+                gap: Duration::from_millis(30)
+            })
+        );
+        assert_eq!(Config::from_toml_str(&c.to_toml()).unwrap(), c);
+    }
+
+    #[test]
+    fn bad_fault_knobs_are_refused_by_key() {
+        for (knobs, key, reason) in [
+            (
+                "reply_function = 0",
+                "reply_function",
+                "must be a function code 1-127",
+            ),
+            (
+                "reply_function = 131",
+                "reply_function",
+                "must be a function code 1-127",
+            ),
+            (
+                "truncate_reply = 0",
+                "truncate_reply",
+                "must be at least 1 byte",
+            ),
+            (
+                "reply_gap = \"30ms\"",
+                "reply_gap_after",
+                "is required with reply_gap",
+            ),
+            (
+                "reply_gap_after = 3",
+                "reply_gap",
+                "is required with reply_gap_after",
+            ),
+            (
+                "reply_gap = \"30ms\"\nreply_gap_after = 0",
+                "reply_gap_after",
+                "must be at least 1 byte",
+            ),
+        ] {
+            let e = errors(&format!("{SIM_BUS}{knobs}\n"));
+            let expected = format!("bus[0].sim_slave[0].{key}: {reason}");
+            assert!(
+                e.len() == 1 && e[0].starts_with(&expected),
+                "{knobs}: {e:?}"
+            );
+        }
     }
 
     #[test]

@@ -1,10 +1,13 @@
 //! Each fault knob of a simulated slave, and what the gateway makes of it: at the bus on tokio's
-//! paused clock, against the line's record of the wire, and once over a real TCP socket.
+//! paused clock, against the line's record of the wire and the metrics it counts, and once over a
+//! real TCP socket.
 
-use crate::support::{addr, bus_call, settle, sim_bus_of, start, RawMaster};
+use crate::support::{addr, bus_call, settle, sim_bus_counted, start, RawMaster, Scrape};
 use modbus_gateway::bus::BusHandle;
 use modbus_gateway::error::Outcome;
-use modbus_gateway::sim::{SimLine, Source};
+use modbus_gateway::metrics::Metrics;
+use modbus_gateway::sim::faults::{Faults, Faulty};
+use modbus_gateway::sim::{Pause, Scripted, SimLine, Source, Transmission};
 use modbus_gateway::Config;
 use std::time::Duration;
 
@@ -12,16 +15,48 @@ const TIMEOUT: Duration = Duration::from_millis(200);
 /// Read one holding register from 0000H.
 const READ: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x01];
 const ANSWER: [u8; 4] = [0x03, 0x02, 0x00, 0x00];
+/// Read two holding registers from 0000H, and the answer of a register slave nobody wrote to.
+const READ_2: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x02];
+const ANSWER_2: [u8; 6] = [0x03, 0x04, 0x00, 0x00, 0x00, 0x00];
 
 /// A 9600 8E1 sim line with a healthy register slave at 1 and one with `knobs` at 2.
 fn line_with_faulty_slave_2(bus_keys: &str, knobs: &str) -> (SimLine, BusHandle) {
+    let (line, bus, _) = counted_line_with_faulty_slave_2(bus_keys, knobs);
+    (line, bus)
+}
+
+/// [`line_with_faulty_slave_2`], with the metrics its bus counts into.
+fn counted_line_with_faulty_slave_2(bus_keys: &str, knobs: &str) -> (SimLine, BusHandle, Metrics) {
     let text = format!(
         "[[bus]]\nname = \"line\"\ndevice = \"sim\"\nbaud = 9600\nresponse_timeout = \"200ms\"\n{bus_keys}\n\
          [[bus.sim_slave]]\naddress = 1\n\
          [[bus.sim_slave]]\naddress = 2\n{knobs}\n"
     );
     let config = Config::from_toml_str(&text).expect("test config");
-    sim_bus_of(config.bus.into_iter().next().expect("one bus"))
+    let metrics = Metrics::new();
+    let (line, bus) = sim_bus_counted(config.bus.into_iter().next().expect("one bus"), &metrics);
+    (line, bus, metrics)
+}
+
+fn scrape(metrics: &Metrics) -> Scrape {
+    Scrape::parse(metrics.render().expect("metrics render"))
+}
+
+/// Requests to `slave` with `function` that the bus counted under `outcome`.
+fn counted(metrics: &Metrics, slave: u8, function: u8, outcome: &str) -> f64 {
+    scrape(metrics)
+        .get(&format!(
+            "modbus_gateway_requests_total{{bus=\"line\",function=\"0x{function:02X}\",\
+             outcome=\"{outcome}\",slave=\"{slave}\"}}"
+        ))
+        .unwrap_or(0.0)
+}
+
+/// A per-bus counter of the line, such as `modbus_gateway_discarded_frames_total`.
+fn line_count(metrics: &Metrics, name: &str) -> f64 {
+    scrape(metrics)
+        .get(&format!("{name}{{bus=\"line\"}}"))
+        .unwrap_or(0.0)
 }
 
 fn is_0x0b(outcome: &Outcome) -> bool {
@@ -141,6 +176,286 @@ async fn a_reply_from_the_wrong_address_is_dropped_so_0x0b() {
     let sent = frames_from(&line, Source::Slave(2));
     assert_eq!(sent.len(), 1);
     assert_eq!(sent[0][0], 9, "the frame on the wire carried address 9");
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_reply_that_pauses_but_ends_before_the_deadline_is_still_the_answer() {
+    // A reply whose length its bytes tell (here 7 bytes) is judged by length, not by silence:
+    // it may pause anywhere, since USB adapters deliver in bursts, as long as its last byte is
+    // in by the response timeout plus its own time on the wire plus t3.5 (`byte_timeout`).
+    let (line, bus, metrics) =
+        counted_line_with_faulty_slave_2("", "reply_gap = \"150ms\"\nreply_gap_after = 3");
+    settle(&bus).await;
+    let (outcome, elapsed) = bus_call(&bus, 2, &READ).await;
+    assert_eq!(outcome.unwrap(), Some(ANSWER.to_vec()));
+    assert!(elapsed >= Duration::from_millis(150), "{elapsed:?}");
+    let bursts = frames_from(&line, Source::Slave(2));
+    assert_eq!(bursts.len(), 2, "the reply went out in two bursts");
+    assert_eq!(bursts[0].len(), 3);
+    assert_eq!(counted(&metrics, 2, 0x03, "ok"), 1.0);
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_reply_that_pauses_past_the_deadline_gets_0x0b_and_its_rest_answers_nothing() {
+    let (line, bus, metrics) =
+        counted_line_with_faulty_slave_2("", "reply_gap = \"250ms\"\nreply_gap_after = 3");
+    settle(&bus).await;
+    let (outcome, elapsed) = bus_call(&bus, 2, &READ).await;
+    assert!(is_0x0b(&outcome), "{outcome:?}");
+    // The deadline: the timeout, the reply's 7 bytes on the wire, t3.5; nowhere near the rest.
+    let deadline = TIMEOUT + line.timing().frame_time(8 + 7) + line.timing().t35;
+    assert!(elapsed >= deadline, "gave up early: {elapsed:?}");
+    assert!(elapsed < deadline + Duration::from_millis(5), "{elapsed:?}");
+    assert_eq!(counted(&metrics, 2, 0x03, "frame_error"), 1.0);
+    // The rest of the reply comes 50 ms after the 0x0B, while slave 1 is being polled: it may
+    // garble one exchange on the wire, but it never answers one.
+    let mut spoiled = 0;
+    for _ in 0..10 {
+        match bus_call(&bus, 1, &READ_2).await.0 {
+            Ok(answer) => assert_eq!(answer, Some(ANSWER_2.to_vec())),
+            Err(e) if e.exception_code() as u8 == 0x0B => spoiled += 1,
+            Err(e) => panic!("{e:?}"),
+        }
+    }
+    assert!(spoiled <= 1, "{spoiled} reads spoiled by one broken reply");
+    let rest = &frames_from(&line, Source::Slave(2))[1];
+    assert_eq!(rest.len(), 4, "the rest of the reply did go out");
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_reply_judged_by_silence_ends_at_the_pause_fails_its_crc_and_gets_0x0b() {
+    // User-defined function code 41H: the gateway cannot know the reply's length, so t3.5 of
+    // silence ends it. A pause longer than that cuts the frame in two; the first part fails its
+    // CRC, and a write (anything user-defined is one) is tried again only with retry_writes.
+    let (line, bus, metrics) =
+        counted_line_with_faulty_slave_2("retries = 1\nretry_writes = true", "");
+    let reply = [0x41, 0xDE, 0xAD, 0xBE, 0xEF];
+    let pause = Pause {
+        after: 3,
+        gap: Duration::from_millis(60),
+    };
+    let plan = (0..2).map(|_| Some(Transmission::frame(3, &reply, Duration::ZERO)));
+    let faults = Faults {
+        reply_gap: Some(pause),
+        ..Faults::default()
+    };
+    line.add_slave(3, Faulty::new(Scripted::new(plan), faults, 3));
+    settle(&bus).await;
+    let (outcome, elapsed) = bus_call(&bus, 3, &[0x41, 0x01]).await;
+    assert!(is_0x0b(&outcome), "{outcome:?}");
+    assert!(elapsed < pause.gap, "waited for the rest: {elapsed:?}");
+    assert_eq!(counted(&metrics, 3, 0x41, "crc_error"), 1.0);
+    let tries = line
+        .frames()
+        .iter()
+        .filter(|f| f.from == Source::Master && f.bytes[0] == 3)
+        .count();
+    assert_eq!(tries, 2, "one try and one retry");
+    // Both rests arrive later, on an idle line or in another exchange; neither answers it.
+    for _ in 0..10 {
+        let (outcome, _) = bus_call(&bus, 1, &READ_2).await;
+        if let Ok(answer) = outcome {
+            assert_eq!(answer, Some(ANSWER_2.to_vec()));
+        }
+    }
+    let (outcome, _) = bus_call(&bus, 1, &READ).await;
+    assert_eq!(outcome.unwrap(), Some(ANSWER.to_vec()));
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_reply_to_the_wrong_function_is_never_forwarded_and_reads_are_retried() {
+    let (line, bus, metrics) =
+        counted_line_with_faulty_slave_2("retries = 2", "reply_function = 4");
+    settle(&bus).await;
+    let (outcome, elapsed) = bus_call(&bus, 2, &READ).await;
+    assert!(is_0x0b(&outcome), "{outcome:?}");
+    assert!(
+        elapsed >= 3 * TIMEOUT,
+        "each try waited out the timeout: {elapsed:?}"
+    );
+    let replies = frames_from(&line, Source::Slave(2));
+    assert_eq!(replies.len(), 3, "one try and two retries, each answered");
+    assert!(replies.iter().all(|r| r[1] == 0x04));
+    assert_eq!(counted(&metrics, 2, 0x03, "timeout"), 1.0);
+    assert_eq!(
+        line_count(&metrics, "modbus_gateway_discarded_frames_total"),
+        3.0
+    );
+    // A write is not retried: its reply is lost, but it may have been carried out.
+    let (outcome, _) = bus_call(&bus, 2, &[0x06, 0x00, 0x01, 0x00, 0x07]).await;
+    assert!(is_0x0b(&outcome), "{outcome:?}");
+    assert_eq!(frames_from(&line, Source::Slave(2)).len(), 4);
+    let (outcome, _) = bus_call(&bus, 1, &READ).await;
+    assert_eq!(outcome.unwrap(), Some(ANSWER.to_vec()));
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_truncated_reply_gets_0x0b_after_the_deadline_and_never_a_partial_answer() {
+    let (line, bus, metrics) = counted_line_with_faulty_slave_2("", "truncate_reply = 5");
+    settle(&bus).await;
+    let (outcome, elapsed) = bus_call(&bus, 2, &READ).await;
+    assert!(is_0x0b(&outcome), "{outcome:?}");
+    assert!(
+        elapsed >= TIMEOUT,
+        "gave up before the deadline: {elapsed:?}"
+    );
+    assert_eq!(
+        frames_from(&line, Source::Slave(2)),
+        [vec![2, 0x03, 0x02, 0, 0]]
+    );
+    assert_eq!(counted(&metrics, 2, 0x03, "frame_error"), 1.0);
+    // An exception is 5 bytes long, so it survives the cut whole: the same slave's next answer
+    // comes through untouched, and so does another slave's.
+    let (outcome, _) = bus_call(&bus, 2, &[0x03, 0x00, 0x00, 0x00, 0x7E]).await;
+    assert_eq!(outcome.unwrap(), Some(vec![0x83, 0x03]));
+    let (outcome, _) = bus_call(&bus, 1, &READ).await;
+    assert_eq!(outcome.unwrap(), Some(ANSWER.to_vec()));
+}
+
+#[tokio::test(start_paused = true)]
+async fn during_a_retry_a_late_reply_is_taken_only_if_it_has_the_retried_requests_form() {
+    let (line, bus, metrics) =
+        counted_line_with_faulty_slave_2("retries = 1", "late_reply = \"300ms\"");
+    settle(&bus).await;
+    // A write, not retried, times out; its reply comes 100 ms into the next request's wait.
+    let write = [0x06, 0x00, 0x00, 0x00, 0x07];
+    let (outcome, _) = bus_call(&bus, 2, &write).await;
+    assert!(is_0x0b(&outcome), "{outcome:?}");
+    // The read's first try discards the write's echo and times out; its own reply, late, comes
+    // 100 ms into the retry's wait. It answers the same request in the same form: on the wire
+    // it cannot be told from the retry's own answer, and its data is right for it.
+    let (outcome, elapsed) = bus_call(&bus, 2, &READ_2).await;
+    assert_eq!(
+        outcome.unwrap(),
+        Some(vec![0x03, 0x04, 0x00, 0x07, 0x00, 0x00])
+    );
+    assert!(
+        elapsed > Duration::from_millis(300) && elapsed < 2 * TIMEOUT,
+        "answered by the first try's late reply, in the retry's wait: {elapsed:?}"
+    );
+    assert_eq!(counted(&metrics, 2, 0x06, "timeout"), 1.0);
+    assert_eq!(counted(&metrics, 2, 0x03, "ok"), 1.0);
+    assert_eq!(
+        line_count(&metrics, "modbus_gateway_discarded_frames_total"),
+        1.0,
+        "the write's echo"
+    );
+    // The retry's own reply comes 300 ms later still, and answers nothing after it.
+    let mut spoiled = 0;
+    for _ in 0..20 {
+        match bus_call(&bus, 1, &READ).await.0 {
+            Ok(answer) => assert_eq!(answer, Some(ANSWER.to_vec())),
+            Err(e) if e.exception_code() as u8 == 0x0B => spoiled += 1,
+            Err(e) => panic!("{e:?}"),
+        }
+    }
+    assert!(spoiled <= 1, "{spoiled} reads spoiled by one late reply");
+    assert_eq!(frames_from(&line, Source::Slave(2)).len(), 3);
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_line_that_does_not_fall_silent_within_the_timeout_gets_0x0b_until_it_does() {
+    // 256 bytes of noise after slave 2's reply keep the line busy for 293 ms at 9600 baud, longer
+    // than the 200 ms a frame may wait for its gap.
+    let (_line, bus, metrics) = counted_line_with_faulty_slave_2("", "garbage_after = 256");
+    settle(&bus).await;
+    let (outcome, _) = bus_call(&bus, 2, &READ).await;
+    assert_eq!(
+        outcome.unwrap(),
+        Some(ANSWER.to_vec()),
+        "complete by length"
+    );
+    let (outcome, elapsed) = bus_call(&bus, 1, &READ).await;
+    assert!(is_0x0b(&outcome), "{outcome:?}");
+    assert!(
+        elapsed >= TIMEOUT && elapsed < TIMEOUT + Duration::from_millis(10),
+        "{elapsed:?}"
+    );
+    assert_eq!(counted(&metrics, 1, 0x03, "line_busy"), 1.0);
+    let (outcome, _) = bus_call(&bus, 1, &READ).await;
+    assert_eq!(outcome.unwrap(), Some(ANSWER.to_vec()));
+    assert_eq!(
+        line_count(&metrics, "modbus_gateway_stray_bytes_total"),
+        256.0
+    );
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_port_lost_in_the_middle_of_a_reply_answers_0x0a_and_the_rest_never_arrives() {
+    let (line, bus, metrics) = counted_line_with_faulty_slave_2(
+        "reopen_delay = \"50ms\"",
+        "reply_gap = \"100ms\"\nreply_gap_after = 3",
+    );
+    settle(&bus).await;
+    let waiting = bus.submit(1, 2, READ.to_vec());
+    // The request, t3.5 and three bytes are on the wire by 20 ms; the rest is 100 ms away.
+    tokio::time::sleep(Duration::from_millis(40)).await;
+    line.unplug();
+    let outcome = waiting.await.expect("bus answers");
+    assert!(
+        matches!(&outcome, Err(e) if e.exception_code() as u8 == 0x0A),
+        "{outcome:?}"
+    );
+    assert_eq!(counted(&metrics, 2, 0x03, "port_down"), 1.0);
+    line.plug();
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    assert!(bus.is_up(), "reopened");
+    let (outcome, _) = bus_call(&bus, 1, &READ_2).await;
+    assert_eq!(outcome.unwrap(), Some(ANSWER_2.to_vec()));
+    assert_eq!(
+        line_count(&metrics, "modbus_gateway_port_reopens_total"),
+        1.0
+    );
+    assert_eq!(
+        line_count(&metrics, "modbus_gateway_stray_bytes_total"),
+        0.0,
+        "nothing of the old reply came through the new port"
+    );
+}
+
+#[tokio::test(start_paused = true)]
+async fn each_older_fault_is_counted_under_its_outcome() {
+    let text =
+        "[[bus]]\nname = \"line\"\ndevice = \"sim\"\nbaud = 9600\nresponse_timeout = \"200ms\"\n\
+         [[bus.sim_slave]]\naddress = 2\noffline = true\n\
+         [[bus.sim_slave]]\naddress = 3\ncrc_error_rate = 1.0\n\
+         [[bus.sim_slave]]\naddress = 4\ngarbage_before = 4\n\
+         [[bus.sim_slave]]\naddress = 5\nreply_address = 9\n\
+         [[bus.sim_slave]]\naddress = 6\ngarbage_after = 6\n\
+         [[bus.sim_slave]]\naddress = 7\nextra_delay = \"300ms\"\n";
+    let config = Config::from_toml_str(text).expect("test config");
+    let metrics = Metrics::new();
+    let (_line, bus) = sim_bus_counted(config.bus.into_iter().next().expect("one bus"), &metrics);
+    settle(&bus).await;
+    for slave in 2..=7 {
+        let _ = bus_call(&bus, slave, &READ).await;
+        // Let slave 7's late reply pass before the next request.
+        tokio::time::sleep(TIMEOUT).await;
+    }
+    for (slave, outcome) in [
+        (2, "timeout"),
+        (3, "crc_error"),
+        (4, "crc_error"),
+        (5, "timeout"),
+        (6, "ok"),
+        (7, "timeout"),
+    ] {
+        assert_eq!(
+            counted(&metrics, slave, 0x03, outcome),
+            1.0,
+            "slave {slave}"
+        );
+    }
+    assert_eq!(
+        line_count(&metrics, "modbus_gateway_discarded_frames_total"),
+        1.0,
+        "slave 5's frame"
+    );
+    assert_eq!(
+        line_count(&metrics, "modbus_gateway_stray_bytes_total"),
+        6.0 + 7.0,
+        "slave 6's garbage and slave 7's late reply, both on an idle line"
+    );
 }
 
 #[tokio::test]

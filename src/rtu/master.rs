@@ -394,6 +394,7 @@ mod tests {
         let plan = vec![Some(Transmission {
             bytes: both,
             delay: Duration::ZERO,
+            pause: None,
         })];
         let (_line, mut master) = line(vec![(1, plan)]);
         assert_eq!(
@@ -410,6 +411,7 @@ mod tests {
         let plan = vec![Some(Transmission {
             bytes,
             delay: Duration::ZERO,
+            pause: None,
         })];
         let (_line, mut master) = line(vec![(1, plan)]);
         let result = master.transact(1, &READ, FOREVER).await;

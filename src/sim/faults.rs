@@ -1,10 +1,12 @@
 //! Fault knobs for any simulated slave, so timeouts, late replies and noise can be tested without
-//! hardware: a slave that is offline, slow, late, corrupts its CRC, wraps its reply in garbage or
-//! answers with the wrong address. Wraps a model and bends what it puts on the wire; the model
+//! hardware: a slave that is offline, slow, late, corrupts its CRC, wraps its reply in garbage,
+//! answers with the wrong address or function code, stops its reply short or pauses in the middle
+//! of it. Wraps a model and bends what it puts on the wire; the model
 //! itself stays correct. Random choices come from a generator seeded by the slave's address, so a
 //! run repeats exactly.
 
-use super::{SimSlave, Transmission};
+use super::{Pause, SimSlave, Transmission};
+use crate::pdu::EXCEPTION_BIT;
 use crate::rtu::frame::{self, BROADCAST};
 use std::time::Duration;
 use tokio::time::Instant;
@@ -27,6 +29,13 @@ pub struct Faults {
     pub garbage_after: usize,
     /// Replies carry this address instead of the slave's own (with a valid CRC).
     pub reply_address: Option<u8>,
+    /// Replies carry this function code instead of the request's (with a valid CRC); an
+    /// exception reply keeps its exception bit.
+    pub reply_function: Option<u8>,
+    /// Only the first this many bytes of every reply are sent.
+    pub truncate_reply: Option<usize>,
+    /// Every reply stops after some bytes and goes on after a silence.
+    pub reply_gap: Option<Pause>,
 }
 
 impl Faults {
@@ -65,15 +74,24 @@ impl<S: SimSlave> SimSlave for Faulty<S> {
         if address == BROADCAST {
             return Some(reply);
         }
-        if let Some(wrong) = self.faults.reply_address {
+        if self.faults.reply_address.is_some() || self.faults.reply_function.is_some() {
             if let Some(pdu) = reply.bytes.get(1..reply.bytes.len().saturating_sub(2)) {
-                reply.bytes = frame::encode(wrong, pdu);
+                let address = self.faults.reply_address.unwrap_or(address);
+                let mut pdu = pdu.to_vec();
+                if let (Some(function), Some(wrong)) = (pdu.first_mut(), self.faults.reply_function)
+                {
+                    *function = wrong | (*function & EXCEPTION_BIT);
+                }
+                reply.bytes = frame::encode(address, &pdu);
             }
         }
         if self.faults.crc_error_rate > 0.0 && self.rng.f64() < self.faults.crc_error_rate {
             if let Some(last) = reply.bytes.last_mut() {
                 *last ^= 0x01;
             }
+        }
+        if let Some(keep) = self.faults.truncate_reply {
+            reply.bytes.truncate(keep);
         }
         if self.faults.garbage_before > 0 || self.faults.garbage_after > 0 {
             let mut bytes: Vec<u8> = self.garbage(self.faults.garbage_before).collect();
@@ -85,6 +103,7 @@ impl<S: SimSlave> SimSlave for Faulty<S> {
             Some(late) => late,
             None => reply.delay + self.faults.extra_delay,
         };
+        reply.pause = reply.pause.or(self.faults.reply_gap);
         Some(reply)
     }
 }
@@ -146,6 +165,52 @@ mod tests {
         .unwrap();
         assert_eq!(reply.bytes[0], 9);
         assert!(frame::crc_ok(&reply.bytes));
+    }
+
+    #[test]
+    fn a_wrong_function_code_comes_with_a_valid_crc_and_exceptions_stay_exceptions() {
+        let wrong = Faults {
+            reply_function: Some(0x04),
+            ..Faults::default()
+        };
+        let reply = answer(wrong.clone()).unwrap().bytes;
+        assert_eq!(reply, frame::encode(7, &[0x04, 0x02, 0x00, 0x00]));
+        // 126 registers are more than a read may ask for: exception 03, now under function 04.
+        let refused = slave(wrong)
+            .handle(7, &[0x03, 0x00, 0x00, 0x00, 0x7E], Instant::now())
+            .unwrap();
+        assert_eq!(refused.bytes, frame::encode(7, &[0x84, 0x03]));
+    }
+
+    #[test]
+    fn a_truncated_reply_is_the_first_bytes_of_the_intact_one() {
+        let clean = answer(Faults::default()).unwrap().bytes;
+        let cut = answer(Faults {
+            truncate_reply: Some(4),
+            ..Faults::default()
+        })
+        .unwrap();
+        assert_eq!(cut.bytes, clean[..4]);
+        let longer = answer(Faults {
+            truncate_reply: Some(100),
+            ..Faults::default()
+        });
+        assert_eq!(longer.unwrap().bytes, clean, "nothing to cut");
+    }
+
+    #[test]
+    fn a_reply_gap_is_handed_to_the_line_with_the_intact_reply() {
+        let gap = Pause {
+            after: 3,
+            gap: Duration::from_millis(30),
+        };
+        let reply = answer(Faults {
+            reply_gap: Some(gap),
+            ..Faults::default()
+        })
+        .unwrap();
+        assert_eq!(reply.pause, Some(gap));
+        assert_eq!(reply.bytes, answer(Faults::default()).unwrap().bytes);
     }
 
     #[test]

@@ -43,6 +43,7 @@ pub struct WireFrame {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct LineStats {
     pub master_frames: u64,
+    /// Slave transmissions: a paused one counts once, though the log holds its two bursts.
     pub slave_frames: u64,
     /// Master frames that started less than t3.5 after the previous frame ended.
     pub gap_violations: u64,
@@ -259,24 +260,36 @@ impl LineState {
         }
     }
 
+    /// A paused transmission goes on the wire as two bursts: the monitor logs each, and the
+    /// master may talk in between without colliding.
     fn transmit_from_slave(&mut self, address: u8, reply: Transmission, ready_at: Instant) {
         let char_time = self.timing.char_time;
-        let start = ready_at + reply.delay;
-        let mut at = start;
-        for &byte in &reply.bytes {
-            at += char_time;
-            // Bytes arrive in time order, even when a late reply was scheduled before this one.
-            let position = self.inbound.partition_point(|&(due, _)| due <= at);
-            self.inbound.insert(position, (at, byte));
+        let mut bursts = vec![(ready_at + reply.delay, &reply.bytes[..])];
+        if let Some(pause) = reply
+            .pause
+            .filter(|p| p.after > 0 && p.after < reply.bytes.len())
+        {
+            let (first, rest) = reply.bytes.split_at(pause.after);
+            let first_end = bursts[0].0 + char_time * first.len() as u32;
+            bursts = vec![(bursts[0].0, first), (first_end + pause.gap, rest)];
+        }
+        for (start, bytes) in bursts {
+            let mut at = start;
+            for &byte in bytes {
+                at += char_time;
+                // Bytes arrive in time order, even when a late reply was scheduled before this one.
+                let position = self.inbound.partition_point(|&(due, _)| due <= at);
+                self.inbound.insert(position, (at, byte));
+            }
+            self.record(WireFrame {
+                start,
+                end: at,
+                from: Source::Slave(address),
+                bytes: bytes.to_vec(),
+            });
+            self.slave_tx.push_back((start, at));
         }
         self.stats.slave_frames += 1;
-        self.record(WireFrame {
-            start,
-            end: at,
-            from: Source::Slave(address),
-            bytes: reply.bytes,
-        });
-        self.slave_tx.push_back((start, at));
     }
 
     /// Hand over every byte that has fully arrived by `now`.
@@ -372,6 +385,7 @@ mod tests {
             Some(Transmission {
                 bytes: frame::encode(address, request),
                 delay: self.delay,
+                pause: None,
             })
         }
     }
@@ -423,6 +437,84 @@ mod tests {
         let stats = line.stats();
         assert_eq!((stats.master_frames, stats.slave_frames), (1, 1));
         assert_eq!(stats.busy, timing.frame_time(16));
+    }
+
+    /// Answers with the request's own frame, pausing after `after` bytes for `gap`.
+    struct Stutter {
+        after: usize,
+        gap: Duration,
+    }
+
+    impl SimSlave for Stutter {
+        fn handle(&mut self, address: u8, request: &[u8], _at: Instant) -> Option<Transmission> {
+            Some(Transmission {
+                bytes: frame::encode(address, request),
+                delay: Duration::ZERO,
+                pause: Some(super::super::Pause {
+                    after: self.after,
+                    gap: self.gap,
+                }),
+            })
+        }
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_paused_reply_arrives_in_two_bursts_with_the_line_silent_between() {
+        let line = line_9600_8e1();
+        let gap = Duration::from_millis(20);
+        line.add_slave(1, Stutter { after: 3, gap });
+        let timing = line.timing();
+        let mut port = line.open().unwrap();
+        let t0 = Instant::now();
+        port.send(&READ).await.unwrap();
+        let mut buf = Vec::new();
+        while buf.len() < 3 {
+            port.recv(&mut buf).await.unwrap();
+        }
+        assert_eq!(
+            buf.len(),
+            3,
+            "nothing of the rest came with the first burst"
+        );
+        let first_done = Instant::now();
+        while buf.len() < READ.len() {
+            port.recv(&mut buf).await.unwrap();
+        }
+        assert_eq!(buf, READ);
+        // The fourth byte takes its character time after the gap.
+        assert_about(Instant::now() - first_done, gap + timing.frame_time(5));
+        assert_about(
+            Instant::now() - t0,
+            timing.frame_time(16) + timing.t35 + gap,
+        );
+        let frames = line.frames();
+        assert_eq!(frames.len(), 3, "the request and two bursts");
+        assert_eq!(frames[2].start - frames[1].end, gap);
+        assert_eq!(frames[1].bytes, READ[..3]);
+        let stats = line.stats();
+        assert_eq!(stats.slave_frames, 1, "one transmission");
+        assert_eq!(stats.busy, timing.frame_time(16), "the gap is not busy");
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn the_master_may_talk_in_a_slaves_pause_without_a_collision() {
+        let line = line_9600_8e1();
+        line.add_slave(
+            1,
+            Stutter {
+                after: 3,
+                gap: Duration::from_millis(50),
+            },
+        );
+        let timing = line.timing();
+        let mut port = line.open().unwrap();
+        port.send(&READ).await.unwrap();
+        tokio::time::advance(timing.frame_time(11) + 2 * timing.t35).await;
+        port.send(&frame::encode(2, &[0x03, 0x00, 0x00, 0x00, 0x01]))
+            .await
+            .unwrap();
+        assert_eq!(line.stats().collisions, 0);
+        assert_eq!(line.stats().unread_frames, 0);
     }
 
     #[tokio::test(start_paused = true)]

@@ -81,6 +81,16 @@ pub struct Transmission {
     pub bytes: Vec<u8>,
     /// Processing time after the slave has recognised the end of the request (t3.5 of silence).
     pub delay: Duration,
+    /// A silence in the middle: the slave stops talking for a while (and lets go of the line),
+    /// then sends the rest.
+    pub pause: Option<Pause>,
+}
+
+/// After the first `after` bytes of a transmission, `gap` of silence before the rest.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Pause {
+    pub after: usize,
+    pub gap: Duration,
 }
 
 impl Transmission {
@@ -89,6 +99,7 @@ impl Transmission {
         Transmission {
             bytes: frame::encode(address, pdu),
             delay,
+            pause: None,
         }
     }
 }

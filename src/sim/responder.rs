@@ -133,8 +133,21 @@ impl Responder {
             return Ok(());
         };
         // The slave knows the request is over after t3.5 of silence, then takes its own time.
-        sleep_until(at + self.timing.t35 + reply.delay).await;
-        port.send(&reply.bytes).await?;
+        let start = at + self.timing.t35 + reply.delay;
+        sleep_until(start).await;
+        match reply
+            .pause
+            .filter(|p| p.after > 0 && p.after < reply.bytes.len())
+        {
+            Some(pause) => {
+                let (first, rest) = reply.bytes.split_at(pause.after);
+                port.send(first).await?;
+                // write() returns before the bytes are on the wire: the silence starts after them.
+                sleep_until(start + self.timing.frame_time(first.len()) + pause.gap).await;
+                port.send(rest).await?;
+            }
+            None => port.send(&reply.bytes).await?,
+        }
         self.stats.replies += 1;
         debug!(
             address,
@@ -243,6 +256,44 @@ mod tests {
             *at - start
         );
         assert_eq!(stats.replies, 1);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_paused_reply_goes_out_in_two_writes_the_gap_apart_on_the_wire() {
+        let gap = Duration::from_millis(30);
+        let mut responder = Responder::new(timing(), Duration::ZERO);
+        let faults = crate::sim::faults::Faults {
+            reply_gap: Some(crate::sim::Pause { after: 3, gap }),
+            ..Default::default()
+        };
+        responder.add_slave(
+            1,
+            Box::new(crate::sim::faults::Faulty::new(
+                RegisterBank::new(Duration::ZERO),
+                faults,
+                1,
+            )),
+        );
+        let sent = Arc::new(Mutex::new(Vec::new()));
+        let mut port = ScriptedPort {
+            start: Instant::now(),
+            incoming: vec![(Duration::ZERO, READ.to_vec())].into(),
+            sent: sent.clone(),
+        };
+        responder.serve(&mut port).await;
+        let sent = sent.lock().unwrap().clone();
+        let whole = frame::encode(1, &[0x03, 0x04, 0, 0, 0, 0]);
+        assert_eq!(sent.len(), 2);
+        assert_eq!((&sent[0].1[..], &sent[1].1[..]), whole.split_at(3));
+        // The first write leaves the wire three characters later; then the gap. tokio's timer
+        // wakes both writes on whole milliseconds.
+        let apart = sent[1].0 - sent[0].0;
+        let expected = timing().frame_time(3) + gap;
+        let tick = Duration::from_millis(1);
+        assert!(
+            apart + tick >= expected && apart <= expected + tick,
+            "{apart:?}"
+        );
     }
 
     #[tokio::test(start_paused = true)]

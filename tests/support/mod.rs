@@ -91,8 +91,16 @@ pub fn demo_bus() -> (SimLine, BusHandle) {
 
 /// A simulated bus from its settings, slaves powered on now, its task running.
 pub fn sim_bus_of(settings: modbus_gateway::config::Bus) -> (SimLine, BusHandle) {
+    sim_bus_counted(settings, &Metrics::new())
+}
+
+/// [`sim_bus_of`], counting into `metrics`.
+pub fn sim_bus_counted(
+    settings: modbus_gateway::config::Bus,
+    metrics: &Metrics,
+) -> (SimLine, BusHandle) {
     let line = modbus_gateway::gateway::sim_line(&settings).expect("simulated slaves power on");
-    let bus = Bus::new(settings, Device::Sim(line.clone()), &Metrics::new());
+    let bus = Bus::new(settings, Device::Sim(line.clone()), metrics);
     let handle = bus.handle();
     tokio::spawn(bus.run(Stopping::never()));
     (line, handle)
