@@ -2,7 +2,9 @@
 //! and lying MBAP headers, garbage, half-sent requests, the connection limit and its policies,
 //! the idle timeout, keepalive.
 
-use crate::support::{addr, panics_on_this_thread, start, start_sim, within, RawMaster};
+use crate::support::{
+    addr, panics_on_this_thread, sim_config, start, start_sim, tool, within, RawMaster, Scrape,
+};
 use modbus_gateway::bus::{Bus, Device};
 use modbus_gateway::dispatch::{Client, Dispatcher, Rights};
 use modbus_gateway::metrics::Metrics;
@@ -225,4 +227,265 @@ async fn a_connection_waiting_for_a_slow_reply_is_not_idle() {
     let (mut client, session) = session_on_pipe(idle, Duration::from_millis(500)).await;
     assert_eq!(read_register_0(&mut client).await, [0x03, 0x02, 0x00, 0x00]);
     assert!(matches!(session.await.unwrap(), SessionError::Idle(_)));
+}
+
+/// The sim gateway of `support::sim_config` with `[server]` keys added.
+fn with_server_keys(server: &str, bus: &str) -> String {
+    sim_config(bus).replace(
+        "listen = \"127.0.0.1:0\"\n",
+        &format!("listen = \"127.0.0.1:0\"\n{server}\n"),
+    )
+}
+
+const READ_1: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x01];
+
+#[tokio::test]
+async fn at_max_connections_a_new_master_closes_the_connection_idle_longest() {
+    let gateway = start(&with_server_keys("max_connections = 3", "")).await;
+    let mut masters = Vec::new();
+    for tid in 0..3 {
+        let mut master = RawMaster::connect(addr(&gateway)).await;
+        assert_eq!(master.call(tid, 1, &READ_1).await, [0x03, 0x02, 0, 0]);
+        masters.push(master);
+    }
+    // The first master polls again: the second is now the one idle longest.
+    assert_eq!(masters[0].call(9, 1, &READ_1).await, [0x03, 0x02, 0, 0]);
+    let mut newcomer = RawMaster::connect(addr(&gateway)).await;
+    assert_eq!(newcomer.call(1, 1, &READ_1).await, [0x03, 0x02, 0, 0]);
+    assert!(
+        masters[1].is_closed().await,
+        "the master idle longest made room"
+    );
+    for i in [0, 2] {
+        assert_eq!(masters[i].call(10, 1, &READ_1).await, [0x03, 0x02, 0, 0]);
+    }
+    let scrape = Scrape::of(&gateway).await;
+    let closed = "modbus_gateway_tcp_connections_closed_total{reason=\"evicted\"}";
+    assert_eq!(scrape.value(closed), 1.0);
+    let refused = "modbus_gateway_tcp_connections_rejected_total{reason=\"max_connections\"}";
+    assert_eq!(scrape.value(refused), 0.0);
+}
+
+#[tokio::test]
+async fn at_max_connections_with_every_master_waiting_for_a_reply_a_new_one_is_refused() {
+    let slow = "[[bus.sim_slave]]\naddress = 9\nprocessing_delay = \"400ms\"";
+    let keys = "max_connections = 2";
+    let gateway = start(&with_server_keys(
+        keys,
+        &format!("response_timeout = \"2s\"\n{slow}"),
+    ))
+    .await;
+    let line = gateway.sim_line("sim").expect("a sim line");
+    let mut first = RawMaster::connect(addr(&gateway)).await;
+    let mut second = RawMaster::connect(addr(&gateway)).await;
+    first.send(1, 9, &READ_1).await;
+    second.send(2, 9, &READ_1).await;
+    // Both requests are in: one on the wire, one queued behind it.
+    within("both requests are in flight", async {
+        loop {
+            let on_wire = line.stats().master_frames;
+            let queued = Scrape::of(&gateway)
+                .await
+                .value("modbus_gateway_queue_depth{bus=\"sim\"}");
+            if on_wire == 1 && queued == 1.0 {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    })
+    .await;
+    let mut third = RawMaster::connect(addr(&gateway)).await;
+    assert!(third.is_closed().await, "no connection is idle: refused");
+    assert_eq!(first.recv().await.pdu, [0x03, 0x02, 0, 0]);
+    assert_eq!(second.recv().await.pdu, [0x03, 0x02, 0, 0]);
+    let scrape = Scrape::of(&gateway).await;
+    let refused = "modbus_gateway_tcp_connections_rejected_total{reason=\"max_connections\"}";
+    assert_eq!(scrape.value(refused), 1.0);
+    let closed = "modbus_gateway_tcp_connections_closed_total{reason=\"evicted\"}";
+    assert_eq!(scrape.value(closed), 0.0);
+}
+
+#[tokio::test(start_paused = true)]
+async fn half_a_request_closes_the_connection_at_frame_timeout_and_not_before() {
+    let (mut client, session) = session_on_pipe(Duration::from_secs(60), Duration::ZERO).await;
+    // A request in two pieces, both within the frame timeout, is answered.
+    let request = RawMaster::adu(1, 1, &READ_1);
+    client.write_all(&request[..4]).await.unwrap();
+    tokio::time::sleep(FRAME_TIMEOUT - Duration::from_millis(50)).await;
+    client.write_all(&request[4..]).await.unwrap();
+    let mut reply = [0u8; 11];
+    client.read_exact(&mut reply).await.unwrap();
+    assert_eq!(reply[7..], [0x03, 0x02, 0, 0]);
+    // Half a header, then nothing.
+    client.write_all(&request[..3]).await.unwrap();
+    let sent = tokio::time::Instant::now();
+    tokio::time::sleep(FRAME_TIMEOUT - Duration::from_millis(1)).await;
+    assert!(!session.is_finished(), "closed before the frame timeout");
+    let reason = session.await.unwrap();
+    assert!(matches!(reason, SessionError::FrameTimeout(_)), "{reason}");
+    assert!(sent.elapsed() <= FRAME_TIMEOUT + Duration::from_millis(1));
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_request_trickling_in_a_byte_at_a_time_is_closed_at_frame_timeout() {
+    let (mut client, session) = session_on_pipe(Duration::from_secs(60), Duration::ZERO).await;
+    let request = RawMaster::adu(1, 1, &READ_1);
+    let started = tokio::time::Instant::now();
+    tokio::spawn(async move {
+        for byte in request {
+            if client.write_all(&[byte]).await.is_err() {
+                break;
+            }
+            tokio::time::sleep(FRAME_TIMEOUT / 4).await;
+        }
+    });
+    let reason = session.await.unwrap();
+    assert!(matches!(reason, SessionError::FrameTimeout(_)), "{reason}");
+    assert!(
+        started.elapsed() <= FRAME_TIMEOUT + Duration::from_millis(1),
+        "bytes kept coming, but the request never completed: {:?}",
+        started.elapsed()
+    );
+}
+
+#[tokio::test]
+async fn an_mbap_length_longer_than_what_came_closes_the_connection_and_is_counted() {
+    let gateway = start(&with_server_keys("frame_timeout = \"300ms\"", "")).await;
+    let mut liar = RawMaster::connect(addr(&gateway)).await;
+    let mut adu = RawMaster::adu(1, 1, &READ_1);
+    adu[4..6].copy_from_slice(&20u16.to_be_bytes());
+    liar.send_raw(&adu).await;
+    assert!(
+        liar.is_closed().await,
+        "closed: the promised bytes never came"
+    );
+    let closed = "modbus_gateway_tcp_connections_closed_total{reason=\"frame_timeout\"}";
+    within("the close is counted", async {
+        while Scrape::of(&gateway).await.value(closed) != 1.0 {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    })
+    .await;
+    let mut honest = RawMaster::connect(addr(&gateway)).await;
+    assert_eq!(honest.call(2, 1, &READ_1).await, [0x03, 0x02, 0, 0]);
+}
+
+#[tokio::test]
+async fn an_mbap_length_shorter_than_the_request_answers_the_cut_request_then_closes() {
+    let panics = panics_on_this_thread();
+    let gateway = start(&with_server_keys("frame_timeout = \"300ms\"", "")).await;
+    let mut liar = RawMaster::connect(addr(&gateway)).await;
+    let mut adu = RawMaster::adu(7, 1, &READ_1);
+    // Length 3: unit id and two PDU bytes; the last three bytes start a "next header".
+    adu[4..6].copy_from_slice(&3u16.to_be_bytes());
+    liar.send_raw(&adu).await;
+    let reply = liar.recv().await;
+    assert_eq!((reply.transaction, reply.unit), (7, 1));
+    assert_eq!(
+        reply.pdu[0], 0x83,
+        "the cut request gets an exception: {reply:?}"
+    );
+    assert!(
+        liar.is_closed().await,
+        "the leftover bytes never become a request"
+    );
+    assert_eq!(panics_on_this_thread(), panics, "no session panicked");
+}
+
+#[tokio::test]
+async fn a_flood_of_pipelined_requests_is_read_a_pipeline_at_a_time_and_answered_in_order() {
+    // A queue shorter than the flood: were the flood read at once, masters would get 0x06.
+    let gateway = start(
+        "[server]\nlisten = \"127.0.0.1:0\"\npipeline_depth = 8\n\
+         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\
+         queue_depth = 32\nqueue_timeout = \"1h\"\n\
+         [[bus.sim_slave]]\naddress = \"1-2\"\n",
+    )
+    .await;
+    let mut flooder = RawMaster::connect(addr(&gateway)).await;
+    let flood: Vec<u8> = (0..400u16)
+        .flat_map(|tid| RawMaster::adu(tid, 1, &[0x04, 0x00, tid as u8, 0x00, 0x01]))
+        .collect();
+    flooder.send_raw(&flood).await;
+    let mut other = RawMaster::connect(addr(&gateway)).await;
+    assert_eq!(
+        other.call(1, 2, &[0x04, 0x00, 0x05, 0x00, 0x01]).await,
+        [0x04, 0x02, 0x00, 0x05],
+        "another master is served during the flood"
+    );
+    for tid in 0..400u16 {
+        let reply = flooder.recv().await;
+        assert_eq!(reply.transaction, tid);
+        assert_eq!(reply.pdu, [0x04, 0x02, 0x00, tid as u8]);
+    }
+    let scrape = Scrape::of(&gateway).await;
+    let full = scrape.series_of("modbus_gateway_requests_total");
+    assert!(
+        full.iter()
+            .all(|(series, _)| !series.contains("queue_full")),
+        "{full:?}"
+    );
+}
+
+#[test]
+fn keepalive_probes_start_after_the_configured_silence() {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let _client = std::net::TcpStream::connect(listener.local_addr().unwrap()).unwrap();
+    let (accepted, _) = listener.accept().unwrap();
+    accepted.set_nonblocking(true).unwrap();
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    let _guard = runtime.enter();
+    let stream = tokio::net::TcpStream::from_std(accepted).unwrap();
+    modbus_gateway::tcp::server::set_keepalive(&stream, Duration::from_secs(60)).unwrap();
+    let socket = socket2::SockRef::from(&stream);
+    assert!(socket.keepalive().unwrap());
+    assert_eq!(
+        socket.tcp_keepalive_time().unwrap(),
+        Duration::from_secs(60)
+    );
+    assert_eq!(
+        socket.tcp_keepalive_interval().unwrap(),
+        Duration::from_secs(20)
+    );
+    assert_eq!(socket.tcp_keepalive_retries().unwrap(), 3);
+    assert_eq!(
+        socket.tcp_user_timeout().unwrap(),
+        Some(Duration::from_secs(120)),
+        "unacknowledged replies to a vanished master give up as soon as the probes do"
+    );
+}
+
+/// The TCP timer `ss` shows on the gateway's side of its one connection on `port`.
+fn gateway_side_timer(ss: &std::path::Path, port: u16) -> String {
+    let output = std::process::Command::new(ss)
+        .args([
+            "-tnoH",
+            "state",
+            "established",
+            &format!("( sport = :{port} )"),
+        ])
+        .output()
+        .expect("ss runs");
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+#[tokio::test]
+async fn accepted_connections_get_keepalive_probes_unless_it_is_off() {
+    let Some(ss) = tool("ss") else { return };
+    for (keepalive, expected) in [("30s", true), ("0s", false)] {
+        let keys = format!("keepalive = \"{keepalive}\"");
+        let gateway = start(&with_server_keys(&keys, "")).await;
+        let mut master = RawMaster::connect(addr(&gateway)).await;
+        master.call(1, 1, &READ_1).await;
+        let sockets = gateway_side_timer(&ss, addr(&gateway).port());
+        assert_eq!(sockets.lines().count(), 1, "{sockets}");
+        assert_eq!(
+            sockets.contains("timer:(keepalive,"),
+            expected,
+            "keepalive = {keepalive}: {sockets}"
+        );
+    }
 }
