@@ -1125,6 +1125,52 @@ mod tests {
     }
 
     #[test]
+    fn allow_and_read_only_take_networks_single_addresses_and_comma_strings() {
+        let c = Config::from_toml_str(&format!(
+            "[server]\nallow = [\"10.1.0.0/16\", \"192.168.1.7\", \"fd00::/8\"]\n\
+             read_only = \"10.1.2.0/24, ::1\"\n{MINIMAL}"
+        ))
+        .unwrap();
+        let nets: Vec<String> = c.server.allow.iter().map(ToString::to_string).collect();
+        assert_eq!(nets, ["10.1.0.0/16", "192.168.1.7/32", "fd00::/8"]);
+        let nets: Vec<String> = c.server.read_only.iter().map(ToString::to_string).collect();
+        assert_eq!(nets, ["10.1.2.0/24", "::1/128"]);
+        // Host bits are dropped: "10.1.2.3/8" is the network 10.0.0.0/8.
+        let c =
+            Config::from_toml_str(&format!("[server]\nallow = \"10.1.2.3/8\"\n{MINIMAL}")).unwrap();
+        assert_eq!(c.server.allow[0].to_string(), "10.0.0.0/8");
+        assert_eq!(Config::from_toml_str(&c.to_toml()).unwrap(), c);
+    }
+
+    #[test]
+    fn bad_server_access_and_connection_keys_are_named() {
+        for (keys, key, reason) in [
+            ("allow = [\"10.0.0.0/33\"]", "server.allow", "10.0.0.0/33"),
+            ("read_only = \"plc.local\"", "server.read_only", "plc.local"),
+            ("when_full = \"drop\"", "server.when_full", "drop"),
+            (
+                "frame_timeout = \"0s\"",
+                "server.frame_timeout",
+                "longer than 0",
+            ),
+            ("keepalive = \"500ms\"", "server.keepalive", "at least 1s"),
+        ] {
+            let e = errors(&format!("[server]\n{keys}\n{MINIMAL}"));
+            assert_eq!(e.len(), 1, "{e:?}");
+            assert!(e[0].starts_with(key), "{keys}: {e:?}");
+            assert!(e[0].contains(reason), "{keys}: {e:?}");
+        }
+        let c = Config::from_toml_str(&format!("[server]\nkeepalive = \"0s\"\n{MINIMAL}"));
+        assert!(c.is_ok(), "0s turns keepalive off");
+    }
+
+    #[test]
+    fn a_zero_slave_probe_interval_is_refused() {
+        let e = errors(&format!("{MINIMAL}\nslave_probe_interval = \"0s\""));
+        assert!(e[0].starts_with("bus[0].slave_probe_interval"), "{e:?}");
+    }
+
+    #[test]
     fn no_parity_defaults_to_two_stop_bits() {
         let c = Config::from_toml_str(&format!("{MINIMAL}\nparity = \"none\"")).unwrap();
         assert_eq!(c.bus[0].stop_bits, Some(2));

@@ -1,6 +1,9 @@
 //! The integration tests, in one crate so they build once. Where a new test goes:
 //! - `cli`: the binaries: check-config, config errors, environment, run and stop, logs, the bench.
-//! - `tcp`: the Modbus TCP side: pipelining, MBAP errors, connection limit, idle timeout, garbage.
+//! - `tcp`: the Modbus TCP side and masters that abuse it: pipelining and floods, MBAP errors and
+//!   length lies, half-sent requests, the connection limit and its policies, idle timeout,
+//!   keepalive, garbage.
+//! - `access`: `server.allow` and `server.read_only`.
 //! - `answers`: what the gateway answers itself: no route, broadcast, queue full, port down/back.
 //! - `transparency`: function codes and exceptions byte for byte, on the sim line and a pty.
 //! - `line`: the serial line discipline on the paused clock: timeouts, t3.5, retries, efficiency.
@@ -16,6 +19,7 @@
 
 mod support;
 
+mod access;
 mod answers;
 mod cli;
 mod drives;
