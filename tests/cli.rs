@@ -363,3 +363,32 @@ fn the_bench_reports_every_field_and_never_beats_physics() {
     }
     assert!(reports[1]["rss_mb"].as_f64().unwrap() > 0.0);
 }
+
+#[test]
+fn every_test_the_failure_behaviour_section_names_exists() {
+    let readme =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md")).unwrap();
+    let section = readme
+        .split("\n## Failure behaviour\n")
+        .nth(1)
+        .and_then(|rest| rest.split("\n## ").next())
+        .expect("README has a Failure behaviour section");
+    let mut named = 0;
+    for quoted in section.split('`').skip(1).step_by(2) {
+        let Some((module, test)) = quoted.split_once("::") else {
+            continue;
+        };
+        if !module.chars().all(|c| c.is_ascii_lowercase() || c == '_') {
+            continue;
+        }
+        let path = format!("{}/tests/{module}.rs", env!("CARGO_MANIFEST_DIR"));
+        let source =
+            std::fs::read_to_string(&path).unwrap_or_else(|_| panic!("{path} for `{quoted}`"));
+        assert!(
+            source.contains(&format!("fn {test}(")),
+            "README names `{quoted}`, which {path} does not have"
+        );
+        named += 1;
+    }
+    assert!(named > 30, "only {named} tests named");
+}
