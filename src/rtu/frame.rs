@@ -899,6 +899,26 @@ mod tests {
             }
 
             #[test]
+            fn an_echo_of_another_address_quantity_or_sub_function_is_foreign(
+                exchange in normal_exchange().prop_filter("an echo", |e| {
+                    matches!(e.request[0], 0x05 | 0x06 | 0x08 | 0x0F | 0x10 | 0x16)
+                }),
+                at in any::<prop::sample::Index>(),
+                flip in 1u8..,
+                slave in slave(),
+            ) {
+                // The bytes the reply must echo: the address (and quantity), or the sub-function.
+                let echoed = if matches!(exchange.request[0], 0x0F | 0x10) { 4 } else { 2 };
+                let mut reply = exchange.reply.clone();
+                reply[1 + at.index(echoed)] ^= flip;
+                let frame = encode(slave, &reply);
+                prop_assert_eq!(
+                    check_reply_as(&frame, slave, &exchange.request, exchange.form),
+                    Verdict::Foreign
+                );
+            }
+
+            #[test]
             fn a_read_reply_for_another_quantity_is_foreign(
                 function in 0x01u8..=0x04,
                 (asked, sent) in (1u16..=125, 1u16..=125)
