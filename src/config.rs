@@ -1512,7 +1512,7 @@ mod tests {
                         toml::Value::Array(vec![table("address", Integer(1))]),
                     );
                 }
-                for (j, slave) in bus.slave.iter().enumerate() {
+                for j in 0..bus.slave.len() {
                     let mut key = |field: &str, value| {
                         out.push((format!("bus[{i}].slave[{j}].{field}"), value))
                     };
@@ -1523,7 +1523,6 @@ mod tests {
                     if j > 0 {
                         key("address", Integer(i64::from(bus.slave[0].address)));
                     }
-                    let _ = slave;
                 }
                 for (j, sim) in bus.sim_slave.iter().enumerate() {
                     let mut key = |field: &str, value| {
