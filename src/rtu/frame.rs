@@ -432,25 +432,6 @@ mod tests {
     }
 
     #[test]
-    fn no_bytes_whatever_make_the_frame_functions_panic() {
-        let mut x: u64 = 0x2545_F491_4F6C_DD1D;
-        for _ in 0..200_000 {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            let len = (x % 40) as usize;
-            let bytes: Vec<u8> = (0..len)
-                .map(|i| (x >> (i % 8 * 8)) as u8 ^ (i as u8))
-                .collect();
-            let request = &bytes[..len / 3];
-            let _ = reply_len(&bytes, 1, request);
-            let _ = request_len(&bytes);
-            let _ = check_reply(&bytes, bytes.first().copied().unwrap_or(0), request);
-            let _ = crc_ok(&bytes);
-        }
-    }
-
-    #[test]
     fn the_manual_reply_answers_its_request() {
         assert_eq!(
             check_reply(&READ_REPLY, 1, &READ_REQUEST[1..6]),
@@ -564,5 +545,396 @@ mod tests {
         // A wide reply with the wrong count does not fit the request.
         let short = encode(4, &[0x03, 0x00, 0x02, 0x13, 0x88]);
         assert_eq!(check_reply_as(&short, 4, &request, form), Verdict::Foreign);
+    }
+
+    mod properties {
+        use super::*;
+        use proptest::prelude::*;
+
+        /// A request PDU, a well-formed normal or exception reply PDU to it, and the form the
+        /// slave replies in.
+        #[derive(Clone, Debug)]
+        struct Exchange {
+            request: Vec<u8>,
+            reply: Vec<u8>,
+            form: ReplyForm,
+        }
+
+        impl Exchange {
+            /// What the master on TCP gets: the reply in standard form.
+            fn standard_reply(&self) -> Vec<u8> {
+                match self.reply.as_slice() {
+                    [0x03, 0x00, count, data @ ..] if self.form == ReplyForm::WideReadCount => {
+                        [&[0x03, *count], data].concat()
+                    }
+                    reply => reply.to_vec(),
+                }
+            }
+        }
+
+        fn bytes(len: impl Into<prop::collection::SizeRange>) -> impl Strategy<Value = Vec<u8>> {
+            prop::collection::vec(any::<u8>(), len)
+        }
+
+        fn form() -> impl Strategy<Value = ReplyForm> {
+            prop_oneof![Just(ReplyForm::Standard), Just(ReplyForm::WideReadCount)]
+        }
+
+        /// `function`, then `fields` (address, quantity, ...) as big-endian words.
+        fn pdu(function: u8, fields: &[u16]) -> Vec<u8> {
+            let mut pdu = vec![function];
+            fields.iter().for_each(|f| pdu.extend(f.to_be_bytes()));
+            pdu
+        }
+
+        fn with_count(mut head: Vec<u8>, data: &[u8]) -> Vec<u8> {
+            head.push(data.len() as u8);
+            head.extend_from_slice(data);
+            head
+        }
+
+        /// Normal replies for every function code whose reply length the frame layer knows.
+        fn normal_exchange() -> impl Strategy<Value = Exchange> {
+            let read_bits =
+                (0x01u8..=0x02, any::<u16>(), 1u16..=2000).prop_flat_map(|(f, at, q)| {
+                    bytes(usize::from(q).div_ceil(8))
+                        .prop_map(move |data| (pdu(f, &[at, q]), with_count(vec![f], &data)))
+                });
+            let read_registers =
+                (0x03u8..=0x04, any::<u16>(), 1u16..=125).prop_flat_map(|(f, at, q)| {
+                    bytes(usize::from(q) * 2)
+                        .prop_map(move |data| (pdu(f, &[at, q]), with_count(vec![f], &data)))
+                });
+            let write_single = (prop_oneof![Just(0x05u8), Just(0x06)], any::<[u16; 2]>())
+                .prop_map(|(f, fields)| (pdu(f, &fields), pdu(f, &fields)));
+            let status = (any::<u8>()).prop_map(|status| (vec![0x07], vec![0x07, status]));
+            let diagnostics = (any::<u16>(), bytes(0..=250)).prop_map(|(sub, data)| {
+                let echo = [pdu(0x08, &[sub]), data].concat();
+                (echo.clone(), echo)
+            });
+            let event_counter =
+                any::<[u16; 2]>().prop_map(|fields| (vec![0x0B], pdu(0x0B, &fields)));
+            let counted_reply = (prop_oneof![Just(0x0Cu8), Just(0x11)], bytes(0..=251))
+                .prop_map(|(f, data)| (vec![f], with_count(vec![f], &data)));
+            let write_coils = (any::<u16>(), 1u16..=1968).prop_flat_map(|(at, q)| {
+                bytes(usize::from(q).div_ceil(8)).prop_map(move |data| {
+                    (with_count(pdu(0x0F, &[at, q]), &data), pdu(0x0F, &[at, q]))
+                })
+            });
+            let write_registers = (any::<u16>(), 1u16..=123).prop_flat_map(|(at, q)| {
+                bytes(usize::from(q) * 2).prop_map(move |data| {
+                    (with_count(pdu(0x10, &[at, q]), &data), pdu(0x10, &[at, q]))
+                })
+            });
+            let read_file = (
+                prop::collection::vec(any::<[u16; 3]>(), 1..=35),
+                bytes(0..=251),
+            )
+                .prop_map(|(records, data)| {
+                    let sub: Vec<u8> = records.iter().flat_map(|r| pdu(0x06, r)).collect();
+                    (with_count(vec![0x14], &sub), with_count(vec![0x14], &data))
+                });
+            let write_file = bytes(0..=251).prop_map(|data| {
+                let echo = with_count(vec![0x15], &data);
+                (echo.clone(), echo)
+            });
+            let mask_write =
+                any::<[u16; 3]>().prop_map(|fields| (pdu(0x16, &fields), pdu(0x16, &fields)));
+            let read_write =
+                (any::<[u16; 2]>(), 1u16..=125, 1u16..=121).prop_flat_map(|(at, rq, wq)| {
+                    (bytes(usize::from(rq) * 2), bytes(usize::from(wq) * 2)).prop_map(
+                        move |(read, written)| {
+                            let request = with_count(pdu(0x17, &[at[0], rq, at[1], wq]), &written);
+                            (request, with_count(vec![0x17], &read))
+                        },
+                    )
+                });
+            let fifo = (any::<u16>(), prop::collection::vec(any::<u16>(), 0..=31)).prop_map(
+                |(at, values)| {
+                    let count = values.len() as u16;
+                    let reply = [
+                        pdu(0x18, &[2 + 2 * count, count]),
+                        pdu(0, &values)[1..].to_vec(),
+                    ]
+                    .concat();
+                    (pdu(0x18, &[at]), reply)
+                },
+            );
+            let device_id = (
+                any::<[u8; 6]>(),
+                prop::collection::vec((any::<u8>(), bytes(0..60)), 0..8),
+            )
+                .prop_map(|(head, mut objects)| {
+                    // Whole objects while the frame stays within 256 bytes.
+                    let mut room = MAX_FRAME_LEN - 10;
+                    objects.retain(|(_, value)| {
+                        let fits = value.len() + 2 <= room;
+                        room -= if fits { value.len() + 2 } else { 0 };
+                        fits
+                    });
+                    let mut reply = vec![
+                        0x2B,
+                        0x0E,
+                        head[0],
+                        head[1],
+                        head[2],
+                        head[3],
+                        objects.len() as u8,
+                    ];
+                    for (id, value) in &objects {
+                        reply.push(*id);
+                        reply.extend(with_count(vec![], value));
+                    }
+                    (vec![0x2B, 0x0E, head[4], head[5]], reply)
+                });
+            let standard = prop_oneof![
+                read_bits,
+                read_registers,
+                write_single,
+                status,
+                diagnostics,
+                event_counter,
+                counted_reply,
+                write_coils,
+                write_registers,
+                read_file,
+                write_file,
+                mask_write,
+                read_write,
+                fifo,
+                device_id,
+            ];
+            let wide = (any::<u16>(), 1u16..=125).prop_flat_map(|(at, q)| {
+                bytes(usize::from(q) * 2).prop_map(move |data| {
+                    let reply = [pdu(0x03, &[2 * q]), data].concat();
+                    Exchange {
+                        request: pdu(0x03, &[at, q]),
+                        reply,
+                        form: ReplyForm::WideReadCount,
+                    }
+                })
+            });
+            prop_oneof![
+                4 => (standard, form())
+                    .prop_map(|((request, reply), form)| Exchange { request, reply, form }),
+                1 => wide,
+            ]
+        }
+
+        /// A normal reply, or an exception to any request whatever.
+        fn exchange() -> impl Strategy<Value = Exchange> {
+            let exception =
+                (1u8..0x80, bytes(0..8), any::<u8>(), form()).prop_map(|(f, rest, code, form)| {
+                    Exchange {
+                        request: [vec![f], rest].concat(),
+                        reply: vec![f | EXCEPTION_BIT, code],
+                        form,
+                    }
+                });
+            prop_oneof![4 => normal_exchange(), 1 => exception]
+        }
+
+        fn slave() -> impl Strategy<Value = u8> {
+            1u8..=247
+        }
+
+        /// Frames with a good CRC are rare among random bytes: half the inputs are encoded.
+        fn frame_like() -> impl Strategy<Value = Vec<u8>> {
+            prop_oneof![
+                bytes(0..=300),
+                (any::<u8>(), bytes(0..=260)).prop_map(|(address, pdu)| encode(address, &pdu)),
+            ]
+        }
+
+        proptest! {
+            #[test]
+            fn no_bytes_whatever_make_the_frame_functions_panic_or_talk_nonsense(
+                frame in frame_like(),
+                request in prop_oneof![bytes(0..12), exchange().prop_map(|e| e.request)],
+                slave in prop::option::of(any::<u8>()),
+                form in form(),
+            ) {
+                // Mostly the sender's own address, so the checks past the address run.
+                let slave = slave.unwrap_or(frame.first().copied().unwrap_or(0));
+                let _ = crc16(&frame);
+                for len in [
+                    request_len(&frame),
+                    reply_len(&frame, slave, &request),
+                    reply_len_as(&frame, slave, &request, form),
+                ] {
+                    match len {
+                        FrameLen::Need(n) => prop_assert!(n > frame.len(), "{:?}", len),
+                        FrameLen::Exact(n) => {
+                            prop_assert!((MIN_FRAME_LEN..=MAX_FRAME_LEN).contains(&n), "{:?}", len)
+                        }
+                        FrameLen::BySilence | FrameLen::Invalid => {}
+                    }
+                }
+                let crc = crc_ok(&frame);
+                for verdict in [
+                    check_reply(&frame, slave, &request),
+                    check_reply_as(&frame, slave, &request, form),
+                ] {
+                    prop_assert_eq!(verdict == Verdict::Corrupt, !crc);
+                    if verdict == Verdict::Answer {
+                        prop_assert_eq!(frame[0], slave);
+                        prop_assert_eq!(request[0], pdu_of(&frame)[0] & !EXCEPTION_BIT);
+                    }
+                }
+                if crc {
+                    prop_assert_eq!(pdu_of(&frame), &frame[1..frame.len() - 2]);
+                    let _ = answer_pdu(&frame, form);
+                }
+            }
+
+            #[test]
+            fn every_encoded_frame_has_a_good_crc_and_gives_back_its_pdu(
+                address in any::<u8>(),
+                pdu in bytes(1..=253),
+                mut out in bytes(0..8),
+            ) {
+                let frame = encode(address, &pdu);
+                prop_assert_eq!(frame.len(), pdu.len() + 3);
+                prop_assert_eq!(frame[0], address);
+                prop_assert!(crc_ok(&frame));
+                prop_assert_eq!(pdu_of(&frame), &pdu[..]);
+                encode_into(&mut out, address, &pdu);
+                prop_assert_eq!(out, frame);
+            }
+
+            #[test]
+            fn any_single_flipped_bit_fails_the_crc(
+                exchange in exchange(),
+                slave in slave(),
+                bit in any::<prop::sample::Index>(),
+            ) {
+                let mut frame = encode(slave, &exchange.reply);
+                let bit = bit.index(frame.len() * 8);
+                frame[bit / 8] ^= 1 << (bit % 8);
+                prop_assert!(!crc_ok(&frame));
+                prop_assert_eq!(
+                    check_reply_as(&frame, slave, &exchange.request, exchange.form),
+                    Verdict::Corrupt
+                );
+            }
+
+            #[test]
+            fn a_well_formed_reply_is_complete_at_exactly_its_length_and_answers_its_request(
+                exchange in exchange(),
+                slave in slave(),
+                next in bytes(0..8),
+            ) {
+                let Exchange { request, form, .. } = &exchange;
+                let frame = encode(slave, &exchange.reply);
+                for k in 0..frame.len() {
+                    match reply_len_as(&frame[..k], slave, request, *form) {
+                        FrameLen::Need(n) => {
+                            prop_assert!(k < n && n <= frame.len(), "Need({}) at {}", n, k)
+                        }
+                        FrameLen::Exact(n) => prop_assert_eq!(n, frame.len(), "at {}", k),
+                        other => {
+                            let why = format!("{other:?} at {k} of {frame:02X?}");
+                            return Err(TestCaseError::fail(why));
+                        }
+                    }
+                }
+                // The next frame's first bytes, already in, change nothing.
+                let stream = [frame.clone(), next].concat();
+                let whole = FrameLen::Exact(frame.len());
+                prop_assert_eq!(reply_len_as(&stream, slave, request, *form), whole);
+                prop_assert_eq!(check_reply_as(&frame, slave, request, *form), Verdict::Answer);
+                prop_assert_eq!(answer_pdu(&frame, *form), exchange.standard_reply());
+                if *form == ReplyForm::Standard {
+                    prop_assert_eq!(reply_len(&stream, slave, request), whole);
+                    prop_assert_eq!(check_reply(&frame, slave, request), Verdict::Answer);
+                }
+            }
+
+            #[test]
+            fn a_request_is_complete_at_exactly_its_length_unless_only_silence_can_tell(
+                exchange in normal_exchange(),
+                slave in slave(),
+            ) {
+                let frame = encode(slave, &exchange.request);
+                let whole = if exchange.request[0] == 0x08 {
+                    FrameLen::BySilence
+                } else {
+                    FrameLen::Exact(frame.len())
+                };
+                prop_assert_eq!(request_len(&frame), whole);
+                for k in 0..frame.len() {
+                    match request_len(&frame[..k]) {
+                        FrameLen::Need(n) => {
+                            prop_assert!(k < n && n <= frame.len(), "Need({}) at {}", n, k)
+                        }
+                        len => prop_assert!(len == whole || k < 2, "{:?} at {}", len, k),
+                    }
+                }
+            }
+
+            #[test]
+            fn a_reply_from_another_address_is_foreign(
+                exchange in exchange(),
+                (slave, other) in (slave(), any::<u8>())
+                    .prop_filter("another address", |(s, o)| s != o),
+            ) {
+                let frame = encode(other, &exchange.reply);
+                prop_assert_eq!(
+                    check_reply_as(&frame, slave, &exchange.request, exchange.form),
+                    Verdict::Foreign
+                );
+            }
+
+            #[test]
+            fn a_reply_to_another_function_is_foreign(
+                (asked, answered) in (exchange(), exchange())
+                    .prop_filter("another function", |(a, b)| a.request[0] != b.request[0]),
+                slave in slave(),
+            ) {
+                let frame = encode(slave, &answered.reply);
+                prop_assert_eq!(
+                    check_reply_as(&frame, slave, &asked.request, asked.form),
+                    Verdict::Foreign
+                );
+            }
+
+            #[test]
+            fn an_echo_of_another_address_quantity_or_sub_function_is_foreign(
+                exchange in normal_exchange().prop_filter("an echo", |e| {
+                    matches!(e.request[0], 0x05 | 0x06 | 0x08 | 0x0F | 0x10 | 0x16)
+                }),
+                at in any::<prop::sample::Index>(),
+                flip in 1u8..,
+                slave in slave(),
+            ) {
+                // The bytes the reply must echo: the address (and quantity), or the sub-function.
+                let echoed = if matches!(exchange.request[0], 0x0F | 0x10) { 4 } else { 2 };
+                let mut reply = exchange.reply.clone();
+                reply[1 + at.index(echoed)] ^= flip;
+                let frame = encode(slave, &reply);
+                prop_assert_eq!(
+                    check_reply_as(&frame, slave, &exchange.request, exchange.form),
+                    Verdict::Foreign
+                );
+            }
+
+            #[test]
+            fn a_read_reply_for_another_quantity_is_foreign(
+                function in 0x01u8..=0x04,
+                (asked, sent) in (1u16..=125, 1u16..=125)
+                    .prop_filter("another quantity", |(a, s)| a != s),
+                slave in slave(),
+                form in form(),
+            ) {
+                let bytes_for = |q: u16| if function <= 0x02 { q.div_ceil(8) } else { q * 2 };
+                prop_assume!(bytes_for(asked) != bytes_for(sent));
+                let count = bytes_for(sent) as usize;
+                let frame = encode(slave, &with_count(vec![function], &vec![0; count]));
+                prop_assert_eq!(
+                    check_reply_as(&frame, slave, &pdu(function, &[0, asked]), form),
+                    Verdict::Foreign
+                );
+            }
+        }
     }
 }

@@ -167,4 +167,166 @@ mod tests {
         encode(header, &[0x83, 0x0B], &mut out);
         assert_eq!(out, [0xBE, 0xEF, 0, 0, 0, 3, 0x11, 0x83, 0x0B]);
     }
+
+    mod properties {
+        use super::*;
+        use proptest::prelude::*;
+
+        fn header() -> impl Strategy<Value = Header> {
+            (any::<u16>(), any::<u8>()).prop_map(|(transaction, unit)| Header { transaction, unit })
+        }
+
+        fn request() -> impl Strategy<Value = Request> {
+            (header(), prop::collection::vec(any::<u8>(), 1..=253))
+                .prop_map(|(header, pdu)| Request { header, pdu })
+        }
+
+        /// Length fields, crowded at the edges of the valid range: proptest picks uniformly.
+        fn length_field() -> impl Strategy<Value = u16> {
+            prop_oneof![
+                0u16..=MIN_LENGTH + 1,
+                MAX_LENGTH - 1..=MAX_LENGTH + 2,
+                any::<u16>()
+            ]
+        }
+
+        fn framed(request: &Request) -> Vec<u8> {
+            let mut out = Vec::new();
+            encode(request.header, &request.pdu, &mut out);
+            out
+        }
+
+        proptest! {
+            #[test]
+            fn any_bytes_give_one_frame_more_bytes_needed_or_a_typed_error(
+                bytes in prop::collection::vec(any::<u8>(), 0..300),
+                // Mostly Modbus, with a plausible length, so whole frames come out too.
+                protocol_zero in any::<bool>(),
+                length in prop::option::of(length_field()),
+            ) {
+                let mut bytes = bytes;
+                match (protocol_zero, bytes.get_mut(2..4)) {
+                    (true, Some(id)) => id.fill(0),
+                    // Protocol id 1 is as near Modbus as a stranger gets.
+                    (false, Some(id)) if id[0] & 1 == 0 => id.copy_from_slice(&[0, 1]),
+                    _ => {}
+                }
+                if let (Some(length), true) = (length, bytes.len() >= 6) {
+                    bytes[4..6].copy_from_slice(&length.to_be_bytes());
+                }
+                let mut buf = BytesMut::from(&bytes[..]);
+                match decode(&mut buf) {
+                    Ok(Some(request)) => {
+                        let length = u16::from_be_bytes([bytes[4], bytes[5]]);
+                        let total = HEADER_LEN - 1 + usize::from(length);
+                        prop_assert_eq!(&bytes[2..4], &[0, 0]);
+                        prop_assert!((MIN_LENGTH..=MAX_LENGTH).contains(&length));
+                        prop_assert!(bytes.len() >= total);
+                        prop_assert_eq!(
+                            request.header,
+                            Header {
+                                transaction: u16::from_be_bytes([bytes[0], bytes[1]]),
+                                unit: bytes[6],
+                            }
+                        );
+                        prop_assert_eq!(&request.pdu[..], &bytes[HEADER_LEN..total]);
+                        prop_assert_eq!(&buf[..], &bytes[total..], "one frame is consumed");
+                    }
+                    Ok(None) => {
+                        prop_assert_eq!(&buf[..], &bytes[..], "nothing is consumed");
+                        if bytes.len() >= HEADER_LEN - 1 {
+                            let length = u16::from_be_bytes([bytes[4], bytes[5]]);
+                            prop_assert_eq!(&bytes[2..4], &[0, 0]);
+                            prop_assert!((MIN_LENGTH..=MAX_LENGTH).contains(&length));
+                            prop_assert!(bytes.len() < HEADER_LEN - 1 + usize::from(length));
+                        }
+                    }
+                    Err(FrameError::Protocol(id)) => {
+                        prop_assert_ne!(id, 0);
+                        prop_assert_eq!(id, u16::from_be_bytes([bytes[2], bytes[3]]));
+                    }
+                    Err(FrameError::Length(length)) => {
+                        prop_assert_eq!(&bytes[2..4], &[0, 0]);
+                        prop_assert_eq!(length, u16::from_be_bytes([bytes[4], bytes[5]]));
+                        prop_assert!(!(MIN_LENGTH..=MAX_LENGTH).contains(&length));
+                    }
+                }
+            }
+
+            #[test]
+            fn every_valid_frame_decodes_to_what_was_encoded(request in request()) {
+                let frame = framed(&request);
+                let mut buf = BytesMut::from(&frame[..]);
+                prop_assert_eq!(decode(&mut buf), Ok(Some(request)));
+                prop_assert!(buf.is_empty());
+            }
+
+            #[test]
+            fn every_valid_frame_fed_byte_by_byte_decodes_only_once_complete(
+                request in request(),
+            ) {
+                let frame = framed(&request);
+                let mut buf = BytesMut::new();
+                for (i, &byte) in frame.iter().enumerate() {
+                    buf.extend_from_slice(&[byte]);
+                    if i + 1 < frame.len() {
+                        prop_assert_eq!(decode(&mut buf), Ok(None), "after {} bytes", i + 1);
+                    }
+                }
+                prop_assert_eq!(decode(&mut buf), Ok(Some(request)));
+                prop_assert!(buf.is_empty());
+            }
+
+            #[test]
+            fn frames_sharing_a_buffer_come_out_in_order_however_the_stream_is_cut(
+                requests in prop::collection::vec(request(), 1..5),
+                cuts in prop::collection::vec(1usize..300, 0..8),
+            ) {
+                let stream: Vec<u8> = requests.iter().flat_map(framed).collect();
+                let mut buf = BytesMut::new();
+                let mut decoded = Vec::new();
+                let mut rest = &stream[..];
+                let mut cuts = cuts.into_iter();
+                while !rest.is_empty() {
+                    let n = cuts.next().unwrap_or(rest.len()).min(rest.len());
+                    buf.extend_from_slice(&rest[..n]);
+                    rest = &rest[n..];
+                    while let Some(request) =
+                        decode(&mut buf).map_err(|e| TestCaseError::fail(e.to_string()))?
+                    {
+                        decoded.push(request);
+                    }
+                }
+                prop_assert_eq!(decoded, requests);
+                prop_assert!(buf.is_empty());
+            }
+
+            #[test]
+            fn a_protocol_id_other_than_modbus_is_refused_by_its_value(
+                request in request(),
+                protocol in prop_oneof![1u16..=2, 1u16..],
+                keep in 6usize..=260,
+            ) {
+                let mut frame = framed(&request);
+                frame[2..4].copy_from_slice(&protocol.to_be_bytes());
+                frame.truncate(keep);
+                let mut buf = BytesMut::from(&frame[..]);
+                prop_assert_eq!(decode(&mut buf), Err(FrameError::Protocol(protocol)));
+            }
+
+            #[test]
+            fn a_length_outside_2_to_254_is_refused_by_its_value(
+                request in request(),
+                length in length_field()
+                    .prop_filter("a valid length", |l| !(MIN_LENGTH..=MAX_LENGTH).contains(l)),
+                keep in 6usize..=260,
+            ) {
+                let mut frame = framed(&request);
+                frame[4..6].copy_from_slice(&length.to_be_bytes());
+                frame.truncate(keep);
+                let mut buf = BytesMut::from(&frame[..]);
+                prop_assert_eq!(decode(&mut buf), Err(FrameError::Length(length)));
+            }
+        }
+    }
 }
