@@ -1418,7 +1418,7 @@ mod tests {
     mod properties {
         use super::*;
         use proptest::prelude::*;
-        use std::net::Ipv6Addr;
+        use std::net::{Ipv4Addr, Ipv6Addr};
 
         fn duration() -> impl Strategy<Value = Duration> {
             prop_oneof![
@@ -1437,20 +1437,52 @@ mod tests {
         }
 
         fn server() -> impl Strategy<Value = Server> {
-            (
+            let limits = (
                 prop::collection::vec(socket_addr(), 1..4),
                 1usize..=100_000,
                 prop_oneof![Just(Duration::ZERO), duration()],
                 1usize..=64,
                 prop_oneof![Just(Duration::ZERO), duration()],
-            )
-                .prop_map(|(listen, max_connections, idle, depth, shutdown)| Server {
+            );
+            let guard = (
+                prop::sample::select(vec![WhenFull::CloseOldestIdle, WhenFull::Refuse]),
+                duration(),
+                prop_oneof![
+                    Just(Duration::ZERO),
+                    (1u64..=7200).prop_map(Duration::from_secs)
+                ],
+                prop::collection::vec(net(), 0..4),
+                prop::collection::vec(net(), 0..4),
+            );
+            (limits, guard).prop_map(
+                |(
+                    (listen, max_connections, idle, depth, shutdown),
+                    (when_full, frame_timeout, keepalive, allow, read_only),
+                )| Server {
                     listen,
                     max_connections,
                     idle_timeout: idle,
                     pipeline_depth: depth,
                     shutdown_timeout: shutdown,
-                })
+                    when_full,
+                    frame_timeout,
+                    keepalive,
+                    allow,
+                    read_only,
+                },
+            )
+        }
+
+        /// An IPv4 or IPv6 network, host bits cleared as the loader clears them.
+        fn net() -> impl Strategy<Value = IpNet> {
+            prop_oneof![
+                (any::<u32>(), 0u8..=32).prop_map(|(ip, len)| {
+                    IpNet::from(ipnet::Ipv4Net::new(Ipv4Addr::from(ip), len).unwrap()).trunc()
+                }),
+                (any::<u128>(), 0u8..=128).prop_map(|(ip, len)| {
+                    IpNet::from(ipnet::Ipv6Net::new(Ipv6Addr::from(ip), len).unwrap()).trunc()
+                }),
+            ]
         }
 
         fn log() -> impl Strategy<Value = Log> {
@@ -1533,11 +1565,23 @@ mod tests {
                 (0..=MAX_GARBAGE, 0..=MAX_GARBAGE),
                 prop::option::of(any::<u8>()),
             );
+            let bends = (
+                prop::option::of(1u8..=127),
+                prop::option::of(1usize..=300),
+                prop::option::of((duration(), 1usize..=300)),
+            );
+            let knobs = (knobs, bends);
             (address_sets(3), prop::collection::vec(knobs, 3)).prop_map(|(sets, knobs)| {
                 sets.into_iter()
                     .zip(knobs)
                     .map(
-                        |(address, (model, delay, offline, late, rate, garbage, reply))| SimSlave {
+                        |(
+                            address,
+                            (
+                                (model, delay, offline, late, rate, garbage, reply),
+                                (function, truncate, gap),
+                            ),
+                        )| SimSlave {
                             address,
                             model,
                             processing_delay: delay,
@@ -1550,6 +1594,10 @@ mod tests {
                             garbage_before: garbage.0,
                             garbage_after: garbage.1,
                             reply_address: reply,
+                            reply_function: function,
+                            truncate_reply: truncate,
+                            reply_gap: gap.map(|(gap, _)| gap),
+                            reply_gap_after: gap.map(|(_, after)| after),
                         },
                     )
                     .collect()
@@ -1576,8 +1624,9 @@ mod tests {
                 any::<bool>(),
             );
             let queue = (1usize..=4096, duration(), duration(), duration());
-            (line, timing, queue, slaves(), sim_slaves()).prop_map(
-                |(line, timing, queue, slave, sim_slave)| {
+            let down = (0u32..=10, duration());
+            (line, timing, queue, down, slaves(), sim_slaves()).prop_map(
+                |(line, timing, queue, down, slave, sim_slave)| {
                     let (name, device, baud, data_bits, parity, stop_bits) = line;
                     let (response_timeout, retry, inter_frame, byte, turn, reply) = timing;
                     let (retries, retry_writes) = retry;
@@ -1605,6 +1654,8 @@ mod tests {
                         queue_timeout,
                         reopen_delay,
                         reopen_delay_max: reopen_delay + reopen_extra,
+                        slave_down_after: down.0,
+                        slave_probe_interval: down.1,
                         slave,
                         sim_slave,
                     }
@@ -1729,6 +1780,11 @@ mod tests {
                 ("server.listen".to_owned(), text("localhost")),
                 ("server.listen".to_owned(), toml::Value::Array(vec![])),
                 ("server.idle_timeout".to_owned(), text("soon")),
+                ("server.frame_timeout".to_owned(), text("0s")),
+                ("server.keepalive".to_owned(), text("10ms")),
+                ("server.when_full".to_owned(), text("oldest")),
+                ("server.allow".to_owned(), text("10.0.0.0/40")),
+                ("server.read_only".to_owned(), text("plc")),
                 ("metrics.listen".to_owned(), text("127.0.0.1")),
                 ("log.level".to_owned(), text("[")),
                 ("log.format".to_owned(), text("xml")),
@@ -1744,6 +1800,7 @@ mod tests {
                 key("queue_timeout", text("0s"));
                 key("reopen_delay", text("0s"));
                 key("reopen_delay_max", text("0s"));
+                key("slave_probe_interval", text("0s"));
                 key("turnaround_delay", text("later"));
                 key("retries", Integer(11));
                 key("queue_depth", Integer(0));
