@@ -495,7 +495,11 @@ impl Master {
             }
         };
         if !ok {
-            return fail(format!("reply {pdu:02X?} does not answer {expected:02X?}"));
+            let shown = &pdu[..pdu.len().min(12)];
+            return fail(format!(
+                "reply of {} bytes {shown:02X?} does not answer {expected:02X?}",
+                pdu.len()
+            ));
         }
         if matches!(pending.ask, Ask::Write06 { .. } | Ask::Write10 { .. }) {
             Tally::add(&self.tally.writes_acknowledged, 1);
