@@ -89,7 +89,7 @@ fn count_panics() {
 }
 
 const MASTERS: usize = 100;
-/// Soak length without `MBGW_SOAK_SECONDS`: about two and a half minutes in all, in release.
+/// Soak length without `MBGW_SOAK_SECONDS`: a little over two minutes in all, in release.
 const DEFAULT_SOAK: Duration = Duration::from_secs(100);
 /// The mixed round of the warm-up, after every master has written all its registers.
 const WARM_MIXED: Duration = Duration::from_secs(8);
@@ -99,7 +99,7 @@ const UNPLUGGED_FOR: Duration = Duration::from_secs(3);
 const REPLY_PATIENCE: Duration = Duration::from_secs(15);
 /// Anything else the test waits for (connect, the gateway noticing a close, the bus idling).
 const PATIENCE: Duration = Duration::from_secs(20);
-/// Wire frames are collected this often; the line remembers its last 4096, some 10 s of traffic.
+/// Wire frames are collected this often; the line remembers its last 4096, over 10 s of traffic.
 const WIRE_POLL: Duration = Duration::from_millis(100);
 /// The heap may end this far above its warm level, plus [`HEAP_PER_SERIES`] for each metric
 /// series first made during the soak. See `heap_is_back_at_its_warm_level`.
