@@ -16,6 +16,9 @@
 //! - `metrics`: `/metrics`, `/healthz`, `/readyz` after known traffic; promtool; shipped rules.
 //!
 //! `support` has the shared pieces: gateway start-up, a raw master, a pty slave.
+//!
+//! `tests/soak.rs` is a crate of its own (it counts the whole process's heap with its own
+//! allocator), ignored by plain `cargo test`; `.ci/run` runs it in release.
 
 mod support;
 
