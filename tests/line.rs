@@ -425,3 +425,36 @@ async fn a_down_slave_that_answers_its_probe_is_served_normally_again() {
     }
     assert_eq!(line.stats().master_frames, 3 + 6);
 }
+
+#[tokio::test(start_paused = true)]
+async fn a_late_reply_never_answers_the_next_masters_request_of_the_same_form() {
+    use modbus_gateway::sim::faults::{Faults, Faulty};
+    // Slave 1 always answers 80 ms after a request: 30 ms after its 50 ms timeout.
+    let late = Faults {
+        late_reply: Some(Duration::from_millis(80)),
+        ..Faults::default()
+    };
+    let keys = "baud = 19200\nresponse_timeout = \"50ms\"";
+    let (line, bus) = sim_bus(keys, |line| {
+        let slave = Faulty::new(RegisterBank::new(Duration::ZERO), late, 1);
+        line.add_slave(1, slave);
+    });
+    settle(&bus).await;
+    let first = bus.submit(1, 1, READ_10.to_vec());
+    let second = bus.submit(2, 1, READ_10.to_vec());
+    assert_eq!(exception(&first.await.unwrap()), Some(0x0B));
+    // Without the late-reply window, master 2's request would go out at master 1's timeout, and
+    // the late reply to master 1 would come back as its answer.
+    assert_eq!(
+        exception(&second.await.unwrap()),
+        Some(0x0B),
+        "master 2 must not get the reply to master 1's request"
+    );
+    let frames = line.frames();
+    let requests: Vec<_> = frames.iter().filter(|f| f.from == Source::Master).collect();
+    let late_reply = frames
+        .iter()
+        .find(|f| f.from != Source::Master)
+        .expect("the late reply went on the wire");
+    assert!(requests[1].start > late_reply.end);
+}

@@ -2,8 +2,12 @@
 //! down: its requests are answered 0x0B at once without touching the line, but for one probe per
 //! `slave_probe_interval` (a single attempt, no retries), so a dead drive costs the line one
 //! timeout per interval instead of one per poll, and the healthy slaves keep the line. Any reply
-//! brings it back. Corrupt replies neither count nor clear: something is answering. Pure: the
-//! time comes in as an argument.
+//! brings it back. Corrupt replies neither count nor clear: something is answering.
+//!
+//! After a timeout, a slave's reply may still come. RTU frames carry no transaction id, so a late
+//! reply would be taken as the answer to the next request of the same form to that slave, maybe
+//! another master's: the next request to a slave that timed out waits out a late-reply window
+//! (one more response timeout) first. Pure: the time comes in as an argument.
 
 use std::time::Duration;
 use tokio::time::Instant;
@@ -55,6 +59,8 @@ pub enum Change {
 struct Slave {
     timeouts: u32,
     next_probe: Option<Instant>,
+    /// Its last timed-out request may still be answered until then.
+    late_until: Option<Instant>,
 }
 
 pub struct Health {
@@ -87,6 +93,18 @@ impl Health {
         }
     }
 
+    /// A request to `address` timed out; its reply may still come until `until`.
+    pub fn expect_late_reply(&mut self, address: u8, until: Instant) {
+        self.slaves[usize::from(address)].late_until = Some(until);
+    }
+
+    /// Until when a new request to `address` must wait, if a late reply may still come.
+    pub fn late_reply_window(&self, address: u8, now: Instant) -> Option<Instant> {
+        self.slaves[usize::from(address)]
+            .late_until
+            .filter(|&until| until > now)
+    }
+
     /// Record how a transaction with `address` ended at `now`.
     pub fn record(
         &mut self,
@@ -99,7 +117,8 @@ impl Health {
         let was_down = Self::is_down(slave, policy);
         match response {
             Response::Answered => {
-                *slave = Slave::default();
+                slave.timeouts = 0;
+                slave.next_probe = None;
                 if was_down {
                     Change::Up
                 } else {
@@ -214,6 +233,17 @@ mod tests {
             Change::Up
         );
         assert_eq!(health.admit(4, next, POLICY), Admission::Send);
+    }
+
+    #[test]
+    fn a_late_reply_window_holds_only_that_slave_and_only_until_it_ends() {
+        let mut health = Health::default();
+        let now = Instant::now();
+        let until = now + Duration::from_millis(100);
+        health.expect_late_reply(3, until);
+        assert_eq!(health.late_reply_window(3, now), Some(until));
+        assert_eq!(health.late_reply_window(4, now), None);
+        assert_eq!(health.late_reply_window(3, until), None);
     }
 
     #[test]

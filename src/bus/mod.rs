@@ -493,6 +493,11 @@ impl Bus {
                     .answer(job, Err(RequestError::SlaveDown { timeouts }));
                 continue;
             }
+            // The slave's reply to an earlier, timed-out request may still come: let it arrive
+            // (and be discarded) before this request goes out.
+            if let Some(until) = self.health.late_reply_window(job.slave, Instant::now()) {
+                crate::timer::sleep_until(until).await;
+            }
             let probe = admission == Admission::Probe;
             let result = self.execute(&mut master, &job, deadline, probe).await;
             let traffic = master.counters();
@@ -589,9 +594,11 @@ impl Bus {
             Err(_) => Response::Garbled,
         };
         let down = self.derived.down;
-        let change = self
-            .health
-            .record(job.slave, response, Instant::now(), down);
+        let now = Instant::now();
+        if response == Response::TimedOut {
+            self.health.expect_late_reply(job.slave, now + timeout);
+        }
+        let change = self.health.record(job.slave, response, now, down);
         if let Change::Down { timeouts } = change {
             self.handle
                 .metrics

@@ -205,8 +205,11 @@ fn fits_request(reply: &[u8], request: &[u8]) -> bool {
         0x01 | 0x02 => quantity(request, 3).is_none_or(|q| byte_count == Some(q.div_ceil(8))),
         0x03 | 0x04 => quantity(request, 3).is_none_or(|q| byte_count == Some(q * 2)),
         0x17 => quantity(request, 3).is_none_or(|q| byte_count == Some(q * 2)),
-        // Writes echo the address they wrote (and the quantity, for the multiple writes).
-        0x05 | 0x06 | 0x16 => reply.get(1..3) == request.get(1..3),
+        // Single writes and mask writes echo the whole request: a late echo of an earlier write
+        // of another value to the same address is not this write's answer.
+        0x05 | 0x06 => reply.get(..5) == request.get(..5),
+        0x16 => reply.get(..7) == request.get(..7),
+        // Multiple writes echo the address and quantity they wrote.
         0x0F | 0x10 => reply.get(1..5) == request.get(1..5),
         // Diagnostics echo the sub-function; encapsulated interface transports echo the MEI type.
         0x08 => reply.get(1..3) == request.get(1..3),
