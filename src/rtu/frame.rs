@@ -264,6 +264,15 @@ pub fn check_reply_as(frame: &[u8], slave: u8, request: &[u8], form: ReplyForm) 
 mod tests {
     use super::*;
 
+    #[test]
+    fn a_late_echo_of_another_value_written_to_the_same_register_is_foreign() {
+        // Write 1388H to register 0004H; an earlier write of 0001H there is echoed late.
+        let request = [0x06, 0x00, 0x04, 0x13, 0x88];
+        let earlier = encode(2, &[0x06, 0x00, 0x04, 0x00, 0x01]);
+        assert_eq!(check_reply(&earlier, 2, &request), Verdict::Foreign);
+        assert_eq!(check_reply(&encode(2, &request), 2, &request), Verdict::Answer);
+    }
+
     /// Goodrive300 manual 10.4.1: read 2 words from 0004H of slave 01H.
     const READ_REQUEST: [u8; 8] = [
         0x01, // slave address
