@@ -177,7 +177,13 @@ mod timerfd {
                         }
                     });
                     match read {
-                        Ok(result) => break result?,
+                        Ok(result) => {
+                            result?;
+                            // Read dry: without this the next sleep would find it readable and
+                            // spend a read to learn otherwise.
+                            ready.clear_ready();
+                            break;
+                        }
                         // Readiness left over from an earlier arming.
                         Err(_would_block) => continue,
                     }
