@@ -143,7 +143,16 @@ impl Transport for Port {
                 let n = loop {
                     let mut ready = fd.readable().await?;
                     match ready.try_io(|fd| fd.get_ref().read(&mut chunk)) {
-                        Ok(read) => break read?,
+                        Ok(read) => {
+                            let n = read?;
+                            // A short read emptied the driver's buffer (as tokio assumes for
+                            // sockets): the next read waits for the reactor instead of
+                            // spending a syscall to hear "would block".
+                            if n > 0 && n < chunk.len() {
+                                ready.clear_ready();
+                            }
+                            break n;
+                        }
                         Err(_would_block) => continue,
                     }
                 };
