@@ -86,7 +86,7 @@ pub async fn serve(bus: &Bus, device: &str, ready: impl FnOnce(&str)) -> io::Err
         .map(|s| s.address.iter().count())
         .sum::<usize>();
     if device == PTY {
-        let (master, tty) = match tokio_serial::SerialStream::pair() {
+        let (master, tty) = match mio_serial::SerialStream::pair() {
             Ok(pair) => pair,
             Err(e) => return e.into(),
         };
@@ -99,7 +99,10 @@ pub async fn serve(bus: &Bus, device: &str, ready: impl FnOnce(&str)) -> io::Err
         );
         ready(&path);
         // The far end stays open here too, so the pty lives while masters come and go.
-        let mut port = Port::Serial(master);
+        let mut port = match Port::serial(master) {
+            Ok(port) => port,
+            Err(e) => return e,
+        };
         let error = responder.serve(&mut port).await;
         drop(tty);
         return error;

@@ -3,7 +3,10 @@
 //! timing switched on (the daemon does at start; in-process tests on tokio's paused clock leave
 //! it off and get tokio's sleeps), the last few milliseconds before a deadline are kept by one
 //! timer thread waiting on a condition variable, which wakes the task tens of microseconds late
-//! instead. Knows nothing of what it times.
+//! instead. A task that sleeps again and again (the RTU master, once per frame) keeps a
+//! [`LineTimer`] instead: on Linux its own timerfd in the runtime's epoll set, which wakes the
+//! runtime thread directly, with no other thread to wake and switch to. Knows nothing of what it
+//! times.
 
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
@@ -37,6 +40,157 @@ pub async fn sleep_until(deadline: tokio::time::Instant) {
         }
     }
     precise_sleep_until(deadline).await;
+}
+
+/// The sleeps of one task, one at a time. With precise timing on Linux they end on a timerfd of
+/// their own, registered once with the runtime's reactor: arming it is one syscall, and its
+/// expiry wakes the runtime thread itself. The timer thread's round trip (a futex wake-up, two
+/// switches to and from the timer thread, an eventfd write to wake the runtime) cost more CPU
+/// per transaction than the rest of the transaction's syscalls together. Without a timerfd (not
+/// Linux, no descriptor left, no reactor) the sleeps fall back to [`sleep_until`].
+#[derive(Default)]
+pub struct LineTimer {
+    #[cfg(target_os = "linux")]
+    fd: FdState,
+}
+
+#[cfg(target_os = "linux")]
+#[derive(Default)]
+enum FdState {
+    /// Opened at the first precise sleep, inside the runtime that will poll it.
+    #[default]
+    Unopened,
+    Open(timerfd::TimerFd),
+    Unavailable,
+}
+
+impl LineTimer {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Sleep until `deadline`, like [`sleep_until`]. Cancel-safe: a cancelled sleep leaves the
+    /// timerfd armed, and the next sleep re-arms it.
+    pub async fn sleep_until(&mut self, deadline: tokio::time::Instant) {
+        if !PRECISE.load(Ordering::Relaxed) {
+            return tokio::time::sleep_until(deadline).await;
+        }
+        #[cfg(target_os = "linux")]
+        {
+            if let FdState::Unopened = self.fd {
+                self.fd = match timerfd::TimerFd::new() {
+                    Ok(fd) => FdState::Open(fd),
+                    Err(error) => {
+                        tracing::debug!(%error, "no timerfd, line sleeps use the timer thread");
+                        FdState::Unavailable
+                    }
+                };
+            }
+            if let FdState::Open(fd) = &self.fd {
+                match fd.sleep_until(deadline.into_std()).await {
+                    Ok(()) => return,
+                    Err(error) => {
+                        tracing::debug!(%error, "timerfd failed, line sleeps use the timer thread");
+                        self.fd = FdState::Unavailable;
+                    }
+                }
+            }
+        }
+        sleep_until(deadline).await;
+    }
+}
+
+#[cfg(target_os = "linux")]
+mod timerfd {
+    use std::io;
+    use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
+    use std::time::{Duration, Instant};
+    use tokio::io::unix::AsyncFd;
+    use tokio::io::Interest;
+
+    pub struct TimerFd(AsyncFd<OwnedFd>);
+
+    impl TimerFd {
+        pub fn new() -> io::Result<TimerFd> {
+            // SAFETY: timerfd_create takes two integers and returns a new descriptor or -1.
+            let raw = unsafe {
+                libc::timerfd_create(
+                    libc::CLOCK_MONOTONIC,
+                    libc::TFD_NONBLOCK | libc::TFD_CLOEXEC,
+                )
+            };
+            if raw < 0 {
+                return Err(io::Error::last_os_error());
+            }
+            // SAFETY: `raw` is a descriptor just opened, owned by nobody else.
+            let fd = unsafe { OwnedFd::from_raw_fd(raw) };
+            // SAFETY: the AsyncFd owns `fd`, so it stays open and the same until it is dropped.
+            let fd = unsafe { AsyncFd::register_with_interest(fd, Interest::READABLE) }?;
+            Ok(TimerFd(fd))
+        }
+
+        /// Arm for `after` from now, replacing any earlier arming and its unread expiry.
+        fn arm(&self, after: Duration) -> io::Result<()> {
+            // An all-zero value would disarm instead.
+            let after = after.max(Duration::from_nanos(1));
+            let spec = libc::itimerspec {
+                it_interval: libc::timespec {
+                    tv_sec: 0,
+                    tv_nsec: 0,
+                },
+                it_value: libc::timespec {
+                    tv_sec: libc::time_t::try_from(after.as_secs()).unwrap_or(libc::time_t::MAX),
+                    tv_nsec: after.subsec_nanos() as libc::c_long,
+                },
+            };
+            // SAFETY: `spec` is a valid itimerspec; a null old value is allowed.
+            let done = unsafe {
+                libc::timerfd_settime(self.0.as_raw_fd(), 0, &spec, std::ptr::null_mut())
+            };
+            if done < 0 {
+                return Err(io::Error::last_os_error());
+            }
+            Ok(())
+        }
+
+        pub async fn sleep_until(&self, deadline: Instant) -> io::Result<()> {
+            loop {
+                let now = Instant::now();
+                if now >= deadline {
+                    return Ok(());
+                }
+                // Relative to a `now` taken before arming, so it can only expire late, never
+                // early; the loop checks the clock again anyway.
+                self.arm(deadline - now)?;
+                loop {
+                    let mut ready = self.0.readable().await?;
+                    let mut expirations = [0u8; 8];
+                    let read = ready.try_io(|fd| {
+                        // SAFETY: reads at most 8 bytes into an 8-byte buffer.
+                        let n = unsafe {
+                            libc::read(fd.as_raw_fd(), expirations.as_mut_ptr().cast(), 8)
+                        };
+                        if n < 0 {
+                            Err(io::Error::last_os_error())
+                        } else {
+                            Ok(())
+                        }
+                    });
+                    match read {
+                        Ok(result) => {
+                            result?;
+                            // Read dry: without this the next sleep would find it readable and
+                            // spend a read to learn otherwise.
+                            ready.clear_ready();
+                            break;
+                        }
+                        // Readiness left over from an earlier arming.
+                        Err(_would_block) => continue,
+                    }
+                }
+            }
+        }
+    }
 }
 
 /// Sleep until `deadline` on the timer thread alone.
@@ -229,6 +383,34 @@ mod tests {
             task.await.unwrap();
         }
         assert_eq!(*order.lock().unwrap(), [20, 40, 60, 100, 140, 180]);
+    }
+
+    #[cfg(target_os = "linux")]
+    #[tokio::test]
+    async fn a_timerfd_sleep_never_ends_before_its_deadline() {
+        let timer = timerfd::TimerFd::new().unwrap();
+        for micros in [0, 50, 300, 1_750, 4_000] {
+            let deadline = Instant::now() + Duration::from_micros(micros);
+            timer.sleep_until(deadline).await.unwrap();
+            assert!(Instant::now() >= deadline, "{micros} us");
+        }
+    }
+
+    #[cfg(target_os = "linux")]
+    #[tokio::test]
+    async fn an_expiry_of_a_cancelled_timerfd_sleep_does_not_end_the_next() {
+        let timer = timerfd::TimerFd::new().unwrap();
+        let cancelled = tokio::time::timeout(
+            Duration::from_millis(1),
+            timer.sleep_until(Instant::now() + Duration::from_millis(20)),
+        )
+        .await;
+        assert!(cancelled.is_err());
+        // The cancelled arming expires meanwhile and leaves the descriptor readable.
+        tokio::time::sleep(Duration::from_millis(30)).await;
+        let deadline = Instant::now() + Duration::from_millis(5);
+        timer.sleep_until(deadline).await.unwrap();
+        assert!(Instant::now() >= deadline);
     }
 
     #[tokio::test]

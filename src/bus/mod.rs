@@ -428,6 +428,10 @@ impl Bus {
         let mut counted = master.counters();
         let mut deadline = stopping.deadline();
         let mut changed = false;
+        // Re-armed only when it fires: a new one per request would be due before the runtime's
+        // planned wake-up each time, and tokio answers that with a wake-up of its own driver.
+        let heartbeat = sleep(HEARTBEAT);
+        tokio::pin!(heartbeat);
         loop {
             self.handle.beat();
             if let Some(update) = self.update(std::mem::take(&mut changed)) {
@@ -467,7 +471,10 @@ impl Bus {
                             Err(error) => return End::Lost(error),
                         }
                     }
-                    () = sleep(HEARTBEAT) => continue,
+                    () = &mut heartbeat => {
+                        heartbeat.as_mut().reset(Instant::now() + HEARTBEAT);
+                        continue;
+                    }
                 }
             };
             if job.reply.is_closed() {

@@ -7,7 +7,7 @@
 use super::frame::{self, FrameLen, ReplyForm, Verdict, BROADCAST, MAX_FRAME_LEN};
 use super::timing::LineTiming;
 use super::Transport;
-use crate::timer::sleep_until;
+use crate::timer::LineTimer;
 use std::io;
 use std::time::Duration;
 use tokio::time::Instant;
@@ -87,6 +87,7 @@ pub struct RtuMaster<T> {
     counters: LineCounters,
     /// How each slave address shapes its replies.
     forms: Box<[ReplyForm; 256]>,
+    timer: LineTimer,
 }
 
 fn device_gone() -> io::Error {
@@ -117,6 +118,7 @@ impl<T: Transport> RtuMaster<T> {
             rx: Vec::with_capacity(MAX_FRAME_LEN),
             counters: LineCounters::default(),
             forms: Box::new([ReplyForm::Standard; 256]),
+            timer: LineTimer::new(),
         }
     }
 
@@ -182,7 +184,7 @@ impl<T: Transport> RtuMaster<T> {
     ) -> Result<(), TxError> {
         let end_of_tx = self.send_frame(BROADCAST, request, busy_limit).await?;
         self.quiet_until = self.quiet_until.max(end_of_tx + turnaround);
-        sleep_until(end_of_tx).await;
+        self.timer.sleep_until(end_of_tx).await;
         Ok(())
     }
 
@@ -221,7 +223,7 @@ impl<T: Transport> RtuMaster<T> {
                         return Err(TxError::LineBusy);
                     }
                 }
-                () = sleep_until(self.quiet_until) => return Ok(()),
+                () = self.timer.sleep_until(self.quiet_until) => return Ok(()),
             }
         }
         Ok(())
@@ -274,7 +276,7 @@ impl<T: Transport> RtuMaster<T> {
                     last_byte_at = Instant::now();
                     self.quiet_until = last_byte_at + self.timing.gap;
                 }
-                () = sleep_until(wait_until) => {
+                () = self.timer.sleep_until(wait_until) => {
                     if self.rx.is_empty() {
                         return Err(TxError::Timeout);
                     }
