@@ -243,7 +243,8 @@ pub fn check_reply_as(frame: &[u8], slave: u8, request: &[u8], form: ReplyForm) 
     if !crc_ok(frame) {
         return Verdict::Corrupt;
     }
-    let Some(&request_function) = request.first() else {
+    // A function code with the exception bit is no request: nothing answers it.
+    let Some(&request_function) = request.first().filter(|&&f| f & EXCEPTION_BIT == 0) else {
         return Verdict::Foreign;
     };
     if frame[0] != slave {
@@ -270,7 +271,10 @@ mod tests {
         let request = [0x06, 0x00, 0x04, 0x13, 0x88];
         let earlier = encode(2, &[0x06, 0x00, 0x04, 0x00, 0x01]);
         assert_eq!(check_reply(&earlier, 2, &request), Verdict::Foreign);
-        assert_eq!(check_reply(&encode(2, &request), 2, &request), Verdict::Answer);
+        assert_eq!(
+            check_reply(&encode(2, &request), 2, &request),
+            Verdict::Answer
+        );
     }
 
     /// Goodrive300 manual 10.4.1: read 2 words from 0004H of slave 01H.
