@@ -127,11 +127,11 @@ const FAULTY: [u8; 7] = [
 ];
 /// Every slave, in the order of the per-slave tables below.
 const SLAVES: [u8; 10] = [1, 2, 3, 10, 11, 12, 13, 14, 15, 16];
-/// Slaves that carry out writes and answer in time, so the warm-up can create every register.
-/// Writes also go to the offline slave (whose timeout must not make the gateway send them again),
-/// and to the slaves with unreadable replies; not to the late one, whose late echo of a master's
-/// earlier write to the same register would be taken as the answer (the protocol has no ids).
-const WRITTEN: [u8; 8] = [
+/// Slaves that carry out writes, so the warm-up can create every register. Writes also go to the
+/// offline slave (whose timeout must not make the gateway send them again), to the slaves with
+/// unreadable replies, and to the late one: its late echo of one master's write must never pass
+/// for the answer to another's (the gateway's late-reply window).
+const WRITTEN: [u8; 9] = [
     1,
     2,
     3,
@@ -139,6 +139,7 @@ const WRITTEN: [u8; 8] = [
     CRC_ERRORS,
     GARBAGE_BEFORE,
     GARBAGE_AFTER,
+    LATE,
     SLOW,
 ];
 
@@ -389,9 +390,10 @@ impl Master {
 
     fn read(&self, slave: u8) -> Ask {
         let r = &self.registers[slave_index(slave)];
-        let quantity = if slave == LATE { 4 + self.id as u16 } else { 4 };
+        // The same form from every master, the late slave included: a late reply to one master's
+        // read would fit another's.
         Ask::Read {
-            quantity,
+            quantity: 4,
             range_06: (r.floor_06(), r.sent_06),
             range_10: (r.floor_10(), r.sent_10),
         }
