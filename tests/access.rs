@@ -1,14 +1,11 @@
 //! Access control: `server.allow` refuses masters at accept, `server.read_only` keeps masters'
 //! writes off the line. Both logged and counted.
 
-use crate::support::{addr, sim_config, start, RawMaster, Scrape};
+use crate::support::{addr, sim_config_with_server, start, RawMaster, Scrape};
 use modbus_gateway::sim::Source;
 
 fn with_server_keys(server: &str) -> String {
-    sim_config("").replace(
-        "listen = \"127.0.0.1:0\"\n",
-        &format!("listen = \"127.0.0.1:0\"\n{server}\n"),
-    )
+    sim_config_with_server(server, "")
 }
 
 const READ_1: [u8; 5] = [0x03, 0x00, 0x01, 0x00, 0x01];

@@ -3,7 +3,8 @@
 //! the idle timeout, keepalive.
 
 use crate::support::{
-    addr, panics_on_this_thread, sim_config, start, start_sim, tool, within, RawMaster, Scrape,
+    addr, panics_on_this_thread, sim_config_with_server, start, start_sim, tool, within, RawMaster,
+    Scrape,
 };
 use modbus_gateway::bus::{Bus, Device};
 use modbus_gateway::dispatch::{Client, Dispatcher, Rights};
@@ -126,11 +127,8 @@ async fn random_bytes_never_take_the_gateway_down() {
 #[tokio::test]
 async fn with_when_full_refuse_connections_beyond_max_connections_are_refused_and_a_freed_slot_is_reused(
 ) {
-    let gateway = start(&crate::support::sim_config("").replace(
-        "listen = \"127.0.0.1:0\"\n",
-        "listen = \"127.0.0.1:0\"\nmax_connections = 3\nwhen_full = \"refuse\"\n",
-    ))
-    .await;
+    let keys = "max_connections = 3\nwhen_full = \"refuse\"";
+    let gateway = start(&sim_config_with_server(keys, "")).await;
     let mut open = Vec::new();
     for tid in 0..3 {
         let mut master = RawMaster::connect(addr(&gateway)).await;
@@ -229,19 +227,11 @@ async fn a_connection_waiting_for_a_slow_reply_is_not_idle() {
     assert!(matches!(session.await.unwrap(), SessionError::Idle(_)));
 }
 
-/// The sim gateway of `support::sim_config` with `[server]` keys added.
-fn with_server_keys(server: &str, bus: &str) -> String {
-    sim_config(bus).replace(
-        "listen = \"127.0.0.1:0\"\n",
-        &format!("listen = \"127.0.0.1:0\"\n{server}\n"),
-    )
-}
-
 const READ_1: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x01];
 
 #[tokio::test]
 async fn at_max_connections_a_new_master_closes_the_connection_idle_longest() {
-    let gateway = start(&with_server_keys("max_connections = 3", "")).await;
+    let gateway = start(&sim_config_with_server("max_connections = 3", "")).await;
     let mut masters = Vec::new();
     for tid in 0..3 {
         let mut master = RawMaster::connect(addr(&gateway)).await;
@@ -270,7 +260,7 @@ async fn at_max_connections_a_new_master_closes_the_connection_idle_longest() {
 async fn at_max_connections_with_every_master_waiting_for_a_reply_a_new_one_is_refused() {
     let slow = "[[bus.sim_slave]]\naddress = 9\nprocessing_delay = \"400ms\"";
     let keys = "max_connections = 2";
-    let gateway = start(&with_server_keys(
+    let gateway = start(&sim_config_with_server(
         keys,
         &format!("response_timeout = \"2s\"\n{slow}"),
     ))
@@ -350,7 +340,7 @@ async fn a_request_trickling_in_a_byte_at_a_time_is_closed_at_frame_timeout() {
 
 #[tokio::test]
 async fn an_mbap_length_longer_than_what_came_closes_the_connection_and_is_counted() {
-    let gateway = start(&with_server_keys("frame_timeout = \"300ms\"", "")).await;
+    let gateway = start(&sim_config_with_server("frame_timeout = \"300ms\"", "")).await;
     let mut liar = RawMaster::connect(addr(&gateway)).await;
     let mut adu = RawMaster::adu(1, 1, &READ_1);
     adu[4..6].copy_from_slice(&20u16.to_be_bytes());
@@ -373,7 +363,7 @@ async fn an_mbap_length_longer_than_what_came_closes_the_connection_and_is_count
 #[tokio::test]
 async fn an_mbap_length_shorter_than_the_request_answers_the_cut_request_then_closes() {
     let panics = panics_on_this_thread();
-    let gateway = start(&with_server_keys("frame_timeout = \"300ms\"", "")).await;
+    let gateway = start(&sim_config_with_server("frame_timeout = \"300ms\"", "")).await;
     let mut liar = RawMaster::connect(addr(&gateway)).await;
     let mut adu = RawMaster::adu(7, 1, &READ_1);
     // Length 3: unit id and two PDU bytes; the last three bytes start a "next header".
@@ -477,7 +467,7 @@ async fn accepted_connections_get_keepalive_probes_unless_it_is_off() {
     let Some(ss) = tool("ss") else { return };
     for (keepalive, expected) in [("30s", true), ("0s", false)] {
         let keys = format!("keepalive = \"{keepalive}\"");
-        let gateway = start(&with_server_keys(&keys, "")).await;
+        let gateway = start(&sim_config_with_server(&keys, "")).await;
         let mut master = RawMaster::connect(addr(&gateway)).await;
         master.call(1, 1, &READ_1).await;
         let sockets = gateway_side_timer(&ss, addr(&gateway).port());

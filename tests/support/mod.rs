@@ -128,6 +128,14 @@ pub fn sim_config(extra: &str) -> String {
     )
 }
 
+/// [`sim_config`] with `[server]` keys added.
+pub fn sim_config_with_server(server: &str, bus: &str) -> String {
+    sim_config(bus).replace(
+        "listen = \"127.0.0.1:0\"\n",
+        &format!("listen = \"127.0.0.1:0\"\n{server}\n"),
+    )
+}
+
 pub fn addr(gateway: &Gateway) -> SocketAddr {
     gateway.local_addrs()[0]
 }
