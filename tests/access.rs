@@ -4,15 +4,15 @@
 use crate::support::{addr, sim_config_with_server, start, RawMaster, Scrape};
 use modbus_gateway::sim::Source;
 
-fn with_server_keys(server: &str) -> String {
-    sim_config_with_server(server, "")
-}
-
 const READ_1: [u8; 5] = [0x03, 0x00, 0x01, 0x00, 0x01];
 
 #[tokio::test]
 async fn masters_outside_server_allow_are_refused_at_accept_and_counted() {
-    let gateway = start(&with_server_keys("allow = [\"10.0.0.0/8\", \"::1\"]")).await;
+    let gateway = start(&sim_config_with_server(
+        "allow = [\"10.0.0.0/8\", \"::1\"]",
+        "",
+    ))
+    .await;
     let mut outsider = RawMaster::connect(addr(&gateway)).await;
     assert!(outsider.is_closed().await, "127.0.0.1 is not allowed");
     let scrape = Scrape::of(&gateway).await;
@@ -24,14 +24,18 @@ async fn masters_outside_server_allow_are_refused_at_accept_and_counted() {
     );
 
     // The same master, once its network is listed (as one comma-separated string).
-    let gateway = start(&with_server_keys("allow = \"10.0.0.0/8, 127.0.0.0/8\"")).await;
+    let gateway = start(&sim_config_with_server(
+        "allow = \"10.0.0.0/8, 127.0.0.0/8\"",
+        "",
+    ))
+    .await;
     let mut insider = RawMaster::connect(addr(&gateway)).await;
     assert_eq!(insider.call(1, 1, &READ_1).await, [0x03, 0x02, 0, 0]);
 }
 
 #[tokio::test]
 async fn read_only_masters_read_but_anything_else_gets_0x01_and_never_reaches_the_line() {
-    let gateway = start(&with_server_keys("read_only = [\"127.0.0.1\"]")).await;
+    let gateway = start(&sim_config_with_server("read_only = [\"127.0.0.1\"]", "")).await;
     let line = gateway.sim_line("sim").expect("a sim line");
     let mut master = RawMaster::connect(addr(&gateway)).await;
     assert_eq!(master.call(1, 1, &READ_1).await, [0x03, 0x02, 0, 0]);
@@ -76,7 +80,11 @@ async fn read_only_masters_read_but_anything_else_gets_0x01_and_never_reaches_th
 
 #[tokio::test]
 async fn a_master_outside_read_only_may_write() {
-    let gateway = start(&with_server_keys("read_only = [\"192.168.0.0/16\"]")).await;
+    let gateway = start(&sim_config_with_server(
+        "read_only = [\"192.168.0.0/16\"]",
+        "",
+    ))
+    .await;
     let mut master = RawMaster::connect(addr(&gateway)).await;
     let write = [0x06, 0x00, 0x01, 0x12, 0x34];
     assert_eq!(master.call(1, 1, &write).await, write);

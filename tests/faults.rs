@@ -98,6 +98,20 @@ async fn an_extra_delay_within_the_timeout_only_slows_the_answer() {
     );
 }
 
+/// Read slave 1 `times` times with `pdu`, expecting `answer`. A stray reply on the wire may
+/// collide with an exchange, which then gets 0x0B; returns how many did. Any other answer fails.
+async fn reads_spoiled(bus: &BusHandle, pdu: &[u8], answer: &[u8], times: usize) -> usize {
+    let mut spoiled = 0;
+    for _ in 0..times {
+        match bus_call(bus, 1, pdu).await.0 {
+            Ok(got) => assert_eq!(got, Some(answer.to_vec())),
+            Err(e) if e.exception_code() as u8 == 0x0B => spoiled += 1,
+            Err(e) => panic!("{e:?}"),
+        }
+    }
+    spoiled
+}
+
 #[tokio::test(start_paused = true)]
 async fn a_late_reply_gets_0x0b_and_never_answers_a_later_request() {
     let (line, bus) = line_with_faulty_slave_2("", "late_reply = \"300ms\"");
@@ -106,15 +120,8 @@ async fn a_late_reply_gets_0x0b_and_never_answers_a_later_request() {
     let (outcome, _) = bus_call(&bus, 2, &[0x03, 0x00, 0x00, 0x00, 0x02]).await;
     assert!(is_0x0b(&outcome), "{outcome:?}");
     let timed_out_at = tokio::time::Instant::now();
-    let mut spoiled = 0;
-    for _ in 0..20 {
-        match bus_call(&bus, 1, &READ).await.0 {
-            Ok(answer) => assert_eq!(answer, Some(ANSWER.to_vec())),
-            // The late reply may collide with one exchange on the wire: that one times out.
-            Err(e) if e.exception_code() as u8 == 0x0B => spoiled += 1,
-            Err(e) => panic!("{e:?}"),
-        }
-    }
+    // The late reply may collide with one exchange on the wire: that one times out.
+    let spoiled = reads_spoiled(&bus, &READ, &ANSWER, 20).await;
     assert!(spoiled <= 1, "{spoiled} reads spoiled by one late reply");
     let late = line
         .frames()
@@ -209,14 +216,7 @@ async fn a_reply_that_pauses_past_the_deadline_gets_0x0b_and_its_rest_answers_no
     assert_eq!(counted(&metrics, 2, 0x03, "frame_error"), 1.0);
     // The rest of the reply comes 50 ms after the 0x0B, while slave 1 is being polled: it may
     // garble one exchange on the wire, but it never answers one.
-    let mut spoiled = 0;
-    for _ in 0..10 {
-        match bus_call(&bus, 1, &READ_2).await.0 {
-            Ok(answer) => assert_eq!(answer, Some(ANSWER_2.to_vec())),
-            Err(e) if e.exception_code() as u8 == 0x0B => spoiled += 1,
-            Err(e) => panic!("{e:?}"),
-        }
-    }
+    let spoiled = reads_spoiled(&bus, &READ_2, &ANSWER_2, 10).await;
     assert!(spoiled <= 1, "{spoiled} reads spoiled by one broken reply");
     let rest = &frames_from(&line, Source::Slave(2))[1];
     assert_eq!(rest.len(), 4, "the rest of the reply did go out");
@@ -338,14 +338,7 @@ async fn during_a_retry_a_late_reply_is_taken_only_if_it_has_the_retried_request
     assert_eq!(counted(&metrics, 2, 0x06, "timeout"), 1.0);
     assert_eq!(counted(&metrics, 2, 0x03, "ok"), 1.0);
     // The retry's own reply comes 300 ms later still, and answers nothing after it.
-    let mut spoiled = 0;
-    for _ in 0..20 {
-        match bus_call(&bus, 1, &READ).await.0 {
-            Ok(answer) => assert_eq!(answer, Some(ANSWER.to_vec())),
-            Err(e) if e.exception_code() as u8 == 0x0B => spoiled += 1,
-            Err(e) => panic!("{e:?}"),
-        }
-    }
+    let spoiled = reads_spoiled(&bus, &READ, &ANSWER, 20).await;
     assert!(spoiled <= 1, "{spoiled} reads spoiled by one late reply");
     assert_eq!(frames_from(&line, Source::Slave(2)).len(), 3);
 }

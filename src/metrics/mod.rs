@@ -748,8 +748,11 @@ impl TcpMetrics {
     /// accepted again; for `server.allow`, at most once per ten seconds.
     pub fn rejected(&self, reason: Rejection, listen: &dyn Display, peer: &dyn Display) {
         self.rejected.with_label_values(&[reason.label()]).inc();
-        let warn = match reason {
-            Rejection::MaxConnections => !self.refusing.swap(true, Ordering::Relaxed),
+        let (warn, event) = match reason {
+            Rejection::MaxConnections => (
+                !self.refusing.swap(true, Ordering::Relaxed),
+                "refusing connections until one closes",
+            ),
             Rejection::NotAllowed => {
                 let mut logged = self
                     .not_allowed_logged
@@ -759,18 +762,14 @@ impl TcpMetrics {
                 if due {
                     *logged = Some(std::time::Instant::now());
                 }
-                due
+                (due, "refusing a master outside server.allow")
             }
         };
         let reason = reason.label();
-        match reason {
-            _ if !warn => debug!(target: TCP_EVENTS, %listen, %peer, reason, "connection refused"),
-            "not_allowed" => {
-                warn!(target: TCP_EVENTS, %listen, %peer, reason, "refusing a master outside server.allow")
-            }
-            _ => {
-                warn!(target: TCP_EVENTS, %listen, %peer, reason, "refusing connections until one closes")
-            }
+        if warn {
+            warn!(target: TCP_EVENTS, %listen, %peer, reason, "{event}");
+        } else {
+            debug!(target: TCP_EVENTS, %listen, %peer, reason, "connection refused");
         }
     }
 
