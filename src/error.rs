@@ -2,11 +2,42 @@
 //! failure becomes the exception code the master sees.
 
 use crate::pdu::ExceptionCode;
-use crate::rtu::TxError;
+use crate::rtu::{Reply, TxError};
 
-/// The answer a request gets: a PDU to send back (a slave's reply, normal or exception), nothing
-/// (a broadcast with `broadcast_reply = false`), or a failure the gateway answers itself.
-pub type Outcome = Result<Option<Vec<u8>>, RequestError>;
+/// What a request gets: an [`Answer`] to send back, or a failure the gateway answers itself.
+pub type Outcome = Result<Answer, RequestError>;
+
+/// What goes back to the master when the line gave an answer.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Answer {
+    /// The slave's reply PDU, normal or exception, byte for byte; for a broadcast, the normal
+    /// response to the write (`broadcast_reply = true`).
+    Reply(Vec<u8>),
+    /// The slave's reply PDU, byte for byte, though it does not have the shape the request asks
+    /// for (a byte count or echo that does not match): the slave's own answer all the same.
+    Malformed(Vec<u8>),
+    /// Nothing: a broadcast with `broadcast_reply = false`.
+    Nothing,
+}
+
+impl Answer {
+    /// The PDU the master gets, if any.
+    pub fn into_pdu(self) -> Option<Vec<u8>> {
+        match self {
+            Answer::Reply(pdu) | Answer::Malformed(pdu) => Some(pdu),
+            Answer::Nothing => None,
+        }
+    }
+}
+
+impl From<Reply> for Answer {
+    fn from(reply: Reply) -> Self {
+        match reply {
+            Reply::Fits(pdu) => Answer::Reply(pdu),
+            Reply::Malformed(pdu) => Answer::Malformed(pdu),
+        }
+    }
+}
 
 #[derive(Debug, thiserror::Error)]
 pub enum RequestError {

@@ -4,7 +4,7 @@
 
 use crate::support::{addr, bus_call, settle, sim_bus_counted, start, RawMaster, Scrape};
 use modbus_gateway::bus::BusHandle;
-use modbus_gateway::error::Outcome;
+use modbus_gateway::error::{Answer, Outcome};
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::sim::faults::{Faults, Faulty};
 use modbus_gateway::sim::{Pause, Scripted, SimLine, Source, Transmission};
@@ -89,8 +89,8 @@ async fn an_extra_delay_within_the_timeout_only_slows_the_answer() {
     assert!(bus_call(&bus, 1, &READ).await.0.is_ok());
     let (healthy, normal) = bus_call(&bus, 1, &READ).await;
     let (slow, slowed) = bus_call(&bus, 2, &READ).await;
-    assert_eq!(healthy.unwrap(), Some(ANSWER.to_vec()));
-    assert_eq!(slow.unwrap(), Some(ANSWER.to_vec()));
+    assert_eq!(healthy.unwrap(), Answer::Reply(ANSWER.to_vec()));
+    assert_eq!(slow.unwrap(), Answer::Reply(ANSWER.to_vec()));
     let extra = slowed - normal;
     assert!(
         extra >= Duration::from_millis(80) && extra <= Duration::from_millis(82),
@@ -104,7 +104,7 @@ async fn reads_spoiled(bus: &BusHandle, pdu: &[u8], answer: &[u8], times: usize)
     let mut spoiled = 0;
     for _ in 0..times {
         match bus_call(bus, 1, pdu).await.0 {
-            Ok(got) => assert_eq!(got, Some(answer.to_vec())),
+            Ok(got) => assert_eq!(got, Answer::Reply(answer.to_vec())),
             Err(e) if e.exception_code() as u8 == 0x0B => spoiled += 1,
             Err(e) => panic!("{e:?}"),
         }
@@ -143,7 +143,7 @@ async fn corrupted_crcs_get_0x0b_after_every_retry_failed() {
     );
     assert_eq!(frames_from(&line, Source::Slave(2)).len(), 3);
     let (outcome, _) = bus_call(&bus, 1, &READ).await;
-    assert_eq!(outcome.unwrap(), Some(ANSWER.to_vec()));
+    assert_eq!(outcome.unwrap(), Answer::Reply(ANSWER.to_vec()));
 }
 
 #[tokio::test(start_paused = true)]
@@ -152,9 +152,9 @@ async fn garbage_after_a_reply_is_ignored_and_the_next_frame_waits_for_silence()
     settle(&bus).await;
     for _ in 0..5 {
         let (outcome, _) = bus_call(&bus, 2, &READ).await;
-        assert_eq!(outcome.unwrap(), Some(ANSWER.to_vec()));
+        assert_eq!(outcome.unwrap(), Answer::Reply(ANSWER.to_vec()));
         let (outcome, _) = bus_call(&bus, 1, &READ).await;
-        assert_eq!(outcome.unwrap(), Some(ANSWER.to_vec()));
+        assert_eq!(outcome.unwrap(), Answer::Reply(ANSWER.to_vec()));
     }
     assert_eq!(line.stats().gap_violations, 0);
     assert_eq!(line.stats().collisions, 0);
@@ -167,7 +167,7 @@ async fn garbage_before_a_reply_makes_it_unreadable_so_0x0b() {
     let (outcome, _) = bus_call(&bus, 2, &READ).await;
     assert!(is_0x0b(&outcome), "{outcome:?}");
     let (outcome, _) = bus_call(&bus, 1, &READ).await;
-    assert_eq!(outcome.unwrap(), Some(ANSWER.to_vec()));
+    assert_eq!(outcome.unwrap(), Answer::Reply(ANSWER.to_vec()));
 }
 
 #[tokio::test(start_paused = true)]
@@ -194,7 +194,7 @@ async fn a_reply_that_pauses_but_ends_before_the_deadline_is_still_the_answer() 
         counted_line_with_faulty_slave_2("", "reply_gap = \"150ms\"\nreply_gap_after = 3");
     settle(&bus).await;
     let (outcome, elapsed) = bus_call(&bus, 2, &READ).await;
-    assert_eq!(outcome.unwrap(), Some(ANSWER.to_vec()));
+    assert_eq!(outcome.unwrap(), Answer::Reply(ANSWER.to_vec()));
     assert!(elapsed >= Duration::from_millis(150), "{elapsed:?}");
     let bursts = frames_from(&line, Source::Slave(2));
     assert_eq!(bursts.len(), 2, "the reply went out in two bursts");
@@ -255,11 +255,11 @@ async fn a_reply_judged_by_silence_ends_at_the_pause_fails_its_crc_and_gets_0x0b
     for _ in 0..10 {
         let (outcome, _) = bus_call(&bus, 1, &READ_2).await;
         if let Ok(answer) = outcome {
-            assert_eq!(answer, Some(ANSWER_2.to_vec()));
+            assert_eq!(answer, Answer::Reply(ANSWER_2.to_vec()));
         }
     }
     let (outcome, _) = bus_call(&bus, 1, &READ).await;
-    assert_eq!(outcome.unwrap(), Some(ANSWER.to_vec()));
+    assert_eq!(outcome.unwrap(), Answer::Reply(ANSWER.to_vec()));
 }
 
 #[tokio::test(start_paused = true)]
@@ -286,7 +286,7 @@ async fn a_reply_to_the_wrong_function_is_never_forwarded_and_reads_are_retried(
     assert!(is_0x0b(&outcome), "{outcome:?}");
     assert_eq!(frames_from(&line, Source::Slave(2)).len(), 4);
     let (outcome, _) = bus_call(&bus, 1, &READ).await;
-    assert_eq!(outcome.unwrap(), Some(ANSWER.to_vec()));
+    assert_eq!(outcome.unwrap(), Answer::Reply(ANSWER.to_vec()));
 }
 
 #[tokio::test(start_paused = true)]
@@ -307,9 +307,9 @@ async fn a_truncated_reply_gets_0x0b_after_the_deadline_and_never_a_partial_answ
     // An exception is 5 bytes long, so it survives the cut whole: the same slave's next answer
     // comes through untouched, and so does another slave's.
     let (outcome, _) = bus_call(&bus, 2, &[0x03, 0x00, 0x00, 0x00, 0x7E]).await;
-    assert_eq!(outcome.unwrap(), Some(vec![0x83, 0x03]));
+    assert_eq!(outcome.unwrap(), Answer::Reply(vec![0x83, 0x03]));
     let (outcome, _) = bus_call(&bus, 1, &READ).await;
-    assert_eq!(outcome.unwrap(), Some(ANSWER.to_vec()));
+    assert_eq!(outcome.unwrap(), Answer::Reply(ANSWER.to_vec()));
 }
 
 #[tokio::test(start_paused = true)]
@@ -326,7 +326,7 @@ async fn during_a_retry_a_late_reply_is_taken_only_if_it_has_the_retried_request
     let (outcome, elapsed) = bus_call(&bus, 2, &READ_2).await;
     assert_eq!(
         outcome.unwrap(),
-        Some(vec![0x03, 0x04, 0x00, 0x07, 0x00, 0x00])
+        Answer::Reply(vec![0x03, 0x04, 0x00, 0x07, 0x00, 0x00])
     );
     // The read waits out the write's late-reply window first (one more timeout), in which the
     // write's echo arrives and is discarded as stray bytes, never taken for the read's answer.
@@ -352,7 +352,7 @@ async fn a_line_that_does_not_fall_silent_within_the_timeout_gets_0x0b_until_it_
     let (outcome, _) = bus_call(&bus, 2, &READ).await;
     assert_eq!(
         outcome.unwrap(),
-        Some(ANSWER.to_vec()),
+        Answer::Reply(ANSWER.to_vec()),
         "complete by length"
     );
     let (outcome, elapsed) = bus_call(&bus, 1, &READ).await;
@@ -363,7 +363,7 @@ async fn a_line_that_does_not_fall_silent_within_the_timeout_gets_0x0b_until_it_
     );
     assert_eq!(counted(&metrics, 1, 0x03, "line_busy"), 1.0);
     let (outcome, _) = bus_call(&bus, 1, &READ).await;
-    assert_eq!(outcome.unwrap(), Some(ANSWER.to_vec()));
+    assert_eq!(outcome.unwrap(), Answer::Reply(ANSWER.to_vec()));
     assert_eq!(
         line_count(&metrics, "modbus_gateway_stray_bytes_total"),
         256.0
@@ -391,7 +391,7 @@ async fn a_port_lost_in_the_middle_of_a_reply_answers_0x0a_and_the_rest_never_ar
     tokio::time::sleep(Duration::from_millis(200)).await;
     assert!(bus.is_up(), "reopened");
     let (outcome, _) = bus_call(&bus, 1, &READ_2).await;
-    assert_eq!(outcome.unwrap(), Some(ANSWER_2.to_vec()));
+    assert_eq!(outcome.unwrap(), Answer::Reply(ANSWER_2.to_vec()));
     assert_eq!(
         line_count(&metrics, "modbus_gateway_port_reopens_total"),
         1.0

@@ -2,7 +2,7 @@
 //! simulated line's own record of what went on the wire and when.
 
 use modbus_gateway::bus::{Bus, BusHandle, Device};
-use modbus_gateway::error::{Outcome, RequestError};
+use modbus_gateway::error::{Answer, Outcome, RequestError};
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::rtu::TxError;
 use modbus_gateway::shutdown::Stopping;
@@ -92,7 +92,7 @@ async fn an_exception_reply_is_forwarded_as_soon_as_its_five_bytes_are_in() {
     settle(&bus).await;
     // 200 registers is more than a read may ask for: the slave answers 0x03.
     let (outcome, elapsed) = call(&bus, 1, &[0x03, 0x00, 0x00, 0x00, 0xC8]).await;
-    assert_eq!(outcome.unwrap(), Some(vec![0x83, 0x03]));
+    assert_eq!(outcome.unwrap(), Answer::Reply(vec![0x83, 0x03]));
     let t = line.timing();
     assert!(
         elapsed <= t.frame_time(8 + 5) + t.t35 + 2 * TICK,
@@ -124,7 +124,7 @@ async fn a_late_reply_never_answers_a_later_request() {
         })
     ));
     let (second, _) = call(&bus, 2, &read_one).await;
-    assert_eq!(second.unwrap(), Some(vec![0x03, 0x02, 0x00, 0x02]));
+    assert_eq!(second.unwrap(), Answer::Reply(vec![0x03, 0x02, 0x00, 0x02]));
     let late = line
         .frames()
         .iter()
@@ -187,7 +187,7 @@ async fn one_master_polling_back_to_back_uses_at_least_90_percent_of_the_line() 
     let started = Instant::now();
     for _ in 0..transactions {
         let (outcome, _) = call(&bus, 1, &READ_10).await;
-        assert_eq!(outcome.unwrap().unwrap().len(), 22);
+        assert_eq!(outcome.unwrap().into_pdu().unwrap().len(), 22);
     }
     let wall = started.elapsed();
     // The simulated slave turns round in t3.5 (it sees the request end), with no processing time.
@@ -275,7 +275,7 @@ async fn a_lost_port_answers_0x0a_at_once_and_serves_again_when_back() {
     tokio::time::sleep(Duration::from_millis(500)).await;
     assert!(bus.is_up(), "reopened within the longest backoff");
     let (outcome, _) = call(&bus, 1, &READ_10).await;
-    assert_eq!(outcome.unwrap().unwrap().len(), 22);
+    assert_eq!(outcome.unwrap().into_pdu().unwrap().len(), 22);
 }
 
 #[tokio::test(start_paused = true)]
@@ -298,7 +298,7 @@ async fn a_broadcast_is_answered_once_sent_and_the_line_stays_quiet_for_the_turn
     settle(&bus).await;
     let write = [0x10, 0x00, 0x05, 0x00, 0x01, 0x02, 0xAB, 0xCD];
     let (outcome, elapsed) = call(&bus, 0, &write).await;
-    assert_eq!(outcome.unwrap(), Some(write[..5].to_vec()));
+    assert_eq!(outcome.unwrap(), Answer::Reply(write[..5].to_vec()));
     let on_wire = line.timing().frame_time(write.len() + 3);
     assert!(
         elapsed >= on_wire && elapsed <= on_wire + TICK,
@@ -308,7 +308,7 @@ async fn a_broadcast_is_answered_once_sent_and_the_line_stays_quiet_for_the_turn
         let (read, _) = call(&bus, slave, &[0x03, 0x00, 0x05, 0x00, 0x01]).await;
         assert_eq!(
             read.unwrap(),
-            Some(vec![0x03, 0x02, 0xAB, 0xCD]),
+            Answer::Reply(vec![0x03, 0x02, 0xAB, 0xCD]),
             "slave {slave}"
         );
     }

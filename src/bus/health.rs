@@ -4,10 +4,12 @@
 //! timeout per interval instead of one per poll, and the healthy slaves keep the line. Any reply
 //! brings it back. Corrupt replies neither count nor clear: something is answering.
 //!
-//! After a timeout, a slave's reply may still come. RTU frames carry no transaction id, so a late
-//! reply would be taken as the answer to the next request of the same form to that slave, maybe
-//! another master's: the next request to a slave that timed out waits out a late-reply window
-//! (one more response timeout) first. Pure: the time comes in as an argument.
+//! Only a timeout that says the slave is gone counts: one for a function code the slave has
+//! answered before (an exception is an answer), or any while it has answered nothing yet. Many
+//! real slaves stay silent for function codes they do not implement or requests they find
+//! malformed; such a silence says nothing of the slave, so it neither counts nor clears, and one
+//! master's odd requests cannot make a slave down for every other master. Pure: the time comes in
+//! as an argument.
 
 use std::time::Duration;
 use tokio::time::Instant;
@@ -55,12 +57,30 @@ pub enum Change {
     Up,
 }
 
+/// A set of function codes, one bit each.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+struct Functions([u64; 4]);
+
+impl Functions {
+    fn insert(&mut self, function: u8) {
+        self.0[usize::from(function / 64)] |= 1 << (function % 64);
+    }
+
+    fn contains(&self, function: u8) -> bool {
+        self.0[usize::from(function / 64)] & (1 << (function % 64)) != 0
+    }
+
+    fn is_empty(&self) -> bool {
+        self.0 == [0; 4]
+    }
+}
+
 #[derive(Clone, Copy, Debug, Default)]
 struct Slave {
     timeouts: u32,
     next_probe: Option<Instant>,
-    /// Its last timed-out request may still be answered until then.
-    late_until: Option<Instant>,
+    /// Function codes it has answered, normally or with an exception.
+    answered: Functions,
 }
 
 pub struct Health {
@@ -93,30 +113,29 @@ impl Health {
         }
     }
 
-    /// A request to `address` timed out; its reply may still come until `until`.
-    pub fn expect_late_reply(&mut self, address: u8, until: Instant) {
-        self.slaves[usize::from(address)].late_until = Some(until);
+    /// Whether a timeout of a request for `function` says that `address` is gone: it has
+    /// answered that function code before, or nothing at all yet. Otherwise the slave may just
+    /// ignore that kind of request.
+    pub fn timeout_counts(&self, address: u8, function: u8) -> bool {
+        let answered = &self.slaves[usize::from(address)].answered;
+        answered.is_empty() || answered.contains(function)
     }
 
-    /// Until when a new request to `address` must wait, if a late reply may still come.
-    pub fn late_reply_window(&self, address: u8, now: Instant) -> Option<Instant> {
-        self.slaves[usize::from(address)]
-            .late_until
-            .filter(|&until| until > now)
-    }
-
-    /// Record how a transaction with `address` ended at `now`.
+    /// Record how a transaction for `function` with `address` ended at `now`.
     pub fn record(
         &mut self,
         address: u8,
+        function: u8,
         response: Response,
         now: Instant,
         policy: DownPolicy,
     ) -> Change {
+        let counts = self.timeout_counts(address, function);
         let slave = &mut self.slaves[usize::from(address)];
         let was_down = Self::is_down(slave, policy);
         match response {
             Response::Answered => {
+                slave.answered.insert(function);
                 slave.timeouts = 0;
                 slave.next_probe = None;
                 if was_down {
@@ -125,7 +144,7 @@ impl Health {
                     Change::None
                 }
             }
-            Response::TimedOut => {
+            Response::TimedOut if counts => {
                 slave.timeouts = slave.timeouts.saturating_add(1);
                 if !Self::is_down(slave, policy) {
                     return Change::None;
@@ -139,7 +158,7 @@ impl Health {
                     }
                 }
             }
-            Response::Garbled => Change::None,
+            Response::TimedOut | Response::Garbled => Change::None,
         }
     }
 }
@@ -153,9 +172,13 @@ mod tests {
         probe_interval: Duration::from_secs(5),
     };
 
+    const READ: u8 = 0x03;
+    /// A user-defined function code that many slaves ignore.
+    const UNKNOWN: u8 = 0x41;
+
     fn timed_out(health: &mut Health, slave: u8, times: u32, now: Instant) -> Vec<Change> {
         (0..times)
-            .map(|_| health.record(slave, Response::TimedOut, now, POLICY))
+            .map(|_| health.record(slave, READ, Response::TimedOut, now, POLICY))
             .collect()
     }
 
@@ -181,7 +204,7 @@ mod tests {
         let now = Instant::now();
         timed_out(&mut health, 1, 2, now);
         assert_eq!(
-            health.record(1, Response::Answered, now, POLICY),
+            health.record(1, READ, Response::Answered, now, POLICY),
             Change::None
         );
         timed_out(&mut health, 1, 2, now);
@@ -194,7 +217,7 @@ mod tests {
         let now = Instant::now();
         timed_out(&mut health, 1, 2, now);
         for _ in 0..10 {
-            health.record(1, Response::Garbled, now, POLICY);
+            health.record(1, READ, Response::Garbled, now, POLICY);
         }
         assert_eq!(health.admit(1, now, POLICY), Admission::Send);
         timed_out(&mut health, 1, 1, now);
@@ -219,7 +242,7 @@ mod tests {
         // The probe times out: the next one is a whole interval after it.
         let probed = due + Duration::from_secs(1);
         assert_eq!(
-            health.record(4, Response::TimedOut, probed, POLICY),
+            health.record(4, READ, Response::TimedOut, probed, POLICY),
             Change::None
         );
         assert!(matches!(
@@ -229,21 +252,66 @@ mod tests {
         let next = probed + POLICY.probe_interval;
         assert_eq!(health.admit(4, next, POLICY), Admission::Probe);
         assert_eq!(
-            health.record(4, Response::Answered, next, POLICY),
+            health.record(4, READ, Response::Answered, next, POLICY),
             Change::Up
         );
         assert_eq!(health.admit(4, next, POLICY), Admission::Send);
     }
 
     #[test]
-    fn a_late_reply_window_holds_only_that_slave_and_only_until_it_ends() {
+    fn timeouts_of_a_function_the_slave_never_answered_neither_count_nor_clear() {
         let mut health = Health::default();
         let now = Instant::now();
-        let until = now + Duration::from_millis(100);
-        health.expect_late_reply(3, until);
-        assert_eq!(health.late_reply_window(3, now), Some(until));
-        assert_eq!(health.late_reply_window(4, now), None);
-        assert_eq!(health.late_reply_window(3, until), None);
+        assert_eq!(
+            health.record(1, READ, Response::Answered, now, POLICY),
+            Change::None
+        );
+        timed_out(&mut health, 1, 2, now);
+        for _ in 0..10 {
+            assert!(!health.timeout_counts(1, UNKNOWN));
+            health.record(1, UNKNOWN, Response::TimedOut, now, POLICY);
+        }
+        assert_eq!(health.admit(1, now, POLICY), Admission::Send);
+        // The third timeout of a read it used to answer does count.
+        assert_eq!(
+            timed_out(&mut health, 1, 1, now),
+            [Change::Down { timeouts: 3 }]
+        );
+    }
+
+    #[test]
+    fn a_slave_that_never_answered_anything_is_down_whatever_it_was_asked() {
+        let mut health = Health::default();
+        let now = Instant::now();
+        for function in [UNKNOWN, UNKNOWN] {
+            assert!(health.timeout_counts(2, function));
+            health.record(2, function, Response::TimedOut, now, POLICY);
+        }
+        assert_eq!(
+            health.record(2, READ, Response::TimedOut, now, POLICY),
+            Change::Down { timeouts: 3 }
+        );
+    }
+
+    #[test]
+    fn an_exception_counts_as_an_answer_of_its_function() {
+        let mut health = Health::default();
+        let now = Instant::now();
+        health.record(3, UNKNOWN, Response::Answered, now, POLICY);
+        assert!(health.timeout_counts(3, UNKNOWN));
+        assert!(!health.timeout_counts(3, READ));
+        assert!(health.timeout_counts(4, READ), "another slave is apart");
+    }
+
+    #[test]
+    fn function_sets_hold_every_code_apart() {
+        let mut set = Functions::default();
+        for function in [0x00, 0x3F, 0x40, 0x7F, 0x80, 0xFF] {
+            assert!(!set.contains(function));
+            set.insert(function);
+            assert!(set.contains(function));
+        }
+        assert!(!set.contains(0x41));
     }
 
     #[test]
@@ -253,7 +321,7 @@ mod tests {
         let now = Instant::now();
         for _ in 0..100 {
             assert_eq!(
-                health.record(2, Response::TimedOut, now, policy),
+                health.record(2, READ, Response::TimedOut, now, policy),
                 Change::None
             );
         }

@@ -12,7 +12,7 @@ pub use port::{Device, Port};
 pub use queue::{FairQueue, Job, MasterId};
 
 use crate::config;
-use crate::error::{Outcome, RequestError};
+use crate::error::{Answer, Outcome, RequestError};
 use crate::metrics::{BusMetrics, Metrics};
 use crate::pdu;
 use crate::rtu::frame::{ReplyForm, BROADCAST, MAX_FRAME_LEN};
@@ -483,11 +483,6 @@ impl Bus {
             }
             metrics.dequeued(job.queued_at.elapsed());
             if Instant::now() > job.deadline {
-                debug!(
-                    bus = &*self.handle.name,
-                    slave = job.slave,
-                    "request expired in the queue"
-                );
                 self.handle.answer(job, Err(RequestError::Expired));
                 continue;
             }
@@ -502,7 +497,7 @@ impl Bus {
             }
             // The slave's reply to an earlier, timed-out request may still come: let it arrive
             // (and be discarded) before this request goes out.
-            if let Some(until) = self.health.late_reply_window(job.slave, Instant::now()) {
+            if let Some(until) = master.late_reply_window(job.slave) {
                 crate::timer::sleep_until(until).await;
             }
             let probe = admission == Admission::Probe;
@@ -511,12 +506,7 @@ impl Bus {
             metrics.line(&traffic.since(&counted));
             counted = traffic;
             match result {
-                Ok(outcome) => {
-                    if let Err(error) = &outcome {
-                        debug!(bus = &*self.handle.name, slave = job.slave, function = job.function(), %error, "request failed");
-                    }
-                    self.handle.answer(job, outcome);
-                }
+                Ok(outcome) => self.handle.answer(job, outcome),
                 Err(error) => {
                     self.handle.answer(job, Err(RequestError::PortDown));
                     return End::Lost(error);
@@ -547,7 +537,8 @@ impl Bus {
                 Ok(()) => Ok(Ok(settings
                     .broadcast_reply
                     .then(|| pdu::broadcast_response(&job.pdu))
-                    .flatten())),
+                    .flatten()
+                    .map_or(Answer::Nothing, Answer::Reply))),
                 Err(TxError::PortLost(error)) => Err(error),
                 Err(last) => Ok(Err(RequestError::NoResponse { attempts: 1, last })),
             };
@@ -573,7 +564,7 @@ impl Bus {
                 first_sent_at.get_or_insert(master.sent_at());
             }
             match result {
-                Ok(reply) => break Ok(Some(reply)),
+                Ok(reply) => break Ok(Answer::from(reply)),
                 Err(TxError::PortLost(error)) => return Err(error),
                 Err(last)
                     if attempts > retries
@@ -589,9 +580,11 @@ impl Bus {
         };
         // A request the line was always too busy to send has no round trip.
         let round_trip = first_sent_at.map(|sent| sent.elapsed());
+        let function = job.function();
+        let timeout_counts = self.health.timeout_counts(job.slave, function);
         self.handle
             .metrics
-            .transaction(job.slave, attempts, round_trip, &outcome);
+            .transaction(job.slave, attempts, round_trip, &outcome, timeout_counts);
         let response = match &outcome {
             Ok(_) => Response::Answered,
             Err(RequestError::NoResponse {
@@ -601,11 +594,9 @@ impl Bus {
             Err(_) => Response::Garbled,
         };
         let down = self.derived.down;
-        let now = Instant::now();
-        if response == Response::TimedOut {
-            self.health.expect_late_reply(job.slave, now + timeout);
-        }
-        let change = self.health.record(job.slave, response, now, down);
+        let change = self
+            .health
+            .record(job.slave, function, response, Instant::now(), down);
         if let Change::Down { timeouts } = change {
             self.handle
                 .metrics

@@ -8,7 +8,7 @@
 pub mod http;
 
 use crate::config;
-use crate::error::{Outcome, RequestError};
+use crate::error::{Answer, Outcome, RequestError};
 use crate::rtu::{LineCounters, TxError};
 use prometheus::{
     Counter, CounterVec, Gauge, GaugeVec, Histogram, HistogramOpts, HistogramVec, IntCounter,
@@ -37,11 +37,14 @@ pub enum Fate {
     Ok,
     /// The slave's own exception reply.
     Exception,
-    /// No reply within the response timeout, retries included.
+    /// The slave's reply, forwarded as it came, though it does not have the shape the request
+    /// asks for (byte count, echo).
+    MalformedReply,
+    /// No reply to this request within the response timeout, retries included.
     Timeout,
     /// The last reply failed its CRC check.
     CrcError,
-    /// The last reply was truncated or malformed.
+    /// The last reply was incomplete at its deadline, or longer than a frame can be.
     FrameError,
     /// The line never fell silent long enough to send.
     LineBusy,
@@ -72,6 +75,7 @@ impl Fate {
         match self {
             Fate::Ok => "ok",
             Fate::Exception => "exception",
+            Fate::MalformedReply => "malformed_reply",
             Fate::Timeout => "timeout",
             Fate::CrcError => "crc_error",
             Fate::FrameError => "frame_error",
@@ -91,7 +95,7 @@ impl Fate {
     /// The fate of an answered request, with the exception code in its answer and who made it.
     pub fn of(outcome: &Outcome) -> (Fate, Option<(Source, u8)>) {
         match outcome {
-            Ok(Some(pdu))
+            Ok(Answer::Reply(pdu))
                 if pdu
                     .first()
                     .is_some_and(|f| f & crate::pdu::EXCEPTION_BIT != 0) =>
@@ -101,6 +105,7 @@ impl Fate {
                     Some((Source::Slave, pdu.get(1).copied().unwrap_or(0))),
                 )
             }
+            Ok(Answer::Malformed(_)) => (Fate::MalformedReply, None),
             Ok(_) => (Fate::Ok, None),
             Err(error) => {
                 let fate = match error {
@@ -268,12 +273,27 @@ struct RequestCounters {
 }
 
 impl RequestCounters {
-    /// `outcome` is `None` for a request dropped unsent because its master left.
+    /// `outcome` is `None` for a request dropped unsent because its master left. Every outcome
+    /// but an answer is also logged at debug level, under the same name as its label.
     fn count(&self, bus: &str, slave: u8, function: u8, outcome: Option<&Outcome>) {
         let (fate, exception) = outcome.map_or((Fate::Dropped, None), Fate::of);
+        let label = fate.label();
         self.requests
-            .with_label_values(&[bus, decimal(slave), hex(function), fate.label()])
+            .with_label_values(&[bus, decimal(slave), hex(function), label])
             .inc();
+        let function = hex(function);
+        match outcome {
+            Some(Ok(Answer::Malformed(pdu))) => {
+                debug!(target: BUS_EVENTS, bus, slave, function, outcome = label, len = pdu.len(), "reply does not fit the request; forwarded as the slave sent it");
+            }
+            Some(Err(error)) => {
+                debug!(target: BUS_EVENTS, bus, slave, function, outcome = label, %error, "request answered by the gateway");
+            }
+            None => {
+                debug!(target: BUS_EVENTS, bus, slave, function, outcome = label, "request dropped: its master left")
+            }
+            Some(Ok(_)) => {}
+        }
         if let Some((source, code)) = exception {
             self.exceptions
                 .with_label_values(&[bus, decimal(slave), source.label(), hex(code)])
@@ -590,14 +610,17 @@ impl BusMetrics {
     }
 
     /// The line ran a request to `slave`: its round trip (`None` if it never got on the wire),
-    /// how many attempts it took, and how it ended. A slave that stops or starts answering is
-    /// logged once per change.
+    /// how many attempts it took, and how it ended. A slave that stops or starts giving valid
+    /// replies is logged once per change. A timeout tells of the slave only if
+    /// `timeout_counts` (the bus's down policy says whether it does: see `bus::health`); a line
+    /// too busy to send on tells nothing of it.
     pub fn transaction(
         &self,
         slave: u8,
         attempts: u32,
         round_trip: Option<Duration>,
         outcome: &Outcome,
+        timeout_counts: bool,
     ) {
         if let Some(round_trip) = round_trip {
             self.round_trip.observe(round_trip.as_secs_f64());
@@ -608,17 +631,26 @@ impl BusMetrics {
             .inc_by(u64::from(attempts.saturating_sub(1)));
         let bus = &*self.name;
         match outcome {
-            Ok(Some(_)) => {
+            Ok(Answer::Reply(_) | Answer::Malformed(_)) => {
                 metrics.up.set(1);
                 metrics.last_success.set(seconds_since_epoch());
                 if metrics.state.swap(SLAVE_UP, Ordering::Relaxed) == SLAVE_DOWN {
                     info!(target: BUS_EVENTS, bus, slave, "slave answering again");
                 }
             }
-            Err(RequestError::NoResponse { attempts, last }) => {
+            Err(RequestError::NoResponse {
+                last: TxError::LineBusy,
+                ..
+            }) => {}
+            Err(RequestError::NoResponse {
+                last: TxError::Timeout,
+                ..
+            }) if !timeout_counts => {}
+            Err(error @ RequestError::NoResponse { attempts, .. }) => {
                 metrics.up.set(0);
                 if metrics.state.swap(SLAVE_DOWN, Ordering::Relaxed) != SLAVE_DOWN {
-                    warn!(target: BUS_EVENTS, bus, slave, attempts, error = %last, "slave not answering");
+                    let outcome = Fate::of(outcome).0.label();
+                    warn!(target: BUS_EVENTS, bus, slave, attempts, outcome, %error, "slave gives no valid reply");
                 }
             }
             _ => {}
@@ -860,16 +892,16 @@ mod tests {
 
     #[test]
     fn outcomes_map_to_their_label_and_exception_source() {
-        let slave_exception: Outcome = Ok(Some(vec![0x83, 0x02]));
+        let slave_exception: Outcome = Ok(Answer::Reply(vec![0x83, 0x02]));
         assert_eq!(
             Fate::of(&slave_exception),
             (Fate::Exception, Some((Source::Slave, 0x02)))
         );
         assert_eq!(
-            Fate::of(&Ok(Some(vec![0x03, 0x02, 0, 1]))),
+            Fate::of(&Ok(Answer::Reply(vec![0x03, 0x02, 0, 1]))),
             (Fate::Ok, None)
         );
-        assert_eq!(Fate::of(&Ok(None)), (Fate::Ok, None));
+        assert_eq!(Fate::of(&Ok(Answer::Nothing)), (Fate::Ok, None));
         let timeout: Outcome = Err(RequestError::NoResponse {
             attempts: 2,
             last: TxError::Timeout,
@@ -901,8 +933,8 @@ mod tests {
     fn a_request_counts_once_by_outcome_and_its_exception_by_source() {
         let metrics = Metrics::new();
         let line1 = metrics.bus(&bus(""));
-        line1.request(7, 0x03, Some(&Ok(Some(vec![0x83, 0x02]))));
-        line1.request(7, 0x03, Some(&Ok(Some(vec![0x83, 0x02]))));
+        line1.request(7, 0x03, Some(&Ok(Answer::Reply(vec![0x83, 0x02]))));
+        line1.request(7, 0x03, Some(&Ok(Answer::Reply(vec![0x83, 0x02]))));
         line1.request(7, 0x10, None);
         metrics.request("", 250, 0x03, &Err(RequestError::NoRoute(250)));
         let text = metrics.render().unwrap();
@@ -951,7 +983,7 @@ mod tests {
     }
 
     #[test]
-    fn a_slave_is_up_after_an_answer_and_down_after_a_failure() {
+    fn a_slave_is_up_after_an_answer_and_down_after_a_failure_that_tells_of_it() {
         let metrics = Metrics::new();
         let line1 = metrics.bus(&bus(""));
         let up = "modbus_gateway_slave_up{bus=\"line1\",slave=\"5\"}";
@@ -959,7 +991,8 @@ mod tests {
             5,
             1,
             Some(Duration::from_millis(40)),
-            &Ok(Some(vec![0x83, 0x02])),
+            &Ok(Answer::Reply(vec![0x83, 0x02])),
+            true,
         );
         let text = metrics.render().unwrap();
         assert_eq!(value(&text, up), Some(1.0));
@@ -973,7 +1006,17 @@ mod tests {
             attempts: 3,
             last: TxError::Timeout,
         });
-        line1.transaction(5, 3, Some(Duration::from_secs(3)), &failed);
+        // A timeout the down policy does not count (a function the slave never answered), or a
+        // line too busy to send on, says nothing of the slave.
+        line1.transaction(5, 1, Some(Duration::from_secs(1)), &failed, false);
+        let busy = Err(RequestError::NoResponse {
+            attempts: 1,
+            last: TxError::LineBusy,
+        });
+        line1.transaction(5, 1, None, &busy, true);
+        let text = metrics.render().unwrap();
+        assert_eq!(value(&text, up), Some(1.0));
+        line1.transaction(5, 3, Some(Duration::from_secs(3)), &failed, true);
         let text = metrics.render().unwrap();
         assert_eq!(value(&text, up), Some(0.0));
         assert_eq!(
@@ -988,7 +1031,7 @@ mod tests {
                 &text,
                 "modbus_gateway_round_trip_seconds_count{bus=\"line1\"}"
             ),
-            Some(2.0)
+            Some(3.0)
         );
     }
 

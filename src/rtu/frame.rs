@@ -183,8 +183,12 @@ pub fn request_len(buf: &[u8]) -> FrameLen {
 pub enum Verdict {
     /// It answers the request (normally or with an exception).
     Answer,
-    /// Intact, but not the answer: another slave's frame, or a reply that does not fit the
-    /// request (a late answer to an earlier one). Never delivered to anyone.
+    /// Intact, from the slave asked, with the request's function code, but not the shape the
+    /// request asks for (byte count, echo, sub-function). Either the slave's own odd answer, or a
+    /// late answer to an earlier request to it: only the caller knows whether one may be pending.
+    Malformed,
+    /// Intact, but not from this exchange: another slave's frame, or another function's reply.
+    /// Never delivered to anyone.
     Foreign,
     /// The CRC fails: noise, a collision, or a frame cut short.
     Corrupt,
@@ -254,10 +258,12 @@ pub fn check_reply_as(frame: &[u8], slave: u8, request: &[u8], form: ReplyForm) 
     if pdu[0] == request_function | EXCEPTION_BIT && frame.len() == EXCEPTION_FRAME_LEN {
         return Verdict::Answer;
     }
-    if pdu[0] == request_function && fits_request(&answer_pdu(frame, form), request) {
+    if pdu[0] != request_function {
+        Verdict::Foreign
+    } else if fits_request(&answer_pdu(frame, form), request) {
         Verdict::Answer
     } else {
-        Verdict::Foreign
+        Verdict::Malformed
     }
 }
 
@@ -266,11 +272,11 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_late_echo_of_another_value_written_to_the_same_register_is_foreign() {
+    fn a_late_echo_of_another_value_written_to_the_same_register_does_not_fit_the_write() {
         // Write 1388H to register 0004H; an earlier write of 0001H there is echoed late.
         let request = [0x06, 0x00, 0x04, 0x13, 0x88];
         let earlier = encode(2, &[0x06, 0x00, 0x04, 0x00, 0x01]);
-        assert_eq!(check_reply(&earlier, 2, &request), Verdict::Foreign);
+        assert_eq!(check_reply(&earlier, 2, &request), Verdict::Malformed);
         assert_eq!(
             check_reply(&encode(2, &request), 2, &request),
             Verdict::Answer
@@ -472,20 +478,25 @@ mod tests {
     }
 
     #[test]
-    fn a_reply_of_the_wrong_shape_or_function_is_foreign() {
-        // Asked for three words; a two-word reply is a late answer to something else.
+    fn a_reply_of_the_wrong_shape_is_malformed_and_of_the_wrong_function_foreign() {
+        // Asked for three words; a two-word reply is a late answer to something else, or the
+        // slave's own short answer.
         assert_eq!(
             check_reply(&READ_REPLY, 1, &[0x03, 0, 4, 0, 3]),
-            Verdict::Foreign
-        );
-        // Asked for input registers; holding-register reply.
-        assert_eq!(
-            check_reply(&READ_REPLY, 1, &[0x04, 0, 4, 0, 2]),
-            Verdict::Foreign
+            Verdict::Malformed
         );
         // A write echo for another register.
         assert_eq!(
             check_reply(&WRITE_REQUEST, 2, &[0x06, 0x00, 0x05, 0x13, 0x88]),
+            Verdict::Malformed
+        );
+        // A multiple write's echo of another quantity.
+        let wrote_three = encode(2, &[0x10, 0x00, 0x04, 0x00, 0x03]);
+        let request = [0x10, 0x00, 0x04, 0x00, 0x02, 0x04, 0x13, 0x88, 0x00, 0x32];
+        assert_eq!(check_reply(&wrote_three, 2, &request), Verdict::Malformed);
+        // Asked for input registers; holding-register reply.
+        assert_eq!(
+            check_reply(&READ_REPLY, 1, &[0x04, 0, 4, 0, 2]),
             Verdict::Foreign
         );
     }
@@ -560,7 +571,10 @@ mod tests {
         assert_ne!(check_reply(&wide, 4, &request), Verdict::Answer);
         // A wide reply with the wrong count does not fit the request.
         let short = encode(4, &[0x03, 0x00, 0x02, 0x13, 0x88]);
-        assert_eq!(check_reply_as(&short, 4, &request, form), Verdict::Foreign);
+        assert_eq!(
+            check_reply_as(&short, 4, &request, form),
+            Verdict::Malformed
+        );
     }
 
     mod properties {
@@ -792,7 +806,7 @@ mod tests {
                     check_reply_as(&frame, slave, &request, form),
                 ] {
                     prop_assert_eq!(verdict == Verdict::Corrupt, !crc);
-                    if verdict == Verdict::Answer {
+                    if matches!(verdict, Verdict::Answer | Verdict::Malformed) {
                         prop_assert_eq!(frame[0], slave);
                         prop_assert_eq!(request[0], pdu_of(&frame)[0] & !EXCEPTION_BIT);
                     }
@@ -915,7 +929,7 @@ mod tests {
             }
 
             #[test]
-            fn an_echo_of_another_address_quantity_or_sub_function_is_foreign(
+            fn an_echo_of_another_address_quantity_or_sub_function_is_malformed(
                 exchange in normal_exchange().prop_filter("an echo", |e| {
                     matches!(e.request[0], 0x05 | 0x06 | 0x08 | 0x0F | 0x10 | 0x16)
                 }),
@@ -930,12 +944,12 @@ mod tests {
                 let frame = encode(slave, &reply);
                 prop_assert_eq!(
                     check_reply_as(&frame, slave, &exchange.request, exchange.form),
-                    Verdict::Foreign
+                    Verdict::Malformed
                 );
             }
 
             #[test]
-            fn a_read_reply_for_another_quantity_is_foreign(
+            fn a_read_reply_for_another_quantity_is_malformed(
                 function in 0x01u8..=0x04,
                 (asked, sent) in (1u16..=125, 1u16..=125)
                     .prop_filter("another quantity", |(a, s)| a != s),
@@ -948,7 +962,7 @@ mod tests {
                 let frame = encode(slave, &with_count(vec![function], &vec![0; count]));
                 prop_assert_eq!(
                     check_reply_as(&frame, slave, &pdu(function, &[0, asked]), form),
-                    Verdict::Foreign
+                    Verdict::Malformed
                 );
             }
         }

@@ -3,6 +3,14 @@
 //! transmission, replies complete by length (or by silence when the length cannot be known),
 //! and only a frame that answers the request is ever returned. Retries, queues and broadcast
 //! policy belong to the caller.
+//!
+//! RTU frames carry no transaction id, so a slave's reply that comes after its try gave up could
+//! pass for the answer to the next request to it. The master keeps, per slave, until when such a
+//! late reply may still come (its late-reply window): after a try that ended in silence (or in
+//! other slaves' frames), one more response timeout. A try the slave itself ended with a frame
+//! (an answer, a malformed reply, a bad CRC) opens none. While a window is open, a frame that
+//! does not fit the request is taken for that late reply and discarded; once it is closed, such a
+//! frame can only be the slave's own answer and is returned as [`Reply::Malformed`].
 
 use super::frame::{self, FrameLen, ReplyForm, Verdict, BROADCAST, MAX_FRAME_LEN};
 use super::timing::LineTiming;
@@ -34,13 +42,23 @@ impl MasterTiming {
     }
 }
 
+/// The slave's answer to a request: its PDU, byte for byte.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Reply {
+    /// A normal reply or an exception that fits the request.
+    Fits(Vec<u8>),
+    /// From the slave, with the request's function code, but not the shape the request asks for
+    /// (byte count, echo), at a time no late reply from the slave could be pending.
+    Malformed(Vec<u8>),
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum TxError {
-    #[error("no reply within the response timeout")]
+    #[error("no reply to this request within the response timeout")]
     Timeout,
     #[error("reply failed its CRC check")]
     Crc,
-    #[error("reply incomplete or malformed")]
+    #[error("reply incomplete, or longer than a frame")]
     Frame,
     #[error("line never fell silent for the gap before the frame")]
     LineBusy,
@@ -87,6 +105,8 @@ pub struct RtuMaster<T> {
     counters: LineCounters,
     /// How each slave address shapes its replies.
     forms: Box<[ReplyForm; 256]>,
+    /// Per slave address: until when a reply to one of its earlier tries may still come.
+    late_until: Box<[Option<Instant>; 256]>,
     timer: LineTimer,
 }
 
@@ -118,6 +138,7 @@ impl<T: Transport> RtuMaster<T> {
             rx: Vec::with_capacity(MAX_FRAME_LEN),
             counters: LineCounters::default(),
             forms: Box::new([ReplyForm::Standard; 256]),
+            late_until: Box::new([None; 256]),
             timer: LineTimer::new(),
         }
     }
@@ -141,6 +162,12 @@ impl<T: Transport> RtuMaster<T> {
         self.sent_at
     }
 
+    /// A reply from `slave` may still come until `until`.
+    fn expect_late_reply(&mut self, slave: u8, until: Instant) {
+        let window = &mut self.late_until[usize::from(slave)];
+        *window = Some(window.map_or(until, |open| open.max(until)));
+    }
+
     /// Watch the line while no transaction runs: stray bytes push the next frame back by a gap.
     /// Returns how many arrived, or the error when the port is lost. Cancel-safe.
     pub async fn watch_idle(&mut self) -> io::Result<usize> {
@@ -162,16 +189,32 @@ impl<T: Transport> RtuMaster<T> {
     }
 
     /// Send `request` (a PDU) to `slave` and return the PDU of the frame that answers it, a normal
-    /// reply or the slave's exception, byte for byte.
+    /// reply or the slave's exception, byte for byte. Does not wait for the slave's late-reply
+    /// window: a retry of the same request may take the late reply to its first try, which has
+    /// the same form and the right data.
     pub async fn transact(
         &mut self,
         slave: u8,
         request: &[u8],
         response_timeout: Duration,
-    ) -> Result<Vec<u8>, TxError> {
+    ) -> Result<Reply, TxError> {
         let end_of_tx = self.send_frame(slave, request, response_timeout).await?;
-        self.read_reply(slave, request, end_of_tx, response_timeout)
-            .await
+        let result = self
+            .read_reply(slave, request, end_of_tx, response_timeout)
+            .await;
+        match &result {
+            // Silence, or only other frames: the slave may still answer.
+            Err(TxError::Timeout) => {
+                self.expect_late_reply(slave, Instant::now() + response_timeout);
+            }
+            // Taken while an earlier try's reply could still come: it may have been that reply,
+            // so this try's own may follow, as late as an earlier one could.
+            Ok(_) if self.late_reply_window(slave).is_some() => {
+                self.expect_late_reply(slave, end_of_tx + 2 * response_timeout);
+            }
+            _ => {}
+        }
+        result
     }
 
     /// Send `request` to every slave and return once its last byte has left the wire. Nobody
@@ -235,7 +278,7 @@ impl<T: Transport> RtuMaster<T> {
         request: &[u8],
         end_of_tx: Instant,
         response_timeout: Duration,
-    ) -> Result<Vec<u8>, TxError> {
+    ) -> Result<Reply, TxError> {
         self.rx.clear();
         let form = self.forms[usize::from(slave)];
         // The reply must start within the response timeout; once it has, it gets the time its
@@ -246,14 +289,12 @@ impl<T: Transport> RtuMaster<T> {
             let len = frame::reply_len_as(&self.rx, slave, request, form);
             if let FrameLen::Exact(n) = len {
                 if self.rx.len() >= n {
-                    match frame::check_reply_as(&self.rx[..n], slave, request, form) {
-                        Verdict::Answer => return Ok(frame::answer_pdu(&self.rx[..n], form)),
-                        Verdict::Foreign => {
-                            self.counters.foreign_frames += 1;
+                    match self.judge(n, slave, request, form) {
+                        Some(reply) => return reply,
+                        None => {
                             self.rx.drain(..n);
                             continue;
                         }
-                        Verdict::Corrupt => return Err(TxError::Crc),
                     }
                 }
             }
@@ -283,16 +324,46 @@ impl<T: Transport> RtuMaster<T> {
                     if len != FrameLen::BySilence {
                         return Err(TxError::Frame);
                     }
-                    match frame::check_reply_as(&self.rx, slave, request, form) {
-                        Verdict::Answer => return Ok(frame::answer_pdu(&self.rx, form)),
-                        Verdict::Foreign => {
-                            self.counters.foreign_frames += 1;
-                            self.rx.clear();
-                        }
-                        Verdict::Corrupt => return Err(TxError::Crc),
+                    match self.judge(self.rx.len(), slave, request, form) {
+                        Some(reply) => return reply,
+                        None => self.rx.clear(),
                     }
                 }
             }
+        }
+    }
+}
+
+impl<T> RtuMaster<T> {
+    /// Until when a reply to an earlier try to `slave` may still come, if that is later than now.
+    /// A new request to `slave` should not go out before then: the late reply could pass for its
+    /// answer.
+    pub fn late_reply_window(&self, slave: u8) -> Option<Instant> {
+        self.late_until[usize::from(slave)].filter(|&until| until > Instant::now())
+    }
+
+    /// What the complete frame in the first `len` bytes received means for the request waiting
+    /// on `slave`: its reply or the error that ends the try, or `None` when the frame answers
+    /// nothing here (counted, and to be dropped) and the wait goes on.
+    fn judge(
+        &mut self,
+        len: usize,
+        slave: u8,
+        request: &[u8],
+        form: ReplyForm,
+    ) -> Option<Result<Reply, TxError>> {
+        let late_reply_possible = self.late_reply_window(slave).is_some();
+        let frame = &self.rx[..len];
+        match frame::check_reply_as(frame, slave, request, form) {
+            Verdict::Answer => Some(Ok(Reply::Fits(frame::answer_pdu(frame, form)))),
+            Verdict::Malformed if !late_reply_possible => {
+                Some(Ok(Reply::Malformed(frame::answer_pdu(frame, form))))
+            }
+            Verdict::Malformed | Verdict::Foreign => {
+                self.counters.foreign_frames += 1;
+                None
+            }
+            Verdict::Corrupt => Some(Err(TxError::Crc)),
         }
     }
 }
@@ -337,7 +408,7 @@ mod tests {
         slave: u8,
         request: &[u8],
         timeout: Duration,
-    ) -> (Result<Vec<u8>, TxError>, Duration) {
+    ) -> (Result<Reply, TxError>, Duration) {
         master.wait_for_gap(FOREVER).await.unwrap();
         let sent_at = Instant::now();
         let result = master.transact(slave, request, timeout).await;
@@ -364,7 +435,7 @@ mod tests {
     async fn an_exception_is_returned_as_soon_as_its_five_bytes_are_in() {
         let (line, mut master) = line(vec![(1, vec![reply(1, &[0x83, 0x02], Duration::ZERO)])]);
         let (result, after) = timed(&mut master, 1, &READ, FOREVER).await;
-        assert_eq!(result.unwrap(), [0x83, 0x02]);
+        assert_eq!(result.unwrap(), Reply::Fits(vec![0x83, 0x02]));
         let timing = line.timing();
         assert!(
             after <= timing.t35 + timing.frame_time(5) + TIMER_RESOLUTION,
@@ -378,7 +449,7 @@ mod tests {
         let result = master
             .transact(1, &[0x06, 0x20, 0x00, 0x00, 0x01], FOREVER)
             .await;
-        assert_eq!(result.unwrap(), [0x86, 0x07]);
+        assert_eq!(result.unwrap(), Reply::Fits(vec![0x86, 0x07]));
     }
 
     #[tokio::test(start_paused = true)]
@@ -401,7 +472,7 @@ mod tests {
         let (_line, mut master) = line(vec![(1, plan)]);
         assert_eq!(
             master.transact(1, &READ, TIMEOUT).await.unwrap(),
-            READ_ANSWER
+            Reply::Fits(READ_ANSWER.to_vec())
         );
         assert_eq!(master.counters().foreign_frames, 1);
     }
@@ -431,7 +502,7 @@ mod tests {
         let first = master.transact(1, &READ, TIMEOUT).await;
         assert!(matches!(first, Err(TxError::Timeout)), "{first:?}");
         let second = master.transact(2, &READ, TIMEOUT * 2).await.unwrap();
-        assert_eq!(second, [0x03, 0x04, 0, 2, 0, 2]);
+        assert_eq!(second, Reply::Fits(vec![0x03, 0x04, 0, 2, 0, 2]));
         assert_eq!(
             master.counters().foreign_frames,
             1,
@@ -453,8 +524,104 @@ mod tests {
         )]);
         assert!(master.transact(1, &READ, TIMEOUT).await.is_err());
         let second = master.transact(1, &other_read, TIMEOUT * 2).await.unwrap();
-        assert_eq!(second, [0x03, 0x02, 0xAB, 0xCD]);
+        assert_eq!(second, Reply::Fits(vec![0x03, 0x02, 0xAB, 0xCD]));
         assert_eq!(master.counters().foreign_frames, 1);
+    }
+
+    /// A slave's replies that pass CRC, address and function code but not the request's shape:
+    /// a short read (one register of two), a multiple write's echo of another quantity, a single
+    /// write's echo of another value.
+    fn malformed_exchanges() -> [(Vec<u8>, Vec<u8>); 3] {
+        [
+            (READ.to_vec(), vec![0x03, 0x02, 0x13, 0x88]),
+            (
+                vec![0x10, 0x00, 0x04, 0x00, 0x02, 0x04, 0x13, 0x88, 0x00, 0x32],
+                vec![0x10, 0x00, 0x04, 0x00, 0x03],
+            ),
+            (
+                vec![0x06, 0x00, 0x04, 0x13, 0x88],
+                vec![0x06, 0x00, 0x04, 0x00, 0x01],
+            ),
+        ]
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_malformed_reply_with_no_late_reply_pending_is_the_slaves_answer_at_once() {
+        for (request, answer) in malformed_exchanges() {
+            let (line, mut master) = line(vec![(1, vec![reply(1, &answer, Duration::ZERO)])]);
+            let (result, after) = timed(&mut master, 1, &request, FOREVER).await;
+            assert_eq!(result.unwrap(), Reply::Malformed(answer.clone()));
+            let timing = line.timing();
+            let reply_done = timing.t35 + timing.frame_time(answer.len() + 3);
+            assert!(after <= reply_done + TIMER_RESOLUTION, "{after:?}");
+            assert_eq!(master.late_reply_window(1), None, "no window after it");
+        }
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_malformed_reply_while_a_late_reply_may_come_is_discarded() {
+        for (request, answer) in malformed_exchanges() {
+            // The first try gets nothing; the retry gets the malformed frame at once, while the
+            // first try's reply may still come.
+            let plan = vec![None, reply(1, &answer, Duration::ZERO)];
+            let (_line, mut master) = line(vec![(1, plan)]);
+            let first = master.transact(1, &request, TIMEOUT).await;
+            assert!(matches!(first, Err(TxError::Timeout)), "{first:?}");
+            assert!(master.late_reply_window(1).is_some());
+            let (retry, after) = timed(&mut master, 1, &request, TIMEOUT).await;
+            assert!(matches!(retry, Err(TxError::Timeout)), "{retry:?}");
+            assert!(after >= TIMEOUT, "{after:?}");
+            assert_eq!(master.counters().foreign_frames, 1);
+        }
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_try_ended_by_the_slaves_own_frame_opens_no_late_reply_window() {
+        let mut bad_crc = frame::encode(1, &READ_ANSWER);
+        *bad_crc.last_mut().unwrap() ^= 0x01;
+        let plan = vec![
+            Some(Transmission {
+                bytes: bad_crc,
+                delay: Duration::ZERO,
+                pause: None,
+            }),
+            reply(1, &READ_ANSWER, Duration::ZERO),
+            None,
+        ];
+        let (_line, mut master) = line(vec![(1, plan)]);
+        assert!(matches!(
+            master.transact(1, &READ, TIMEOUT).await,
+            Err(TxError::Crc)
+        ));
+        assert_eq!(master.late_reply_window(1), None);
+        master.transact(1, &READ, TIMEOUT).await.unwrap();
+        assert_eq!(master.late_reply_window(1), None);
+        // Silence does open one: one more response timeout from when the try gave up.
+        assert!(master.transact(1, &READ, TIMEOUT).await.is_err());
+        assert_eq!(master.late_reply_window(1), Some(Instant::now() + TIMEOUT));
+        assert_eq!(master.late_reply_window(2), None, "only for that slave");
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_retry_answered_by_the_first_tries_late_reply_keeps_the_window_open_for_its_own() {
+        // The slave always answers 1.5 timeouts after a request: the retry takes the first try's
+        // reply, and its own reply comes later still.
+        let late = TIMEOUT * 3 / 2;
+        let (line, mut master) = line(vec![(
+            1,
+            vec![reply(1, &READ_ANSWER, late), reply(1, &READ_ANSWER, late)],
+        )]);
+        assert!(master.transact(1, &READ, TIMEOUT).await.is_err());
+        let retry = master.transact(1, &READ, TIMEOUT).await.unwrap();
+        assert_eq!(retry, Reply::Fits(READ_ANSWER.to_vec()));
+        let until = master
+            .late_reply_window(1)
+            .expect("the retry's own reply may come");
+        tokio::time::sleep_until(until).await;
+        let frames = line.frames();
+        let own = frames.last().unwrap();
+        assert_eq!(own.from, crate::sim::Source::Slave(1));
+        assert!(own.end <= until, "the retry's reply came after the window");
     }
 
     #[tokio::test(start_paused = true)]
@@ -462,7 +629,7 @@ mod tests {
         let pdu = [0x41, 0xDE, 0xAD, 0xBE, 0xEF];
         let (line, mut master) = line(vec![(1, vec![reply(1, &pdu, Duration::ZERO)])]);
         let (result, after) = timed(&mut master, 1, &[0x41, 0x01], FOREVER).await;
-        assert_eq!(result.unwrap(), pdu);
+        assert_eq!(result.unwrap(), Reply::Fits(pdu.to_vec()));
         let timing = line.timing();
         let reply_done = timing.t35 + timing.frame_time(pdu.len() + 3);
         assert!(after >= reply_done + timing.t35, "{after:?}");

@@ -6,7 +6,7 @@ pub mod frame;
 pub mod master;
 pub mod timing;
 
-pub use master::{LineCounters, MasterTiming, RtuMaster, TxError};
+pub use master::{LineCounters, MasterTiming, Reply, RtuMaster, TxError};
 pub use timing::{LineTiming, Parity, SerialFormat};
 
 use std::future::Future;
