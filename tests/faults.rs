@@ -6,6 +6,7 @@ use crate::support::{addr, bus_call, settle, sim_bus_counted, start, RawMaster, 
 use modbus_gateway::bus::BusHandle;
 use modbus_gateway::error::{Answer, Outcome};
 use modbus_gateway::metrics::Metrics;
+use modbus_gateway::rtu::frame::encode;
 use modbus_gateway::sim::faults::{Faults, Faulty};
 use modbus_gateway::sim::{Pause, Scripted, SimLine, Source, Transmission};
 use modbus_gateway::Config;
@@ -472,5 +473,108 @@ async fn over_tcp_each_broken_slave_gets_0x0b_while_the_healthy_one_answers() {
             ANSWER,
             "after unit {unit}"
         );
+    }
+}
+
+/// Replies from the slave asked, with a good CRC and the request's function code, whose shape
+/// does not fit the request: (request, reply).
+fn replies_that_do_not_fit() -> [(&'static str, Vec<u8>, Vec<u8>); 3] {
+    [
+        (
+            // Two registers asked for, one sent: byte count 2, not 4.
+            "a wrong byte count",
+            READ_2.to_vec(),
+            vec![0x03, 0x02, 0x12, 0x34],
+        ),
+        (
+            // Two registers written from 0004H; the echo says three.
+            "a wrong quantity echo to FC 10",
+            vec![0x10, 0x00, 0x04, 0x00, 0x02, 0x04, 0x13, 0x88, 0x00, 0x32],
+            vec![0x10, 0x00, 0x04, 0x00, 0x03],
+        ),
+        (
+            // 1388H written to 0004H; the echo says 0001H.
+            "a wrong echo to FC 06",
+            vec![0x06, 0x00, 0x04, 0x13, 0x88],
+            vec![0x06, 0x00, 0x04, 0x00, 0x01],
+        ),
+    ]
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_reply_that_does_not_fit_the_request_is_forwarded_at_once_and_counted_malformed_reply() {
+    for (what, request, reply) in replies_that_do_not_fit() {
+        let (line, bus, metrics) = counted_line_with_faulty_slave_2("", "");
+        line.add_slave(
+            3,
+            Scripted::new([Some(Transmission::frame(3, &reply, Duration::ZERO))]),
+        );
+        settle(&bus).await;
+        let (outcome, elapsed) = bus_call(&bus, 3, &request).await;
+        assert_eq!(outcome.unwrap(), Answer::Malformed(reply.clone()), "{what}");
+        // The request, t3.5 of the slave's turnaround, the reply: then at most a few characters.
+        let t = line.timing();
+        let last_byte = t.frame_time(request.len() + 3) + t.t35 + t.frame_time(reply.len() + 3);
+        assert!(
+            elapsed <= last_byte + 3 * t.char_time,
+            "{what}: answered {elapsed:?} after the request, the reply was in at {last_byte:?}"
+        );
+        assert_eq!(
+            counted(&metrics, 3, request[0], "malformed_reply"),
+            1.0,
+            "{what}"
+        );
+        assert_eq!(counted(&metrics, 3, request[0], "timeout"), 0.0, "{what}");
+        assert_eq!(
+            line_count(&metrics, "modbus_gateway_discarded_frames_total"),
+            0.0,
+            "{what}"
+        );
+    }
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_reply_that_does_not_fit_while_a_late_reply_may_come_is_discarded_and_0x0b_follows_the_timeout(
+) {
+    for (what, request, reply) in replies_that_do_not_fit() {
+        // The first try is met with silence, so its reply may still come during the retry: the
+        // frame that does not fit may be that reply, and is not taken for the retry's answer.
+        let (line, bus, metrics) =
+            counted_line_with_faulty_slave_2("retries = 1\nretry_writes = true", "");
+        let plan = [None, Some(Transmission::frame(3, &reply, Duration::ZERO))];
+        line.add_slave(3, Scripted::new(plan));
+        settle(&bus).await;
+        let (outcome, elapsed) = bus_call(&bus, 3, &request).await;
+        assert!(is_0x0b(&outcome), "{what}: {outcome:?}");
+        assert!(elapsed >= 2 * TIMEOUT, "{what}: {elapsed:?}");
+        assert_eq!(counted(&metrics, 3, request[0], "timeout"), 1.0, "{what}");
+        assert_eq!(
+            counted(&metrics, 3, request[0], "malformed_reply"),
+            0.0,
+            "{what}"
+        );
+        assert_eq!(
+            line_count(&metrics, "modbus_gateway_discarded_frames_total"),
+            1.0,
+            "{what}"
+        );
+        assert_eq!(frames_from(&line, Source::Slave(3)), [encode(3, &reply)]);
+    }
+}
+
+#[tokio::test]
+async fn over_tcp_a_master_gets_the_slaves_malformed_reply_byte_for_byte() {
+    let gateway = start(
+        "[server]\nlisten = \"127.0.0.1:0\"\n\
+         [[bus]]\nname = \"line\"\ndevice = \"sim\"\nbaud = 19200\nresponse_timeout = \"1s\"\n",
+    )
+    .await;
+    let line = gateway.sim_line("line").expect("a simulated line");
+    let plan = replies_that_do_not_fit()
+        .map(|(_, _, reply)| Some(Transmission::frame(4, &reply, Duration::ZERO)));
+    line.add_slave(4, Scripted::new(plan));
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    for (id, (what, request, reply)) in (1..).zip(replies_that_do_not_fit()) {
+        assert_eq!(master.call(id, 4, &request).await, reply, "{what}");
     }
 }

@@ -6,7 +6,7 @@ use modbus_gateway::error::{Answer, Outcome, RequestError};
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::rtu::TxError;
 use modbus_gateway::shutdown::Stopping;
-use modbus_gateway::sim::{RegisterBank, Scripted, SimLine, Source, Transmission};
+use modbus_gateway::sim::{RegisterBank, Scripted, SimLine, SimSlave, Source, Transmission};
 use modbus_gateway::Config;
 
 use crate::support::{bus_call as call, settle};
@@ -457,4 +457,150 @@ async fn a_late_reply_never_answers_the_next_masters_request_of_the_same_form() 
         .find(|f| f.from != Source::Master)
         .expect("the late reply went on the wire");
     assert!(requests[1].start > late_reply.end);
+}
+
+/// A register slave that, like many real devices (pymodbus' serial server among them), stays
+/// silent for a function code it does not implement instead of answering exception 01.
+struct SilentFor {
+    function: u8,
+    inner: RegisterBank,
+}
+
+impl SimSlave for SilentFor {
+    fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission> {
+        if request.first() == Some(&self.function) {
+            return None;
+        }
+        self.inner.handle(address, request, at)
+    }
+}
+
+/// User-defined function code 0x41, which the slave above ignores.
+const IGNORED: [u8; 2] = [0x41, 0x00];
+
+#[tokio::test(start_paused = true)]
+async fn requests_a_slave_ignores_do_not_change_what_another_master_gets_from_it() {
+    let keys = "baud = 19200\nresponse_timeout = \"100ms\"";
+    let (line, bus) = sim_bus(keys, |line| {
+        let slave = SilentFor {
+            function: IGNORED[0],
+            inner: RegisterBank::new(Duration::ZERO),
+        };
+        line.add_slave(1, slave);
+    });
+    settle(&bus).await;
+    // Master 2 has been reading the slave; master 1 then sends ten requests it ignores.
+    assert!(bus.submit(2, 1, READ_10.to_vec()).await.unwrap().is_ok());
+    for _ in 0..10 {
+        let outcome = bus.submit(1, 1, IGNORED.to_vec()).await.unwrap();
+        assert!(
+            matches!(
+                outcome,
+                Err(RequestError::NoResponse {
+                    last: TxError::Timeout,
+                    ..
+                })
+            ),
+            "each ignored request waits out its timeout: {outcome:?}"
+        );
+    }
+    let sent_before = line.stats().master_frames;
+    let (outcome, _) = call(&bus, 1, &READ_10).await;
+    assert_eq!(
+        outcome.unwrap().into_pdu().unwrap().len(),
+        22,
+        "master 2's read is sent and answered"
+    );
+    assert_eq!(line.stats().master_frames, sent_before + 1);
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_slave_that_answered_and_then_answers_nothing_is_down_after_slave_down_after_timeouts() {
+    let keys = "baud = 19200\nresponse_timeout = \"100ms\"";
+    let (line, bus) = sim_bus(keys, |line| {
+        line.add_slave(1, RegisterBank::new(Duration::ZERO));
+    });
+    settle(&bus).await;
+    assert!(call(&bus, 1, &READ_10).await.0.is_ok());
+    // The drive loses power: nothing answers at address 1 any more.
+    line.add_slave(1, Scripted::new([]));
+    for round in 0..3 {
+        // Another master's ignored request between the reads neither counts nor clears.
+        let (ignored, _) = call(&bus, 1, &IGNORED).await;
+        assert_eq!(exception(&ignored), Some(0x0B), "round {round}");
+        let (read, elapsed) = call(&bus, 1, &READ_10).await;
+        assert_eq!(exception(&read), Some(0x0B), "round {round}");
+        assert!(
+            elapsed >= Duration::from_millis(100),
+            "round {round}: {elapsed:?}"
+        );
+    }
+    let sent = line.stats().master_frames;
+    let (outcome, elapsed) = call(&bus, 1, &READ_10).await;
+    assert!(
+        matches!(outcome, Err(RequestError::SlaveDown { timeouts: 3 })),
+        "{outcome:?}"
+    );
+    assert_eq!(elapsed, Duration::ZERO, "answered without the line");
+    assert_eq!(line.stats().master_frames, sent);
+}
+
+#[tokio::test(start_paused = true)]
+async fn after_a_bad_crc_or_a_malformed_reply_the_next_request_goes_out_after_t35_and_after_silence_only_after_the_window(
+) {
+    let timeout = Duration::from_millis(200);
+    let read_one = [0x03, 0x00, 0x00, 0x00, 0x01];
+    let mut bad_crc = modbus_gateway::rtu::frame::encode(1, &[0x03, 0x02, 0x00, 0x07]);
+    *bad_crc.last_mut().unwrap() ^= 0x01;
+    let first_replies = [
+        (
+            "a bad CRC",
+            Some(Transmission {
+                bytes: bad_crc,
+                delay: Duration::ZERO,
+                pause: None,
+            }),
+        ),
+        // Two registers for a read of one.
+        (
+            "a malformed reply",
+            answer(1, &[0x03, 0x04, 0, 7, 0, 8], Duration::ZERO),
+        ),
+        ("silence", None),
+    ];
+    for (what, first) in first_replies {
+        let plan = [first, answer(1, &[0x03, 0x02, 0x00, 0x07], Duration::ZERO)];
+        let (line, bus) = sim_bus("baud = 9600\nresponse_timeout = \"200ms\"", |line| {
+            line.add_slave(1, Scripted::new(plan));
+        });
+        settle(&bus).await;
+        let _ = call(&bus, 1, &read_one).await;
+        let (outcome, _) = call(&bus, 1, &read_one).await;
+        assert_eq!(
+            outcome.unwrap(),
+            Answer::Reply(vec![0x03, 0x02, 0x00, 0x07]),
+            "{what}"
+        );
+        let frames = line.frames();
+        let requests: Vec<_> = frames.iter().filter(|f| f.from == Source::Master).collect();
+        // The line's last activity before the second request: the first reply, or the request.
+        let quiet_from = frames
+            .iter()
+            .filter(|f| f.end <= requests[1].start)
+            .map(|f| f.end)
+            .max()
+            .unwrap();
+        let silence = requests[1].start - quiet_from;
+        let t35 = line.timing().t35;
+        if what == "silence" {
+            // The try gave up at the timeout; one more timeout for its late reply.
+            let since_request = requests[1].start - requests[0].end;
+            assert!(since_request >= 2 * timeout, "{what}: {since_request:?}");
+        } else {
+            assert!(
+                silence >= t35 && silence <= t35 + 2 * TICK,
+                "{what}: the next request went out {silence:?} after the line fell silent"
+            );
+        }
+    }
 }
