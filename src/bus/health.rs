@@ -7,9 +7,9 @@
 //! Only a timeout that says the slave is gone counts: one for a function code the slave has
 //! answered before (an exception is an answer), or any while it has answered nothing yet. Many
 //! real slaves stay silent for function codes they do not implement or requests they find
-//! malformed; such a silence says nothing of the slave, so it neither counts nor clears, and one
-//! master's odd requests cannot make a slave down for every other master. Pure: the time comes in
-//! as an argument.
+//! malformed; such a silence says nothing of the slave, so it neither counts nor clears (nor, for
+//! a probe, puts off the next one), and one master's odd requests cannot make a slave down for
+//! every other master. Pure: the time comes in as an argument.
 
 use std::time::Duration;
 use tokio::time::Instant;
@@ -276,6 +276,24 @@ mod tests {
         assert_eq!(
             timed_out(&mut health, 1, 1, now),
             [Change::Down { timeouts: 3 }]
+        );
+    }
+
+    #[test]
+    fn a_probe_the_slave_may_just_ignore_does_not_put_off_the_next_probe() {
+        let mut health = Health::default();
+        let start = Instant::now();
+        health.record(5, READ, Response::Answered, start, POLICY);
+        timed_out(&mut health, 5, 3, start);
+        let due = start + POLICY.probe_interval;
+        assert_eq!(health.admit(5, due, POLICY), Admission::Probe);
+        // One master's probe asks for a function the slave never answered: its silence says
+        // nothing, so another master's read, next, is probed at once.
+        health.record(5, UNKNOWN, Response::TimedOut, due, POLICY);
+        assert_eq!(health.admit(5, due, POLICY), Admission::Probe);
+        assert_eq!(
+            health.record(5, READ, Response::Answered, due, POLICY),
+            Change::Up
         );
     }
 
