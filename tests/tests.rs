@@ -11,6 +11,7 @@
 //! - `drives`: the simulated drives of config/demo.toml: registers, exceptions, ramps, timing.
 //! - `faults`: each fault knob of a simulated slave and what the gateway makes of it.
 //! - `serial`: the real serial path on pty pairs, with a third-party client.
+//! - `peers`: third-party slaves on the serial path: pymodbus's RTU server (Python) on a pty.
 //! - `simulate`: the `simulate` subcommand answering RTU masters on a pty.
 //! - `service`: the gateway under a service manager: graceful stop.
 //! - `metrics`: `/metrics`, `/healthz`, `/readyz` after known traffic; promtool; shipped rules.
@@ -30,6 +31,7 @@ mod fairness;
 mod faults;
 mod line;
 mod metrics;
+mod peers;
 mod serial;
 mod service;
 mod simulate;
