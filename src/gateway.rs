@@ -3,7 +3,7 @@
 //! configuration to them without closing connections; stops them gracefully. Owns their tasks:
 //! dropping the gateway stops them.
 
-use crate::bus::{Bus, BusHandle, BusUpdates, Device, Reconfigure};
+use crate::bus::{BusHandle, BusTask, BusUpdates, Device, Reconfigure};
 use crate::config::{self, Config};
 use crate::dispatch::Dispatcher;
 use crate::metrics::{self, Metrics};
@@ -180,7 +180,7 @@ impl Gateway {
     }
 
     fn start_bus(settings: &config::Bus, device: Device, metrics: &Metrics) -> Running {
-        let mut bus = Bus::new(settings.clone(), device.clone(), metrics);
+        let mut bus = BusTask::new(settings.clone(), device.clone(), metrics);
         let updates = bus.updates();
         let handle = bus.handle();
         let (stop, stopping) = shutdown::channel();

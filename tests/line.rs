@@ -1,7 +1,7 @@
 //! The serial line discipline, driven at the bus (no TCP) on tokio's paused clock, against the
 //! simulated line's own record of what went on the wire and when.
 
-use modbus_gateway::bus::{Bus, BusHandle, Device};
+use modbus_gateway::bus::{BusHandle, BusTask, Device};
 use modbus_gateway::error::{Answer, Outcome, RequestError};
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::rtu::TxError;
@@ -26,7 +26,7 @@ fn sim_bus(keys: &str, fill: impl FnOnce(&SimLine)) -> (SimLine, BusHandle) {
         .remove(0);
     let line = SimLine::new(settings.line_timing());
     fill(&line);
-    let bus = Bus::new(settings, Device::Sim(line.clone()), &Metrics::new());
+    let bus = BusTask::new(settings, Device::Sim(line.clone()), &Metrics::new());
     let handle = bus.handle();
     tokio::spawn(bus.run(Stopping::never()));
     (line, handle)

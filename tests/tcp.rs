@@ -6,7 +6,7 @@ use crate::support::{
     addr, panics_on_this_thread, sim_config_with_server, start, start_sim, tool, within, RawMaster,
     Scrape,
 };
-use modbus_gateway::bus::{Bus, Device};
+use modbus_gateway::bus::{BusTask, Device};
 use modbus_gateway::dispatch::{Client, Dispatcher, Rights};
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::routing::Router;
@@ -168,7 +168,7 @@ async fn session_on_pipe(
     let line = SimLine::new(config.bus[0].line_timing());
     line.add_slave(1, RegisterBank::new(slave_delay));
     let metrics = Arc::new(Metrics::new());
-    let bus = Bus::new(config.bus[0].clone(), Device::Sim(line), &metrics);
+    let bus = BusTask::new(config.bus[0].clone(), Device::Sim(line), &metrics);
     let dispatcher = Dispatcher::new(Router::new(&config), vec![bus.handle()], metrics);
     tokio::spawn(bus.run(Stopping::never()));
     let (client, server) = tokio::io::duplex(4096);

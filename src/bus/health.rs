@@ -1,15 +1,20 @@
-//! Which slaves are down. A slave whose requests timed out `slave_down_after` times in a row is
-//! down: its requests are answered 0x0B at once without touching the line, but for one probe per
+//! Whether each slave is alive: the one state machine that decides it, read by the bus (which
+//! requests to send) and rendered by metrics and logs (its [`Change`]s), never recomputed there.
+//!
+//! A slave is answering after a valid reply (normal, exception or malformed), failing after a
+//! timeout that counts or a corrupt reply, and down after `slave_down_after` timeouts in a row:
+//! its requests are answered 0x0B at once without touching the line, but for one probe per
 //! `slave_probe_interval` (a single attempt, no retries), so a dead drive costs the line one
 //! timeout per interval instead of one per poll, and the healthy slaves keep the line. Any reply
-//! brings it back. Corrupt replies neither count nor clear: something is answering.
+//! brings it back. Corrupt replies neither count nor clear the timeouts: something is answering.
+//! A line too busy to send on says nothing of the slave.
 //!
 //! Only a timeout that says the slave is gone counts: one for a function code the slave has
 //! answered before (an exception is an answer), or any while it has answered nothing yet. Many
 //! real slaves stay silent for function codes they do not implement or requests they find
-//! malformed; such a silence says nothing of the slave, so it neither counts nor clears (nor, for
-//! a probe, puts off the next one), and one master's odd requests cannot make a slave down for
-//! every other master. Pure: the time comes in as an argument.
+//! malformed; such a silence says nothing of the slave, so it changes nothing (nor, for a probe,
+//! puts off the next one), and one master's odd requests cannot make a slave down for every other
+//! master. Pure: the time comes in as an argument.
 
 use std::time::Duration;
 use tokio::time::Instant;
@@ -41,20 +46,38 @@ pub enum Response {
     Answered,
     /// Nothing came, retries included.
     TimedOut,
-    /// A corrupt or foreign reply, or a busy line.
+    /// A corrupt or incomplete reply: something answered, but not validly.
     Garbled,
+    /// Never sent: the line was too busy. Says nothing of the slave.
+    Unsent,
 }
 
-/// A change worth telling the operator.
+/// A change worth telling the operator: each is one log line (but the first answer) and one
+/// move of `slave_up`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Change {
     None,
+    /// Answered for the first time.
+    Answering,
+    /// Stopped giving valid replies, not (yet) down.
+    Failing,
     /// Just went down after this many timeouts in a row.
     Down {
         timeouts: u32,
     },
-    /// Was down and answered.
+    /// Was failing or down, and answered.
     Up,
+}
+
+/// Whether a slave gives valid replies, as far as its transactions tell.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+enum Liveness {
+    /// Not asked yet, or only asked what it may ignore.
+    #[default]
+    Unknown,
+    Answering,
+    /// Its last transaction that tells of it got no valid reply.
+    Failing,
 }
 
 /// A set of function codes, one bit each.
@@ -81,6 +104,7 @@ struct Slave {
     next_probe: Option<Instant>,
     /// Function codes it has answered, normally or with an exception.
     answered: Functions,
+    liveness: Liveness,
 }
 
 pub struct Health {
@@ -121,7 +145,8 @@ impl Health {
         answered.is_empty() || answered.contains(function)
     }
 
-    /// Record how a transaction for `function` with `address` ended at `now`.
+    /// Record how a transaction for `function` with `address` ended at `now`, and say what
+    /// changed.
     pub fn record(
         &mut self,
         address: u8,
@@ -133,32 +158,46 @@ impl Health {
         let counts = self.timeout_counts(address, function);
         let slave = &mut self.slaves[usize::from(address)];
         let was_down = Self::is_down(slave, policy);
+        let was = slave.liveness;
         match response {
             Response::Answered => {
                 slave.answered.insert(function);
                 slave.timeouts = 0;
                 slave.next_probe = None;
-                if was_down {
-                    Change::Up
-                } else {
-                    Change::None
+                slave.liveness = Liveness::Answering;
+                match was {
+                    Liveness::Unknown => Change::Answering,
+                    Liveness::Answering => Change::None,
+                    Liveness::Failing => Change::Up,
                 }
             }
             Response::TimedOut if counts => {
                 slave.timeouts = slave.timeouts.saturating_add(1);
-                if !Self::is_down(slave, policy) {
-                    return Change::None;
-                }
-                slave.next_probe = Some(now + policy.probe_interval);
-                if was_down {
-                    Change::None
-                } else {
-                    Change::Down {
-                        timeouts: slave.timeouts,
+                slave.liveness = Liveness::Failing;
+                if Self::is_down(slave, policy) {
+                    slave.next_probe = Some(now + policy.probe_interval);
+                    if !was_down {
+                        return Change::Down {
+                            timeouts: slave.timeouts,
+                        };
                     }
                 }
+                Self::failing_since(was)
             }
-            Response::TimedOut | Response::Garbled => Change::None,
+            Response::Garbled => {
+                slave.liveness = Liveness::Failing;
+                Self::failing_since(was)
+            }
+            Response::TimedOut | Response::Unsent => Change::None,
+        }
+    }
+
+    /// The change for a slave that fails now and was `was` before.
+    fn failing_since(was: Liveness) -> Change {
+        if was == Liveness::Failing {
+            Change::None
+        } else {
+            Change::Failing
         }
     }
 }
@@ -189,7 +228,7 @@ mod tests {
         let changes = timed_out(&mut health, 7, 3, now);
         assert_eq!(
             changes,
-            [Change::None, Change::None, Change::Down { timeouts: 3 }]
+            [Change::Failing, Change::None, Change::Down { timeouts: 3 }]
         );
         assert_eq!(
             health.admit(7, now, POLICY),
@@ -205,7 +244,7 @@ mod tests {
         timed_out(&mut health, 1, 2, now);
         assert_eq!(
             health.record(1, READ, Response::Answered, now, POLICY),
-            Change::None
+            Change::Up
         );
         timed_out(&mut health, 1, 2, now);
         assert_eq!(health.admit(1, now, POLICY), Admission::Send);
@@ -264,7 +303,7 @@ mod tests {
         let now = Instant::now();
         assert_eq!(
             health.record(1, READ, Response::Answered, now, POLICY),
-            Change::None
+            Change::Answering
         );
         timed_out(&mut health, 1, 2, now);
         for _ in 0..10 {
@@ -322,6 +361,45 @@ mod tests {
     }
 
     #[test]
+    fn a_corrupt_reply_makes_an_answering_slave_failing_once_and_a_busy_line_changes_nothing() {
+        let mut health = Health::default();
+        let now = Instant::now();
+        health.record(6, READ, Response::Answered, now, POLICY);
+        assert_eq!(
+            health.record(6, READ, Response::Unsent, now, POLICY),
+            Change::None
+        );
+        assert_eq!(
+            health.record(6, READ, Response::Garbled, now, POLICY),
+            Change::Failing
+        );
+        assert_eq!(
+            health.record(6, READ, Response::Garbled, now, POLICY),
+            Change::None
+        );
+        assert_eq!(
+            health.record(6, READ, Response::Answered, now, POLICY),
+            Change::Up
+        );
+    }
+
+    #[test]
+    fn a_slave_that_answered_and_times_out_is_failing_then_down_each_told_once() {
+        let mut health = Health::default();
+        let now = Instant::now();
+        health.record(8, READ, Response::Answered, now, POLICY);
+        assert_eq!(
+            timed_out(&mut health, 8, 4, now),
+            [
+                Change::Failing,
+                Change::None,
+                Change::Down { timeouts: 3 },
+                Change::None
+            ]
+        );
+    }
+
+    #[test]
     fn function_sets_hold_every_code_apart() {
         let mut set = Functions::default();
         for function in [0x00, 0x3F, 0x40, 0x7F, 0x80, 0xFF] {
@@ -337,12 +415,11 @@ mod tests {
         let policy = DownPolicy { after: 0, ..POLICY };
         let mut health = Health::default();
         let now = Instant::now();
-        for _ in 0..100 {
-            assert_eq!(
-                health.record(2, READ, Response::TimedOut, now, policy),
-                Change::None
-            );
-        }
+        let changes: Vec<Change> = (0..100)
+            .map(|_| health.record(2, READ, Response::TimedOut, now, policy))
+            .collect();
+        assert_eq!(changes[0], Change::Failing);
+        assert!(changes[1..].iter().all(|&c| c == Change::None));
         assert_eq!(health.admit(2, now, policy), Admission::Send);
     }
 }

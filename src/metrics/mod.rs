@@ -15,7 +15,7 @@ use prometheus::{
     IntCounterVec, IntGauge, IntGaugeVec, Opts, Registry, TextEncoder,
 };
 use std::fmt::Display;
-use std::sync::atomic::{AtomicBool, AtomicU8, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 use tracing::{debug, info, warn};
@@ -538,17 +538,12 @@ impl Metrics {
     }
 }
 
-/// A slave's own series, and whether it answered last time (for logging the changes).
+/// A slave's own series.
 struct SlaveMetrics {
     up: IntGauge,
     last_success: Gauge,
     retries: IntCounter,
-    state: AtomicU8,
 }
-
-const SLAVE_UNKNOWN: u8 = 0;
-const SLAVE_UP: u8 = 1;
-const SLAVE_DOWN: u8 = 2;
 
 /// The metrics of one bus, label values resolved once. Shared by its handle and its task.
 pub struct BusMetrics {
@@ -581,7 +576,6 @@ impl BusMetrics {
                 up: self.slave_up.with_label_values(labels),
                 last_success: self.slave_last_success.with_label_values(labels),
                 retries: self.retries.with_label_values(labels),
-                state: AtomicU8::new(SLAVE_UNKNOWN),
             };
             slave.up.set(0);
             slave
@@ -610,17 +604,13 @@ impl BusMetrics {
     }
 
     /// The line ran a request to `slave`: its round trip (`None` if it never got on the wire),
-    /// how many attempts it took, and how it ended. A slave that stops or starts giving valid
-    /// replies is logged once per change. A timeout tells of the slave only if
-    /// `timeout_counts` (the bus's down policy says whether it does: see `bus::health`); a line
-    /// too busy to send on tells nothing of it.
+    /// how many attempts it took, and how it ended.
     pub fn transaction(
         &self,
         slave: u8,
         attempts: u32,
         round_trip: Option<Duration>,
         outcome: &Outcome,
-        timeout_counts: bool,
     ) {
         if let Some(round_trip) = round_trip {
             self.round_trip.observe(round_trip.as_secs_f64());
@@ -629,37 +619,34 @@ impl BusMetrics {
         metrics
             .retries
             .inc_by(u64::from(attempts.saturating_sub(1)));
+        if let Ok(Answer::Reply(_) | Answer::Malformed(_)) = outcome {
+            metrics.last_success.set(seconds_since_epoch());
+        }
+    }
+
+    /// `slave` answered validly, for the first time or `again` after failing or being down
+    /// (`bus::health` decides).
+    pub fn slave_answering(&self, slave: u8, again: bool) {
+        self.slave(slave).up.set(1);
+        if again {
+            info!(target: BUS_EVENTS, bus = &*self.name, slave, "slave answering again");
+        }
+    }
+
+    /// `slave` stopped giving valid replies with the transaction that ended in `outcome`.
+    pub fn slave_failing(&self, slave: u8, outcome: &Outcome) {
+        self.slave(slave).up.set(0);
         let bus = &*self.name;
-        match outcome {
-            Ok(Answer::Reply(_) | Answer::Malformed(_)) => {
-                metrics.up.set(1);
-                metrics.last_success.set(seconds_since_epoch());
-                if metrics.state.swap(SLAVE_UP, Ordering::Relaxed) == SLAVE_DOWN {
-                    info!(target: BUS_EVENTS, bus, slave, "slave answering again");
-                }
-            }
-            Err(RequestError::NoResponse {
-                last: TxError::LineBusy,
-                ..
-            }) => {}
-            Err(RequestError::NoResponse {
-                last: TxError::Timeout,
-                ..
-            }) if !timeout_counts => {}
-            Err(error @ RequestError::NoResponse { attempts, .. }) => {
-                metrics.up.set(0);
-                if metrics.state.swap(SLAVE_DOWN, Ordering::Relaxed) != SLAVE_DOWN {
-                    let outcome = Fate::of(outcome).0.label();
-                    warn!(target: BUS_EVENTS, bus, slave, attempts, outcome, %error, "slave gives no valid reply");
-                }
-            }
-            _ => {}
+        let label = Fate::of(outcome).0.label();
+        if let Err(error @ RequestError::NoResponse { attempts, .. }) = outcome {
+            warn!(target: BUS_EVENTS, bus, slave, attempts, outcome = label, %error, "slave gives no valid reply");
         }
     }
 
     /// `slave` timed out `timeouts` times in a row: its requests are answered 0x0B unsent (and
     /// counted `slave_down`) but for one probe per `probe_interval`.
     pub fn slave_down(&self, slave: u8, timeouts: u32, probe_interval: Duration) {
+        self.slave(slave).up.set(0);
         let bus = &*self.name;
         let probe_interval = humantime::format_duration(probe_interval).to_string();
         warn!(target: BUS_EVENTS, bus, slave, timeouts, probe_interval, "slave down; answering 0x0B without sending, probing once per interval");
@@ -983,17 +970,14 @@ mod tests {
     }
 
     #[test]
-    fn a_slave_is_up_after_an_answer_and_down_after_a_failure_that_tells_of_it() {
+    fn slave_up_follows_the_changes_health_reports_and_transactions_count_retries_and_round_trips()
+    {
         let metrics = Metrics::new();
         let line1 = metrics.bus(&bus(""));
         let up = "modbus_gateway_slave_up{bus=\"line1\",slave=\"5\"}";
-        line1.transaction(
-            5,
-            1,
-            Some(Duration::from_millis(40)),
-            &Ok(Answer::Reply(vec![0x83, 0x02])),
-            true,
-        );
+        let answered = Ok(Answer::Reply(vec![0x83, 0x02]));
+        line1.transaction(5, 1, Some(Duration::from_millis(40)), &answered);
+        line1.slave_answering(5, false);
         let text = metrics.render().unwrap();
         assert_eq!(value(&text, up), Some(1.0));
         let since = value(
@@ -1006,17 +990,15 @@ mod tests {
             attempts: 3,
             last: TxError::Timeout,
         });
-        // A timeout the down policy does not count (a function the slave never answered), or a
-        // line too busy to send on, says nothing of the slave.
-        line1.transaction(5, 1, Some(Duration::from_secs(1)), &failed, false);
-        let busy = Err(RequestError::NoResponse {
-            attempts: 1,
-            last: TxError::LineBusy,
-        });
-        line1.transaction(5, 1, None, &busy, true);
+        line1.transaction(5, 3, Some(Duration::from_secs(3)), &failed);
+        // A transaction alone says nothing of the slave: `bus::health` does.
+        assert_eq!(value(&metrics.render().unwrap(), up), Some(1.0));
+        line1.slave_failing(5, &failed);
         let text = metrics.render().unwrap();
-        assert_eq!(value(&text, up), Some(1.0));
-        line1.transaction(5, 3, Some(Duration::from_secs(3)), &failed, true);
+        assert_eq!(value(&text, up), Some(0.0));
+        line1.slave_answering(5, true);
+        assert_eq!(value(&metrics.render().unwrap(), up), Some(1.0));
+        line1.slave_down(5, 3, Duration::from_secs(5));
         let text = metrics.render().unwrap();
         assert_eq!(value(&text, up), Some(0.0));
         assert_eq!(
@@ -1031,7 +1013,7 @@ mod tests {
                 &text,
                 "modbus_gateway_round_trip_seconds_count{bus=\"line1\"}"
             ),
-            Some(3.0)
+            Some(2.0)
         );
     }
 

@@ -1,7 +1,7 @@
 //! What the integration tests share: a gateway started from TOML text on a loopback port, a raw
 //! Modbus TCP master that sees every byte, and an RTU slave on a pty pair (the real serial path).
 
-use modbus_gateway::bus::{Bus, BusHandle, Device};
+use modbus_gateway::bus::{BusHandle, BusTask, Device};
 use modbus_gateway::error::Outcome;
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::rtu::frame::{self, FrameLen};
@@ -100,7 +100,7 @@ pub fn sim_bus_counted(
     metrics: &Metrics,
 ) -> (SimLine, BusHandle) {
     let line = modbus_gateway::gateway::sim_line(&settings).expect("simulated slaves power on");
-    let bus = Bus::new(settings, Device::Sim(line.clone()), metrics);
+    let bus = BusTask::new(settings, Device::Sim(line.clone()), metrics);
     let handle = bus.handle();
     tokio::spawn(bus.run(Stopping::never()));
     (line, handle)

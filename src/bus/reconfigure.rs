@@ -1,0 +1,197 @@
+//! A running bus's settings and how new ones reach it: the gateway sends a [`Reconfigure`]
+//! through [`BusUpdates`]; the task takes it between transactions, reopening the port only when
+//! the device or its serial format changed. Also what the task derives from its settings, the
+//! longest one transaction can take among them.
+
+use super::port::{Device, Port};
+use super::{BusHandle, HEARTBEAT, STALL_MARGIN};
+use crate::config;
+use crate::rtu::frame::{ReplyForm, MAX_FRAME_LEN};
+use crate::rtu::{MasterTiming, RtuMaster};
+use std::sync::PoisonError;
+use std::time::Duration;
+use tokio::sync::watch;
+use tracing::info;
+
+/// A running bus's new configuration: its settings and the device they name.
+#[derive(Clone)]
+pub struct Reconfigure {
+    pub settings: config::Bus,
+    pub device: Device,
+}
+
+/// The gateway's side of a running bus: where new configurations go.
+pub struct BusUpdates(watch::Sender<Option<Reconfigure>>);
+
+impl BusUpdates {
+    /// Apply `update` between transactions. Returns whether the port will be reopened (its
+    /// device or serial format changed); otherwise the new settings apply on the open port.
+    pub fn send(&self, update: Reconfigure) -> bool {
+        let reopen = self
+            .0
+            .borrow()
+            .as_ref()
+            .is_none_or(|current| !current.device.same_as(&update.device));
+        self.0.send_replace(Some(update));
+        reopen
+    }
+}
+
+/// The longest one transaction on a bus with `settings` can take: the gap before its frame,
+/// which stray bytes may hold busy for as long as a response timeout, then the longest response
+/// timeout, two longest frames, the silence that ends a reply and a broadcast's turnaround.
+/// Whoever waits for a transaction to end adds its own margin to this.
+pub fn longest_transaction(settings: &config::Bus) -> Duration {
+    let timing = settings.master_timing();
+    longest_with(&timing, &timeouts(settings), settings.turnaround_delay)
+}
+
+fn longest_with(
+    timing: &MasterTiming,
+    timeouts: &[Duration; 256],
+    turnaround: Duration,
+) -> Duration {
+    let longest_timeout = timeouts.iter().copied().max().unwrap_or_default();
+    longest_timeout * 2 + timing.line.frame_time(MAX_FRAME_LEN) * 2 + timing.silence + turnaround
+}
+
+/// Response timeout per slave address, overrides applied.
+fn timeouts(settings: &config::Bus) -> Box<[Duration; 256]> {
+    let mut timeouts = Box::new([settings.response_timeout; 256]);
+    for slave in &settings.slave {
+        if let Some(timeout) = slave.response_timeout {
+            timeouts[usize::from(slave.address)] = timeout;
+        }
+    }
+    timeouts
+}
+
+/// What the bus task derives from its settings.
+pub(super) struct Derived {
+    pub(super) timing: MasterTiming,
+    /// Response timeout per slave address, overrides applied.
+    pub(super) timeouts: Box<[Duration; 256]>,
+    /// The longest the task may legitimately go between heartbeats: one transaction, or an
+    /// idle heartbeat.
+    pub(super) stall_limit: Duration,
+    pub(super) down: super::health::DownPolicy,
+}
+
+impl Derived {
+    pub(super) fn of(settings: &config::Bus) -> Derived {
+        let timing = settings.master_timing();
+        let timeouts = timeouts(settings);
+        let stall_limit =
+            HEARTBEAT + longest_with(&timing, &timeouts, settings.turnaround_delay) + STALL_MARGIN;
+        Derived {
+            timing,
+            timeouts,
+            stall_limit,
+            down: super::health::DownPolicy {
+                after: settings.slave_down_after,
+                probe_interval: settings.slave_probe_interval,
+            },
+        }
+    }
+}
+
+/// The settings the task runs with, what it derives from them, and the device they name.
+pub(super) struct Current {
+    pub(super) settings: config::Bus,
+    pub(super) derived: Derived,
+    pub(super) device: Device,
+}
+
+impl Current {
+    pub(super) fn new(settings: config::Bus, device: Device) -> Self {
+        Current {
+            derived: Derived::of(&settings),
+            settings,
+            device,
+        }
+    }
+
+    /// Take `update`, and pass on what others read of it through `handle`. Returns whether the
+    /// port must be reopened.
+    pub(super) fn apply(&mut self, update: Reconfigure, handle: &BusHandle) -> bool {
+        let reopen = !self.device.same_as(&update.device);
+        self.derived = Derived::of(&update.settings);
+        *handle
+            .heartbeat
+            .stall_limit
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = self.derived.stall_limit;
+        *handle
+            .queue_timeout
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner) = update.settings.queue_timeout;
+        handle.queue.set_capacity(update.settings.queue_depth);
+        handle.metrics.reconfigured(&update.settings);
+        info!(bus = &*handle.name, reopen, "bus reconfigured");
+        self.settings = update.settings;
+        self.device = update.device;
+        reopen
+    }
+
+    /// Set the master's timing and reply forms from the settings.
+    pub(super) fn configure(&self, master: &mut RtuMaster<Port>) {
+        master.set_timing(self.derived.timing);
+        for address in 0..=u8::MAX {
+            master.set_reply_form(address, ReplyForm::Standard);
+        }
+        for slave in self.settings.slave.iter().filter(|s| s.wide_read_count) {
+            master.set_reply_form(slave.address, ReplyForm::WideReadCount);
+        }
+    }
+}
+
+/// The task's side of the updates channel.
+pub(super) struct Updates {
+    receiver: watch::Receiver<Option<Reconfigure>>,
+    /// Kept so that `receiver` never reports a closed channel when nobody reconfigures the bus.
+    sender: Option<watch::Sender<Option<Reconfigure>>>,
+    /// Whoever reconfigured the bus is gone: stop listening for more.
+    closed: bool,
+    /// `changed()` has said a new configuration came, and marked it seen.
+    pending: bool,
+}
+
+impl Updates {
+    /// A channel that starts with `first`, already seen.
+    pub(super) fn new(first: Reconfigure) -> Self {
+        let (sender, mut receiver) = watch::channel(Some(first));
+        receiver.borrow_and_update();
+        Updates {
+            receiver,
+            sender: Some(sender),
+            closed: false,
+            pending: false,
+        }
+    }
+
+    /// The gateway's side; the first call takes it, later ones get a channel nobody reads.
+    pub(super) fn sender(&mut self) -> BusUpdates {
+        BusUpdates(self.sender.take().unwrap_or_else(|| watch::channel(None).0))
+    }
+
+    /// A new configuration, if one came since the last look.
+    pub(super) fn take(&mut self) -> Option<Reconfigure> {
+        let pending = std::mem::take(&mut self.pending);
+        if !pending && !self.receiver.has_changed().unwrap_or(false) {
+            return None;
+        }
+        self.receiver.borrow_and_update().clone()
+    }
+
+    /// Wait until a new configuration comes (then [`Updates::take`] has it), or forever once
+    /// the sending side is gone. Cancel-safe.
+    pub(super) async fn changed(&mut self) {
+        if self.closed {
+            return std::future::pending().await;
+        }
+        match self.receiver.changed().await {
+            Ok(()) => self.pending = true,
+            Err(_) => self.closed = true,
+        }
+    }
+}

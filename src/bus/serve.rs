@@ -1,0 +1,157 @@
+//! Serving an open port: take the next request from the fair queue (or a new configuration, a
+//! stop, stray bytes on the idle line), drop what nobody waits for any more, refuse what expired
+//! or goes to a slave that is down, and run the rest one transaction at a time.
+
+use super::health::Admission;
+use super::task::{BusTask, Served};
+use super::transaction::Ran;
+use super::{Job, Port, HEARTBEAT};
+use crate::error::RequestError;
+use crate::rtu::frame::BROADCAST;
+use crate::rtu::{LineCounters, RtuMaster};
+use crate::shutdown::Stopping;
+use std::pin::Pin;
+use tokio::time::{sleep, Instant, Sleep};
+
+/// What the serving loop does next.
+enum Next {
+    Run(Job),
+    /// Look again: a stop was asked for, a configuration came, the line was idle.
+    Again,
+    End(Served),
+}
+
+/// The serving loop's own state between requests.
+struct Serving<'a> {
+    master: RtuMaster<Port>,
+    stopping: &'a mut Stopping,
+    /// Once a stop is asked for: no new request starts after this.
+    deadline: Option<Instant>,
+    /// Line counters already passed to the metrics.
+    counted: LineCounters,
+    /// Re-armed only when it fires: a new one per request would be due before the runtime's
+    /// planned wake-up each time, and tokio answers that with a wake-up of its own driver.
+    heartbeat: Pin<Box<Sleep>>,
+}
+
+impl BusTask {
+    /// Serve requests on an open port until it is lost, or, once a stop is asked for, until the
+    /// queue is empty or the stop's deadline has passed.
+    pub(super) async fn serve(
+        &mut self,
+        master: RtuMaster<Port>,
+        stopping: &mut Stopping,
+    ) -> Served {
+        let mut serving = Serving {
+            counted: master.counters(),
+            master,
+            deadline: stopping.deadline(),
+            stopping,
+            heartbeat: Box::pin(sleep(HEARTBEAT)),
+        };
+        loop {
+            self.handle.beat();
+            match self.take_update() {
+                Some(true) => return Served::Reopen,
+                Some(false) => self.current.configure(&mut serving.master),
+                None => {}
+            }
+            let job = match self.next_job(&mut serving).await {
+                Next::Run(job) => job,
+                Next::Again => continue,
+                Next::End(end) => return end,
+            };
+            if let Some(end) = self.run_job(&mut serving, job).await {
+                return end;
+            }
+        }
+    }
+
+    /// Wait for the next request, or for whatever else needs the loop's attention.
+    async fn next_job(&mut self, serving: &mut Serving<'_>) -> Next {
+        if let Some(deadline) = serving.deadline {
+            // Draining: no new request starts after the deadline.
+            if Instant::now() >= deadline {
+                return Next::End(Served::Stopped);
+            }
+            return self
+                .handle
+                .queue
+                .try_pop()
+                .map_or(Next::End(Served::Stopped), Next::Run);
+        }
+        tokio::select! {
+            biased;
+            at = serving.stopping.requested() => {
+                serving.deadline = Some(at);
+                Next::Again
+            }
+            () = self.updates.changed() => Next::Again,
+            job = self.handle.queue.pop() => Next::Run(job),
+            idle = serving.master.watch_idle() => {
+                self.count_traffic(serving);
+                match idle {
+                    Ok(_) => Next::Again,
+                    Err(error) => Next::End(Served::Lost(error)),
+                }
+            }
+            () = &mut serving.heartbeat => {
+                serving.heartbeat.as_mut().reset(Instant::now() + HEARTBEAT);
+                Next::Again
+            }
+        }
+    }
+
+    /// Pass what went over the line since the last look to the metrics.
+    fn count_traffic(&self, serving: &mut Serving<'_>) {
+        let traffic = serving.master.counters();
+        self.handle.metrics.line(&traffic.since(&serving.counted));
+        serving.counted = traffic;
+    }
+
+    /// Answer `job`: from the line, or at once if nobody waits for it, it expired or its slave
+    /// is down. Returns why serving ends, if it does.
+    async fn run_job(&mut self, serving: &mut Serving<'_>, job: Job) -> Option<Served> {
+        let metrics = &self.handle.metrics;
+        if job.reply.is_closed() {
+            metrics.request(job.slave, job.function(), None);
+            return None;
+        }
+        metrics.dequeued(job.queued_at.elapsed());
+        if Instant::now() > job.deadline {
+            self.handle.answer(job, Err(RequestError::Expired));
+            return None;
+        }
+        let admission = match job.slave {
+            BROADCAST => Admission::Send,
+            slave => self
+                .health
+                .admit(slave, Instant::now(), self.current.derived.down),
+        };
+        if let Admission::Skip { timeouts } = admission {
+            self.handle
+                .answer(job, Err(RequestError::SlaveDown { timeouts }));
+            return None;
+        }
+        // The slave's reply to an earlier, timed-out request may still come: let it arrive
+        // (and be discarded) before this request goes out.
+        if let Some(until) = serving.master.late_reply_window(job.slave) {
+            crate::timer::sleep_until(until).await;
+        }
+        let probe = admission == Admission::Probe;
+        let ran = self
+            .execute(&mut serving.master, &job, serving.deadline, probe)
+            .await;
+        self.count_traffic(serving);
+        match ran {
+            Ran::Done(outcome) => {
+                self.handle.answer(job, outcome);
+                None
+            }
+            Ran::PortLost(error) => {
+                self.handle.answer(job, Err(RequestError::PortDown));
+                Some(Served::Lost(error))
+            }
+        }
+    }
+}

@@ -1,0 +1,186 @@
+//! The bus task's life: open the port, serve it until it is lost or a new device is configured,
+//! answer 0x0A while it is down and reopen it with backoff, and once stopped answer whatever is
+//! still queued.
+
+use super::health::Health;
+use super::reconfigure::{Current, Updates};
+use super::{BusHandle, BusUpdates, Device, FairQueue, Heartbeat, Reconfigure, HEARTBEAT};
+use crate::config;
+use crate::error::RequestError;
+use crate::metrics::Metrics;
+use crate::rtu::RtuMaster;
+use crate::shutdown::Stopping;
+use std::io;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, Weak};
+use tokio::time::{sleep, sleep_until, Instant};
+use tracing::info;
+
+/// Why the bus task stopped serving an open port.
+pub(super) enum Served {
+    Lost(io::Error),
+    Stopped,
+    /// The configuration names another device or format: open again.
+    Reopen,
+}
+
+/// How a wait with the port down ended.
+enum Waited {
+    /// Time to try to open the port again.
+    TryAgain,
+    Stopped,
+    /// A new configuration came: open it at once.
+    Reopen,
+}
+
+/// One RS-485 line's task and everything it needs, derived from its configuration.
+pub struct BusTask {
+    pub(super) current: Current,
+    pub(super) handle: BusHandle,
+    pub(super) updates: Updates,
+    pub(super) health: Health,
+}
+
+impl BusTask {
+    /// A bus whose metrics are registered in `metrics`.
+    pub fn new(settings: config::Bus, device: Device, metrics: &Metrics) -> Self {
+        let current = Current::new(settings.clone(), device.clone());
+        let queue = Arc::new(FairQueue::new(settings.queue_depth));
+        let depth = metrics.queue_depth(&settings.name);
+        let weak: Weak<FairQueue> = Arc::downgrade(&queue);
+        metrics.on_scrape(move || {
+            let len = weak.upgrade().map_or(0, |queue| queue.len());
+            depth.set(i64::try_from(len).unwrap_or(i64::MAX));
+        });
+        let handle = BusHandle {
+            name: settings.name.as_str().into(),
+            queue,
+            up: Arc::new(AtomicBool::new(false)),
+            queue_timeout: Arc::new(Mutex::new(settings.queue_timeout)),
+            metrics: metrics.bus(&settings),
+            heartbeat: Arc::new(Heartbeat {
+                last: Mutex::new(Instant::now()),
+                stall_limit: Mutex::new(current.derived.stall_limit),
+            }),
+            attempted: Arc::new(tokio::sync::Notify::new()),
+        };
+        BusTask {
+            current,
+            handle,
+            updates: Updates::new(Reconfigure { settings, device }),
+            health: Health::default(),
+        }
+    }
+
+    /// Where new configurations for this bus go; take it before running the bus.
+    pub fn updates(&mut self) -> BusUpdates {
+        self.updates.sender()
+    }
+
+    pub fn handle(&self) -> BusHandle {
+        self.handle.clone()
+    }
+
+    fn set_up(&self, up: bool) {
+        self.handle.up.store(up, Ordering::Release);
+    }
+
+    /// Take a new configuration if one came. Returns whether the port must be reopened.
+    pub(super) fn take_update(&mut self) -> Option<bool> {
+        let update = self.updates.take()?;
+        Some(self.current.apply(update, &self.handle))
+    }
+
+    /// Run until `stopping`: open the port, serve it until it is lost, answer 0x0A while it is
+    /// down, reopen with backoff. Once stopped, whatever is still queued is answered 0x0A.
+    pub async fn run(mut self, mut stopping: Stopping) {
+        let metrics = self.handle.metrics.clone();
+        let mut delay = self.current.settings.reopen_delay;
+        // Since when the port is down, and how many opens have failed since.
+        let mut down_since: Option<(Instant, u32)> = None;
+        loop {
+            let opened = self.current.device.open();
+            self.set_up(opened.is_ok());
+            self.handle.attempted.notify_one();
+            let device = &self.current.settings.device;
+            match opened {
+                Ok(port) => {
+                    let down = down_since
+                        .take()
+                        .map(|(since, failed_opens)| (since.elapsed(), failed_opens));
+                    metrics.port_opened(device, down);
+                    delay = self.current.settings.reopen_delay;
+                    let mut master = RtuMaster::new(port, self.current.derived.timing);
+                    self.current.configure(&mut master);
+                    let end = self.serve(master, &mut stopping).await;
+                    self.set_up(false);
+                    match end {
+                        Served::Lost(error) => {
+                            metrics.port_lost(&self.current.settings.device, &error);
+                        }
+                        Served::Stopped => break,
+                        // Straight to the new device, as a first open.
+                        Served::Reopen => continue,
+                    }
+                    down_since = Some((Instant::now(), 0));
+                }
+                Err(error) => {
+                    metrics.open_failed(device, &error, down_since.is_none());
+                    let (_, failed_opens) = down_since.get_or_insert((Instant::now(), 0));
+                    *failed_opens += 1;
+                }
+            }
+            match self
+                .refuse_until(Instant::now() + delay, &mut stopping)
+                .await
+            {
+                Waited::Stopped => break,
+                Waited::Reopen => {
+                    delay = self.current.settings.reopen_delay;
+                    continue;
+                }
+                Waited::TryAgain => {}
+            }
+            delay = (delay * 2).min(self.current.settings.reopen_delay_max);
+        }
+        self.finish();
+    }
+
+    /// Stopped: nothing more is queued, and what was gets 0x0A.
+    fn finish(&mut self) {
+        self.set_up(false);
+        let left = self.handle.queue.close();
+        info!(
+            bus = &*self.handle.name,
+            unserved = left.len(),
+            "bus stopped"
+        );
+        for job in left {
+            self.handle.answer(job, Err(RequestError::ShuttingDown));
+        }
+    }
+
+    /// While the port is down: answer everything queued, and everything that arrives, with 0x0A,
+    /// until `until`, a new configuration or a stop.
+    async fn refuse_until(&mut self, until: Instant, stopping: &mut Stopping) -> Waited {
+        for job in self.handle.queue.drain() {
+            self.handle.answer(job, Err(RequestError::PortDown));
+        }
+        loop {
+            self.handle.beat();
+            if self.take_update().is_some() {
+                return Waited::Reopen;
+            }
+            tokio::select! {
+                biased;
+                _ = stopping.requested() => return Waited::Stopped,
+                () = self.updates.changed() => {}
+                job = self.handle.queue.pop() => {
+                    self.handle.answer(job, Err(RequestError::PortDown));
+                }
+                () = sleep_until(until) => return Waited::TryAgain,
+                () = sleep(HEARTBEAT) => {}
+            }
+        }
+    }
+}

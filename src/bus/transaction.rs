@@ -1,0 +1,141 @@
+//! One request on the line: a broadcast, or a request to one slave with its timeout and the
+//! retry policy (reads are retried; writes only with `retry_writes`, since a write whose reply
+//! was lost may have been carried out). Its end is counted, and told to the slave's health,
+//! whose changes the metrics and logs render.
+
+use super::health::{Change, Response};
+use super::task::BusTask;
+use super::{Job, Port};
+use crate::error::{Answer, Outcome, RequestError};
+use crate::pdu;
+use crate::rtu::frame::BROADCAST;
+use crate::rtu::{RtuMaster, TxError};
+use std::io;
+use tokio::time::Instant;
+use tracing::debug;
+
+/// How one request on the line ended.
+pub(super) enum Ran {
+    /// The request's outcome, to answer it with.
+    Done(Outcome),
+    /// The port is gone: this request and the port's other users get 0x0A.
+    PortLost(io::Error),
+}
+
+impl Response {
+    /// What a request's outcome says of its slave.
+    fn of(outcome: &Outcome) -> Response {
+        match outcome {
+            Ok(_) => Response::Answered,
+            Err(RequestError::NoResponse {
+                last: TxError::Timeout,
+                ..
+            }) => Response::TimedOut,
+            Err(RequestError::NoResponse {
+                last: TxError::LineBusy,
+                ..
+            }) => Response::Unsent,
+            Err(_) => Response::Garbled,
+        }
+    }
+}
+
+impl BusTask {
+    /// Run one request on the line; no retry starts after `stop_at`, none at all for a `probe`
+    /// of a slave that is down.
+    pub(super) async fn execute(
+        &mut self,
+        master: &mut RtuMaster<Port>,
+        job: &Job,
+        stop_at: Option<Instant>,
+        probe: bool,
+    ) -> Ran {
+        if job.slave == BROADCAST {
+            return self.broadcast(master, job).await;
+        }
+        let settings = &self.current.settings;
+        let retries = if probe {
+            0
+        } else if pdu::is_read_only(&job.pdu) || settings.retry_writes {
+            settings.retries
+        } else {
+            0
+        };
+        let timeout = self.current.derived.timeouts[usize::from(job.slave)];
+        let mut attempts = 0;
+        let mut first_sent_at = None;
+        let outcome = loop {
+            attempts += 1;
+            self.handle.beat();
+            let previous = master.sent_at();
+            let result = master.transact(job.slave, &job.pdu, timeout).await;
+            if master.sent_at() != previous {
+                first_sent_at.get_or_insert(master.sent_at());
+            }
+            match result {
+                Ok(reply) => break Ok(Answer::from(reply)),
+                Err(TxError::PortLost(error)) => return Ran::PortLost(error),
+                Err(last)
+                    if attempts > retries
+                        || job.reply.is_closed()
+                        || stop_at.is_some_and(|at| Instant::now() >= at) =>
+                {
+                    break Err(RequestError::NoResponse { attempts, last });
+                }
+                Err(error) => {
+                    debug!(bus = &*self.handle.name, slave = job.slave, attempts, %error, "retrying");
+                }
+            }
+        };
+        // A request the line was always too busy to send has no round trip.
+        let round_trip = first_sent_at.map(|sent| sent.elapsed());
+        self.handle
+            .metrics
+            .transaction(job.slave, attempts, round_trip, &outcome);
+        self.record(job, &outcome);
+        Ran::Done(outcome)
+    }
+
+    /// Send a broadcast; its answer, if the configuration wants one, is the gateway's own.
+    async fn broadcast(&mut self, master: &mut RtuMaster<Port>, job: &Job) -> Ran {
+        let settings = &self.current.settings;
+        let sent = master
+            .broadcast(
+                &job.pdu,
+                settings.turnaround_delay,
+                settings.response_timeout,
+            )
+            .await;
+        Ran::Done(match sent {
+            Ok(()) => Ok(settings
+                .broadcast_reply
+                .then(|| pdu::broadcast_response(&job.pdu))
+                .flatten()
+                .map_or(Answer::Nothing, Answer::Reply)),
+            Err(TxError::PortLost(error)) => return Ran::PortLost(error),
+            Err(last) => Err(RequestError::NoResponse { attempts: 1, last }),
+        })
+    }
+
+    /// Tell the slave's health how the request ended, and the metrics what changed.
+    fn record(&mut self, job: &Job, outcome: &Outcome) {
+        let down = self.current.derived.down;
+        let change = self.health.record(
+            job.slave,
+            job.function(),
+            Response::of(outcome),
+            Instant::now(),
+            down,
+        );
+        let metrics = &self.handle.metrics;
+        match change {
+            Change::None => {}
+            Change::Answering => metrics.slave_answering(job.slave, false),
+            Change::Up => metrics.slave_answering(job.slave, true),
+            Change::Failing => metrics.slave_failing(job.slave, outcome),
+            Change::Down { timeouts } => {
+                metrics.slave_down(job.slave, timeouts, down.probe_interval);
+            }
+        }
+    }
+}
