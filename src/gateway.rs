@@ -366,18 +366,15 @@ impl Gateway {
             }
             shared.sessions_ended().await;
         };
-        // A request started just before the deadline may wait its slave's timeout, after a
-        // gap the line may keep busy for as long again.
-        let longest_timeout = config
+        // A request started just before the deadline may take the longest transaction its bus
+        // allows.
+        let longest = config
             .bus
             .iter()
-            .flat_map(|b| {
-                std::iter::once(b.response_timeout)
-                    .chain(b.slave.iter().filter_map(|s| s.response_timeout))
-            })
+            .map(crate::bus::longest_transaction)
             .max()
             .unwrap_or_default();
-        let limit = deadline + longest_timeout * 2 + LAST_TRANSACTION_MARGIN;
+        let limit = deadline + longest + LAST_TRANSACTION_MARGIN;
         if tokio::time::timeout_at(limit, drained).await.is_err() {
             warn!("shutdown: sessions still open after the shutdown timeout; closing them");
         }

@@ -1,1 +1,252 @@
+//! The bus task on tokio's paused clock over the simulated line: one transaction's result, the
+//! reopen backoff, reconfiguration between transactions, and the slave-state changes it renders.
 
+use super::transaction::Ran;
+use super::{BusHandle, BusTask, Device, Job, Reconfigure};
+use crate::config::{self, Config};
+use crate::error::{Answer, Outcome, RequestError};
+use crate::metrics::Metrics;
+use crate::rtu::{RtuMaster, TxError};
+use crate::shutdown::Stopping;
+use crate::sim::{RegisterBank, Scripted, SimLine, Transmission};
+use std::time::Duration;
+use tokio::sync::oneshot;
+use tokio::time::{sleep, Instant};
+
+const READ: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x02];
+const WRITE: [u8; 5] = [0x06, 0x00, 0x01, 0x00, 0x2A];
+
+fn settings(keys: &str) -> config::Bus {
+    let text = format!("[[bus]]\nname = \"line\"\ndevice = \"sim\"\nbaud = 19200\n{keys}\n");
+    Config::from_toml_str(&text)
+        .expect("test config")
+        .bus
+        .remove(0)
+}
+
+fn job(slave: u8, pdu: &[u8]) -> (Job, oneshot::Receiver<Outcome>) {
+    let (reply, outcome) = oneshot::channel();
+    let now = Instant::now();
+    let job = Job {
+        master: 1,
+        slave,
+        pdu: pdu.to_vec(),
+        queued_at: now,
+        deadline: now + Duration::from_secs(60),
+        reply,
+    };
+    (job, outcome)
+}
+
+/// A task on `line`, and a master on a port of it, for driving one transaction by hand.
+fn task_on(line: &SimLine, keys: &str) -> (BusTask, RtuMaster<super::Port>) {
+    let task = BusTask::new(settings(keys), Device::Sim(line.clone()), &Metrics::new());
+    let port = Device::Sim(line.clone()).open().expect("sim port");
+    let mut master = RtuMaster::new(port, task.current.derived.timing);
+    task.current.configure(&mut master);
+    (task, master)
+}
+
+fn attempts(ran: &Ran) -> Option<u32> {
+    match ran {
+        Ran::Done(Err(RequestError::NoResponse { attempts, .. })) => Some(*attempts),
+        _ => None,
+    }
+}
+
+async fn call(bus: &BusHandle, slave: u8, pdu: &[u8]) -> Outcome {
+    bus.submit(1, slave, pdu.to_vec())
+        .await
+        .expect("the bus answers every request")
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_silent_slave_gets_every_retry_for_a_read_and_one_try_for_a_write() {
+    let line = SimLine::new(settings("").line_timing());
+    let (mut task, mut master) = task_on(&line, "retries = 2\nresponse_timeout = \"50ms\"");
+    let (read, _answer) = job(9, &READ);
+    let ran = task.execute(&mut master, &read, None, false).await;
+    assert_eq!(attempts(&ran), Some(3));
+    let (write, _answer) = job(9, &WRITE);
+    sleep(Duration::from_millis(200)).await;
+    let ran = task.execute(&mut master, &write, None, false).await;
+    assert_eq!(attempts(&ran), Some(1), "a write is not sent twice");
+    let (probe, _answer) = job(9, &READ);
+    sleep(Duration::from_millis(200)).await;
+    let ran = task.execute(&mut master, &probe, None, true).await;
+    assert_eq!(attempts(&ran), Some(1), "a probe is one try");
+}
+
+#[tokio::test(start_paused = true)]
+async fn no_retry_starts_once_the_stop_deadline_has_passed() {
+    let line = SimLine::new(settings("").line_timing());
+    let (mut task, mut master) = task_on(&line, "retries = 5\nresponse_timeout = \"50ms\"");
+    let (read, _answer) = job(9, &READ);
+    let stop_at = Some(Instant::now() + Duration::from_millis(10));
+    let ran = task.execute(&mut master, &read, stop_at, false).await;
+    assert_eq!(attempts(&ran), Some(1));
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_port_lost_during_a_transaction_ends_it_as_port_lost_not_as_a_timeout() {
+    let line = SimLine::new(settings("").line_timing());
+    let (mut task, mut master) = task_on(&line, "response_timeout = \"1s\"");
+    let (read, _answer) = job(9, &READ);
+    let unplug = line.clone();
+    tokio::spawn(async move {
+        sleep(Duration::from_millis(100)).await;
+        unplug.unplug();
+    });
+    let ran = task.execute(&mut master, &read, None, false).await;
+    assert!(matches!(ran, Ran::PortLost(_)), "not a port loss");
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_broadcast_is_answered_by_the_gateway_and_a_slave_reply_is_passed_on() {
+    let line = SimLine::new(settings("").line_timing());
+    line.add_slave(3, RegisterBank::new(Duration::ZERO));
+    let (mut task, mut master) = task_on(&line, "");
+    let (broadcast, _answer) = job(0, &WRITE);
+    match task.execute(&mut master, &broadcast, None, false).await {
+        Ran::Done(Ok(Answer::Reply(pdu))) => assert_eq!(pdu, WRITE),
+        _ => panic!("a broadcast write gets its echo from the gateway"),
+    }
+    let (read, _answer) = job(3, &READ);
+    match task.execute(&mut master, &read, None, false).await {
+        // The broadcast wrote 0x2A to register 1.
+        Ran::Done(Ok(Answer::Reply(pdu))) => assert_eq!(pdu, [0x03, 0x04, 0, 0, 0, 0x2A]),
+        _ => panic!("the slave's reply is the answer"),
+    }
+}
+
+/// Port-open errors counted for the bus, from the metrics it exports.
+fn open_errors(metrics: &Metrics) -> f64 {
+    let text = metrics.render().expect("metrics render");
+    text.lines()
+        .find_map(|l| l.strip_prefix("modbus_gateway_port_open_errors_total{bus=\"line\"} "))
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0.0)
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_lost_port_is_reopened_with_a_backoff_that_doubles_up_to_its_maximum() {
+    let line = SimLine::new(settings("").line_timing());
+    let metrics = Metrics::new();
+    let keys = "reopen_delay = \"100ms\"\nreopen_delay_max = \"400ms\"";
+    let task = BusTask::new(settings(keys), Device::Sim(line.clone()), &metrics);
+    let bus = task.handle();
+    tokio::spawn(task.run(Stopping::never()));
+    sleep(Duration::from_millis(10)).await;
+    assert!(bus.is_up());
+    line.unplug();
+    // Lost at 10 ms; opens fail at 110, 310, 710, 1110, 1510 ms.
+    sleep(Duration::from_millis(1_100)).await;
+    assert_eq!(open_errors(&metrics), 3.0);
+    sleep(Duration::from_millis(450)).await;
+    assert_eq!(open_errors(&metrics), 5.0);
+    line.plug();
+    sleep(Duration::from_millis(400)).await;
+    assert!(bus.is_up(), "reopened at the next attempt");
+}
+
+#[tokio::test(start_paused = true)]
+async fn new_settings_apply_between_transactions_and_a_new_device_is_opened_at_once() {
+    let first = SimLine::new(settings("").line_timing());
+    first.add_slave(1, Scripted::new([None, None]));
+    let mut task = BusTask::new(
+        settings("response_timeout = \"1s\"\nretries = 0"),
+        Device::Sim(first.clone()),
+        &Metrics::new(),
+    );
+    let updates = task.updates();
+    let bus = task.handle();
+    tokio::spawn(task.run(Stopping::never()));
+    sleep(Duration::from_millis(10)).await;
+    let started = Instant::now();
+    assert!(call(&bus, 1, &READ).await.is_err());
+    assert!(started.elapsed() >= Duration::from_secs(1));
+    // A shorter timeout on the same line: no reopen, the next request waits less.
+    let reopen = updates.send(Reconfigure {
+        settings: settings("response_timeout = \"100ms\"\nretries = 0"),
+        device: Device::Sim(first.clone()),
+    });
+    assert!(!reopen);
+    sleep(Duration::from_secs(2)).await;
+    let started = Instant::now();
+    assert!(call(&bus, 1, &READ).await.is_err());
+    assert!(started.elapsed() < Duration::from_millis(200));
+    // Another line: the bus moves to it, where slave 1 answers.
+    let second = SimLine::new(settings("").line_timing());
+    second.add_slave(
+        1,
+        Scripted::new([Some(Transmission::frame(
+            1,
+            &[0x03, 0x04, 0, 7, 0, 8],
+            Duration::ZERO,
+        ))]),
+    );
+    let reopen = updates.send(Reconfigure {
+        settings: settings("response_timeout = \"100ms\""),
+        device: Device::Sim(second.clone()),
+    });
+    assert!(reopen);
+    sleep(Duration::from_millis(10)).await;
+    let answer = call(&bus, 1, &READ)
+        .await
+        .expect("answered on the new line");
+    assert_eq!(answer.into_pdu(), Some(vec![0x03, 0x04, 0, 7, 0, 8]));
+    assert!(
+        first.frames().len() == 2,
+        "nothing more went to the old line"
+    );
+}
+
+/// `slave_up` for slave 1 of bus `line`.
+fn slave_up(metrics: &Metrics) -> Option<f64> {
+    let text = metrics.render().expect("metrics render");
+    text.lines()
+        .find_map(|l| l.strip_prefix("modbus_gateway_slave_up{bus=\"line\",slave=\"1\"} "))
+        .and_then(|v| v.parse().ok())
+}
+
+#[tokio::test(start_paused = true)]
+async fn slave_up_follows_the_slaves_health_through_failing_down_and_back() {
+    let line = SimLine::new(settings("").line_timing());
+    let reply = || {
+        Some(Transmission::frame(
+            1,
+            &[0x03, 0x04, 0, 1, 0, 2],
+            Duration::ZERO,
+        ))
+    };
+    line.add_slave(1, Scripted::new([reply(), None, None, reply()]));
+    let metrics = Metrics::new();
+    let keys = "response_timeout = \"50ms\"\nretries = 0\nslave_down_after = 2\nslave_probe_interval = \"1s\"";
+    let task = BusTask::new(settings(keys), Device::Sim(line.clone()), &metrics);
+    let bus = task.handle();
+    tokio::spawn(task.run(Stopping::never()));
+    sleep(Duration::from_millis(10)).await;
+    assert!(call(&bus, 1, &READ).await.is_ok());
+    assert_eq!(slave_up(&metrics), Some(1.0));
+    let timed_out = |o: &Outcome| {
+        matches!(
+            o,
+            Err(RequestError::NoResponse {
+                last: TxError::Timeout,
+                ..
+            })
+        )
+    };
+    assert!(timed_out(&call(&bus, 1, &READ).await));
+    assert_eq!(slave_up(&metrics), Some(0.0), "failing");
+    assert!(timed_out(&call(&bus, 1, &READ).await));
+    let sent = line.frames().len();
+    assert!(matches!(
+        call(&bus, 1, &READ).await,
+        Err(RequestError::SlaveDown { timeouts: 2 })
+    ));
+    assert_eq!(line.frames().len(), sent, "down: answered without the line");
+    sleep(Duration::from_secs(1)).await;
+    assert!(call(&bus, 1, &READ).await.is_ok(), "the probe is answered");
+    assert_eq!(slave_up(&metrics), Some(1.0));
+}
