@@ -5,20 +5,25 @@
 //! the text format and the health endpoints. Callers say what happened; this module knows nothing
 //! of frames, sockets or timing.
 
+mod bus;
 pub mod http;
+mod labels;
+mod tcp;
+
+pub use bus::BusMetrics;
+pub use labels::{Closing, ExceptionSource, Fate, Rejection};
+
+use labels::{decimal, hex};
+pub use tcp::TcpMetrics;
 
 use crate::config;
-use crate::error::{Answer, Outcome, RequestError};
-use crate::rtu::{LineCounters, TxError};
+use crate::error::{Answer, Outcome};
 use prometheus::{
-    Counter, CounterVec, Gauge, GaugeVec, Histogram, HistogramOpts, HistogramVec, IntCounter,
-    IntCounterVec, IntGauge, IntGaugeVec, Opts, Registry, TextEncoder,
+    CounterVec, GaugeVec, HistogramOpts, HistogramVec, IntCounterVec, IntGauge, IntGaugeVec, Opts,
+    Registry, TextEncoder,
 };
-use std::fmt::Display;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, OnceLock, PoisonError};
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
-use tracing::{debug, info, warn};
+use std::sync::{Arc, Mutex, PoisonError};
+use tracing::debug;
 
 /// Log targets of the events counted here: named after where they happen, not after this module.
 const BUS_EVENTS: &str = "modbus_gateway::bus";
@@ -29,207 +34,6 @@ const TCP_EVENTS: &str = "modbus_gateway::tcp";
 const BUCKETS: &[f64] = &[
     0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
 ];
-
-/// What became of one request: the `outcome` label.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Fate {
-    /// The slave's normal reply (or, for a broadcast, the frame went out).
-    Ok,
-    /// The slave's own exception reply.
-    Exception,
-    /// The slave's reply, forwarded as it came, though it does not have the shape the request
-    /// asks for (byte count, echo).
-    MalformedReply,
-    /// No reply to this request within the response timeout, retries included.
-    Timeout,
-    /// The last reply failed its CRC check.
-    CrcError,
-    /// The last reply was incomplete at its deadline, or longer than a frame can be.
-    FrameError,
-    /// The line never fell silent long enough to send.
-    LineBusy,
-    /// No route for the unit id (0x0A).
-    NoRoute,
-    /// A function code the gateway refuses itself: invalid, or a read to the broadcast address
-    /// (0x01).
-    Refused,
-    /// The bus queue was full (0x06).
-    QueueFull,
-    /// Not sent within the queue timeout (0x06).
-    Expired,
-    /// The bus had no open port (0x0A).
-    PortDown,
-    /// Still queued when the shutdown timeout ran out (0x0A).
-    Shutdown,
-    /// The master left before the request was sent; it was never sent.
-    Dropped,
-    /// A request from a read-only master that may change the slave; never sent (0x01).
-    ReadOnly,
-    /// The slave is down (timed out again and again) and it was not its probe's turn; never
-    /// sent (0x0B).
-    SlaveDown,
-}
-
-impl Fate {
-    pub fn label(self) -> &'static str {
-        match self {
-            Fate::Ok => "ok",
-            Fate::Exception => "exception",
-            Fate::MalformedReply => "malformed_reply",
-            Fate::Timeout => "timeout",
-            Fate::CrcError => "crc_error",
-            Fate::FrameError => "frame_error",
-            Fate::LineBusy => "line_busy",
-            Fate::NoRoute => "no_route",
-            Fate::Refused => "refused",
-            Fate::QueueFull => "queue_full",
-            Fate::Expired => "expired",
-            Fate::PortDown => "port_down",
-            Fate::Shutdown => "shutdown",
-            Fate::Dropped => "dropped",
-            Fate::ReadOnly => "read_only",
-            Fate::SlaveDown => "slave_down",
-        }
-    }
-
-    /// The fate of an answered request, with the exception code in its answer and who made it.
-    pub fn of(outcome: &Outcome) -> (Fate, Option<(Source, u8)>) {
-        match outcome {
-            Ok(Answer::Reply(pdu))
-                if pdu
-                    .first()
-                    .is_some_and(|f| f & crate::pdu::EXCEPTION_BIT != 0) =>
-            {
-                (
-                    Fate::Exception,
-                    Some((Source::Slave, pdu.get(1).copied().unwrap_or(0))),
-                )
-            }
-            Ok(Answer::Malformed(_)) => (Fate::MalformedReply, None),
-            Ok(_) => (Fate::Ok, None),
-            Err(error) => {
-                let fate = match error {
-                    RequestError::InvalidFunction(_) | RequestError::NotBroadcastable(_) => {
-                        Fate::Refused
-                    }
-                    RequestError::ReadOnly(_) => Fate::ReadOnly,
-                    RequestError::SlaveDown { .. } => Fate::SlaveDown,
-                    RequestError::NoRoute(_) => Fate::NoRoute,
-                    RequestError::PortDown => Fate::PortDown,
-                    RequestError::QueueFull => Fate::QueueFull,
-                    RequestError::Expired => Fate::Expired,
-                    RequestError::ShuttingDown => Fate::Shutdown,
-                    RequestError::NoResponse { last, .. } => match last {
-                        TxError::Timeout => Fate::Timeout,
-                        TxError::Crc => Fate::CrcError,
-                        TxError::Frame => Fate::FrameError,
-                        TxError::LineBusy => Fate::LineBusy,
-                        TxError::PortLost(_) => Fate::PortDown,
-                    },
-                };
-                (fate, Some((Source::Gateway, error.exception_code() as u8)))
-            }
-        }
-    }
-}
-
-/// Who made an exception reply: the `source` label.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Source {
-    Slave,
-    Gateway,
-}
-
-impl Source {
-    pub fn label(self) -> &'static str {
-        match self {
-            Source::Slave => "slave",
-            Source::Gateway => "gateway",
-        }
-    }
-}
-
-/// Why a TCP connection was refused at accept: the `reason` label.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Rejection {
-    /// `max_connections` open, none of them idle (or `when_full = "refuse"`).
-    MaxConnections,
-    /// The peer's address is outside `server.allow`.
-    NotAllowed,
-}
-
-impl Rejection {
-    pub const ALL: [Rejection; 2] = [Rejection::MaxConnections, Rejection::NotAllowed];
-
-    pub fn label(self) -> &'static str {
-        match self {
-            Rejection::MaxConnections => "max_connections",
-            Rejection::NotAllowed => "not_allowed",
-        }
-    }
-}
-
-/// Why a TCP connection ended: the `reason` label.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Closing {
-    /// The master closed it.
-    ByMaster,
-    /// The master broke the Modbus TCP framing.
-    ProtocolError,
-    /// Idle for `idle_timeout`.
-    Idle,
-    /// A socket error.
-    IoError,
-    /// The gateway is stopping; the master's requests were answered first.
-    Shutdown,
-    /// A request's bytes did not all arrive within `frame_timeout`.
-    FrameTimeout,
-    /// Idle longest of all when a new master came at `max_connections`.
-    Evicted,
-}
-
-impl Closing {
-    pub const ALL: [Closing; 7] = [
-        Closing::ByMaster,
-        Closing::ProtocolError,
-        Closing::Idle,
-        Closing::IoError,
-        Closing::Shutdown,
-        Closing::FrameTimeout,
-        Closing::Evicted,
-    ];
-
-    pub fn label(self) -> &'static str {
-        match self {
-            Closing::ByMaster => "by_master",
-            Closing::ProtocolError => "protocol_error",
-            Closing::Idle => "idle_timeout",
-            Closing::IoError => "io_error",
-            Closing::Shutdown => "shutdown",
-            Closing::FrameTimeout => "frame_timeout",
-            Closing::Evicted => "evicted",
-        }
-    }
-}
-
-/// Label values for addresses and codes, made once: the request path formats nothing.
-fn decimal(n: u8) -> &'static str {
-    static TABLE: OnceLock<Vec<String>> = OnceLock::new();
-    &TABLE.get_or_init(|| (0..=u8::MAX).map(|n| n.to_string()).collect())[usize::from(n)]
-}
-
-/// `0x03`, as the Modbus spec writes function and exception codes.
-fn hex(n: u8) -> &'static str {
-    static TABLE: OnceLock<Vec<String>> = OnceLock::new();
-    &TABLE.get_or_init(|| (0..=u8::MAX).map(|n| format!("0x{n:02X}")).collect())[usize::from(n)]
-}
-
-fn seconds_since_epoch() -> f64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .unwrap_or_default()
-        .as_secs_f64()
-}
 
 /// Registers metrics as they are defined. Definitions are constants of this module, so a
 /// failure is a bug caught by its tests, never a runtime condition.
@@ -471,7 +275,7 @@ impl Metrics {
             retries: self.retries.clone(),
             slave_up: self.slave_up.clone(),
             slave_last_success: self.slave_last_success.clone(),
-            slaves: Box::new(std::array::from_fn(|_| OnceLock::new())),
+            slaves: BusMetrics::no_slaves(),
         };
         metrics.reconfigured(settings);
         Arc::new(metrics)
@@ -497,7 +301,7 @@ impl Metrics {
         let _ = self.busy.remove_label_values(labels);
         let _ = self.round_trip.remove_label_values(labels);
         let _ = self.queue_wait.remove_label_values(labels);
-        for address in (0..=u8::MAX).filter(|a| bus.slaves[usize::from(*a)].get().is_some()) {
+        for address in bus.known_slaves() {
             let labels = &[&*bus.name, decimal(address)];
             let _ = self.slave_up.remove_label_values(labels);
             let _ = self.slave_last_success.remove_label_values(labels);
@@ -538,289 +342,13 @@ impl Metrics {
     }
 }
 
-/// A slave's own series.
-struct SlaveMetrics {
-    up: IntGauge,
-    last_success: Gauge,
-    retries: IntCounter,
-}
-
-/// The metrics of one bus, label values resolved once. Shared by its handle and its task.
-pub struct BusMetrics {
-    name: Arc<str>,
-    queue_capacity: IntGauge,
-    /// Seconds per character on the line, to turn bytes into busy time.
-    char_time: f64,
-    counters: RequestCounters,
-    round_trip: Histogram,
-    queue_wait: Histogram,
-    busy: Counter,
-    sent: IntCounter,
-    received: IntCounter,
-    discarded_frames: IntCounter,
-    stray_bytes: IntCounter,
-    port_up: IntGauge,
-    port_reopens: IntCounter,
-    port_open_errors: IntCounter,
-    retries: IntCounterVec,
-    slave_up: IntGaugeVec,
-    slave_last_success: GaugeVec,
-    slaves: Box<[OnceLock<SlaveMetrics>; 256]>,
-}
-
-impl BusMetrics {
-    fn slave(&self, address: u8) -> &SlaveMetrics {
-        self.slaves[usize::from(address)].get_or_init(|| {
-            let labels = &[&*self.name, decimal(address)];
-            let slave = SlaveMetrics {
-                up: self.slave_up.with_label_values(labels),
-                last_success: self.slave_last_success.with_label_values(labels),
-                retries: self.retries.with_label_values(labels),
-            };
-            slave.up.set(0);
-            slave
-        })
-    }
-
-    /// The bus's settings, at start or after a reload: its queue capacity, and series at zero for
-    /// its known slaves (`[[bus.slave]]` and simulated ones).
-    pub fn reconfigured(&self, settings: &config::Bus) {
-        self.queue_capacity
-            .set(i64::try_from(settings.queue_depth).unwrap_or(i64::MAX));
-        let sim_slaves = settings.sim_slave.iter().flat_map(|s| s.address.iter());
-        for address in settings.slave.iter().map(|s| s.address).chain(sim_slaves) {
-            self.slave(address);
-        }
-    }
-
-    /// Count a request's outcome; `None` if it was dropped unsent because its master left.
-    pub fn request(&self, slave: u8, function: u8, outcome: Option<&Outcome>) {
-        self.counters.count(&self.name, slave, function, outcome);
-    }
-
-    /// The line took a request after it waited `wait` in the queue.
-    pub fn dequeued(&self, wait: Duration) {
-        self.queue_wait.observe(wait.as_secs_f64());
-    }
-
-    /// The line ran a request to `slave`: its round trip (`None` if it never got on the wire),
-    /// how many attempts it took, and how it ended.
-    pub fn transaction(
-        &self,
-        slave: u8,
-        attempts: u32,
-        round_trip: Option<Duration>,
-        outcome: &Outcome,
-    ) {
-        if let Some(round_trip) = round_trip {
-            self.round_trip.observe(round_trip.as_secs_f64());
-        }
-        let metrics = self.slave(slave);
-        metrics
-            .retries
-            .inc_by(u64::from(attempts.saturating_sub(1)));
-        if let Ok(Answer::Reply(_) | Answer::Malformed(_)) = outcome {
-            metrics.last_success.set(seconds_since_epoch());
-        }
-    }
-
-    /// `slave` answered validly, for the first time or `again` after failing or being down
-    /// (`bus::health` decides).
-    pub fn slave_answering(&self, slave: u8, again: bool) {
-        self.slave(slave).up.set(1);
-        if again {
-            info!(target: BUS_EVENTS, bus = &*self.name, slave, "slave answering again");
-        }
-    }
-
-    /// `slave` stopped giving valid replies with the transaction that ended in `outcome`.
-    pub fn slave_failing(&self, slave: u8, outcome: &Outcome) {
-        self.slave(slave).up.set(0);
-        let bus = &*self.name;
-        let label = Fate::of(outcome).0.label();
-        if let Err(error @ RequestError::NoResponse { attempts, .. }) = outcome {
-            warn!(target: BUS_EVENTS, bus, slave, attempts, outcome = label, %error, "slave gives no valid reply");
-        }
-    }
-
-    /// `slave` timed out `timeouts` times in a row: its requests are answered 0x0B unsent (and
-    /// counted `slave_down`) but for one probe per `probe_interval`.
-    pub fn slave_down(&self, slave: u8, timeouts: u32, probe_interval: Duration) {
-        self.slave(slave).up.set(0);
-        let bus = &*self.name;
-        let probe_interval = humantime::format_duration(probe_interval).to_string();
-        warn!(target: BUS_EVENTS, bus, slave, timeouts, probe_interval, "slave down; answering 0x0B without sending, probing once per interval");
-    }
-
-    /// What went over the line since the last call.
-    pub fn line(&self, traffic: &LineCounters) {
-        self.sent.inc_by(traffic.sent_bytes);
-        self.received.inc_by(traffic.received_bytes);
-        self.discarded_frames.inc_by(traffic.foreign_frames);
-        self.stray_bytes.inc_by(traffic.stray_bytes);
-        let characters = traffic.sent_bytes + traffic.received_bytes;
-        self.busy.inc_by(characters as f64 * self.char_time);
-    }
-
-    /// The port is open: for the first time (`down` is `None`), or again after `down` (how long,
-    /// and how many opens failed meanwhile).
-    pub fn port_opened(&self, device: &str, down: Option<(Duration, u32)>) {
-        let bus = &*self.name;
-        match down {
-            None => info!(target: BUS_EVENTS, bus, device, "serial port open"),
-            Some((down_for, failed_opens)) => {
-                self.port_reopens.inc();
-                info!(target: BUS_EVENTS,
-                    bus,
-                    device,
-                    failed_opens,
-                    down_s = down_for.as_secs_f64(),
-                    "serial port reopened"
-                );
-            }
-        }
-        self.port_up.set(1);
-    }
-
-    pub fn port_lost(&self, device: &str, error: &dyn Display) {
-        self.port_up.set(0);
-        warn!(target: BUS_EVENTS, bus = &*self.name, device, %error, "serial port lost; answering 0x0A and reopening");
-    }
-
-    /// An open failed; only the first failure of an outage is logged above debug level.
-    pub fn open_failed(&self, device: &str, error: &dyn Display, first: bool) {
-        self.port_open_errors.inc();
-        let bus = &*self.name;
-        if first {
-            warn!(target: BUS_EVENTS, bus, device, %error, "cannot open serial port; answering 0x0A and retrying");
-        } else {
-            debug!(target: BUS_EVENTS, bus, device, %error, "serial port still cannot be opened");
-        }
-    }
-}
-
-/// The TCP side: connections open, accepted, refused and closed.
-pub struct TcpMetrics {
-    open: IntGauge,
-    accepted: IntCounter,
-    rejected: IntCounterVec,
-    closed: IntCounterVec,
-    /// Whether connections are being refused for `max_connections`, so a storm logs once.
-    refusing: AtomicBool,
-    /// When a refusal for `server.allow` was last logged at warn, so a scan logs little.
-    not_allowed_logged: Mutex<Option<std::time::Instant>>,
-}
-
-/// At most one warning per this interval about masters outside `server.allow`.
-const NOT_ALLOWED_LOG_INTERVAL: Duration = Duration::from_secs(10);
-
-impl TcpMetrics {
-    fn new(define: &Definer) -> Self {
-        let open = define
-            .int_gauge(
-                "modbus_gateway_tcp_connections",
-                "Modbus TCP connections open now.",
-                &[],
-            )
-            .with_label_values::<&str>(&[]);
-        let accepted = define
-            .int_counter(
-                "modbus_gateway_tcp_connections_accepted_total",
-                "Modbus TCP connections accepted.",
-                &[],
-            )
-            .with_label_values::<&str>(&[]);
-        let rejected = define.int_counter(
-            "modbus_gateway_tcp_connections_rejected_total",
-            "Modbus TCP connections refused at accept, by reason.",
-            &["reason"],
-        );
-        for reason in Rejection::ALL {
-            rejected.with_label_values(&[reason.label()]);
-        }
-        let closed = define.int_counter(
-            "modbus_gateway_tcp_connections_closed_total",
-            "Modbus TCP connections that ended, by reason.",
-            &["reason"],
-        );
-        for reason in Closing::ALL {
-            closed.with_label_values(&[reason.label()]);
-        }
-        TcpMetrics {
-            open,
-            accepted,
-            rejected,
-            closed,
-            refusing: AtomicBool::new(false),
-            not_allowed_logged: Mutex::new(None),
-        }
-    }
-
-    pub fn accepted(&self, master: u64, peer: &dyn Display, read_only: bool) {
-        self.accepted.inc();
-        self.open.inc();
-        self.refusing.store(false, Ordering::Relaxed);
-        debug!(target: TCP_EVENTS, master, %peer, read_only, "master connected");
-    }
-
-    /// A connection refused at accept. For `max_connections`, logged once until a connection is
-    /// accepted again; for `server.allow`, at most once per ten seconds.
-    pub fn rejected(&self, reason: Rejection, listen: &dyn Display, peer: &dyn Display) {
-        self.rejected.with_label_values(&[reason.label()]).inc();
-        let (warn, event) = match reason {
-            Rejection::MaxConnections => (
-                !self.refusing.swap(true, Ordering::Relaxed),
-                "refusing connections until one closes",
-            ),
-            Rejection::NotAllowed => {
-                let mut logged = self
-                    .not_allowed_logged
-                    .lock()
-                    .unwrap_or_else(PoisonError::into_inner);
-                let due = logged.is_none_or(|at| at.elapsed() >= NOT_ALLOWED_LOG_INTERVAL);
-                if due {
-                    *logged = Some(std::time::Instant::now());
-                }
-                (due, "refusing a master outside server.allow")
-            }
-        };
-        let reason = reason.label();
-        if warn {
-            warn!(target: TCP_EVENTS, %listen, %peer, reason, "{event}");
-        } else {
-            debug!(target: TCP_EVENTS, %listen, %peer, reason, "connection refused");
-        }
-    }
-
-    /// A read-only master asked for something that may change a slave (counted with the
-    /// request, as `read_only`). Logged at warn for the first on each connection.
-    pub fn write_refused(&self, master: u64, peer: &dyn Display, function: u8, first: bool) {
-        let function = hex(function);
-        if first {
-            warn!(target: TCP_EVENTS, master, %peer, function, "refusing writes from a read-only master (0x01)");
-        } else {
-            debug!(target: TCP_EVENTS, master, %peer, function, "write refused");
-        }
-    }
-
-    /// A connection accepted earlier has ended. Protocol errors are logged; a master leaving
-    /// is routine.
-    pub fn closed(&self, reason: Closing, master: u64, peer: &dyn Display, error: &dyn Display) {
-        self.open.dec();
-        self.closed.with_label_values(&[reason.label()]).inc();
-        if matches!(reason, Closing::ProtocolError | Closing::FrameTimeout) {
-            warn!(target: TCP_EVENTS, master, %peer, %error, "connection closed");
-        } else if reason == Closing::Evicted {
-            info!(target: TCP_EVENTS, master, %peer, "closed the connection idle longest to admit a new master");
-        } else {
-            debug!(target: TCP_EVENTS, master, %peer, %error, "master disconnected");
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::error::RequestError;
+    use crate::rtu::{LineCounters, TxError};
+    use std::sync::atomic::Ordering;
+    use std::time::Duration;
 
     fn bus(extra: &str) -> config::Bus {
         let text = format!("[[bus]]\nname = \"line1\"\ndevice = \"sim\"\nbaud = 9600\n{extra}");
@@ -882,7 +410,7 @@ mod tests {
         let slave_exception: Outcome = Ok(Answer::Reply(vec![0x83, 0x02]));
         assert_eq!(
             Fate::of(&slave_exception),
-            (Fate::Exception, Some((Source::Slave, 0x02)))
+            (Fate::Exception, Some((ExceptionSource::Slave, 0x02)))
         );
         assert_eq!(
             Fate::of(&Ok(Answer::Reply(vec![0x03, 0x02, 0, 1]))),
@@ -895,7 +423,7 @@ mod tests {
         });
         assert_eq!(
             Fate::of(&timeout),
-            (Fate::Timeout, Some((Source::Gateway, 0x0B)))
+            (Fate::Timeout, Some((ExceptionSource::Gateway, 0x0B)))
         );
         let crc: Outcome = Err(RequestError::NoResponse {
             attempts: 1,
@@ -904,15 +432,15 @@ mod tests {
         assert_eq!(Fate::of(&crc).0, Fate::CrcError);
         assert_eq!(
             Fate::of(&Err(RequestError::NoRoute(250))),
-            (Fate::NoRoute, Some((Source::Gateway, 0x0A)))
+            (Fate::NoRoute, Some((ExceptionSource::Gateway, 0x0A)))
         );
         assert_eq!(
             Fate::of(&Err(RequestError::Expired)),
-            (Fate::Expired, Some((Source::Gateway, 0x06)))
+            (Fate::Expired, Some((ExceptionSource::Gateway, 0x06)))
         );
         assert_eq!(
             Fate::of(&Err(RequestError::NotBroadcastable(3))),
-            (Fate::Refused, Some((Source::Gateway, 0x01)))
+            (Fate::Refused, Some((ExceptionSource::Gateway, 0x01)))
         );
     }
 

@@ -1,0 +1,212 @@
+//! The label values of the gateway's metrics: what became of a request (`outcome`), who made
+//! an exception (`source`), why a connection was refused or ended (`reason`), and the addresses
+//! and codes as strings made once. Bounded sets, all of them; nothing here counts.
+
+use crate::error::{Answer, Outcome, RequestError};
+use crate::rtu::TxError;
+use std::sync::OnceLock;
+use std::time::{SystemTime, UNIX_EPOCH};
+
+/// What became of one request: the `outcome` label.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Fate {
+    /// The slave's normal reply (or, for a broadcast, the frame went out).
+    Ok,
+    /// The slave's own exception reply.
+    Exception,
+    /// The slave's reply, forwarded as it came, though it does not have the shape the request
+    /// asks for (byte count, echo).
+    MalformedReply,
+    /// No reply to this request within the response timeout, retries included.
+    Timeout,
+    /// The last reply failed its CRC check.
+    CrcError,
+    /// The last reply was incomplete at its deadline, or longer than a frame can be.
+    FrameError,
+    /// The line never fell silent long enough to send.
+    LineBusy,
+    /// No route for the unit id (0x0A).
+    NoRoute,
+    /// A function code the gateway refuses itself: invalid, or a read to the broadcast address
+    /// (0x01).
+    Refused,
+    /// The bus queue was full (0x06).
+    QueueFull,
+    /// Not sent within the queue timeout (0x06).
+    Expired,
+    /// The bus had no open port (0x0A).
+    PortDown,
+    /// Still queued when the shutdown timeout ran out (0x0A).
+    Shutdown,
+    /// The master left before the request was sent; it was never sent.
+    Dropped,
+    /// A request from a read-only master that may change the slave; never sent (0x01).
+    ReadOnly,
+    /// The slave is down (timed out again and again) and it was not its probe's turn; never
+    /// sent (0x0B).
+    SlaveDown,
+}
+
+impl Fate {
+    pub fn label(self) -> &'static str {
+        match self {
+            Fate::Ok => "ok",
+            Fate::Exception => "exception",
+            Fate::MalformedReply => "malformed_reply",
+            Fate::Timeout => "timeout",
+            Fate::CrcError => "crc_error",
+            Fate::FrameError => "frame_error",
+            Fate::LineBusy => "line_busy",
+            Fate::NoRoute => "no_route",
+            Fate::Refused => "refused",
+            Fate::QueueFull => "queue_full",
+            Fate::Expired => "expired",
+            Fate::PortDown => "port_down",
+            Fate::Shutdown => "shutdown",
+            Fate::Dropped => "dropped",
+            Fate::ReadOnly => "read_only",
+            Fate::SlaveDown => "slave_down",
+        }
+    }
+
+    /// The fate of an answered request, with the exception code in its answer and who made it.
+    pub fn of(outcome: &Outcome) -> (Fate, Option<(ExceptionSource, u8)>) {
+        match outcome {
+            Ok(Answer::Reply(pdu))
+                if pdu
+                    .first()
+                    .is_some_and(|f| f & crate::pdu::EXCEPTION_BIT != 0) =>
+            {
+                (
+                    Fate::Exception,
+                    Some((ExceptionSource::Slave, pdu.get(1).copied().unwrap_or(0))),
+                )
+            }
+            Ok(Answer::Malformed(_)) => (Fate::MalformedReply, None),
+            Ok(_) => (Fate::Ok, None),
+            Err(error) => {
+                let fate = match error {
+                    RequestError::InvalidFunction(_) | RequestError::NotBroadcastable(_) => {
+                        Fate::Refused
+                    }
+                    RequestError::ReadOnly(_) => Fate::ReadOnly,
+                    RequestError::SlaveDown { .. } => Fate::SlaveDown,
+                    RequestError::NoRoute(_) => Fate::NoRoute,
+                    RequestError::PortDown => Fate::PortDown,
+                    RequestError::QueueFull => Fate::QueueFull,
+                    RequestError::Expired => Fate::Expired,
+                    RequestError::ShuttingDown => Fate::Shutdown,
+                    RequestError::NoResponse { last, .. } => match last {
+                        TxError::Timeout => Fate::Timeout,
+                        TxError::Crc => Fate::CrcError,
+                        TxError::Frame => Fate::FrameError,
+                        TxError::LineBusy => Fate::LineBusy,
+                        TxError::PortLost(_) => Fate::PortDown,
+                    },
+                };
+                (
+                    fate,
+                    Some((ExceptionSource::Gateway, error.exception_code() as u8)),
+                )
+            }
+        }
+    }
+}
+
+/// Who made an exception reply: the `source` label.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ExceptionSource {
+    Slave,
+    Gateway,
+}
+
+impl ExceptionSource {
+    pub fn label(self) -> &'static str {
+        match self {
+            ExceptionSource::Slave => "slave",
+            ExceptionSource::Gateway => "gateway",
+        }
+    }
+}
+
+/// Why a TCP connection was refused at accept: the `reason` label.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Rejection {
+    /// `max_connections` open, none of them idle (or `when_full = "refuse"`).
+    MaxConnections,
+    /// The peer's address is outside `server.allow`.
+    NotAllowed,
+}
+
+impl Rejection {
+    pub const ALL: [Rejection; 2] = [Rejection::MaxConnections, Rejection::NotAllowed];
+
+    pub fn label(self) -> &'static str {
+        match self {
+            Rejection::MaxConnections => "max_connections",
+            Rejection::NotAllowed => "not_allowed",
+        }
+    }
+}
+
+/// Why a TCP connection ended: the `reason` label.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Closing {
+    /// The master closed it.
+    ByMaster,
+    /// The master broke the Modbus TCP framing.
+    ProtocolError,
+    /// Idle for `idle_timeout`.
+    Idle,
+    /// A socket error.
+    IoError,
+    /// The gateway is stopping; the master's requests were answered first.
+    Shutdown,
+    /// A request's bytes did not all arrive within `frame_timeout`.
+    FrameTimeout,
+    /// Idle longest of all when a new master came at `max_connections`.
+    Evicted,
+}
+
+impl Closing {
+    pub const ALL: [Closing; 7] = [
+        Closing::ByMaster,
+        Closing::ProtocolError,
+        Closing::Idle,
+        Closing::IoError,
+        Closing::Shutdown,
+        Closing::FrameTimeout,
+        Closing::Evicted,
+    ];
+
+    pub fn label(self) -> &'static str {
+        match self {
+            Closing::ByMaster => "by_master",
+            Closing::ProtocolError => "protocol_error",
+            Closing::Idle => "idle_timeout",
+            Closing::IoError => "io_error",
+            Closing::Shutdown => "shutdown",
+            Closing::FrameTimeout => "frame_timeout",
+            Closing::Evicted => "evicted",
+        }
+    }
+}
+
+/// Label values for addresses and codes, made once: the request path formats nothing.
+pub(super) fn decimal(n: u8) -> &'static str {
+    static TABLE: OnceLock<Vec<String>> = OnceLock::new();
+    &TABLE.get_or_init(|| (0..=u8::MAX).map(|n| n.to_string()).collect())[usize::from(n)]
+}
+
+/// `0x03`, as the Modbus spec writes function and exception codes.
+pub(super) fn hex(n: u8) -> &'static str {
+    static TABLE: OnceLock<Vec<String>> = OnceLock::new();
+    &TABLE.get_or_init(|| (0..=u8::MAX).map(|n| format!("0x{n:02X}")).collect())[usize::from(n)]
+}
+
+pub(super) fn seconds_since_epoch() -> f64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .unwrap_or_default()
+        .as_secs_f64()
+}

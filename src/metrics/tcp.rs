@@ -1,0 +1,130 @@
+//! The TCP side's metrics and events: connections open, accepted, refused and closed, writes
+//! refused on read-only connections.
+
+use super::labels::{hex, Closing, Rejection};
+use super::{Definer, TCP_EVENTS};
+use prometheus::{IntCounter, IntCounterVec, IntGauge};
+use std::fmt::Display;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Mutex, PoisonError};
+use std::time::Duration;
+use tracing::{debug, info, warn};
+
+/// The TCP side: connections open, accepted, refused and closed.
+pub struct TcpMetrics {
+    open: IntGauge,
+    accepted: IntCounter,
+    rejected: IntCounterVec,
+    closed: IntCounterVec,
+    /// Whether connections are being refused for `max_connections`, so a storm logs once.
+    refusing: AtomicBool,
+    /// When a refusal for `server.allow` was last logged at warn, so a scan logs little.
+    not_allowed_logged: Mutex<Option<std::time::Instant>>,
+}
+
+/// At most one warning per this interval about masters outside `server.allow`.
+const NOT_ALLOWED_LOG_INTERVAL: Duration = Duration::from_secs(10);
+
+impl TcpMetrics {
+    pub(super) fn new(define: &Definer) -> Self {
+        let open = define
+            .int_gauge(
+                "modbus_gateway_tcp_connections",
+                "Modbus TCP connections open now.",
+                &[],
+            )
+            .with_label_values::<&str>(&[]);
+        let accepted = define
+            .int_counter(
+                "modbus_gateway_tcp_connections_accepted_total",
+                "Modbus TCP connections accepted.",
+                &[],
+            )
+            .with_label_values::<&str>(&[]);
+        let rejected = define.int_counter(
+            "modbus_gateway_tcp_connections_rejected_total",
+            "Modbus TCP connections refused at accept, by reason.",
+            &["reason"],
+        );
+        for reason in Rejection::ALL {
+            rejected.with_label_values(&[reason.label()]);
+        }
+        let closed = define.int_counter(
+            "modbus_gateway_tcp_connections_closed_total",
+            "Modbus TCP connections that ended, by reason.",
+            &["reason"],
+        );
+        for reason in Closing::ALL {
+            closed.with_label_values(&[reason.label()]);
+        }
+        TcpMetrics {
+            open,
+            accepted,
+            rejected,
+            closed,
+            refusing: AtomicBool::new(false),
+            not_allowed_logged: Mutex::new(None),
+        }
+    }
+
+    pub fn accepted(&self, master: u64, peer: &dyn Display, read_only: bool) {
+        self.accepted.inc();
+        self.open.inc();
+        self.refusing.store(false, Ordering::Relaxed);
+        debug!(target: TCP_EVENTS, master, %peer, read_only, "master connected");
+    }
+
+    /// A connection refused at accept. For `max_connections`, logged once until a connection is
+    /// accepted again; for `server.allow`, at most once per ten seconds.
+    pub fn rejected(&self, reason: Rejection, listen: &dyn Display, peer: &dyn Display) {
+        self.rejected.with_label_values(&[reason.label()]).inc();
+        let (warn, event) = match reason {
+            Rejection::MaxConnections => (
+                !self.refusing.swap(true, Ordering::Relaxed),
+                "refusing connections until one closes",
+            ),
+            Rejection::NotAllowed => {
+                let mut logged = self
+                    .not_allowed_logged
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner);
+                let due = logged.is_none_or(|at| at.elapsed() >= NOT_ALLOWED_LOG_INTERVAL);
+                if due {
+                    *logged = Some(std::time::Instant::now());
+                }
+                (due, "refusing a master outside server.allow")
+            }
+        };
+        let reason = reason.label();
+        if warn {
+            warn!(target: TCP_EVENTS, %listen, %peer, reason, "{event}");
+        } else {
+            debug!(target: TCP_EVENTS, %listen, %peer, reason, "connection refused");
+        }
+    }
+
+    /// A read-only master asked for something that may change a slave (counted with the
+    /// request, as `read_only`). Logged at warn for the first on each connection.
+    pub fn write_refused(&self, master: u64, peer: &dyn Display, function: u8, first: bool) {
+        let function = hex(function);
+        if first {
+            warn!(target: TCP_EVENTS, master, %peer, function, "refusing writes from a read-only master (0x01)");
+        } else {
+            debug!(target: TCP_EVENTS, master, %peer, function, "write refused");
+        }
+    }
+
+    /// A connection accepted earlier has ended. Protocol errors are logged; a master leaving
+    /// is routine.
+    pub fn closed(&self, reason: Closing, master: u64, peer: &dyn Display, error: &dyn Display) {
+        self.open.dec();
+        self.closed.with_label_values(&[reason.label()]).inc();
+        if matches!(reason, Closing::ProtocolError | Closing::FrameTimeout) {
+            warn!(target: TCP_EVENTS, master, %peer, %error, "connection closed");
+        } else if reason == Closing::Evicted {
+            info!(target: TCP_EVENTS, master, %peer, "closed the connection idle longest to admit a new master");
+        } else {
+            debug!(target: TCP_EVENTS, master, %peer, %error, "master disconnected");
+        }
+    }
+}
