@@ -1,5 +1,6 @@
 //! The integration tests, in one crate so they build once. Where a new test goes:
-//! - `cli`: the binaries: check-config, config errors, environment, run and stop, logs, the bench.
+//! - `cli`: the binary: check-config, config errors, environment, run and stop, logs. (The bench's
+//!   test is in `bench/tests/`.)
 //! - `tcp`: the Modbus TCP side and masters that abuse it: pipelining and floods, MBAP errors and
 //!   length lies, half-sent requests, the connection limit and its policies, idle timeout,
 //!   keepalive, garbage.

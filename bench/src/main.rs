@@ -5,11 +5,14 @@
 //! completed transaction over the wall time), latency percentiles, fairness (Jain's index over the
 //! masters' completions), and the gateway process's own RSS and CPU per transaction (from
 //! /proc, so the masters' cost is not in it; the simulated slaves', inside the gateway, is).
+//! A workspace member of its own: `cargo install` and the Debian package carry only the daemon.
 
 use clap::Parser;
-use modbus_gateway::rtu::frame::{self, FrameLen};
+use mio_serial::SerialPort;
+use modbus_gateway::bus::Port;
 use modbus_gateway::rtu::{LineTiming, Parity, SerialFormat};
-use modbus_gateway::sim::{RegisterBank, SimSlave};
+use modbus_gateway::sim::responder::Responder;
+use modbus_gateway::sim::RegisterBank;
 use serde::Serialize;
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -143,10 +146,10 @@ struct Report {
     seconds: f64,
 }
 
-/// The physical minimum of one transaction: its characters at the line's speed, the slave's
-/// t3.5 before it answers and the master's t3.5 before the next frame.
+/// The physical minimum of one transaction of these PDUs (each framed by an address and a CRC,
+/// 3 bytes), for a slave that answers t3.5 after the request, as the simulated slaves do.
 fn t_min(timing: &LineTiming, request_pdu: usize, reply_pdu: usize) -> Duration {
-    timing.frame_time(request_pdu + 3) + timing.frame_time(reply_pdu + 3) + timing.t35 * 2
+    timing.transaction_minimum(request_pdu + 3, reply_pdu + 3, timing.t35)
 }
 
 fn free_addr() -> std::io::Result<SocketAddr> {
@@ -258,40 +261,27 @@ fn rss_mb(pid: u32) -> f64 {
         .map_or(0.0, |kb| kb / 1024.0)
 }
 
-/// An RTU slave on the far end of a pty that answers every request at once.
-fn untimed_slave() -> Result<(String, tokio::task::JoinHandle<()>), String> {
-    use tokio_serial::SerialPort;
-    let (mut far, tty) = tokio_serial::SerialStream::pair().map_err(|e| e.to_string())?;
+/// A line that takes no time: no character time, and no t3.5 before a reply.
+const UNTIMED: LineTiming = LineTiming {
+    char_time: Duration::ZERO,
+    t15: Duration::ZERO,
+    t35: Duration::ZERO,
+};
+
+/// RTU slaves on the far end of a pty that answer every request at once: the library's
+/// responder (as `simulate` serves) with a register slave at every address, on an untimed line.
+/// A frame cut short still ends after the real line's t3.5 of silence.
+fn untimed_slave(format: &SerialFormat) -> Result<(String, tokio::task::JoinHandle<()>), String> {
+    let (far, tty) = mio_serial::SerialStream::pair().map_err(|e| e.to_string())?;
     let path = tty.name().ok_or("the pty has no path")?;
+    let mut port = Port::serial(far).map_err(|e| e.to_string())?;
+    let mut responder = Responder::new(UNTIMED, LineTiming::new(format).t35);
+    for address in 1..=SLAVES {
+        responder.add_slave(address, Box::new(RegisterBank::new(Duration::ZERO)));
+    }
     let task = tokio::spawn(async move {
         let _tty = tty;
-        let mut bank = RegisterBank::new(Duration::ZERO);
-        let mut buf = Vec::new();
-        let mut chunk = [0u8; 512];
-        loop {
-            match frame::request_len(&buf) {
-                FrameLen::Exact(n) if buf.len() >= n => {
-                    let request: Vec<u8> = buf.drain(..n).collect();
-                    if !frame::crc_ok(&request) {
-                        continue;
-                    }
-                    let now = tokio::time::Instant::now();
-                    let pdu = frame::pdu_of(&request);
-                    if let Some(reply) = bank.handle(request[0], pdu, now) {
-                        if far.write_all(&reply.bytes).await.is_err() {
-                            return;
-                        }
-                    }
-                    continue;
-                }
-                FrameLen::Invalid => buf.clear(),
-                _ => {}
-            }
-            match far.read(&mut chunk).await {
-                Ok(n) if n > 0 => buf.extend_from_slice(&chunk[..n]),
-                _ => return,
-            }
-        }
+        responder.serve(&mut port).await;
     });
     Ok((path, task))
 }
@@ -356,7 +346,7 @@ async fn run(cli: &Cli, binary: &PathBuf, s: &Scenario) -> Result<Report, String
     let (device, slave) = match s.line {
         Line::Sim => ("sim".to_owned(), None),
         Line::Pty => {
-            let (path, task) = untimed_slave()?;
+            let (path, task) = untimed_slave(&s.format)?;
             (path, Some(task))
         }
     };
@@ -468,6 +458,9 @@ fn cell(value: Option<f64>, precision: usize) -> String {
 #[tokio::main]
 async fn main() -> ExitCode {
     let cli = Cli::parse();
+    // As in the daemon: the untimed slave's replies are due at once, and tokio's timer would
+    // hold each one to the next whole millisecond.
+    modbus_gateway::timer::use_precise_timer();
     let all = scenarios();
     if cli.list {
         for s in &all {

@@ -1,0 +1,70 @@
+//! The `modbus-gateway-bench` binary as a user runs it, against the gateway binary built next to
+//! it: `cargo test --workspace` builds both.
+
+use std::path::PathBuf;
+use std::process::Command;
+
+const BENCH: &str = env!("CARGO_BIN_EXE_modbus-gateway-bench");
+
+/// The daemon's binary in the shared target directory, where the bench looks by default. Cargo
+/// builds another package's binary only when asked, so a run of this package alone may lack it.
+fn gateway() -> PathBuf {
+    let path = PathBuf::from(BENCH).with_file_name("modbus-gateway");
+    assert!(
+        path.is_file(),
+        "{} is missing: run `cargo test --workspace`, which builds the gateway too",
+        path.display()
+    );
+    path
+}
+
+#[test]
+fn the_bench_reports_every_field_never_beats_physics_and_drives_the_pty_slave() {
+    let out = Command::new(BENCH)
+        .args(["--json", "--seconds", "1", "--rounds", "1"])
+        .args(["sim-115200-8N1-read-10", "pty", "idle-0"])
+        .arg("--gateway")
+        .arg(gateway())
+        .output()
+        .expect("the bench runs");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let reports: Vec<serde_json::Value> = String::from_utf8(out.stdout)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{e}: {l}")))
+        .collect();
+    assert_eq!(reports.len(), 3);
+    let sim = &reports[0];
+    assert_eq!(sim["scenario"], "sim-115200-8N1-read-10");
+    assert_eq!(
+        (sim["baud"].as_u64(), sim["masters"].as_u64()),
+        (Some(115_200), Some(10))
+    );
+    assert!(sim["transactions"].as_u64().unwrap() > 0, "{sim}");
+    // No gateway can carry more than the line's physical minimum allows.
+    let efficiency = sim["efficiency"].as_f64().unwrap();
+    assert!(efficiency > 0.0 && efficiency <= 1.0, "{sim}");
+    for field in [
+        "p50_ms",
+        "p99_ms",
+        "max_ms",
+        "fairness",
+        "cpu_us_per_tx",
+        "rss_mb",
+    ] {
+        assert!(
+            sim[field].as_f64().is_some_and(|v| v > 0.0),
+            "{field}: {sim}"
+        );
+    }
+    // The pty's slave (the library's responder, untimed) answered every request, in order.
+    let pty = &reports[1];
+    assert_eq!(pty["scenario"], "pty-115200-untimed-read-1");
+    assert!(pty["transactions"].as_u64().unwrap() > 0, "{pty}");
+    assert!(pty["efficiency"].is_null(), "{pty}");
+    assert!(reports[2]["rss_mb"].as_f64().unwrap() > 0.0);
+}
