@@ -119,14 +119,16 @@ async fn a_broadcast_is_answered_by_the_gateway_and_a_slave_reply_is_passed_on()
     }
 }
 
-/// Port-open errors counted for the bus, from the metrics it exports.
-fn open_errors(metrics: &Metrics) -> f64 {
+/// The value of `series` in what `metrics` exports.
+fn metric(metrics: &Metrics, series: &str) -> Option<f64> {
     let text = metrics.render().expect("metrics render");
     text.lines()
-        .find_map(|l| l.strip_prefix("modbus_gateway_port_open_errors_total{bus=\"line\"} "))
+        .find_map(|l| l.strip_prefix(series)?.strip_prefix(' '))
         .and_then(|v| v.parse().ok())
-        .unwrap_or(0.0)
 }
+
+const OPEN_ERRORS: &str = "modbus_gateway_port_open_errors_total{bus=\"line\"}";
+const SLAVE_1_UP: &str = "modbus_gateway_slave_up{bus=\"line\",slave=\"1\"}";
 
 #[tokio::test(start_paused = true)]
 async fn a_lost_port_is_reopened_with_a_backoff_that_doubles_up_to_its_maximum() {
@@ -141,9 +143,9 @@ async fn a_lost_port_is_reopened_with_a_backoff_that_doubles_up_to_its_maximum()
     line.unplug();
     // Lost at 10 ms; opens fail at 110, 310, 710, 1110, 1510 ms.
     sleep(Duration::from_millis(1_100)).await;
-    assert_eq!(open_errors(&metrics), 3.0);
+    assert_eq!(metric(&metrics, OPEN_ERRORS), Some(3.0));
     sleep(Duration::from_millis(450)).await;
-    assert_eq!(open_errors(&metrics), 5.0);
+    assert_eq!(metric(&metrics, OPEN_ERRORS), Some(5.0));
     line.plug();
     sleep(Duration::from_millis(400)).await;
     assert!(bus.is_up(), "reopened at the next attempt");
@@ -201,14 +203,6 @@ async fn new_settings_apply_between_transactions_and_a_new_device_is_opened_at_o
     );
 }
 
-/// `slave_up` for slave 1 of bus `line`.
-fn slave_up(metrics: &Metrics) -> Option<f64> {
-    let text = metrics.render().expect("metrics render");
-    text.lines()
-        .find_map(|l| l.strip_prefix("modbus_gateway_slave_up{bus=\"line\",slave=\"1\"} "))
-        .and_then(|v| v.parse().ok())
-}
-
 #[tokio::test(start_paused = true)]
 async fn slave_up_follows_the_slaves_health_through_failing_down_and_back() {
     let line = SimLine::new(settings("").line_timing());
@@ -227,7 +221,7 @@ async fn slave_up_follows_the_slaves_health_through_failing_down_and_back() {
     tokio::spawn(task.run(Stopping::never()));
     sleep(Duration::from_millis(10)).await;
     assert!(call(&bus, 1, &READ).await.is_ok());
-    assert_eq!(slave_up(&metrics), Some(1.0));
+    assert_eq!(metric(&metrics, SLAVE_1_UP), Some(1.0));
     let timed_out = |o: &Outcome| {
         matches!(
             o,
@@ -238,7 +232,7 @@ async fn slave_up_follows_the_slaves_health_through_failing_down_and_back() {
         )
     };
     assert!(timed_out(&call(&bus, 1, &READ).await));
-    assert_eq!(slave_up(&metrics), Some(0.0), "failing");
+    assert_eq!(metric(&metrics, SLAVE_1_UP), Some(0.0), "failing");
     assert!(timed_out(&call(&bus, 1, &READ).await));
     let sent = line.frames().len();
     assert!(matches!(
@@ -248,5 +242,5 @@ async fn slave_up_follows_the_slaves_health_through_failing_down_and_back() {
     assert_eq!(line.frames().len(), sent, "down: answered without the line");
     sleep(Duration::from_secs(1)).await;
     assert!(call(&bus, 1, &READ).await.is_ok(), "the probe is answered");
-    assert_eq!(slave_up(&metrics), Some(1.0));
+    assert_eq!(metric(&metrics, SLAVE_1_UP), Some(1.0));
 }
