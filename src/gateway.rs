@@ -1,7 +1,8 @@
 //! Wires a validated configuration into running parts: the metrics, the simulated lines, one task
-//! per bus, the dispatcher, the Modbus TCP listeners and the metrics endpoint; applies a reloaded
-//! configuration to them without closing connections; stops them gracefully. Owns their tasks:
-//! dropping the gateway stops them.
+//! per bus, the dispatcher, the Modbus TCP listeners and the metrics endpoint; applies the
+//! [`ConfigDiff`] of a reloaded configuration to them without closing connections; stops them
+//! gracefully. Owns their tasks: dropping the gateway stops them. Also where a configuration is
+//! loaded with its simulated drives checked ([`load_config`]): the one place that knows both.
 
 use crate::bus::{Bus, BusHandle, BusUpdates, Device, Reconfigure};
 use crate::config::{self, BusChange, Config, ConfigDiff, ConfigErrors};
@@ -239,22 +240,13 @@ impl Gateway {
         let mut done = Reloaded::default();
         let mut old: Vec<Running> = running.drain(..).collect();
         for ((settings, (_, change)), device) in new.bus.iter().zip(&diff.buses).zip(devices) {
-            let name = &settings.name;
-            let Some(mut bus) = take(&mut old, name) else {
-                running.push(Self::start_bus(settings, device, &self.metrics));
-                done.applied.push(format!("bus {name}: added"));
-                continue;
+            let bus = match take(&mut old, &settings.name) {
+                Some(bus) => Self::update_bus(bus, *change, settings, device, &mut done),
+                None => {
+                    done.applied.push(format!("bus {}: added", settings.name));
+                    Self::start_bus(settings, device, &self.metrics)
+                }
             };
-            if *change == BusChange::Changed {
-                let reopen = bus.updates.send(Reconfigure {
-                    settings: settings.clone(),
-                    device: device.clone(),
-                });
-                let what = if reopen { "reopened" } else { "reconfigured" };
-                done.applied.push(format!("bus {name}: {what}"));
-                bus.settings = settings.clone();
-                bus.device = device;
-            }
             running.push(bus);
         }
         let deadline = Instant::now() + new.server.shutdown_timeout;
@@ -288,6 +280,27 @@ impl Gateway {
             .collect();
         *config = new.clone();
         Ok(done)
+    }
+
+    /// A running bus as a reload leaves it: told its new settings if they `change`d.
+    fn update_bus(
+        mut bus: Running,
+        change: BusChange,
+        settings: &config::Bus,
+        device: Device,
+        done: &mut Reloaded,
+    ) -> Running {
+        if change == BusChange::Changed {
+            let reopen = bus.updates.send(Reconfigure {
+                settings: settings.clone(),
+                device: device.clone(),
+            });
+            let what = if reopen { "reopened" } else { "reconfigured" };
+            done.applied.push(format!("bus {}: {what}", settings.name));
+            bus.settings = settings.clone();
+            bus.device = device;
+        }
+        bus
     }
 
     /// Stop the buses a reload removed once they have served what they had queued (until
