@@ -342,8 +342,8 @@ fn check_routes(routes: &[Route], names: &BTreeMap<String, usize>, report: &mut 
 
 #[cfg(test)]
 mod tests {
-    use super::super::testing::{errors, MINIMAL};
     use super::*;
+    use crate::config::testing::{errors, MINIMAL};
 
     const SIM_BUS: &str =
         "[[bus]]\nname = \"sim\"\ndevice = \"sim\"\n[[bus.sim_slave]]\naddress = 2\n";

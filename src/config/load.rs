@@ -44,7 +44,7 @@ impl fmt::Display for ConfigErrors {
 }
 
 impl ConfigErrors {
-    pub(super) fn one(key: impl Into<String>, reason: impl fmt::Display) -> Self {
+    fn one(key: impl Into<String>, reason: impl fmt::Display) -> Self {
         ConfigErrors(vec![ConfigError {
             key: key.into(),
             reason: reason.to_string(),
@@ -174,9 +174,9 @@ fn named(e: serde_path_to_error::Error<config::ConfigError>) -> ConfigErrors {
 
 #[cfg(test)]
 mod tests {
-    use super::super::testing::{errors, MINIMAL};
-    use super::super::{defaults, LogFormat, Server};
     use super::*;
+    use crate::config::testing::{errors, MINIMAL};
+    use crate::config::{defaults, LogFormat, Server};
     use crate::rtu::Parity;
     use std::time::Duration;
 

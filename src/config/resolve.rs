@@ -26,8 +26,8 @@ impl Config {
 
 #[cfg(test)]
 mod tests {
-    use super::super::testing::MINIMAL;
     use super::*;
+    use crate::config::testing::MINIMAL;
 
     #[test]
     fn no_parity_defaults_to_two_stop_bits() {

@@ -71,8 +71,8 @@ impl Default for Server {
 
 #[cfg(test)]
 mod tests {
-    use super::super::testing::MINIMAL;
-    use super::super::Config;
+    use crate::config::testing::MINIMAL;
+    use crate::config::Config;
 
     #[test]
     fn allow_and_read_only_take_networks_single_addresses_and_comma_strings() {
