@@ -1,10 +1,11 @@
 //! Wires a validated configuration into running parts: the metrics, the simulated lines, one task
-//! per bus, the dispatcher, the Modbus TCP listeners and the metrics endpoint; applies a reloaded
-//! configuration to them without closing connections; stops them gracefully. Owns their tasks:
-//! dropping the gateway stops them.
+//! per bus, the dispatcher, the Modbus TCP listeners and the metrics endpoint; applies the
+//! [`ConfigDiff`] of a reloaded configuration to them without closing connections; stops them
+//! gracefully. Owns their tasks: dropping the gateway stops them. Also where a configuration is
+//! loaded with its simulated drives checked ([`load_config`]): the one place that knows both.
 
 use crate::bus::{BusHandle, BusTask, BusUpdates, Device, Reconfigure};
-use crate::config::{self, Config};
+use crate::config::{self, BusChange, Config, ConfigDiff, ConfigErrors};
 use crate::dispatch::Dispatcher;
 use crate::metrics::{self, Metrics};
 use crate::routing::Router;
@@ -14,6 +15,7 @@ use crate::tcp::server::Shared;
 use crate::tcp::{self, Policy};
 use std::io;
 use std::net::SocketAddr;
+use std::path::Path;
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 use tokio::net::TcpListener;
@@ -72,8 +74,8 @@ pub struct Reloaded {
     pub need_restart: Vec<String>,
 }
 
-/// The simulated line of a `device = "sim"` bus, with its slaves powered on.
-pub fn sim_line(bus: &crate::config::Bus) -> Result<SimLine, StartError> {
+/// A new simulated line for a `device = "sim"` bus, with its slaves powered on.
+pub fn power_on_line(bus: &config::Bus) -> Result<SimLine, StartError> {
     let line = SimLine::new(bus.line_timing());
     for slaves in &bus.sim_slave {
         for address in slaves.address.iter() {
@@ -87,6 +89,28 @@ pub fn sim_line(bus: &crate::config::Bus) -> Result<SimLine, StartError> {
         }
     }
     Ok(line)
+}
+
+/// Read `path` with the `MBGW__` variables among `env` over it, and check it through and
+/// through: the configuration's own checks and the simulated drives' parameters, which only the
+/// simulator knows. What the daemon runs, checks (`check-config`) and reloads.
+pub fn load_config(
+    path: &Path,
+    env: impl IntoIterator<Item = (String, String)>,
+) -> Result<Config, ConfigErrors> {
+    Config::load_with(path, env, &sim::Drives)
+}
+
+/// [`load_config`] for TOML text, with no environment.
+pub fn config_from_toml(text: &str) -> Result<Config, ConfigErrors> {
+    Config::from_toml_str_with(text, &sim::Drives)
+}
+
+/// The running bus named `name`, taken out of `buses` (the last one takes its place, which is
+/// the order [`ConfigDiff::removed`] follows).
+fn take(buses: &mut Vec<Running>, name: &str) -> Option<Running> {
+    let at = buses.iter().position(|r| r.settings.name == name)?;
+    Some(buses.swap_remove(at))
 }
 
 /// The device a bus's settings name; a simulated line is kept when its format and slaves are
@@ -107,7 +131,7 @@ fn device_for(
             return Ok(device.clone());
         }
     }
-    sim_line(settings).map(Device::Sim)
+    power_on_line(settings).map(Device::Sim)
 }
 
 impl Gateway {
@@ -203,41 +227,88 @@ impl Gateway {
     pub fn reload(&self, new: &Config) -> Result<Reloaded, StartError> {
         let mut config = self.config.lock().unwrap_or_else(PoisonError::into_inner);
         let mut running = self.buses.lock().unwrap_or_else(PoisonError::into_inner);
+        let diff = ConfigDiff::new(&config, new);
         // Every device first, so that a failure leaves everything as it was.
-        let mut devices = Vec::with_capacity(new.bus.len());
-        for settings in &new.bus {
-            let current = running
-                .iter()
-                .find(|r| r.settings.name == settings.name)
-                .map(|r| (&r.settings, &r.device));
-            devices.push(device_for(settings, current)?);
-        }
+        let devices = new
+            .bus
+            .iter()
+            .map(|settings| {
+                let current = running.iter().find(|r| r.settings.name == settings.name);
+                device_for(settings, current.map(|r| (&r.settings, &r.device)))
+            })
+            .collect::<Result<Vec<_>, _>>()?;
         let mut done = Reloaded::default();
         let mut old: Vec<Running> = running.drain(..).collect();
-        for (settings, device) in new.bus.iter().zip(devices) {
-            let name = &settings.name;
-            let Some(at) = old.iter().position(|r| r.settings.name == *name) else {
-                running.push(Self::start_bus(settings, device, &self.metrics));
-                done.applied.push(format!("bus {name}: added"));
-                continue;
+        for ((settings, (_, change)), device) in new.bus.iter().zip(&diff.buses).zip(devices) {
+            let bus = match take(&mut old, &settings.name) {
+                Some(bus) => Self::update_bus(bus, *change, settings, device, &mut done),
+                None => {
+                    done.applied.push(format!("bus {}: added", settings.name));
+                    Self::start_bus(settings, device, &self.metrics)
+                }
             };
-            let mut bus = old.swap_remove(at);
-            if bus.settings != *settings || !bus.device.same_as(&device) {
-                let reopen = bus.updates.send(Reconfigure {
-                    settings: settings.clone(),
-                    device: device.clone(),
-                });
-                let what = if reopen { "reopened" } else { "reconfigured" };
-                done.applied.push(format!("bus {name}: {what}"));
-                bus.settings = settings.clone();
-                bus.device = device;
-            }
             running.push(bus);
         }
         let deadline = Instant::now() + new.server.shutdown_timeout;
+        let removed: Vec<Running> = diff
+            .removed
+            .iter()
+            .filter_map(|name| take(&mut old, name))
+            .collect();
+        let names = removed.iter().map(|bus| &bus.settings.name);
+        done.applied
+            .extend(names.map(|name| format!("bus {name}: removed")));
+        self.retire(removed, deadline);
+        if diff.routes {
+            done.applied.push("routes".to_owned());
+        }
+        let handles = running.iter().map(|r| r.handle.clone()).collect();
+        self.shared.dispatcher.replace(Router::new(new), handles);
+        if diff.connection_policy {
+            done.applied
+                .push("connection limits and access (for new connections)".to_owned());
+        }
+        self.shared
+            .set_policy(Policy::of(&new.server), new.server.max_connections);
+        if diff.shutdown_timeout {
+            done.applied.push("server.shutdown_timeout".to_owned());
+        }
+        done.need_restart = diff
+            .need_restart
+            .iter()
+            .map(|&key| key.to_owned())
+            .collect();
+        *config = new.clone();
+        Ok(done)
+    }
+
+    /// A running bus as a reload leaves it: told its new settings if they `change`d.
+    fn update_bus(
+        mut bus: Running,
+        change: BusChange,
+        settings: &config::Bus,
+        device: Device,
+        done: &mut Reloaded,
+    ) -> Running {
+        if change == BusChange::Changed {
+            let reopen = bus.updates.send(Reconfigure {
+                settings: settings.clone(),
+                device: device.clone(),
+            });
+            let what = if reopen { "reopened" } else { "reconfigured" };
+            done.applied.push(format!("bus {}: {what}", settings.name));
+            bus.settings = settings.clone();
+            bus.device = device;
+        }
+        bus
+    }
+
+    /// Stop the buses a reload removed once they have served what they had queued (until
+    /// `deadline`), then drop their series.
+    fn retire(&self, buses: Vec<Running>, deadline: Instant) {
         let mut retired = self.retired.lock().unwrap_or_else(PoisonError::into_inner);
         retired.retain(|task| !task.is_finished());
-        for bus in old {
+        for bus in buses {
             bus.stop.stop(deadline);
             let metrics = self.metrics.clone();
             let handle = bus.handle.clone();
@@ -246,43 +317,7 @@ impl Gateway {
                 let _ = task.await;
                 metrics.forget_bus(handle.metrics());
             }));
-            done.applied
-                .push(format!("bus {}: removed", bus.settings.name));
         }
-        if new.route != config.route {
-            done.applied.push("routes".to_owned());
-        }
-        let handles = running.iter().map(|r| r.handle.clone()).collect();
-        self.shared.dispatcher.replace(Router::new(new), handles);
-        let (server, was) = (&new.server, &config.server);
-        // Everything in [server] but the listen addresses and the stop's timeout.
-        let policy = |server: &config::Server| {
-            let mut server = server.clone();
-            server.listen.clear();
-            server.shutdown_timeout = Duration::ZERO;
-            server
-        };
-        if policy(server) != policy(was) {
-            done.applied
-                .push("connection limits and access (for new connections)".to_owned());
-        }
-        self.shared
-            .set_policy(Policy::of(&new.server), new.server.max_connections);
-        if server.shutdown_timeout != was.shutdown_timeout {
-            done.applied.push("server.shutdown_timeout".to_owned());
-        }
-        if server.listen != was.listen {
-            done.need_restart.push("server.listen".to_owned());
-        }
-        if new.metrics != config.metrics {
-            done.need_restart.push("metrics.listen".to_owned());
-        }
-        // The level is the logger's own business (main switches it); the format is fixed.
-        if new.log.format != config.log.format {
-            done.need_restart.push("log.format".to_owned());
-        }
-        *config = new.clone();
-        Ok(done)
     }
 
     /// The bound listen addresses (port 0 in the configuration becomes the real port here).

@@ -1,7 +1,7 @@
 //! modbus-gateway: many Modbus TCP masters share RS-485 lines of Modbus RTU slaves.
 //!
 //! Modules in the order a request flows through them:
-//! - [`config`]: the TOML file and `MBGW__` environment, validated, defaults filled in.
+//! - [`config`]: the TOML file and `MBGW__` environment: loaded, checked, resolved; diffed on reload.
 //! - [`tcp`]: listeners, MBAP framing, one session task per master.
 //! - [`dispatch`]: the gateway's immediate answers, or the bus a request goes to.
 //! - [`routing`]: unit id to (bus, slave address), a pure table.

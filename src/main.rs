@@ -5,7 +5,7 @@
 use clap::{Parser, Subcommand};
 use modbus_gateway::config::{self, Config, DEFAULT_PATH, ENV_PREFIX};
 use modbus_gateway::rtu::Parity;
-use modbus_gateway::{logging, simulate, Gateway};
+use modbus_gateway::{gateway, logging, simulate, Gateway};
 use sd_notify::NotifyState;
 use std::convert::Infallible;
 use std::path::{Path, PathBuf};
@@ -70,7 +70,8 @@ fn environment() -> Result<Vec<(String, String)>, String> {
 /// The file and the environment, validated; or every problem, one line each.
 fn read_config(path: &Path) -> Result<Config, Vec<String>> {
     let env = environment().map_err(|e| vec![e])?;
-    Config::load(path, env).map_err(|errors| errors.0.iter().map(ToString::to_string).collect())
+    gateway::load_config(path, env)
+        .map_err(|errors| errors.0.iter().map(ToString::to_string).collect())
 }
 
 fn load(path: &Path) -> Result<Config, ExitCode> {

@@ -1,5 +1,8 @@
 //! Unit id to (bus, slave address): the `[[route]]` entries first, then the default (with exactly
-//! one bus, unit id = slave address 0-247; with several, nothing). A pure table built once.
+//! one bus, unit id = slave address 0-247; with several, nothing). A pure table built once. The
+//! rule that turns a routed unit into an address is the config's
+//! [`Route::target`](crate::config::Route::target), which the config's check uses too: routing
+//! reads the config, never the other way round.
 
 use crate::config::{Config, MAX_SLAVE_ADDRESS};
 

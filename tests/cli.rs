@@ -291,7 +291,7 @@ fn config_errors_written_to_the_journal_carry_error_priority() {
 fn the_installed_default_config_is_valid_and_names_every_key() {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/gateway.toml");
     let text = std::fs::read_to_string(path).unwrap();
-    let config = modbus_gateway::Config::load(std::path::Path::new(path), Vec::new())
+    let config = modbus_gateway::gateway::load_config(std::path::Path::new(path), Vec::new())
         .expect("config/gateway.toml is valid");
     // Every key the resolved configuration has, every default filled in; plus those of the
     // optional tables, which the default leaves out.

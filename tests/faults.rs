@@ -5,11 +5,11 @@
 use crate::support::{addr, bus_call, settle, sim_bus_counted, start, RawMaster, Scrape};
 use modbus_gateway::bus::BusHandle;
 use modbus_gateway::error::{Answer, Outcome};
+use modbus_gateway::gateway::config_from_toml;
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::rtu::frame::encode;
 use modbus_gateway::sim::faults::{Faults, Faulty};
 use modbus_gateway::sim::{Pause, Scripted, SimLine, Source, Transmission};
-use modbus_gateway::Config;
 use std::time::Duration;
 
 const TIMEOUT: Duration = Duration::from_millis(200);
@@ -33,7 +33,7 @@ fn counted_line_with_faulty_slave_2(bus_keys: &str, knobs: &str) -> (SimLine, Bu
          [[bus.sim_slave]]\naddress = 1\n\
          [[bus.sim_slave]]\naddress = 2\n{knobs}\n"
     );
-    let config = Config::from_toml_str(&text).expect("test config");
+    let config = config_from_toml(&text).expect("test config");
     let metrics = Metrics::new();
     let (line, bus) = sim_bus_counted(config.bus.into_iter().next().expect("one bus"), &metrics);
     (line, bus, metrics)
@@ -414,7 +414,7 @@ async fn each_older_fault_is_counted_under_its_outcome() {
          [[bus.sim_slave]]\naddress = 5\nreply_address = 9\n\
          [[bus.sim_slave]]\naddress = 6\ngarbage_after = 6\n\
          [[bus.sim_slave]]\naddress = 7\nextra_delay = \"300ms\"\n";
-    let config = Config::from_toml_str(text).expect("test config");
+    let config = config_from_toml(text).expect("test config");
     let metrics = Metrics::new();
     let (_line, bus) = sim_bus_counted(config.bus.into_iter().next().expect("one bus"), &metrics);
     settle(&bus).await;

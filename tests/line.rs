@@ -3,11 +3,11 @@
 
 use modbus_gateway::bus::{BusHandle, BusTask, Device};
 use modbus_gateway::error::{Answer, Outcome, RequestError};
+use modbus_gateway::gateway::config_from_toml;
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::rtu::TxError;
 use modbus_gateway::shutdown::Stopping;
 use modbus_gateway::sim::{RegisterBank, Scripted, SimLine, SimSlave, Source, Transmission};
-use modbus_gateway::Config;
 
 use crate::support::{bus_call as call, settle};
 use std::time::Duration;
@@ -20,10 +20,7 @@ const READ_10: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x0A];
 /// A sim bus from `[[bus]]` keys, its line populated by `fill`, its task running.
 fn sim_bus(keys: &str, fill: impl FnOnce(&SimLine)) -> (SimLine, BusHandle) {
     let text = format!("[[bus]]\nname = \"line\"\ndevice = \"sim\"\n{keys}\n");
-    let settings = Config::from_toml_str(&text)
-        .expect("test config")
-        .bus
-        .remove(0);
+    let settings = config_from_toml(&text).expect("test config").bus.remove(0);
     let line = SimLine::new(settings.line_timing());
     fill(&line);
     let bus = BusTask::new(settings, Device::Sim(line.clone()), &Metrics::new());

@@ -422,7 +422,7 @@ async fn a_reload_reopens_only_a_changed_line_starts_added_buses_and_retires_rem
 
     // a: a new timeout (same line); b: a new baud rate (a new line); c: added, for unit 3.
     let config = |text: &str| {
-        let mut config = modbus_gateway::Config::from_toml_str(text).unwrap();
+        let mut config = modbus_gateway::gateway::config_from_toml(text).unwrap();
         config.metrics.listen = ([127, 0, 0, 1], 0).into();
         config
     };

@@ -8,13 +8,13 @@ use crate::support::{
 };
 use modbus_gateway::bus::{BusTask, Device};
 use modbus_gateway::dispatch::{Client, Dispatcher, Rights};
+use modbus_gateway::gateway::config_from_toml;
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::routing::Router;
 use modbus_gateway::shutdown::Stopping;
 use modbus_gateway::sim::{RegisterBank, SimLine};
 use modbus_gateway::tcp::session::{self, Activity, SessionError};
 use modbus_gateway::tcp::SessionLimits;
-use modbus_gateway::Config;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -164,7 +164,7 @@ async fn session_on_pipe(
     tokio::task::JoinHandle<SessionError>,
 ) {
     let config =
-        Config::from_toml_str("[[bus]]\nname = \"line\"\ndevice = \"sim\"\nbaud = 9600\n").unwrap();
+        config_from_toml("[[bus]]\nname = \"line\"\ndevice = \"sim\"\nbaud = 9600\n").unwrap();
     let line = SimLine::new(config.bus[0].line_timing());
     line.add_slave(1, RegisterBank::new(slave_delay));
     let metrics = Arc::new(Metrics::new());

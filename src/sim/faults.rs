@@ -6,6 +6,7 @@
 //! run repeats exactly.
 
 use super::{Pause, SimSlave, Transmission};
+use crate::config;
 use crate::pdu::EXCEPTION_BIT;
 use crate::rtu::frame::{self, BROADCAST};
 use std::time::Duration;
@@ -36,6 +37,27 @@ pub struct Faults {
     pub truncate_reply: Option<usize>,
     /// Every reply stops after some bytes and goes on after a silence.
     pub reply_gap: Option<Pause>,
+}
+
+/// The fault knobs of a configured simulated slave.
+impl From<&config::SimSlave> for Faults {
+    fn from(slave: &config::SimSlave) -> Self {
+        Faults {
+            offline: slave.offline,
+            extra_delay: slave.extra_delay,
+            late_reply: slave.late_reply,
+            crc_error_rate: slave.crc_error_rate,
+            garbage_before: slave.garbage_before,
+            garbage_after: slave.garbage_after,
+            reply_address: slave.reply_address,
+            reply_function: slave.reply_function,
+            truncate_reply: slave.truncate_reply,
+            reply_gap: slave
+                .reply_gap
+                .zip(slave.reply_gap_after)
+                .map(|(gap, after)| Pause { after, gap }),
+        }
+    }
 }
 
 impl Faults {
@@ -261,5 +283,26 @@ mod tests {
             slave.handle(BROADCAST, &[0x06, 0, 1, 0, 5], Instant::now()),
             None
         );
+    }
+
+    #[test]
+    fn the_new_fault_knobs_reach_the_slave_and_read_back_the_same() {
+        const SIM_BUS: &str =
+            "[[bus]]\nname = \"sim\"\ndevice = \"sim\"\n[[bus.sim_slave]]\naddress = 2\n";
+        let text = format!(
+            "{SIM_BUS}reply_function = 4\ntruncate_reply = 5\nreply_gap = \"30ms\"\nreply_gap_after = 3\n"
+        );
+        let c = config::Config::from_toml_str(&text).unwrap();
+        let faults = Faults::from(&c.bus[0].sim_slave[0]);
+        assert_eq!(faults.reply_function, Some(4));
+        assert_eq!(faults.truncate_reply, Some(5));
+        assert_eq!(
+            faults.reply_gap,
+            Some(Pause {
+                after: 3,
+                gap: Duration::from_millis(30)
+            })
+        );
+        assert_eq!(config::Config::from_toml_str(&c.to_toml()).unwrap(), c);
     }
 }

@@ -42,7 +42,7 @@ pub fn build(
         params: spec.params.clone(),
         trip: spec.trip,
     };
-    let faults = spec.faults();
+    let faults = Faults::from(spec);
     Ok(match spec.model {
         SimModel::Registers => {
             with_faults(RegisterBank::new(spec.processing_delay), faults, address)
@@ -64,6 +64,25 @@ pub fn build(
         ),
         SimModel::PdInverter => with_faults(PdInverter::new(&settings, now)?, faults, address),
     })
+}
+
+/// The configuration's check asks the simulator whether each drive accepts its parameters.
+pub struct Drives;
+
+impl config::DriveCheck for Drives {
+    fn power_on(
+        &self,
+        slave: &config::SimSlave,
+        address: u8,
+        format: SerialFormat,
+    ) -> Result<(), config::DriveRefusal> {
+        build(slave, address, format)
+            .map(drop)
+            .map_err(|e| config::DriveRefusal {
+                param: e.param,
+                reason: e.reason,
+            })
+    }
 }
 
 fn with_faults<S: SimSlave + 'static>(slave: S, faults: Faults, address: u8) -> Box<dyn SimSlave> {

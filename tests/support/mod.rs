@@ -3,6 +3,7 @@
 
 use modbus_gateway::bus::{BusHandle, BusTask, Device};
 use modbus_gateway::error::Outcome;
+use modbus_gateway::gateway::{config_from_toml, load_config};
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::rtu::frame::{self, FrameLen};
 use modbus_gateway::shutdown::Stopping;
@@ -81,7 +82,7 @@ pub fn demo_config() -> Config {
         ("MBGW__SERVER__LISTEN".to_owned(), "127.0.0.1:0".to_owned()),
         ("MBGW__METRICS__LISTEN".to_owned(), "127.0.0.1:0".to_owned()),
     ];
-    Config::load(Path::new(demo_path()), env).expect("config/demo.toml is valid")
+    load_config(Path::new(demo_path()), env).expect("config/demo.toml is valid")
 }
 
 /// The demo's bus with its simulated drives, its task running: call on the paused clock.
@@ -99,7 +100,8 @@ pub fn sim_bus_counted(
     settings: modbus_gateway::config::Bus,
     metrics: &Metrics,
 ) -> (SimLine, BusHandle) {
-    let line = modbus_gateway::gateway::sim_line(&settings).expect("simulated slaves power on");
+    let line =
+        modbus_gateway::gateway::power_on_line(&settings).expect("simulated slaves power on");
     let bus = BusTask::new(settings, Device::Sim(line.clone()), metrics);
     let handle = bus.handle();
     tokio::spawn(bus.run(Stopping::never()));
@@ -109,7 +111,7 @@ pub fn sim_bus_counted(
 /// Start a gateway on `toml`, which should listen on 127.0.0.1:0. Its metrics endpoint goes on a
 /// free loopback port too, so tests never contend for the default one.
 pub async fn start(toml: &str) -> Gateway {
-    let mut config = Config::from_toml_str(toml).unwrap_or_else(|e| panic!("test config: {e}"));
+    let mut config = config_from_toml(toml).unwrap_or_else(|e| panic!("test config: {e}"));
     config.metrics.listen = SocketAddr::from(([127, 0, 0, 1], 0));
     Gateway::start(&config).await.expect("gateway starts")
 }

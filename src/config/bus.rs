@@ -1,0 +1,211 @@
+//! The `[[bus]]` sections: one serial line each, its format and timing, its per-slave overrides
+//! and, on a simulated line, the slaves to simulate (`[[bus.sim_slave]]`). Plain values; knows
+//! nothing of ports, tasks or how a simulated slave is built.
+
+use super::defaults;
+use super::serde_adapters::{
+    duration, is_false, is_zero, is_zero_f64, is_zero_usize, opt_duration,
+};
+use super::UnitSet;
+use crate::rtu::{LineTiming, MasterTiming, Parity, SerialFormat};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+/// `device` value that selects the built-in simulated line.
+pub const SIM_DEVICE: &str = "sim";
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Bus {
+    pub name: String,
+    /// A serial device path, or "sim".
+    pub device: String,
+    #[serde(default = "defaults::baud")]
+    pub baud: u32,
+    #[serde(default = "defaults::data_bits")]
+    pub data_bits: u8,
+    #[serde(default = "defaults::parity")]
+    pub parity: Parity,
+    /// 1 or 2; left out: 1 with parity, 2 without (filled in by validation).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stop_bits: Option<u8>,
+    #[serde(default = "defaults::response_timeout", with = "duration")]
+    pub response_timeout: Duration,
+    /// Extra tries after a timeout or a corrupt reply, for reads (and writes with `retry_writes`).
+    #[serde(default)]
+    pub retries: u32,
+    #[serde(default)]
+    pub retry_writes: bool,
+    /// Silence before every frame, if longer than t3.5.
+    #[serde(
+        default,
+        with = "opt_duration",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub inter_frame_delay: Option<Duration>,
+    /// Silence that ends a reply of unknown length, if longer than t3.5 (USB adapters).
+    #[serde(
+        default,
+        with = "opt_duration",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub byte_timeout: Option<Duration>,
+    /// Silence after a broadcast, so slaves can carry it out.
+    #[serde(default = "defaults::turnaround_delay", with = "duration")]
+    pub turnaround_delay: Duration,
+    /// Answer a broadcast write with its normal response once it is sent.
+    #[serde(default = "defaults::broadcast_reply")]
+    pub broadcast_reply: bool,
+    #[serde(default = "defaults::queue_depth")]
+    pub queue_depth: usize,
+    /// A request not on the wire this long after it arrived gets exception 0x06.
+    #[serde(default = "defaults::queue_timeout", with = "duration")]
+    pub queue_timeout: Duration,
+    #[serde(default = "defaults::reopen_delay", with = "duration")]
+    pub reopen_delay: Duration,
+    #[serde(default = "defaults::reopen_delay_max", with = "duration")]
+    pub reopen_delay_max: Duration,
+    /// After this many requests in a row timed out, a slave is down: its requests get 0x0B at
+    /// once, without using the line, but for one probe per `slave_probe_interval` (0: never down).
+    #[serde(default = "defaults::slave_down_after")]
+    pub slave_down_after: u32,
+    #[serde(default = "defaults::slave_probe_interval", with = "duration")]
+    pub slave_probe_interval: Duration,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub slave: Vec<Slave>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub sim_slave: Vec<SimSlave>,
+}
+
+/// Per-slave overrides of the bus settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Slave {
+    pub address: u8,
+    #[serde(
+        default,
+        with = "opt_duration",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub response_timeout: Option<Duration>,
+    /// The slave may answer Read Holding Registers with a two-byte byte count (an inverter's
+    /// "non-standard Modbus" mode); the gateway reads both forms and passes on the standard one.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub wide_read_count: bool,
+}
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SimModel {
+    /// Four plain register banks.
+    #[default]
+    Registers,
+    /// INVT Goodrive20.
+    Gd20,
+    /// INVT Goodrive300.
+    Gd300,
+    /// INVT Goodrive10.
+    Gd10,
+    /// The inverter with the Pd communication group (shared/reference/003).
+    #[serde(rename = "pd-inverter")]
+    PdInverter,
+}
+
+impl SimModel {
+    pub fn is_drive(self) -> bool {
+        self != SimModel::Registers
+    }
+}
+
+/// Slaves on a simulated line.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimSlave {
+    /// One address, a list or ranges: 3, "1-4", "1,5-7".
+    pub address: UnitSet,
+    #[serde(default)]
+    pub model: SimModel,
+    /// Time the slave takes after recognising a request before it starts its reply.
+    #[serde(default, with = "duration")]
+    pub processing_delay: Duration,
+    /// Drive models: parameters that differ from the factory defaults, by the manual's name,
+    /// in fieldbus units (`"P00.11" = 50` is 5.0 s).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub params: BTreeMap<String, u16>,
+    /// Drive models: the fault code the drive has tripped with at power-on.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub trip: Option<u16>,
+    /// Fault knob: never answers, carries nothing out.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub offline: bool,
+    /// Fault knob: added to every reply's delay.
+    #[serde(default, with = "duration", skip_serializing_if = "is_zero")]
+    pub extra_delay: Duration,
+    /// Fault knob: every reply starts this long after the request, whatever the slave's own delay.
+    #[serde(
+        default,
+        with = "opt_duration",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub late_reply: Option<Duration>,
+    /// Fault knob: fraction of replies (0 to 1) sent with a corrupted CRC.
+    #[serde(default, skip_serializing_if = "is_zero_f64")]
+    pub crc_error_rate: f64,
+    /// Fault knob: random bytes sent straight before every reply.
+    #[serde(default, skip_serializing_if = "is_zero_usize")]
+    pub garbage_before: usize,
+    /// Fault knob: random bytes sent straight after every reply.
+    #[serde(default, skip_serializing_if = "is_zero_usize")]
+    pub garbage_after: usize,
+    /// Fault knob: replies carry this address instead of the slave's own.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reply_address: Option<u8>,
+    /// Fault knob: replies carry this function code (1-127) instead of the request's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reply_function: Option<u8>,
+    /// Fault knob: only the first this many bytes of every reply are sent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub truncate_reply: Option<usize>,
+    /// Fault knob: every reply falls silent for this long after `reply_gap_after` bytes.
+    #[serde(
+        default,
+        with = "opt_duration",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub reply_gap: Option<Duration>,
+    /// Fault knob: bytes of every reply sent before its `reply_gap`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reply_gap_after: Option<usize>,
+}
+
+impl Bus {
+    pub fn is_sim(&self) -> bool {
+        self.device == SIM_DEVICE
+    }
+
+    /// Character time and the spec's gaps at this bus's format.
+    pub fn line_timing(&self) -> LineTiming {
+        LineTiming::new(&self.format())
+    }
+
+    /// The gaps the master keeps: t3.5, raised by `inter_frame_delay` and `byte_timeout`.
+    pub fn master_timing(&self) -> MasterTiming {
+        MasterTiming::new(
+            self.line_timing(),
+            self.inter_frame_delay.unwrap_or_default(),
+            self.byte_timeout.unwrap_or_default(),
+        )
+    }
+
+    pub fn format(&self) -> SerialFormat {
+        SerialFormat {
+            baud: self.baud,
+            data_bits: self.data_bits,
+            parity: self.parity,
+            stop_bits: self
+                .stop_bits
+                .unwrap_or_else(|| SerialFormat::default_stop_bits(self.parity)),
+        }
+    }
+}

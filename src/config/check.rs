@@ -1,0 +1,482 @@
+//! Checks what serde cannot: ranges, names, references between sections, and (through
+//! [`DriveCheck`]) whether a simulated drive accepts its parameters. Reads the configuration and
+//! changes nothing (deriving values is [`resolve`](super::resolve)'s); reports every problem, in
+//! the order of the file, each with its key path. Knows nothing of how a drive is simulated.
+
+use super::{Bus, Config, ConfigError, ConfigErrors, Route, Server, SimSlave, UnitSet};
+use super::{MAX_SLAVE_ADDRESS, SIM_DEVICE};
+use crate::pdu::EXCEPTION_BIT;
+use crate::rtu::SerialFormat;
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+pub(super) const MAX_RETRIES: u32 = 10;
+const MIN_KEEPALIVE: Duration = Duration::from_secs(1);
+/// Most garbage a simulated slave may wrap a reply in: a frame's worth.
+pub(super) const MAX_GARBAGE: usize = 256;
+
+/// Powers on a simulated drive to see whether it accepts its configured parameters and trip.
+/// Only the simulator knows its drives' parameter tables, so it implements this; the check asks
+/// it, and the configuration needs nothing of the simulator's.
+pub trait DriveCheck {
+    /// Power on the drive `slave` describes at `address`, on a line of `format`.
+    fn power_on(
+        &self,
+        slave: &SimSlave,
+        address: u8,
+        format: SerialFormat,
+    ) -> Result<(), DriveRefusal>;
+}
+
+/// A setting a drive refused: the parameter by the manual's name (or `trip`), and why.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct DriveRefusal {
+    pub param: String,
+    pub reason: String,
+}
+
+/// The problems found so far, in the order they were found.
+#[derive(Default)]
+struct Report(Vec<ConfigError>);
+
+impl Report {
+    fn fail(&mut self, key: impl Into<String>, reason: impl Into<String>) {
+        self.0.push(ConfigError {
+            key: key.into(),
+            reason: reason.into(),
+        });
+    }
+}
+
+impl Config {
+    /// Every problem serde cannot see, each with its key path. With `drives`, the simulated
+    /// drives are powered on to check their parameters; without, those are left unchecked.
+    pub fn check(&self, drives: Option<&dyn DriveCheck>) -> Result<(), ConfigErrors> {
+        let mut report = Report::default();
+        check_server(&self.server, &mut report);
+        check_log_level(&self.log.level, &mut report);
+        if self.bus.is_empty() {
+            report.fail("bus", "at least one [[bus]] is needed");
+        }
+        let mut names = BTreeMap::new();
+        for (i, bus) in self.bus.iter().enumerate() {
+            check_bus(i, bus, &mut names, drives, &mut report);
+        }
+        check_routes(&self.route, &names, &mut report);
+        if report.0.is_empty() {
+            Ok(())
+        } else {
+            Err(ConfigErrors(report.0))
+        }
+    }
+}
+
+fn check_server(server: &Server, report: &mut Report) {
+    if server.listen.is_empty() {
+        report.fail("server.listen", "needs at least one address");
+    }
+    if server.max_connections == 0 {
+        report.fail("server.max_connections", "must be at least 1");
+    }
+    if server.pipeline_depth == 0 {
+        report.fail("server.pipeline_depth", "must be at least 1");
+    }
+    if server.frame_timeout.is_zero() {
+        report.fail("server.frame_timeout", "must be longer than 0");
+    }
+    if !server.keepalive.is_zero() && server.keepalive < MIN_KEEPALIVE {
+        report.fail(
+            "server.keepalive",
+            "must be \"0s\" (off) or at least 1s (TCP counts it in seconds)",
+        );
+    }
+}
+
+fn check_log_level(level: &str, report: &mut Report) {
+    if let Err(e) = tracing_subscriber::EnvFilter::try_new(level) {
+        report.fail("log.level", format!("`{level}` is not a log filter: {e}"));
+    }
+}
+
+/// `bus[i]`; a valid name goes into `names`, which the routes refer to.
+fn check_bus(
+    i: usize,
+    bus: &Bus,
+    names: &mut BTreeMap<String, usize>,
+    drives: Option<&dyn DriveCheck>,
+    report: &mut Report,
+) {
+    let key = |field: &str| format!("bus[{i}].{field}");
+    if bus.name.is_empty()
+        || !bus
+            .name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b"_-.".contains(&b))
+    {
+        report.fail(
+            key("name"),
+            format!("`{}` must be letters, digits, `_`, `-` or `.`", bus.name),
+        );
+    } else if let Some(first) = names.insert(bus.name.clone(), i) {
+        report.fail(
+            key("name"),
+            format!("`{}` is already the name of bus[{first}]", bus.name),
+        );
+    }
+    if bus.device.is_empty() {
+        report.fail(key("device"), "needs a serial device path or \"sim\"");
+    }
+    check_line(bus, &key, report);
+    check_slaves(i, bus, report);
+    if !bus.sim_slave.is_empty() && !bus.is_sim() {
+        report.fail(
+            key("sim_slave"),
+            format!("only a bus with device = \"{SIM_DEVICE}\" has simulated slaves"),
+        );
+    }
+    let mut seen = UnitSet::default();
+    let format = bus.format();
+    for (j, sim) in bus.sim_slave.iter().enumerate() {
+        let key = |field: &str| format!("bus[{i}].sim_slave[{j}].{field}");
+        check_sim_addresses(sim, &mut seen, &key, report);
+        check_fault_knobs(sim, &key, report);
+        check_drive(sim, format, drives, &key, report);
+    }
+}
+
+/// The line's format, timing, retries and queue.
+fn check_line(bus: &Bus, key: &dyn Fn(&str) -> String, report: &mut Report) {
+    if bus.baud == 0 {
+        report.fail(key("baud"), "must be more than 0");
+    }
+    if !matches!(bus.data_bits, 7 | 8) {
+        report.fail(key("data_bits"), format!("{} is not 7 or 8", bus.data_bits));
+    }
+    if let Some(n) = bus.stop_bits.filter(|n| !matches!(n, 1 | 2)) {
+        report.fail(key("stop_bits"), format!("{n} is not 1 or 2"));
+    }
+    for (field, value) in [
+        ("response_timeout", bus.response_timeout),
+        ("queue_timeout", bus.queue_timeout),
+        ("reopen_delay", bus.reopen_delay),
+        ("slave_probe_interval", bus.slave_probe_interval),
+    ] {
+        if value.is_zero() {
+            report.fail(key(field), "must be longer than 0");
+        }
+    }
+    if bus.reopen_delay_max < bus.reopen_delay {
+        report.fail(
+            key("reopen_delay_max"),
+            "must not be shorter than reopen_delay",
+        );
+    }
+    if bus.retries > MAX_RETRIES {
+        report.fail(
+            key("retries"),
+            format!("{} is more than {MAX_RETRIES}", bus.retries),
+        );
+    }
+    if bus.queue_depth == 0 {
+        report.fail(key("queue_depth"), "must be at least 1");
+    }
+}
+
+/// `bus[i].slave`: addresses on the line, each once, and their overrides.
+fn check_slaves(i: usize, bus: &Bus, report: &mut Report) {
+    let mut seen = UnitSet::default();
+    for (j, slave) in bus.slave.iter().enumerate() {
+        let key = format!("bus[{i}].slave[{j}]");
+        if slave.address == 0 || slave.address > MAX_SLAVE_ADDRESS {
+            report.fail(
+                format!("{key}.address"),
+                format!("{} is not a slave address 1-247", slave.address),
+            );
+        } else if seen.contains(slave.address) {
+            report.fail(
+                format!("{key}.address"),
+                format!("slave {} is configured twice", slave.address),
+            );
+        }
+        seen.insert(slave.address);
+        if slave.response_timeout.is_some_and(|t| t.is_zero()) {
+            report.fail(format!("{key}.response_timeout"), "must be longer than 0");
+        }
+    }
+}
+
+/// A simulated slave's addresses: on the line, and none simulated twice (`seen` holds those of
+/// the slaves before it).
+fn check_sim_addresses(
+    sim: &SimSlave,
+    seen: &mut UnitSet,
+    key: &dyn Fn(&str) -> String,
+    report: &mut Report,
+) {
+    if sim.address.is_empty() {
+        report.fail(key("address"), "names no address");
+    }
+    for address in sim.address.iter() {
+        if address == 0 || address > MAX_SLAVE_ADDRESS {
+            report.fail(
+                key("address"),
+                format!("{address} is not a slave address 1-247"),
+            );
+            break;
+        }
+        if seen.contains(address) {
+            report.fail(
+                key("address"),
+                format!("slave {address} is simulated twice"),
+            );
+            break;
+        }
+        seen.insert(address);
+    }
+}
+
+fn check_fault_knobs(sim: &SimSlave, key: &dyn Fn(&str) -> String, report: &mut Report) {
+    if !(0.0..=1.0).contains(&sim.crc_error_rate) {
+        report.fail(key("crc_error_rate"), "must be from 0 to 1");
+    }
+    for (field, bytes) in [
+        ("garbage_before", sim.garbage_before),
+        ("garbage_after", sim.garbage_after),
+    ] {
+        if bytes > MAX_GARBAGE {
+            report.fail(
+                key(field),
+                format!("{bytes} is more than {MAX_GARBAGE} bytes"),
+            );
+        }
+    }
+    if sim
+        .reply_function
+        .is_some_and(|f| f == 0 || f & EXCEPTION_BIT != 0)
+    {
+        report.fail(key("reply_function"), "must be a function code 1-127");
+    }
+    if sim.truncate_reply == Some(0) {
+        report.fail(
+            key("truncate_reply"),
+            "must be at least 1 byte (a slave that sends nothing is `offline`)",
+        );
+    }
+    match (sim.reply_gap, sim.reply_gap_after) {
+        (Some(_), None) => report.fail(key("reply_gap_after"), "is required with reply_gap"),
+        (None, Some(_)) => report.fail(key("reply_gap"), "is required with reply_gap_after"),
+        (_, Some(0)) => report.fail(key("reply_gap_after"), "must be at least 1 byte"),
+        _ => {}
+    }
+}
+
+/// Parameters and a trip only on a drive model; a drive's own parameter check through `drives`.
+fn check_drive(
+    sim: &SimSlave,
+    format: SerialFormat,
+    drives: Option<&dyn DriveCheck>,
+    key: &dyn Fn(&str) -> String,
+    report: &mut Report,
+) {
+    if !sim.model.is_drive() {
+        for (field, set) in [
+            ("params", !sim.params.is_empty()),
+            ("trip", sim.trip.is_some()),
+        ] {
+            if set {
+                report.fail(key(field), "only drive models have parameters and faults");
+            }
+        }
+        return;
+    }
+    // The drive checks its own parameters; one power-on tells for every address.
+    let (Some(drives), Some(address)) = (drives, sim.address.iter().next()) else {
+        return;
+    };
+    if let Err(e) = drives.power_on(sim, address, format) {
+        let field = if e.param == "trip" {
+            e.param
+        } else {
+            format!("params.\"{}\"", e.param)
+        };
+        report.fail(key(&field), e.reason);
+    }
+}
+
+/// `route`: every route to a bus by a valid name (`names`), each unit routed once and to an
+/// address on the line.
+fn check_routes(routes: &[Route], names: &BTreeMap<String, usize>, report: &mut Report) {
+    let mut routed: BTreeMap<u8, usize> = BTreeMap::new();
+    for (i, route) in routes.iter().enumerate() {
+        let key = |field: &str| format!("route[{i}].{field}");
+        if !names.contains_key(&route.bus) {
+            report.fail(key("bus"), format!("there is no bus named `{}`", route.bus));
+        }
+        if route.address.is_some() && route.offset.is_some() {
+            report.fail(key("offset"), "give `address` or `offset`, not both");
+        }
+        if route.address.is_some_and(|a| a > MAX_SLAVE_ADDRESS) {
+            report.fail(key("address"), "must be a slave address 0-247");
+        }
+        if route.units.is_empty() {
+            report.fail(key("units"), "names no unit");
+        }
+        for unit in route.units.iter() {
+            if let Some(first) = routed.insert(unit, i) {
+                report.fail(
+                    key("units"),
+                    format!("unit {unit} is already routed by route[{first}]"),
+                );
+                break;
+            }
+            if route.target(unit).is_none() {
+                report.fail(
+                    key("offset"),
+                    format!("sends unit {unit} outside slave addresses 0-247"),
+                );
+                break;
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::testing::{errors, MINIMAL};
+
+    const SIM_BUS: &str =
+        "[[bus]]\nname = \"sim\"\ndevice = \"sim\"\n[[bus.sim_slave]]\naddress = 2\n";
+
+    #[test]
+    fn bad_server_access_and_connection_keys_are_named() {
+        for (keys, key, reason) in [
+            ("allow = [\"10.0.0.0/33\"]", "server.allow", "10.0.0.0/33"),
+            ("read_only = \"plc.local\"", "server.read_only", "plc.local"),
+            ("when_full = \"drop\"", "server.when_full", "drop"),
+            (
+                "frame_timeout = \"0s\"",
+                "server.frame_timeout",
+                "longer than 0",
+            ),
+            ("keepalive = \"500ms\"", "server.keepalive", "at least 1s"),
+        ] {
+            let e = errors(&format!("[server]\n{keys}\n{MINIMAL}"));
+            assert_eq!(e.len(), 1, "{e:?}");
+            assert!(e[0].starts_with(key), "{keys}: {e:?}");
+            assert!(e[0].contains(reason), "{keys}: {e:?}");
+        }
+        let c = Config::from_toml_str(&format!("[server]\nkeepalive = \"0s\"\n{MINIMAL}"));
+        assert!(c.is_ok(), "0s turns keepalive off");
+    }
+
+    #[test]
+    fn a_zero_slave_probe_interval_is_refused() {
+        let e = errors(&format!("{MINIMAL}\nslave_probe_interval = \"0s\""));
+        assert!(e[0].starts_with("bus[0].slave_probe_interval"), "{e:?}");
+    }
+
+    #[test]
+    fn semantic_errors_are_all_reported_with_their_keys() {
+        let e = errors(
+            r#"
+            [[bus]]
+            name = "a"
+            device = "sim"
+            data_bits = 6
+            stop_bits = 3
+            [[bus.slave]]
+            address = 248
+            [[bus]]
+            name = "a"
+            device = ""
+            [[route]]
+            units = "1-3"
+            bus = "nope"
+            "#,
+        );
+        let keys: Vec<&str> = e.iter().map(|s| s.split(':').next().unwrap()).collect();
+        assert_eq!(
+            keys,
+            [
+                "bus[0].data_bits",
+                "bus[0].stop_bits",
+                "bus[0].slave[0].address",
+                "bus[1].name",
+                "bus[1].device",
+                "route[0].bus"
+            ],
+            "{e:#?}"
+        );
+    }
+
+    #[test]
+    fn a_config_without_buses_is_refused() {
+        assert_eq!(errors("")[0], "bus: at least one [[bus]] is needed");
+    }
+
+    #[test]
+    fn routes_may_not_overlap_or_leave_the_address_range() {
+        let e = errors(&format!(
+            "{MINIMAL}\n[[route]]\nunits = \"1-10\"\nbus = \"line1\"\noffset = 240\n\
+             [[route]]\nunits = [5, 6]\nbus = \"line1\"\naddress = 3\n"
+        ));
+        assert_eq!(e.len(), 2, "{e:?}");
+        assert!(e[0].starts_with("route[0].offset: sends unit 8"), "{e:?}");
+        assert!(
+            e[1].starts_with("route[1].units: unit 5 is already routed by route[0]"),
+            "{e:?}"
+        );
+    }
+
+    #[test]
+    fn sim_slaves_only_live_on_a_sim_bus() {
+        let e = errors(&format!(
+            "{MINIMAL}\n[[bus.sim_slave]]\naddress = \"1-4\"\n"
+        ));
+        assert!(e[0].starts_with("bus[0].sim_slave:"), "{e:?}");
+    }
+
+    #[test]
+    fn bad_fault_knobs_are_refused_by_key() {
+        for (knobs, key, reason) in [
+            (
+                "reply_function = 0",
+                "reply_function",
+                "must be a function code 1-127",
+            ),
+            (
+                "reply_function = 131",
+                "reply_function",
+                "must be a function code 1-127",
+            ),
+            (
+                "truncate_reply = 0",
+                "truncate_reply",
+                "must be at least 1 byte",
+            ),
+            (
+                "reply_gap = \"30ms\"",
+                "reply_gap_after",
+                "is required with reply_gap",
+            ),
+            (
+                "reply_gap_after = 3",
+                "reply_gap",
+                "is required with reply_gap_after",
+            ),
+            (
+                "reply_gap = \"30ms\"\nreply_gap_after = 0",
+                "reply_gap_after",
+                "must be at least 1 byte",
+            ),
+        ] {
+            let e = errors(&format!("{SIM_BUS}{knobs}\n"));
+            let expected = format!("bus[0].sim_slave[0].{key}: {reason}");
+            assert!(
+                e.len() == 1 && e[0].starts_with(&expected),
+                "{knobs}: {e:?}"
+            );
+        }
+    }
+}

@@ -1,0 +1,57 @@
+//! Every default of the configuration, defined once: the values a key takes when the file and the
+//! environment leave it out. Knows nothing of how they are checked or used.
+
+use crate::rtu::Parity;
+use std::net::SocketAddr;
+use std::time::Duration;
+
+pub fn listen() -> Vec<SocketAddr> {
+    vec![SocketAddr::from(([0, 0, 0, 0], 502))]
+}
+pub const MAX_CONNECTIONS: usize = 1024;
+pub const IDLE_TIMEOUT: Duration = Duration::from_secs(600);
+pub const PIPELINE_DEPTH: usize = 16;
+pub const SHUTDOWN_TIMEOUT: Duration = Duration::from_secs(10);
+pub const FRAME_TIMEOUT: Duration = Duration::from_secs(5);
+pub const KEEPALIVE: Duration = Duration::from_secs(60);
+pub fn metrics_listen() -> SocketAddr {
+    SocketAddr::from(([127, 0, 0, 1], 9502))
+}
+pub const LOG_LEVEL: &str = "info";
+
+pub fn baud() -> u32 {
+    19_200
+}
+pub fn data_bits() -> u8 {
+    8
+}
+pub fn parity() -> Parity {
+    Parity::Even
+}
+pub fn response_timeout() -> Duration {
+    Duration::from_secs(1)
+}
+pub fn turnaround_delay() -> Duration {
+    Duration::from_millis(100)
+}
+pub fn broadcast_reply() -> bool {
+    true
+}
+pub fn queue_depth() -> usize {
+    256
+}
+pub fn queue_timeout() -> Duration {
+    Duration::from_secs(1)
+}
+pub fn reopen_delay() -> Duration {
+    Duration::from_millis(250)
+}
+pub fn reopen_delay_max() -> Duration {
+    Duration::from_secs(5)
+}
+pub fn slave_down_after() -> u32 {
+    3
+}
+pub fn slave_probe_interval() -> Duration {
+    Duration::from_secs(5)
+}

@@ -1,0 +1,74 @@
+//! The configuration: the TOML file and the `MBGW__` environment ([`Config::load`]), every
+//! default defined once ([`defaults`]), a check whose errors name the key and the reason
+//! ([`Config::check`]), the values derived after it ([`Config::resolve`]), and what changed
+//! between two of them ([`ConfigDiff`]). Produces plain values; knows nothing of sockets, ports,
+//! tasks or the simulator (a simulated drive's parameters are checked through the
+//! [`DriveCheck`] the caller passes).
+
+mod bus;
+mod check;
+pub mod defaults;
+pub mod diff;
+mod load;
+mod log;
+mod metrics;
+mod resolve;
+mod route;
+mod serde_adapters;
+mod server;
+mod unit_set;
+
+pub use bus::{Bus, SimModel, SimSlave, Slave, SIM_DEVICE};
+pub use check::{DriveCheck, DriveRefusal};
+pub use diff::{BusChange, ConfigDiff};
+pub use load::{ConfigError, ConfigErrors, DEFAULT_PATH, ENV_PREFIX};
+pub use log::{Log, LogFormat};
+pub use metrics::Metrics;
+pub use route::Route;
+pub use server::{Server, WhenFull};
+pub use unit_set::UnitSet;
+
+use serde::{Deserialize, Serialize};
+
+/// Highest unicast slave address on a serial line.
+pub const MAX_SLAVE_ADDRESS: u8 = 247;
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    #[serde(default)]
+    pub server: Server,
+    #[serde(default)]
+    pub metrics: Metrics,
+    #[serde(default)]
+    pub log: Log,
+    #[serde(default)]
+    pub bus: Vec<Bus>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub route: Vec<Route>,
+}
+
+#[cfg(test)]
+mod properties;
+
+/// What the tests of several files load and expect.
+#[cfg(test)]
+mod testing {
+    use super::Config;
+
+    pub const MINIMAL: &str = r#"
+        [[bus]]
+        name = "line1"
+        device = "/dev/ttyUSB0"
+    "#;
+
+    /// Every error `text` gets, as printed.
+    pub fn errors(text: &str) -> Vec<String> {
+        Config::from_toml_str(text)
+            .expect_err("config should be refused")
+            .0
+            .iter()
+            .map(ToString::to_string)
+            .collect()
+    }
+}

@@ -1,0 +1,94 @@
+//! The `[server]` section: the Modbus TCP side's listeners, limits, timeouts and access lists, as
+//! values. Knows nothing of sockets or sessions.
+
+use super::defaults;
+use super::serde_adapters::{duration, text_list};
+use ipnet::IpNet;
+use serde::{Deserialize, Serialize};
+use std::net::SocketAddr;
+use std::time::Duration;
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Server {
+    /// One address, a comma-separated string of them, or a list.
+    #[serde(with = "text_list")]
+    pub listen: Vec<SocketAddr>,
+    /// TCP connections open at once, over all listeners; more are refused.
+    pub max_connections: usize,
+    /// A connection with no request and nothing pending for this long is closed ("0s": never).
+    #[serde(with = "duration")]
+    pub idle_timeout: Duration,
+    /// Requests one connection may have in flight; the gateway stops reading until one is answered.
+    pub pipeline_depth: usize,
+    /// On SIGTERM/SIGINT, how long queued requests may still be served; the rest get 0x0A.
+    #[serde(with = "duration")]
+    pub shutdown_timeout: Duration,
+    /// What a new connection does at `max_connections`.
+    pub when_full: WhenFull,
+    /// A request's bytes must all be in this long after its first byte, or the connection closes.
+    #[serde(with = "duration")]
+    pub frame_timeout: Duration,
+    /// TCP keepalive: silence before the first probe of a connection's peer ("0s": off).
+    #[serde(with = "duration")]
+    pub keepalive: Duration,
+    /// Who may connect: addresses or networks; empty: anyone.
+    #[serde(with = "text_list", skip_serializing_if = "Vec::is_empty")]
+    pub allow: Vec<IpNet>,
+    /// Masters connecting from these may only read: anything else gets exception 0x01.
+    #[serde(with = "text_list", skip_serializing_if = "Vec::is_empty")]
+    pub read_only: Vec<IpNet>,
+}
+
+/// What a connection beyond `server.max_connections` does.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum WhenFull {
+    /// Close the connection that has been idle longest (nothing in flight), then accept; refuse
+    /// if every connection has a request in flight.
+    #[default]
+    CloseOldestIdle,
+    /// Refuse the new connection.
+    Refuse,
+}
+
+impl Default for Server {
+    fn default() -> Self {
+        Server {
+            listen: defaults::listen(),
+            max_connections: defaults::MAX_CONNECTIONS,
+            idle_timeout: defaults::IDLE_TIMEOUT,
+            pipeline_depth: defaults::PIPELINE_DEPTH,
+            shutdown_timeout: defaults::SHUTDOWN_TIMEOUT,
+            when_full: WhenFull::default(),
+            frame_timeout: defaults::FRAME_TIMEOUT,
+            keepalive: defaults::KEEPALIVE,
+            allow: Vec::new(),
+            read_only: Vec::new(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::config::testing::MINIMAL;
+    use crate::config::Config;
+
+    #[test]
+    fn allow_and_read_only_take_networks_single_addresses_and_comma_strings() {
+        let c = Config::from_toml_str(&format!(
+            "[server]\nallow = [\"10.1.0.0/16\", \"192.168.1.7\", \"fd00::/8\"]\n\
+             read_only = \"10.1.2.0/24, ::1\"\n{MINIMAL}"
+        ))
+        .unwrap();
+        let nets: Vec<String> = c.server.allow.iter().map(ToString::to_string).collect();
+        assert_eq!(nets, ["10.1.0.0/16", "192.168.1.7/32", "fd00::/8"]);
+        let nets: Vec<String> = c.server.read_only.iter().map(ToString::to_string).collect();
+        assert_eq!(nets, ["10.1.2.0/24", "::1/128"]);
+        // Host bits are dropped: "10.1.2.3/8" is the network 10.0.0.0/8.
+        let c =
+            Config::from_toml_str(&format!("[server]\nallow = \"10.1.2.3/8\"\n{MINIMAL}")).unwrap();
+        assert_eq!(c.server.allow[0].to_string(), "10.0.0.0/8");
+        assert_eq!(Config::from_toml_str(&c.to_toml()).unwrap(), c);
+    }
+}
