@@ -2,8 +2,8 @@
 //! in [`defaults`]), and validation whose errors name the key and the reason. Produces plain
 //! values; knows nothing of sockets, ports or tasks.
 
+use crate::line::{LineTiming, MasterTiming, Parity, SerialFormat};
 use crate::pdu::EXCEPTION_BIT;
-use crate::rtu::{LineTiming, MasterTiming, Parity, SerialFormat};
 use crate::sim::{self, faults::Faults, Pause};
 use ipnet::IpNet;
 use serde::{Deserialize, Serialize};

@@ -7,8 +7,8 @@
 //! /proc, so the masters' cost is not in it; the simulated slaves', inside the gateway, is).
 
 use clap::Parser;
+use modbus_gateway::line::{LineTiming, Parity, SerialFormat};
 use modbus_gateway::rtu::frame::{self, FrameLen};
-use modbus_gateway::rtu::{LineTiming, Parity, SerialFormat};
 use modbus_gateway::sim::{RegisterBank, SimSlave};
 use serde::Serialize;
 use std::net::SocketAddr;

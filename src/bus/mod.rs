@@ -13,10 +13,10 @@ pub use queue::{FairQueue, Job, MasterId};
 
 use crate::config;
 use crate::error::{Answer, Outcome, RequestError};
+use crate::line::{Framing, LineMaster, MasterTiming, ReplyForm, TxError};
 use crate::metrics::{BusMetrics, Metrics};
 use crate::pdu;
-use crate::rtu::frame::{ReplyForm, BROADCAST, MAX_FRAME_LEN};
-use crate::rtu::{MasterTiming, RtuMaster, TxError};
+use crate::rtu::frame::{BROADCAST, MAX_FRAME_LEN};
 use crate::shutdown::Stopping;
 use health::{Admission, Change, DownPolicy, Health, Response};
 use std::io;
@@ -317,7 +317,7 @@ impl Bus {
     }
 
     /// Set the master's timing and reply forms from the settings.
-    fn configure(&self, master: &mut RtuMaster<Port>) {
+    fn configure(&self, master: &mut LineMaster<Port>) {
         master.set_timing(self.derived.timing);
         for address in 0..=u8::MAX {
             master.set_reply_form(address, ReplyForm::Standard);
@@ -347,7 +347,7 @@ impl Bus {
                         .map(|(since, failed_opens)| (since.elapsed(), failed_opens));
                     metrics.port_opened(&self.settings.device, down);
                     delay = self.settings.reopen_delay;
-                    let mut master = RtuMaster::new(port, self.derived.timing);
+                    let mut master = LineMaster::new(port, Framing::Rtu, self.derived.timing);
                     self.configure(&mut master);
                     let end = self.serve(master, &mut stopping).await;
                     self.set_up(false);
@@ -423,7 +423,7 @@ impl Bus {
 
     /// Serve requests on an open port until it is lost, or, once a stop is asked for, until the
     /// queue is empty or the stop's deadline has passed.
-    async fn serve(&mut self, mut master: RtuMaster<Port>, stopping: &mut Stopping) -> End {
+    async fn serve(&mut self, mut master: LineMaster<Port>, stopping: &mut Stopping) -> End {
         let metrics = self.handle.metrics.clone();
         let mut counted = master.counters();
         let mut deadline = stopping.deadline();
@@ -519,7 +519,7 @@ impl Bus {
     /// of a slave that is down. `Err` only when the port is lost.
     async fn execute(
         &mut self,
-        master: &mut RtuMaster<Port>,
+        master: &mut LineMaster<Port>,
         job: &Job,
         stop_at: Option<Instant>,
         probe: bool,

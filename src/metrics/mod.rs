@@ -9,7 +9,7 @@ pub mod http;
 
 use crate::config;
 use crate::error::{Answer, Outcome, RequestError};
-use crate::rtu::{LineCounters, TxError};
+use crate::line::{LineCounters, TxError};
 use prometheus::{
     Counter, CounterVec, Gauge, GaugeVec, Histogram, HistogramOpts, HistogramVec, IntCounter,
     IntCounterVec, IntGauge, IntGaugeVec, Opts, Registry, TextEncoder,
