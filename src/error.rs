@@ -1,8 +1,8 @@
 //! What fails one request (session-level failures live in `tcp`), and the one place such a
 //! failure becomes the exception code the master sees.
 
+use crate::line::{Reply, TxError};
 use crate::pdu::ExceptionCode;
-use crate::rtu::{Reply, TxError};
 
 /// What a request gets: an [`Answer`] to send back, or a failure the gateway answers itself.
 pub type Outcome = Result<Answer, RequestError>;

@@ -7,7 +7,9 @@
 //! - [`routing`]: unit id to (bus, slave address), a pure table.
 //! - [`bus`]: one task per line, the only owner of its port: fair queue, reopen, retries,
 //!   broadcast.
-//! - [`rtu`]: the RTU master: CRC, frames, t3.5 timing, one transaction on a port.
+//! - [`line`]: the master side of a serial line: one transaction at a time on a port, its gap,
+//!   deadlines and late replies, whatever the framing; the judgement of replies against requests.
+//! - [`rtu`]: the RTU framing: CRC-16, frames as bytes, their lengths.
 //! - [`sim`]: the simulated RS-485 line and its slaves (`device = "sim"`).
 //! - [`metrics`]: what all of the above count, and the HTTP endpoint that serves it with the
 //!   health checks.
@@ -24,6 +26,7 @@ pub mod config;
 pub mod dispatch;
 pub mod error;
 pub mod gateway;
+pub mod line;
 pub mod logging;
 pub mod metrics;
 pub mod pdu;

@@ -4,7 +4,7 @@
 
 use clap::{Parser, Subcommand};
 use modbus_gateway::config::{self, Config, DEFAULT_PATH, ENV_PREFIX};
-use modbus_gateway::rtu::Parity;
+use modbus_gateway::line::Parity;
 use modbus_gateway::{gateway, logging, simulate, Gateway};
 use sd_notify::NotifyState;
 use std::convert::Infallible;

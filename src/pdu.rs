@@ -1,5 +1,6 @@
-//! Facts about Modbus PDUs that both sides of the gateway share: exception codes, which requests
-//! only read, which may be broadcast, and what a broadcast write is answered with.
+//! Facts about Modbus PDUs that both sides of the gateway share: exception codes, and one table of
+//! what the gateway knows about each function code (name, request and reply lengths, whether it
+//! reads, what a broadcast of it is answered with, the shape of its reply).
 //! Knows nothing of MBAP, RTU framing, sockets or serial ports.
 
 /// Largest PDU a Modbus ADU can carry (256-byte RTU frame minus address and CRC).
@@ -8,6 +9,12 @@ pub const MAX_PDU_LEN: usize = 253;
 /// Set in the function code of a reply that is an exception.
 pub const EXCEPTION_BIT: u8 = 0x80;
 
+use code::*;
+use Access::{Read, ReadIf, Write};
+use Broadcast::{EchoFirst, EchoRequest, Refused};
+
+/// Exception replies: function | 0x80, exception code.
+pub const EXCEPTION_PDU_LEN: usize = 2;
 /// Exception codes the gateway itself sends. Slave exceptions pass through as raw bytes and are
 /// never converted to this type, so vendor codes (05-09 on the reference drives) survive.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -56,38 +63,308 @@ pub fn is_valid_request_function(function: u8) -> bool {
     function != 0 && function & EXCEPTION_BIT == 0
 }
 
-/// Requests that change nothing on the slave, so repeating them after a lost reply is harmless.
-/// Anything not known to be a read (user-defined codes included) counts as a write.
-pub fn is_read_only(pdu: &[u8]) -> bool {
-    match pdu.first() {
-        Some(0x01..=0x04 | 0x07 | 0x0B | 0x0C | 0x11 | 0x14 | 0x18) => true,
-        // Diagnostics: echo, diagnostic register and the counters read; the rest restart or clear.
-        Some(0x08) => matches!(sub_function(pdu), Some(0x0000 | 0x0002 | 0x000B..=0x0012)),
-        // Encapsulated interface: only Read Device Identification is known to be a read.
-        Some(0x2B) => pdu.get(1) == Some(&0x0E),
-        _ => false,
-    }
+/// What the gateway knows about one function code. Codes without a row are user-defined or
+/// unknown: their PDUs end by silence, count as writes, cannot be broadcast and fit any reply.
+#[derive(Clone, Copy, Debug)]
+pub struct Function {
+    pub code: u8,
+    /// The name the Modbus Application Protocol V1.1b3 gives it.
+    pub name: &'static str,
+    /// How long a request PDU is.
+    pub request: Len,
+    /// How long a normal reply PDU is (an exception is always [`EXCEPTION_PDU_LEN`]).
+    pub reply: Len,
+    pub access: Access,
+    /// What a broadcast of it is answered with, by the gateway since no slave answers.
+    pub broadcast: Broadcast,
+    /// What a normal reply must look like to answer the request.
+    pub reply_shape: Shape,
+}
+
+/// How the length of a PDU follows from its first bytes (offsets within the PDU).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Len {
+    /// Always this many bytes.
+    Fixed(usize),
+    /// A byte count at `at` (one byte, or two big-endian bytes when `wide`), then that many bytes.
+    Counted { at: usize, wide: bool },
+    /// As long as the request it answers (diagnostics echo their request's data).
+    Echo,
+    /// Byte 1 is the MEI type: Read Device Identification (0x0E) follows `read_device_id`, other
+    /// MEI types are unknown.
+    Mei { read_device_id: &'static Len },
+    /// A header of `count_at + 1` bytes whose last byte counts objects, each an id byte, a
+    /// length byte and that many value bytes (Read Device Identification replies).
+    Objects { count_at: usize },
+    /// The bytes cannot tell: the PDU ends when the line falls silent.
+    Unknown,
+}
+
+/// What [`Len::of`] can tell from the bytes received so far.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PduLen {
+    /// The length is known once at least this many bytes are in.
+    Need(usize),
+    /// The PDU is exactly this many bytes long.
+    Exact(usize),
+    /// The bytes cannot tell.
+    Unknown,
+    /// The header announces more than [`MAX_PDU_LEN`]: these bytes are not a PDU.
+    Invalid,
+}
+
+/// Whether a request changes anything on the slave.
+#[derive(Clone, Copy, Debug)]
+pub enum Access {
+    Read,
+    Write,
+    /// Reads when the PDU says so (a sub-function or MEI type), writes otherwise.
+    ReadIf(fn(&[u8]) -> bool),
+}
+
+/// The normal response to a broadcast request.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Broadcast {
+    /// The serial line spec allows no broadcast of it: the gateway refuses it.
+    Refused,
+    /// The response echoes the whole request.
+    EchoRequest,
+    /// The response echoes the first `n` bytes of the request.
+    EchoFirst(usize),
+}
+
+/// What a normal reply must hold to answer its request.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Shape {
+    /// Byte 1 counts the bytes of the quantity the request asks for at bytes `quantity_at..+2`.
+    ByteCount { quantity_at: usize, unit: Unit },
+    /// Bytes `from..to` are those of the request.
+    Echo { from: usize, to: usize },
+    /// Anything with the right function code.
+    Any,
+}
+
+/// What a read quantity counts.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Unit {
+    /// Coils and inputs, eight to a byte.
+    Bits,
+    /// Registers, two bytes each.
+    Words,
+}
+
+/// Diagnostics: echo, diagnostic register and the counters read; the rest restart or clear.
+fn diagnostics_reads(pdu: &[u8]) -> bool {
+    matches!(sub_function(pdu), Some(0x0000 | 0x0002 | 0x000B..=0x0012))
+}
+
+/// Encapsulated interface: only Read Device Identification is known to be a read.
+fn mei_reads(pdu: &[u8]) -> bool {
+    pdu.get(1) == Some(&MEI_READ_DEVICE_ID)
 }
 
 fn sub_function(pdu: &[u8]) -> Option<u16> {
     Some(u16::from_be_bytes([*pdu.get(1)?, *pdu.get(2)?]))
 }
 
-/// Function codes the serial line spec allows to address 0: the writes. Everything else sent to
-/// the broadcast address is refused by the gateway and never reaches the line.
-pub fn is_broadcastable(function: u8) -> bool {
-    matches!(function, 0x05 | 0x06 | 0x0F | 0x10 | 0x15 | 0x16)
+/// The MEI type of Read Device Identification.
+const MEI_READ_DEVICE_ID: u8 = 0x0E;
+
+const fn row(
+    code: u8,
+    name: &'static str,
+    request: Len,
+    reply: Len,
+    access: Access,
+    broadcast: Broadcast,
+    reply_shape: Shape,
+) -> Function {
+    Function {
+        code,
+        name,
+        request,
+        reply,
+        access,
+        broadcast,
+        reply_shape,
+    }
+}
+
+/// A byte count right after the function code.
+const COUNT: Len = Len::Counted { at: 1, wide: false };
+/// Function code alone.
+const BARE: Len = Len::Fixed(1);
+/// Function code, then two words: address and quantity, or address and value.
+const TWO_WORDS: Len = Len::Fixed(5);
+const BITS: Shape = Shape::ByteCount {
+    quantity_at: 3,
+    unit: Unit::Bits,
+};
+const WORDS: Shape = Shape::ByteCount {
+    quantity_at: 3,
+    unit: Unit::Words,
+};
+/// Single writes echo the whole request: a late echo of an earlier write of another value to the
+/// same address is not this write's answer.
+const ECHO_SINGLE_WRITE: Shape = Shape::Echo { from: 0, to: 5 };
+/// Multiple writes echo the address and quantity they wrote.
+const ECHO_ADDRESS_AND_QUANTITY: Shape = Shape::Echo { from: 1, to: 5 };
+/// Diagnostics echo the sub-function.
+const ECHO_SUB_FUNCTION: Shape = Shape::Echo { from: 1, to: 3 };
+/// Encapsulated interface transports echo the MEI type.
+const ECHO_MEI_TYPE: Shape = Shape::Echo { from: 1, to: 2 };
+
+/// Every function code the gateway knows, in code order. Diagnostics replies echo their request,
+/// so only the request tells their length; diagnostics requests end by silence.
+#[rustfmt::skip]
+pub const FUNCTIONS: &[Function] = &[
+    // code, name,
+    //     request, reply, access, broadcast answer, reply shape
+    row(READ_COILS, "Read Coils",
+        TWO_WORDS, COUNT, Read, Refused, BITS),
+    row(READ_DISCRETE_INPUTS, "Read Discrete Inputs",
+        TWO_WORDS, COUNT, Read, Refused, BITS),
+    row(READ_HOLDING_REGISTERS, "Read Holding Registers",
+        TWO_WORDS, COUNT, Read, Refused, WORDS),
+    row(READ_INPUT_REGISTERS, "Read Input Registers",
+        TWO_WORDS, COUNT, Read, Refused, WORDS),
+    row(WRITE_SINGLE_COIL, "Write Single Coil",
+        TWO_WORDS, TWO_WORDS, Write, EchoRequest, ECHO_SINGLE_WRITE),
+    row(WRITE_SINGLE_REGISTER, "Write Single Register",
+        TWO_WORDS, TWO_WORDS, Write, EchoRequest, ECHO_SINGLE_WRITE),
+    row(READ_EXCEPTION_STATUS, "Read Exception Status",
+        BARE, Len::Fixed(2), Read, Refused, Shape::Any),
+    row(DIAGNOSTICS, "Diagnostics",
+        Len::Unknown, Len::Echo, ReadIf(diagnostics_reads), Refused, ECHO_SUB_FUNCTION),
+    row(GET_COMM_EVENT_COUNTER, "Get Comm Event Counter",
+        BARE, TWO_WORDS, Read, Refused, Shape::Any),
+    row(GET_COMM_EVENT_LOG, "Get Comm Event Log",
+        BARE, COUNT, Read, Refused, Shape::Any),
+    row(WRITE_MULTIPLE_COILS, "Write Multiple Coils",
+        Len::Counted { at: 5, wide: false }, TWO_WORDS, Write, EchoFirst(5), ECHO_ADDRESS_AND_QUANTITY),
+    row(WRITE_MULTIPLE_REGISTERS, "Write Multiple Registers",
+        Len::Counted { at: 5, wide: false }, TWO_WORDS, Write, EchoFirst(5), ECHO_ADDRESS_AND_QUANTITY),
+    row(REPORT_SERVER_ID, "Report Server ID",
+        BARE, COUNT, Read, Refused, Shape::Any),
+    row(READ_FILE_RECORD, "Read File Record",
+        COUNT, COUNT, Read, Refused, Shape::Any),
+    row(WRITE_FILE_RECORD, "Write File Record",
+        COUNT, COUNT, Write, EchoRequest, Shape::Any),
+    row(MASK_WRITE_REGISTER, "Mask Write Register",
+        Len::Fixed(7), Len::Fixed(7), Write, EchoRequest, Shape::Echo { from: 0, to: 7 }),
+    row(READ_WRITE_MULTIPLE_REGISTERS, "Read/Write Multiple Registers",
+        Len::Counted { at: 9, wide: false }, COUNT, Write, Refused, WORDS),
+    row(READ_FIFO_QUEUE, "Read FIFO Queue",
+        Len::Fixed(3), Len::Counted { at: 1, wide: true }, Read, Refused, Shape::Any),
+    row(ENCAPSULATED_INTERFACE, "Encapsulated Interface Transport",
+        Len::Mei { read_device_id: &Len::Fixed(4) },
+        Len::Mei { read_device_id: &Len::Objects { count_at: 6 } },
+        ReadIf(mei_reads), Refused, ECHO_MEI_TYPE),
+];
+
+/// No row: the index's value for codes the table lacks.
+const NO_ROW: u8 = u8::MAX;
+
+/// Row of each function code in [`FUNCTIONS`], built once at compile time so the per-frame lookup
+/// is one array access.
+const INDEX: [u8; 256] = {
+    let mut index = [NO_ROW; 256];
+    let mut row = 0;
+    while row < FUNCTIONS.len() {
+        let code = FUNCTIONS[row].code as usize;
+        assert!(index[code] == NO_ROW, "a function code has two rows");
+        index[code] = row as u8;
+        row += 1;
+    }
+    index
+};
+
+/// What the gateway knows about function code `code`, if anything.
+pub fn function(code: u8) -> Option<&'static Function> {
+    match INDEX[usize::from(code)] {
+        NO_ROW => None,
+        row => Some(&FUNCTIONS[usize::from(row)]),
+    }
+}
+
+impl Len {
+    /// The length of the PDU whose first bytes are `pdu`, as far as they tell. `request` is the
+    /// request a reply answers, `None` when the bytes are a request or claim to answer another.
+    pub fn of(&self, pdu: &[u8], request: Option<&[u8]>) -> PduLen {
+        match *self {
+            Len::Fixed(len) => PduLen::Exact(len),
+            Len::Counted { at, wide } => counted(pdu, at, wide),
+            Len::Echo => request.map_or(PduLen::Unknown, |request| exact(request.len())),
+            Len::Mei { read_device_id } => match pdu.get(1) {
+                None => PduLen::Need(2),
+                Some(&MEI_READ_DEVICE_ID) => read_device_id.of(pdu, request),
+                Some(_) => PduLen::Unknown,
+            },
+            Len::Objects { count_at } => objects(pdu, count_at),
+            Len::Unknown => PduLen::Unknown,
+        }
+    }
+}
+
+fn exact(len: usize) -> PduLen {
+    if len > MAX_PDU_LEN {
+        PduLen::Invalid
+    } else {
+        PduLen::Exact(len)
+    }
+}
+
+fn counted(pdu: &[u8], at: usize, wide: bool) -> PduLen {
+    let header = at + if wide { 2 } else { 1 };
+    if pdu.len() < header {
+        return PduLen::Need(header);
+    }
+    let count = if wide {
+        usize::from(u16::from_be_bytes([pdu[at], pdu[at + 1]]))
+    } else {
+        usize::from(pdu[at])
+    };
+    exact(header + count)
+}
+
+fn objects(pdu: &[u8], count_at: usize) -> PduLen {
+    let header = count_at + 1;
+    if pdu.len() < header {
+        return PduLen::Need(header);
+    }
+    let mut end = header;
+    for _ in 0..pdu[count_at] {
+        if pdu.len() < end + 2 {
+            return PduLen::Need(end + 2);
+        }
+        end += 2 + usize::from(pdu[end + 1]);
+        if end > MAX_PDU_LEN {
+            return PduLen::Invalid;
+        }
+    }
+    exact(end)
+}
+
+/// Requests that change nothing on the slave, so repeating them after a lost reply is harmless.
+/// Anything not known to be a read (user-defined codes included) counts as a write.
+pub fn is_read_only(pdu: &[u8]) -> bool {
+    let Some(row) = pdu.first().and_then(|&code| function(code)) else {
+        return false;
+    };
+    match row.access {
+        Access::Read => true,
+        Access::Write => false,
+        Access::ReadIf(reads) => reads(pdu),
+    }
 }
 
 /// The normal response to a broadcast write, which the gateway makes itself because no slave
 /// answers a broadcast. `None` for requests that cannot be broadcast or are too short to answer.
 pub fn broadcast_response(pdu: &[u8]) -> Option<Vec<u8>> {
-    match *pdu.first()? {
-        // Write single coil/register, write file record, mask write: the response echoes the request.
-        0x05 | 0x06 | 0x15 | 0x16 => Some(pdu.to_vec()),
-        // Write multiple coils/registers: function, starting address, quantity.
-        0x0F | 0x10 => pdu.get(..5).map(<[u8]>::to_vec),
-        _ => None,
+    match function(*pdu.first()?)?.broadcast {
+        Broadcast::EchoRequest => Some(pdu.to_vec()),
+        Broadcast::EchoFirst(n) => pdu.get(..n).map(<[u8]>::to_vec),
+        Broadcast::Refused => None,
     }
 }
 
@@ -146,5 +423,174 @@ mod tests {
         assert!(!is_valid_request_function(0x00));
         assert!(is_valid_request_function(0x41));
         assert!(!is_valid_request_function(0x83));
+    }
+
+    #[test]
+    fn the_table_knows_each_code_once_by_its_name_and_finds_it_by_code() {
+        for (i, row) in FUNCTIONS.iter().enumerate() {
+            assert!(!row.name.is_empty(), "{:02X} has no name", row.code);
+            assert!(is_valid_request_function(row.code), "{:02X}", row.code);
+            let later = &FUNCTIONS[i + 1..];
+            assert!(
+                later.iter().all(|other| other.code > row.code),
+                "{:02X}",
+                row.code
+            );
+            assert_eq!(function(row.code).map(|found| found.code), Some(row.code));
+        }
+        let known = [
+            0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x07, 0x08, 0x0B, 0x0C, 0x0F, 0x10, 0x11, 0x14,
+            0x15, 0x16, 0x17, 0x18, 0x2B,
+        ];
+        for code in 0..=u8::MAX {
+            assert_eq!(
+                function(code).is_some(),
+                known.contains(&code),
+                "{code:02X}"
+            );
+        }
+        assert_eq!(
+            function(code::READ_HOLDING_REGISTERS).map(|f| f.name),
+            Some("Read Holding Registers")
+        );
+    }
+
+    /// Reads `pdu` byte by byte with `rule`: every prefix must ask for more bytes, up to and no
+    /// further than the whole PDU, which must then be exactly its length.
+    fn assert_measures_whole(rule: Len, pdu: &[u8], request: Option<&[u8]>) {
+        for k in 0..pdu.len() {
+            match rule.of(&pdu[..k], request) {
+                PduLen::Need(n) => assert!(k < n && n <= pdu.len(), "Need({n}) at {k}"),
+                PduLen::Exact(n) => assert_eq!(n, pdu.len(), "at {k} of {pdu:02X?}"),
+                other => panic!("{other:?} at {k} of {pdu:02X?}"),
+            }
+        }
+        assert_eq!(
+            rule.of(pdu, request),
+            PduLen::Exact(pdu.len()),
+            "{pdu:02X?}"
+        );
+    }
+
+    /// One worked (request PDU, reply PDU) for every row: the Goodrive300 manual 10.4 (03, 06, 08,
+    /// 10) and the examples of the Modbus Application Protocol V1.1b3 (the rest).
+    const WORKED: [(&[u8], &[u8]); 19] = [
+        // Read coils 20-22 (0013H, 3 coils): one data byte.
+        (&[0x01, 0x00, 0x13, 0x00, 0x03], &[0x01, 0x01, 0x05]),
+        // Read discrete inputs 197-218 (00C4H, 22 inputs): three data bytes.
+        (
+            &[0x02, 0x00, 0xC4, 0x00, 0x16],
+            &[0x02, 0x03, 0xAC, 0xDB, 0x35],
+        ),
+        // Read 2 words from 0004H; 0004H = 1388H, 0005H = 0.
+        (
+            &[0x03, 0x00, 0x04, 0x00, 0x02],
+            &[0x03, 0x04, 0x13, 0x88, 0x00, 0x00],
+        ),
+        // Read input register 9 (0008H): 000AH.
+        (&[0x04, 0x00, 0x08, 0x00, 0x01], &[0x04, 0x02, 0x00, 0x0A]),
+        // Write coil 173 (00ACH) ON: the reply is the echo.
+        (
+            &[0x05, 0x00, 0xAC, 0xFF, 0x00],
+            &[0x05, 0x00, 0xAC, 0xFF, 0x00],
+        ),
+        // Write 1388H to 0004H: the reply is the echo.
+        (
+            &[0x06, 0x00, 0x04, 0x13, 0x88],
+            &[0x06, 0x00, 0x04, 0x13, 0x88],
+        ),
+        // Read exception status: one status byte.
+        (&[0x07], &[0x07, 0x6D]),
+        // Diagnostics, return query data 12ABH: echoed.
+        (
+            &[0x08, 0x00, 0x00, 0x12, 0xAB],
+            &[0x08, 0x00, 0x00, 0x12, 0xAB],
+        ),
+        // Get comm event counter: status FFFFH, count 0108H.
+        (&[0x0B], &[0x0B, 0xFF, 0xFF, 0x01, 0x08]),
+        // Get comm event log: count 8, status, event count, message count, two events.
+        (
+            &[0x0C],
+            &[0x0C, 0x08, 0x00, 0x00, 0x01, 0x08, 0x01, 0x21, 0x20, 0x00],
+        ),
+        // Write 10 coils from 0013H (two data bytes): address and quantity echoed.
+        (
+            &[0x0F, 0x00, 0x13, 0x00, 0x0A, 0x02, 0xCD, 0x01],
+            &[0x0F, 0x00, 0x13, 0x00, 0x0A],
+        ),
+        // Write 1388H, 0032H to 0004H-0005H: address and quantity echoed.
+        (
+            &[0x10, 0x00, 0x04, 0x00, 0x02, 0x04, 0x13, 0x88, 0x00, 0x32],
+            &[0x10, 0x00, 0x04, 0x00, 0x02],
+        ),
+        // Report server ID: count 3, server id, run indicator ON, one more byte.
+        (&[0x11], &[0x11, 0x03, 0x42, 0xFF, 0x00]),
+        // Read file record: two sub-requests (14 bytes), two records back (12 bytes).
+        (
+            &[
+                0x14, 0x0E, 0x06, 0x00, 0x04, 0x00, 0x01, 0x00, 0x02, 0x06, 0x00, 0x03, 0x00, 0x09,
+                0x00, 0x02,
+            ],
+            &[
+                0x14, 0x0C, 0x05, 0x06, 0x0D, 0xFE, 0x00, 0x20, 0x05, 0x06, 0x33, 0xCD, 0x00, 0x40,
+            ],
+        ),
+        // Write file record: one sub-request of three words (13 bytes), echoed.
+        (
+            &[
+                0x15, 0x0D, 0x06, 0x00, 0x04, 0x00, 0x07, 0x00, 0x03, 0x06, 0xAF, 0x04, 0xBE, 0x10,
+                0x0D,
+            ],
+            &[
+                0x15, 0x0D, 0x06, 0x00, 0x04, 0x00, 0x07, 0x00, 0x03, 0x06, 0xAF, 0x04, 0xBE, 0x10,
+                0x0D,
+            ],
+        ),
+        // Mask write 0004H, AND 00F2H, OR 0025H: echoed.
+        (
+            &[0x16, 0x00, 0x04, 0x00, 0xF2, 0x00, 0x25],
+            &[0x16, 0x00, 0x04, 0x00, 0xF2, 0x00, 0x25],
+        ),
+        // Read 6 words from 0003H, write 3 words (6 bytes) to 000EH: twelve bytes back.
+        (
+            &[
+                0x17, 0x00, 0x03, 0x00, 0x06, 0x00, 0x0E, 0x00, 0x03, 0x06, 0x00, 0xFF, 0x00, 0xFF,
+                0x00, 0xFF,
+            ],
+            &[
+                0x17, 0x0C, 0x00, 0xFE, 0x0A, 0xCD, 0x00, 0x01, 0x00, 0x03, 0x00, 0x0D, 0x00, 0xFF,
+            ],
+        ),
+        // Read FIFO queue at 04DEH: two-byte count, two values.
+        (
+            &[0x18, 0x04, 0xDE],
+            &[0x18, 0x00, 0x06, 0x00, 0x02, 0x01, 0xB8, 0x12, 0x84],
+        ),
+        // Read device identification, basic: objects "AB" and "C".
+        (
+            &[0x2B, 0x0E, 0x01, 0x00],
+            &[
+                0x2B, 0x0E, 0x01, 0x01, 0x00, 0x00, 0x02, // header, two objects
+                0x00, 0x02, b'A', b'B', // object 0, two bytes
+                0x01, 0x01, b'C', // object 1, one byte
+            ],
+        ),
+    ];
+
+    #[test]
+    fn every_rows_length_rules_measure_its_worked_frames_byte_by_byte() {
+        for row in FUNCTIONS {
+            let (request, reply) = WORKED
+                .iter()
+                .find(|(request, _)| request[0] == row.code)
+                .unwrap_or_else(|| panic!("no worked frames for {:02X}", row.code));
+            assert_eq!(reply[0], row.code);
+            if row.request == Len::Unknown {
+                assert_eq!(row.request.of(request, None), PduLen::Unknown);
+            } else {
+                assert_measures_whole(row.request, request, None);
+            }
+            assert_measures_whole(row.reply, reply, Some(request));
+        }
     }
 }

@@ -4,7 +4,7 @@
 
 use crate::bus::{Device, Port};
 use crate::config::{Bus, Config};
-use crate::rtu::Parity;
+use crate::line::Parity;
 use crate::sim::{self, responder::Responder};
 use std::io;
 use tokio::time::sleep;
@@ -60,7 +60,7 @@ fn open(bus: &Bus, path: &str) -> io::Result<Port> {
     };
     match device(format).open() {
         Err(e) if format.parity != Parity::None && e.kind() == io::ErrorKind::InvalidInput => {
-            let port = device(crate::rtu::SerialFormat {
+            let port = device(crate::line::SerialFormat {
                 parity: Parity::None,
                 ..format
             })

@@ -4,8 +4,8 @@
 use modbus_gateway::bus::{BusHandle, BusTask, Device};
 use modbus_gateway::error::{Answer, Outcome, RequestError};
 use modbus_gateway::gateway::config_from_toml;
+use modbus_gateway::line::TxError;
 use modbus_gateway::metrics::Metrics;
-use modbus_gateway::rtu::TxError;
 use modbus_gateway::shutdown::Stopping;
 use modbus_gateway::sim::{RegisterBank, Scripted, SimLine, SimSlave, Source, Transmission};
 

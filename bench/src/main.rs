@@ -10,7 +10,7 @@
 use clap::Parser;
 use mio_serial::SerialPort;
 use modbus_gateway::bus::Port;
-use modbus_gateway::rtu::{LineTiming, Parity, SerialFormat};
+use modbus_gateway::line::{LineTiming, Parity, SerialFormat};
 use modbus_gateway::sim::responder::Responder;
 use modbus_gateway::sim::RegisterBank;
 use serde::Serialize;

@@ -1,7 +1,7 @@
 //! What a bus opens: a serial device through tokio-serial, or the simulated line. Both become a
 //! [`Port`] the RTU master drives through [`Transport`].
 
-use crate::rtu::{Parity, SerialFormat, Transport};
+use crate::line::{Parity, SerialFormat, Transport};
 use crate::sim::{SimLine, SimPort};
 use mio_serial::SerialStream;
 use std::future::Future;

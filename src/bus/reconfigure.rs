@@ -6,8 +6,8 @@
 use super::port::{Device, Port};
 use super::{BusHandle, HEARTBEAT, STALL_MARGIN};
 use crate::config;
+use crate::line::{LineMaster, MasterTiming};
 use crate::rtu::frame::{ReplyForm, MAX_FRAME_LEN};
-use crate::rtu::{MasterTiming, RtuMaster};
 use std::sync::PoisonError;
 use std::time::Duration;
 use tokio::sync::watch;
@@ -134,7 +134,7 @@ impl Current {
     }
 
     /// Set the master's timing and reply forms from the settings.
-    pub(super) fn configure(&self, master: &mut RtuMaster<Port>) {
+    pub(super) fn configure(&self, master: &mut LineMaster<Port>) {
         master.set_timing(self.derived.timing);
         for address in 0..=u8::MAX {
             master.set_reply_form(address, ReplyForm::Standard);

@@ -7,8 +7,8 @@ use super::task::{BusTask, Served};
 use super::transaction::Ran;
 use super::{Job, Port, HEARTBEAT};
 use crate::error::RequestError;
+use crate::line::{LineCounters, LineMaster};
 use crate::rtu::frame::BROADCAST;
-use crate::rtu::{LineCounters, RtuMaster};
 use crate::shutdown::Stopping;
 use std::pin::Pin;
 use tokio::time::{sleep, Instant, Sleep};
@@ -23,7 +23,7 @@ enum Next {
 
 /// The serving loop's own state between requests.
 struct Serving<'a> {
-    master: RtuMaster<Port>,
+    master: LineMaster<Port>,
     stopping: &'a mut Stopping,
     /// Once a stop is asked for: no new request starts after this.
     deadline: Option<Instant>,
@@ -39,7 +39,7 @@ impl BusTask {
     /// queue is empty or the stop's deadline has passed.
     pub(super) async fn serve(
         &mut self,
-        master: RtuMaster<Port>,
+        master: LineMaster<Port>,
         stopping: &mut Stopping,
     ) -> Served {
         let mut serving = Serving {

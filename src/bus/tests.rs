@@ -5,8 +5,8 @@ use super::transaction::Ran;
 use super::{BusHandle, BusTask, Device, Job, Reconfigure};
 use crate::config::{self, Config};
 use crate::error::{Answer, Outcome, RequestError};
+use crate::line::{Framing, LineMaster, TxError};
 use crate::metrics::Metrics;
-use crate::rtu::{RtuMaster, TxError};
 use crate::shutdown::Stopping;
 use crate::sim::{RegisterBank, Scripted, SimLine, Transmission};
 use std::time::Duration;
@@ -39,10 +39,10 @@ fn job(slave: u8, pdu: &[u8]) -> (Job, oneshot::Receiver<Outcome>) {
 }
 
 /// A task on `line`, and a master on a port of it, for driving one transaction by hand.
-fn task_on(line: &SimLine, keys: &str) -> (BusTask, RtuMaster<super::Port>) {
+fn task_on(line: &SimLine, keys: &str) -> (BusTask, LineMaster<super::Port>) {
     let task = BusTask::new(settings(keys), Device::Sim(line.clone()), &Metrics::new());
     let port = Device::Sim(line.clone()).open().expect("sim port");
-    let mut master = RtuMaster::new(port, task.current.derived.timing);
+    let mut master = LineMaster::new(port, Framing::Rtu, task.current.derived.timing);
     task.current.configure(&mut master);
     (task, master)
 }

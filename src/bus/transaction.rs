@@ -7,9 +7,9 @@ use super::health::{Change, Response};
 use super::task::BusTask;
 use super::{Job, Port};
 use crate::error::{Answer, Outcome, RequestError};
+use crate::line::{LineMaster, TxError};
 use crate::pdu;
 use crate::rtu::frame::BROADCAST;
-use crate::rtu::{RtuMaster, TxError};
 use std::io;
 use tokio::time::Instant;
 use tracing::debug;
@@ -45,7 +45,7 @@ impl BusTask {
     /// of a slave that is down.
     pub(super) async fn execute(
         &mut self,
-        master: &mut RtuMaster<Port>,
+        master: &mut LineMaster<Port>,
         job: &Job,
         stop_at: Option<Instant>,
         probe: bool,
@@ -97,7 +97,7 @@ impl BusTask {
     }
 
     /// Send a broadcast; its answer, if the configuration wants one, is the gateway's own.
-    async fn broadcast(&mut self, master: &mut RtuMaster<Port>, job: &Job) -> Ran {
+    async fn broadcast(&mut self, master: &mut LineMaster<Port>, job: &Job) -> Ran {
         let settings = &self.current.settings;
         let sent = master
             .broadcast(

@@ -7,7 +7,7 @@ use super::serde_adapters::{
     duration, is_false, is_zero, is_zero_f64, is_zero_usize, opt_duration,
 };
 use super::UnitSet;
-use crate::rtu::{LineTiming, MasterTiming, Parity, SerialFormat};
+use crate::line::{LineTiming, MasterTiming, Parity, SerialFormat};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::time::Duration;

@@ -5,8 +5,8 @@
 
 use super::{Bus, Config, ConfigError, ConfigErrors, Route, Server, SimSlave, UnitSet};
 use super::{MAX_SLAVE_ADDRESS, SIM_DEVICE};
+use crate::line::SerialFormat;
 use crate::pdu::EXCEPTION_BIT;
-use crate::rtu::SerialFormat;
 use std::collections::BTreeMap;
 use std::time::Duration;
 

@@ -1,7 +1,7 @@
 //! Every default of the configuration, defined once: the values a key takes when the file and the
 //! environment leave it out. Knows nothing of how they are checked or used.
 
-use crate::rtu::Parity;
+use crate::line::Parity;
 use std::net::SocketAddr;
 use std::time::Duration;
 

@@ -177,7 +177,7 @@ mod tests {
     use super::*;
     use crate::config::testing::{errors, MINIMAL};
     use crate::config::{defaults, LogFormat, Server};
-    use crate::rtu::Parity;
+    use crate::line::Parity;
     use std::time::Duration;
 
     #[test]

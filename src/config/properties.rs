@@ -4,7 +4,7 @@
 use super::check::{MAX_GARBAGE, MAX_RETRIES};
 use super::*;
 use crate::gateway::config_from_toml;
-use crate::rtu::Parity;
+use crate::line::Parity;
 use ipnet::IpNet;
 use proptest::prelude::*;
 use std::collections::BTreeMap;

@@ -3,7 +3,7 @@
 //! what `check-config` prints is what runs. Knows nothing of how the values are used.
 
 use super::{Config, ConfigErrors};
-use crate::rtu::SerialFormat;
+use crate::line::SerialFormat;
 
 impl Config {
     /// Fill in what the file may leave to other keys.

@@ -6,7 +6,7 @@ use super::labels::{decimal, seconds_since_epoch, Fate};
 use super::{RequestCounters, BUS_EVENTS};
 use crate::config;
 use crate::error::{Answer, Outcome, RequestError};
-use crate::rtu::LineCounters;
+use crate::line::LineCounters;
 use prometheus::{
     Counter, Gauge, GaugeVec, Histogram, IntCounter, IntCounterVec, IntGauge, IntGaugeVec,
 };

@@ -3,7 +3,7 @@
 //! and codes as strings made once. Bounded sets, all of them; nothing here counts.
 
 use crate::error::{Answer, Outcome, RequestError};
-use crate::rtu::TxError;
+use crate::line::TxError;
 use std::sync::OnceLock;
 use std::time::{SystemTime, UNIX_EPOCH};
 

@@ -346,7 +346,7 @@ impl Metrics {
 mod tests {
     use super::*;
     use crate::error::RequestError;
-    use crate::rtu::{LineCounters, TxError};
+    use crate::line::{LineCounters, TxError};
     use std::sync::atomic::Ordering;
     use std::time::Duration;
 

@@ -1,19 +1,24 @@
-//! RTU frames as bytes: CRC-16, encoding, how long a frame is from its first bytes, and whether a
-//! received frame answers a given request. Pure functions; knows nothing of ports or time.
+//! RTU frames as bytes: CRC-16, encoding, how long a frame is from its first bytes (the PDU
+//! lengths of [`crate::pdu`] plus the address and CRC), and whether a received frame answers a
+//! given request (the CRC, then [`crate::line::reply`]). Pure functions; knows nothing of ports
+//! or time.
 
-use crate::pdu::EXCEPTION_BIT;
+use crate::line::reply;
+pub use crate::line::reply::{ReplyForm, Verdict};
+pub use crate::line::BROADCAST;
+use crate::pdu::{self, PduLen, EXCEPTION_PDU_LEN};
 use crc::{Crc, CRC_16_MODBUS};
 
 const CRC: Crc<u16> = Crc::<u16>::new(&CRC_16_MODBUS);
 
+/// The address before the PDU and the CRC after it.
+const OVERHEAD: usize = 3;
 /// Address, at most 253 bytes of PDU, two bytes of CRC.
-pub const MAX_FRAME_LEN: usize = 256;
+pub const MAX_FRAME_LEN: usize = pdu::MAX_PDU_LEN + OVERHEAD;
 /// Address, function code and CRC: nothing shorter is a frame.
-pub const MIN_FRAME_LEN: usize = 4;
+pub const MIN_FRAME_LEN: usize = 1 + OVERHEAD;
 /// Exception replies: address, function | 0x80, exception code, CRC.
-pub const EXCEPTION_FRAME_LEN: usize = 5;
-/// The slave address that every slave obeys and none answers.
-pub const BROADCAST: u8 = 0;
+pub const EXCEPTION_FRAME_LEN: usize = EXCEPTION_PDU_LEN + OVERHEAD;
 
 pub fn crc16(bytes: &[u8]) -> u16 {
     CRC.checksum(bytes)
@@ -29,7 +34,7 @@ pub fn encode_into(out: &mut Vec<u8>, address: u8, pdu: &[u8]) {
 }
 
 pub fn encode(address: u8, pdu: &[u8]) -> Vec<u8> {
-    let mut out = Vec::with_capacity(pdu.len() + 3);
+    let mut out = Vec::with_capacity(pdu.len() + OVERHEAD);
     encode_into(&mut out, address, pdu);
     out
 }
@@ -49,16 +54,6 @@ pub fn pdu_of(frame: &[u8]) -> &[u8] {
     &frame[1..frame.len() - 2]
 }
 
-/// How a slave shapes its replies where it departs from the standard.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum ReplyForm {
-    #[default]
-    Standard,
-    /// Read Holding Registers (03) replies may carry their byte count as two bytes, big-endian
-    /// (the "non-standard Modbus" mode of some inverters). Standard replies are accepted too.
-    WideReadCount,
-}
-
 /// What the first bytes of a frame say about its length.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FrameLen {
@@ -72,47 +67,14 @@ pub enum FrameLen {
     Invalid,
 }
 
-/// Length of a frame whose byte count sits at `count_at` (one byte, or two big-endian bytes when
-/// `wide`), followed by that many bytes and the CRC.
-fn counted(buf: &[u8], count_at: usize, wide: bool) -> FrameLen {
-    let header = count_at + if wide { 2 } else { 1 };
-    if buf.len() < header {
-        return FrameLen::Need(header);
+/// The frame around a PDU of `len`: one address byte before it, two CRC bytes after it.
+fn frame_len(len: PduLen) -> FrameLen {
+    match len {
+        PduLen::Need(n) => FrameLen::Need(n + 1),
+        PduLen::Exact(n) => FrameLen::Exact(n + OVERHEAD),
+        PduLen::Unknown => FrameLen::BySilence,
+        PduLen::Invalid => FrameLen::Invalid,
     }
-    let count = if wide {
-        usize::from(u16::from_be_bytes([buf[count_at], buf[count_at + 1]]))
-    } else {
-        usize::from(buf[count_at])
-    };
-    exact(header + count + 2)
-}
-
-fn exact(len: usize) -> FrameLen {
-    if len > MAX_FRAME_LEN {
-        FrameLen::Invalid
-    } else {
-        FrameLen::Exact(len)
-    }
-}
-
-/// Length of a Read Device Identification reply: an eight-byte header, then `objects` times an
-/// id byte, a length byte and that many value bytes.
-fn device_id_len(buf: &[u8]) -> FrameLen {
-    const HEADER: usize = 8;
-    if buf.len() < HEADER {
-        return FrameLen::Need(HEADER);
-    }
-    let mut end = HEADER;
-    for _ in 0..buf[7] {
-        if buf.len() < end + 2 {
-            return FrameLen::Need(end + 2);
-        }
-        end += 2 + usize::from(buf[end + 1]);
-        if end + 2 > MAX_FRAME_LEN {
-            return FrameLen::Invalid;
-        }
-    }
-    exact(end + 2)
 }
 
 /// Length of a reply frame starting at `buf[0]`, as far as its bytes tell. `slave` and `request`
@@ -127,33 +89,12 @@ pub fn reply_len_as(buf: &[u8], slave: u8, request: &[u8], form: ReplyForm) -> F
     let Some(&function) = buf.get(1) else {
         return FrameLen::Need(2);
     };
-    if function & EXCEPTION_BIT != 0 {
-        return FrameLen::Exact(EXCEPTION_FRAME_LEN);
-    }
     let answers_request = buf[0] == slave && request.first() == Some(&function);
-    if form == ReplyForm::WideReadCount && function == 0x03 && answers_request {
-        // A standard count is never 0, so a 0 where it belongs is the high byte of a wide one.
-        return match buf.get(2) {
-            None => FrameLen::Need(3),
-            Some(0) => counted(buf, 2, true),
-            Some(_) => counted(buf, 2, false),
-        };
-    }
-    match function {
-        0x01..=0x04 | 0x0C | 0x11 | 0x14 | 0x15 | 0x17 => counted(buf, 2, false),
-        0x05 | 0x06 | 0x0B | 0x0F | 0x10 => FrameLen::Exact(8),
-        0x07 => FrameLen::Exact(5),
-        0x16 => FrameLen::Exact(10),
-        0x18 => counted(buf, 2, true),
-        // Diagnostics echo the request's data, whatever its length.
-        0x08 if answers_request => exact(request.len() + 3),
-        0x2B => match buf.get(2) {
-            None => FrameLen::Need(3),
-            Some(0x0E) => device_id_len(buf),
-            Some(_) => FrameLen::BySilence,
-        },
-        _ => FrameLen::BySilence,
-    }
+    frame_len(reply::reply_len(
+        &buf[1..],
+        answers_request.then_some(request),
+        form,
+    ))
 }
 
 /// Length of a request frame starting at `buf[0]`, as a slave sees it.
@@ -161,65 +102,9 @@ pub fn request_len(buf: &[u8]) -> FrameLen {
     let Some(&function) = buf.get(1) else {
         return FrameLen::Need(2);
     };
-    match function {
-        0x01..=0x06 => FrameLen::Exact(8),
-        0x07 | 0x0B | 0x0C | 0x11 => FrameLen::Exact(4),
-        0x0F | 0x10 => counted(buf, 6, false),
-        0x14 | 0x15 => counted(buf, 2, false),
-        0x16 => FrameLen::Exact(10),
-        0x17 => counted(buf, 10, false),
-        0x18 => FrameLen::Exact(6),
-        0x2B => match buf.get(2) {
-            None => FrameLen::Need(3),
-            Some(0x0E) => FrameLen::Exact(7),
-            Some(_) => FrameLen::BySilence,
-        },
-        _ => FrameLen::BySilence,
-    }
-}
-
-/// What a received frame is to the request that is waiting for its answer.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Verdict {
-    /// It answers the request (normally or with an exception).
-    Answer,
-    /// Intact, from the slave asked, with the request's function code, but not the shape the
-    /// request asks for (byte count, echo, sub-function). Either the slave's own odd answer, or a
-    /// late answer to an earlier request to it: only the caller knows whether one may be pending.
-    Malformed,
-    /// Intact, but not from this exchange: another slave's frame, or another function's reply.
-    /// Never delivered to anyone.
-    Foreign,
-    /// The CRC fails: noise, a collision, or a frame cut short.
-    Corrupt,
-}
-
-fn quantity(request: &[u8], at: usize) -> Option<usize> {
-    Some(usize::from(u16::from_be_bytes([
-        *request.get(at)?,
-        *request.get(at + 1)?,
-    ])))
-}
-
-/// True if a normal reply PDU (same function code as the request) has the shape the request asks
-/// for. Requests too short to say what they ask for accept any reply.
-fn fits_request(reply: &[u8], request: &[u8]) -> bool {
-    let byte_count = reply.get(1).map(|&b| usize::from(b));
-    match request[0] {
-        0x01 | 0x02 => quantity(request, 3).is_none_or(|q| byte_count == Some(q.div_ceil(8))),
-        0x03 | 0x04 => quantity(request, 3).is_none_or(|q| byte_count == Some(q * 2)),
-        0x17 => quantity(request, 3).is_none_or(|q| byte_count == Some(q * 2)),
-        // Single writes and mask writes echo the whole request: a late echo of an earlier write
-        // of another value to the same address is not this write's answer.
-        0x05 | 0x06 => reply.get(..5) == request.get(..5),
-        0x16 => reply.get(..7) == request.get(..7),
-        // Multiple writes echo the address and quantity they wrote.
-        0x0F | 0x10 => reply.get(1..5) == request.get(1..5),
-        // Diagnostics echo the sub-function; encapsulated interface transports echo the MEI type.
-        0x08 => reply.get(1..3) == request.get(1..3),
-        0x2B => reply.get(1) == request.get(1),
-        _ => true,
-    }
+    frame_len(
+        pdu::function(function).map_or(PduLen::Unknown, |row| row.request.of(&buf[1..], None)),
+    )
 }
 
 /// Judge a complete frame received after sending `request` (a PDU) to `slave`.
@@ -227,19 +112,9 @@ pub fn check_reply(frame: &[u8], slave: u8, request: &[u8]) -> Verdict {
     check_reply_as(frame, slave, request, ReplyForm::Standard)
 }
 
-/// The PDU of a frame that [`check_reply_as`] found to be the answer, in standard form: a wide
-/// read count loses its high byte, so the master on TCP gets what the standard says.
+/// The PDU of a frame that [`check_reply_as`] found to be the answer, in standard form.
 pub fn answer_pdu(frame: &[u8], form: ReplyForm) -> Vec<u8> {
-    let pdu = pdu_of(frame);
-    match pdu {
-        [0x03, 0x00, count, data @ ..] if form == ReplyForm::WideReadCount => {
-            let mut standard = Vec::with_capacity(pdu.len() - 1);
-            standard.extend_from_slice(&[0x03, *count]);
-            standard.extend_from_slice(data);
-            standard
-        }
-        _ => pdu.to_vec(),
-    }
+    reply::answer_pdu(pdu_of(frame), form)
 }
 
 /// [`check_reply`] for a slave whose replies take `form`.
@@ -247,24 +122,7 @@ pub fn check_reply_as(frame: &[u8], slave: u8, request: &[u8], form: ReplyForm) 
     if !crc_ok(frame) {
         return Verdict::Corrupt;
     }
-    // A function code with the exception bit is no request: nothing answers it.
-    let Some(&request_function) = request.first().filter(|&&f| f & EXCEPTION_BIT == 0) else {
-        return Verdict::Foreign;
-    };
-    if frame[0] != slave {
-        return Verdict::Foreign;
-    }
-    let pdu = pdu_of(frame);
-    if pdu[0] == request_function | EXCEPTION_BIT && frame.len() == EXCEPTION_FRAME_LEN {
-        return Verdict::Answer;
-    }
-    if pdu[0] != request_function {
-        Verdict::Foreign
-    } else if fits_request(&answer_pdu(frame, form), request) {
-        Verdict::Answer
-    } else {
-        Verdict::Malformed
-    }
+    reply::judge(frame[0], pdu_of(frame), slave, request, form)
 }
 
 #[cfg(test)]
@@ -579,6 +437,7 @@ mod tests {
 
     mod properties {
         use super::*;
+        use crate::pdu::EXCEPTION_BIT;
         use proptest::prelude::*;
 
         /// A request PDU, a well-formed normal or exception reply PDU to it, and the form the

@@ -3,7 +3,7 @@
 //! with. The models ([`super::goodrive`], [`super::pd_inverter`]) own their register maps and
 //! exception codes; this module knows nothing of either.
 
-use crate::rtu::SerialFormat;
+use crate::line::SerialFormat;
 use std::collections::BTreeMap;
 use std::time::Duration;
 use tokio::time::Instant;

@@ -35,7 +35,8 @@ use super::drive::{
     SetupError,
 };
 use super::{SimSlave, Transmission};
-use crate::rtu::{frame, Parity, SerialFormat};
+use crate::line::{Parity, SerialFormat};
+use crate::rtu::frame;
 use std::time::Duration;
 use tokio::time::Instant;
 

@@ -8,8 +8,8 @@
 //! and the recent frames with their times, for tests and benchmarks.
 
 use super::{SimSlave, Transmission};
+use crate::line::{LineTiming, Transport};
 use crate::rtu::frame::{self, BROADCAST};
-use crate::rtu::{LineTiming, Transport};
 use crate::timer::sleep_until;
 use std::collections::{BTreeMap, VecDeque};
 use std::io;
@@ -364,7 +364,7 @@ impl Transport for SimPort {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::rtu::{Parity, SerialFormat};
+    use crate::line::{Parity, SerialFormat};
 
     fn line_9600_8e1() -> SimLine {
         SimLine::new(LineTiming::new(&SerialFormat {

@@ -19,7 +19,8 @@ pub use registers::RegisterBank;
 pub use scripted::Scripted;
 
 use crate::config::{self, SimModel};
-use crate::rtu::{frame, SerialFormat};
+use crate::line::SerialFormat;
+use crate::rtu::frame;
 use drive::{DriveSettings, SetupError};
 use faults::{Faults, Faulty};
 use goodrive::{Goodrive, Variant};

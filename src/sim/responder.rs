@@ -6,8 +6,8 @@
 //! and answered by none. Knows nothing of TCP or the gateway's bus.
 
 use super::SimSlave;
+use crate::line::{LineTiming, Transport};
 use crate::rtu::frame::{self, FrameLen, BROADCAST, MAX_FRAME_LEN};
-use crate::rtu::{LineTiming, Transport};
 use crate::timer::sleep_until;
 use std::collections::BTreeMap;
 use std::io;
@@ -162,7 +162,7 @@ impl Responder {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::rtu::{Parity, SerialFormat};
+    use crate::line::{Parity, SerialFormat};
     use crate::sim::RegisterBank;
     use std::collections::VecDeque;
     use std::sync::{Arc, Mutex};

@@ -1,20 +1,23 @@
-//! One RTU transaction at a time on a [`Transport`], timed per Modbus over Serial Line V1.02:
-//! t3.5 of silence before every frame, the response timeout counted from the end of
-//! transmission, replies complete by length (or by silence when the length cannot be known),
-//! and only a frame that answers the request is ever returned. Retries, queues and broadcast
-//! policy belong to the caller.
+//! One transaction at a time on a [`Transport`], timed per Modbus over Serial Line V1.02: a gap
+//! of silence before every frame, the response timeout counted from the end of transmission,
+//! replies complete when the [`Framing`] says so (by length, or by silence when the length cannot
+//! be known), and only a frame that answers the request is ever returned. Retries, queues and
+//! broadcast policy belong to the caller; what frames look like on the wire belongs to the
+//! framing, and what a reply means to [`reply`](super::reply).
 //!
-//! RTU frames carry no transaction id, so a slave's reply that comes after its try gave up could
-//! pass for the answer to the next request to it. The master keeps, per slave, until when such a
-//! late reply may still come (its late-reply window): after a try that ended in silence (or in
-//! other slaves' frames), one more response timeout. A try the slave itself ended with a frame
-//! (an answer, a malformed reply, a bad CRC) opens none. While a window is open, a frame that
-//! does not fit the request is taken for that late reply and discarded; once it is closed, such a
-//! frame can only be the slave's own answer and is returned as [`Reply::Malformed`].
+//! Serial frames carry no transaction id, so a slave's reply that comes after its try gave up
+//! could pass for the answer to the next request to it. The master keeps, per slave, until when
+//! such a late reply may still come (its late-reply window): after a try that ended in silence
+//! (or in other slaves' frames), one more response timeout. A try the slave itself ended with a
+//! frame (an answer, a malformed reply, a frame failing its check) opens none. While a window is
+//! open, a frame that does not fit the request is taken for that late reply and discarded; once
+//! it is closed, such a frame can only be the slave's own answer and is returned as
+//! [`Reply::Malformed`].
 
-use super::frame::{self, FrameLen, ReplyForm, Verdict, BROADCAST, MAX_FRAME_LEN};
+use super::framing::{Completion, Framing, Silence};
+use super::reply::{self, ReplyForm, Verdict};
 use super::timing::LineTiming;
-use super::Transport;
+use super::{Transport, BROADCAST};
 use crate::timer::LineTimer;
 use std::io;
 use std::time::Duration;
@@ -27,7 +30,7 @@ pub struct MasterTiming {
     /// Silence before every frame: t3.5, or more if configured.
     pub gap: Duration,
     /// Silence that ends a reply whose length the bytes cannot tell: t3.5, or more if configured
-    /// (USB adapters deliver bytes in bursts).
+    /// (USB adapters deliver bytes in bursts). The allowance for bursts past a known length too.
     pub silence: Duration,
 }
 
@@ -56,6 +59,7 @@ pub enum Reply {
 pub enum TxError {
     #[error("no reply to this request within the response timeout")]
     Timeout,
+    /// The frame's check failed (the name and message predate framings other than RTU).
     #[error("reply failed its CRC check")]
     Crc,
     #[error("reply incomplete, or longer than a frame")]
@@ -92,8 +96,9 @@ impl LineCounters {
     }
 }
 
-pub struct RtuMaster<T> {
+pub struct LineMaster<T> {
     port: T,
+    framing: Framing,
     timing: MasterTiming,
     /// Earliest moment the next frame may start: the last byte seen on the line plus the gap, or
     /// the end of a broadcast plus its turnaround delay.
@@ -125,17 +130,18 @@ fn port_lost(result: io::Result<usize>) -> Result<usize, TxError> {
     }
 }
 
-impl<T: Transport> RtuMaster<T> {
-    /// A master on a freshly opened port. What the line was doing before is unknown, so the first
-    /// frame waits a full gap.
-    pub fn new(port: T, timing: MasterTiming) -> Self {
-        RtuMaster {
+impl<T: Transport> LineMaster<T> {
+    /// A master on a freshly opened port whose line is framed by `framing`. What the line was
+    /// doing before is unknown, so the first frame waits a full gap.
+    pub fn new(port: T, framing: Framing, timing: MasterTiming) -> Self {
+        LineMaster {
             port,
+            framing,
             timing,
             quiet_until: Instant::now() + timing.gap,
             sent_at: Instant::now(),
-            tx: Vec::with_capacity(MAX_FRAME_LEN),
-            rx: Vec::with_capacity(MAX_FRAME_LEN),
+            tx: Vec::with_capacity(framing.max_frame_len()),
+            rx: Vec::with_capacity(framing.max_frame_len()),
             counters: LineCounters::default(),
             forms: Box::new([ReplyForm::Standard; 256]),
             late_until: Box::new([None; 256]),
@@ -241,7 +247,7 @@ impl<T: Transport> RtuMaster<T> {
     ) -> Result<Instant, TxError> {
         self.wait_for_gap(busy_limit).await?;
         self.port.clear_input().map_err(TxError::PortLost)?;
-        frame::encode_into(&mut self.tx, address, pdu);
+        self.framing.encode_into(&mut self.tx, address, pdu);
         self.port.send(&self.tx).await.map_err(TxError::PortLost)?;
         self.sent_at = Instant::now();
         self.counters.sent_bytes += self.tx.len() as u64;
@@ -286,27 +292,25 @@ impl<T: Transport> RtuMaster<T> {
         let first_byte_by = end_of_tx + response_timeout;
         let mut last_byte_at = end_of_tx;
         loop {
-            let len = frame::reply_len_as(&self.rx, slave, request, form);
-            if let FrameLen::Exact(n) = len {
-                if self.rx.len() >= n {
-                    match self.judge(n, slave, request, form) {
-                        Some(reply) => return reply,
-                        None => {
-                            self.rx.drain(..n);
-                            continue;
-                        }
+            let completion = self
+                .framing
+                .reply_completion(&self.rx, slave, request, form);
+            let wait_until = match completion {
+                Completion::Whole(n) => match self.judge(n, slave, request, form) {
+                    Some(reply) => return reply,
+                    None => {
+                        self.rx.drain(..n);
+                        continue;
                     }
-                }
-            }
-            let wait_until = match len {
+                },
                 _ if self.rx.is_empty() => first_byte_by,
-                FrameLen::Invalid => return Err(TxError::Frame),
-                FrameLen::Need(n) | FrameLen::Exact(n) => {
+                Completion::Invalid => return Err(TxError::Frame),
+                Completion::AtLeast(n) => {
                     first_byte_by + self.timing.line.frame_time(n) + self.timing.silence
                 }
-                FrameLen::BySilence => last_byte_at + self.timing.silence,
+                Completion::Open(_) => last_byte_at + self.timing.silence,
             };
-            if self.rx.len() > MAX_FRAME_LEN {
+            if self.rx.len() > self.framing.max_frame_len() {
                 return Err(TxError::Frame);
             }
             // Bytes first: a reply whose last byte is in when the deadline comes is still in time.
@@ -321,7 +325,7 @@ impl<T: Transport> RtuMaster<T> {
                     if self.rx.is_empty() {
                         return Err(TxError::Timeout);
                     }
-                    if len != FrameLen::BySilence {
+                    if completion != Completion::Open(Silence::EndsFrame) {
                         return Err(TxError::Frame);
                     }
                     match self.judge(self.rx.len(), slave, request, form) {
@@ -334,7 +338,7 @@ impl<T: Transport> RtuMaster<T> {
     }
 }
 
-impl<T> RtuMaster<T> {
+impl<T> LineMaster<T> {
     /// Until when a reply to an earlier try to `slave` may still come, if that is later than now.
     /// A new request to `slave` should not go out before then: the late reply could pass for its
     /// answer.
@@ -353,11 +357,13 @@ impl<T> RtuMaster<T> {
         form: ReplyForm,
     ) -> Option<Result<Reply, TxError>> {
         let late_reply_possible = self.late_reply_window(slave).is_some();
-        let frame = &self.rx[..len];
-        match frame::check_reply_as(frame, slave, request, form) {
-            Verdict::Answer => Some(Ok(Reply::Fits(frame::answer_pdu(frame, form)))),
+        let Some((address, pdu)) = self.framing.decode(&self.rx[..len]) else {
+            return Some(Err(TxError::Crc));
+        };
+        match reply::judge(address, pdu, slave, request, form) {
+            Verdict::Answer => Some(Ok(Reply::Fits(reply::answer_pdu(pdu, form)))),
             Verdict::Malformed if !late_reply_possible => {
-                Some(Ok(Reply::Malformed(frame::answer_pdu(frame, form))))
+                Some(Ok(Reply::Malformed(reply::answer_pdu(pdu, form))))
             }
             Verdict::Malformed | Verdict::Foreign => {
                 self.counters.foreign_frames += 1;
@@ -371,7 +377,8 @@ impl<T> RtuMaster<T> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::rtu::{Parity, SerialFormat};
+    use crate::line::{Parity, SerialFormat};
+    use crate::rtu::frame;
     use crate::sim::{Scripted, SimLine, SimPort, Transmission};
 
     /// tokio's timer wakes sleepers on whole milliseconds, paused clock included.
@@ -387,7 +394,7 @@ mod tests {
         Some(Transmission::frame(address, pdu, delay))
     }
 
-    fn line(slaves: Vec<(u8, Vec<Option<Transmission>>)>) -> (SimLine, RtuMaster<SimPort>) {
+    fn line(slaves: Vec<(u8, Vec<Option<Transmission>>)>) -> (SimLine, LineMaster<SimPort>) {
         let line = SimLine::new(LineTiming::new(&SerialFormat {
             baud: 9600,
             data_bits: 8,
@@ -398,13 +405,13 @@ mod tests {
             line.add_slave(address, Scripted::new(plan));
         }
         let timing = MasterTiming::new(line.timing(), Duration::ZERO, Duration::ZERO);
-        let master = RtuMaster::new(line.open().unwrap(), timing);
+        let master = LineMaster::new(line.open().unwrap(), Framing::Rtu, timing);
         (line, master)
     }
 
     /// Sends one request and returns the outcome with the time from the end of transmission.
     async fn timed(
-        master: &mut RtuMaster<SimPort>,
+        master: &mut LineMaster<SimPort>,
         slave: u8,
         request: &[u8],
         timeout: Duration,

@@ -1,0 +1,149 @@
+//! How frames look on the wire of one line, for the [`engine`](super::engine): encoding a PDU to
+//! an address, telling when a received frame is complete, and checking and unwrapping it. RTU is
+//! the only framing today; Modbus ASCII will be a second variant. Pure functions over bytes; knows
+//! nothing of ports, time or what a reply means.
+//!
+//! An enum rather than a trait: the spec defines exactly two serial framings, a line's framing is
+//! chosen by its configuration at run time, and the master stays one type (`LineMaster<Port>`)
+//! whichever framing its line uses.
+
+use super::reply::ReplyForm;
+use crate::rtu::frame::{self, FrameLen};
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Framing {
+    /// Modbus RTU: address, PDU, CRC-16; frames are delimited by silence, and most announce
+    /// their length in their first bytes.
+    #[default]
+    Rtu,
+}
+
+/// How far the bytes received so far make a frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Completion {
+    /// The first this many bytes are a whole frame (more may follow: the next frame's).
+    Whole(usize),
+    /// Not whole yet; the frame is at least this many bytes long, so its wait is bounded by the
+    /// time they take on the wire. Silence before they are in fails it.
+    AtLeast(usize),
+    /// Not whole yet, and the bytes cannot tell how long it is: silence decides.
+    Open(Silence),
+    /// These bytes cannot be a frame.
+    Invalid,
+}
+
+/// What silence on the line means for a frame the bytes cannot tell the end of.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Silence {
+    /// The frame is what came before it (RTU: t3.5).
+    EndsFrame,
+    /// The frame is cut short (ASCII: the inter-character timeout before CR LF).
+    FailsFrame,
+}
+
+impl Framing {
+    /// The longest frame on the wire, in characters.
+    pub fn max_frame_len(self) -> usize {
+        match self {
+            Framing::Rtu => frame::MAX_FRAME_LEN,
+        }
+    }
+
+    /// Build the frame for `pdu` to `address` into `out` (cleared first).
+    pub fn encode_into(self, out: &mut Vec<u8>, address: u8, pdu: &[u8]) {
+        match self {
+            Framing::Rtu => frame::encode_into(out, address, pdu),
+        }
+    }
+
+    /// How far `received` makes a reply frame, when `request` (a PDU) went to `slave`, whose
+    /// replies take `form`.
+    pub fn reply_completion(
+        self,
+        received: &[u8],
+        slave: u8,
+        request: &[u8],
+        form: ReplyForm,
+    ) -> Completion {
+        match self {
+            Framing::Rtu => match frame::reply_len_as(received, slave, request, form) {
+                FrameLen::Exact(n) if received.len() >= n => Completion::Whole(n),
+                FrameLen::Need(n) | FrameLen::Exact(n) => Completion::AtLeast(n),
+                FrameLen::BySilence => Completion::Open(Silence::EndsFrame),
+                FrameLen::Invalid => Completion::Invalid,
+            },
+        }
+    }
+
+    /// The address and PDU of a whole frame, or `None` when its check (CRC) fails.
+    pub fn decode(self, whole: &[u8]) -> Option<(u8, &[u8])> {
+        match self {
+            Framing::Rtu => frame::crc_ok(whole).then(|| (whole[0], frame::pdu_of(whole))),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Goodrive300 manual 10.4.1: slave 01H's reply with 0004H = 1388H, 0005H = 0000H.
+    const READ_REPLY: [u8; 9] = [
+        0x01, // slave address
+        0x03, // read holding registers
+        0x04, // four data bytes
+        0x13, 0x88, 0x00, 0x00, // 0004H, 0005H
+        0x7E, 0x9D, // CRC
+    ];
+    const READ: [u8; 5] = [0x03, 0x00, 0x04, 0x00, 0x02];
+
+    #[test]
+    fn an_rtu_reply_is_whole_at_its_length_and_bounded_by_it_before() {
+        let rtu = Framing::Rtu;
+        let form = ReplyForm::Standard;
+        assert_eq!(
+            rtu.reply_completion(&READ_REPLY[..2], 1, &READ, form),
+            Completion::AtLeast(3)
+        );
+        assert_eq!(
+            rtu.reply_completion(&READ_REPLY[..5], 1, &READ, form),
+            Completion::AtLeast(9)
+        );
+        assert_eq!(
+            rtu.reply_completion(&READ_REPLY, 1, &READ, form),
+            Completion::Whole(9)
+        );
+        let stream = [&READ_REPLY[..], &[0x02, 0x03]].concat();
+        assert_eq!(
+            rtu.reply_completion(&stream, 1, &READ, form),
+            Completion::Whole(9)
+        );
+    }
+
+    #[test]
+    fn an_rtu_reply_the_bytes_cannot_measure_ends_by_silence() {
+        assert_eq!(
+            Framing::Rtu.reply_completion(&[1, 0x41, 9], 1, &[0x41], ReplyForm::Standard),
+            Completion::Open(Silence::EndsFrame)
+        );
+        assert_eq!(
+            Framing::Rtu.reply_completion(&[1, 0x03, 0xFF], 1, &READ, ReplyForm::Standard),
+            Completion::Invalid
+        );
+    }
+
+    #[test]
+    fn an_rtu_frame_decodes_to_its_address_and_pdu_only_with_a_good_crc() {
+        let mut out = vec![0xAA];
+        Framing::Rtu.encode_into(&mut out, 1, &READ_REPLY[1..7]);
+        assert_eq!(out, READ_REPLY);
+        assert_eq!(
+            Framing::Rtu.decode(&READ_REPLY),
+            Some((1, &READ_REPLY[1..7]))
+        );
+        let mut bad = READ_REPLY;
+        bad[3] ^= 0x01;
+        assert_eq!(Framing::Rtu.decode(&bad), None);
+        assert_eq!(Framing::Rtu.max_frame_len(), 256);
+    }
+}

@@ -1,0 +1,36 @@
+//! The master side of a serial line: one transaction at a time ([`engine`]) on whatever carries
+//! the bytes (a serial port or the simulated line, both behind [`Transport`]), framed as the line
+//! is ([`framing`]: RTU today), with the spec's timing ([`timing`]) and the PDU-level judgement
+//! of replies ([`reply`]). Knows nothing of TCP, masters, queues or routing; what a frame looks
+//! like on the wire belongs to the framing alone.
+
+pub mod engine;
+pub mod framing;
+pub mod reply;
+pub mod timing;
+
+pub use engine::{LineCounters, LineMaster, MasterTiming, Reply, TxError};
+pub use framing::Framing;
+pub use reply::{ReplyForm, Verdict};
+pub use timing::{LineTiming, Parity, SerialFormat};
+
+use std::future::Future;
+use std::io;
+
+/// The slave address that every slave obeys and none answers, in every serial framing.
+pub const BROADCAST: u8 = 0;
+
+/// A byte pipe onto an RS-485 line as a UART driver presents it.
+pub trait Transport: Send {
+    /// Hand a whole frame to the driver. Returns when the driver holds it, which is before the
+    /// last byte has left the wire.
+    fn send(&mut self, frame: &[u8]) -> impl Future<Output = io::Result<()>> + Send;
+
+    /// Wait for received bytes and append them to `buf`. `Ok(0)` means the port is gone (an
+    /// unplugged adapter reads 0 bytes forever). Must be cancel-safe: a receive that is dropped
+    /// before it completes loses no bytes.
+    fn recv(&mut self, buf: &mut Vec<u8>) -> impl Future<Output = io::Result<usize>> + Send;
+
+    /// Drop what the driver has received and not yet handed over.
+    fn clear_input(&mut self) -> io::Result<()>;
+}
