@@ -6,8 +6,8 @@
 use super::port::{Device, Port};
 use super::{BusHandle, HEARTBEAT, STALL_MARGIN};
 use crate::config;
+use crate::line::{Framing, ReplyForm};
 use crate::line::{LineMaster, MasterTiming};
-use crate::rtu::frame::{ReplyForm, MAX_FRAME_LEN};
 use std::sync::PoisonError;
 use std::time::Duration;
 use tokio::sync::watch;
@@ -42,17 +42,7 @@ impl BusUpdates {
 /// timeout, two longest frames, the silence that ends a reply and a broadcast's turnaround.
 /// Whoever waits for a transaction to end adds its own margin to this.
 pub fn longest_transaction(settings: &config::Bus) -> Duration {
-    let timing = settings.master_timing();
-    longest_with(&timing, &timeouts(settings), settings.turnaround_delay)
-}
-
-fn longest_with(
-    timing: &MasterTiming,
-    timeouts: &[Duration; 256],
-    turnaround: Duration,
-) -> Duration {
-    let longest_timeout = timeouts.iter().copied().max().unwrap_or_default();
-    longest_timeout * 2 + timing.line.frame_time(MAX_FRAME_LEN) * 2 + timing.silence + turnaround
+    Derived::of(settings).longest_transaction(settings.turnaround_delay)
 }
 
 /// Response timeout per slave address, overrides applied.
@@ -68,6 +58,7 @@ fn timeouts(settings: &config::Bus) -> Box<[Duration; 256]> {
 
 /// What the bus task derives from its settings.
 pub(super) struct Derived {
+    pub(super) framing: Framing,
     pub(super) timing: MasterTiming,
     /// Response timeout per slave address, overrides applied.
     pub(super) timeouts: Box<[Duration; 256]>,
@@ -79,19 +70,26 @@ pub(super) struct Derived {
 
 impl Derived {
     pub(super) fn of(settings: &config::Bus) -> Derived {
-        let timing = settings.master_timing();
-        let timeouts = timeouts(settings);
-        let stall_limit =
-            HEARTBEAT + longest_with(&timing, &timeouts, settings.turnaround_delay) + STALL_MARGIN;
-        Derived {
-            timing,
-            timeouts,
-            stall_limit,
+        let mut derived = Derived {
+            // RTU is the only framing a bus has so far.
+            framing: Framing::Rtu,
+            timing: settings.master_timing(),
+            timeouts: timeouts(settings),
+            stall_limit: Duration::ZERO,
             down: super::health::DownPolicy {
                 after: settings.slave_down_after,
                 probe_interval: settings.slave_probe_interval,
             },
-        }
+        };
+        derived.stall_limit =
+            HEARTBEAT + derived.longest_transaction(settings.turnaround_delay) + STALL_MARGIN;
+        derived
+    }
+
+    fn longest_transaction(&self, turnaround: Duration) -> Duration {
+        let longest_timeout = self.timeouts.iter().copied().max().unwrap_or_default();
+        let longest_frame = self.timing.line.frame_time(self.framing.max_frame_len());
+        longest_timeout * 2 + longest_frame * 2 + self.timing.silence + turnaround
     }
 }
 

@@ -7,7 +7,7 @@ use super::reconfigure::{Current, Updates};
 use super::{BusHandle, BusUpdates, Device, FairQueue, Heartbeat, Reconfigure, HEARTBEAT};
 use crate::config;
 use crate::error::RequestError;
-use crate::line::{Framing, LineMaster};
+use crate::line::LineMaster;
 use crate::metrics::Metrics;
 use crate::shutdown::Stopping;
 use std::io;
@@ -110,8 +110,11 @@ impl BusTask {
                         .map(|(since, failed_opens)| (since.elapsed(), failed_opens));
                     metrics.port_opened(device, down);
                     delay = self.current.settings.reopen_delay;
-                    let mut master =
-                        LineMaster::new(port, Framing::Rtu, self.current.derived.timing);
+                    let mut master = LineMaster::new(
+                        port,
+                        self.current.derived.framing,
+                        self.current.derived.timing,
+                    );
                     self.current.configure(&mut master);
                     let end = self.serve(master, &mut stopping).await;
                     self.set_up(false);

@@ -5,7 +5,7 @@ use super::transaction::Ran;
 use super::{BusHandle, BusTask, Device, Job, Reconfigure};
 use crate::config::{self, Config};
 use crate::error::{Answer, Outcome, RequestError};
-use crate::line::{Framing, LineMaster, TxError};
+use crate::line::{LineMaster, TxError};
 use crate::metrics::Metrics;
 use crate::shutdown::Stopping;
 use crate::sim::{RegisterBank, Scripted, SimLine, Transmission};
@@ -42,7 +42,11 @@ fn job(slave: u8, pdu: &[u8]) -> (Job, oneshot::Receiver<Outcome>) {
 fn task_on(line: &SimLine, keys: &str) -> (BusTask, LineMaster<super::Port>) {
     let task = BusTask::new(settings(keys), Device::Sim(line.clone()), &Metrics::new());
     let port = Device::Sim(line.clone()).open().expect("sim port");
-    let mut master = LineMaster::new(port, Framing::Rtu, task.current.derived.timing);
+    let mut master = LineMaster::new(
+        port,
+        task.current.derived.framing,
+        task.current.derived.timing,
+    );
     task.current.configure(&mut master);
     (task, master)
 }
