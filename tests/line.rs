@@ -6,7 +6,7 @@ use modbus_gateway::error::{Answer, Outcome, RequestError};
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::rtu::TxError;
 use modbus_gateway::shutdown::Stopping;
-use modbus_gateway::sim::{RegisterBank, Scripted, SimLine, SimSlave, Source, Transmission};
+use modbus_gateway::sim::{RegisterBank, Scripted, SimLine, Slave, Source, Transmission};
 use modbus_gateway::Config;
 
 use crate::support::{bus_call as call, settle};
@@ -466,7 +466,7 @@ struct SilentFor {
     inner: RegisterBank,
 }
 
-impl SimSlave for SilentFor {
+impl Slave for SilentFor {
     fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission> {
         if request.first() == Some(&self.function) {
             return None;

@@ -9,7 +9,7 @@
 use clap::Parser;
 use modbus_gateway::rtu::frame::{self, FrameLen};
 use modbus_gateway::rtu::{LineTiming, Parity, SerialFormat};
-use modbus_gateway::sim::{RegisterBank, SimSlave};
+use modbus_gateway::sim::{RegisterBank, Slave};
 use serde::Serialize;
 use std::net::SocketAddr;
 use std::path::PathBuf;

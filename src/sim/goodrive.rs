@@ -34,7 +34,7 @@ use super::drive::{
     exception, word, DriveSettings, Limit, Modify, Motor, ParamSpec, Params, Ramp, Rates, Refusal,
     SetupError,
 };
-use super::{SimSlave, Transmission};
+use super::{Slave, Transmission};
 use crate::rtu::{frame, Parity, SerialFormat};
 use std::time::Duration;
 use tokio::time::Instant;
@@ -766,7 +766,7 @@ impl Goodrive {
     }
 }
 
-impl SimSlave for Goodrive {
+impl Slave for Goodrive {
     fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission> {
         self.check_communication_timeout(at);
         self.last_request = Some(at);

@@ -33,7 +33,7 @@ pub fn build(
     spec: &config::SimSlave,
     address: u8,
     format: SerialFormat,
-) -> Result<Box<dyn SimSlave>, SetupError> {
+) -> Result<Box<dyn Slave>, SetupError> {
     let now = Instant::now();
     let settings = DriveSettings {
         address,
@@ -66,7 +66,7 @@ pub fn build(
     })
 }
 
-fn with_faults<S: SimSlave + 'static>(slave: S, faults: Faults, address: u8) -> Box<dyn SimSlave> {
+fn with_faults<S: Slave + 'static>(slave: S, faults: Faults, address: u8) -> Box<dyn Slave> {
     if faults.is_none() {
         Box::new(slave)
     } else {
@@ -106,13 +106,13 @@ impl Transmission {
 
 /// A device on the simulated line. It sees every intact request frame addressed to it, and every
 /// broadcast.
-pub trait SimSlave: Send {
+pub trait Slave: Send {
     /// Act on `request` (a PDU) that ended on the wire at `at`. `address` is the frame's address:
     /// the slave's own, or 0 for a broadcast, whose answer the line never sends.
     fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission>;
 }
 
-impl<S: SimSlave + ?Sized> SimSlave for Box<S> {
+impl<S: Slave + ?Sized> Slave for Box<S> {
     fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission> {
         (**self).handle(address, request, at)
     }

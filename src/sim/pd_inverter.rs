@@ -35,7 +35,7 @@ use super::drive::{
     exception, word, DriveSettings, Limit, Modify, Motor, ParamSpec, Params, Ramp, Rates, Refusal,
     SetupError,
 };
-use super::{SimSlave, Transmission};
+use super::{Slave, Transmission};
 use crate::rtu::{frame, Parity, SerialFormat};
 use std::time::Duration;
 use tokio::time::Instant;
@@ -669,7 +669,7 @@ impl PdInverter {
     }
 }
 
-impl SimSlave for PdInverter {
+impl Slave for PdInverter {
     fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission> {
         self.check_timeout(at);
         self.last_request = Some(at);

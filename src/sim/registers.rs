@@ -5,7 +5,7 @@
 //! Contents: coils and holding registers start at 0 and keep what is written. Input register `a`
 //! reads `a`, and discrete input `a` is on when `a` is odd, so tests know what to expect.
 
-use super::{SimSlave, Transmission};
+use super::{Slave, Transmission};
 use crate::pdu::EXCEPTION_BIT;
 use crate::rtu::frame;
 use std::collections::{BTreeMap, BTreeSet};
@@ -264,7 +264,7 @@ impl RegisterBank {
     }
 }
 
-impl SimSlave for RegisterBank {
+impl Slave for RegisterBank {
     fn handle(&mut self, address: u8, request: &[u8], _at: Instant) -> Option<Transmission> {
         let reply = self.respond(address, request);
         if address == frame::BROADCAST {
