@@ -1,15 +1,13 @@
 //! The simulated RS-485 line (`device = "sim"`) and the slaves on it, so the whole gateway runs and
 //! is tested with no hardware: [`line`] times every frame at the configured baud and checks the
-//! gaps; [`registers`] holds plain register-bank slaves; [`goodrive`] and [`pd_inverter`] model the
-//! drives of the reference manuals on the shared core in [`drive`]; [`faults`] bends any slave's
+//! gaps; [`registers`] holds plain register-bank slaves; [`drive`] models the drives of the
+//! reference manuals on one shared pipeline; [`faults`] bends any slave's
 //! replies; [`scripted`] plays a script for tests; [`responder`] serves the slaves on a real serial
 //! port (`simulate`). Knows nothing of TCP or the bus queue; the bus opens the line like any port.
 
 pub mod drive;
 pub mod faults;
-pub mod goodrive;
 pub mod line;
-pub mod pd_inverter;
 pub mod registers;
 pub mod responder;
 pub mod scripted;
@@ -20,10 +18,10 @@ pub use scripted::Scripted;
 
 use crate::config::{self, SimModel};
 use crate::rtu::{frame, SerialFormat};
+use drive::goodrive::{Goodrive, Variant};
+use drive::pd_inverter::PdInverter;
 use drive::{DriveSettings, SetupError};
 use faults::{Faults, Faulty};
-use goodrive::{Goodrive, Variant};
-use pd_inverter::PdInverter;
 use std::time::Duration;
 use tokio::time::Instant;
 
