@@ -270,7 +270,9 @@ impl LineState {
             .filter(|p| p.after > 0 && p.after < reply.bytes.len())
         {
             let (first, rest) = reply.bytes.split_at(pause.after);
-            let first_end = bursts[0].0 + char_time * first.len() as u32;
+            // A frame is a few hundred bytes at most; saturating keeps a pathological one from panicking.
+            let chars = u32::try_from(first.len()).unwrap_or(u32::MAX);
+            let first_end = bursts[0].0 + char_time.saturating_mul(chars);
             bursts = vec![(bursts[0].0, first), (first_end + pause.gap, rest)];
         }
         for (start, bytes) in bursts {

@@ -55,7 +55,8 @@ fn range(pdu: &[u8], max: usize) -> Result<(u16, usize), u8> {
 }
 
 fn addresses(start: u16, quantity: usize) -> impl Iterator<Item = u16> {
-    (0..quantity).map(move |i| start.wrapping_add(i as u16))
+    // `range` has checked that start + quantity fits the address space, so every offset is a u16.
+    (0..quantity).map_while(move |i| u16::try_from(i).ok().map(|i| start.wrapping_add(i)))
 }
 
 fn pack_bits(bits: impl Iterator<Item = bool>, quantity: usize) -> Vec<u8> {
@@ -68,12 +69,15 @@ fn pack_bits(bits: impl Iterator<Item = bool>, quantity: usize) -> Vec<u8> {
     bytes
 }
 
-fn with_count(function: u8, data: Vec<u8>) -> Vec<u8> {
+/// The quantity limits keep every reply's data under 256 bytes; were one not to, the request
+/// asked for too much.
+fn with_count(function: u8, data: Vec<u8>) -> Reply {
+    let count = u8::try_from(data.len()).map_err(|_| ILLEGAL_DATA_VALUE)?;
     let mut reply = Vec::with_capacity(data.len() + 2);
     reply.push(function);
-    reply.push(data.len() as u8);
+    reply.push(count);
     reply.extend(data);
-    reply
+    Ok(reply)
 }
 
 fn input_register(address: u16) -> u16 {
@@ -117,13 +121,13 @@ impl RegisterBank {
         let data = addresses(start, quantity)
             .flat_map(|a| read(self, a).to_be_bytes())
             .collect();
-        Ok(with_count(pdu[0], data))
+        with_count(pdu[0], data)
     }
 
     fn read_bits(&self, pdu: &[u8], read: impl Fn(&Self, u16) -> bool) -> Reply {
         let (start, quantity) = range(pdu, MAX_READ_BITS)?;
         let bits = addresses(start, quantity).map(|a| read(self, a));
-        Ok(with_count(pdu[0], pack_bits(bits, quantity)))
+        with_count(pdu[0], pack_bits(bits, quantity))
     }
 
     fn write_coil(&mut self, pdu: &[u8]) -> Reply {
@@ -200,7 +204,7 @@ impl RegisterBank {
         let data = addresses(read_start, read_quantity)
             .flat_map(|a| self.holding(a).to_be_bytes())
             .collect();
-        Ok(with_count(pdu[0], data))
+        with_count(pdu[0], data)
     }
 
     fn diagnostics(&self, pdu: &[u8]) -> Reply {
@@ -214,7 +218,7 @@ impl RegisterBank {
     fn report_server_id(&self, address: u8) -> Reply {
         let mut data = vec![address, 0xFF];
         data.extend_from_slice(PRODUCT_CODE);
-        Ok(with_count(0x11, data))
+        with_count(0x11, data)
     }
 
     fn read_device_identification(&self, pdu: &[u8]) -> Reply {
@@ -229,11 +233,12 @@ impl RegisterBank {
             0x04 => return Err(ILLEGAL_DATA_ADDRESS),
             _ => return Err(ILLEGAL_DATA_VALUE),
         };
-        let mut reply = vec![0x2B, 0x0E, read_code, 0x01, 0x00, 0x00, wanted.len() as u8];
+        let count = u8::try_from(wanted.len()).map_err(|_| ILLEGAL_DATA_VALUE)?;
+        let mut reply = vec![0x2B, 0x0E, read_code, 0x01, 0x00, 0x00, count];
         for id in wanted {
             let value = objects[usize::from(id)];
             reply.push(id);
-            reply.push(value.len() as u8);
+            reply.push(u8::try_from(value.len()).map_err(|_| ILLEGAL_DATA_VALUE)?);
             reply.extend_from_slice(value);
         }
         Ok(reply)
@@ -384,7 +389,10 @@ mod tests {
     fn identification_answers_report_server_id_and_device_id() {
         let mut b = bank();
         let id = b.respond(7, &[0x11]).unwrap();
-        assert_eq!(&id[..4], &[0x11, 2 + PRODUCT_CODE.len() as u8, 7, 0xFF]);
+        assert_eq!(
+            &id[..4],
+            &[0x11, 2 + u8::try_from(PRODUCT_CODE.len()).unwrap(), 7, 0xFF]
+        );
         let device = b.respond(7, &[0x2B, 0x0E, 0x04, 0x01]).unwrap();
         assert_eq!(
             &device[..9],
@@ -397,7 +405,7 @@ mod tests {
                 0x00,
                 0x01,
                 0x01,
-                PRODUCT_CODE.len() as u8
+                u8::try_from(PRODUCT_CODE.len()).unwrap()
             ]
         );
         let framed = frame::encode(7, &device);
@@ -465,7 +473,7 @@ mod tests {
                         let mut pdu = vec![function];
                         words.iter().for_each(|w| pdu.extend(w.to_be_bytes()));
                         if counted {
-                            pdu.push(data.len() as u8);
+                            pdu.push(u8::try_from(data.len()).unwrap());
                         }
                         pdu.extend(data);
                         pdu.truncate(pdu.len().saturating_sub(cut));

@@ -31,7 +31,7 @@ impl Motor {
 
     /// Output voltage, V: V/f linear up to the rated frequency.
     pub fn output_voltage(&self, frequency: i32) -> u16 {
-        (f64::from(self.voltage) * self.fraction(frequency).min(1.0)).round() as u16
+        rounded_u16(f64::from(self.voltage) * self.fraction(frequency).min(1.0))
     }
 
     /// Output current, 0.01 A: magnetising current plus the load's share; 0 with no output.
@@ -40,7 +40,7 @@ impl Motor {
             return 0;
         }
         let share = 0.3 + 0.7 * self.load(frequency);
-        (f64::from(self.current) * share).round() as u32
+        rounded_u32(f64::from(self.current) * share)
     }
 
     /// Shaft speed, rpm: synchronous speed less the slip the load causes.
@@ -49,7 +49,7 @@ impl Motor {
         let rated_synchronous = f64::from(self.frequency) * 1.2 / f64::from(self.poles);
         let rated_slip = (rated_synchronous - f64::from(self.speed)) / rated_synchronous;
         let slip = rated_slip * self.load(frequency) / 0.8;
-        (synchronous * (1.0 - slip).max(0.0)).round() as u32
+        rounded_u32(synchronous * (1.0 - slip).max(0.0))
     }
 
     /// Output torque, 0.1 % of rated; 0 with no output.
@@ -57,14 +57,27 @@ impl Motor {
         if !energised || frequency == 0 {
             return 0;
         }
-        (1000.0 * self.load(frequency)).round() as u16
+        rounded_u16(1000.0 * self.load(frequency))
     }
 
     /// Output power, 0.1 % of rated.
     pub fn power(&self, frequency: i32, energised: bool) -> u16 {
         let torque = f64::from(self.torque(frequency, energised));
-        (torque * self.fraction(frequency)).round() as u16
+        rounded_u16(torque * self.fraction(frequency))
     }
+}
+
+// A float-to-integer `as` saturates, so a figure beyond a register's range reads its maximum (as
+// a drive's display does) rather than wrapping; truncating the fraction after rounding is the
+// intent.
+#[allow(clippy::cast_possible_truncation)]
+fn rounded_u16(value: f64) -> u16 {
+    value.round() as u16
+}
+
+#[allow(clippy::cast_possible_truncation)]
+fn rounded_u32(value: f64) -> u32 {
+    value.round() as u32
 }
 
 #[cfg(test)]

@@ -258,6 +258,49 @@ const TABLE: &[ParamSpec] = &[
     param(CURRENT_RESOLUTION, "Pd-06", 0, Value(0), Value(1), Always),
 ];
 
+/// A running value the drive works out (1000H..1020H).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Actual {
+    CommSetting,
+    OperatingFrequency,
+    BusVoltage,
+    OutputVoltage,
+    OutputCurrent,
+    OutputPower,
+    OutputTorque,
+    Speed,
+    DoFlags,
+    /// 0.1 Hz.
+    FeedbackSpeed,
+    PowerOnTime,
+    RunningTime,
+    MainFrequency,
+}
+
+/// The manual's shutdown/running parameters that read other than 0.
+static RUNNING_VALUES: [(u16, Actual); 16] = [
+    (COMM_SETTING, Actual::CommSetting),
+    (0x1001, Actual::OperatingFrequency),
+    (0x1002, Actual::BusVoltage),
+    (0x1003, Actual::OutputVoltage),
+    (0x1004, Actual::OutputCurrent),
+    (0x1005, Actual::OutputPower),
+    (0x1006, Actual::OutputTorque),
+    // Operating speed.
+    (0x1007, Actual::Speed),
+    (0x1009, Actual::DoFlags),
+    // Load speed.
+    (0x100F, Actual::Speed),
+    (0x1014, Actual::FeedbackSpeed),
+    (0x101A, Actual::PowerOnTime),
+    (0x101B, Actual::RunningTime),
+    // The communication setting value's copy.
+    (0x101D, Actual::CommSetting),
+    // Actual feedback speed.
+    (0x101E, Actual::FeedbackSpeed),
+    (0x101F, Actual::MainFrequency),
+];
+
 fn refusal_code(refusal: Refusal) -> ExceptionCode {
     match refusal {
         Refusal::NoSuchAddress | Refusal::ReadOnly => IllegalDataAddress,
@@ -454,37 +497,40 @@ impl PdInverter {
 
     /// 1000H..1020H.
     fn running_value(&self, address: u16) -> u16 {
+        let Some(&(_, actual)) = RUNNING_VALUES.iter().find(|(a, _)| *a == address) else {
+            // Inputs, counters, PID, PLC, calibration: nothing connected.
+            return 0;
+        };
         let frequency = self.ramp.frequency();
         let hz = u16::try_from(frequency.unsigned_abs()).unwrap_or(u16::MAX);
         let energised = self.running();
-        let current = MOTOR.output_current(frequency, energised);
-        let current = if self.params.value(CURRENT_RESOLUTION) == CURRENT_IN_TENTHS {
-            (current + 5) / 10
-        } else {
-            current
-        };
-        let power = RATED_POWER * u32::from(MOTOR.power(frequency, energised));
-        let speed = u16::try_from(MOTOR.speed(frequency)).unwrap_or(u16::MAX);
-        match address {
-            // Communication setting value, and its copy.
-            0x1000 | 0x101D => self.comm_setting as u16,
-            0x1001 => hz,
-            0x1002 => MOTOR.bus_voltage,
-            0x1003 => MOTOR.output_voltage(frequency),
-            0x1004 => u16::try_from(current).unwrap_or(u16::MAX),
-            // 0.1 kW from 0.1 % of rated.
-            0x1005 => u16::try_from((power + 500) / 1000).unwrap_or(u16::MAX),
-            0x1006 => MOTOR.torque(frequency, energised),
-            // Operating speed and load speed.
-            0x1007 | 0x100F => speed,
-            0x1009 => self.outputs[0],
-            // Feedback speed and actual feedback speed, 0.1 Hz.
-            0x1014 | 0x101E => hz / 10,
-            0x101A => minutes(self.now.saturating_duration_since(self.powered_on)),
-            0x101B => minutes(self.running_time()),
-            0x101F => self.main_reference(),
-            // Inputs, counters, PID, PLC, calibration: nothing connected.
-            _ => 0,
+        match actual {
+            // Two's complement on the wire.
+            Actual::CommSetting => u16::from_be_bytes(self.comm_setting.to_be_bytes()),
+            Actual::OperatingFrequency => hz,
+            Actual::BusVoltage => MOTOR.bus_voltage,
+            Actual::OutputVoltage => MOTOR.output_voltage(frequency),
+            Actual::OutputCurrent => {
+                let current = MOTOR.output_current(frequency, energised);
+                let current = if self.params.value(CURRENT_RESOLUTION) == CURRENT_IN_TENTHS {
+                    (current + 5) / 10
+                } else {
+                    current
+                };
+                u16::try_from(current).unwrap_or(u16::MAX)
+            }
+            Actual::OutputPower => {
+                // 0.1 kW from 0.1 % of rated.
+                let power = RATED_POWER * u32::from(MOTOR.power(frequency, energised));
+                u16::try_from((power + 500) / 1000).unwrap_or(u16::MAX)
+            }
+            Actual::OutputTorque => MOTOR.torque(frequency, energised),
+            Actual::Speed => u16::try_from(MOTOR.speed(frequency)).unwrap_or(u16::MAX),
+            Actual::DoFlags => self.outputs[0],
+            Actual::FeedbackSpeed => hz / 10,
+            Actual::PowerOnTime => minutes(self.now.saturating_duration_since(self.powered_on)),
+            Actual::RunningTime => minutes(self.running_time()),
+            Actual::MainFrequency => self.main_reference(),
         }
     }
 
@@ -542,7 +588,7 @@ impl PdInverter {
             PARAMETERS_FIRST..=PARAMETERS_LAST => self.write_param(address, value),
             COMM_SETTING => {
                 // Two's complement on the wire.
-                let setting = value as i16;
+                let setting = i16::from_be_bytes(value.to_be_bytes());
                 if setting.unsigned_abs() > COMM_SETTING_FULL_SCALE {
                     return Err(REFUSED);
                 }

@@ -82,17 +82,24 @@ impl Ramp {
 
     /// Signed output frequency in 0.01 Hz as of the last [`Ramp::advance`].
     pub fn frequency(&self) -> i32 {
-        self.frequency.round() as i32
+        rounded(self.frequency)
     }
 
     pub fn target(&self) -> i32 {
-        self.target.round() as i32
+        rounded(self.target)
     }
 
     /// True once the output has reached its target.
     pub fn settled(&self) -> bool {
         self.frequency == self.target
     }
+}
+
+// The ramp only moves between targets given as `i32`, so its rounded value is always one; the
+// cast drops nothing but the fraction rounding has already removed.
+#[allow(clippy::cast_possible_truncation)]
+fn rounded(frequency: f64) -> i32 {
+    frequency.round() as i32
 }
 
 #[cfg(test)]
