@@ -252,10 +252,6 @@ impl<M: Model> Drive<M> {
         }
     }
 
-    pub fn model(&self) -> &M {
-        &self.model
-    }
-
     /// When the communication timeout ran out, if it did before `at`.
     fn timeout_expiry(&self, at: Instant) -> Option<Instant> {
         let timeout = self.model.communication_timeout();
