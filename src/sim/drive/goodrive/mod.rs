@@ -291,18 +291,18 @@ impl Goodrive {
         Ok(())
     }
 
-    fn write_setpoint(&mut self, address: u16, value: u16) -> Result<(), Exception> {
+    /// A write to the 2000H block: the command word, or a setpoint the table bounds.
+    fn write_control(&mut self, address: u16, value: u16, at: Instant) -> Result<(), Exception> {
         let register = self
             .variant
             .control_register(address)
             .ok_or(IllegalDataAddress)?;
         let signed = i16::from_be_bytes(value.to_be_bytes());
         let allowed = match register.accepts {
+            Accepts::Command => return self.command(value, at),
             Accepts::UpToMaxFrequency => value <= self.params.value(P00_03),
             Accepts::UpTo(max) => value <= max,
             Accepts::Signed(max) => (-max..=max).contains(&signed),
-            // 2000H is never a setpoint: `write` hands it to `command`.
-            Accepts::Command => false,
         };
         if !allowed {
             return Err(ServerDeviceFailure.into());
@@ -387,8 +387,7 @@ impl Model for Goodrive {
 
     fn write(&mut self, address: u16, value: u16, at: Instant) -> Result<(), Exception> {
         match address {
-            CONTROL => self.command(value, at)?,
-            SETPOINT_FREQUENCY..=CONTROL_LAST => self.write_setpoint(address, value)?,
+            CONTROL..=CONTROL_LAST => self.write_control(address, value, at)?,
             STATE_1..=IDENTIFIER | RUNNING_FIRST..=RUNNING_LAST | FAULT => {
                 return Err(WRITE_NOT_ALLOWED)
             }

@@ -28,7 +28,7 @@ pub(super) const P29_GROUP: u16 = 0x1D;
 /// What a 2000H register accepts.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(super) enum Accepts {
-    /// A command word (see [`Goodrive::command`]).
+    /// The command word: run, jog, stop, fault reset.
     Command,
     /// 0 to the maximum frequency (P00.03).
     UpToMaxFrequency,
