@@ -40,9 +40,6 @@ use crate::rtu::Parity;
 use std::time::Duration;
 use tokio::time::Instant;
 
-/// Standard "server device failure": the drive will not take this value now.
-const REFUSED: ExceptionCode = ServerDeviceFailure;
-
 /// Only FC 03 and 06; a malformed request is an illegal data value.
 const REQUESTS: Protocol = Protocol {
     // The manual's limit on one read.
@@ -304,7 +301,7 @@ static RUNNING_VALUES: [(u16, Actual); 16] = [
 fn refusal_code(refusal: Refusal) -> ExceptionCode {
     match refusal {
         Refusal::NoSuchAddress | Refusal::ReadOnly => IllegalDataAddress,
-        Refusal::OutOfRange | Refusal::WhileRunning => REFUSED,
+        Refusal::OutOfRange | Refusal::WhileRunning => ServerDeviceFailure,
     }
 }
 
@@ -551,7 +548,7 @@ impl PdInverter {
         if matches!(address, BAUD | FORMAT | ADDRESS) {
             return match self.params.get(address) {
                 Some(current) if current == value => Ok(()),
-                _ => Err(REFUSED),
+                _ => Err(ServerDeviceFailure),
             };
         }
         self.params
@@ -562,12 +559,12 @@ impl PdInverter {
     }
 
     fn command(&mut self, value: u16) -> Result<(), ExceptionCode> {
-        let command = Command::from_word(value).ok_or(REFUSED)?;
+        let command = Command::from_word(value).ok_or(ServerDeviceFailure)?;
         if self.params.value(COMMAND_SOURCE) != COMMAND_FROM_COMMUNICATION {
             return Ok(());
         }
         match command {
-            Command::Run(_) if self.fault != 0 => return Err(REFUSED),
+            Command::Run(_) if self.fault != 0 => return Err(ServerDeviceFailure),
             Command::Run(run) => self.start(run),
             Command::Coast => {
                 self.ramp.coast(self.now);
@@ -590,7 +587,7 @@ impl PdInverter {
                 // Two's complement on the wire.
                 let setting = i16::from_be_bytes(value.to_be_bytes());
                 if setting.unsigned_abs() > COMM_SETTING_FULL_SCALE {
-                    return Err(REFUSED);
+                    return Err(ServerDeviceFailure);
                 }
                 self.comm_setting = setting;
                 self.retarget();
@@ -605,7 +602,7 @@ impl PdInverter {
                     ANALOG_OUTPUT_MAX
                 };
                 if value > max {
-                    return Err(REFUSED);
+                    return Err(ServerDeviceFailure);
                 }
                 self.outputs[usize::from(address - DO_CONTROL)] = value;
                 Ok(())
@@ -848,7 +845,10 @@ mod tests {
             read_one(&mut drive, 0x0D05, t0),
             Err(IllegalDataAddress as u8)
         );
-        assert_eq!(write(&mut drive, 0x0008, 5001, t0), Err(REFUSED as u8));
+        assert_eq!(
+            write(&mut drive, 0x0008, 5001, t0),
+            Err(ServerDeviceFailure as u8)
+        );
         assert_eq!(
             write(&mut drive, 0x0000, 2, t0),
             Err(IllegalDataAddress as u8)
@@ -931,31 +931,46 @@ mod tests {
         let (mut drive, t0) = power_on(&[]);
         assert_eq!(
             write(&mut drive, PRESET_FREQUENCY, 5001, t0),
-            Err(REFUSED as u8)
+            Err(ServerDeviceFailure as u8)
         );
         assert_eq!(
             write(&mut drive, RAMP_TIME_UNIT_PARAM, 0, t0),
-            Err(REFUSED as u8)
+            Err(ServerDeviceFailure as u8)
         );
-        assert_eq!(write(&mut drive, CARRIER, 4, t0), Err(REFUSED as u8));
+        assert_eq!(
+            write(&mut drive, CARRIER, 4, t0),
+            Err(ServerDeviceFailure as u8)
+        );
         // 1000H: 10001 and -10001 are out, -10000 is in.
         assert_eq!(
             write(&mut drive, COMM_SETTING, 10001, t0),
-            Err(REFUSED as u8)
+            Err(ServerDeviceFailure as u8)
         );
         assert_eq!(
             write(&mut drive, COMM_SETTING, 0xD8EF, t0),
-            Err(REFUSED as u8)
+            Err(ServerDeviceFailure as u8)
         );
         assert_eq!(write(&mut drive, COMM_SETTING, 0xD8F0, t0), Ok(()));
         assert_eq!(read_one(&mut drive, COMM_SETTING, t0), Ok(0xD8F0));
-        assert_eq!(write(&mut drive, DO_CONTROL, 0x80, t0), Err(REFUSED as u8));
+        assert_eq!(
+            write(&mut drive, DO_CONTROL, 0x80, t0),
+            Err(ServerDeviceFailure as u8)
+        );
         assert_eq!(write(&mut drive, DO_CONTROL, 0x7F, t0), Ok(()));
         assert_eq!(read_one(&mut drive, 0x1009, t0), Ok(0x7F));
-        assert_eq!(write(&mut drive, 0x2004, 0x8000, t0), Err(REFUSED as u8));
+        assert_eq!(
+            write(&mut drive, 0x2004, 0x8000, t0),
+            Err(ServerDeviceFailure as u8)
+        );
         assert_eq!(write(&mut drive, 0x2004, 0x7FFF, t0), Ok(()));
-        assert_eq!(write(&mut drive, CONTROL, 0, t0), Err(REFUSED as u8));
-        assert_eq!(write(&mut drive, CONTROL, 8, t0), Err(REFUSED as u8));
+        assert_eq!(
+            write(&mut drive, CONTROL, 0, t0),
+            Err(ServerDeviceFailure as u8)
+        );
+        assert_eq!(
+            write(&mut drive, CONTROL, 8, t0),
+            Err(ServerDeviceFailure as u8)
+        );
     }
 
     #[test]
@@ -973,7 +988,7 @@ mod tests {
         assert_eq!(delay(&mut drive), Duration::from_millis(2));
         assert_eq!(
             write(&mut drive, RESPONSE_DELAY, 21, t0),
-            Err(REFUSED as u8)
+            Err(ServerDeviceFailure as u8)
         );
         assert_eq!(write(&mut drive, RESPONSE_DELAY, 20, t0), Ok(()));
         assert_eq!(delay(&mut drive), Duration::from_millis(20));
@@ -1052,18 +1067,18 @@ mod tests {
         write(&mut drive, CONTROL, 1, t0).unwrap();
         assert_eq!(
             write(&mut drive, MAX_FREQUENCY, 10000, after(t0, 1.0)),
-            Err(REFUSED as u8)
+            Err(ServerDeviceFailure as u8)
         );
         assert_eq!(
             write(&mut drive, MAIN_SOURCE, 0, after(t0, 1.0)),
-            Err(REFUSED as u8)
+            Err(ServerDeviceFailure as u8)
         );
         // Always-writable ones still go in.
         assert_eq!(write(&mut drive, ACCEL_TIME, 100, after(t0, 1.0)), Ok(()));
         write(&mut drive, CONTROL, 6, after(t0, 1.0)).unwrap();
         assert_eq!(
             write(&mut drive, MAX_FREQUENCY, 10000, after(t0, 1.1)),
-            Err(REFUSED as u8)
+            Err(ServerDeviceFailure as u8)
         );
         assert_eq!(
             write(&mut drive, MAX_FREQUENCY, 10000, after(t0, 2.0)),
@@ -1098,7 +1113,7 @@ mod tests {
         );
         assert_eq!(
             write(&mut drive, CONTROL, 1, after(t0, 211.0)),
-            Err(REFUSED as u8)
+            Err(ServerDeviceFailure as u8)
         );
         assert_eq!(write(&mut drive, CONTROL, 7, after(t0, 212.0)), Ok(()));
         assert_eq!(read_one(&mut drive, FAULT, after(t0, 213.0)), Ok(0));
@@ -1118,8 +1133,14 @@ mod tests {
         let t0 = Instant::now();
         let mut drive = PdInverter::new(&tripped, t0).unwrap();
         assert_eq!(read_one(&mut drive, FAULT, t0), Ok(0x000F));
-        assert_eq!(write(&mut drive, CONTROL, 1, t0), Err(REFUSED as u8));
-        assert_eq!(write(&mut drive, CONTROL, 4, t0), Err(REFUSED as u8));
+        assert_eq!(
+            write(&mut drive, CONTROL, 1, t0),
+            Err(ServerDeviceFailure as u8)
+        );
+        assert_eq!(
+            write(&mut drive, CONTROL, 4, t0),
+            Err(ServerDeviceFailure as u8)
+        );
         assert_eq!(write(&mut drive, CONTROL, 6, t0), Ok(()));
         assert_eq!(write(&mut drive, CONTROL, 7, t0), Ok(()));
         assert_eq!(read_one(&mut drive, FAULT, t0), Ok(0));
@@ -1240,9 +1261,18 @@ mod tests {
         let mut drive = PdInverter::new(&DriveSettings::new(1, format), t0).unwrap();
         assert_eq!(read(&mut drive, BAUD, 3, t0), Ok(vec![6, 1, 1]));
         assert_eq!(write(&mut drive, BAUD, 6, t0), Ok(()));
-        assert_eq!(write(&mut drive, BAUD, 5, t0), Err(REFUSED as u8));
-        assert_eq!(write(&mut drive, FORMAT, 0, t0), Err(REFUSED as u8));
-        assert_eq!(write(&mut drive, 0x0D02, 2, t0), Err(REFUSED as u8));
+        assert_eq!(
+            write(&mut drive, BAUD, 5, t0),
+            Err(ServerDeviceFailure as u8)
+        );
+        assert_eq!(
+            write(&mut drive, FORMAT, 0, t0),
+            Err(ServerDeviceFailure as u8)
+        );
+        assert_eq!(
+            write(&mut drive, 0x0D02, 2, t0),
+            Err(ServerDeviceFailure as u8)
+        );
 
         let odd = SerialFormat {
             baud: 14400,
