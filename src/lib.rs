@@ -17,11 +17,12 @@
 //! Shared by all: [`pdu`] (function and exception codes) and [`error`] (what fails a request, and
 //! the one place that turns it into an exception), [`shutdown`] (the stop signal), [`timer`]
 //! (sleeps precise to well under a millisecond for the line's timing). [`gateway`]
-//! wires the parts together;
-//! [`simulate`] serves the simulated slaves on a real serial port instead; [`logging`] sets up
-//! the daemon's log output.
+//! wires the parts together; [`cli`] is the command's subcommands (run the gateway, check the
+//! configuration, `simulate`: serve the simulated slaves on a real serial port instead);
+//! [`logging`] sets up the daemon's log output.
 
 pub mod bus;
+pub mod cli;
 pub mod config;
 pub mod dispatch;
 pub mod error;
@@ -34,7 +35,6 @@ pub mod routing;
 pub mod rtu;
 pub mod shutdown;
 pub mod sim;
-pub mod simulate;
 pub mod tcp;
 pub mod timer;
 

@@ -7,7 +7,7 @@ use modbus_gateway::gateway::config_from_toml;
 use modbus_gateway::line::TxError;
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::shutdown::Stopping;
-use modbus_gateway::sim::{RegisterBank, Scripted, SimLine, SimSlave, Source, Transmission};
+use modbus_gateway::sim::{RegisterBank, Scripted, SimLine, Slave, Source, Transmission};
 
 use crate::support::{bus_call as call, settle};
 use std::time::Duration;
@@ -463,7 +463,7 @@ struct SilentFor {
     inner: RegisterBank,
 }
 
-impl SimSlave for SilentFor {
+impl Slave for SilentFor {
     fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission> {
         if request.first() == Some(&self.function) {
             return None;

@@ -5,7 +5,7 @@
 //! itself stays correct. Random choices come from a generator seeded by the slave's address, so a
 //! run repeats exactly.
 
-use super::{Pause, SimSlave, Transmission};
+use super::{Pause, Slave, Transmission};
 use crate::config;
 use crate::pdu::EXCEPTION_BIT;
 use crate::rtu::frame::{self, BROADCAST};
@@ -73,7 +73,7 @@ pub struct Faulty<S> {
     rng: fastrand::Rng,
 }
 
-impl<S: SimSlave> Faulty<S> {
+impl<S: Slave> Faulty<S> {
     pub fn new(inner: S, faults: Faults, address: u8) -> Self {
         Faulty {
             inner,
@@ -87,7 +87,7 @@ impl<S: SimSlave> Faulty<S> {
     }
 }
 
-impl<S: SimSlave> SimSlave for Faulty<S> {
+impl<S: Slave> Slave for Faulty<S> {
     fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission> {
         if self.faults.offline {
             return None;

@@ -7,7 +7,7 @@
 //! the simulation exact under tokio's paused clock and costs no task. A bus monitor keeps counts
 //! and the recent frames with their times, for tests and benchmarks.
 
-use super::{SimSlave, Transmission};
+use super::{Slave, Transmission};
 use crate::line::{LineTiming, Transport};
 use crate::rtu::frame::{self, BROADCAST};
 use crate::timer::sleep_until;
@@ -71,7 +71,7 @@ struct Shared {
 
 struct LineState {
     timing: LineTiming,
-    slaves: BTreeMap<u8, Box<dyn SimSlave>>,
+    slaves: BTreeMap<u8, Box<dyn Slave>>,
     plugged: bool,
     /// Bumped by every open and unplug: a port of an older generation is dead.
     generation: u64,
@@ -123,7 +123,7 @@ impl SimLine {
     }
 
     /// Put a slave on the line at `address`, replacing any slave there.
-    pub fn add_slave(&self, address: u8, slave: impl SimSlave + 'static) {
+    pub fn add_slave(&self, address: u8, slave: impl Slave + 'static) {
         self.shared.lock().slaves.insert(address, Box::new(slave));
     }
 
@@ -270,7 +270,9 @@ impl LineState {
             .filter(|p| p.after > 0 && p.after < reply.bytes.len())
         {
             let (first, rest) = reply.bytes.split_at(pause.after);
-            let first_end = bursts[0].0 + char_time * first.len() as u32;
+            // A frame is a few hundred bytes at most; saturating keeps a pathological one from panicking.
+            let chars = u32::try_from(first.len()).unwrap_or(u32::MAX);
+            let first_end = bursts[0].0 + char_time.saturating_mul(chars);
             bursts = vec![(bursts[0].0, first), (first_end + pause.gap, rest)];
         }
         for (start, bytes) in bursts {
@@ -380,7 +382,7 @@ mod tests {
         delay: Duration,
     }
 
-    impl SimSlave for Echo {
+    impl Slave for Echo {
         fn handle(&mut self, address: u8, request: &[u8], _at: Instant) -> Option<Transmission> {
             Some(Transmission {
                 bytes: frame::encode(address, request),
@@ -445,7 +447,7 @@ mod tests {
         gap: Duration,
     }
 
-    impl SimSlave for Stutter {
+    impl Slave for Stutter {
         fn handle(&mut self, address: u8, request: &[u8], _at: Instant) -> Option<Transmission> {
             Some(Transmission {
                 bytes: frame::encode(address, request),

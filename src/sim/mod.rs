@@ -1,15 +1,14 @@
 //! The simulated RS-485 line (`device = "sim"`) and the slaves on it, so the whole gateway runs and
-//! is tested with no hardware: [`line`] times every frame at the configured baud and checks the
-//! gaps; [`registers`] holds plain register-bank slaves; [`goodrive`] and [`pd_inverter`] model the
-//! drives of the reference manuals on the shared core in [`drive`]; [`faults`] bends any slave's
-//! replies; [`scripted`] plays a script for tests; [`responder`] serves the slaves on a real serial
-//! port (`simulate`). Knows nothing of TCP or the bus queue; the bus opens the line like any port.
+//! is tested with no hardware: [`line`](mod@line) times every frame at the configured baud and
+//! checks the gaps; [`registers`] holds plain register-bank slaves; [`drive`] models the drives of
+//! the reference manuals on one shared request pipeline; [`faults`] bends any slave's replies;
+//! [`scripted`] plays a script for tests; [`responder`] serves the slaves on a real serial port
+//! (`modbus-gateway simulate`). Knows nothing of TCP or the bus queue; the bus opens the line like
+//! any port.
 
 pub mod drive;
 pub mod faults;
-pub mod goodrive;
 pub mod line;
-pub mod pd_inverter;
 pub mod registers;
 pub mod responder;
 pub mod scripted;
@@ -21,10 +20,10 @@ pub use scripted::Scripted;
 use crate::config::{self, SimModel};
 use crate::line::SerialFormat;
 use crate::rtu::frame;
+use drive::goodrive::{Goodrive, Variant};
+use drive::pd_inverter::PdInverter;
 use drive::{DriveSettings, SetupError};
 use faults::{Faults, Faulty};
-use goodrive::{Goodrive, Variant};
-use pd_inverter::PdInverter;
 use std::time::Duration;
 use tokio::time::Instant;
 
@@ -34,7 +33,7 @@ pub fn build(
     spec: &config::SimSlave,
     address: u8,
     format: SerialFormat,
-) -> Result<Box<dyn SimSlave>, SetupError> {
+) -> Result<Box<dyn Slave>, SetupError> {
     let now = Instant::now();
     let settings = DriveSettings {
         address,
@@ -86,7 +85,7 @@ impl config::DriveCheck for Drives {
     }
 }
 
-fn with_faults<S: SimSlave + 'static>(slave: S, faults: Faults, address: u8) -> Box<dyn SimSlave> {
+fn with_faults<S: Slave + 'static>(slave: S, faults: Faults, address: u8) -> Box<dyn Slave> {
     if faults.is_none() {
         Box::new(slave)
     } else {
@@ -126,13 +125,13 @@ impl Transmission {
 
 /// A device on the simulated line. It sees every intact request frame addressed to it, and every
 /// broadcast.
-pub trait SimSlave: Send {
+pub trait Slave: Send {
     /// Act on `request` (a PDU) that ended on the wire at `at`. `address` is the frame's address:
     /// the slave's own, or 0 for a broadcast, whose answer the line never sends.
     fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission>;
 }
 
-impl<S: SimSlave + ?Sized> SimSlave for Box<S> {
+impl<S: Slave + ?Sized> Slave for Box<S> {
     fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission> {
         (**self).handle(address, request, at)
     }

@@ -5,16 +5,17 @@
 //! Contents: coils and holding registers start at 0 and keep what is written. Input register `a`
 //! reads `a`, and discrete input `a` is on when `a` is odd, so tests know what to expect.
 
-use super::{SimSlave, Transmission};
-use crate::pdu::EXCEPTION_BIT;
+use super::{Slave, Transmission};
+use crate::pdu::code;
+use crate::pdu::exception_pdu;
+use crate::pdu::ExceptionCode::{self, IllegalDataAddress, IllegalDataValue, IllegalFunction};
 use crate::rtu::frame;
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Duration;
 use tokio::time::Instant;
 
-const ILLEGAL_FUNCTION: u8 = 0x01;
-const ILLEGAL_DATA_ADDRESS: u8 = 0x02;
-const ILLEGAL_DATA_VALUE: u8 = 0x03;
+/// FC 2B's MEI type for Read Device Identification.
+const READ_DEVICE_ID: u8 = 0x0E;
 
 const MAX_READ_BITS: usize = 2000;
 const MAX_READ_REGISTERS: usize = 125;
@@ -33,29 +34,30 @@ pub struct RegisterBank {
     processing_delay: Duration,
 }
 
-type Reply = Result<Vec<u8>, u8>;
+type Reply = Result<Vec<u8>, ExceptionCode>;
 
 fn word(pdu: &[u8], at: usize) -> Option<u16> {
     Some(u16::from_be_bytes([*pdu.get(at)?, *pdu.get(at + 1)?]))
 }
 
 /// Start address and quantity at bytes 1..5, checked against `max` and the end of the address space.
-fn range(pdu: &[u8], max: usize) -> Result<(u16, usize), u8> {
+fn range(pdu: &[u8], max: usize) -> Result<(u16, usize), ExceptionCode> {
     let (start, quantity) = match (word(pdu, 1), word(pdu, 3)) {
         (Some(start), Some(quantity)) => (start, usize::from(quantity)),
-        _ => return Err(ILLEGAL_DATA_VALUE),
+        _ => return Err(IllegalDataValue),
     };
     if quantity == 0 || quantity > max {
-        return Err(ILLEGAL_DATA_VALUE);
+        return Err(IllegalDataValue);
     }
     if usize::from(start) + quantity > 0x1_0000 {
-        return Err(ILLEGAL_DATA_ADDRESS);
+        return Err(IllegalDataAddress);
     }
     Ok((start, quantity))
 }
 
 fn addresses(start: u16, quantity: usize) -> impl Iterator<Item = u16> {
-    (0..quantity).map(move |i| start.wrapping_add(i as u16))
+    // `range` has checked that start + quantity fits the address space, so every offset is a u16.
+    (0..quantity).map_while(move |i| u16::try_from(i).ok().map(|i| start.wrapping_add(i)))
 }
 
 fn pack_bits(bits: impl Iterator<Item = bool>, quantity: usize) -> Vec<u8> {
@@ -68,12 +70,15 @@ fn pack_bits(bits: impl Iterator<Item = bool>, quantity: usize) -> Vec<u8> {
     bytes
 }
 
-fn with_count(function: u8, data: Vec<u8>) -> Vec<u8> {
+/// The quantity limits keep every reply's data under 256 bytes; were one not to, the request
+/// asked for too much.
+fn with_count(function: u8, data: Vec<u8>) -> Reply {
+    let count = u8::try_from(data.len()).map_err(|_| IllegalDataValue)?;
     let mut reply = Vec::with_capacity(data.len() + 2);
     reply.push(function);
-    reply.push(data.len() as u8);
+    reply.push(count);
     reply.extend(data);
-    reply
+    Ok(reply)
 }
 
 fn input_register(address: u16) -> u16 {
@@ -117,30 +122,30 @@ impl RegisterBank {
         let data = addresses(start, quantity)
             .flat_map(|a| read(self, a).to_be_bytes())
             .collect();
-        Ok(with_count(pdu[0], data))
+        with_count(pdu[0], data)
     }
 
     fn read_bits(&self, pdu: &[u8], read: impl Fn(&Self, u16) -> bool) -> Reply {
         let (start, quantity) = range(pdu, MAX_READ_BITS)?;
         let bits = addresses(start, quantity).map(|a| read(self, a));
-        Ok(with_count(pdu[0], pack_bits(bits, quantity)))
+        with_count(pdu[0], pack_bits(bits, quantity))
     }
 
     fn write_coil(&mut self, pdu: &[u8]) -> Reply {
         let (Some(address), Some(value)) = (word(pdu, 1), word(pdu, 3)) else {
-            return Err(ILLEGAL_DATA_VALUE);
+            return Err(IllegalDataValue);
         };
         match value {
             0xFF00 => self.set_coil(address, true),
             0x0000 => self.set_coil(address, false),
-            _ => return Err(ILLEGAL_DATA_VALUE),
+            _ => return Err(IllegalDataValue),
         }
         Ok(pdu[..5].to_vec())
     }
 
     fn write_register(&mut self, pdu: &[u8]) -> Reply {
         let (Some(address), Some(value)) = (word(pdu, 1), word(pdu, 3)) else {
-            return Err(ILLEGAL_DATA_VALUE);
+            return Err(IllegalDataValue);
         };
         self.set_holding(address, value);
         Ok(pdu[..5].to_vec())
@@ -148,9 +153,9 @@ impl RegisterBank {
 
     fn write_coils(&mut self, pdu: &[u8]) -> Reply {
         let (start, quantity) = range(pdu, MAX_WRITE_BITS)?;
-        let values = pdu.get(6..).ok_or(ILLEGAL_DATA_VALUE)?;
+        let values = pdu.get(6..).ok_or(IllegalDataValue)?;
         if usize::from(pdu[5]) != quantity.div_ceil(8) || values.len() != usize::from(pdu[5]) {
-            return Err(ILLEGAL_DATA_VALUE);
+            return Err(IllegalDataValue);
         }
         for (i, address) in addresses(start, quantity).enumerate() {
             self.set_coil(address, values[i / 8] & (1 << (i % 8)) != 0);
@@ -158,9 +163,14 @@ impl RegisterBank {
         Ok(pdu[..5].to_vec())
     }
 
-    fn write_registers_at(&mut self, start: u16, quantity: usize, values: &[u8]) -> Result<(), u8> {
+    fn write_registers_at(
+        &mut self,
+        start: u16,
+        quantity: usize,
+        values: &[u8],
+    ) -> Result<(), ExceptionCode> {
         if values.len() != quantity * 2 {
-            return Err(ILLEGAL_DATA_VALUE);
+            return Err(IllegalDataValue);
         }
         for (address, value) in addresses(start, quantity).zip(values.chunks_exact(2)) {
             self.set_holding(address, u16::from_be_bytes([value[0], value[1]]));
@@ -170,9 +180,9 @@ impl RegisterBank {
 
     fn write_registers(&mut self, pdu: &[u8]) -> Reply {
         let (start, quantity) = range(pdu, MAX_WRITE_REGISTERS)?;
-        let count = *pdu.get(5).ok_or(ILLEGAL_DATA_VALUE)?;
+        let count = *pdu.get(5).ok_or(IllegalDataValue)?;
         if usize::from(count) != quantity * 2 {
-            return Err(ILLEGAL_DATA_VALUE);
+            return Err(IllegalDataValue);
         }
         self.write_registers_at(start, quantity, &pdu[6..])?;
         Ok(pdu[..5].to_vec())
@@ -181,7 +191,7 @@ impl RegisterBank {
     fn mask_write_register(&mut self, pdu: &[u8]) -> Reply {
         let (Some(address), Some(and), Some(or)) = (word(pdu, 1), word(pdu, 3), word(pdu, 5))
         else {
-            return Err(ILLEGAL_DATA_VALUE);
+            return Err(IllegalDataValue);
         };
         let current = self.holding(address);
         self.set_holding(address, (current & and) | (or & !and));
@@ -191,49 +201,58 @@ impl RegisterBank {
     fn read_write_registers(&mut self, pdu: &[u8]) -> Reply {
         let (read_start, read_quantity) = range(pdu, MAX_READ_REGISTERS)?;
         let (write_start, write_quantity) = range(&pdu[4..], MAX_READ_WRITE_REGISTERS)?;
-        let count = *pdu.get(9).ok_or(ILLEGAL_DATA_VALUE)?;
+        let count = *pdu.get(9).ok_or(IllegalDataValue)?;
         if usize::from(count) != write_quantity * 2 {
-            return Err(ILLEGAL_DATA_VALUE);
+            return Err(IllegalDataValue);
         }
         // The spec performs the write before the read.
         self.write_registers_at(write_start, write_quantity, &pdu[10..])?;
         let data = addresses(read_start, read_quantity)
             .flat_map(|a| self.holding(a).to_be_bytes())
             .collect();
-        Ok(with_count(pdu[0], data))
+        with_count(pdu[0], data)
     }
 
     fn diagnostics(&self, pdu: &[u8]) -> Reply {
         match word(pdu, 1) {
             // Return query data: the request comes back unchanged.
             Some(0x0000) => Ok(pdu.to_vec()),
-            _ => Err(ILLEGAL_FUNCTION),
+            _ => Err(IllegalFunction),
         }
     }
 
     fn report_server_id(&self, address: u8) -> Reply {
         let mut data = vec![address, 0xFF];
         data.extend_from_slice(PRODUCT_CODE);
-        Ok(with_count(0x11, data))
+        with_count(code::REPORT_SERVER_ID, data)
     }
 
     fn read_device_identification(&self, pdu: &[u8]) -> Reply {
         let objects: [&[u8]; 3] = [VENDOR_NAME, PRODUCT_CODE, REVISION];
         let (Some(&read_code), Some(&object_id)) = (pdu.get(2), pdu.get(3)) else {
-            return Err(ILLEGAL_DATA_VALUE);
+            return Err(IllegalDataValue);
         };
         let wanted: Vec<u8> = match read_code {
             // Basic stream: every object from the one asked for.
             0x01 => (object_id..3).collect(),
             0x04 if usize::from(object_id) < objects.len() => vec![object_id],
-            0x04 => return Err(ILLEGAL_DATA_ADDRESS),
-            _ => return Err(ILLEGAL_DATA_VALUE),
+            0x04 => return Err(IllegalDataAddress),
+            _ => return Err(IllegalDataValue),
         };
-        let mut reply = vec![0x2B, 0x0E, read_code, 0x01, 0x00, 0x00, wanted.len() as u8];
+        let count = u8::try_from(wanted.len()).map_err(|_| IllegalDataValue)?;
+        let mut reply = vec![
+            code::ENCAPSULATED_INTERFACE,
+            READ_DEVICE_ID,
+            read_code,
+            0x01,
+            0x00,
+            0x00,
+            count,
+        ];
         for id in wanted {
             let value = objects[usize::from(id)];
             reply.push(id);
-            reply.push(value.len() as u8);
+            reply.push(u8::try_from(value.len()).map_err(|_| IllegalDataValue)?);
             reply.extend_from_slice(value);
         }
         Ok(reply)
@@ -242,36 +261,38 @@ impl RegisterBank {
     /// Answer a request PDU; `Err` carries the exception code.
     pub fn respond(&mut self, address: u8, pdu: &[u8]) -> Reply {
         let Some(&function) = pdu.first() else {
-            return Err(ILLEGAL_FUNCTION);
+            return Err(IllegalFunction);
         };
         match function {
-            0x01 => self.read_bits(pdu, |bank, a| bank.coils.contains(&a)),
-            0x02 => self.read_bits(pdu, |_, a| discrete_input(a)),
-            0x03 => self.read_registers(pdu, RegisterBank::holding),
-            0x04 => self.read_registers(pdu, |_, a| input_register(a)),
-            0x05 => self.write_coil(pdu),
-            0x06 => self.write_register(pdu),
-            0x07 => Ok(vec![0x07, 0x00]),
-            0x08 => self.diagnostics(pdu),
-            0x0F => self.write_coils(pdu),
-            0x10 => self.write_registers(pdu),
-            0x11 => self.report_server_id(address),
-            0x16 => self.mask_write_register(pdu),
-            0x17 => self.read_write_registers(pdu),
-            0x2B if pdu.get(1) == Some(&0x0E) => self.read_device_identification(pdu),
-            _ => Err(ILLEGAL_FUNCTION),
+            code::READ_COILS => self.read_bits(pdu, |bank, a| bank.coils.contains(&a)),
+            code::READ_DISCRETE_INPUTS => self.read_bits(pdu, |_, a| discrete_input(a)),
+            code::READ_HOLDING_REGISTERS => self.read_registers(pdu, RegisterBank::holding),
+            code::READ_INPUT_REGISTERS => self.read_registers(pdu, |_, a| input_register(a)),
+            code::WRITE_SINGLE_COIL => self.write_coil(pdu),
+            code::WRITE_SINGLE_REGISTER => self.write_register(pdu),
+            code::READ_EXCEPTION_STATUS => Ok(vec![code::READ_EXCEPTION_STATUS, 0x00]),
+            code::DIAGNOSTICS => self.diagnostics(pdu),
+            code::WRITE_MULTIPLE_COILS => self.write_coils(pdu),
+            code::WRITE_MULTIPLE_REGISTERS => self.write_registers(pdu),
+            code::REPORT_SERVER_ID => self.report_server_id(address),
+            code::MASK_WRITE_REGISTER => self.mask_write_register(pdu),
+            code::READ_WRITE_MULTIPLE_REGISTERS => self.read_write_registers(pdu),
+            code::ENCAPSULATED_INTERFACE if pdu.get(1) == Some(&READ_DEVICE_ID) => {
+                self.read_device_identification(pdu)
+            }
+            _ => Err(IllegalFunction),
         }
     }
 }
 
-impl SimSlave for RegisterBank {
+impl Slave for RegisterBank {
     fn handle(&mut self, address: u8, request: &[u8], _at: Instant) -> Option<Transmission> {
         let reply = self.respond(address, request);
         if address == frame::BROADCAST {
             return None;
         }
         let function = request.first().copied().unwrap_or(0);
-        let pdu = reply.unwrap_or_else(|code| vec![function | EXCEPTION_BIT, code]);
+        let pdu = reply.unwrap_or_else(|e| exception_pdu(function, e).to_vec());
         Some(Transmission::frame(address, &pdu, self.processing_delay))
     }
 }
@@ -332,7 +353,7 @@ mod tests {
         );
         assert_eq!(
             b.respond(1, &[0x05, 0x00, 0x02, 0x12, 0x34]),
-            Err(ILLEGAL_DATA_VALUE)
+            Err(IllegalDataValue)
         );
     }
 
@@ -358,33 +379,36 @@ mod tests {
         let mut b = bank();
         assert_eq!(
             b.respond(1, &[0x03, 0x00, 0x00, 0x00, 0x7E]),
-            Err(ILLEGAL_DATA_VALUE)
+            Err(IllegalDataValue)
         );
         assert_eq!(
             b.respond(1, &[0x03, 0x00, 0x00, 0x00, 0x00]),
-            Err(ILLEGAL_DATA_VALUE)
+            Err(IllegalDataValue)
         );
         assert_eq!(
             b.respond(1, &[0x03, 0xFF, 0xFF, 0x00, 0x02]),
-            Err(ILLEGAL_DATA_ADDRESS)
+            Err(IllegalDataAddress)
         );
         assert_eq!(
             b.respond(1, &[0x10, 0x00, 0x00, 0x00, 0x02, 0x02, 0, 1]),
-            Err(ILLEGAL_DATA_VALUE)
+            Err(IllegalDataValue)
         );
-        assert_eq!(b.respond(1, &[0x41, 0x01]), Err(ILLEGAL_FUNCTION));
+        assert_eq!(b.respond(1, &[0x41, 0x01]), Err(IllegalFunction));
         assert_eq!(
             b.respond(1, &[0x08, 0x00, 0x01, 0x00, 0x00]),
-            Err(ILLEGAL_FUNCTION)
+            Err(IllegalFunction)
         );
-        assert_eq!(b.respond(1, &[0x03]), Err(ILLEGAL_DATA_VALUE));
+        assert_eq!(b.respond(1, &[0x03]), Err(IllegalDataValue));
     }
 
     #[test]
     fn identification_answers_report_server_id_and_device_id() {
         let mut b = bank();
         let id = b.respond(7, &[0x11]).unwrap();
-        assert_eq!(&id[..4], &[0x11, 2 + PRODUCT_CODE.len() as u8, 7, 0xFF]);
+        assert_eq!(
+            &id[..4],
+            &[0x11, 2 + u8::try_from(PRODUCT_CODE.len()).unwrap(), 7, 0xFF]
+        );
         let device = b.respond(7, &[0x2B, 0x0E, 0x04, 0x01]).unwrap();
         assert_eq!(
             &device[..9],
@@ -397,7 +421,7 @@ mod tests {
                 0x00,
                 0x01,
                 0x01,
-                PRODUCT_CODE.len() as u8
+                u8::try_from(PRODUCT_CODE.len()).unwrap()
             ]
         );
         let framed = frame::encode(7, &device);
@@ -465,7 +489,7 @@ mod tests {
                         let mut pdu = vec![function];
                         words.iter().for_each(|w| pdu.extend(w.to_be_bytes()));
                         if counted {
-                            pdu.push(data.len() as u8);
+                            pdu.push(u8::try_from(data.len()).unwrap());
                         }
                         pdu.extend(data);
                         pdu.truncate(pdu.len().saturating_sub(cut));

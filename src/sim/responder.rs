@@ -5,7 +5,7 @@
 //! out after the t3.5 gap plus the slave's own delay. Broadcasts are carried out by every slave
 //! and answered by none. Knows nothing of TCP or the gateway's bus.
 
-use super::SimSlave;
+use super::Slave;
 use crate::line::{LineTiming, Transport};
 use crate::rtu::frame::{self, FrameLen, BROADCAST, MAX_FRAME_LEN};
 use crate::timer::sleep_until;
@@ -28,7 +28,7 @@ pub struct ResponderStats {
 }
 
 pub struct Responder {
-    slaves: BTreeMap<u8, Box<dyn SimSlave>>,
+    slaves: BTreeMap<u8, Box<dyn Slave>>,
     timing: LineTiming,
     /// Silence that ends a frame whose length its bytes cannot tell.
     silence: Duration,
@@ -45,7 +45,7 @@ impl Responder {
         }
     }
 
-    pub fn add_slave(&mut self, address: u8, slave: Box<dyn SimSlave>) {
+    pub fn add_slave(&mut self, address: u8, slave: Box<dyn Slave>) {
         self.slaves.insert(address, slave);
     }
 

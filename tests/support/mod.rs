@@ -7,7 +7,7 @@ use modbus_gateway::gateway::{config_from_toml, load_config};
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::rtu::frame::{self, FrameLen};
 use modbus_gateway::shutdown::Stopping;
-use modbus_gateway::sim::{RegisterBank, SimLine, SimSlave};
+use modbus_gateway::sim::{RegisterBank, SimLine, Slave};
 use modbus_gateway::{Config, Gateway};
 use std::cell::Cell;
 use std::net::SocketAddr;

@@ -1,7 +1,7 @@
 //! The second inverter of shared/reference (manual 003: P0..PF parameter groups, Pd group for
 //! communication) as a simulated drive on the line. Owns its register map, exception codes and
-//! the manual's quirks; the ramp, motor values and parameter table come from [`super::drive`].
-//! Knows nothing of the line's timing or of TCP.
+//! the manual's quirks, as a [`Model`] for the pipeline of [`super::Drive`]; the ramp, motor values
+//! and parameter table come from [`super`]. Knows nothing of the line's timing or of TCP.
 //!
 //! Where the manual is silent, missing or wrong, this model decides:
 //! - Its error-response table did not survive, so exceptions are the standard Modbus codes:
@@ -29,30 +29,25 @@
 //! - 1F00H: no password is set, so any write passes and a read returns 0888H ("check passed").
 //! - 101BH counts the minutes a run or jog command has been in force.
 
-use super::drive::Limit::{Param, Value};
-use super::drive::Modify::{Always, Never, Stopped};
-use super::drive::{
-    exception, word, DriveSettings, Limit, Modify, Motor, ParamSpec, Params, Ramp, Rates, Refusal,
-    SetupError,
+use super::Limit::{Param, Value};
+use super::Modify::{Always, Never, Stopped};
+use super::{
+    power_on_trip, Drive, DriveSettings, Exception, Limit, LineIndices, LineParams, Model, Modify,
+    Motor, ParamSpec, Params, Protocol, Ramp, Rates, Refusal, SetupError,
 };
-use super::{SimSlave, Transmission};
-use crate::line::{Parity, SerialFormat};
-use crate::rtu::frame;
+use crate::line::Parity;
+use crate::pdu::ExceptionCode::{self, IllegalDataAddress, ServerDeviceFailure};
 use std::time::Duration;
 use tokio::time::Instant;
 
-const READ: u8 = 0x03;
-const WRITE: u8 = 0x06;
-/// Function code, address, quantity or value: both requests the drive knows are this long.
-const REQUEST_LEN: usize = 5;
-/// The manual's limit on one read.
-const MAX_READ_WORDS: usize = 12;
-
-const ILLEGAL_FUNCTION: u8 = 0x01;
-const ILLEGAL_DATA_ADDRESS: u8 = 0x02;
-const ILLEGAL_DATA_VALUE: u8 = 0x03;
-/// Standard "server device failure": the drive will not take this value now.
-const REFUSED: u8 = 0x04;
+/// Only FC 03 and 06; a malformed request is an illegal data value.
+const REQUESTS: Protocol = Protocol {
+    // The manual's limit on one read.
+    max_words: 12,
+    diagnostics: false,
+    write_multiple: false,
+    malformed: Exception::standard(ExceptionCode::IllegalDataValue),
+};
 
 /// P0..PE parameters at F000H | group << 8 | index; PF (FF00H..) is closed to communication.
 const PARAMETERS_FIRST: u16 = 0xF000;
@@ -132,10 +127,26 @@ const MOTOR: Motor = Motor {
     bus_voltage: 5400,
 };
 
-/// Pd-00's baud rates by index.
-const BAUD_RATES: [u32; 10] = [
-    300, 600, 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200,
-];
+/// Pd-00..Pd-02: Pd-00's baud rates and Pd-01's formats (8 data bits) by index.
+const LINE: LineParams = LineParams {
+    address: ADDRESS,
+    baud: BAUD,
+    format: FORMAT,
+    indices: LineIndices {
+        bauds: &[
+            300, 600, 1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200,
+        ],
+        factory_baud: FACTORY_BAUD_INDEX,
+        formats: &[(Parity::None, 2), (Parity::Even, 1), (Parity::Odd, 1)],
+        factory_format: FACTORY_FORMAT_INDEX,
+    },
+    differs: |value, configured| {
+        format!(
+            "{configured} differs from the line's {value}: set the slave's address and the line's format instead"
+        )
+    },
+    outside: |value| format!("the line's {value} is outside its range"),
+};
 const FACTORY_BAUD_INDEX: u16 = 5;
 const FACTORY_FORMAT_INDEX: u16 = 0;
 
@@ -244,26 +255,53 @@ const TABLE: &[ParamSpec] = &[
     param(CURRENT_RESOLUTION, "Pd-06", 0, Value(0), Value(1), Always),
 ];
 
-fn baud_index(baud: u32) -> u16 {
-    BAUD_RATES
-        .iter()
-        .position(|&rate| rate == baud)
-        .and_then(|index| u16::try_from(index).ok())
-        .unwrap_or(FACTORY_BAUD_INDEX)
+/// A running value the drive works out (1000H..1020H).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Actual {
+    CommSetting,
+    OperatingFrequency,
+    BusVoltage,
+    OutputVoltage,
+    OutputCurrent,
+    OutputPower,
+    OutputTorque,
+    Speed,
+    DoFlags,
+    /// 0.1 Hz.
+    FeedbackSpeed,
+    PowerOnTime,
+    RunningTime,
+    MainFrequency,
 }
 
-fn format_index(format: &SerialFormat) -> u16 {
-    match (format.data_bits, format.parity, format.stop_bits) {
-        (8, Parity::Even, 1) => 1,
-        (8, Parity::Odd, 1) => 2,
-        _ => FACTORY_FORMAT_INDEX,
-    }
-}
+/// The manual's shutdown/running parameters that read other than 0.
+static RUNNING_VALUES: [(u16, Actual); 16] = [
+    (COMM_SETTING, Actual::CommSetting),
+    (0x1001, Actual::OperatingFrequency),
+    (0x1002, Actual::BusVoltage),
+    (0x1003, Actual::OutputVoltage),
+    (0x1004, Actual::OutputCurrent),
+    (0x1005, Actual::OutputPower),
+    (0x1006, Actual::OutputTorque),
+    // Operating speed.
+    (0x1007, Actual::Speed),
+    (0x1009, Actual::DoFlags),
+    // Load speed.
+    (0x100F, Actual::Speed),
+    (0x1014, Actual::FeedbackSpeed),
+    (0x101A, Actual::PowerOnTime),
+    (0x101B, Actual::RunningTime),
+    // The communication setting value's copy.
+    (0x101D, Actual::CommSetting),
+    // Actual feedback speed.
+    (0x101E, Actual::FeedbackSpeed),
+    (0x101F, Actual::MainFrequency),
+];
 
-fn refusal_code(refusal: Refusal) -> u8 {
+fn refusal_code(refusal: Refusal) -> ExceptionCode {
     match refusal {
-        Refusal::NoSuchAddress | Refusal::ReadOnly => ILLEGAL_DATA_ADDRESS,
-        Refusal::OutOfRange | Refusal::WhileRunning => REFUSED,
+        Refusal::NoSuchAddress | Refusal::ReadOnly => IllegalDataAddress,
+        Refusal::OutOfRange | Refusal::WhileRunning => ServerDeviceFailure,
     }
 }
 
@@ -303,12 +341,10 @@ impl Command {
     }
 }
 
-type Reply = Result<Vec<u8>, u8>;
-
-#[derive(Debug)]
+/// The drive's state.
+#[derive(Clone, Debug)]
 pub struct PdInverter {
     params: Params,
-    processing_delay: Duration,
     ramp: Ramp,
     /// None once stopped, though the output may still be ramping down.
     run: Option<Run>,
@@ -321,51 +357,19 @@ pub struct PdInverter {
     powered_on: Instant,
     run_time: Duration,
     run_since: Option<Instant>,
-    last_request: Option<Instant>,
     /// The time of the request being handled.
     now: Instant,
 }
 
 impl PdInverter {
     /// Power on at `now` with `settings` (params applied with Params::apply, then trip).
-    pub fn new(settings: &DriveSettings, now: Instant) -> Result<PdInverter, SetupError> {
+    pub fn new(settings: &DriveSettings, now: Instant) -> Result<Drive<PdInverter>, SetupError> {
         let mut params = Params::new(TABLE);
         params.apply(&settings.params)?;
-        let line = [
-            (BAUD, "Pd-00", baud_index(settings.format.baud)),
-            (FORMAT, "Pd-01", format_index(&settings.format)),
-            (ADDRESS, "Pd-02", u16::from(settings.address)),
-        ];
-        for (address, name, value) in line {
-            let refuse = |reason| SetupError {
-                param: name.into(),
-                reason,
-            };
-            match settings.params.get(name) {
-                Some(&configured) if configured != value => {
-                    return Err(refuse(format!(
-                        "{configured} differs from the line's {value}: set the slave's address and the line's format instead"
-                    )))
-                }
-                _ => {}
-            }
-            params
-                .force(address, value)
-                .map_err(|_| refuse(format!("the line's {value} is outside its range")))?;
-        }
-        let fault = match settings.trip {
-            None => 0,
-            Some(code @ 1..=LAST_FAULT_CODE) => code,
-            Some(code) => {
-                return Err(SetupError {
-                    param: "trip".into(),
-                    reason: format!("{code} is not a fault code (1..={LAST_FAULT_CODE})"),
-                })
-            }
-        };
-        Ok(PdInverter {
+        LINE.power_on(&mut params, settings)?;
+        let fault = power_on_trip(settings, LAST_FAULT_CODE)?.unwrap_or(0);
+        let drive = PdInverter {
             params,
-            processing_delay: settings.processing_delay,
             ramp: Ramp::new(now),
             run: None,
             fault,
@@ -374,9 +378,9 @@ impl PdInverter {
             powered_on: now,
             run_time: Duration::ZERO,
             run_since: None,
-            last_request: None,
             now,
-        })
+        };
+        Ok(Drive::new(drive, settings))
     }
 
     fn rates(&self) -> Rates {
@@ -464,25 +468,6 @@ impl PdInverter {
         }
     }
 
-    /// Trip at the moment Pd-04 ran out, if it did before `at`.
-    fn check_timeout(&mut self, at: Instant) {
-        let timeout = TIMEOUT_UNIT * u32::from(self.params.value(TIMEOUT));
-        let Some(last) = self.last_request else {
-            return;
-        };
-        if timeout.is_zero() || at.saturating_duration_since(last) <= timeout {
-            return;
-        }
-        self.now = self.now.max(last + timeout);
-        self.ramp.advance(self.now, self.rates());
-        self.trip(COMMUNICATION_FAULT);
-    }
-
-    fn reply_delay(&self) -> Duration {
-        (RESPONSE_DELAY_UNIT * u32::from(self.params.value(RESPONSE_DELAY)))
-            .max(self.processing_delay)
-    }
-
     fn state(&self) -> u16 {
         if !self.running() {
             return STATE_STOPPED;
@@ -509,58 +494,61 @@ impl PdInverter {
 
     /// 1000H..1020H.
     fn running_value(&self, address: u16) -> u16 {
+        let Some(&(_, actual)) = RUNNING_VALUES.iter().find(|(a, _)| *a == address) else {
+            // Inputs, counters, PID, PLC, calibration: nothing connected.
+            return 0;
+        };
         let frequency = self.ramp.frequency();
         let hz = u16::try_from(frequency.unsigned_abs()).unwrap_or(u16::MAX);
         let energised = self.running();
-        let current = MOTOR.output_current(frequency, energised);
-        let current = if self.params.value(CURRENT_RESOLUTION) == CURRENT_IN_TENTHS {
-            (current + 5) / 10
-        } else {
-            current
-        };
-        let power = RATED_POWER * u32::from(MOTOR.power(frequency, energised));
-        let speed = u16::try_from(MOTOR.speed(frequency)).unwrap_or(u16::MAX);
-        match address {
-            // Communication setting value, and its copy.
-            0x1000 | 0x101D => self.comm_setting as u16,
-            0x1001 => hz,
-            0x1002 => MOTOR.bus_voltage,
-            0x1003 => MOTOR.output_voltage(frequency),
-            0x1004 => u16::try_from(current).unwrap_or(u16::MAX),
-            // 0.1 kW from 0.1 % of rated.
-            0x1005 => u16::try_from((power + 500) / 1000).unwrap_or(u16::MAX),
-            0x1006 => MOTOR.torque(frequency, energised),
-            // Operating speed and load speed.
-            0x1007 | 0x100F => speed,
-            0x1009 => self.outputs[0],
-            // Feedback speed and actual feedback speed, 0.1 Hz.
-            0x1014 | 0x101E => hz / 10,
-            0x101A => minutes(self.now.saturating_duration_since(self.powered_on)),
-            0x101B => minutes(self.running_time()),
-            0x101F => self.main_reference(),
-            // Inputs, counters, PID, PLC, calibration: nothing connected.
-            _ => 0,
+        match actual {
+            // Two's complement on the wire.
+            Actual::CommSetting => u16::from_be_bytes(self.comm_setting.to_be_bytes()),
+            Actual::OperatingFrequency => hz,
+            Actual::BusVoltage => MOTOR.bus_voltage,
+            Actual::OutputVoltage => MOTOR.output_voltage(frequency),
+            Actual::OutputCurrent => {
+                let current = MOTOR.output_current(frequency, energised);
+                let current = if self.params.value(CURRENT_RESOLUTION) == CURRENT_IN_TENTHS {
+                    (current + 5) / 10
+                } else {
+                    current
+                };
+                u16::try_from(current).unwrap_or(u16::MAX)
+            }
+            Actual::OutputPower => {
+                // 0.1 kW from 0.1 % of rated.
+                let power = RATED_POWER * u32::from(MOTOR.power(frequency, energised));
+                u16::try_from((power + 500) / 1000).unwrap_or(u16::MAX)
+            }
+            Actual::OutputTorque => MOTOR.torque(frequency, energised),
+            Actual::Speed => u16::try_from(MOTOR.speed(frequency)).unwrap_or(u16::MAX),
+            Actual::DoFlags => self.outputs[0],
+            Actual::FeedbackSpeed => hz / 10,
+            Actual::PowerOnTime => minutes(self.now.saturating_duration_since(self.powered_on)),
+            Actual::RunningTime => minutes(self.running_time()),
+            Actual::MainFrequency => self.main_reference(),
         }
     }
 
-    fn read(&self, address: u16) -> Result<u16, u8> {
+    fn read_word(&self, address: u16) -> Result<u16, ExceptionCode> {
         match address {
             PARAMETERS_FIRST..=PARAMETERS_LAST => {
-                self.params.get(address).ok_or(ILLEGAL_DATA_ADDRESS)
+                self.params.get(address).ok_or(IllegalDataAddress)
             }
             COMM_SETTING..=RUNNING_VALUES_LAST => Ok(self.running_value(address)),
             PASSWORD => Ok(PASSWORD_PASSED),
             STATE => Ok(self.state()),
             FAULT => Ok(self.fault),
-            _ => Err(ILLEGAL_DATA_ADDRESS),
+            _ => Err(IllegalDataAddress),
         }
     }
 
-    fn write_param(&mut self, address: u16, value: u16) -> Result<(), u8> {
+    fn write_param(&mut self, address: u16, value: u16) -> Result<(), ExceptionCode> {
         if matches!(address, BAUD | FORMAT | ADDRESS) {
             return match self.params.get(address) {
                 Some(current) if current == value => Ok(()),
-                _ => Err(REFUSED),
+                _ => Err(ServerDeviceFailure),
             };
         }
         self.params
@@ -570,13 +558,13 @@ impl PdInverter {
         Ok(())
     }
 
-    fn command(&mut self, value: u16) -> Result<(), u8> {
-        let command = Command::from_word(value).ok_or(REFUSED)?;
+    fn command(&mut self, value: u16) -> Result<(), ExceptionCode> {
+        let command = Command::from_word(value).ok_or(ServerDeviceFailure)?;
         if self.params.value(COMMAND_SOURCE) != COMMAND_FROM_COMMUNICATION {
             return Ok(());
         }
         match command {
-            Command::Run(_) if self.fault != 0 => return Err(REFUSED),
+            Command::Run(_) if self.fault != 0 => return Err(ServerDeviceFailure),
             Command::Run(run) => self.start(run),
             Command::Coast => {
                 self.ramp.coast(self.now);
@@ -591,15 +579,15 @@ impl PdInverter {
         Ok(())
     }
 
-    fn write(&mut self, address: u16, value: u16) -> Result<(), u8> {
+    fn write_word(&mut self, address: u16, value: u16) -> Result<(), ExceptionCode> {
         match address {
             0..=RAM_ALIAS_LAST => self.write_param(address | RAM_ALIAS_TO_PARAMETER, value),
             PARAMETERS_FIRST..=PARAMETERS_LAST => self.write_param(address, value),
             COMM_SETTING => {
                 // Two's complement on the wire.
-                let setting = value as i16;
+                let setting = i16::from_be_bytes(value.to_be_bytes());
                 if setting.unsigned_abs() > COMM_SETTING_FULL_SCALE {
-                    return Err(REFUSED);
+                    return Err(ServerDeviceFailure);
                 }
                 self.comm_setting = setting;
                 self.retarget();
@@ -614,81 +602,62 @@ impl PdInverter {
                     ANALOG_OUTPUT_MAX
                 };
                 if value > max {
-                    return Err(REFUSED);
+                    return Err(ServerDeviceFailure);
                 }
                 self.outputs[usize::from(address - DO_CONTROL)] = value;
                 Ok(())
             }
-            _ => Err(ILLEGAL_DATA_ADDRESS),
-        }
-    }
-
-    fn read_request(&self, request: &[u8]) -> Reply {
-        let (Some(start), Some(quantity), REQUEST_LEN) =
-            (word(request, 1), word(request, 3), request.len())
-        else {
-            return Err(ILLEGAL_DATA_VALUE);
-        };
-        let quantity = usize::from(quantity);
-        if !(1..=MAX_READ_WORDS).contains(&quantity) {
-            return Err(ILLEGAL_DATA_VALUE);
-        }
-        let mut data = Vec::with_capacity(quantity * 2);
-        for offset in 0..quantity {
-            let address =
-                u16::try_from(usize::from(start) + offset).map_err(|_| ILLEGAL_DATA_ADDRESS)?;
-            data.extend(self.read(address)?.to_be_bytes());
-        }
-        // At most 24 bytes.
-        let count = data.len() as u8;
-        let mut reply = vec![READ];
-        if self.params.value(PROTOCOL) == PROTOCOL_STANDARD {
-            reply.push(count);
-        } else {
-            reply.extend(u16::from(count).to_be_bytes());
-        }
-        reply.extend(data);
-        Ok(reply)
-    }
-
-    fn write_request(&mut self, request: &[u8]) -> Reply {
-        let (Some(address), Some(value), REQUEST_LEN) =
-            (word(request, 1), word(request, 3), request.len())
-        else {
-            return Err(ILLEGAL_DATA_VALUE);
-        };
-        self.write(address, value)?;
-        Ok(request.to_vec())
-    }
-
-    fn respond(&mut self, request: &[u8]) -> Reply {
-        match request.first() {
-            Some(&READ) => self.read_request(request),
-            Some(&WRITE) => self.write_request(request),
-            _ => Err(ILLEGAL_FUNCTION),
+            _ => Err(IllegalDataAddress),
         }
     }
 }
 
-impl SimSlave for PdInverter {
-    fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission> {
-        self.check_timeout(at);
-        self.last_request = Some(at);
+impl Model for PdInverter {
+    const PROTOCOL: Protocol = REQUESTS;
+
+    fn read(&self, address: u16) -> Result<u16, Exception> {
+        Ok(self.read_word(address)?)
+    }
+
+    /// Acts as of the drive's clock, which `advance` has brought up to `at`.
+    fn write(&mut self, address: u16, value: u16, _at: Instant) -> Result<(), Exception> {
+        Ok(self.write_word(address, value)?)
+    }
+
+    fn advance(&mut self, at: Instant) {
         self.now = self.now.max(at);
         self.ramp.advance(self.now, self.rates());
-        let reply = self.respond(request);
-        if address == frame::BROADCAST {
-            return None;
-        }
-        let function = request.first().copied().unwrap_or(0);
-        let pdu = reply.unwrap_or_else(|code| exception(function, code));
-        Some(Transmission::frame(address, &pdu, self.reply_delay()))
+    }
+
+    fn communication_timeout(&self) -> Duration {
+        TIMEOUT_UNIT * u32::from(self.params.value(TIMEOUT))
+    }
+
+    /// Trip at the moment Pd-04 ran out.
+    fn communication_lost(&mut self, expired: Instant) {
+        self.now = self.now.max(expired);
+        self.ramp.advance(self.now, self.rates());
+        self.trip(COMMUNICATION_FAULT);
+    }
+
+    fn response_delay(&self) -> Duration {
+        RESPONSE_DELAY_UNIT * u32::from(self.params.value(RESPONSE_DELAY))
+    }
+
+    /// Pd-05 = 0, the factory "non-standard protocol".
+    fn wide_byte_count(&self) -> bool {
+        self.params.value(PROTOCOL) != PROTOCOL_STANDARD
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::line::SerialFormat;
+    use crate::pdu::code::{READ_HOLDING_REGISTERS, WRITE_SINGLE_REGISTER};
+    use crate::pdu::ExceptionCode::{IllegalDataValue, IllegalFunction};
+    use crate::rtu::frame;
+    use crate::sim::Slave;
 
     const LINE: SerialFormat = SerialFormat {
         baud: 9600,
@@ -705,13 +674,13 @@ mod tests {
     }
 
     /// A drive at address 1 powered on at the returned instant.
-    fn power_on(params: &[(&str, u16)]) -> (PdInverter, Instant) {
+    fn power_on(params: &[(&str, u16)]) -> (Drive<PdInverter>, Instant) {
         let t0 = Instant::now();
         (PdInverter::new(&settings(params), t0).unwrap(), t0)
     }
 
     /// A drive taking its commands and reference from the bus.
-    fn on_the_bus(params: &[(&str, u16)]) -> (PdInverter, Instant) {
+    fn on_the_bus(params: &[(&str, u16)]) -> (Drive<PdInverter>, Instant) {
         let mut all = vec![("P0-02", 2), ("P0-03", 9)];
         all.extend_from_slice(params);
         power_on(&all)
@@ -722,7 +691,7 @@ mod tests {
     }
 
     /// The reply PDU to a request to address 1.
-    fn ask(drive: &mut PdInverter, pdu: &[u8], at: Instant) -> Vec<u8> {
+    fn ask(drive: &mut Drive<PdInverter>, pdu: &[u8], at: Instant) -> Vec<u8> {
         let reply = drive
             .handle(1, pdu, at)
             .expect("a request to 1 is answered");
@@ -733,16 +702,16 @@ mod tests {
 
     /// Words read in the factory (two-byte count) form, or the exception code.
     fn read(
-        drive: &mut PdInverter,
+        drive: &mut Drive<PdInverter>,
         start: u16,
         quantity: u16,
         at: Instant,
     ) -> Result<Vec<u16>, u8> {
         let [a_hi, a_lo] = start.to_be_bytes();
         let [q_hi, q_lo] = quantity.to_be_bytes();
-        match ask(drive, &[READ, a_hi, a_lo, q_hi, q_lo], at).as_slice() {
+        match ask(drive, &[READ_HOLDING_REGISTERS, a_hi, a_lo, q_hi, q_lo], at).as_slice() {
             [0x83, code] => Err(*code),
-            [READ, c_hi, c_lo, data @ ..] => {
+            [READ_HOLDING_REGISTERS, c_hi, c_lo, data @ ..] => {
                 assert_eq!(usize::from(u16::from_be_bytes([*c_hi, *c_lo])), data.len());
                 Ok(data
                     .chunks_exact(2)
@@ -753,14 +722,19 @@ mod tests {
         }
     }
 
-    fn read_one(drive: &mut PdInverter, address: u16, at: Instant) -> Result<u16, u8> {
+    fn read_one(drive: &mut Drive<PdInverter>, address: u16, at: Instant) -> Result<u16, u8> {
         read(drive, address, 1, at).map(|words| words[0])
     }
 
-    fn write(drive: &mut PdInverter, address: u16, value: u16, at: Instant) -> Result<(), u8> {
+    fn write(
+        drive: &mut Drive<PdInverter>,
+        address: u16,
+        value: u16,
+        at: Instant,
+    ) -> Result<(), u8> {
         let [a_hi, a_lo] = address.to_be_bytes();
         let [v_hi, v_lo] = value.to_be_bytes();
-        let request = [WRITE, a_hi, a_lo, v_hi, v_lo];
+        let request = [WRITE_SINGLE_REGISTER, a_hi, a_lo, v_hi, v_lo];
         match ask(drive, &request, at).as_slice() {
             echo if echo == request => Ok(()),
             [0x86, code] => Err(*code),
@@ -801,13 +775,19 @@ mod tests {
     #[test]
     fn a_read_takes_one_to_twelve_words() {
         let (mut drive, t0) = power_on(&[]);
-        assert_eq!(read(&mut drive, 0x1000, 13, t0), Err(ILLEGAL_DATA_VALUE));
-        assert_eq!(read(&mut drive, 0x1000, 0, t0), Err(ILLEGAL_DATA_VALUE));
+        assert_eq!(
+            read(&mut drive, 0x1000, 13, t0),
+            Err(IllegalDataValue as u8)
+        );
+        assert_eq!(read(&mut drive, 0x1000, 0, t0), Err(IllegalDataValue as u8));
         let words = read(&mut drive, 0x1000, 12, t0).unwrap();
         assert_eq!(words.len(), 12);
         // Bus voltage 540.0 V at 1002H.
         assert_eq!(words[2], 5400);
-        assert_eq!(read(&mut drive, 0xFFFF, 2, t0), Err(ILLEGAL_DATA_ADDRESS));
+        assert_eq!(
+            read(&mut drive, 0xFFFF, 2, t0),
+            Err(IllegalDataAddress as u8)
+        );
     }
 
     #[test]
@@ -822,7 +802,7 @@ mod tests {
         ] {
             assert_eq!(
                 ask(&mut drive, pdu, t0),
-                [pdu[0] | 0x80, ILLEGAL_DATA_VALUE]
+                [pdu[0] | 0x80, IllegalDataValue as u8]
             );
         }
     }
@@ -837,17 +817,17 @@ mod tests {
                 &[0x10, 0xF0, 0x08, 0x00, 0x01, 0x02, 0x0F, 0xA0],
                 t0
             ),
-            [0x90, ILLEGAL_FUNCTION]
+            [0x90, IllegalFunction as u8]
         );
         assert_eq!(read_one(&mut drive, PRESET_FREQUENCY, t0), Ok(5000));
         assert_eq!(
             ask(&mut drive, &[0x08, 0x00, 0x00, 0x12, 0x34], t0),
-            [0x88, ILLEGAL_FUNCTION]
+            [0x88, IllegalFunction as u8]
         );
         for function in [0x01, 0x04, 0x07, 0x41] {
             assert_eq!(
                 ask(&mut drive, &[function, 0x10, 0x00, 0x00, 0x01], t0),
-                [function | 0x80, ILLEGAL_FUNCTION]
+                [function | 0x80, IllegalFunction as u8]
             );
         }
     }
@@ -858,15 +838,31 @@ mod tests {
         // 0008H is P0-08 in RAM.
         assert_eq!(write(&mut drive, 0x0008, 4000, t0), Ok(()));
         assert_eq!(read_one(&mut drive, 0xF008, t0), Ok(4000));
-        assert_eq!(read_one(&mut drive, 0x0008, t0), Err(ILLEGAL_DATA_ADDRESS));
-        assert_eq!(read_one(&mut drive, 0x0D05, t0), Err(ILLEGAL_DATA_ADDRESS));
-        assert_eq!(write(&mut drive, 0x0008, 5001, t0), Err(REFUSED));
-        assert_eq!(write(&mut drive, 0x0000, 2, t0), Err(ILLEGAL_DATA_ADDRESS));
+        assert_eq!(
+            read_one(&mut drive, 0x0008, t0),
+            Err(IllegalDataAddress as u8)
+        );
+        assert_eq!(
+            read_one(&mut drive, 0x0D05, t0),
+            Err(IllegalDataAddress as u8)
+        );
+        assert_eq!(
+            write(&mut drive, 0x0008, 5001, t0),
+            Err(ServerDeviceFailure as u8)
+        );
+        assert_eq!(
+            write(&mut drive, 0x0000, 2, t0),
+            Err(IllegalDataAddress as u8)
+        );
         assert_eq!(write(&mut drive, 0x0D05, 1, t0), Ok(()));
         // Pd-05 = 1 took: the reply is in the standard form.
         assert_eq!(
-            ask(&mut drive, &[READ, 0xFD, 0x05, 0x00, 0x01], t0),
-            [READ, 0x02, 0x00, 0x01]
+            ask(
+                &mut drive,
+                &[READ_HOLDING_REGISTERS, 0xFD, 0x05, 0x00, 0x01],
+                t0
+            ),
+            [READ_HOLDING_REGISTERS, 0x02, 0x00, 0x01]
         );
     }
 
@@ -876,37 +872,55 @@ mod tests {
         for write_only in [CONTROL, DO_CONTROL, 0x2002, 0x2003, 0x2004] {
             assert_eq!(
                 read_one(&mut drive, write_only, t0),
-                Err(ILLEGAL_DATA_ADDRESS)
+                Err(IllegalDataAddress as u8)
             );
         }
         for read_only in [STATE, FAULT, 0x1001, 0x101D, 0x1020] {
             assert_eq!(
                 write(&mut drive, read_only, 1, t0),
-                Err(ILLEGAL_DATA_ADDRESS)
+                Err(IllegalDataAddress as u8)
             );
         }
         // P0-00 is marked read-only.
         assert_eq!(read_one(&mut drive, P0_00, t0), Ok(1));
-        assert_eq!(write(&mut drive, P0_00, 2, t0), Err(ILLEGAL_DATA_ADDRESS));
+        assert_eq!(
+            write(&mut drive, P0_00, 2, t0),
+            Err(IllegalDataAddress as u8)
+        );
     }
 
     #[test]
     fn the_pf_group_and_unmodelled_groups_are_illegal_addresses() {
         let (mut drive, t0) = power_on(&[]);
         for address in [0xFF00, 0xFF10, 0xF100, 0xFE00, 0xA000, 0x7000, 0x4000] {
-            assert_eq!(read_one(&mut drive, address, t0), Err(ILLEGAL_DATA_ADDRESS));
-            assert_eq!(write(&mut drive, address, 0, t0), Err(ILLEGAL_DATA_ADDRESS));
+            assert_eq!(
+                read_one(&mut drive, address, t0),
+                Err(IllegalDataAddress as u8)
+            );
+            assert_eq!(
+                write(&mut drive, address, 0, t0),
+                Err(IllegalDataAddress as u8)
+            );
         }
         // PF through the RAM alias.
-        assert_eq!(write(&mut drive, 0x0F00, 0, t0), Err(ILLEGAL_DATA_ADDRESS));
+        assert_eq!(
+            write(&mut drive, 0x0F00, 0, t0),
+            Err(IllegalDataAddress as u8)
+        );
     }
 
     #[test]
     fn a_read_cannot_run_past_the_last_parameter_of_a_group() {
         let (mut drive, t0) = power_on(&[]);
         assert_eq!(read(&mut drive, 0xF012, 2, t0), Ok(vec![200, 1]));
-        assert_eq!(read(&mut drive, 0xF012, 3, t0), Err(ILLEGAL_DATA_ADDRESS));
-        assert_eq!(read(&mut drive, 0xFD05, 3, t0), Err(ILLEGAL_DATA_ADDRESS));
+        assert_eq!(
+            read(&mut drive, 0xF012, 3, t0),
+            Err(IllegalDataAddress as u8)
+        );
+        assert_eq!(
+            read(&mut drive, 0xFD05, 3, t0),
+            Err(IllegalDataAddress as u8)
+        );
         assert_eq!(
             read(&mut drive, 0xF000, 12, t0),
             Ok(vec![1, 2, 0, 0, 0, 0, 100, 0, 5000, 0, 5000, 0])
@@ -916,21 +930,48 @@ mod tests {
     #[test]
     fn values_the_drive_refuses_are_exception_04() {
         let (mut drive, t0) = power_on(&[]);
-        assert_eq!(write(&mut drive, PRESET_FREQUENCY, 5001, t0), Err(REFUSED));
-        assert_eq!(write(&mut drive, RAMP_TIME_UNIT_PARAM, 0, t0), Err(REFUSED));
-        assert_eq!(write(&mut drive, CARRIER, 4, t0), Err(REFUSED));
+        assert_eq!(
+            write(&mut drive, PRESET_FREQUENCY, 5001, t0),
+            Err(ServerDeviceFailure as u8)
+        );
+        assert_eq!(
+            write(&mut drive, RAMP_TIME_UNIT_PARAM, 0, t0),
+            Err(ServerDeviceFailure as u8)
+        );
+        assert_eq!(
+            write(&mut drive, CARRIER, 4, t0),
+            Err(ServerDeviceFailure as u8)
+        );
         // 1000H: 10001 and -10001 are out, -10000 is in.
-        assert_eq!(write(&mut drive, COMM_SETTING, 10001, t0), Err(REFUSED));
-        assert_eq!(write(&mut drive, COMM_SETTING, 0xD8EF, t0), Err(REFUSED));
+        assert_eq!(
+            write(&mut drive, COMM_SETTING, 10001, t0),
+            Err(ServerDeviceFailure as u8)
+        );
+        assert_eq!(
+            write(&mut drive, COMM_SETTING, 0xD8EF, t0),
+            Err(ServerDeviceFailure as u8)
+        );
         assert_eq!(write(&mut drive, COMM_SETTING, 0xD8F0, t0), Ok(()));
         assert_eq!(read_one(&mut drive, COMM_SETTING, t0), Ok(0xD8F0));
-        assert_eq!(write(&mut drive, DO_CONTROL, 0x80, t0), Err(REFUSED));
+        assert_eq!(
+            write(&mut drive, DO_CONTROL, 0x80, t0),
+            Err(ServerDeviceFailure as u8)
+        );
         assert_eq!(write(&mut drive, DO_CONTROL, 0x7F, t0), Ok(()));
         assert_eq!(read_one(&mut drive, 0x1009, t0), Ok(0x7F));
-        assert_eq!(write(&mut drive, 0x2004, 0x8000, t0), Err(REFUSED));
+        assert_eq!(
+            write(&mut drive, 0x2004, 0x8000, t0),
+            Err(ServerDeviceFailure as u8)
+        );
         assert_eq!(write(&mut drive, 0x2004, 0x7FFF, t0), Ok(()));
-        assert_eq!(write(&mut drive, CONTROL, 0, t0), Err(REFUSED));
-        assert_eq!(write(&mut drive, CONTROL, 8, t0), Err(REFUSED));
+        assert_eq!(
+            write(&mut drive, CONTROL, 0, t0),
+            Err(ServerDeviceFailure as u8)
+        );
+        assert_eq!(
+            write(&mut drive, CONTROL, 8, t0),
+            Err(ServerDeviceFailure as u8)
+        );
     }
 
     #[test]
@@ -943,10 +984,13 @@ mod tests {
     #[test]
     fn the_reply_waits_for_pd_03_unless_processing_takes_longer() {
         let (mut drive, t0) = power_on(&[]);
-        let read_state = [READ, 0x30, 0x00, 0x00, 0x01];
-        let delay = |drive: &mut PdInverter| drive.handle(1, &read_state, t0).unwrap().delay;
+        let read_state = [READ_HOLDING_REGISTERS, 0x30, 0x00, 0x00, 0x01];
+        let delay = |drive: &mut Drive<PdInverter>| drive.handle(1, &read_state, t0).unwrap().delay;
         assert_eq!(delay(&mut drive), Duration::from_millis(2));
-        assert_eq!(write(&mut drive, RESPONSE_DELAY, 21, t0), Err(REFUSED));
+        assert_eq!(
+            write(&mut drive, RESPONSE_DELAY, 21, t0),
+            Err(ServerDeviceFailure as u8)
+        );
         assert_eq!(write(&mut drive, RESPONSE_DELAY, 20, t0), Ok(()));
         assert_eq!(delay(&mut drive), Duration::from_millis(20));
 
@@ -1024,18 +1068,18 @@ mod tests {
         write(&mut drive, CONTROL, 1, t0).unwrap();
         assert_eq!(
             write(&mut drive, MAX_FREQUENCY, 10000, after(t0, 1.0)),
-            Err(REFUSED)
+            Err(ServerDeviceFailure as u8)
         );
         assert_eq!(
             write(&mut drive, MAIN_SOURCE, 0, after(t0, 1.0)),
-            Err(REFUSED)
+            Err(ServerDeviceFailure as u8)
         );
         // Always-writable ones still go in.
         assert_eq!(write(&mut drive, ACCEL_TIME, 100, after(t0, 1.0)), Ok(()));
         write(&mut drive, CONTROL, 6, after(t0, 1.0)).unwrap();
         assert_eq!(
             write(&mut drive, MAX_FREQUENCY, 10000, after(t0, 1.1)),
-            Err(REFUSED)
+            Err(ServerDeviceFailure as u8)
         );
         assert_eq!(
             write(&mut drive, MAX_FREQUENCY, 10000, after(t0, 2.0)),
@@ -1070,7 +1114,7 @@ mod tests {
         );
         assert_eq!(
             write(&mut drive, CONTROL, 1, after(t0, 211.0)),
-            Err(REFUSED)
+            Err(ServerDeviceFailure as u8)
         );
         assert_eq!(write(&mut drive, CONTROL, 7, after(t0, 212.0)), Ok(()));
         assert_eq!(read_one(&mut drive, FAULT, after(t0, 213.0)), Ok(0));
@@ -1090,8 +1134,14 @@ mod tests {
         let t0 = Instant::now();
         let mut drive = PdInverter::new(&tripped, t0).unwrap();
         assert_eq!(read_one(&mut drive, FAULT, t0), Ok(0x000F));
-        assert_eq!(write(&mut drive, CONTROL, 1, t0), Err(REFUSED));
-        assert_eq!(write(&mut drive, CONTROL, 4, t0), Err(REFUSED));
+        assert_eq!(
+            write(&mut drive, CONTROL, 1, t0),
+            Err(ServerDeviceFailure as u8)
+        );
+        assert_eq!(
+            write(&mut drive, CONTROL, 4, t0),
+            Err(ServerDeviceFailure as u8)
+        );
         assert_eq!(write(&mut drive, CONTROL, 6, t0), Ok(()));
         assert_eq!(write(&mut drive, CONTROL, 7, t0), Ok(()));
         assert_eq!(read_one(&mut drive, FAULT, t0), Ok(0));
@@ -1212,9 +1262,18 @@ mod tests {
         let mut drive = PdInverter::new(&DriveSettings::new(1, format), t0).unwrap();
         assert_eq!(read(&mut drive, BAUD, 3, t0), Ok(vec![6, 1, 1]));
         assert_eq!(write(&mut drive, BAUD, 6, t0), Ok(()));
-        assert_eq!(write(&mut drive, BAUD, 5, t0), Err(REFUSED));
-        assert_eq!(write(&mut drive, FORMAT, 0, t0), Err(REFUSED));
-        assert_eq!(write(&mut drive, 0x0D02, 2, t0), Err(REFUSED));
+        assert_eq!(
+            write(&mut drive, BAUD, 5, t0),
+            Err(ServerDeviceFailure as u8)
+        );
+        assert_eq!(
+            write(&mut drive, FORMAT, 0, t0),
+            Err(ServerDeviceFailure as u8)
+        );
+        assert_eq!(
+            write(&mut drive, 0x0D02, 2, t0),
+            Err(ServerDeviceFailure as u8)
+        );
 
         let odd = SerialFormat {
             baud: 14400,
@@ -1223,12 +1282,22 @@ mod tests {
         };
         let mut drive = PdInverter::new(&DriveSettings::new(7, odd), t0).unwrap();
         let reply = drive
-            .handle(7, &[READ, 0xFD, 0x00, 0x00, 0x03], t0)
+            .handle(7, &[READ_HOLDING_REGISTERS, 0xFD, 0x00, 0x00, 0x03], t0)
             .unwrap();
         // 07 address, 03 read, 00 06 count, 5 (no index for 14400), 2 (8O1), 7, CRC.
         assert_eq!(
             frame::pdu_of(&reply.bytes),
-            [READ, 0x00, 0x06, 0x00, 0x05, 0x00, 0x02, 0x00, 0x07]
+            [
+                READ_HOLDING_REGISTERS,
+                0x00,
+                0x06,
+                0x00,
+                0x05,
+                0x00,
+                0x02,
+                0x00,
+                0x07
+            ]
         );
         assert_eq!(reply.bytes[0], 7);
     }
@@ -1258,11 +1327,26 @@ mod tests {
     #[test]
     fn a_broadcast_write_is_carried_out_and_never_answered() {
         let (mut drive, t0) = on_the_bus(&[]);
-        assert_eq!(drive.handle(0, &[WRITE, 0xF0, 0x08, 0x0F, 0xA0], t0), None);
-        assert_eq!(drive.handle(0, &[WRITE, 0x10, 0x00, 0x27, 0x10], t0), None);
-        assert_eq!(drive.handle(0, &[WRITE, 0x20, 0x00, 0x00, 0x01], t0), None);
-        assert_eq!(drive.handle(0, &[READ, 0x30, 0x00, 0x00, 0x01], t0), None);
-        assert_eq!(drive.handle(0, &[WRITE, 0x30, 0x00, 0x00, 0x01], t0), None);
+        assert_eq!(
+            drive.handle(0, &[WRITE_SINGLE_REGISTER, 0xF0, 0x08, 0x0F, 0xA0], t0),
+            None
+        );
+        assert_eq!(
+            drive.handle(0, &[WRITE_SINGLE_REGISTER, 0x10, 0x00, 0x27, 0x10], t0),
+            None
+        );
+        assert_eq!(
+            drive.handle(0, &[WRITE_SINGLE_REGISTER, 0x20, 0x00, 0x00, 0x01], t0),
+            None
+        );
+        assert_eq!(
+            drive.handle(0, &[READ_HOLDING_REGISTERS, 0x30, 0x00, 0x00, 0x01], t0),
+            None
+        );
+        assert_eq!(
+            drive.handle(0, &[WRITE_SINGLE_REGISTER, 0x30, 0x00, 0x00, 0x01], t0),
+            None
+        );
         assert_eq!(read_one(&mut drive, PRESET_FREQUENCY, t0), Ok(4000));
         assert_eq!(
             read_one(&mut drive, STATE, after(t0, 1.0)),
@@ -1275,7 +1359,11 @@ mod tests {
         let (mut drive, t0) = power_on(&[("Pd-04", 10)]);
         assert_eq!(read_one(&mut drive, FAULT, t0), Ok(0));
         assert_eq!(
-            drive.handle(0, &[READ, 0x30, 0x00, 0x00, 0x01], after(t0, 0.9)),
+            drive.handle(
+                0,
+                &[READ_HOLDING_REGISTERS, 0x30, 0x00, 0x00, 0x01],
+                after(t0, 0.9)
+            ),
             None
         );
         assert_eq!(read_one(&mut drive, FAULT, after(t0, 1.8)), Ok(0));
@@ -1292,7 +1380,16 @@ mod tests {
         ];
         let mut rng = fastrand::Rng::with_seed(1);
         for step in 0..50_000u64 {
-            let mut pdu = crate::sim::random_pdu(&mut rng, 9, &[READ, WRITE, WRITE], &interesting);
+            let mut pdu = crate::sim::random_pdu(
+                &mut rng,
+                9,
+                &[
+                    READ_HOLDING_REGISTERS,
+                    WRITE_SINGLE_REGISTER,
+                    WRITE_SINGLE_REGISTER,
+                ],
+                &interesting,
+            );
             if pdu.len() >= 5 && rng.bool() {
                 // Small values, so commands and in-range writes happen too.
                 pdu[3] = 0;

@@ -1,7 +1,7 @@
 //! The simulated INVT Goodrive drives (GD20, GD300, GD10): their register map (2000H control and
 //! setpoints, 2100H state, 3000H running values, 5000H fault), PXX.YY parameter addressing and the
-//! manuals' exception codes, on the ramp, motor and parameter table of [`super::drive`]. Knows
-//! nothing of the line's timing, the bus queue or TCP.
+//! manuals' exception codes, as a [`Model`] for the pipeline of [`super::Drive`]. Knows nothing of
+//! the line's timing, the bus queue or TCP.
 //!
 //! Where the manuals are silent, contradict themselves or describe things a simulator has no use
 //! for, the model decides:
@@ -30,253 +30,35 @@
 //!   which P00.18 = 2 clears.
 //! - 2100H reads 0002H for reverse running; the manuals misprint it as forward.
 
-use super::drive::{
-    exception, word, DriveSettings, Limit, Modify, Motor, ParamSpec, Params, Ramp, Rates, Refusal,
-    SetupError,
+use super::{
+    power_on_trip, Drive, DriveSettings, Exception, Model, Motor, Params, Protocol, Ramp, Rates,
+    Refusal, SetupError,
 };
-use super::{SimSlave, Transmission};
-use crate::line::{Parity, SerialFormat};
-use crate::rtu::frame;
+use crate::pdu::ExceptionCode::{IllegalDataAddress, IllegalFunction, ServerDeviceFailure};
 use std::time::Duration;
 use tokio::time::Instant;
 
-const ILLEGAL_COMMAND: u8 = 0x01;
-const ILLEGAL_ADDRESS: u8 = 0x02;
-const ILLEGAL_VALUE: u8 = 0x03;
-const OPERATION_FAILED: u8 = 0x04;
-const FRAME_ERROR: u8 = 0x06;
-const WRITE_NOT_ALLOWED: u8 = 0x07;
-const NOT_WHILE_RUNNING: u8 = 0x08;
+// The manuals' own meanings of the codes above 04 (their table of error codes).
+/// 06H, data frame error: the length of the frame is wrong, or its CRC.
+const FRAME_ERROR: Exception = Exception(0x06);
+/// 07H, written not allowed: a read-only register or parameter.
+const WRITE_NOT_ALLOWED: Exception = Exception(0x07);
+/// 08H: the parameter cannot be modified during running.
+const NOT_WHILE_RUNNING: Exception = Exception(0x08);
 
-const READ: u8 = 0x03;
-const WRITE_ONE: u8 = 0x06;
-const DIAGNOSTICS: u8 = 0x08;
-const WRITE_MANY: u8 = 0x10;
-/// The manuals' limit for one read or write.
-const MAX_WORDS: u16 = 16;
+const REQUESTS: Protocol = Protocol {
+    // The manuals' limit for one read or write.
+    max_words: 16,
+    diagnostics: true,
+    write_multiple: true,
+    malformed: FRAME_ERROR,
+};
 
-const CONTROL: u16 = 0x2000;
-const SETPOINT_FREQUENCY: u16 = 0x2001;
-const PID_REFERENCE: u16 = 0x2002;
-const PID_FEEDBACK: u16 = 0x2003;
-const TORQUE_SETPOINT: u16 = 0x2004;
-const CONTROL_LAST: u16 = 0x200E;
-const STATE_1: u16 = 0x2100;
-const STATE_2: u16 = 0x2101;
-const FAULT_CODE: u16 = 0x2102;
-const IDENTIFIER: u16 = 0x2103;
-const RUNNING_FIRST: u16 = 0x3000;
-const RUNNING_LAST: u16 = 0x3016;
-const FAULT: u16 = 0x5000;
-/// Set on a parameter's address, it writes RAM only; such an address cannot be read.
-const RAM_ALIAS: u16 = 0x8000;
-/// Factory parameters: neither readable nor writable.
-const P29_GROUP: u16 = 0x1D;
+mod tables;
 
-const P00_01: u16 = 0x0001;
-const P00_03: u16 = 0x0003;
-const P00_04: u16 = 0x0004;
-const P00_05: u16 = 0x0005;
-const P00_06: u16 = 0x0006;
-const P00_10: u16 = 0x000A;
-const P00_11: u16 = 0x000B;
-const P00_12: u16 = 0x000C;
-const P00_13: u16 = 0x000D;
-const P00_18: u16 = 0x0012;
-/// P07.27 (current fault) to P07.32 (the fifth before it).
-const FAULT_RECORDS: [u16; 6] = [0x071B, 0x071C, 0x071D, 0x071E, 0x071F, 0x0720];
-const P14_00: u16 = 0x0E00;
-const P14_01: u16 = 0x0E01;
-const P14_02: u16 = 0x0E02;
-const P14_03: u16 = 0x0E03;
-const P14_04: u16 = 0x0E04;
-const P14_05: u16 = 0x0E05;
-const P14_06: u16 = 0x0E06;
-
-/// P00.01: commands come from the communication channel.
-const COMMUNICATION_CHANNEL: u16 = 2;
-/// P00.06: frequency sources the simulator wires.
-const KEYPAD_REFERENCE: u16 = 0;
-const MODBUS_REFERENCE: u16 = 8;
-/// P00.13.
-const REVERSED: u16 = 1;
-const REVERSE_FORBIDDEN: u16 = 2;
-/// P00.18.
-const RESTORE_DEFAULTS: u16 = 1;
-const CLEAR_FAULT_RECORDS: u16 = 2;
-/// P14.05: trip on a communication timeout; 1 carries on, 2 and 3 stop.
-const TIMEOUT_TRIPS: u16 = 0;
-const TIMEOUT_IGNORED: u16 = 1;
-/// Fault code CE, the communication timeout.
-const COMMUNICATION_FAULT: u16 = 18;
-/// The jog frequency's factory default (P08.06 is not modelled).
-const JOG_FREQUENCY: i32 = 500;
-
-/// P14.01 index to baud rate, and P14.02 index to (parity, stop bits) with 8 data bits.
-const BAUDS: [u32; 8] = [1200, 2400, 4800, 9600, 19200, 38400, 57600, 115200];
-const FORMATS: [(Parity, u8); 6] = [
-    (Parity::None, 1),
-    (Parity::Even, 1),
-    (Parity::Odd, 1),
-    (Parity::None, 2),
-    (Parity::Even, 2),
-    (Parity::Odd, 2),
-];
-const FACTORY_BAUD_INDEX: u16 = 4;
-const FACTORY_FORMAT_INDEX: u16 = 1;
-
-const TABLE_LEN: usize = 33;
-
-const fn fixed(
-    address: u16,
-    name: &'static str,
-    default: u16,
-    min: u16,
-    max: u16,
-    modify: Modify,
-) -> ParamSpec {
-    ParamSpec {
-        address,
-        name,
-        default,
-        min: Limit::Value(min),
-        max: Limit::Value(max),
-        modify,
-    }
-}
-
-/// The modelled parameters; the variants differ in the highest maximum frequency and the
-/// factory ramp times.
-const fn table(max_frequency: u16, ramp_time: u16) -> [ParamSpec; TABLE_LEN] {
-    use Modify::{Always, Never, Stopped};
-    [
-        fixed(0x0000, "P00.00", 2, 0, 2, Stopped),
-        fixed(P00_01, "P00.01", 0, 0, 2, Always),
-        fixed(0x0002, "P00.02", 0, 0, 3, Always),
-        ParamSpec {
-            address: P00_03,
-            name: "P00.03",
-            default: 5000,
-            min: Limit::Param(P00_04),
-            max: Limit::Value(max_frequency),
-            modify: Stopped,
-        },
-        ParamSpec {
-            address: P00_04,
-            name: "P00.04",
-            default: 5000,
-            min: Limit::Param(P00_05),
-            max: Limit::Param(P00_03),
-            modify: Stopped,
-        },
-        ParamSpec {
-            address: P00_05,
-            name: "P00.05",
-            default: 0,
-            min: Limit::Value(0),
-            max: Limit::Param(P00_04),
-            modify: Stopped,
-        },
-        fixed(P00_06, "P00.06", 0, 0, 11, Always),
-        fixed(0x0007, "P00.07", 2, 0, 11, Always),
-        fixed(0x0008, "P00.08", 0, 0, 1, Always),
-        fixed(0x0009, "P00.09", 0, 0, 5, Always),
-        ParamSpec {
-            address: P00_10,
-            name: "P00.10",
-            default: 5000,
-            min: Limit::Value(0),
-            max: Limit::Param(P00_03),
-            modify: Always,
-        },
-        fixed(P00_11, "P00.11", ramp_time, 0, 36000, Always),
-        fixed(P00_12, "P00.12", ramp_time, 0, 36000, Always),
-        fixed(P00_13, "P00.13", 0, 0, 2, Always),
-        fixed(0x000E, "P00.14", 40, 10, 150, Always),
-        fixed(0x000F, "P00.15", 0, 0, 3, Stopped),
-        fixed(0x0010, "P00.16", 1, 0, 1, Always),
-        fixed(P00_18, "P00.18", 0, 0, 2, Stopped),
-        fixed(0x0114, "P01.20", 0, 0, 36000, Always),
-        fixed(0x0115, "P01.21", 0, 0, 1, Always),
-        fixed(FAULT_RECORDS[0], "P07.27", 0, 0, 100, Never),
-        fixed(FAULT_RECORDS[1], "P07.28", 0, 0, 100, Never),
-        fixed(FAULT_RECORDS[2], "P07.29", 0, 0, 100, Never),
-        fixed(FAULT_RECORDS[3], "P07.30", 0, 0, 100, Never),
-        fixed(FAULT_RECORDS[4], "P07.31", 0, 0, 100, Never),
-        fixed(FAULT_RECORDS[5], "P07.32", 0, 0, 100, Never),
-        // The line's address and format: set from the configuration, never by a write.
-        fixed(P14_00, "P14.00", 1, 1, 247, Never),
-        fixed(P14_01, "P14.01", FACTORY_BAUD_INDEX, 0, 7, Never),
-        fixed(P14_02, "P14.02", FACTORY_FORMAT_INDEX, 0, 5, Never),
-        fixed(P14_03, "P14.03", 5, 0, 200, Always),
-        fixed(P14_04, "P14.04", 0, 0, 600, Always),
-        fixed(P14_05, "P14.05", 0, 0, 3, Always),
-        // Only 0x00, 0x01, 0x10 and 0x11 are settings; see `communication_processing_ok`.
-        fixed(P14_06, "P14.06", 0, 0, 0x11, Always),
-    ]
-}
-
-static GD20_TABLE: [ParamSpec; TABLE_LEN] = table(40000, 100);
-static GD300_TABLE: [ParamSpec; TABLE_LEN] = table(60000, 150);
-static GD10_TABLE: [ParamSpec; TABLE_LEN] = table(40000, 50);
-
-/// Which Goodrive: they share the protocol and differ in identifying code, motor, factory ramp
-/// times and which control registers exist and can be read back.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Variant {
-    Gd20,
-    Gd300,
-    Gd10,
-}
-
-impl Variant {
-    fn identifier(self) -> u16 {
-        match self {
-            Variant::Gd20 => 0x0106,
-            Variant::Gd300 => 0x010A,
-            Variant::Gd10 => 0x010D,
-        }
-    }
-
-    fn table(self) -> &'static [ParamSpec] {
-        match self {
-            Variant::Gd20 => &GD20_TABLE,
-            Variant::Gd300 => &GD300_TABLE,
-            Variant::Gd10 => &GD10_TABLE,
-        }
-    }
-
-    fn motor(self) -> Motor {
-        let (voltage, current, speed, bus_voltage) = match self {
-            Variant::Gd20 => (220, 340, 1400, 3110),
-            Variant::Gd300 => (380, 1300, 1440, 5400),
-            Variant::Gd10 => (220, 230, 1390, 3110),
-        };
-        Motor {
-            voltage,
-            current,
-            frequency: 5000,
-            speed,
-            poles: 4,
-            bus_voltage,
-        }
-    }
-
-    /// GD20's manual marks the 2000H block write-only; the later manuals make it R/W.
-    fn control_readable(self) -> bool {
-        self != Variant::Gd20
-    }
-
-    fn has_control_register(self, address: u16) -> bool {
-        match self {
-            Variant::Gd10 => matches!(
-                address,
-                0x2000 | 0x2001 | 0x2002 | 0x2003 | 0x200A | 0x200B | 0x200D
-            ),
-            Variant::Gd20 | Variant::Gd300 => (CONTROL..=CONTROL_LAST).contains(&address),
-        }
-    }
-}
+// The manuals' tables, by the manuals' names.
+pub use tables::Variant;
+use tables::*;
 
 /// A run or jog command in force, as given (before P00.13 is applied).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -285,37 +67,27 @@ struct Command {
     forward: bool,
 }
 
-/// A simulated Goodrive drive on the line.
+/// A simulated Goodrive drive's state.
 #[derive(Clone, Debug)]
 pub struct Goodrive {
     variant: Variant,
-    address: u8,
-    processing_delay: Duration,
     motor: Motor,
     params: Params,
     ramp: Ramp,
     command: Option<Command>,
     /// 2000H..=200EH as last written.
-    control: [u16; 15],
+    control: [u16; CONTROL_REGISTERS.len()],
     /// Current fault code; 0 when healthy.
     fault: u16,
-    last_request: Option<Instant>,
 }
 
-type Reply = Result<Vec<u8>, u8>;
-
-fn refusal_code(refusal: Refusal) -> u8 {
+fn refusal_code(refusal: Refusal) -> Exception {
     match refusal {
-        Refusal::NoSuchAddress => ILLEGAL_ADDRESS,
+        Refusal::NoSuchAddress => IllegalDataAddress.into(),
         Refusal::ReadOnly => WRITE_NOT_ALLOWED,
         Refusal::WhileRunning => NOT_WHILE_RUNNING,
-        Refusal::OutOfRange => OPERATION_FAILED,
+        Refusal::OutOfRange => ServerDeviceFailure.into(),
     }
-}
-
-/// A time in 0.1 s.
-fn tenths(value: u16) -> Duration {
-    Duration::from_millis(u64::from(value) * 100)
 }
 
 fn saturate(value: u32) -> u16 {
@@ -324,23 +96,6 @@ fn saturate(value: u32) -> u16 {
 
 fn communication_processing_ok(value: u16) -> bool {
     matches!(value, 0x00 | 0x01 | 0x10 | 0x11)
-}
-
-fn baud_index(format: &SerialFormat) -> u16 {
-    BAUDS
-        .iter()
-        .position(|&baud| baud == format.baud)
-        .map_or(FACTORY_BAUD_INDEX, |i| i as u16)
-}
-
-fn format_index(format: &SerialFormat) -> u16 {
-    if format.data_bits != 8 {
-        return FACTORY_FORMAT_INDEX;
-    }
-    FORMATS
-        .iter()
-        .position(|&f| f == (format.parity, format.stop_bits))
-        .map_or(FACTORY_FORMAT_INDEX, |i| i as u16)
 }
 
 fn setup_error(param: &str, reason: String) -> SetupError {
@@ -356,31 +111,10 @@ impl Goodrive {
         variant: Variant,
         settings: &DriveSettings,
         now: Instant,
-    ) -> Result<Goodrive, SetupError> {
+    ) -> Result<Drive<Goodrive>, SetupError> {
         let mut params = Params::new(variant.table());
         params.apply(&settings.params)?;
-        let line = [
-            (P14_00, u16::from(settings.address)),
-            (P14_01, baud_index(&settings.format)),
-            (P14_02, format_index(&settings.format)),
-        ];
-        for (address, value) in line {
-            let name = params.spec(address).map_or("P14", |spec| spec.name);
-            if let Some(&configured) = settings.params.get(name) {
-                if configured != value {
-                    return Err(setup_error(
-                        name,
-                        format!(
-                            "is {value} on this line; the simulated drive takes it from the \
-                             line's configuration, not {configured}"
-                        ),
-                    ));
-                }
-            }
-            if params.force(address, value).is_err() {
-                return Err(setup_error(name, format!("{value} is outside its range")));
-            }
-        }
+        LINE.power_on(&mut params, settings)?;
         if params.value(P00_18) != 0 {
             return Err(setup_error(
                 "P00.18",
@@ -395,33 +129,24 @@ impl Goodrive {
         }
         let mut drive = Goodrive {
             variant,
-            address: settings.address,
-            processing_delay: settings.processing_delay,
             motor: variant.motor(),
             params,
             ramp: Ramp::new(now),
             command: None,
-            control: [0; 15],
+            control: [0; CONTROL_REGISTERS.len()],
             fault: 0,
-            last_request: None,
         };
-        if let Some(code) = settings.trip {
-            if !(1..=100).contains(&code) {
-                return Err(setup_error(
-                    "trip",
-                    format!("{code} is not a fault code (1..=100)"),
-                ));
-            }
+        if let Some(code) = power_on_trip(settings, LAST_FAULT_CODE)? {
             drive.trip(code, now);
         }
-        Ok(drive)
+        Ok(Drive::new(drive, settings))
     }
 
     fn rates(&self) -> Rates {
         Rates {
             full_scale: u32::from(self.params.value(P00_03)),
-            accel: tenths(self.params.value(P00_11)),
-            decel: tenths(self.params.value(P00_12)),
+            accel: TIME_UNIT * u32::from(self.params.value(P00_11)),
+            decel: TIME_UNIT * u32::from(self.params.value(P00_12)),
         }
     }
 
@@ -485,27 +210,6 @@ impl Goodrive {
         let _ = self.params.force(FAULT_RECORDS[0], code);
     }
 
-    /// Act on a communication timeout that expired since the previous request.
-    fn check_communication_timeout(&mut self, at: Instant) {
-        let timeout = tenths(self.params.value(P14_04));
-        let Some(previous) = self.last_request else {
-            return;
-        };
-        if timeout.is_zero() || at.saturating_duration_since(previous) <= timeout {
-            return;
-        }
-        let expired = previous + timeout;
-        self.ramp.advance(expired, self.rates());
-        match self.params.value(P14_05) {
-            TIMEOUT_TRIPS if self.fault == 0 => self.trip(COMMUNICATION_FAULT, expired),
-            TIMEOUT_TRIPS | TIMEOUT_IGNORED => {}
-            _ => {
-                self.command = None;
-                self.retarget(expired);
-            }
-        }
-    }
-
     fn control_value(&self, address: u16) -> u16 {
         self.control[usize::from(address - CONTROL)]
     }
@@ -531,72 +235,38 @@ impl Goodrive {
     }
 
     fn running_value(&self, address: u16) -> u16 {
+        let Some(&(_, actual)) = RUNNING_VALUES.iter().find(|(a, _)| *a == address) else {
+            return 0;
+        };
         let frequency = self.ramp.frequency();
         let energised = self.running();
-        match address - RUNNING_FIRST {
-            0x00 => saturate(frequency.unsigned_abs()),
-            0x01 => self.reference(),
-            0x02 => self.motor.bus_voltage,
-            0x03 => self.motor.output_voltage(frequency),
-            0x04 => saturate(self.motor.output_current(frequency, energised) / 10),
-            0x05 => saturate(self.motor.speed(frequency)),
-            0x06 => self.motor.power(frequency, energised),
-            0x07 => self.motor.torque(frequency, energised),
-            0x08 => self.control_value(PID_REFERENCE),
-            0x09 => self.control_value(PID_FEEDBACK),
-            0x15 => self.control_value(TORQUE_SETPOINT),
-            0x16 => self.variant.identifier(),
-            // Terminals, analog and pulse inputs, counters: nothing is wired to them.
-            _ => 0,
+        match actual {
+            Actual::OutputFrequency => saturate(frequency.unsigned_abs()),
+            Actual::Reference => self.reference(),
+            Actual::BusVoltage => self.motor.bus_voltage,
+            Actual::OutputVoltage => self.motor.output_voltage(frequency),
+            Actual::OutputCurrent => saturate(self.motor.output_current(frequency, energised) / 10),
+            Actual::Speed => saturate(self.motor.speed(frequency)),
+            Actual::Power => self.motor.power(frequency, energised),
+            Actual::Torque => self.motor.torque(frequency, energised),
+            Actual::PidReference => self.control_value(PID_REFERENCE),
+            Actual::PidFeedback => self.control_value(PID_FEEDBACK),
+            Actual::TorqueSetpoint => self.control_value(TORQUE_SETPOINT),
+            Actual::Identifier => self.variant.identifier(),
         }
     }
 
-    fn read(&self, address: u16) -> Result<u16, u8> {
-        match address {
-            CONTROL..=CONTROL_LAST => {
-                if self.variant.control_readable() && self.variant.has_control_register(address) {
-                    Ok(self.control_value(address))
-                } else {
-                    Err(ILLEGAL_ADDRESS)
-                }
-            }
-            STATE_1 => Ok(self.state_word()),
-            // Bit 0: bus voltage established; bits 5-6: the run command channel.
-            STATE_2 => Ok(0x0001 | (self.params.value(P00_01) << 5)),
-            FAULT_CODE | FAULT => Ok(self.fault),
-            IDENTIFIER => Ok(self.variant.identifier()),
-            RUNNING_FIRST..=RUNNING_LAST => Ok(self.running_value(address)),
-            _ if address & RAM_ALIAS != 0 || address >> 8 == P29_GROUP => Err(ILLEGAL_ADDRESS),
-            _ => self.params.get(address).ok_or(ILLEGAL_ADDRESS),
-        }
-    }
-
-    /// Carry out one word written at `at`; the ramp is already advanced to `at`.
-    fn write(&mut self, address: u16, value: u16, at: Instant) -> Result<(), u8> {
-        match address {
-            CONTROL => self.command(value, at)?,
-            _ if (CONTROL..=CONTROL_LAST).contains(&address) => {
-                self.write_setpoint(address, value)?
-            }
-            STATE_1..=IDENTIFIER | RUNNING_FIRST..=RUNNING_LAST | FAULT => {
-                return Err(WRITE_NOT_ALLOWED)
-            }
-            _ => self.write_parameter(address & !RAM_ALIAS, value)?,
-        }
-        self.retarget(at);
-        Ok(())
-    }
-
-    fn command(&mut self, value: u16, at: Instant) -> Result<(), u8> {
+    fn command(&mut self, value: u16, at: Instant) -> Result<(), Exception> {
         if !(1..=8).contains(&value) {
-            return Err(OPERATION_FAILED);
+            return Err(ServerDeviceFailure.into());
         }
         if self.params.value(P00_01) != COMMUNICATION_CHANNEL {
             self.control[0] = value;
             return Ok(());
         }
         if self.fault != 0 && value <= 4 {
-            return Err(ILLEGAL_COMMAND);
+            // The manuals' "illegal command".
+            return Err(IllegalFunction.into());
         }
         self.control[0] = value;
         match value {
@@ -621,34 +291,32 @@ impl Goodrive {
         Ok(())
     }
 
-    fn write_setpoint(&mut self, address: u16, value: u16) -> Result<(), u8> {
-        if !self.variant.has_control_register(address) {
-            return Err(ILLEGAL_ADDRESS);
-        }
-        let signed = value as i16;
-        let allowed = match address {
-            0x2001 | 0x2005 | 0x2006 => value <= self.params.value(P00_03),
-            0x2002 | 0x2003 | 0x200C => value <= 1000,
-            0x2004 => (-3000..=3000).contains(&signed),
-            0x2007 | 0x2008 => value <= 3000,
-            0x2009 => value <= 0x3F,
-            0x200A => value <= 0x1FF,
-            0x200B => value <= 0x0F,
-            _ => (-1000..=1000).contains(&signed),
+    /// A write to the 2000H block: the command word, or a setpoint the table bounds.
+    fn write_control(&mut self, address: u16, value: u16, at: Instant) -> Result<(), Exception> {
+        let register = self
+            .variant
+            .control_register(address)
+            .ok_or(IllegalDataAddress)?;
+        let signed = i16::from_be_bytes(value.to_be_bytes());
+        let allowed = match register.accepts {
+            Accepts::Command => return self.command(value, at),
+            Accepts::UpToMaxFrequency => value <= self.params.value(P00_03),
+            Accepts::UpTo(max) => value <= max,
+            Accepts::Signed(max) => (-max..=max).contains(&signed),
         };
         if !allowed {
-            return Err(OPERATION_FAILED);
+            return Err(ServerDeviceFailure.into());
         }
         self.control[usize::from(address - CONTROL)] = value;
         Ok(())
     }
 
-    fn write_parameter(&mut self, address: u16, value: u16) -> Result<(), u8> {
+    fn write_parameter(&mut self, address: u16, value: u16) -> Result<(), Exception> {
         if address >> 8 == P29_GROUP {
-            return Err(ILLEGAL_ADDRESS);
+            return Err(IllegalDataAddress.into());
         }
-        let current = self.params.get(address).ok_or(ILLEGAL_ADDRESS)?;
-        if matches!(address, P14_00..=P14_02) {
+        let current = self.params.get(address).ok_or(IllegalDataAddress)?;
+        if LINE.holds(address) {
             return if value == current {
                 Ok(())
             } else {
@@ -656,27 +324,14 @@ impl Goodrive {
             };
         }
         if address == P14_06 && !communication_processing_ok(value) {
-            return Err(OPERATION_FAILED);
+            return Err(ServerDeviceFailure.into());
         }
         let running = self.running();
         self.params
             .check(address, value, running)
             .map_err(refusal_code)?;
         match (address, value) {
-            (P00_18, RESTORE_DEFAULTS) => {
-                // The line's parameters stay, and so do the fault records, which have a clear
-                // of their own.
-                let kept: Vec<(u16, u16)> = [P14_00, P14_01, P14_02]
-                    .into_iter()
-                    .chain(FAULT_RECORDS)
-                    .map(|a| (a, self.params.value(a)))
-                    .collect();
-                self.params.restore_defaults();
-                for (a, value) in kept {
-                    // The values were in range before and these ranges are fixed.
-                    let _ = self.params.force(a, value);
-                }
-            }
+            (P00_18, RESTORE_DEFAULTS) => self.restore_defaults(),
             (P00_18, CLEAR_FAULT_RECORDS) => {
                 for record in FAULT_RECORDS {
                     let _ = self.params.force(record, 0);
@@ -692,107 +347,91 @@ impl Goodrive {
         Ok(())
     }
 
-    fn read_registers(&self, request: &[u8]) -> Reply {
-        let (5, Some(start), Some(quantity)) = (request.len(), word(request, 1), word(request, 3))
-        else {
-            return Err(FRAME_ERROR);
-        };
-        if quantity == 0 || quantity > MAX_WORDS {
-            return Err(ILLEGAL_VALUE);
+    /// P00.18 = 1. The line's parameters stay, and so do the fault records, which have a clear
+    /// of their own.
+    fn restore_defaults(&mut self) {
+        let kept: Vec<(u16, u16)> = [P14_00, P14_01, P14_02]
+            .into_iter()
+            .chain(FAULT_RECORDS)
+            .map(|a| (a, self.params.value(a)))
+            .collect();
+        self.params.restore_defaults();
+        for (a, value) in kept {
+            // The values were in range before and these ranges are fixed.
+            let _ = self.params.force(a, value);
         }
-        let mut reply = Vec::with_capacity(2 + 2 * usize::from(quantity));
-        reply.push(READ);
-        reply.push((quantity * 2) as u8);
-        for offset in 0..quantity {
-            let address = start.checked_add(offset).ok_or(ILLEGAL_ADDRESS)?;
-            reply.extend_from_slice(&self.read(address)?.to_be_bytes());
-        }
-        Ok(reply)
-    }
-
-    fn write_register(&mut self, request: &[u8], at: Instant) -> Reply {
-        let (5, Some(address), Some(value)) = (request.len(), word(request, 1), word(request, 3))
-        else {
-            return Err(FRAME_ERROR);
-        };
-        self.write(address, value, at)?;
-        Ok(request.to_vec())
-    }
-
-    fn write_registers(&mut self, request: &[u8], at: Instant) -> Reply {
-        let (Some(start), Some(quantity), Some(&count)) =
-            (word(request, 1), word(request, 3), request.get(5))
-        else {
-            return Err(FRAME_ERROR);
-        };
-        if quantity == 0 || quantity > MAX_WORDS {
-            return Err(ILLEGAL_VALUE);
-        }
-        let values = &request[6..];
-        if usize::from(count) != 2 * usize::from(quantity) || values.len() != usize::from(count) {
-            return Err(FRAME_ERROR);
-        }
-        // Carried out on a copy, kept only if every word is accepted.
-        let mut trial = self.clone();
-        for (offset, value) in (0..quantity).zip(values.chunks_exact(2)) {
-            let address = start.checked_add(offset).ok_or(ILLEGAL_ADDRESS)?;
-            trial.write(address, u16::from_be_bytes([value[0], value[1]]), at)?;
-        }
-        *self = trial;
-        Ok(request[..5].to_vec())
-    }
-
-    fn diagnostics(&self, request: &[u8]) -> Reply {
-        match word(request, 1) {
-            // Return query data: the request comes back unchanged.
-            Some(0x0000) => Ok(request.to_vec()),
-            Some(_) => Err(ILLEGAL_COMMAND),
-            None => Err(FRAME_ERROR),
-        }
-    }
-
-    /// Answer a request PDU; `Err` carries the exception code.
-    fn respond(&mut self, request: &[u8], at: Instant) -> Reply {
-        match request.first() {
-            Some(&READ) => self.read_registers(request),
-            Some(&WRITE_ONE) => self.write_register(request, at),
-            Some(&DIAGNOSTICS) => self.diagnostics(request),
-            Some(&WRITE_MANY) => self.write_registers(request, at),
-            _ => Err(ILLEGAL_COMMAND),
-        }
-    }
-
-    fn reply_delay(&self) -> Duration {
-        Duration::from_millis(u64::from(self.params.value(P14_03))).max(self.processing_delay)
     }
 }
 
-impl SimSlave for Goodrive {
-    fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission> {
-        self.check_communication_timeout(at);
-        self.last_request = Some(at);
-        self.ramp.advance(at, self.rates());
-        let function = request.first().copied().unwrap_or(0);
-        let write = matches!(function, WRITE_ONE | WRITE_MANY);
-        if address == frame::BROADCAST {
-            if write {
-                let _ = self.respond(request, at);
+impl Model for Goodrive {
+    const PROTOCOL: Protocol = REQUESTS;
+
+    fn read(&self, address: u16) -> Result<u16, Exception> {
+        match address {
+            CONTROL..=CONTROL_LAST => match self.variant.control_register(address) {
+                Some(_) if self.variant.control_readable() => Ok(self.control_value(address)),
+                _ => Err(IllegalDataAddress.into()),
+            },
+            STATE_1 => Ok(self.state_word()),
+            // Bit 0: bus voltage established; bits 5-6: the run command channel.
+            STATE_2 => Ok(0x0001 | (self.params.value(P00_01) << 5)),
+            FAULT_CODE | FAULT => Ok(self.fault),
+            IDENTIFIER => Ok(self.variant.identifier()),
+            RUNNING_FIRST..=RUNNING_LAST => Ok(self.running_value(address)),
+            _ if address & RAM_ALIAS != 0 || address >> 8 == P29_GROUP => {
+                Err(IllegalDataAddress.into())
             }
-            return None;
+            _ => Ok(self.params.get(address).ok_or(IllegalDataAddress)?),
         }
-        let reply = self.respond(request, at);
-        if write && self.params.value(P14_06) & 0x01 != 0 {
-            return None;
+    }
+
+    fn write(&mut self, address: u16, value: u16, at: Instant) -> Result<(), Exception> {
+        match address {
+            CONTROL..=CONTROL_LAST => self.write_control(address, value, at)?,
+            STATE_1..=IDENTIFIER | RUNNING_FIRST..=RUNNING_LAST | FAULT => {
+                return Err(WRITE_NOT_ALLOWED)
+            }
+            _ => self.write_parameter(address & !RAM_ALIAS, value)?,
         }
-        let pdu = reply.unwrap_or_else(|code| exception(function, code));
-        Some(Transmission::frame(self.address, &pdu, self.reply_delay()))
+        self.retarget(at);
+        Ok(())
+    }
+
+    fn advance(&mut self, at: Instant) {
+        self.ramp.advance(at, self.rates());
+    }
+
+    fn communication_timeout(&self) -> Duration {
+        TIME_UNIT * u32::from(self.params.value(P14_04))
+    }
+
+    fn communication_lost(&mut self, expired: Instant) {
+        self.ramp.advance(expired, self.rates());
+        match self.params.value(P14_05) {
+            TIMEOUT_TRIPS if self.fault == 0 => self.trip(COMMUNICATION_FAULT, expired),
+            TIMEOUT_TRIPS | TIMEOUT_IGNORED => {}
+            _ => {
+                self.command = None;
+                self.retarget(expired);
+            }
+        }
+    }
+
+    fn response_delay(&self) -> Duration {
+        RESPONSE_DELAY_UNIT * u32::from(self.params.value(P14_03))
+    }
+
+    fn answers_writes(&self) -> bool {
+        self.params.value(P14_06) & WRITES_UNANSWERED == 0
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::line::{Parity, SerialFormat};
     use crate::rtu::frame::{crc_ok, encode, pdu_of};
+    use crate::sim::Slave;
 
     fn line(baud: u32, parity: Parity, stop_bits: u8) -> SerialFormat {
         SerialFormat {
@@ -809,12 +448,17 @@ mod tests {
         settings
     }
 
-    fn power_on(variant: Variant, address: u8, params: &[(&str, u16)], t0: Instant) -> Goodrive {
+    fn power_on(
+        variant: Variant,
+        address: u8,
+        params: &[(&str, u16)],
+        t0: Instant,
+    ) -> Drive<Goodrive> {
         Goodrive::new(variant, &settings(address, params), t0).unwrap()
     }
 
     /// Under communication control with the Modbus frequency reference.
-    fn remote(variant: Variant, t0: Instant) -> Goodrive {
+    fn remote(variant: Variant, t0: Instant) -> Drive<Goodrive> {
         power_on(variant, 1, &[("P00.01", 2), ("P00.06", 8)], t0)
     }
 
@@ -823,7 +467,7 @@ mod tests {
     }
 
     /// Hand a manual's request frame to the drive; the frame it answers with.
-    fn exchange(drive: &mut Goodrive, request: &[u8], at: Instant) -> Vec<u8> {
+    fn exchange(drive: &mut Drive<Goodrive>, request: &[u8], at: Instant) -> Vec<u8> {
         assert!(crc_ok(request), "the fixture's CRC is wrong");
         drive
             .handle(request[0], pdu_of(request), at)
@@ -832,12 +476,12 @@ mod tests {
     }
 
     /// The reply PDU to `request` sent to the drive's own address.
-    fn ask(drive: &mut Goodrive, request: &[u8], at: Instant) -> Vec<u8> {
+    fn ask(drive: &mut Drive<Goodrive>, request: &[u8], at: Instant) -> Vec<u8> {
         let answer = drive.handle(drive.address, request, at).expect("an answer");
         pdu_of(&answer.bytes).to_vec()
     }
 
-    fn read(drive: &mut Goodrive, address: u16, at: Instant) -> u16 {
+    fn read(drive: &mut Drive<Goodrive>, address: u16, at: Instant) -> u16 {
         let [hi, lo] = address.to_be_bytes();
         let reply = ask(drive, &[0x03, hi, lo, 0x00, 0x01], at);
         assert_eq!(
@@ -848,13 +492,13 @@ mod tests {
         u16::from_be_bytes([reply[2], reply[3]])
     }
 
-    fn write(drive: &mut Goodrive, address: u16, value: u16, at: Instant) -> Vec<u8> {
+    fn write(drive: &mut Drive<Goodrive>, address: u16, value: u16, at: Instant) -> Vec<u8> {
         let [a_hi, a_lo] = address.to_be_bytes();
         let [v_hi, v_lo] = value.to_be_bytes();
         ask(drive, &[0x06, a_hi, a_lo, v_hi, v_lo], at)
     }
 
-    fn assert_written(drive: &mut Goodrive, address: u16, value: u16, at: Instant) {
+    fn assert_written(drive: &mut Drive<Goodrive>, address: u16, value: u16, at: Instant) {
         let reply = write(drive, address, value, at);
         assert_eq!(
             reply[0], 0x06,
@@ -1368,7 +1012,7 @@ mod tests {
     fn the_response_delay_parameter_lengthens_the_reply_delay() {
         let t0 = Instant::now();
         let mut drive = power_on(Variant::Gd20, 1, &[], t0);
-        let delay = |drive: &mut Goodrive| {
+        let delay = |drive: &mut Drive<Goodrive>| {
             drive
                 .handle(1, &[0x03, 0x21, 0x00, 0x00, 0x01], t0)
                 .unwrap()

@@ -2,14 +2,52 @@
 //! serial device or on a fresh pty, at the bus's baud and format, until stopped. Picks the bus,
 //! powers the slaves on and reopens a lost device; the serving itself is [`crate::sim::responder`].
 
+use super::check_config::format_name;
+use super::{start_runtime, stop_signal, EXIT_CONFIG};
 use crate::bus::{Device, Port};
 use crate::config::{Bus, Config};
 use crate::line::Parity;
 use crate::sim::{self, responder::Responder};
 use std::io;
+use std::process::ExitCode;
 use tokio::time::sleep;
 use tokio_serial::SerialPort;
-use tracing::{info, warn};
+use tracing::{error, info, warn};
+
+/// Serve the slaves of `bus` (or the only bus with any) on `device` until stopped.
+pub fn simulate(config: Config, bus: Option<&str>, device: &str) -> ExitCode {
+    let bus = match choose_bus(&config, bus) {
+        Ok(bus) => bus,
+        Err(e) => {
+            eprintln!("modbus-gateway: simulate: {e}");
+            return ExitCode::from(EXIT_CONFIG);
+        }
+    };
+    let (runtime, _level) = match start_runtime(&config.log) {
+        Ok(started) => started,
+        Err(code) => return code,
+    };
+    runtime.block_on(async {
+        let announce = |path: &str| {
+            let format = bus.format();
+            println!(
+                "serving bus {} on {path} at {} baud {}{}{}",
+                bus.name,
+                format.baud,
+                format.data_bits,
+                format_name(format.parity),
+                format.stop_bits
+            );
+        };
+        tokio::select! {
+            error = serve(bus, device, announce) => {
+                error!(device, %error, "cannot serve the simulated slaves");
+                ExitCode::FAILURE
+            }
+            () = stop_signal() => ExitCode::SUCCESS,
+        }
+    })
+}
 
 /// `--device pty`: open a new pty pair and serve on it.
 pub const PTY: &str = "pty";
