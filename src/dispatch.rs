@@ -5,10 +5,10 @@
 
 use crate::bus::{BusHandle, MasterId};
 use crate::error::{Outcome, RequestError};
+use crate::line::BROADCAST;
 use crate::metrics::Metrics;
 use crate::pdu;
 use crate::routing::Router;
-use crate::rtu::frame::BROADCAST;
 use std::net::SocketAddr;
 use std::sync::{Arc, PoisonError, RwLock};
 use tokio::sync::oneshot;

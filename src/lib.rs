@@ -32,7 +32,6 @@ pub mod logging;
 pub mod metrics;
 pub mod pdu;
 pub mod routing;
-pub mod rtu;
 pub mod shutdown;
 pub mod sim;
 pub mod tcp;

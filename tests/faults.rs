@@ -6,8 +6,8 @@ use crate::support::{addr, bus_call, settle, sim_bus_counted, start, RawMaster, 
 use modbus_gateway::bus::BusHandle;
 use modbus_gateway::error::{Answer, Outcome};
 use modbus_gateway::gateway::config_from_toml;
+use modbus_gateway::line::rtu::encode;
 use modbus_gateway::metrics::Metrics;
-use modbus_gateway::rtu::frame::encode;
 use modbus_gateway::sim::faults::{Faults, Faulty};
 use modbus_gateway::sim::{Pause, Scripted, SimLine, Source, Transmission};
 use std::time::Duration;

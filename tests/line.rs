@@ -547,7 +547,7 @@ async fn after_a_bad_crc_or_a_malformed_reply_the_next_request_goes_out_after_t3
 ) {
     let timeout = Duration::from_millis(200);
     let read_one = [0x03, 0x00, 0x00, 0x00, 0x01];
-    let mut bad_crc = modbus_gateway::rtu::frame::encode(1, &[0x03, 0x02, 0x00, 0x07]);
+    let mut bad_crc = modbus_gateway::line::rtu::encode(1, &[0x03, 0x02, 0x00, 0x07]);
     *bad_crc.last_mut().unwrap() ^= 0x01;
     let first_replies = [
         (

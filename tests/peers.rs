@@ -7,7 +7,7 @@
 //! fails under `MBGW_REQUIRE_TOOLS=1`, as for the other external tools.
 
 use crate::support::{addr, pty_config, start, within, RawMaster, Scrape};
-use modbus_gateway::rtu::frame;
+use modbus_gateway::line::rtu;
 use std::ffi::OsString;
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
@@ -157,9 +157,7 @@ fn unhex(text: &str) -> Vec<u8> {
 
 /// Each PDU as an RTU frame to or from [`UNIT`], back to back: what the line carries.
 fn frames(pdus: &[&[u8]]) -> Vec<u8> {
-    pdus.iter()
-        .flat_map(|pdu| frame::encode(UNIT, pdu))
-        .collect()
+    pdus.iter().flat_map(|pdu| rtu::encode(UNIT, pdu)).collect()
 }
 
 #[tokio::test]

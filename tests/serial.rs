@@ -2,7 +2,7 @@
 //! client (tokio-modbus) on the other side.
 
 use crate::support::{addr, pty_config, start, start_sim, wait_for_bus, PtySlave, RawMaster};
-use modbus_gateway::rtu::frame;
+use modbus_gateway::line::rtu;
 use std::path::PathBuf;
 use tokio_modbus::client::{tcp, Reader, Writer};
 use tokio_modbus::Slave;
@@ -47,10 +47,7 @@ async fn a_third_party_client_reads_and_writes_through_the_gateway_to_a_pty_slav
     let slave = PtySlave::registers();
     let gateway = start(&pty_config(&slave.path, "")).await;
     read_and_write_with_tokio_modbus(&gateway, 3).await;
-    assert!(slave
-        .received()
-        .iter()
-        .all(|f| f[0] == 3 && frame::crc_ok(f)));
+    assert!(slave.received().iter().all(|f| f[0] == 3 && rtu::crc_ok(f)));
 }
 
 #[tokio::test]
@@ -62,7 +59,7 @@ async fn a_third_party_client_reads_and_writes_through_the_gateway_to_the_sim_li
 #[tokio::test]
 async fn a_reply_with_a_bad_crc_is_not_forwarded() {
     let slave = PtySlave::start(|request| {
-        let mut reply = frame::encode(request[0], &[0x03, 0x02, 0x12, 0x34]);
+        let mut reply = rtu::encode(request[0], &[0x03, 0x02, 0x12, 0x34]);
         *reply.last_mut().unwrap() ^= 0xFF;
         Some(reply)
     });
@@ -74,7 +71,7 @@ async fn a_reply_with_a_bad_crc_is_not_forwarded() {
 #[tokio::test]
 async fn a_reply_from_another_address_is_discarded() {
     let slave =
-        PtySlave::start(|request| Some(frame::encode(request[0] + 1, &[0x03, 0x02, 0x12, 0x34])));
+        PtySlave::start(|request| Some(rtu::encode(request[0] + 1, &[0x03, 0x02, 0x12, 0x34])));
     let gateway = start(&pty_config(&slave.path, "response_timeout = \"100ms\"")).await;
     let mut master = RawMaster::connect(addr(&gateway)).await;
     assert_eq!(master.call(1, 1, &READ).await, [0x83, 0x0B]);
@@ -85,7 +82,7 @@ async fn reads_are_retried_on_a_bad_reply_and_succeed() {
     let mut calls = 0;
     let slave = PtySlave::start(move |request| {
         calls += 1;
-        let mut reply = frame::encode(request[0], &[0x03, 0x02, 0x12, 0x34]);
+        let mut reply = rtu::encode(request[0], &[0x03, 0x02, 0x12, 0x34]);
         if calls == 1 {
             *reply.last_mut().unwrap() ^= 0xFF;
         }

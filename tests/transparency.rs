@@ -3,7 +3,7 @@
 //! code the issue names and a user-defined one.
 
 use crate::support::{addr, pty_config, start, start_sim, PtySlave, RawMaster};
-use modbus_gateway::rtu::frame;
+use modbus_gateway::line::rtu;
 use modbus_gateway::sim::Source;
 
 /// (request PDU, the slave's reply PDU), mostly the examples of the Modbus Application Protocol
@@ -92,9 +92,9 @@ const CASES: &[(&[u8], &[u8])] = &[
 ];
 
 fn canned_reply(request_frame: &[u8]) -> Option<Vec<u8>> {
-    let pdu = frame::pdu_of(request_frame);
+    let pdu = rtu::pdu_of(request_frame);
     let (_, reply) = CASES.iter().find(|(request, _)| *request == pdu)?;
-    Some(frame::encode(request_frame[0], reply))
+    Some(rtu::encode(request_frame[0], reply))
 }
 
 #[tokio::test]
@@ -109,7 +109,7 @@ async fn every_function_code_crosses_a_pty_byte_for_byte_both_ways() {
         let on_wire = slave.received();
         assert_eq!(
             on_wire.last().unwrap(),
-            &frame::encode(unit, request),
+            &rtu::encode(unit, request),
             "request {request:02X?}"
         );
     }
@@ -136,13 +136,13 @@ async fn every_function_code_crosses_the_sim_line_byte_for_byte_both_ways() {
             .unwrap();
         assert_eq!(
             sent.bytes,
-            frame::encode(unit, request),
+            rtu::encode(unit, request),
             "request {request:02X?}"
         );
         let answer = frames.last().unwrap();
         assert_eq!(answer.from, Source::Slave(unit));
         assert_eq!(
-            frame::pdu_of(&answer.bytes),
+            rtu::pdu_of(&answer.bytes),
             got.as_slice(),
             "reply to {request:02X?}"
         );

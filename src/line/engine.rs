@@ -377,8 +377,8 @@ impl<T> LineMaster<T> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::line::rtu;
     use crate::line::{Parity, SerialFormat};
-    use crate::rtu::frame;
     use crate::sim::{Scripted, SimLine, SimPort, Transmission};
 
     /// tokio's timer wakes sleepers on whole milliseconds, paused clock included.
@@ -469,8 +469,8 @@ mod tests {
 
     #[tokio::test(start_paused = true)]
     async fn a_foreign_frame_before_the_answer_does_not_hide_it() {
-        let mut both = frame::encode(9, &READ_ANSWER);
-        both.extend(frame::encode(1, &READ_ANSWER));
+        let mut both = rtu::encode(9, &READ_ANSWER);
+        both.extend(rtu::encode(1, &READ_ANSWER));
         let plan = vec![Some(Transmission {
             bytes: both,
             delay: Duration::ZERO,
@@ -486,7 +486,7 @@ mod tests {
 
     #[tokio::test(start_paused = true)]
     async fn a_reply_with_a_bad_crc_is_not_returned() {
-        let mut bytes = frame::encode(1, &READ_ANSWER);
+        let mut bytes = rtu::encode(1, &READ_ANSWER);
         *bytes.last_mut().unwrap() ^= 0x01;
         let plan = vec![Some(Transmission {
             bytes,
@@ -584,7 +584,7 @@ mod tests {
 
     #[tokio::test(start_paused = true)]
     async fn a_try_ended_by_the_slaves_own_frame_opens_no_late_reply_window() {
-        let mut bad_crc = frame::encode(1, &READ_ANSWER);
+        let mut bad_crc = rtu::encode(1, &READ_ANSWER);
         *bad_crc.last_mut().unwrap() ^= 0x01;
         let plan = vec![
             Some(Transmission {

@@ -8,7 +8,7 @@
 //! whichever framing its line uses.
 
 use super::reply::ReplyForm;
-use crate::rtu::frame::{self, FrameLen};
+use crate::line::rtu::{self, FrameLen};
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Framing {
@@ -45,14 +45,14 @@ impl Framing {
     /// The longest frame on the wire, in characters.
     pub fn max_frame_len(self) -> usize {
         match self {
-            Framing::Rtu => frame::MAX_FRAME_LEN,
+            Framing::Rtu => rtu::MAX_FRAME_LEN,
         }
     }
 
     /// Build the frame for `pdu` to `address` into `out` (cleared first).
     pub fn encode_into(self, out: &mut Vec<u8>, address: u8, pdu: &[u8]) {
         match self {
-            Framing::Rtu => frame::encode_into(out, address, pdu),
+            Framing::Rtu => rtu::encode_into(out, address, pdu),
         }
     }
 
@@ -66,7 +66,7 @@ impl Framing {
         form: ReplyForm,
     ) -> Completion {
         match self {
-            Framing::Rtu => match frame::reply_len_as(received, slave, request, form) {
+            Framing::Rtu => match rtu::reply_len_as(received, slave, request, form) {
                 FrameLen::Exact(n) if received.len() >= n => Completion::Whole(n),
                 FrameLen::Need(n) | FrameLen::Exact(n) => Completion::AtLeast(n),
                 FrameLen::BySilence => Completion::Open(Silence::EndsFrame),
@@ -78,7 +78,7 @@ impl Framing {
     /// The address and PDU of a whole frame, or `None` when its check (CRC) fails.
     pub fn decode(self, whole: &[u8]) -> Option<(u8, &[u8])> {
         match self {
-            Framing::Rtu => frame::crc_ok(whole).then(|| (whole[0], frame::pdu_of(whole))),
+            Framing::Rtu => rtu::crc_ok(whole).then(|| (whole[0], rtu::pdu_of(whole))),
         }
     }
 }

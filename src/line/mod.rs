@@ -1,12 +1,13 @@
 //! The master side of a serial line: one transaction at a time ([`engine`]) on whatever carries
 //! the bytes (a serial port or the simulated line, both behind [`Transport`]), framed as the line
-//! is ([`framing`]: RTU today), with the spec's timing ([`timing`]) and the PDU-level judgement
+//! is ([`framing`]: [`rtu`] today), with the spec's timing ([`timing`]) and the PDU-level judgement
 //! of replies ([`reply`]). Knows nothing of TCP, masters, queues or routing; what a frame looks
 //! like on the wire belongs to the framing alone.
 
 pub mod engine;
 pub mod framing;
 pub mod reply;
+pub mod rtu;
 pub mod timing;
 
 pub use engine::{LineCounters, LineMaster, MasterTiming, Reply, TxError};

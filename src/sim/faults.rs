@@ -7,8 +7,9 @@
 
 use super::{Pause, Slave, Transmission};
 use crate::config;
+use crate::line::rtu::{self};
+use crate::line::BROADCAST;
 use crate::pdu::EXCEPTION_BIT;
-use crate::rtu::frame::{self, BROADCAST};
 use std::time::Duration;
 use tokio::time::Instant;
 
@@ -104,7 +105,7 @@ impl<S: Slave> Slave for Faulty<S> {
                 {
                     *function = wrong | (*function & EXCEPTION_BIT);
                 }
-                reply.bytes = frame::encode(address, &pdu);
+                reply.bytes = rtu::encode(address, &pdu);
             }
         }
         if self.faults.crc_error_rate > 0.0 && self.rng.f64() < self.faults.crc_error_rate {
@@ -186,7 +187,7 @@ mod tests {
         })
         .unwrap();
         assert_eq!(reply.bytes[0], 9);
-        assert!(frame::crc_ok(&reply.bytes));
+        assert!(rtu::crc_ok(&reply.bytes));
     }
 
     #[test]
@@ -196,12 +197,12 @@ mod tests {
             ..Faults::default()
         };
         let reply = answer(wrong.clone()).unwrap().bytes;
-        assert_eq!(reply, frame::encode(7, &[0x04, 0x02, 0x00, 0x00]));
+        assert_eq!(reply, rtu::encode(7, &[0x04, 0x02, 0x00, 0x00]));
         // 126 registers are more than a read may ask for: exception 03, now under function 04.
         let refused = slave(wrong)
             .handle(7, &[0x03, 0x00, 0x00, 0x00, 0x7E], Instant::now())
             .unwrap();
-        assert_eq!(refused.bytes, frame::encode(7, &[0x84, 0x03]));
+        assert_eq!(refused.bytes, rtu::encode(7, &[0x84, 0x03]));
     }
 
     #[test]
@@ -244,7 +245,7 @@ mod tests {
         let run = || {
             let mut slave = slave(faults.clone());
             (0..400)
-                .map(|_| frame::crc_ok(&slave.handle(7, &READ, Instant::now()).unwrap().bytes))
+                .map(|_| rtu::crc_ok(&slave.handle(7, &READ, Instant::now()).unwrap().bytes))
                 .collect::<Vec<_>>()
         };
         let first = run();
@@ -255,7 +256,7 @@ mod tests {
             crc_error_rate: 1.0,
             ..Faults::default()
         });
-        assert!(!frame::crc_ok(&always.unwrap().bytes));
+        assert!(!rtu::crc_ok(&always.unwrap().bytes));
     }
 
     #[test]

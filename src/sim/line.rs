@@ -8,8 +8,9 @@
 //! and the recent frames with their times, for tests and benchmarks.
 
 use super::{Slave, Transmission};
+use crate::line::rtu::{self};
+use crate::line::BROADCAST;
 use crate::line::{LineTiming, Transport};
-use crate::rtu::frame::{self, BROADCAST};
 use crate::timer::sleep_until;
 use std::collections::{BTreeMap, VecDeque};
 use std::io;
@@ -239,12 +240,12 @@ impl LineState {
         });
         self.extend_wire_end(end);
 
-        if collided || merged || !frame::crc_ok(bytes) {
+        if collided || merged || !rtu::crc_ok(bytes) {
             self.stats.unread_frames += 1;
             return;
         }
         let address = bytes[0];
-        let request = frame::pdu_of(bytes);
+        let request = rtu::pdu_of(bytes);
         if address == BROADCAST {
             for slave in self.slaves.values_mut() {
                 slave.handle(BROADCAST, request, end);
@@ -385,7 +386,7 @@ mod tests {
     impl Slave for Echo {
         fn handle(&mut self, address: u8, request: &[u8], _at: Instant) -> Option<Transmission> {
             Some(Transmission {
-                bytes: frame::encode(address, request),
+                bytes: rtu::encode(address, request),
                 delay: self.delay,
                 pause: None,
             })
@@ -450,7 +451,7 @@ mod tests {
     impl Slave for Stutter {
         fn handle(&mut self, address: u8, request: &[u8], _at: Instant) -> Option<Transmission> {
             Some(Transmission {
-                bytes: frame::encode(address, request),
+                bytes: rtu::encode(address, request),
                 delay: Duration::ZERO,
                 pause: Some(super::super::Pause {
                     after: self.after,
@@ -512,7 +513,7 @@ mod tests {
         let mut port = line.open().unwrap();
         port.send(&READ).await.unwrap();
         tokio::time::advance(timing.frame_time(11) + 2 * timing.t35).await;
-        port.send(&frame::encode(2, &[0x03, 0x00, 0x00, 0x00, 0x01]))
+        port.send(&rtu::encode(2, &[0x03, 0x00, 0x00, 0x00, 0x01]))
             .await
             .unwrap();
         assert_eq!(line.stats().collisions, 0);
@@ -563,7 +564,7 @@ mod tests {
             port.recv(&mut buf).await.unwrap();
         }
         assert_eq!(buf[0], READ[0], "the byte before the collision is intact");
-        assert!(!frame::crc_ok(&buf));
+        assert!(!rtu::crc_ok(&buf));
         assert_eq!(line.stats().collisions, 1);
     }
 
@@ -600,7 +601,7 @@ mod tests {
             },
         );
         let mut port = line.open().unwrap();
-        port.send(&frame::encode(0, &[0x06, 0, 1, 0, 1]))
+        port.send(&rtu::encode(0, &[0x06, 0, 1, 0, 1]))
             .await
             .unwrap();
         let mut buf = Vec::new();

@@ -18,8 +18,8 @@ pub use registers::RegisterBank;
 pub use scripted::Scripted;
 
 use crate::config::{self, SimModel};
+use crate::line::rtu;
 use crate::line::SerialFormat;
-use crate::rtu::frame;
 use drive::goodrive::{Goodrive, Variant};
 use drive::pd_inverter::PdInverter;
 use drive::{DriveSettings, SetupError};
@@ -116,7 +116,7 @@ impl Transmission {
     /// A well-formed frame for `pdu` from `address`, sent after `delay`.
     pub fn frame(address: u8, pdu: &[u8], delay: Duration) -> Self {
         Transmission {
-            bytes: frame::encode(address, pdu),
+            bytes: rtu::encode(address, pdu),
             delay,
             pause: None,
         }

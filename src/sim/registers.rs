@@ -9,7 +9,6 @@ use super::{Slave, Transmission};
 use crate::pdu::code;
 use crate::pdu::exception_pdu;
 use crate::pdu::ExceptionCode::{self, IllegalDataAddress, IllegalDataValue, IllegalFunction};
-use crate::rtu::frame;
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Duration;
 use tokio::time::Instant;
@@ -288,7 +287,7 @@ impl RegisterBank {
 impl Slave for RegisterBank {
     fn handle(&mut self, address: u8, request: &[u8], _at: Instant) -> Option<Transmission> {
         let reply = self.respond(address, request);
-        if address == frame::BROADCAST {
+        if address == crate::line::BROADCAST {
             return None;
         }
         let function = request.first().copied().unwrap_or(0);
@@ -300,6 +299,7 @@ impl Slave for RegisterBank {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::line::rtu;
 
     fn bank() -> RegisterBank {
         RegisterBank::new(Duration::ZERO)
@@ -424,10 +424,10 @@ mod tests {
                 u8::try_from(PRODUCT_CODE.len()).unwrap()
             ]
         );
-        let framed = frame::encode(7, &device);
+        let framed = rtu::encode(7, &device);
         assert_eq!(
-            frame::reply_len(&framed, 7, &[0x2B, 0x0E, 0x04, 0x01]),
-            frame::FrameLen::Exact(framed.len())
+            rtu::reply_len(&framed, 7, &[0x2B, 0x0E, 0x04, 0x01]),
+            rtu::FrameLen::Exact(framed.len())
         );
     }
 
@@ -438,7 +438,7 @@ mod tests {
         assert_eq!(b.handle(0, &[0x06, 0x00, 0x01, 0x00, 0x09], now), None);
         assert_eq!(b.holding(1), 9);
         let answer = b.handle(3, &[0x03, 0x00, 0x01, 0x00, 0x01], now).unwrap();
-        assert_eq!(answer.bytes, frame::encode(3, &[0x03, 0x02, 0x00, 0x09]));
+        assert_eq!(answer.bytes, rtu::encode(3, &[0x03, 0x02, 0x00, 0x09]));
     }
 
     mod properties {
@@ -507,7 +507,7 @@ mod tests {
             ) {
                 let mut b = bank();
                 for (request, broadcast) in requests {
-                    let address = if broadcast { frame::BROADCAST } else { 7 };
+                    let address = if broadcast { crate::line::BROADCAST } else { 7 };
                     let answer = b.handle(address, &request, Instant::now());
                     prop_assert_eq!(answer.is_none(), broadcast, "{:02X?}", request);
                     let (Some(answer), false) = (answer, request.is_empty()) else {
@@ -515,19 +515,19 @@ mod tests {
                     };
                     let bytes = &answer.bytes;
                     prop_assert_eq!(
-                        frame::reply_len(bytes, 7, &request),
-                        frame::FrameLen::Exact(bytes.len()),
+                        rtu::reply_len(bytes, 7, &request),
+                        rtu::FrameLen::Exact(bytes.len()),
                         "{:02X?} -> {:02X?}", request, bytes
                     );
                     // A code with the exception bit is no request (the gateway never sends one),
                     // so nothing is its answer.
                     let expected = if request[0] & crate::pdu::EXCEPTION_BIT == 0 {
-                        frame::Verdict::Answer
+                        crate::line::Verdict::Answer
                     } else {
-                        frame::Verdict::Foreign
+                        crate::line::Verdict::Foreign
                     };
                     prop_assert_eq!(
-                        frame::check_reply(bytes, 7, &request),
+                        rtu::check_reply(bytes, 7, &request),
                         expected,
                         "{:02X?} -> {:02X?}", request, bytes
                     );

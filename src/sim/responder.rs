@@ -6,8 +6,9 @@
 //! and answered by none. Knows nothing of TCP or the gateway's bus.
 
 use super::Slave;
+use crate::line::rtu::{self, FrameLen, MAX_FRAME_LEN};
+use crate::line::BROADCAST;
 use crate::line::{LineTiming, Transport};
-use crate::rtu::frame::{self, FrameLen, BROADCAST, MAX_FRAME_LEN};
 use crate::timer::sleep_until;
 use std::collections::BTreeMap;
 use std::io;
@@ -57,7 +58,7 @@ impl Responder {
     pub async fn serve<T: Transport>(&mut self, port: &mut T) -> io::Error {
         let mut buf = Vec::with_capacity(MAX_FRAME_LEN);
         loop {
-            match frame::request_len(&buf) {
+            match rtu::request_len(&buf) {
                 FrameLen::Exact(n) if buf.len() >= n => {
                     let request: Vec<u8> = buf.drain(..n).collect();
                     if let Err(e) = self.answer(port, &request).await {
@@ -84,7 +85,7 @@ impl Responder {
                         // Silence ends the frame: whole if only silence could tell its length,
                         // otherwise cut short.
                         let request = std::mem::take(&mut buf);
-                        if frame::request_len(&request) == FrameLen::BySilence {
+                        if rtu::request_len(&request) == FrameLen::BySilence {
                             if let Err(e) = self.answer(port, &request).await {
                                 return e;
                             }
@@ -109,13 +110,13 @@ impl Responder {
     }
 
     async fn answer<T: Transport>(&mut self, port: &mut T, request: &[u8]) -> io::Result<()> {
-        if !frame::crc_ok(request) {
+        if !rtu::crc_ok(request) {
             self.stats.bad_frames += 1;
             return Ok(());
         }
         let at = Instant::now();
         let address = request[0];
-        let pdu = frame::pdu_of(request);
+        let pdu = rtu::pdu_of(request);
         if address == BROADCAST {
             self.stats.requests += 1;
             for slave in self.slaves.values_mut() {
@@ -248,7 +249,7 @@ mod tests {
         .await;
         assert_eq!(sent.len(), 1);
         let (at, bytes) = &sent[0];
-        assert_eq!(bytes, &frame::encode(1, &[0x03, 0x04, 0, 0, 0, 0]));
+        assert_eq!(bytes, &rtu::encode(1, &[0x03, 0x04, 0, 0, 0, 0]));
         let expected = start + Duration::from_millis(1) + timing().t35 + Duration::from_millis(2);
         assert!(
             *at >= expected && *at <= expected + Duration::from_millis(1),
@@ -282,7 +283,7 @@ mod tests {
         };
         responder.serve(&mut port).await;
         let sent = sent.lock().unwrap().clone();
-        let whole = frame::encode(1, &[0x03, 0x04, 0, 0, 0, 0]);
+        let whole = rtu::encode(1, &[0x03, 0x04, 0, 0, 0, 0]);
         assert_eq!(sent.len(), 2);
         assert_eq!((&sent[0].1[..], &sent[1].1[..]), whole.split_at(3));
         // The first write leaves the wire three characters later; then the gap. tokio's timer
@@ -302,9 +303,9 @@ mod tests {
         corrupt[7] ^= 0xFF;
         let mut other = READ.to_vec();
         other[0] = 9;
-        let other = frame::encode(9, frame::pdu_of(&other));
-        let broadcast = frame::encode(0, &[0x06, 0x00, 0x01, 0x00, 0x07]);
-        let read_back = frame::encode(2, &[0x03, 0x00, 0x01, 0x00, 0x01]);
+        let other = rtu::encode(9, rtu::pdu_of(&other));
+        let broadcast = rtu::encode(0, &[0x06, 0x00, 0x01, 0x00, 0x07]);
+        let read_back = rtu::encode(2, &[0x03, 0x00, 0x01, 0x00, 0x01]);
         let (sent, stats) = run(vec![
             (Duration::ZERO, corrupt.to_vec()),
             (Duration::from_millis(10), other),
@@ -314,7 +315,7 @@ mod tests {
         .await;
         // Only the read after the broadcast is answered, and it shows the broadcast was obeyed.
         let replies: Vec<_> = sent.into_iter().map(|(_, bytes)| bytes).collect();
-        assert_eq!(replies, [frame::encode(2, &[0x03, 0x02, 0x00, 0x07])]);
+        assert_eq!(replies, [rtu::encode(2, &[0x03, 0x02, 0x00, 0x07])]);
         assert_eq!(stats.bad_frames, 1);
         assert_eq!(stats.others, 1);
     }

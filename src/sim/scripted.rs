@@ -3,7 +3,7 @@
 //! missing replies; broadcasts use up no step of the script.
 
 use super::{Slave, Transmission};
-use crate::rtu::frame::BROADCAST;
+use crate::line::BROADCAST;
 use std::collections::VecDeque;
 use tokio::time::Instant;
 

@@ -4,8 +4,8 @@
 use modbus_gateway::bus::{BusHandle, BusTask, Device};
 use modbus_gateway::error::Outcome;
 use modbus_gateway::gateway::{config_from_toml, load_config};
+use modbus_gateway::line::rtu::{self, FrameLen};
 use modbus_gateway::metrics::Metrics;
-use modbus_gateway::rtu::frame::{self, FrameLen};
 use modbus_gateway::shutdown::Stopping;
 use modbus_gateway::sim::{RegisterBank, SimLine, Slave};
 use modbus_gateway::{Config, Gateway};
@@ -275,7 +275,7 @@ impl PtySlave {
             let mut buf = Vec::new();
             let mut chunk = [0u8; 512];
             loop {
-                let complete = match frame::request_len(&buf) {
+                let complete = match rtu::request_len(&buf) {
                     FrameLen::Exact(n) if buf.len() >= n => Some(n),
                     FrameLen::Invalid => Some(buf.len()),
                     _ => None,
@@ -290,7 +290,7 @@ impl PtySlave {
                     }
                     continue;
                 }
-                let by_silence = frame::request_len(&buf) == FrameLen::BySilence;
+                let by_silence = rtu::request_len(&buf) == FrameLen::BySilence;
                 let read = master.read(&mut chunk);
                 let n = if by_silence {
                     match tokio::time::timeout(PTY_FRAME_PAUSE, read).await {
@@ -327,11 +327,11 @@ impl PtySlave {
     pub fn registers() -> Self {
         let mut bank = RegisterBank::new(Duration::ZERO);
         Self::start(move |request| {
-            if !frame::crc_ok(request) {
+            if !rtu::crc_ok(request) {
                 return None;
             }
             let now = tokio::time::Instant::now();
-            bank.handle(request[0], frame::pdu_of(request), now)
+            bank.handle(request[0], rtu::pdu_of(request), now)
                 .map(|t| t.bytes)
         })
     }

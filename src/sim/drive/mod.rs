@@ -20,7 +20,6 @@ pub use ramp::{Ramp, Rates};
 use super::{Slave, Transmission};
 use crate::line::{Parity, SerialFormat};
 use crate::pdu::{code, ExceptionCode, EXCEPTION_BIT};
-use crate::rtu::frame;
 use std::collections::BTreeMap;
 use std::time::Duration;
 use tokio::time::Instant;
@@ -366,7 +365,7 @@ impl<M: Model> Slave for Drive<M> {
             function,
             code::WRITE_SINGLE_REGISTER | code::WRITE_MULTIPLE_REGISTERS
         );
-        if address == frame::BROADCAST {
+        if address == crate::line::BROADCAST {
             // Only writes have an effect to carry out; nothing is answered.
             if write {
                 let _ = self.respond(request, at);

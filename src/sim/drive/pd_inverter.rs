@@ -653,10 +653,10 @@ impl Model for PdInverter {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::line::rtu;
     use crate::line::SerialFormat;
     use crate::pdu::code::{READ_HOLDING_REGISTERS, WRITE_SINGLE_REGISTER};
     use crate::pdu::ExceptionCode::{IllegalDataValue, IllegalFunction};
-    use crate::rtu::frame;
     use crate::sim::Slave;
 
     const LINE: SerialFormat = SerialFormat {
@@ -695,9 +695,9 @@ mod tests {
         let reply = drive
             .handle(1, pdu, at)
             .expect("a request to 1 is answered");
-        assert!(frame::crc_ok(&reply.bytes));
+        assert!(rtu::crc_ok(&reply.bytes));
         assert_eq!(reply.bytes[0], 1);
-        frame::pdu_of(&reply.bytes).to_vec()
+        rtu::pdu_of(&reply.bytes).to_vec()
     }
 
     /// Words read in the factory (two-byte count) form, or the exception code.
@@ -747,7 +747,7 @@ mod tests {
         let (mut drive, t0) = power_on(&[]);
         // 01 address, 03 read, 3000H state, 1 word, CRC.
         let request = [0x01, 0x03, 0x30, 0x00, 0x00, 0x01, 0x8B, 0x0A];
-        let reply = drive.handle(1, frame::pdu_of(&request), t0).unwrap();
+        let reply = drive.handle(1, rtu::pdu_of(&request), t0).unwrap();
         // 01 address, 03 read, 00 02 byte count (two bytes), 00 03 stopped, CRC.
         assert_eq!(
             reply.bytes,
@@ -761,9 +761,9 @@ mod tests {
         assert_eq!(bad.bytes, exception);
         // 01 address, 06 write, FD05H Pd-05, 0001 standard, CRC: echoed as is.
         let standard = [0x01, 0x06, 0xFD, 0x05, 0x00, 0x01, 0x69, 0xA7];
-        let echo = drive.handle(1, frame::pdu_of(&standard), t0).unwrap();
+        let echo = drive.handle(1, rtu::pdu_of(&standard), t0).unwrap();
         assert_eq!(echo.bytes, standard);
-        let reply = drive.handle(1, frame::pdu_of(&request), t0).unwrap();
+        let reply = drive.handle(1, rtu::pdu_of(&request), t0).unwrap();
         // 01 address, 03 read, 02 byte count, 00 03 stopped, CRC.
         assert_eq!(reply.bytes, [0x01, 0x03, 0x02, 0x00, 0x03, 0xF8, 0x45]);
         let bad = drive
@@ -1286,7 +1286,7 @@ mod tests {
             .unwrap();
         // 07 address, 03 read, 00 06 count, 5 (no index for 14400), 2 (8O1), 7, CRC.
         assert_eq!(
-            frame::pdu_of(&reply.bytes),
+            rtu::pdu_of(&reply.bytes),
             [
                 READ_HOLDING_REGISTERS,
                 0x00,

@@ -429,8 +429,8 @@ impl Model for Goodrive {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::line::rtu::{crc_ok, encode, pdu_of};
     use crate::line::{Parity, SerialFormat};
-    use crate::rtu::frame::{crc_ok, encode, pdu_of};
     use crate::sim::Slave;
 
     fn line(baud: u32, parity: Parity, stop_bits: u8) -> SerialFormat {

@@ -3,9 +3,7 @@
 //! given request (the CRC, then [`crate::line::reply`]). Pure functions; knows nothing of ports
 //! or time.
 
-use crate::line::reply;
-pub use crate::line::reply::{ReplyForm, Verdict};
-pub use crate::line::BROADCAST;
+use super::reply::{self, ReplyForm, Verdict};
 use crate::pdu::{self, PduLen, EXCEPTION_PDU_LEN};
 use crc::{Crc, CRC_16_MODBUS};
 
