@@ -7,12 +7,11 @@
 //! the simulation exact under tokio's paused clock and costs no task. A bus monitor keeps counts
 //! and the recent frames with their times, for tests and benchmarks.
 
+use super::slaves::{Heard, Slaves};
 use super::{Slave, Transmission};
-use crate::line::rtu::{self};
-use crate::line::BROADCAST;
 use crate::line::{LineTiming, Transport};
 use crate::timer::sleep_until;
-use std::collections::{BTreeMap, VecDeque};
+use std::collections::VecDeque;
 use std::io;
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
@@ -72,7 +71,7 @@ struct Shared {
 
 struct LineState {
     timing: LineTiming,
-    slaves: BTreeMap<u8, Box<dyn Slave>>,
+    slaves: Slaves,
     plugged: bool,
     /// Bumped by every open and unplug: a port of an older generation is dead.
     generation: u64,
@@ -99,7 +98,7 @@ impl SimLine {
             shared: Arc::new(Shared {
                 state: Mutex::new(LineState {
                     timing,
-                    slaves: BTreeMap::new(),
+                    slaves: Slaves::default(),
                     plugged: true,
                     generation: 0,
                     master_busy_until: None,
@@ -240,24 +239,17 @@ impl LineState {
         });
         self.extend_wire_end(end);
 
-        if collided || merged || !rtu::crc_ok(bytes) {
+        if collided || merged {
             self.stats.unread_frames += 1;
             return;
         }
-        let address = bytes[0];
-        let request = rtu::pdu_of(bytes);
-        if address == BROADCAST {
-            for slave in self.slaves.values_mut() {
-                slave.handle(BROADCAST, request, end);
-            }
-            return;
-        }
-        let Some(slave) = self.slaves.get_mut(&address) else {
-            return;
-        };
-        if let Some(reply) = slave.handle(address, request, end) {
+        match self.slaves.hear(bytes, end) {
+            Heard::Corrupt => self.stats.unread_frames += 1,
             // A slave knows the request has ended after t3.5 of silence, then processes it.
-            self.transmit_from_slave(address, reply, end + timing.t35);
+            Heard::Answered { address, reply, .. } => {
+                self.transmit_from_slave(address, reply, end + timing.t35);
+            }
+            Heard::Broadcast | Heard::NotHere | Heard::Unanswered { .. } => {}
         }
     }
 
@@ -367,7 +359,7 @@ impl Transport for SimPort {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::line::{Parity, SerialFormat};
+    use crate::line::{rtu, Parity, SerialFormat};
 
     fn line_9600_8e1() -> SimLine {
         SimLine::new(LineTiming::new(&SerialFormat {

@@ -12,10 +12,12 @@ pub mod line;
 pub mod registers;
 pub mod responder;
 pub mod scripted;
+pub mod slaves;
 
 pub use line::{LineStats, SimLine, SimPort, Source, WireFrame};
 pub use registers::RegisterBank;
 pub use scripted::Scripted;
+pub use slaves::{Heard, Slaves};
 
 use crate::config::{self, SimModel};
 use crate::line::rtu;

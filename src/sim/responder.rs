@@ -5,12 +5,11 @@
 //! out after the t3.5 gap plus the slave's own delay. Broadcasts are carried out by every slave
 //! and answered by none. Knows nothing of TCP or the gateway's bus.
 
+use super::slaves::{Heard, Slaves};
 use super::Slave;
 use crate::line::rtu::{self, FrameLen, MAX_FRAME_LEN};
-use crate::line::BROADCAST;
 use crate::line::{LineTiming, Transport};
 use crate::timer::sleep_until;
-use std::collections::BTreeMap;
 use std::io;
 use std::time::Duration;
 use tokio::time::{timeout, Instant};
@@ -29,7 +28,7 @@ pub struct ResponderStats {
 }
 
 pub struct Responder {
-    slaves: BTreeMap<u8, Box<dyn Slave>>,
+    slaves: Slaves,
     timing: LineTiming,
     /// Silence that ends a frame whose length its bytes cannot tell.
     silence: Duration,
@@ -39,7 +38,7 @@ pub struct Responder {
 impl Responder {
     pub fn new(timing: LineTiming, silence: Duration) -> Self {
         Responder {
-            slaves: BTreeMap::new(),
+            slaves: Slaves::default(),
             timing,
             silence: silence.max(timing.t35),
             stats: ResponderStats::default(),
@@ -110,29 +109,32 @@ impl Responder {
     }
 
     async fn answer<T: Transport>(&mut self, port: &mut T, request: &[u8]) -> io::Result<()> {
-        if !rtu::crc_ok(request) {
-            self.stats.bad_frames += 1;
-            return Ok(());
-        }
         let at = Instant::now();
-        let address = request[0];
-        let pdu = rtu::pdu_of(request);
-        if address == BROADCAST {
-            self.stats.requests += 1;
-            for slave in self.slaves.values_mut() {
-                slave.handle(BROADCAST, pdu, at);
+        let (address, function, reply) = match self.slaves.hear(request, at) {
+            Heard::Corrupt => {
+                self.stats.bad_frames += 1;
+                return Ok(());
             }
-            return Ok(());
-        }
-        let Some(slave) = self.slaves.get_mut(&address) else {
-            self.stats.others += 1;
-            return Ok(());
+            Heard::NotHere => {
+                self.stats.others += 1;
+                return Ok(());
+            }
+            Heard::Broadcast => {
+                self.stats.requests += 1;
+                return Ok(());
+            }
+            Heard::Unanswered { address, function } => {
+                self.stats.requests += 1;
+                debug!(address, function, "no reply");
+                return Ok(());
+            }
+            Heard::Answered {
+                address,
+                function,
+                reply,
+            } => (address, function, reply),
         };
         self.stats.requests += 1;
-        let Some(reply) = slave.handle(address, pdu, at) else {
-            debug!(address, function = pdu[0], "no reply");
-            return Ok(());
-        };
         // The slave knows the request is over after t3.5 of silence, then takes its own time.
         let start = at + self.timing.t35 + reply.delay;
         sleep_until(start).await;
@@ -150,12 +152,7 @@ impl Responder {
             None => port.send(&reply.bytes).await?,
         }
         self.stats.replies += 1;
-        debug!(
-            address,
-            function = pdu[0],
-            bytes = reply.bytes.len(),
-            "replied"
-        );
+        debug!(address, function, bytes = reply.bytes.len(), "replied");
         Ok(())
     }
 }
@@ -163,7 +160,7 @@ impl Responder {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::line::{Parity, SerialFormat};
+    use crate::line::{rtu, Parity, SerialFormat};
     use crate::sim::RegisterBank;
     use std::collections::VecDeque;
     use std::sync::{Arc, Mutex};
