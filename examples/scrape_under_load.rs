@@ -6,6 +6,13 @@
 //!
 //! `cargo run --release --example scrape_under_load [SECONDS_PER_PHASE] [ROUNDS]`
 
+// Test code may be long and cast freely; the lint table in Cargo.toml is for the product.
+#![allow(
+    unreachable_pub,
+    clippy::too_many_lines,
+    clippy::cast_possible_truncation
+)]
+
 use modbus_gateway::{Config, Gateway};
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};

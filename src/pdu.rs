@@ -269,11 +269,19 @@ const NO_ROW: u8 = u8::MAX;
 /// is one array access.
 const INDEX: [u8; 256] = {
     let mut index = [NO_ROW; 256];
+    assert!(
+        FUNCTIONS.len() < NO_ROW as usize,
+        "more rows than the index can number"
+    );
     let mut row = 0;
     while row < FUNCTIONS.len() {
         let code = FUNCTIONS[row].code as usize;
         assert!(index[code] == NO_ROW, "a function code has two rows");
-        index[code] = row as u8;
+        // `try_from` is not const; the assert above keeps `row` below 255.
+        #[allow(clippy::cast_possible_truncation)]
+        {
+            index[code] = row as u8;
+        }
         row += 1;
     }
     index

@@ -108,10 +108,10 @@ mod timerfd {
     use tokio::io::unix::AsyncFd;
     use tokio::io::Interest;
 
-    pub struct TimerFd(AsyncFd<OwnedFd>);
+    pub(super) struct TimerFd(AsyncFd<OwnedFd>);
 
     impl TimerFd {
-        pub fn new() -> io::Result<TimerFd> {
+        pub(super) fn new() -> io::Result<TimerFd> {
             // SAFETY: timerfd_create takes two integers and returns a new descriptor or -1.
             let raw = unsafe {
                 libc::timerfd_create(
@@ -153,7 +153,7 @@ mod timerfd {
             Ok(())
         }
 
-        pub async fn sleep_until(&self, deadline: Instant) -> io::Result<()> {
+        pub(super) async fn sleep_until(&self, deadline: Instant) -> io::Result<()> {
             loop {
                 let now = Instant::now();
                 if now >= deadline {

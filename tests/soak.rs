@@ -15,6 +15,13 @@
 //! acknowledged write and no newer than its last one sent. Reads of the late-replying slave ask
 //! for `4 + m` registers, so a late reply to one master's read never fits another master's.
 
+// Test code may be long and cast freely; the lint table in Cargo.toml is for the product.
+#![allow(
+    unreachable_pub,
+    clippy::too_many_lines,
+    clippy::cast_possible_truncation
+)]
+
 #[allow(dead_code)]
 #[path = "support/mod.rs"]
 mod support;

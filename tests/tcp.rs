@@ -7,14 +7,14 @@ use crate::support::{
     Scrape,
 };
 use modbus_gateway::bus::{BusTask, Device};
-use modbus_gateway::dispatch::{Client, Dispatcher, Rights};
 use modbus_gateway::gateway::config_from_toml;
 use modbus_gateway::metrics::Metrics;
-use modbus_gateway::routing::Router;
 use modbus_gateway::shutdown::Stopping;
 use modbus_gateway::sim::{RegisterBank, SimLine};
-use modbus_gateway::tcp::session::{self, Activity, SessionError};
-use modbus_gateway::tcp::SessionLimits;
+use modbus_gateway::testing::session::{self, Activity, SessionError};
+use modbus_gateway::testing::Router;
+use modbus_gateway::testing::SessionLimits;
+use modbus_gateway::testing::{Client, Dispatcher, Rights};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -429,7 +429,7 @@ fn keepalive_probes_start_after_the_configured_silence() {
         .unwrap();
     let _guard = runtime.enter();
     let stream = tokio::net::TcpStream::from_std(accepted).unwrap();
-    modbus_gateway::tcp::server::set_keepalive(&stream, Duration::from_secs(60)).unwrap();
+    modbus_gateway::testing::set_keepalive(&stream, Duration::from_secs(60)).unwrap();
     let socket = socket2::SockRef::from(&stream);
     assert!(socket.keepalive().unwrap());
     assert_eq!(

@@ -22,6 +22,13 @@
 //! `tests/soak.rs` is a crate of its own (it counts the whole process's heap with its own
 //! allocator), ignored by plain `cargo test`; `.ci/run` runs it in release.
 
+// Test code may be long and cast freely; the lint table in Cargo.toml is for the product.
+#![allow(
+    unreachable_pub,
+    clippy::too_many_lines,
+    clippy::cast_possible_truncation
+)]
+
 mod support;
 
 mod access;

@@ -56,14 +56,14 @@ mod properties;
 mod testing {
     use super::Config;
 
-    pub const MINIMAL: &str = r#"
+    pub(super) const MINIMAL: &str = r#"
         [[bus]]
         name = "line1"
         device = "/dev/ttyUSB0"
     "#;
 
     /// Every error `text` gets, as printed.
-    pub fn errors(text: &str) -> Vec<String> {
+    pub(super) fn errors(text: &str) -> Vec<String> {
         Config::from_toml_str(text)
             .expect_err("config should be refused")
             .0

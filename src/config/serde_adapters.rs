@@ -27,11 +27,11 @@ pub(super) mod duration {
     use serde::{Deserialize, Deserializer, Serializer};
     use std::time::Duration;
 
-    pub fn serialize<S: Serializer>(d: &Duration, s: S) -> Result<S::Ok, S::Error> {
+    pub(crate) fn serialize<S: Serializer>(d: &Duration, s: S) -> Result<S::Ok, S::Error> {
         s.collect_str(&humantime::format_duration(*d))
     }
 
-    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Duration, D::Error> {
+    pub(crate) fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Duration, D::Error> {
         let text = String::deserialize(d)?;
         humantime::parse_duration(&text).map_err(|e| {
             serde::de::Error::custom(format!("`{text}` is not a duration like \"500ms\": {e}"))
@@ -43,14 +43,16 @@ pub(super) mod opt_duration {
     use serde::{Deserializer, Serializer};
     use std::time::Duration;
 
-    pub fn serialize<S: Serializer>(d: &Option<Duration>, s: S) -> Result<S::Ok, S::Error> {
+    pub(crate) fn serialize<S: Serializer>(d: &Option<Duration>, s: S) -> Result<S::Ok, S::Error> {
         match d {
             Some(d) => super::duration::serialize(d, s),
             None => s.serialize_none(),
         }
     }
 
-    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Option<Duration>, D::Error> {
+    pub(crate) fn deserialize<'de, D: Deserializer<'de>>(
+        d: D,
+    ) -> Result<Option<Duration>, D::Error> {
         super::duration::deserialize(d).map(Some)
     }
 }
@@ -62,13 +64,13 @@ pub(super) mod text_list {
     use std::marker::PhantomData;
 
     /// An item of such a list.
-    pub trait Item: Sized + std::fmt::Display {
+    pub(crate) trait Item: Sized + std::fmt::Display {
         /// What one item looks like, for error messages.
         const EXAMPLE: &'static str;
         fn parse(text: &str) -> Option<Self>;
     }
 
-    pub fn serialize<T: Item, S: Serializer>(items: &[T], s: S) -> Result<S::Ok, S::Error> {
+    pub(crate) fn serialize<T: Item, S: Serializer>(items: &[T], s: S) -> Result<S::Ok, S::Error> {
         s.collect_seq(items.iter().map(ToString::to_string))
     }
 
@@ -113,7 +115,9 @@ pub(super) mod text_list {
         }
     }
 
-    pub fn deserialize<'de, T: Item, D: Deserializer<'de>>(d: D) -> Result<Vec<T>, D::Error> {
+    pub(crate) fn deserialize<'de, T: Item, D: Deserializer<'de>>(
+        d: D,
+    ) -> Result<Vec<T>, D::Error> {
         d.deserialize_any(Visitor(PhantomData))
     }
 }

@@ -3,7 +3,9 @@
 //! given request (the CRC, then [`crate::line::reply`]). Pure functions; knows nothing of ports
 //! or time.
 
-use super::reply::{self, ReplyForm, Verdict};
+#[cfg(test)]
+use super::reply::Verdict;
+use super::reply::{self, ReplyForm};
 use crate::pdu::{self, PduLen, EXCEPTION_PDU_LEN};
 use crc::{Crc, CRC_16_MODBUS};
 
@@ -106,17 +108,20 @@ pub fn request_len(buf: &[u8]) -> FrameLen {
 }
 
 /// Judge a complete frame received after sending `request` (a PDU) to `slave`.
-pub fn check_reply(frame: &[u8], slave: u8, request: &[u8]) -> Verdict {
+#[cfg(test)]
+pub(crate) fn check_reply(frame: &[u8], slave: u8, request: &[u8]) -> Verdict {
     check_reply_as(frame, slave, request, ReplyForm::Standard)
 }
 
 /// The PDU of a frame that [`check_reply_as`] found to be the answer, in standard form.
-pub fn answer_pdu(frame: &[u8], form: ReplyForm) -> Vec<u8> {
+#[cfg(test)]
+pub(crate) fn answer_pdu(frame: &[u8], form: ReplyForm) -> Vec<u8> {
     reply::answer_pdu(pdu_of(frame), form)
 }
 
 /// [`check_reply`] for a slave whose replies take `form`.
-pub fn check_reply_as(frame: &[u8], slave: u8, request: &[u8], form: ReplyForm) -> Verdict {
+#[cfg(test)]
+pub(crate) fn check_reply_as(frame: &[u8], slave: u8, request: &[u8], form: ReplyForm) -> Verdict {
     if !crc_ok(frame) {
         return Verdict::Corrupt;
     }

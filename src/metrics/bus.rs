@@ -3,17 +3,185 @@
 //! opened, lost or failing to open, what went over the line.
 
 use super::labels::{decimal, seconds_since_epoch, Fate};
-use super::{RequestCounters, BUS_EVENTS};
+use super::{Definer, RequestCounters, BUS_EVENTS};
 use crate::config;
 use crate::error::{Answer, Outcome, RequestError};
 use crate::line::LineCounters;
 use prometheus::{
-    Counter, Gauge, GaugeVec, Histogram, IntCounter, IntCounterVec, IntGauge, IntGaugeVec,
+    Counter, CounterVec, Gauge, GaugeVec, Histogram, HistogramVec, IntCounter, IntCounterVec,
+    IntGauge, IntGaugeVec,
 };
 use std::fmt::Display;
 use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 use tracing::{debug, info, warn};
+
+/// The families of every bus's series, registry-wide; each bus takes its label values.
+pub(super) struct BusFamilies {
+    round_trip: HistogramVec,
+    queue_wait: HistogramVec,
+    pub(super) queue_depth: IntGaugeVec,
+    queue_capacity: IntGaugeVec,
+    busy: CounterVec,
+    sent: IntCounterVec,
+    received: IntCounterVec,
+    discarded_frames: IntCounterVec,
+    stray_bytes: IntCounterVec,
+    retries: IntCounterVec,
+    slave_up: IntGaugeVec,
+    slave_last_success: GaugeVec,
+    port_up: IntGaugeVec,
+    port_reopens: IntCounterVec,
+    port_open_errors: IntCounterVec,
+}
+
+impl BusFamilies {
+    // A table of definitions, one metric each: longer than a function should be, and clearer
+    // whole.
+    #[allow(clippy::too_many_lines)]
+    pub(super) fn new(define: &Definer) -> Self {
+        let bus = &["bus"];
+        let bus_slave = &["bus", "slave"];
+        BusFamilies {
+            round_trip: define.histogram(
+                "modbus_gateway_round_trip_seconds",
+                "From a request's first frame on the line to its answer or last timeout, retries \
+                 included.",
+                bus,
+            ),
+            queue_wait: define.histogram(
+                "modbus_gateway_queue_wait_seconds",
+                "Time requests spent in the bus queue before the line took them.",
+                bus,
+            ),
+            queue_depth: define.int_gauge(
+                "modbus_gateway_queue_depth",
+                "Requests waiting in the bus queue.",
+                bus,
+            ),
+            queue_capacity: define.int_gauge(
+                "modbus_gateway_queue_capacity",
+                "Requests the bus queue holds before it answers 0x06 (queue_depth).",
+                bus,
+            ),
+            busy: define.counter(
+                "modbus_gateway_line_busy_seconds_total",
+                "Time characters were on the line, sent and received; its rate is the line's \
+                 utilisation.",
+                bus,
+            ),
+            sent: define.int_counter(
+                "modbus_gateway_line_sent_bytes_total",
+                "Bytes of the frames the gateway sent on the line.",
+                bus,
+            ),
+            received: define.int_counter(
+                "modbus_gateway_line_received_bytes_total",
+                "Bytes received from the line: replies, other frames, noise.",
+                bus,
+            ),
+            discarded_frames: define.int_counter(
+                "modbus_gateway_discarded_frames_total",
+                "Intact frames that answered no request (late replies, other addresses), \
+                 discarded.",
+                bus,
+            ),
+            stray_bytes: define.int_counter(
+                "modbus_gateway_stray_bytes_total",
+                "Bytes received while no reply was awaited, discarded.",
+                bus,
+            ),
+            retries: define.int_counter(
+                "modbus_gateway_retries_total",
+                "Requests sent again after a failed attempt.",
+                bus_slave,
+            ),
+            slave_up: define.int_gauge(
+                "modbus_gateway_slave_up",
+                "1 if the slave answered its last request (normally or with an exception), else \
+                 0.",
+                bus_slave,
+            ),
+            slave_last_success: define.gauge(
+                "modbus_gateway_slave_last_success_timestamp_seconds",
+                "Unix time of the slave's last answer (normal or exception); 0 if none yet.",
+                bus_slave,
+            ),
+            port_up: define.int_gauge(
+                "modbus_gateway_port_up",
+                "1 while the bus has its serial port open, else 0.",
+                bus,
+            ),
+            port_reopens: define.int_counter(
+                "modbus_gateway_port_reopens_total",
+                "Times the serial port was opened again after being lost or failing to open.",
+                bus,
+            ),
+            port_open_errors: define.int_counter(
+                "modbus_gateway_port_open_errors_total",
+                "Attempts to open the serial port that failed.",
+                bus,
+            ),
+        }
+    }
+
+    /// The metrics of one bus, with its series and those of its known slaves at zero from now
+    /// on.
+    pub(super) fn of(&self, settings: &config::Bus, counters: RequestCounters) -> BusMetrics {
+        let name = settings.name.as_str();
+        let labels = &[name];
+        self.queue_depth.with_label_values(labels).set(0);
+        let metrics = BusMetrics {
+            name: name.into(),
+            queue_capacity: self.queue_capacity.with_label_values(labels),
+            char_time: settings.line_timing().char_time.as_secs_f64(),
+            counters,
+            round_trip: self.round_trip.with_label_values(labels),
+            queue_wait: self.queue_wait.with_label_values(labels),
+            busy: self.busy.with_label_values(labels),
+            sent: self.sent.with_label_values(labels),
+            received: self.received.with_label_values(labels),
+            discarded_frames: self.discarded_frames.with_label_values(labels),
+            stray_bytes: self.stray_bytes.with_label_values(labels),
+            port_up: self.port_up.with_label_values(labels),
+            port_reopens: self.port_reopens.with_label_values(labels),
+            port_open_errors: self.port_open_errors.with_label_values(labels),
+            retries: self.retries.clone(),
+            slave_up: self.slave_up.clone(),
+            slave_last_success: self.slave_last_success.clone(),
+            slaves: BusMetrics::no_slaves(),
+        };
+        metrics.reconfigured(settings);
+        metrics
+    }
+
+    /// Remove the series of `bus`, gone, but its requests' and exceptions' counts.
+    pub(super) fn forget(&self, bus: &BusMetrics) {
+        let labels = &[&*bus.name];
+        for vec in [&self.queue_depth, &self.queue_capacity, &self.port_up] {
+            let _ = vec.remove_label_values(labels);
+        }
+        for vec in [
+            &self.sent,
+            &self.received,
+            &self.discarded_frames,
+            &self.stray_bytes,
+            &self.port_reopens,
+            &self.port_open_errors,
+        ] {
+            let _ = vec.remove_label_values(labels);
+        }
+        let _ = self.busy.remove_label_values(labels);
+        let _ = self.round_trip.remove_label_values(labels);
+        let _ = self.queue_wait.remove_label_values(labels);
+        for address in bus.known_slaves() {
+            let labels = &[&*bus.name, decimal(address)];
+            let _ = self.slave_up.remove_label_values(labels);
+            let _ = self.slave_last_success.remove_label_values(labels);
+            let _ = self.retries.remove_label_values(labels);
+        }
+    }
+}
 
 /// A slave's own series.
 pub(super) struct SlaveMetrics {

@@ -11,6 +11,8 @@ mod labels;
 mod tcp;
 
 pub use bus::BusMetrics;
+
+use bus::BusFamilies;
 pub use labels::{Closing, ExceptionSource, Fate, Rejection};
 
 use labels::{decimal, hex};
@@ -112,21 +114,7 @@ type ScrapeHook = Box<dyn Fn() + Send + Sync>;
 pub struct Metrics {
     registry: Registry,
     counters: RequestCounters,
-    round_trip: HistogramVec,
-    queue_wait: HistogramVec,
-    queue_depth: IntGaugeVec,
-    queue_capacity: IntGaugeVec,
-    busy: CounterVec,
-    sent: IntCounterVec,
-    received: IntCounterVec,
-    discarded_frames: IntCounterVec,
-    stray_bytes: IntCounterVec,
-    retries: IntCounterVec,
-    slave_up: IntGaugeVec,
-    slave_last_success: GaugeVec,
-    port_up: IntGaugeVec,
-    port_reopens: IntCounterVec,
-    port_open_errors: IntCounterVec,
+    buses: BusFamilies,
     pub tcp: TcpMetrics,
     /// Gauges read from their source at scrape time (queue depths).
     scrape_hooks: Mutex<Vec<ScrapeHook>>,
@@ -142,8 +130,6 @@ impl Metrics {
     pub fn new() -> Self {
         let registry = Registry::new();
         let define = Definer(&registry);
-        let bus = &["bus"];
-        let bus_slave = &["bus", "slave"];
         let metrics = Metrics {
             counters: RequestCounters {
                 requests: define.int_counter(
@@ -157,85 +143,7 @@ impl Metrics {
                     &["bus", "slave", "source", "code"],
                 ),
             },
-            round_trip: define.histogram(
-                "modbus_gateway_round_trip_seconds",
-                "From a request's first frame on the line to its answer or last timeout, retries \
-                 included.",
-                bus,
-            ),
-            queue_wait: define.histogram(
-                "modbus_gateway_queue_wait_seconds",
-                "Time requests spent in the bus queue before the line took them.",
-                bus,
-            ),
-            queue_depth: define.int_gauge(
-                "modbus_gateway_queue_depth",
-                "Requests waiting in the bus queue.",
-                bus,
-            ),
-            queue_capacity: define.int_gauge(
-                "modbus_gateway_queue_capacity",
-                "Requests the bus queue holds before it answers 0x06 (queue_depth).",
-                bus,
-            ),
-            busy: define.counter(
-                "modbus_gateway_line_busy_seconds_total",
-                "Time characters were on the line, sent and received; its rate is the line's \
-                 utilisation.",
-                bus,
-            ),
-            sent: define.int_counter(
-                "modbus_gateway_line_sent_bytes_total",
-                "Bytes of the frames the gateway sent on the line.",
-                bus,
-            ),
-            received: define.int_counter(
-                "modbus_gateway_line_received_bytes_total",
-                "Bytes received from the line: replies, other frames, noise.",
-                bus,
-            ),
-            discarded_frames: define.int_counter(
-                "modbus_gateway_discarded_frames_total",
-                "Intact frames that answered no request (late replies, other addresses), \
-                 discarded.",
-                bus,
-            ),
-            stray_bytes: define.int_counter(
-                "modbus_gateway_stray_bytes_total",
-                "Bytes received while no reply was awaited, discarded.",
-                bus,
-            ),
-            retries: define.int_counter(
-                "modbus_gateway_retries_total",
-                "Requests sent again after a failed attempt.",
-                bus_slave,
-            ),
-            slave_up: define.int_gauge(
-                "modbus_gateway_slave_up",
-                "1 if the slave answered its last request (normally or with an exception), else \
-                 0.",
-                bus_slave,
-            ),
-            slave_last_success: define.gauge(
-                "modbus_gateway_slave_last_success_timestamp_seconds",
-                "Unix time of the slave's last answer (normal or exception); 0 if none yet.",
-                bus_slave,
-            ),
-            port_up: define.int_gauge(
-                "modbus_gateway_port_up",
-                "1 while the bus has its serial port open, else 0.",
-                bus,
-            ),
-            port_reopens: define.int_counter(
-                "modbus_gateway_port_reopens_total",
-                "Times the serial port was opened again after being lost or failing to open.",
-                bus,
-            ),
-            port_open_errors: define.int_counter(
-                "modbus_gateway_port_open_errors_total",
-                "Attempts to open the serial port that failed.",
-                bus,
-            ),
+            buses: BusFamilies::new(&define),
             tcp: TcpMetrics::new(&define),
             scrape_hooks: Mutex::new(Vec::new()),
             registry: registry.clone(),
@@ -254,64 +162,18 @@ impl Metrics {
     /// The metrics of one bus, with its series and those of its known slaves (`[[bus.slave]]`
     /// and simulated ones) at zero from now on.
     pub fn bus(&self, settings: &config::Bus) -> Arc<BusMetrics> {
-        let name = settings.name.as_str();
-        let labels = &[name];
-        self.queue_depth.with_label_values(labels).set(0);
-        let metrics = BusMetrics {
-            name: name.into(),
-            queue_capacity: self.queue_capacity.with_label_values(labels),
-            char_time: settings.line_timing().char_time.as_secs_f64(),
-            counters: self.counters.clone(),
-            round_trip: self.round_trip.with_label_values(labels),
-            queue_wait: self.queue_wait.with_label_values(labels),
-            busy: self.busy.with_label_values(labels),
-            sent: self.sent.with_label_values(labels),
-            received: self.received.with_label_values(labels),
-            discarded_frames: self.discarded_frames.with_label_values(labels),
-            stray_bytes: self.stray_bytes.with_label_values(labels),
-            port_up: self.port_up.with_label_values(labels),
-            port_reopens: self.port_reopens.with_label_values(labels),
-            port_open_errors: self.port_open_errors.with_label_values(labels),
-            retries: self.retries.clone(),
-            slave_up: self.slave_up.clone(),
-            slave_last_success: self.slave_last_success.clone(),
-            slaves: BusMetrics::no_slaves(),
-        };
-        metrics.reconfigured(settings);
-        Arc::new(metrics)
+        Arc::new(self.buses.of(settings, self.counters.clone()))
     }
 
     /// Remove the series of a bus that is gone, so that none of them (its port down, say)
     /// outlives it. Request and exception counters of past traffic stay.
     pub fn forget_bus(&self, bus: &BusMetrics) {
-        let labels = &[&*bus.name];
-        for vec in [&self.queue_depth, &self.queue_capacity, &self.port_up] {
-            let _ = vec.remove_label_values(labels);
-        }
-        for vec in [
-            &self.sent,
-            &self.received,
-            &self.discarded_frames,
-            &self.stray_bytes,
-            &self.port_reopens,
-            &self.port_open_errors,
-        ] {
-            let _ = vec.remove_label_values(labels);
-        }
-        let _ = self.busy.remove_label_values(labels);
-        let _ = self.round_trip.remove_label_values(labels);
-        let _ = self.queue_wait.remove_label_values(labels);
-        for address in bus.known_slaves() {
-            let labels = &[&*bus.name, decimal(address)];
-            let _ = self.slave_up.remove_label_values(labels);
-            let _ = self.slave_last_success.remove_label_values(labels);
-            let _ = self.retries.remove_label_values(labels);
-        }
+        self.buses.forget(bus);
     }
 
     /// The gauge of bus `name`'s queue depth, to be set by `hook` at every scrape.
     pub fn queue_depth(&self, name: &str) -> IntGauge {
-        self.queue_depth.with_label_values(&[name])
+        self.buses.queue_depth.with_label_values(&[name])
     }
 
     /// Run `hook` before every scrape, to read a gauge from its source.

@@ -6,19 +6,19 @@ use ipnet::IpNet;
 use std::net::IpAddr;
 
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
-pub struct Access {
+pub(crate) struct Access {
     /// Empty: anyone may connect.
     allow: Vec<IpNet>,
     read_only: Vec<IpNet>,
 }
 
 impl Access {
-    pub fn new(allow: Vec<IpNet>, read_only: Vec<IpNet>) -> Self {
+    pub(crate) fn new(allow: Vec<IpNet>, read_only: Vec<IpNet>) -> Self {
         Access { allow, read_only }
     }
 
     /// The rights of a master connecting from `peer`, or `None` if it may not connect.
-    pub fn admit(&self, peer: IpAddr) -> Option<Rights> {
+    pub(crate) fn admit(&self, peer: IpAddr) -> Option<Rights> {
         // A dual-stack listener sees IPv4 masters as ::ffff:a.b.c.d; the lists name them as IPv4.
         let peer = peer.to_canonical();
         let listed = |nets: &[IpNet]| nets.iter().any(|net| net.contains(&peer));

@@ -6,22 +6,22 @@
 use bytes::{Buf, BytesMut};
 
 /// Transaction id, protocol id, length, unit id.
-pub const HEADER_LEN: usize = 7;
+pub(crate) const HEADER_LEN: usize = 7;
 /// The length field counts the unit id and the PDU: at least a function code...
-pub const MIN_LENGTH: u16 = 2;
+pub(crate) const MIN_LENGTH: u16 = 2;
 /// ...and at most a 253-byte PDU.
-pub const MAX_LENGTH: u16 = 254;
+pub(crate) const MAX_LENGTH: u16 = 254;
 const MODBUS_PROTOCOL: u16 = 0;
 
 /// What a reply must echo.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Header {
+pub(crate) struct Header {
     pub transaction: u16,
     pub unit: u8,
 }
 
 #[derive(Debug, PartialEq, Eq)]
-pub struct Request {
+pub(crate) struct Request {
     pub header: Header,
     pub pdu: Vec<u8>,
 }
@@ -36,7 +36,7 @@ pub enum FrameError {
 }
 
 /// Take one request off the front of `buf`: `Ok(None)` until a whole one is in.
-pub fn decode(buf: &mut BytesMut) -> Result<Option<Request>, FrameError> {
+pub(crate) fn decode(buf: &mut BytesMut) -> Result<Option<Request>, FrameError> {
     if buf.len() < HEADER_LEN - 1 {
         return Ok(None);
     }
@@ -62,10 +62,12 @@ pub fn decode(buf: &mut BytesMut) -> Result<Option<Request>, FrameError> {
 }
 
 /// Append the reply ADU for `pdu` to `out`.
-pub fn encode(header: Header, pdu: &[u8], out: &mut Vec<u8>) {
+pub(crate) fn encode(header: Header, pdu: &[u8], out: &mut Vec<u8>) {
     out.extend_from_slice(&header.transaction.to_be_bytes());
     out.extend_from_slice(&MODBUS_PROTOCOL.to_be_bytes());
-    out.extend_from_slice(&(pdu.len() as u16 + 1).to_be_bytes());
+    // A PDU is at most 253 bytes; the length field counts it and the unit id.
+    let length = u16::try_from(pdu.len() + 1).unwrap_or(u16::MAX);
+    out.extend_from_slice(&length.to_be_bytes());
     out.push(header.unit);
     out.extend_from_slice(pdu);
 }

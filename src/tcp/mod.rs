@@ -2,10 +2,10 @@
 //! ([`access`]), one task per master ([`session`]), MBAP framing ([`mbap`]). Knows nothing of
 //! serial timing or ports.
 
-pub mod access;
-pub mod mbap;
-pub mod server;
+pub(crate) mod access;
+pub(crate) mod mbap;
+pub(crate) mod server;
 pub mod session;
 
-pub use server::{bind, serve, Listener, Policy};
+pub(crate) use server::{bind, serve, Policy};
 pub use session::SessionLimits;

@@ -29,13 +29,13 @@ const EVICTION_WAIT: Duration = Duration::from_secs(1);
 /// Keepalive probes a silent peer gets before its connection is dropped.
 const KEEPALIVE_PROBES: u32 = 3;
 
-pub struct Listener {
+pub(crate) struct Listener {
     pub addr: SocketAddr,
     listener: TcpListener,
 }
 
 /// Bind every address, or fail naming the one that could not be bound.
-pub async fn bind(addrs: &[SocketAddr]) -> Result<Vec<Listener>, (SocketAddr, io::Error)> {
+pub(crate) async fn bind(addrs: &[SocketAddr]) -> Result<Vec<Listener>, (SocketAddr, io::Error)> {
     let mut listeners = Vec::with_capacity(addrs.len());
     for &addr in addrs {
         let listener = TcpListener::bind(addr).await.map_err(|e| (addr, e))?;
@@ -47,7 +47,7 @@ pub async fn bind(addrs: &[SocketAddr]) -> Result<Vec<Listener>, (SocketAddr, io
 
 /// How connections are admitted and served: `[server]` minus the listen addresses.
 #[derive(Clone, Debug)]
-pub struct Policy {
+pub(crate) struct Policy {
     pub limits: SessionLimits,
     pub access: Access,
     pub when_full: WhenFull,
@@ -56,7 +56,7 @@ pub struct Policy {
 }
 
 impl Policy {
-    pub fn of(server: &config::Server) -> Policy {
+    pub(crate) fn of(server: &config::Server) -> Policy {
         Policy {
             limits: SessionLimits {
                 pipeline_depth: server.pipeline_depth,
@@ -71,7 +71,7 @@ impl Policy {
 }
 
 /// What every accept loop shares.
-pub struct Shared {
+pub(crate) struct Shared {
     pub dispatcher: Dispatcher,
     /// For connections accepted from now on.
     policy: Mutex<Arc<Policy>>,
@@ -85,7 +85,7 @@ pub struct Shared {
 }
 
 impl Shared {
-    pub fn new(
+    pub(crate) fn new(
         dispatcher: Dispatcher,
         policy: Policy,
         max_connections: usize,
@@ -104,7 +104,7 @@ impl Shared {
         }
     }
 
-    pub fn policy(&self) -> Arc<Policy> {
+    pub(crate) fn policy(&self) -> Arc<Policy> {
         self.policy
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
@@ -114,7 +114,7 @@ impl Shared {
     /// A new policy for connections accepted from now on; connections beyond a lower
     /// `max_connections` stay open, and new ones are refused (or make room) until enough have
     /// closed.
-    pub fn set_policy(&self, policy: Policy, max_connections: usize) {
+    pub(crate) fn set_policy(&self, policy: Policy, max_connections: usize) {
         *self.policy.lock().unwrap_or_else(PoisonError::into_inner) = Arc::new(policy);
         let old = self
             .max_connections
@@ -138,13 +138,13 @@ impl Shared {
     }
 
     /// Sessions running now.
-    pub fn connections_open(&self) -> usize {
+    pub(crate) fn connections_open(&self) -> usize {
         let max = self.max_connections.load(Ordering::Relaxed);
         max.saturating_sub(self.connections.available_permits())
     }
 
     /// Wait until every session has ended (each holds a connection permit while it runs).
-    pub async fn sessions_ended(&self) {
+    pub(crate) async fn sessions_ended(&self) {
         let all = self.max_connections.load(Ordering::Relaxed);
         let all = u32::try_from(all).unwrap_or(u32::MAX);
         let _ = self.connections.acquire_many(all).await;
@@ -193,7 +193,7 @@ pub fn set_keepalive(stream: &TcpStream, idle: Duration) -> io::Result<()> {
 }
 
 /// Accept masters on `listener` forever.
-pub async fn serve(listener: Listener, shared: Arc<Shared>) {
+pub(crate) async fn serve(listener: Listener, shared: Arc<Shared>) {
     loop {
         let (stream, peer) = match listener.listener.accept().await {
             Ok(accepted) => accepted,
