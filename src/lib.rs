@@ -31,7 +31,7 @@ mod dispatch;
 pub mod error;
 pub mod gateway;
 pub mod line;
-pub mod logging;
+mod logging;
 pub mod metrics;
 pub mod pdu;
 mod routing;

@@ -14,13 +14,13 @@ use tracing_subscriber::registry::LookupSpan;
 use tracing_subscriber::EnvFilter;
 
 /// Changes the level filter of the running logger (a reload of `log.level`).
-pub struct LevelSwitch(Option<Box<SetFilter>>);
+pub(crate) struct LevelSwitch(Option<Box<SetFilter>>);
 
 type SetFilter = dyn Fn(EnvFilter) -> Result<(), String> + Send + Sync;
 
 impl LevelSwitch {
     /// Log at `level` from now on. With `RUST_LOG` set, that wins and nothing changes.
-    pub fn set(&self, level: &str) -> Result<(), String> {
+    pub(crate) fn set(&self, level: &str) -> Result<(), String> {
         let Some(set) = &self.0 else {
             return Ok(());
         };
@@ -29,7 +29,7 @@ impl LevelSwitch {
 }
 
 /// Start logging. Call once, before anything logs.
-pub fn init(level: &str, format: LogFormat) -> LevelSwitch {
+pub(crate) fn init(level: &str, format: LogFormat) -> LevelSwitch {
     let from_env = EnvFilter::try_from_default_env().ok();
     let fixed = from_env.is_some();
     let filter = from_env.unwrap_or_else(|| EnvFilter::new(level));
@@ -66,7 +66,7 @@ pub fn init(level: &str, format: LogFormat) -> LevelSwitch {
 /// systemd sets `JOURNAL_STREAM` to the device and inode of the journal socket it connects to
 /// stdout and stderr. A child whose stderr was redirected inherits the variable, so it counts
 /// only if stderr is still that socket.
-pub fn stderr_is_journal() -> bool {
+pub(crate) fn stderr_is_journal() -> bool {
     use std::os::unix::fs::MetadataExt;
     let stderr = std::fs::metadata("/proc/self/fd/2")
         .ok()
