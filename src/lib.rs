@@ -1,25 +1,33 @@
 //! modbus-gateway: many Modbus TCP masters share RS-485 lines of Modbus RTU slaves.
 //!
 //! Modules in the order a request flows through them:
-//! - [`config`]: the TOML file and `MBGW__` environment: loaded, checked, resolved; diffed on reload.
-//! - [`tcp`]: listeners, MBAP framing, one session task per master.
-//! - [`dispatch`]: the gateway's immediate answers, or the bus a request goes to.
-//! - [`routing`]: unit id to (bus, slave address), a pure table.
-//! - [`bus`]: one task per line, the only owner of its port: fair queue, reopen, retries,
-//!   broadcast.
-//! - [`line`]: the master side of a serial line: one transaction at a time on a port, its gap,
-//!   deadlines and late replies, whatever the framing; the judgement of replies against requests.
-//! - [`rtu`]: the RTU framing: CRC-16, frames as bytes, their lengths.
-//! - [`sim`]: the simulated RS-485 line and its slaves (`device = "sim"`).
-//! - [`metrics`]: what all of the above count, and the HTTP endpoint that serves it with the
-//!   health checks.
+//! - [`config`]: the TOML file and `MBGW__` environment: loaded, checked per section, resolved
+//!   (derived values); diffed on reload. Imports no runtime module.
+//! - `tcp`: listeners, MBAP framing, one session task per master.
+//! - `dispatch`: the gateway's immediate answers, or the bus a request goes to.
+//! - `routing`: unit id to (bus, slave address), a pure table.
+//! - [`bus`]: one task per line, the only owner of its port: fair queue, reopen, one transaction
+//!   at a time with retries and broadcast rules, reconfiguration between transactions, and
+//!   ([`bus::health`]) the one state machine that says whether a slave is alive.
+//! - [`line`](mod@line): the master side of a serial line: the transaction engine (gap, deadlines,
+//!   validation, late replies, broadcast turnaround) on a port, given the line's framing
+//!   ([`line::rtu`] today); the line's timing.
+//! - [`sim`]: the simulated RS-485 line and its slaves (`device = "sim"`): register banks and the
+//!   reference manuals' drives on one drive pipeline ([`sim::drive`]).
+//! - [`metrics`]: what all of the above count and log, and the HTTP endpoint that serves it with
+//!   the health checks.
 //!
-//! Shared by all: [`pdu`] (function and exception codes) and [`error`] (what fails a request, and
-//! the one place that turns it into an exception), [`shutdown`] (the stop signal), [`timer`]
-//! (sleeps precise to well under a millisecond for the line's timing). [`gateway`]
-//! wires the parts together; [`cli`] is the command's subcommands (run the gateway, check the
-//! configuration, `simulate`: serve the simulated slaves on a real serial port instead);
-//! [`logging`] sets up the daemon's log output.
+//! Shared by all: [`pdu`] (the one table of function codes, and exception codes) and [`error`]
+//! (what fails a request, and the one place that turns it into an exception), [`shutdown`] (the
+//! stop signal), [`timer`] (sleeps precise to well under a millisecond for the line's timing).
+//! [`gateway`] wires the parts together; [`cli`] is the command's subcommands (run the gateway,
+//! check the configuration, `simulate`: serve the simulated slaves on a real serial port
+//! instead); `logging` sets up the daemon's log output.
+//!
+//! `pub` is the library's API (the lint table in Cargo.toml denies unreachable `pub`): the
+//! daemon's command line, the configuration, the gateway, the line and its simulator, which the
+//! bench uses too. `tcp`, `dispatch`, `routing` and `logging` are internal; what the integration
+//! tests drive of them directly is re-exported in [`testing`].
 
 // Unit tests may be long and cast freely; the product code may not (Cargo.toml's lint table).
 #![cfg_attr(test, allow(clippy::too_many_lines, clippy::cast_possible_truncation))]

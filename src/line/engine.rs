@@ -3,7 +3,7 @@
 //! replies complete when the [`Framing`] says so (by length, or by silence when the length cannot
 //! be known), and only a frame that answers the request is ever returned. Retries, queues and
 //! broadcast policy belong to the caller; what frames look like on the wire belongs to the
-//! framing, and what a reply means to [`reply`](super::reply).
+//! framing, and what a reply means to [`reply`].
 //!
 //! Serial frames carry no transaction id, so a slave's reply that comes after its try gave up
 //! could pass for the answer to the next request to it. The master keeps, per slave, until when
