@@ -31,10 +31,16 @@ impl BusUpdates {
             .0
             .borrow()
             .as_ref()
-            .is_none_or(|current| !current.device.same_as(&update.device));
+            .is_none_or(|current| needs_reopen(&current.device, &current.settings, &update));
         self.0.send_replace(Some(update));
         reopen
     }
+}
+
+/// Whether going from `current` to `update` takes the port closed and opened again: another
+/// device or format, or another framing.
+fn needs_reopen(device: &Device, settings: &config::Bus, update: &Reconfigure) -> bool {
+    !device.same_as(&update.device) || settings.framing != update.settings.framing
 }
 
 /// The longest one transaction on a bus with `settings` can take: the gap before its frame,
@@ -71,8 +77,7 @@ pub(super) struct Derived {
 impl Derived {
     pub(super) fn of(settings: &config::Bus) -> Derived {
         let mut derived = Derived {
-            // RTU is the only framing a bus has so far.
-            framing: Framing::Rtu,
+            framing: settings.framing,
             timing: settings.master_timing(),
             timeouts: timeouts(settings),
             stall_limit: Duration::ZERO,
@@ -112,7 +117,7 @@ impl Current {
     /// Take `update`, and pass on what others read of it through `handle`. Returns whether the
     /// port must be reopened.
     pub(super) fn apply(&mut self, update: Reconfigure, handle: &BusHandle) -> bool {
-        let reopen = !self.device.same_as(&update.device);
+        let reopen = needs_reopen(&self.device, &self.settings, &update);
         self.derived = Derived::of(&update.settings);
         *handle
             .heartbeat

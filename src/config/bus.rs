@@ -7,7 +7,7 @@ use super::serde_adapters::{
     duration, is_false, is_zero, is_zero_f64, is_zero_usize, opt_duration,
 };
 use super::UnitSet;
-use crate::line::{LineTiming, MasterTiming, Parity, SerialFormat};
+use crate::line::{Framing, LineTiming, MasterTiming, Parity, SerialFormat};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::time::Duration;
@@ -23,8 +23,12 @@ pub struct Bus {
     pub device: String,
     #[serde(default = "defaults::baud")]
     pub baud: u32,
-    #[serde(default = "defaults::data_bits")]
-    pub data_bits: u8,
+    /// `rtu` or `ascii`: how frames look on this line.
+    #[serde(default)]
+    pub framing: Framing,
+    /// 7 or 8; left out: 8 for RTU, 7 for ASCII (filled in by `resolve`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub data_bits: Option<u8>,
     #[serde(default = "defaults::parity")]
     pub parity: Parity,
     /// 1 or 2; left out: 1 with parity, 2 without (filled in by validation).
@@ -44,7 +48,8 @@ pub struct Bus {
         skip_serializing_if = "Option::is_none"
     )]
     pub inter_frame_delay: Option<Duration>,
-    /// Silence that ends a reply of unknown length, if longer than t3.5 (USB adapters).
+    /// RTU: silence that ends a reply of unknown length, if longer than t3.5 (USB adapters).
+    /// ASCII: the inter-character timeout that fails a frame stopping mid-way (default 1 s).
     #[serde(
         default,
         with = "opt_duration",
@@ -189,19 +194,30 @@ impl Bus {
         LineTiming::new(&self.format())
     }
 
-    /// The gaps the master keeps: t3.5, raised by `inter_frame_delay` and `byte_timeout`.
+    /// The gaps the master keeps. RTU: t3.5, raised by `inter_frame_delay` and `byte_timeout`.
+    /// ASCII has no t3.5: `inter_frame_delay` (default none) before a frame, and `byte_timeout`
+    /// (default 1 s) between the characters of a reply.
     pub fn master_timing(&self) -> MasterTiming {
-        MasterTiming::new(
-            self.line_timing(),
-            self.inter_frame_delay.unwrap_or_default(),
-            self.byte_timeout.unwrap_or_default(),
-        )
+        let line = self.line_timing();
+        let gap = self.inter_frame_delay.unwrap_or_default();
+        match self.framing {
+            Framing::Rtu => MasterTiming::new(line, gap, self.byte_timeout.unwrap_or_default()),
+            Framing::Ascii => MasterTiming {
+                line,
+                gap,
+                silence: self
+                    .byte_timeout
+                    .unwrap_or_else(defaults::ascii_byte_timeout),
+            },
+        }
     }
 
     pub fn format(&self) -> SerialFormat {
         SerialFormat {
             baud: self.baud,
-            data_bits: self.data_bits,
+            data_bits: self
+                .data_bits
+                .unwrap_or_else(|| defaults::data_bits(self.framing)),
             parity: self.parity,
             stop_bits: self
                 .stop_bits

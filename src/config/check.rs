@@ -5,7 +5,7 @@
 
 use super::{Bus, Config, ConfigError, ConfigErrors, Route, Server, SimSlave, UnitSet};
 use super::{MAX_SLAVE_ADDRESS, SIM_DEVICE};
-use crate::line::SerialFormat;
+use crate::line::{Framing, SerialFormat};
 use crate::pdu::EXCEPTION_BIT;
 use std::collections::BTreeMap;
 use std::time::Duration;
@@ -149,8 +149,15 @@ fn check_line(bus: &Bus, key: &dyn Fn(&str) -> String, report: &mut Report) {
     if bus.baud == 0 {
         report.fail(key("baud"), "must be more than 0");
     }
-    if !matches!(bus.data_bits, 7 | 8) {
-        report.fail(key("data_bits"), format!("{} is not 7 or 8", bus.data_bits));
+    match bus.data_bits {
+        Some(n) if !matches!(n, 7 | 8) => {
+            report.fail(key("data_bits"), format!("{n} is not 7 or 8"))
+        }
+        Some(7) if bus.framing == Framing::Rtu => report.fail(
+            key("data_bits"),
+            "RTU frames carry 8-bit bytes: 7 data bits need framing = \"ascii\"",
+        ),
+        _ => {}
     }
     if let Some(n) = bus.stop_bits.filter(|n| !matches!(n, 1 | 2)) {
         report.fail(key("stop_bits"), format!("{n} is not 1 or 2"));

@@ -1,7 +1,7 @@
 //! Every default of the configuration, defined once: the values a key takes when the file and the
 //! environment leave it out. Knows nothing of how they are checked or used.
 
-use crate::line::Parity;
+use crate::line::{Framing, Parity};
 use std::net::SocketAddr;
 use std::time::Duration;
 
@@ -22,8 +22,17 @@ pub const LOG_LEVEL: &str = "info";
 pub fn baud() -> u32 {
     19_200
 }
-pub fn data_bits() -> u8 {
-    8
+/// 8 for RTU, which needs them; 7 for ASCII, whose characters fit (7E1, Modbus over Serial Line
+/// V1.02, 2.5.2).
+pub fn data_bits(framing: Framing) -> u8 {
+    match framing {
+        Framing::Rtu => 8,
+        Framing::Ascii => 7,
+    }
+}
+/// The inter-character timeout of an ASCII line: the spec's figure.
+pub fn ascii_byte_timeout() -> Duration {
+    Duration::from_secs(1)
 }
 pub fn parity() -> Parity {
     Parity::Even

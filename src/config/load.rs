@@ -192,7 +192,7 @@ mod tests {
         let bus = &c.bus[0];
         assert_eq!(
             (bus.baud, bus.data_bits, bus.parity),
-            (19_200, 8, Parity::Even)
+            (19_200, Some(8), Parity::Even)
         );
         assert_eq!(bus.stop_bits, Some(1), "parity even means one stop bit");
         assert_eq!(bus.response_timeout, Duration::from_secs(1));

@@ -1,14 +1,17 @@
 //! Derives the values that depend on other keys, once the configuration has passed its check:
-//! a bus's stop bits follow its parity unless given. The printed configuration shows them, so
+//! a bus's data bits follow its framing, and its stop bits its parity, unless given. The printed configuration shows them, so
 //! what `check-config` prints is what runs. Knows nothing of how the values are used.
 
-use super::{Config, ConfigErrors};
+use super::{defaults, Config, ConfigErrors};
 use crate::line::SerialFormat;
 
 impl Config {
     /// Fill in what the file may leave to other keys.
     pub fn resolve(&mut self) {
         for bus in &mut self.bus {
+            if bus.data_bits.is_none() {
+                bus.data_bits = Some(defaults::data_bits(bus.framing));
+            }
             if bus.stop_bits.is_none() {
                 bus.stop_bits = Some(SerialFormat::default_stop_bits(bus.parity));
             }

@@ -107,6 +107,8 @@ pub struct LineMaster<T> {
     sent_at: Instant,
     tx: Vec<u8>,
     rx: Vec<u8>,
+    /// The PDU of the last frame decoded.
+    pdu: Vec<u8>,
     counters: LineCounters,
     /// How each slave address shapes its replies.
     forms: Box<[ReplyForm; 256]>,
@@ -142,6 +144,7 @@ impl<T: Transport> LineMaster<T> {
             sent_at: Instant::now(),
             tx: Vec::with_capacity(framing.max_frame_len()),
             rx: Vec::with_capacity(framing.max_frame_len()),
+            pdu: Vec::with_capacity(crate::pdu::MAX_PDU_LEN),
             counters: LineCounters::default(),
             forms: Box::new([ReplyForm::Standard; 256]),
             late_until: Box::new([None; 256]),
@@ -357,9 +360,10 @@ impl<T> LineMaster<T> {
         form: ReplyForm,
     ) -> Option<Result<Reply, TxError>> {
         let late_reply_possible = self.late_reply_window(slave).is_some();
-        let Some((address, pdu)) = self.framing.decode(&self.rx[..len]) else {
+        let Some(address) = self.framing.decode_into(&self.rx[..len], &mut self.pdu) else {
             return Some(Err(TxError::Crc));
         };
+        let pdu = &self.pdu;
         match reply::judge(address, pdu, slave, request, form) {
             Verdict::Answer => Some(Ok(Reply::Fits(reply::answer_pdu(pdu, form)))),
             Verdict::Malformed if !late_reply_possible => {

@@ -1,21 +1,28 @@
 //! How frames look on the wire of one line, for the [`engine`](super::engine): encoding a PDU to
-//! an address, telling when a received frame is complete, and checking and unwrapping it. RTU is
-//! the only framing today; Modbus ASCII will be a second variant. Pure functions over bytes; knows
-//! nothing of ports, time or what a reply means.
+//! an address, telling when a received frame is complete, and checking and unwrapping it: Modbus
+//! RTU ([`rtu`](super::rtu)) or Modbus ASCII ([`ascii`](super::ascii)). Pure functions over
+//! bytes; knows nothing of ports, time or what a reply means.
 //!
 //! An enum rather than a trait: the spec defines exactly two serial framings, a line's framing is
 //! chosen by its configuration at run time, and the master stays one type (`LineMaster<Port>`)
 //! whichever framing its line uses.
 
+use super::ascii;
 use super::reply::ReplyForm;
-use crate::line::rtu::{self, FrameLen};
+use super::rtu::{self, FrameLen};
+use serde::{Deserialize, Serialize};
 
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+/// A line's framing, as `[[bus]] framing` names it.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum Framing {
     /// Modbus RTU: address, PDU, CRC-16; frames are delimited by silence, and most announce
     /// their length in their first bytes.
     #[default]
     Rtu,
+    /// Modbus ASCII: `:`, hex pairs of address, PDU and LRC, CR LF; frames are delimited by
+    /// their characters, and silence mid-frame (the inter-character timeout) fails one.
+    Ascii,
 }
 
 /// How far the bytes received so far make a frame.
@@ -46,6 +53,7 @@ impl Framing {
     pub fn max_frame_len(self) -> usize {
         match self {
             Framing::Rtu => rtu::MAX_FRAME_LEN,
+            Framing::Ascii => ascii::MAX_FRAME_LEN,
         }
     }
 
@@ -53,6 +61,7 @@ impl Framing {
     pub fn encode_into(self, out: &mut Vec<u8>, address: u8, pdu: &[u8]) {
         match self {
             Framing::Rtu => rtu::encode_into(out, address, pdu),
+            Framing::Ascii => ascii::encode_into(out, address, pdu),
         }
     }
 
@@ -72,13 +81,32 @@ impl Framing {
                 FrameLen::BySilence => Completion::Open(Silence::EndsFrame),
                 FrameLen::Invalid => Completion::Invalid,
             },
+            // CR LF ends a frame whatever it holds, so no length rule is needed.
+            Framing::Ascii => match ascii::frame_end(received) {
+                Some(end) => Completion::Whole(end),
+                None => Completion::Open(Silence::FailsFrame),
+            },
         }
     }
 
-    /// The address and PDU of a whole frame, or `None` when its check (CRC) fails.
-    pub fn decode(self, whole: &[u8]) -> Option<(u8, &[u8])> {
+    /// The address of a whole frame, with its PDU decoded into `pdu`; `None` when its check
+    /// (CRC, LRC) fails or it is no frame.
+    pub fn decode_into(self, whole: &[u8], pdu: &mut Vec<u8>) -> Option<u8> {
         match self {
-            Framing::Rtu => rtu::crc_ok(whole).then(|| (whole[0], rtu::pdu_of(whole))),
+            Framing::Rtu => rtu::crc_ok(whole).then(|| {
+                pdu.clear();
+                pdu.extend_from_slice(rtu::pdu_of(whole));
+                whole[0]
+            }),
+            Framing::Ascii => ascii::decode_into(whole, pdu),
+        }
+    }
+
+    /// The name `[[bus]] framing` and the metrics use.
+    pub fn name(self) -> &'static str {
+        match self {
+            Framing::Rtu => "rtu",
+            Framing::Ascii => "ascii",
         }
     }
 }
@@ -137,13 +165,39 @@ mod tests {
         let mut out = vec![0xAA];
         Framing::Rtu.encode_into(&mut out, 1, &READ_REPLY[1..7]);
         assert_eq!(out, READ_REPLY);
-        assert_eq!(
-            Framing::Rtu.decode(&READ_REPLY),
-            Some((1, &READ_REPLY[1..7]))
-        );
+        let mut pdu = Vec::new();
+        assert_eq!(Framing::Rtu.decode_into(&READ_REPLY, &mut pdu), Some(1));
+        assert_eq!(pdu, &READ_REPLY[1..7]);
         let mut bad = READ_REPLY;
         bad[3] ^= 0x01;
-        assert_eq!(Framing::Rtu.decode(&bad), None);
+        assert_eq!(Framing::Rtu.decode_into(&bad, &mut pdu), None);
         assert_eq!(Framing::Rtu.max_frame_len(), 256);
+    }
+
+    #[test]
+    fn an_ascii_reply_is_whole_at_its_cr_lf_and_fails_if_silence_comes_first() {
+        let ascii = Framing::Ascii;
+        let form = ReplyForm::Standard;
+        let reply = b":010304138800005D\r\n:02";
+        assert_eq!(
+            ascii.reply_completion(&reply[..10], 1, &READ, form),
+            Completion::Open(Silence::FailsFrame)
+        );
+        assert_eq!(
+            ascii.reply_completion(reply, 1, &READ, form),
+            Completion::Whole(19)
+        );
+        // A user-defined function code needs no length rule either.
+        assert_eq!(
+            ascii.reply_completion(b":014109B5\r\n", 1, &[0x41], form),
+            Completion::Whole(11)
+        );
+        let mut pdu = Vec::new();
+        assert_eq!(ascii.decode_into(&reply[..19], &mut pdu), Some(1));
+        assert_eq!(pdu, &READ_REPLY[1..7]);
+        let mut out = Vec::new();
+        ascii.encode_into(&mut out, 1, &READ);
+        assert_eq!(out, b":010300040002F6\r\n");
+        assert_eq!(ascii.max_frame_len(), 513);
     }
 }

@@ -4,6 +4,7 @@
 //! of replies ([`reply`]). Knows nothing of TCP, masters, queues or routing; what a frame looks
 //! like on the wire belongs to the framing alone.
 
+pub mod ascii;
 pub mod engine;
 pub mod framing;
 pub mod reply;
