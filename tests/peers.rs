@@ -1,6 +1,8 @@
-//! Third-party Modbus peers on the real serial path: pymodbus's RTU serial server (Python, run by
-//! `tests/peers/pymodbus_slave.py`) as the slave behind the gateway, on a pty cable. The script's
-//! wire log shows every byte either way, so these tests check the line as well as the masters.
+//! Third-party Modbus peers on the real serial path: pymodbus's serial server (Python, run by
+//! `tests/peers/pymodbus_slave.py`, RTU or ASCII) as the slave behind the gateway, on a pty cable.
+//! The script logs every byte either way, so these tests check the line as well as the masters;
+//! ASCII frames are read by a decoder of this file's own, not the gateway's codec, so the check is
+//! independent of the code under test.
 //!
 //! Python comes from `MBGW_PYTHON` (`.ci/run` points it at a venv with the pinned pymodbus), else
 //! a `python3` on the PATH that has pymodbus; without one a test checks nothing and says so, or
@@ -78,11 +80,12 @@ struct Pymodbus {
 }
 
 impl Pymodbus {
-    /// Start the script and wait until pymodbus has its port open; `None` without Python.
-    async fn start() -> Option<Pymodbus> {
+    /// Start the script with `framer` (`rtu`, `ascii`) and wait until pymodbus has its port
+    /// open; `None` without Python.
+    async fn start(framer: &str) -> Option<Pymodbus> {
         let python = python_with_pymodbus()?;
         let mut child = Command::new(python)
-            .arg(SCRIPT)
+            .args([SCRIPT, framer])
             // Kept open by `child`: the script exits when it closes, should the kill be missed.
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
@@ -162,7 +165,7 @@ fn frames(pdus: &[&[u8]]) -> Vec<u8> {
 
 #[tokio::test]
 async fn pymodbus_serial_server_answers_pass_through_the_gateway_byte_for_byte() {
-    let Some(slave) = Pymodbus::start().await else {
+    let Some(slave) = Pymodbus::start("rtu").await else {
         return;
     };
     let gateway = start(&pty_config(&slave.path, RESPONSE_TIMEOUT)).await;
@@ -218,7 +221,7 @@ async fn pymodbus_serial_server_answers_pass_through_the_gateway_byte_for_byte()
 
 #[tokio::test]
 async fn a_real_slave_that_ignores_one_masters_function_code_still_answers_another_master() {
-    let Some(slave) = Pymodbus::start().await else {
+    let Some(slave) = Pymodbus::start("rtu").await else {
         return;
     };
     let gateway = start(&pty_config(&slave.path, RESPONSE_TIMEOUT)).await;
@@ -259,4 +262,201 @@ async fn a_real_slave_that_ignores_one_masters_function_code_still_answers_anoth
     );
     let up = format!("modbus_gateway_slave_up{{bus=\"pty\",slave=\"{UNIT}\"}}");
     assert_eq!(Scrape::of(&gateway).await.value(&up), 1.0);
+}
+
+/// A Modbus ASCII frame as read off the wire: its address and PDU.
+type AsciiFrame = (u8, Vec<u8>);
+
+/// Every Modbus ASCII frame in `wire`, back to back, read by the spec (Modbus over Serial Line
+/// V1.02, 2.5.2) and nothing else: `:`, upper-case hex pairs of address, PDU and LRC, where the
+/// LRC makes the byte sum 0, then CR LF. The first byte out of place is an error naming its
+/// offset. Not the gateway's `line::ascii`: this is the independent reading, and it is stricter
+/// (no lower case, no noise between frames), as it checks what peers send.
+fn ascii_frames(wire: &[u8]) -> Result<Vec<AsciiFrame>, String> {
+    let digit = |c: u8| match c {
+        b'0'..=b'9' => Some(c - b'0'),
+        b'A'..=b'F' => Some(c - b'A' + 10),
+        _ => None,
+    };
+    let mut frames = Vec::new();
+    let mut at = 0;
+    while at < wire.len() {
+        if wire[at] != b':' {
+            return Err(format!(
+                "byte {at} is {:?}, not the ':' of a frame",
+                char::from(wire[at])
+            ));
+        }
+        let hex_at = at + 1;
+        let end = wire[hex_at..]
+            .windows(2)
+            .position(|pair| pair == b"\r\n")
+            .map(|n| hex_at + n)
+            .ok_or_else(|| format!("the frame at byte {at} has no CR LF"))?;
+        let hex = &wire[hex_at..end];
+        let nibbles = hex
+            .iter()
+            .enumerate()
+            .map(|(i, &c)| {
+                digit(c).ok_or_else(|| {
+                    format!(
+                        "byte {} is {:?}, not an upper-case hex digit",
+                        hex_at + i,
+                        char::from(c)
+                    )
+                })
+            })
+            .collect::<Result<Vec<u8>, String>>()?;
+        // Address, function code and LRC at least, each a pair.
+        if nibbles.len() % 2 != 0 || nibbles.len() < 6 {
+            return Err(format!(
+                "the frame at byte {at} has {} hex digits",
+                nibbles.len()
+            ));
+        }
+        let bytes: Vec<u8> = nibbles.chunks(2).map(|p| p[0] << 4 | p[1]).collect();
+        let sum = bytes.iter().fold(0u8, |sum, &b| sum.wrapping_add(b));
+        if sum != 0 {
+            return Err(format!(
+                "the frame at byte {at}: the LRC leaves a byte sum of {sum:02X}, not 00"
+            ));
+        }
+        frames.push((bytes[0], bytes[1..bytes.len() - 1].to_vec()));
+        at = end + 2;
+    }
+    Ok(frames)
+}
+
+/// The frames to or from `unit`, as [`ascii_frames`] returns them, and their length on the wire:
+/// `:`, two characters for each of address, PDU bytes and LRC, CR LF.
+fn ascii_expected(unit: u8, pdus: &[&[u8]]) -> (Vec<AsciiFrame>, usize) {
+    let frames = pdus.iter().map(|pdu| (unit, pdu.to_vec())).collect();
+    let len = pdus.iter().map(|pdu| 1 + 2 * (pdu.len() + 2) + 2).sum();
+    (frames, len)
+}
+
+#[test]
+fn the_ascii_wire_check_reads_the_manuals_worked_frames_and_refuses_any_other_bytes() {
+    // Goodrive20 manual 7.3.2.1: slave 01H, read two words from 0004H, and the reply.
+    let request = b":010300040002F6\r\n"; // : 01 03 0004 0002 LRC F6 (sum 0A) CR LF
+    let reply = b":010304138800005D\r\n"; // : 01 03 04 1388 0000 LRC 5D (sum A3) CR LF
+    let both = [&request[..], &reply[..]].concat();
+    assert_eq!(
+        ascii_frames(&both),
+        Ok(vec![
+            (0x01, vec![0x03, 0x00, 0x04, 0x00, 0x02]),
+            (0x01, vec![0x03, 0x04, 0x13, 0x88, 0x00, 0x00]),
+        ])
+    );
+    let refused: [(&[u8], &str); 7] = [
+        (b":010304138800005d\r\n", "lower-case LRC"),
+        (
+            b":010300040002F5\r\n",
+            "the one's complement, as the manual's C code has it",
+        ),
+        (b":010300040002F6\r", "CR without LF"),
+        (b":010300040002F6\n", "LF without CR"),
+        (b"\x00:010300040002F6\r\n", "a byte before the colon"),
+        (b":01030004000F6\r\n", "an odd count of hex digits"),
+        (b":01FF\r\n", "no function code"),
+    ];
+    for (wire, what) in refused {
+        assert!(
+            ascii_frames(wire).is_err(),
+            "{what}: {:?}",
+            ascii_frames(wire)
+        );
+    }
+}
+
+#[tokio::test]
+async fn pymodbus_ascii_serial_server_answers_every_function_through_the_gateway_byte_for_byte() {
+    let Some(slave) = Pymodbus::start("ascii").await else {
+        return;
+    };
+    // 8N2 like the script's side: a pty takes neither parity nor 7 data bits (the script says
+    // why), so ASCII's default 7E1 cannot be had on it.
+    let bus = format!("framing = \"ascii\"\ndata_bits = 8\n{RESPONSE_TIMEOUT}");
+    let gateway = start(&pty_config(&slave.path, &bus)).await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    // (request PDU, pymodbus's reply PDU), from the script's tables: coils on at multiples of 3,
+    // discrete inputs on at odd addresses, holding registers 1000 + n, input registers 2000 + n.
+    let cases: [(&[u8], &[u8]); 12] = [
+        // 01 read coils 0-9: 0, 3, 6 in the first byte (LSB first), 9 in the second.
+        (&[0x01, 0x00, 0x00, 0x00, 0x0A], &[0x01, 0x02, 0x49, 0x02]),
+        // 02 read discrete inputs 0-11: 1, 3, 5, 7, then 9 and 11.
+        (&[0x02, 0x00, 0x00, 0x00, 0x0C], &[0x02, 0x02, 0xAA, 0x0A]),
+        // 04 read input registers 0-1: 2000, 2001.
+        (
+            &[0x04, 0x00, 0x00, 0x00, 0x02],
+            &[0x04, 0x04, 0x07, 0xD0, 0x07, 0xD1],
+        ),
+        // 03 read holding registers 0-2: 1000, 1001, 1002.
+        (
+            &[0x03, 0x00, 0x00, 0x00, 0x03],
+            &[0x03, 0x06, 0x03, 0xE8, 0x03, 0xE9, 0x03, 0xEA],
+        ),
+        // 05 write coil 1 on: echo.
+        (
+            &[0x05, 0x00, 0x01, 0xFF, 0x00],
+            &[0x05, 0x00, 0x01, 0xFF, 0x00],
+        ),
+        // 05 write coil 3 off: echo.
+        (
+            &[0x05, 0x00, 0x03, 0x00, 0x00],
+            &[0x05, 0x00, 0x03, 0x00, 0x00],
+        ),
+        // 0F write coils 4-7 = on, off, on, off (one data byte, 0101 LSB first): start, count.
+        (
+            &[0x0F, 0x00, 0x04, 0x00, 0x04, 0x01, 0x05],
+            &[0x0F, 0x00, 0x04, 0x00, 0x04],
+        ),
+        // 01 read coils 0-9 back: 0, 1, 4, 6 (3 is off now) and 9.
+        (&[0x01, 0x00, 0x00, 0x00, 0x0A], &[0x01, 0x02, 0x53, 0x02]),
+        // 06 write register 1 = 0x1234: echo.
+        (
+            &[0x06, 0x00, 0x01, 0x12, 0x34],
+            &[0x06, 0x00, 0x01, 0x12, 0x34],
+        ),
+        // 10 write registers 2-3 = 7, 8: start and count.
+        (
+            &[0x10, 0x00, 0x02, 0x00, 0x02, 0x04, 0x00, 0x07, 0x00, 0x08],
+            &[0x10, 0x00, 0x02, 0x00, 0x02],
+        ),
+        // 03 read registers 0-3 back: 1000 and both writes.
+        (
+            &[0x03, 0x00, 0x00, 0x00, 0x04],
+            &[0x03, 0x08, 0x03, 0xE8, 0x12, 0x34, 0x00, 0x07, 0x00, 0x08],
+        ),
+        // 03 read register 0x20, which the slave does not have: exception 02, illegal address.
+        (&[0x03, 0x00, 0x20, 0x00, 0x01], &[0x83, 0x02]),
+    ];
+    within("twelve transactions", async {
+        for (transaction, (request, reply)) in (1..).zip(cases) {
+            assert_eq!(
+                master.call(transaction, UNIT, request).await,
+                reply,
+                "request {request:02X?}"
+            );
+        }
+    })
+    .await;
+
+    let requests: Vec<&[u8]> = cases.iter().map(|(request, _)| *request).collect();
+    let replies: Vec<&[u8]> = cases.iter().map(|(_, reply)| *reply).collect();
+    let (requests, requests_len) = ascii_expected(UNIT, &requests);
+    let (replies, replies_len) = ascii_expected(UNIT, &replies);
+    let (to_slave, to_gateway) = slave.wire(requests_len, replies_len).await;
+    assert_eq!(
+        ascii_frames(&to_slave),
+        Ok(requests),
+        "the requests on the wire: {}",
+        String::from_utf8_lossy(&to_slave)
+    );
+    assert_eq!(
+        ascii_frames(&to_gateway),
+        Ok(replies),
+        "the slave's answers on the wire: {}",
+        String::from_utf8_lossy(&to_gateway)
+    );
 }

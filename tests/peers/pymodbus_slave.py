@@ -1,4 +1,5 @@
-"""pymodbus's RTU serial server as a third-party slave for tests/peers.rs.
+"""pymodbus's serial server as a third-party slave for tests/peers.rs, with the framer named by
+the one argument: `rtu` (the default) or `ascii`.
 
 A pty pair has a path on one side only, and both pymodbus and the gateway open their serial port by
 path. So this makes two pty pairs and copies bytes between their master sides, a null-modem cable
@@ -12,8 +13,18 @@ Stdout, one line each, flushed:
 Each wire line is printed before its bytes are passed on, so a test that has seen the bytes arrive
 at one end finds them in its copy of this log soon after.
 
-The slave is device SLAVE_ID with holding registers 0-9 holding 1000-1009; other addresses are
-invalid (exception 02). The script exits when its stdin closes, so it never outlives its test.
+The slave is device SLAVE_ID with four separate tables (coils and discrete inputs addressed by the
+bit, as the spec has it); other addresses are invalid (exception 02):
+  coils 0-15             on where the address is a multiple of 3 (0, 3, 6, 9, 12, 15)
+  discrete inputs 0-15   on where the address is odd
+  holding registers 0-9  1000-1009
+  input registers 0-9    2000-2009
+The script exits when its stdin closes, so it never outlives its test.
+
+The serial format is 8N2 for either framing, as the gateway's side is set. A pty refuses parity
+(EINVAL), so ASCII's default 7E1 cannot be had; and it keeps 8 data bits whatever it is asked: 7
+data bits take once, read back as 8, and pyserial's next reconfiguration (pymodbus sets a timeout
+after opening) fails with EINVAL. ASCII characters are 7-bit, so they cross unchanged anyway.
 """
 
 import asyncio
@@ -21,11 +32,16 @@ import os
 import sys
 import tty
 
+from pymodbus import FramerType
 from pymodbus.server import ModbusSerialServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 SLAVE_ID = 10
+COILS = [i % 3 == 0 for i in range(16)]
+DISCRETE_INPUTS = [i % 2 == 1 for i in range(16)]
 REGISTERS = [1000 + i for i in range(10)]
+INPUT_REGISTERS = [2000 + i for i in range(10)]
+FRAMERS = {"rtu": FramerType.RTU, "ascii": FramerType.ASCII}
 
 
 def say(line):
@@ -43,7 +59,7 @@ def bridge(loop, src, dst, label):
     loop.add_reader(src, forward)
 
 
-async def main():
+async def main(framer):
     loop = asyncio.get_running_loop()
     slave_master, slave_end = os.openpty()
     gateway_master, gateway_end = os.openpty()
@@ -56,10 +72,17 @@ async def main():
 
     device = SimDevice(
         id=SLAVE_ID,
-        simdata=[SimData(address=0, values=REGISTERS, datatype=DataType.REGISTERS)],
+        # (coils, discrete inputs, holding registers, input registers)
+        simdata=(
+            [SimData(address=0, values=COILS, datatype=DataType.BITS)],
+            [SimData(address=0, values=DISCRETE_INPUTS, datatype=DataType.BITS)],
+            [SimData(address=0, values=REGISTERS, datatype=DataType.REGISTERS)],
+            [SimData(address=0, values=INPUT_REGISTERS, datatype=DataType.REGISTERS)],
+        ),
     )
     server = ModbusSerialServer(
         device,
+        framer=framer,
         port=os.ttyname(slave_end),
         baudrate=115200,
         bytesize=8,
@@ -81,4 +104,6 @@ async def main():
 
 
 if __name__ == "__main__":
-    asyncio.run(main())
+    if len(sys.argv) > 2 or sys.argv[1:] not in ([], ["rtu"], ["ascii"]):
+        sys.exit(f"usage: {sys.argv[0]} [rtu|ascii]")
+    asyncio.run(main(FRAMERS[sys.argv[1] if len(sys.argv) > 1 else "rtu"]))
