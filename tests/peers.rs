@@ -1,22 +1,28 @@
 //! Third-party Modbus peers on the real serial path: pymodbus's serial server (Python, run by
-//! `tests/peers/pymodbus_slave.py`, RTU or ASCII) as the slave behind the gateway, on a pty cable.
-//! The script logs every byte either way, so these tests check the line as well as the masters;
-//! ASCII frames are read by a decoder of this file's own, not the gateway's codec, so the check is
-//! independent of the code under test.
+//! `tests/peers/pymodbus_slave.py`, RTU or ASCII) as the slave behind the gateway, on a pty cable,
+//! and pymodbus's ASCII client (`tests/peers/pymodbus_ascii_master.py`) as the master of the
+//! `simulate` subcommand's drives. The scripts log every byte either way, so these tests check the
+//! line as well as the masters; ASCII frames are read by a decoder of this file's own, not the
+//! gateway's codec, so the check is independent of the code under test.
 //!
 //! Python comes from `MBGW_PYTHON` (`.ci/run` points it at a venv with the pinned pymodbus), else
 //! a `python3` on the PATH that has pymodbus; without one a test checks nothing and says so, or
 //! fails under `MBGW_REQUIRE_TOOLS=1`, as for the other external tools.
 
-use crate::support::{addr, pty_config, start, within, RawMaster, Scrape};
+use crate::support::{addr, demo_path, pty_config, start, within, RawMaster, Scrape};
 use modbus_gateway::line::rtu;
 use std::ffi::OsString;
-use std::io::{BufRead, BufReader};
+use std::io::{BufRead, BufReader, Read};
 use std::process::{Child, Command, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 const SCRIPT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/peers/pymodbus_slave.py");
+const ASCII_MASTER: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/tests/peers/pymodbus_ascii_master.py"
+);
+const BINARY: &str = env!("CARGO_BIN_EXE_modbus-gateway");
 
 /// The script's device id. Not 1: see [`IGNORED`].
 const UNIT: u8 = 10;
@@ -458,5 +464,141 @@ async fn pymodbus_ascii_serial_server_answers_every_function_through_the_gateway
         Ok(replies),
         "the slave's answers on the wire: {}",
         String::from_utf8_lossy(&to_gateway)
+    );
+}
+
+/// A child process, killed when dropped, whatever the test's outcome.
+struct Running(Child);
+
+impl Drop for Running {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// config/demo.toml with its bus on Modbus ASCII at that framing's default format, 7E1 (its
+/// `data_bits = 8` gives way to `framing = "ascii"`), written where tests keep files; its path.
+fn ascii_demo_config() -> String {
+    let demo = std::fs::read_to_string(demo_path()).expect("config/demo.toml reads");
+    let ascii = demo.replacen("data_bits = 8\n", "framing = \"ascii\"\n", 1);
+    assert_ne!(ascii, demo, "config/demo.toml no longer sets data_bits = 8");
+    let path = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("peers-ascii-demo.toml");
+    std::fs::write(&path, ascii).expect("write the ASCII demo config");
+    path.into_os_string()
+        .into_string()
+        .expect("the target directory's path is UTF-8")
+}
+
+#[tokio::test]
+#[ignore = "waits for ASCII in simulate"]
+async fn a_pymodbus_ascii_master_reads_and_writes_the_simulated_drives_on_a_pty() {
+    let Some(python) = python_with_pymodbus() else {
+        return;
+    };
+    let config = ascii_demo_config();
+    let mut simulator = Running(
+        Command::new(BINARY)
+            .args(["--config", &config, "simulate", "--device", "pty"])
+            .env("MBGW__LOG__LEVEL", "warn")
+            .env_remove("RUST_LOG")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("the binary runs"),
+    );
+    let stdout = simulator.0.stdout.take().expect("piped stdout");
+    let line = within(
+        "simulate announces its pty",
+        tokio::task::spawn_blocking(move || {
+            let mut line = String::new();
+            BufReader::new(stdout).read_line(&mut line).map(|_| line)
+        }),
+    )
+    .await
+    .expect("the reading task runs")
+    .expect("read simulate's stdout");
+    // "serving bus demo on /dev/pts/N at 9600 baud 7E1"
+    let path = line
+        .split_whitespace()
+        .nth(4)
+        .unwrap_or_else(|| panic!("unexpected announcement: {line:?}"))
+        .to_owned();
+    assert!(line.contains("9600 baud 7E1"), "{line}");
+
+    let mut master = Running(
+        Command::new(python)
+            .args([ASCII_MASTER, &path])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("python starts"),
+    );
+    let mut stdout = master.0.stdout.take().expect("piped stdout");
+    let output = within(
+        "the pymodbus master's run",
+        tokio::task::spawn_blocking(move || {
+            let mut output = String::new();
+            stdout.read_to_string(&mut output).map(|_| output)
+        }),
+    )
+    .await
+    .expect("the reading task runs")
+    .expect("read the master's stdout");
+    // Its stdout is closed: it has exited.
+    let status = master.0.wait().expect("wait for the master");
+    assert!(status.success(), "the master script: {status}\n{output}");
+
+    let (mut sent, mut received, mut results) = (Vec::new(), Vec::new(), Vec::new());
+    for line in output.lines() {
+        match line.split_once(' ') {
+            Some(("sent", hex)) => sent.extend(unhex(hex)),
+            Some(("received", hex)) => received.extend(unhex(hex)),
+            Some(("result", result)) => results.push(result),
+            _ => panic!("not a line the script writes: {line:?}"),
+        }
+    }
+    // What pymodbus made of the answers: unit, function code, address, words or exception code.
+    let expected = [
+        // Each drive's identifying code: GD20 0106H, GD300 010AH, GD10 010DH (tripped or not).
+        format!("1 03 2103 {}", 0x0106),
+        format!("2 03 2103 {}", 0x010A),
+        format!("3 03 2103 {}", 0x010D),
+        // Unit 2's frequency reference 2001H = 25.00 Hz, and its running value 3001H follows.
+        "2 06 2001 2500".to_owned(),
+        "2 03 3001 2500".to_owned(),
+        // 17 words is one more than a Goodrive reads at once: exception 03, illegal value.
+        "2 03 3000 exception 3".to_owned(),
+    ];
+    assert_eq!(results, expected, "pymodbus's results\n{output}");
+
+    // The same on the wire, as frames to and from each unit.
+    let requests: Vec<AsciiFrame> = vec![
+        (1, vec![0x03, 0x21, 0x03, 0x00, 0x01]), // read 2103H, one word
+        (2, vec![0x03, 0x21, 0x03, 0x00, 0x01]),
+        (3, vec![0x03, 0x21, 0x03, 0x00, 0x01]),
+        (2, vec![0x06, 0x20, 0x01, 0x09, 0xC4]), // write 2001H = 2500
+        (2, vec![0x03, 0x30, 0x01, 0x00, 0x01]), // read 3001H, one word
+        (2, vec![0x03, 0x30, 0x00, 0x00, 0x11]), // read 3000H, 17 words
+    ];
+    let replies: Vec<AsciiFrame> = vec![
+        (1, vec![0x03, 0x02, 0x01, 0x06]), // two bytes: 0106H
+        (2, vec![0x03, 0x02, 0x01, 0x0A]),
+        (3, vec![0x03, 0x02, 0x01, 0x0D]),
+        (2, vec![0x06, 0x20, 0x01, 0x09, 0xC4]), // the echo
+        (2, vec![0x03, 0x02, 0x09, 0xC4]),       // 2500
+        (2, vec![0x83, 0x03]),                   // exception 03
+    ];
+    assert_eq!(
+        ascii_frames(&sent),
+        Ok(requests),
+        "pymodbus's requests on the wire: {}",
+        String::from_utf8_lossy(&sent)
+    );
+    assert_eq!(
+        ascii_frames(&received),
+        Ok(replies),
+        "the simulated drives' answers on the wire: {}",
+        String::from_utf8_lossy(&received)
     );
 }
