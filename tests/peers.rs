@@ -469,6 +469,65 @@ async fn pymodbus_ascii_serial_server_answers_every_function_through_the_gateway
     );
 }
 
+#[tokio::test]
+async fn an_ascii_slave_answering_in_lower_case_hex_is_understood_and_its_replies_pass_unchanged() {
+    let Some(slave) = Pymodbus::start("ascii-lower").await else {
+        return;
+    };
+    // 8N2: see the test above.
+    let bus = format!("framing = \"ascii\"\ndata_bits = 8\n{RESPONSE_TIMEOUT}");
+    let gateway = start(&pty_config(&slave.path, &bus)).await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    // (request PDU, reply PDU): replies whose hex has letters, so lower case shows.
+    let cases: [(&[u8], &[u8]); 3] = [
+        // 03 read holding registers 0-1: 1000, 1001; on the wire 03e8 03e9.
+        (
+            &[0x03, 0x00, 0x00, 0x00, 0x02],
+            &[0x03, 0x04, 0x03, 0xE8, 0x03, 0xE9],
+        ),
+        // 04 read input registers 0-1: 2000, 2001; on the wire 07d0 07d1.
+        (
+            &[0x04, 0x00, 0x00, 0x00, 0x02],
+            &[0x04, 0x04, 0x07, 0xD0, 0x07, 0xD1],
+        ),
+        // 02 read discrete inputs 0-11: odd ones on; on the wire aa 0a.
+        (&[0x02, 0x00, 0x00, 0x00, 0x0C], &[0x02, 0x02, 0xAA, 0x0A]),
+    ];
+    within("three transactions", async {
+        for (transaction, (request, reply)) in (1..).zip(cases) {
+            assert_eq!(
+                master.call(transaction, UNIT, request).await,
+                reply,
+                "request {request:02X?}"
+            );
+        }
+    })
+    .await;
+
+    let requests: Vec<&[u8]> = cases.iter().map(|(request, _)| *request).collect();
+    let replies: Vec<&[u8]> = cases.iter().map(|(_, reply)| *reply).collect();
+    let (requests, requests_len) = ascii_expected(UNIT, &requests);
+    let (replies, replies_len) = ascii_expected(UNIT, &replies);
+    let (to_slave, to_gateway) = slave.wire(requests_len, replies_len).await;
+    let answers = String::from_utf8_lossy(&to_gateway);
+    assert!(
+        to_gateway.iter().any(u8::is_ascii_lowercase)
+            && !to_gateway.iter().any(u8::is_ascii_uppercase),
+        "the slave answered in lower case: {answers}"
+    );
+    assert_eq!(
+        ascii_frames(&to_gateway.to_ascii_uppercase()),
+        Ok(replies),
+        "the slave's answers, but for their case: {answers}"
+    );
+    assert_eq!(
+        ascii_frames(&to_slave),
+        Ok(requests),
+        "the gateway's requests, in upper case: {}",
+        String::from_utf8_lossy(&to_slave)
+    );
+}
+
 /// A child process, killed when dropped, whatever the test's outcome.
 struct Running(Child);
 

@@ -1,5 +1,6 @@
 """pymodbus's serial server as a third-party slave for tests/peers.rs, with the framer named by
-the one argument: `rtu` (the default) or `ascii`.
+the one argument: `rtu` (the default), `ascii`, or `ascii-lower`: ASCII with the hex of every
+reply in lower case (pymodbus sends upper case, as the spec has it; some devices do not).
 
 A pty pair has a path on one side only, and both pymodbus and the gateway open their serial port by
 path. So this makes two pty pairs and copies bytes between their master sides, a null-modem cable
@@ -41,7 +42,15 @@ COILS = [i % 3 == 0 for i in range(16)]
 DISCRETE_INPUTS = [i % 2 == 1 for i in range(16)]
 REGISTERS = [1000 + i for i in range(10)]
 INPUT_REGISTERS = [2000 + i for i in range(10)]
-FRAMERS = {"rtu": FramerType.RTU, "ascii": FramerType.ASCII}
+# argument: (framer, what becomes of each reply frame on its way out)
+FRAMERS = {
+    "rtu": (FramerType.RTU, None),
+    "ascii": (FramerType.ASCII, None),
+    "ascii-lower": (
+        FramerType.ASCII,
+        lambda sending, frame: frame.lower() if sending else frame,
+    ),
+}
 
 
 def say(line):
@@ -59,7 +68,7 @@ def bridge(loop, src, dst, label):
     loop.add_reader(src, forward)
 
 
-async def main(framer):
+async def main(framer, trace_packet):
     loop = asyncio.get_running_loop()
     slave_master, slave_end = os.openpty()
     gateway_master, gateway_end = os.openpty()
@@ -83,6 +92,7 @@ async def main(framer):
     server = ModbusSerialServer(
         device,
         framer=framer,
+        trace_packet=trace_packet,
         port=os.ttyname(slave_end),
         baudrate=115200,
         bytesize=8,
@@ -104,6 +114,6 @@ async def main(framer):
 
 
 if __name__ == "__main__":
-    if len(sys.argv) > 2 or sys.argv[1:] not in ([], ["rtu"], ["ascii"]):
-        sys.exit(f"usage: {sys.argv[0]} [rtu|ascii]")
-    asyncio.run(main(FRAMERS[sys.argv[1] if len(sys.argv) > 1 else "rtu"]))
+    if len(sys.argv) > 2 or (len(sys.argv) == 2 and sys.argv[1] not in FRAMERS):
+        sys.exit(f"usage: {sys.argv[0]} [{'|'.join(FRAMERS)}]")
+    asyncio.run(main(*FRAMERS[sys.argv[1] if len(sys.argv) > 1 else "rtu"]))
