@@ -77,10 +77,11 @@ pub fn choose_bus<'a>(config: &'a Config, name: Option<&str>) -> Result<&'a Bus,
 
 /// The bus's slaves, powered on, behind one responder.
 pub fn responder(bus: &Bus) -> Result<Responder, String> {
-    let mut responder = Responder::new(bus.line_timing(), bus.master_timing().silence);
+    let mut responder =
+        Responder::framed(bus.line_timing(), bus.framing, bus.master_timing().silence);
     for slaves in &bus.sim_slave {
         for address in slaves.address.iter() {
-            let slave = sim::build(slaves, address, bus.format())
+            let slave = sim::build(slaves, address, bus.format(), bus.framing)
                 .map_err(|e| format!("simulated slave {address}: {e}"))?;
             responder.add_slave(address, slave);
         }

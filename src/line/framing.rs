@@ -82,10 +82,27 @@ impl Framing {
                 FrameLen::Invalid => Completion::Invalid,
             },
             // CR LF ends a frame whatever it holds, so no length rule is needed.
-            Framing::Ascii => match ascii::frame_end(received) {
-                Some(end) => Completion::Whole(end),
-                None => Completion::Open(Silence::FailsFrame),
+            Framing::Ascii => Self::ascii_completion(received),
+        }
+    }
+
+    /// How far `received` makes a request frame, as a slave sees it.
+    pub fn request_completion(self, received: &[u8]) -> Completion {
+        match self {
+            Framing::Rtu => match rtu::request_len(received) {
+                FrameLen::Exact(n) if received.len() >= n => Completion::Whole(n),
+                FrameLen::Need(n) | FrameLen::Exact(n) => Completion::AtLeast(n),
+                FrameLen::BySilence => Completion::Open(Silence::EndsFrame),
+                FrameLen::Invalid => Completion::Invalid,
             },
+            Framing::Ascii => Self::ascii_completion(received),
+        }
+    }
+
+    fn ascii_completion(received: &[u8]) -> Completion {
+        match ascii::frame_end(received) {
+            Some(end) => Completion::Whole(end),
+            None => Completion::Open(Silence::FailsFrame),
         }
     }
 
