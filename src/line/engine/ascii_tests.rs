@@ -69,7 +69,10 @@ async fn timed(
 fn a_7e1_character_is_ten_bits() {
     let (line, _) = line(vec![]);
     // Start, seven data bits, parity, stop: 10 bits at 9600 baud.
-    assert_eq!(line.timing().char_time, Duration::from_nanos(10 * 1_000_000_000 / 9600));
+    assert_eq!(
+        line.timing().char_time,
+        Duration::from_nanos(10 * 1_000_000_000 / 9600)
+    );
 }
 
 #[tokio::test(start_paused = true)]
