@@ -187,15 +187,22 @@ async fn the_bus_info_metric_names_the_framing_and_bytes_count_characters_on_the
 
 #[tokio::test]
 async fn a_reload_that_changes_a_bus_framing_reopens_that_bus_and_it_speaks_the_new_framing() {
-    let rtu_text = ascii_config("").replace("framing = \"ascii\"\n", "");
+    // A second bus on a serial device that is not there: the same device and format in both
+    // configurations, so only the framing can make it reopen.
+    let serial = "[[bus]]\nname = \"serial\"\ndevice = \"/dev/mbgw-test-no-such-tty\"\n\
+                  data_bits = 8\n[[route]]\nunits = \"200\"\nbus = \"serial\"\naddress = 1\n\
+                  [[route]]\nunits = \"1\"\nbus = \"sim\"\n";
+    let rtu_text = ascii_config("").replace("framing = \"ascii\"\n", "") + serial;
     let gateway = start(&rtu_text).await;
     let mut master = RawMaster::connect(addr(&gateway)).await;
     let read = [0x03, 0x00, 0x00, 0x00, 0x01];
     assert_eq!(master.call(1, 1, &read).await, [0x03, 0x02, 0x00, 0x00]);
-    let mut ascii = modbus_gateway::gateway::config_from_toml(&ascii_config("")).unwrap();
+    let ascii_text = ascii_config("")
+        + &serial.replace("data_bits = 8\n", "data_bits = 8\nframing = \"ascii\"\n");
+    let mut ascii = modbus_gateway::gateway::config_from_toml(&ascii_text).unwrap();
     ascii.metrics.listen = ([127, 0, 0, 1], 0).into();
     let done = gateway.reload(&ascii).unwrap();
-    assert_eq!(done.applied, ["bus sim: reopened"]);
+    assert_eq!(done.applied, ["bus sim: reopened", "bus serial: reopened"]);
     assert_eq!(master.call(2, 1, &read).await, [0x03, 0x02, 0x00, 0x00]);
     let frames = wire(&gateway);
     assert_eq!(frames.last().unwrap(), ":0103020000FA\r\n");
