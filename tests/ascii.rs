@@ -3,7 +3,9 @@
 //! same as on RTU, the fault knobs in ASCII, metrics and reload.
 
 use crate::support::{addr, start, RawMaster, Scrape};
+use modbus_gateway::gateway::load_config;
 use modbus_gateway::Gateway;
+use std::path::Path;
 
 /// An ASCII bus `sim` with register slaves at 1-4, and `extra` keys on the bus.
 fn ascii_config(extra: &str) -> String {
@@ -206,4 +208,33 @@ async fn a_reload_that_changes_a_bus_framing_reopens_that_bus_and_it_speaks_the_
     assert_eq!(master.call(2, 1, &read).await, [0x03, 0x02, 0x00, 0x00]);
     let frames = wire(&gateway);
     assert_eq!(frames.last().unwrap(), ":0103020000FA\r\n");
+}
+
+#[tokio::test]
+async fn the_ascii_demo_serves_the_drives_of_the_rtu_demo_over_a_7e1_ascii_line() {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/demo-ascii.toml");
+    let env = [
+        ("MBGW__SERVER__LISTEN".to_owned(), "127.0.0.1:0".to_owned()),
+        ("MBGW__METRICS__LISTEN".to_owned(), "127.0.0.1:0".to_owned()),
+    ];
+    let config = load_config(Path::new(path), env).expect("config/demo-ascii.toml is valid");
+    let gateway = Gateway::start(&config)
+        .await
+        .expect("the ASCII demo starts");
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    // Identifying codes (2103H): 0x0106 GD20, 0x010A GD300, 0x010D GD10.
+    for (unit, code) in [(1u8, 0x0106u16), (2, 0x010A), (3, 0x010D)] {
+        let [high, low] = code.to_be_bytes();
+        assert_eq!(
+            master
+                .call(u16::from(unit), unit, &[0x03, 0x21, 0x03, 0x00, 0x01])
+                .await,
+            [0x03, 0x02, high, low],
+            "unit {unit}"
+        );
+    }
+    let frames = gateway.sim_line("demo-ascii").unwrap().frames();
+    // Unit 1's request, as the manuals would print it.
+    assert_eq!(frames[0].bytes, b":010321030001D7\r\n");
+    assert_eq!(config.bus[0].format().to_string(), "9600 baud 7E1");
 }
