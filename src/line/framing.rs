@@ -10,7 +10,9 @@
 use super::ascii;
 use super::reply::ReplyForm;
 use super::rtu::{self, FrameLen};
+use super::timing::LineTiming;
 use serde::{Deserialize, Serialize};
+use std::time::Duration;
 
 /// A line's framing, as `[[bus]] framing` names it.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -119,6 +121,32 @@ impl Framing {
         }
     }
 
+    /// Characters on the wire of a frame carrying a PDU of `pdu_len` bytes: RTU adds the
+    /// address and the CRC; ASCII writes address, PDU and LRC as hex pairs between `:` and CR LF.
+    pub fn frame_len(self, pdu_len: usize) -> usize {
+        match self {
+            Framing::Rtu => pdu_len + 3,
+            Framing::Ascii => 2 * (pdu_len + 2) + 3,
+        }
+    }
+
+    /// The physical minimum of one transaction of these PDUs (DESIGN.md, "Performance model"),
+    /// for a slave that answers as soon as it may: RTU, request and reply on the wire, the
+    /// slave's t3.5 before it answers and the master's before the next request; ASCII, the
+    /// characters alone, since a frame ends at its LF and no silence is owed.
+    pub fn transaction_minimum(
+        self,
+        timing: &LineTiming,
+        request_pdu: usize,
+        reply_pdu: usize,
+    ) -> Duration {
+        let (request, reply) = (self.frame_len(request_pdu), self.frame_len(reply_pdu));
+        match self {
+            Framing::Rtu => timing.transaction_minimum(request, reply, timing.t35),
+            Framing::Ascii => timing.frame_time(request + reply),
+        }
+    }
+
     /// The name `[[bus]] framing` and the metrics use.
     pub fn name(self) -> &'static str {
         match self {
@@ -216,5 +244,26 @@ mod tests {
         ascii.encode_into(&mut out, 1, &READ);
         assert_eq!(out, b":010300040002F6\r\n");
         assert_eq!(ascii.max_frame_len(), 513);
+    }
+
+    #[test]
+    fn an_ascii_transaction_costs_its_characters_and_an_rtu_one_its_bytes_and_two_t35() {
+        let timing = LineTiming::new(&crate::line::SerialFormat {
+            baud: 9600,
+            data_bits: 7,
+            parity: crate::line::Parity::Even,
+            stop_bits: 1,
+        });
+        // Read 10 registers: a 5-byte request PDU, a 22-byte reply PDU.
+        assert_eq!(Framing::Ascii.frame_len(5), 17);
+        assert_eq!(Framing::Ascii.frame_len(22), 51);
+        assert_eq!(
+            Framing::Ascii.transaction_minimum(&timing, 5, 22),
+            timing.frame_time(68)
+        );
+        assert_eq!(
+            Framing::Rtu.transaction_minimum(&timing, 5, 22),
+            timing.frame_time(8 + 25) + timing.t35 * 2
+        );
     }
 }
