@@ -236,5 +236,8 @@ async fn the_ascii_demo_serves_the_drives_of_the_rtu_demo_over_a_7e1_ascii_line(
     let frames = gateway.sim_line("demo-ascii").unwrap().frames();
     // Unit 1's request, as the manuals would print it.
     assert_eq!(frames[0].bytes, b":010321030001D7\r\n");
+    // Unit 2's, as the README's walkthrough prints them.
+    assert_eq!(frames[2].bytes, b":020321030001D6\r\n");
+    assert_eq!(frames[3].bytes, b":020302010AEE\r\n");
     assert_eq!(config.bus[0].format().to_string(), "9600 baud 7E1");
 }
