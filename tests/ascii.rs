@@ -241,3 +241,55 @@ async fn the_ascii_demo_serves_the_drives_of_the_rtu_demo_over_a_7e1_ascii_line(
     assert_eq!(frames[3].bytes, b":020302010AEE\r\n");
     assert_eq!(config.bus[0].format().to_string(), "9600 baud 7E1");
 }
+
+#[tokio::test]
+async fn on_an_ascii_line_garbage_around_a_reply_and_a_pause_within_the_byte_timeout_leave_it_whole(
+) {
+    let gateway = start(
+        &(ascii_config("response_timeout = \"300ms\"\nbyte_timeout = \"200ms\"")
+            + "[[bus.sim_slave]]\naddress = 7\ngarbage_before = 3\n\
+               [[bus.sim_slave]]\naddress = 8\ngarbage_after = 3\n\
+               [[bus.sim_slave]]\naddress = 9\nreply_gap = \"100ms\"\nreply_gap_after = 5\n"),
+    )
+    .await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    let read = [0x03, 0x00, 0x00, 0x00, 0x01];
+    // Noise before the `:` is not part of the frame; noise after the LF is not either; a reply
+    // that pauses 100 ms between characters is within its 200 ms byte timeout.
+    for (id, unit) in [(1, 7), (2, 8), (3, 9)] {
+        assert_eq!(
+            master.call(id, unit, &read).await,
+            [0x03, 0x02, 0x00, 0x00],
+            "unit {unit}"
+        );
+    }
+    let replies: Vec<String> = wire(&gateway)
+        .into_iter()
+        .filter(|f| f.contains(":0703") || f.contains(":0903"))
+        .collect();
+    assert!(
+        replies.iter().any(|f| !f.starts_with(':')),
+        "garbage went on the wire before unit 7's reply: {replies:?}"
+    );
+}
+
+#[tokio::test]
+async fn on_an_ascii_line_a_pause_longer_than_the_byte_timeout_splits_the_reply_and_gets_0x0b() {
+    let gateway = start(
+        &(ascii_config("response_timeout = \"300ms\"\nbyte_timeout = \"50ms\"")
+            + "[[bus.sim_slave]]\naddress = 9\nreply_gap = \"150ms\"\nreply_gap_after = 5\n"),
+    )
+    .await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    assert_eq!(
+        master.call(1, 9, &[0x03, 0x00, 0x00, 0x00, 0x01]).await,
+        [0x83, 0x0B]
+    );
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(
+        scrape.value(
+            "modbus_gateway_requests_total{bus=\"sim\",function=\"0x03\",outcome=\"frame_error\",slave=\"9\"}"
+        ),
+        1.0
+    );
+}

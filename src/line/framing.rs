@@ -133,7 +133,8 @@ impl Framing {
     /// The physical minimum of one transaction of these PDUs (DESIGN.md, "Performance model"),
     /// for a slave that answers as soon as it may: RTU, request and reply on the wire, the
     /// slave's t3.5 before it answers and the master's before the next request; ASCII, the
-    /// characters alone, since a frame ends at its LF and no silence is owed.
+    /// characters alone, since a frame ends at its LF and the spec owes no silence (the
+    /// gateway's own quiet before a frame counts against it).
     pub fn transaction_minimum(
         self,
         timing: &LineTiming,
