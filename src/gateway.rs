@@ -76,15 +76,16 @@ pub struct Reloaded {
 
 /// A new simulated line for a `device = "sim"` bus, with its slaves powered on.
 pub fn power_on_line(bus: &config::Bus) -> Result<SimLine, StartError> {
-    let line = SimLine::new(bus.line_timing());
+    let line = SimLine::with_framing(bus.line_timing(), bus.framing);
     for slaves in &bus.sim_slave {
         for address in slaves.address.iter() {
-            let slave =
-                sim::build(slaves, address, bus.format()).map_err(|e| StartError::SimSlave {
+            let slave = sim::build(slaves, address, bus.format(), bus.framing).map_err(|e| {
+                StartError::SimSlave {
                     bus: bus.name.clone(),
                     address,
                     reason: e.to_string(),
-                })?;
+                }
+            })?;
             line.add_slave(address, slave);
         }
     }
@@ -126,7 +127,10 @@ fn device_for(
         });
     }
     if let Some((old, device @ Device::Sim(_))) = current {
-        if old.is_sim() && old.format() == settings.format() && old.sim_slave == settings.sim_slave
+        if old.is_sim()
+            && old.format() == settings.format()
+            && old.framing == settings.framing
+            && old.sim_slave == settings.sim_slave
         {
             return Ok(device.clone());
         }

@@ -6,6 +6,8 @@
 //!   keepalive, garbage.
 //! - `access`: `server.allow` and `server.read_only`.
 //! - `answers`: what the gateway answers itself: no route, broadcast, queue full, port down/back.
+//! - `ascii`: Modbus ASCII on the line, end to end: the manuals' frames, every function code, the
+//!   fault knobs in ASCII, metrics, reload.
 //! - `transparency`: function codes and exceptions byte for byte, on the sim line and a pty.
 //! - `line`: the serial line discipline on the paused clock: timeouts, t3.5, retries, efficiency.
 //! - `fairness`: hundreds of masters at once.
@@ -33,6 +35,7 @@ mod support;
 
 mod access;
 mod answers;
+mod ascii;
 mod cli;
 mod drives;
 mod fairness;

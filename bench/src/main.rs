@@ -10,7 +10,7 @@
 use clap::Parser;
 use mio_serial::SerialPort;
 use modbus_gateway::bus::Port;
-use modbus_gateway::line::{LineTiming, Parity, SerialFormat};
+use modbus_gateway::line::{Framing, LineTiming, Parity, SerialFormat};
 use modbus_gateway::sim::responder::Responder;
 use modbus_gateway::sim::RegisterBank;
 use serde::Serialize;
@@ -75,6 +75,7 @@ enum Load {
 struct Scenario {
     name: String,
     line: Line,
+    framing: Framing,
     format: SerialFormat,
     masters: usize,
     load: Load,
@@ -87,12 +88,17 @@ fn scenarios() -> Vec<Scenario> {
         parity,
         stop_bits: 1,
     };
+    let ascii_7e1 = SerialFormat {
+        data_bits: 7,
+        ..format(9600, Parity::Even)
+    };
     let mut all = Vec::new();
     for (baud, parity, label) in [(9600, Parity::Even, "8E1"), (115_200, Parity::None, "8N1")] {
         for masters in [1, 10, 100, 1000] {
             all.push(Scenario {
                 name: format!("sim-{baud}-{label}-read-{masters}"),
                 line: Line::Sim,
+                framing: Framing::Rtu,
                 format: format(baud, parity),
                 masters,
                 load: Load::Read,
@@ -101,14 +107,26 @@ fn scenarios() -> Vec<Scenario> {
         all.push(Scenario {
             name: format!("sim-{baud}-{label}-mix-100"),
             line: Line::Sim,
+            framing: Framing::Rtu,
             format: format(baud, parity),
             masters: 100,
             load: Load::Mix,
         });
     }
+    for masters in [1, 100] {
+        all.push(Scenario {
+            name: format!("ascii-9600-7E1-read-{masters}"),
+            line: Line::Sim,
+            framing: Framing::Ascii,
+            format: ascii_7e1,
+            masters,
+            load: Load::Read,
+        });
+    }
     all.push(Scenario {
         name: "pty-115200-untimed-read-1".into(),
         line: Line::Pty,
+        framing: Framing::Rtu,
         format: format(115_200, Parity::None),
         masters: 1,
         load: Load::Read,
@@ -117,6 +135,7 @@ fn scenarios() -> Vec<Scenario> {
         all.push(Scenario {
             name: format!("idle-{masters}"),
             line: Line::Sim,
+            framing: Framing::Rtu,
             format: format(9600, Parity::Even),
             masters,
             load: Load::Idle,
@@ -144,12 +163,6 @@ struct Report {
     rss_mb: f64,
     cpu_us_per_tx: Option<f64>,
     seconds: f64,
-}
-
-/// The physical minimum of one transaction of these PDUs (each framed by an address and a CRC,
-/// 3 bytes), for a slave that answers t3.5 after the request, as the simulated slaves do.
-fn t_min(timing: &LineTiming, request_pdu: usize, reply_pdu: usize) -> Duration {
-    timing.transaction_minimum(request_pdu + 3, reply_pdu + 3, timing.t35)
 }
 
 fn free_addr() -> std::io::Result<SocketAddr> {
@@ -194,10 +207,13 @@ impl Gateway {
         let mut config = format!(
             "[server]\nlisten = \"{listen}\"\nmax_connections = {}\n\
              [metrics]\nlisten = \"{metrics}\"\n[log]\nlevel = \"warn\"\n\
-             [[bus]]\nname = \"bench\"\ndevice = \"{device}\"\nbaud = {}\nparity = \"{parity}\"\n\
+             [[bus]]\nname = \"bench\"\ndevice = \"{device}\"\nframing = \"{}\"\nbaud = {}\n\
+             data_bits = {}\nparity = \"{parity}\"\n\
              stop_bits = {}\nqueue_depth = {}\nqueue_timeout = \"1h\"\n",
             masters + 16,
+            scenario.framing.name(),
             f.baud,
+            f.data_bits,
             f.stop_bits,
             masters * 2 + 16,
         );
@@ -379,8 +395,12 @@ async fn run(cli: &Cli, binary: &PathBuf, s: &Scenario) -> Result<Report, String
         }
         return Ok(report);
     }
-    let read_min = t_min(&timing, READ_10.len(), 2 + 20);
-    let write_min = t_min(&timing, WRITE_1.len(), WRITE_1.len());
+    let read_min = s
+        .framing
+        .transaction_minimum(&timing, READ_10.len(), 2 + 20);
+    let write_min = s
+        .framing
+        .transaction_minimum(&timing, WRITE_1.len(), WRITE_1.len());
     // Long enough for every master to complete `rounds` requests at the line's pace.
     let pace = if s.line == Line::Sim {
         read_min

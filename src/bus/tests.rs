@@ -5,7 +5,7 @@ use super::transaction::Ran;
 use super::{BusHandle, BusTask, Device, Job, Reconfigure};
 use crate::config::{self, Config};
 use crate::error::{Answer, Outcome, RequestError};
-use crate::line::{LineMaster, TxError};
+use crate::line::{Framing, LineMaster, TxError};
 use crate::metrics::Metrics;
 use crate::shutdown::Stopping;
 use crate::sim::{RegisterBank, Scripted, SimLine, Transmission};
@@ -207,20 +207,27 @@ async fn new_settings_apply_between_transactions_and_a_new_device_is_opened_at_o
     );
 }
 
-#[tokio::test(start_paused = true)]
-async fn slave_up_follows_the_slaves_health_through_failing_down_and_back() {
-    let line = SimLine::new(settings("").line_timing());
+/// A bus of `framing` whose slave 1 answers, is silent twice, then answers its probe: what the
+/// task makes of it, and what `slave_up` says.
+async fn health_through_failing_down_and_back(framing: Framing) {
+    let keys = format!(
+        "framing = \"{}\"\nresponse_timeout = \"50ms\"\nretries = 0\nslave_down_after = 2\n\
+         slave_probe_interval = \"1s\"",
+        framing.name()
+    );
+    let line = SimLine::with_framing(settings(&keys).line_timing(), framing);
     let reply = || {
-        Some(Transmission::frame(
-            1,
-            &[0x03, 0x04, 0, 1, 0, 2],
-            Duration::ZERO,
-        ))
+        let mut frame = Vec::new();
+        framing.encode_into(&mut frame, 1, &[0x03, 0x04, 0, 1, 0, 2]);
+        Some(Transmission {
+            bytes: frame,
+            delay: Duration::ZERO,
+            pause: None,
+        })
     };
     line.add_slave(1, Scripted::new([reply(), None, None, reply()]));
     let metrics = Metrics::new();
-    let keys = "response_timeout = \"50ms\"\nretries = 0\nslave_down_after = 2\nslave_probe_interval = \"1s\"";
-    let task = BusTask::new(settings(keys), Device::Sim(line.clone()), &metrics);
+    let task = BusTask::new(settings(&keys), Device::Sim(line.clone()), &metrics);
     let bus = task.handle();
     tokio::spawn(task.run(Stopping::never()));
     sleep(Duration::from_millis(10)).await;
@@ -247,4 +254,14 @@ async fn slave_up_follows_the_slaves_health_through_failing_down_and_back() {
     sleep(Duration::from_secs(1)).await;
     assert!(call(&bus, 1, &READ).await.is_ok(), "the probe is answered");
     assert_eq!(metric(&metrics, SLAVE_1_UP), Some(1.0));
+}
+
+#[tokio::test(start_paused = true)]
+async fn slave_up_follows_the_slaves_health_through_failing_down_and_back() {
+    health_through_failing_down_and_back(Framing::Rtu).await;
+}
+
+#[tokio::test(start_paused = true)]
+async fn an_ascii_bus_keeps_the_same_down_policy_probes_and_slave_up() {
+    health_through_failing_down_and_back(Framing::Ascii).await;
 }

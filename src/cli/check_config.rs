@@ -2,7 +2,7 @@
 //! worked out from the baud and format). Knows nothing of serving.
 
 use crate::config::Config;
-use crate::line::Parity;
+use crate::line::Framing;
 use std::path::Path;
 use std::process::ExitCode;
 
@@ -12,14 +12,6 @@ pub fn check_config(path: &Path, config: &Config, quiet: bool) -> ExitCode {
         print!("{}", describe(path, config));
     }
     ExitCode::SUCCESS
-}
-
-pub(crate) fn format_name(parity: Parity) -> char {
-    match parity {
-        Parity::None => 'N',
-        Parity::Even => 'E',
-        Parity::Odd => 'O',
-    }
 }
 
 fn ms(d: std::time::Duration) -> String {
@@ -33,19 +25,25 @@ fn describe(path: &Path, config: &Config) -> String {
         let format = bus.format();
         let master = bus.master_timing();
         let line = master.line;
-        out += &format!(
-            "# bus {}: {} baud {}{}{}, character {}, t3.5 {}; frames start {} after the line \
-             falls silent; replies of unknown length end after {} of silence.\n",
-            bus.name,
-            format.baud,
-            format.data_bits,
-            format_name(format.parity),
-            format.stop_bits,
-            ms(line.char_time),
-            ms(line.t35),
-            ms(master.gap),
-            ms(master.silence),
-        );
+        out += &match bus.framing {
+            Framing::Rtu => format!(
+                "# bus {}: {format}, character {}, t3.5 {}; frames start {} after the line \
+                 falls silent; replies of unknown length end after {} of silence.\n",
+                bus.name,
+                ms(line.char_time),
+                ms(line.t35),
+                ms(master.gap),
+                ms(master.silence),
+            ),
+            Framing::Ascii => format!(
+                "# bus {}: Modbus ASCII at {format}, character {}; frames start {} after the \
+                 line falls silent; a reply that stops for {} before its CR LF is dropped.\n",
+                bus.name,
+                ms(line.char_time),
+                ms(master.gap),
+                ms(master.silence),
+            ),
+        };
     }
     out + "\n" + &config.to_toml()
 }

@@ -2,11 +2,10 @@
 //! serial device or on a fresh pty, at the bus's baud and format, until stopped. Picks the bus,
 //! powers the slaves on and reopens a lost device; the serving itself is [`crate::sim::responder`].
 
-use super::check_config::format_name;
 use super::{start_runtime, stop_signal, EXIT_CONFIG};
 use crate::bus::{Device, Port};
 use crate::config::{Bus, Config};
-use crate::line::Parity;
+use crate::line::{Framing, Parity};
 use crate::sim::{self, responder::Responder};
 use std::io;
 use std::process::ExitCode;
@@ -29,14 +28,14 @@ pub fn simulate(config: Config, bus: Option<&str>, device: &str) -> ExitCode {
     };
     runtime.block_on(async {
         let announce = |path: &str| {
-            let format = bus.format();
+            let framing = match bus.framing {
+                Framing::Rtu => "",
+                Framing::Ascii => " (Modbus ASCII)",
+            };
             println!(
-                "serving bus {} on {path} at {} baud {}{}{}",
+                "serving bus {} on {path} at {}{framing}",
                 bus.name,
-                format.baud,
-                format.data_bits,
-                format_name(format.parity),
-                format.stop_bits
+                bus.format()
             );
         };
         tokio::select! {
@@ -77,10 +76,11 @@ pub fn choose_bus<'a>(config: &'a Config, name: Option<&str>) -> Result<&'a Bus,
 
 /// The bus's slaves, powered on, behind one responder.
 pub fn responder(bus: &Bus) -> Result<Responder, String> {
-    let mut responder = Responder::new(bus.line_timing(), bus.master_timing().silence);
+    let mut responder =
+        Responder::framed(bus.line_timing(), bus.framing, bus.master_timing().silence);
     for slaves in &bus.sim_slave {
         for address in slaves.address.iter() {
-            let slave = sim::build(slaves, address, bus.format())
+            let slave = sim::build(slaves, address, bus.format(), bus.framing)
                 .map_err(|e| format!("simulated slave {address}: {e}"))?;
             responder.add_slave(address, slave);
         }

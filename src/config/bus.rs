@@ -195,16 +195,22 @@ impl Bus {
     }
 
     /// The gaps the master keeps. RTU: t3.5, raised by `inter_frame_delay` and `byte_timeout`.
-    /// ASCII has no t3.5: `inter_frame_delay` (default none) before a frame, and `byte_timeout`
-    /// (default 1 s) between the characters of a reply.
+    /// ASCII has no t3.5: `inter_frame_delay` before a frame (default 1.5 characters of quiet, so
+    /// the master never talks over a slave still sending), and `byte_timeout` (default 1 s)
+    /// between the characters of a reply.
     pub fn master_timing(&self) -> MasterTiming {
         let line = self.line_timing();
-        let gap = self.inter_frame_delay.unwrap_or_default();
         match self.framing {
-            Framing::Rtu => MasterTiming::new(line, gap, self.byte_timeout.unwrap_or_default()),
+            Framing::Rtu => MasterTiming::new(
+                line,
+                self.inter_frame_delay.unwrap_or_default(),
+                self.byte_timeout.unwrap_or_default(),
+            ),
             Framing::Ascii => MasterTiming {
                 line,
-                gap,
+                gap: self
+                    .inter_frame_delay
+                    .unwrap_or_else(|| defaults::ascii_gap(&line)),
                 silence: self
                     .byte_timeout
                     .unwrap_or_else(defaults::ascii_byte_timeout),

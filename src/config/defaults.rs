@@ -1,7 +1,7 @@
 //! Every default of the configuration, defined once: the values a key takes when the file and the
 //! environment leave it out. Knows nothing of how they are checked or used.
 
-use crate::line::{Framing, Parity};
+use crate::line::{Framing, LineTiming, Parity};
 use std::net::SocketAddr;
 use std::time::Duration;
 
@@ -29,6 +29,11 @@ pub fn data_bits(framing: Framing) -> u8 {
         Framing::Rtu => 8,
         Framing::Ascii => 7,
     }
+}
+/// Quiet before an ASCII frame: the spec asks for none, but a master that waits a character and a
+/// half after the last one it heard never talks over a slave that is still sending.
+pub fn ascii_gap(line: &LineTiming) -> Duration {
+    line.char_time * 3 / 2
 }
 /// The inter-character timeout of an ASCII line: the spec's figure.
 pub fn ascii_byte_timeout() -> Duration {

@@ -4,7 +4,7 @@
 use super::check::{MAX_GARBAGE, MAX_RETRIES};
 use super::*;
 use crate::gateway::config_from_toml;
-use crate::line::Parity;
+use crate::line::{Framing, Parity};
 use ipnet::IpNet;
 use proptest::prelude::*;
 use std::collections::BTreeMap;
@@ -202,7 +202,14 @@ fn bus() -> impl Strategy<Value = Bus> {
         "[a-zA-Z0-9_.-]{0,8}",
         prop_oneof![Just(SIM_DEVICE.to_owned()), "/dev/tty(USB|S|AMA)[0-9]"],
         prop::sample::select(bauds.to_vec()),
-        prop_oneof![Just(7u8), Just(8u8)],
+        // RTU needs 8 data bits; ASCII takes 7 or 8; either may leave them to its default.
+        prop_oneof![
+            Just((Framing::Rtu, Some(8u8))),
+            Just((Framing::Rtu, None)),
+            Just((Framing::Ascii, Some(7u8))),
+            Just((Framing::Ascii, Some(8u8))),
+            Just((Framing::Ascii, None)),
+        ],
         prop::sample::select(parities.to_vec()),
         prop::option::of(1u8..=2),
     );
@@ -218,7 +225,7 @@ fn bus() -> impl Strategy<Value = Bus> {
     let down = (0u32..=10, duration());
     (line, timing, queue, down, slaves(), sim_slaves()).prop_map(
         |(line, timing, queue, down, slave, sim_slave)| {
-            let (name, device, baud, data_bits, parity, stop_bits) = line;
+            let (name, device, baud, (framing, data_bits), parity, stop_bits) = line;
             let (response_timeout, retry, inter_frame, byte, turn, reply) = timing;
             let (retries, retry_writes) = retry;
             let (queue_depth, queue_timeout, reopen_delay, reopen_extra) = queue;
@@ -231,6 +238,7 @@ fn bus() -> impl Strategy<Value = Bus> {
                 name,
                 device,
                 baud,
+                framing,
                 data_bits,
                 parity,
                 stop_bits,
@@ -383,6 +391,7 @@ fn mutations(config: &Config) -> Vec<(String, toml::Value)> {
         key("baud", Integer(0));
         key("baud", Integer(-9600));
         key("data_bits", Integer(6));
+        key("framing", text("modbus"));
         key("stop_bits", Integer(3));
         key("parity", text("evn"));
         key("response_timeout", text("0s"));
@@ -585,7 +594,8 @@ fn toml_document() -> impl Strategy<Value = String> {
         ("level", &["\"debug\""]),
         ("format", &["\"json\""]),
         ("baud", &["9600", "115200"]),
-        ("data_bits", &["7", "8"]),
+        ("data_bits", &["8"]),
+        ("framing", &["\"rtu\"", "\"ascii\""]),
         ("parity", &["\"none\"", "\"odd\""]),
         ("stop_bits", &["1", "2"]),
         ("response_timeout", &["\"20ms\"", "\"1s 500ms\""]),

@@ -126,7 +126,12 @@ mod tests {
             "not hex"
         );
         assert_eq!(decode_into(b":010304138800005\r\n", &mut pdu), None, "odd");
-        assert_eq!(decode_into(b":0103FC\r\n", &mut pdu), None, "short");
+        assert_eq!(decode_into(b":01FF\r\n", &mut pdu), None, "short");
+        assert_eq!(
+            decode_into(b":0103FC\r\n", &mut pdu),
+            Some(1),
+            "the shortest"
+        );
         assert_eq!(
             decode_into(b":010304138800005D", &mut pdu),
             None,

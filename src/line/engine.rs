@@ -379,6 +379,9 @@ impl<T> LineMaster<T> {
 }
 
 #[cfg(test)]
+mod ascii_tests;
+
+#[cfg(test)]
 mod tests {
     use super::*;
     use crate::line::rtu;

@@ -10,7 +10,9 @@
 use super::ascii;
 use super::reply::ReplyForm;
 use super::rtu::{self, FrameLen};
+use super::timing::LineTiming;
 use serde::{Deserialize, Serialize};
+use std::time::Duration;
 
 /// A line's framing, as `[[bus]] framing` names it.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -82,10 +84,27 @@ impl Framing {
                 FrameLen::Invalid => Completion::Invalid,
             },
             // CR LF ends a frame whatever it holds, so no length rule is needed.
-            Framing::Ascii => match ascii::frame_end(received) {
-                Some(end) => Completion::Whole(end),
-                None => Completion::Open(Silence::FailsFrame),
+            Framing::Ascii => Self::ascii_completion(received),
+        }
+    }
+
+    /// How far `received` makes a request frame, as a slave sees it.
+    pub fn request_completion(self, received: &[u8]) -> Completion {
+        match self {
+            Framing::Rtu => match rtu::request_len(received) {
+                FrameLen::Exact(n) if received.len() >= n => Completion::Whole(n),
+                FrameLen::Need(n) | FrameLen::Exact(n) => Completion::AtLeast(n),
+                FrameLen::BySilence => Completion::Open(Silence::EndsFrame),
+                FrameLen::Invalid => Completion::Invalid,
             },
+            Framing::Ascii => Self::ascii_completion(received),
+        }
+    }
+
+    fn ascii_completion(received: &[u8]) -> Completion {
+        match ascii::frame_end(received) {
+            Some(end) => Completion::Whole(end),
+            None => Completion::Open(Silence::FailsFrame),
         }
     }
 
@@ -99,6 +118,33 @@ impl Framing {
                 whole[0]
             }),
             Framing::Ascii => ascii::decode_into(whole, pdu),
+        }
+    }
+
+    /// Characters on the wire of a frame carrying a PDU of `pdu_len` bytes: RTU adds the
+    /// address and the CRC; ASCII writes address, PDU and LRC as hex pairs between `:` and CR LF.
+    pub fn frame_len(self, pdu_len: usize) -> usize {
+        match self {
+            Framing::Rtu => pdu_len + 3,
+            Framing::Ascii => 2 * (pdu_len + 2) + 3,
+        }
+    }
+
+    /// The physical minimum of one transaction of these PDUs (DESIGN.md, "Performance model"),
+    /// for a slave that answers as soon as it may: RTU, request and reply on the wire, the
+    /// slave's t3.5 before it answers and the master's before the next request; ASCII, the
+    /// characters alone, since a frame ends at its LF and the spec owes no silence (the
+    /// gateway's own quiet before a frame counts against it).
+    pub fn transaction_minimum(
+        self,
+        timing: &LineTiming,
+        request_pdu: usize,
+        reply_pdu: usize,
+    ) -> Duration {
+        let (request, reply) = (self.frame_len(request_pdu), self.frame_len(reply_pdu));
+        match self {
+            Framing::Rtu => timing.transaction_minimum(request, reply, timing.t35),
+            Framing::Ascii => timing.frame_time(request + reply),
         }
     }
 
@@ -199,5 +245,26 @@ mod tests {
         ascii.encode_into(&mut out, 1, &READ);
         assert_eq!(out, b":010300040002F6\r\n");
         assert_eq!(ascii.max_frame_len(), 513);
+    }
+
+    #[test]
+    fn an_ascii_transaction_costs_its_characters_and_an_rtu_one_its_bytes_and_two_t35() {
+        let timing = LineTiming::new(&crate::line::SerialFormat {
+            baud: 9600,
+            data_bits: 7,
+            parity: crate::line::Parity::Even,
+            stop_bits: 1,
+        });
+        // Read 10 registers: a 5-byte request PDU, a 22-byte reply PDU.
+        assert_eq!(Framing::Ascii.frame_len(5), 17);
+        assert_eq!(Framing::Ascii.frame_len(22), 51);
+        assert_eq!(
+            Framing::Ascii.transaction_minimum(&timing, 5, 22),
+            timing.frame_time(68)
+        );
+        assert_eq!(
+            Framing::Rtu.transaction_minimum(&timing, 5, 22),
+            timing.frame_time(8 + 25) + timing.t35 * 2
+        );
     }
 }

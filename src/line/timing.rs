@@ -41,6 +41,22 @@ pub struct SerialFormat {
     pub stop_bits: u8,
 }
 
+/// As the manuals write it: `9600 baud 8E1`.
+impl std::fmt::Display for SerialFormat {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let parity = match self.parity {
+            Parity::None => 'N',
+            Parity::Even => 'E',
+            Parity::Odd => 'O',
+        };
+        write!(
+            f,
+            "{} baud {}{parity}{}",
+            self.baud, self.data_bits, self.stop_bits
+        )
+    }
+}
+
 impl SerialFormat {
     /// The spec's default when stop bits are not given: 1 with parity, 2 without, so that every
     /// character is 11 bits long.

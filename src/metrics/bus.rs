@@ -12,7 +12,7 @@ use prometheus::{
     IntGauge, IntGaugeVec,
 };
 use std::fmt::Display;
-use std::sync::{Arc, OnceLock};
+use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 use std::time::Duration;
 use tracing::{debug, info, warn};
 
@@ -21,6 +21,7 @@ pub(super) struct BusFamilies {
     round_trip: HistogramVec,
     queue_wait: HistogramVec,
     pub(super) queue_depth: IntGaugeVec,
+    info: IntGaugeVec,
     queue_capacity: IntGaugeVec,
     busy: CounterVec,
     sent: IntCounterVec,
@@ -58,6 +59,11 @@ impl BusFamilies {
                 "modbus_gateway_queue_depth",
                 "Requests waiting in the bus queue.",
                 bus,
+            ),
+            info: define.int_gauge(
+                "modbus_gateway_bus_info",
+                "The bus's line: its framing (rtu, ascii) and serial format; always 1.",
+                &["bus", "framing", "format"],
             ),
             queue_capacity: define.int_gauge(
                 "modbus_gateway_queue_capacity",
@@ -133,6 +139,8 @@ impl BusFamilies {
         self.queue_depth.with_label_values(labels).set(0);
         let metrics = BusMetrics {
             name: name.into(),
+            info: self.info.clone(),
+            info_labels: Mutex::new(None),
             queue_capacity: self.queue_capacity.with_label_values(labels),
             char_time: settings.line_timing().char_time.as_secs_f64(),
             counters,
@@ -158,6 +166,7 @@ impl BusFamilies {
     /// Remove the series of `bus`, gone, but its requests' and exceptions' counts.
     pub(super) fn forget(&self, bus: &BusMetrics) {
         let labels = &[&*bus.name];
+        bus.set_info(None);
         for vec in [&self.queue_depth, &self.queue_capacity, &self.port_up] {
             let _ = vec.remove_label_values(labels);
         }
@@ -193,6 +202,9 @@ pub(super) struct SlaveMetrics {
 /// The metrics of one bus, label values resolved once. Shared by its handle and its task.
 pub struct BusMetrics {
     pub(super) name: Arc<str>,
+    pub(super) info: IntGaugeVec,
+    /// The framing and format labels of the bus's info series, to remove when they change.
+    pub(super) info_labels: Mutex<Option<[String; 2]>>,
     pub(super) queue_capacity: IntGauge,
     /// Seconds per character on the line, to turn bytes into busy time.
     pub(super) char_time: f64,
@@ -240,12 +252,38 @@ impl BusMetrics {
     /// The bus's settings, at start or after a reload: its queue capacity, and series at zero for
     /// its known slaves (`[[bus.slave]]` and simulated ones).
     pub fn reconfigured(&self, settings: &config::Bus) {
+        self.set_info(Some([
+            settings.framing.name().to_owned(),
+            settings.format().to_string(),
+        ]));
         self.queue_capacity
             .set(i64::try_from(settings.queue_depth).unwrap_or(i64::MAX));
         let sim_slaves = settings.sim_slave.iter().flat_map(|s| s.address.iter());
         for address in settings.slave.iter().map(|s| s.address).chain(sim_slaves) {
             self.slave(address);
         }
+    }
+
+    /// Replace the bus's info series with one of `labels` (framing, format), or none.
+    fn set_info(&self, labels: Option<[String; 2]>) {
+        let mut current = self
+            .info_labels
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner);
+        if *current == labels {
+            return;
+        }
+        if let Some([framing, format]) = current.take() {
+            let _ = self
+                .info
+                .remove_label_values(&[&*self.name, &framing, &format]);
+        }
+        if let Some([framing, format]) = &labels {
+            self.info
+                .with_label_values(&[&*self.name, framing, format])
+                .set(1);
+        }
+        *current = labels;
     }
 
     /// Count a request's outcome; `None` if it was dropped unsent because its master left.

@@ -2,13 +2,14 @@
 //! hardware: a slave that is offline, slow, late, corrupts its CRC, wraps its reply in garbage,
 //! answers with the wrong address or function code, stops its reply short or pauses in the middle
 //! of it. Wraps a model and bends what it puts on the wire; the model
-//! itself stays correct. Random choices come from a generator seeded by the slave's address, so a
-//! run repeats exactly.
+//! itself stays correct. On an ASCII line it also puts the model's replies, which are RTU frames,
+//! into ASCII first, and the knobs bend the ASCII: a CRC error becomes an LRC error, garbage and
+//! cuts count characters. Random choices come from a generator seeded by the slave's address, so
+//! a run repeats exactly.
 
 use super::{Pause, Slave, Transmission};
 use crate::config;
-use crate::line::rtu::{self};
-use crate::line::BROADCAST;
+use crate::line::{ascii, Framing, BROADCAST};
 use crate::pdu::EXCEPTION_BIT;
 use std::time::Duration;
 use tokio::time::Instant;
@@ -67,19 +68,38 @@ impl Faults {
     }
 }
 
-/// A slave with [`Faults`].
+/// A slave with [`Faults`], on a line of some framing.
 pub struct Faulty<S> {
     inner: S,
     faults: Faults,
+    framing: Framing,
     rng: fastrand::Rng,
 }
 
 impl<S: Slave> Faulty<S> {
+    /// `inner` with `faults` on an RTU line.
     pub fn new(inner: S, faults: Faults, address: u8) -> Self {
+        Self::framed(inner, faults, address, Framing::Rtu)
+    }
+
+    /// `inner` with `faults` on a line of `framing`.
+    pub fn framed(inner: S, faults: Faults, address: u8, framing: Framing) -> Self {
         Faulty {
             inner,
             faults,
+            framing,
             rng: fastrand::Rng::with_seed(u64::from(address)),
+        }
+    }
+
+    /// Break the frame's check: the last CRC byte, or the last LRC character.
+    fn corrupt_check(&self, bytes: &mut [u8]) {
+        let from_end = match self.framing {
+            Framing::Rtu => 1,
+            Framing::Ascii => 1 + ascii::END.len(),
+        };
+        if let Some(at) = bytes.len().checked_sub(from_end) {
+            bytes[at] ^= 0x01;
         }
     }
 
@@ -97,21 +117,18 @@ impl<S: Slave> Slave for Faulty<S> {
         if address == BROADCAST {
             return Some(reply);
         }
-        if self.faults.reply_address.is_some() || self.faults.reply_function.is_some() {
-            if let Some(pdu) = reply.bytes.get(1..reply.bytes.len().saturating_sub(2)) {
-                let address = self.faults.reply_address.unwrap_or(address);
-                let mut pdu = pdu.to_vec();
-                if let (Some(function), Some(wrong)) = (pdu.first_mut(), self.faults.reply_function)
-                {
-                    *function = wrong | (*function & EXCEPTION_BIT);
-                }
-                reply.bytes = rtu::encode(address, &pdu);
+        // The model's reply is an intact RTU frame: take its PDU, to frame again as the line
+        // does and as the knobs want.
+        if let Some(pdu) = reply.bytes.get(1..reply.bytes.len().saturating_sub(2)) {
+            let address = self.faults.reply_address.unwrap_or(address);
+            let mut pdu = pdu.to_vec();
+            if let (Some(function), Some(wrong)) = (pdu.first_mut(), self.faults.reply_function) {
+                *function = wrong | (*function & EXCEPTION_BIT);
             }
+            self.framing.encode_into(&mut reply.bytes, address, &pdu);
         }
         if self.faults.crc_error_rate > 0.0 && self.rng.f64() < self.faults.crc_error_rate {
-            if let Some(last) = reply.bytes.last_mut() {
-                *last ^= 0x01;
-            }
+            self.corrupt_check(&mut reply.bytes);
         }
         if let Some(keep) = self.faults.truncate_reply {
             reply.bytes.truncate(keep);
@@ -134,6 +151,7 @@ impl<S: Slave> Slave for Faulty<S> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::line::rtu;
     use crate::sim::RegisterBank;
 
     const READ: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x01];

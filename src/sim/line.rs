@@ -9,7 +9,7 @@
 
 use super::slaves::{Heard, Slaves};
 use super::{Slave, Transmission};
-use crate::line::{LineTiming, Transport};
+use crate::line::{Framing, LineTiming, Transport};
 use crate::timer::sleep_until;
 use std::collections::VecDeque;
 use std::io;
@@ -93,12 +93,18 @@ impl Shared {
 }
 
 impl SimLine {
+    /// An RTU line at `timing`.
     pub fn new(timing: LineTiming) -> Self {
+        Self::with_framing(timing, Framing::Rtu)
+    }
+
+    /// A line at `timing` whose slaves hear and answer frames of `framing`.
+    pub fn with_framing(timing: LineTiming, framing: Framing) -> Self {
         SimLine {
             shared: Arc::new(Shared {
                 state: Mutex::new(LineState {
                     timing,
-                    slaves: Slaves::default(),
+                    slaves: Slaves::new(framing),
                     plugged: true,
                     generation: 0,
                     master_busy_until: None,
@@ -226,8 +232,10 @@ impl LineState {
         if let Some(gap) = gap {
             self.stats.min_gap = Some(self.stats.min_gap.map_or(gap, |m| m.min(gap)));
         }
-        // A frame that starts too soon runs into the previous one: slaves see one garbled frame.
-        let merged = gap.is_some_and(|gap| gap < timing.t35);
+        // An RTU frame that starts too soon runs into the previous one: slaves see one garbled
+        // frame. ASCII frames are delimited by their characters, not by silence.
+        let merged =
+            self.slaves.framing() == Framing::Rtu && gap.is_some_and(|gap| gap < timing.t35);
         if merged {
             self.stats.gap_violations += 1;
         }
@@ -245,9 +253,14 @@ impl LineState {
         }
         match self.slaves.hear(bytes, end) {
             Heard::Corrupt => self.stats.unread_frames += 1,
-            // A slave knows the request has ended after t3.5 of silence, then processes it.
+            // A slave knows the request has ended after t3.5 of silence (RTU) or at its LF
+            // (ASCII), then processes it.
             Heard::Answered { address, reply, .. } => {
-                self.transmit_from_slave(address, reply, end + timing.t35);
+                let heard_at = match self.slaves.framing() {
+                    Framing::Rtu => end + timing.t35,
+                    Framing::Ascii => end,
+                };
+                self.transmit_from_slave(address, reply, heard_at);
             }
             Heard::Broadcast | Heard::NotHere | Heard::Unanswered { .. } => {}
         }

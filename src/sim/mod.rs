@@ -21,7 +21,7 @@ pub use slaves::{Heard, Slaves};
 
 use crate::config::{self, SimModel};
 use crate::line::rtu;
-use crate::line::SerialFormat;
+use crate::line::{Framing, SerialFormat};
 use drive::goodrive::{Goodrive, Variant};
 use drive::pd_inverter::PdInverter;
 use drive::{DriveSettings, SetupError};
@@ -35,6 +35,7 @@ pub fn build(
     spec: &config::SimSlave,
     address: u8,
     format: SerialFormat,
+    framing: Framing,
 ) -> Result<Box<dyn Slave>, SetupError> {
     let now = Instant::now();
     let settings = DriveSettings {
@@ -46,25 +47,33 @@ pub fn build(
     };
     let faults = Faults::from(spec);
     Ok(match spec.model {
-        SimModel::Registers => {
-            with_faults(RegisterBank::new(spec.processing_delay), faults, address)
-        }
+        SimModel::Registers => with_faults(
+            RegisterBank::new(spec.processing_delay),
+            faults,
+            address,
+            framing,
+        ),
         SimModel::Gd20 => with_faults(
             Goodrive::new(Variant::Gd20, &settings, now)?,
             faults,
             address,
+            framing,
         ),
         SimModel::Gd300 => with_faults(
             Goodrive::new(Variant::Gd300, &settings, now)?,
             faults,
             address,
+            framing,
         ),
         SimModel::Gd10 => with_faults(
             Goodrive::new(Variant::Gd10, &settings, now)?,
             faults,
             address,
+            framing,
         ),
-        SimModel::PdInverter => with_faults(PdInverter::new(&settings, now)?, faults, address),
+        SimModel::PdInverter => {
+            with_faults(PdInverter::new(&settings, now)?, faults, address, framing)
+        }
     })
 }
 
@@ -78,7 +87,8 @@ impl config::DriveCheck for Drives {
         address: u8,
         format: SerialFormat,
     ) -> Result<(), config::DriveRefusal> {
-        build(slave, address, format)
+        // The parameters are the same whatever the line's framing.
+        build(slave, address, format, Framing::Rtu)
             .map(drop)
             .map_err(|e| config::DriveRefusal {
                 param: e.param,
@@ -87,11 +97,18 @@ impl config::DriveCheck for Drives {
     }
 }
 
-fn with_faults<S: Slave + 'static>(slave: S, faults: Faults, address: u8) -> Box<dyn Slave> {
-    if faults.is_none() {
+/// `slave` as it answers on a line of `framing` with `faults`: as it is on an RTU line without
+/// faults, framed and bent by [`Faulty`] otherwise.
+fn with_faults<S: Slave + 'static>(
+    slave: S,
+    faults: Faults,
+    address: u8,
+    framing: Framing,
+) -> Box<dyn Slave> {
+    if faults.is_none() && framing == Framing::Rtu {
         Box::new(slave)
     } else {
-        Box::new(Faulty::new(slave, faults, address))
+        Box::new(Faulty::framed(slave, faults, address, framing))
     }
 }
 

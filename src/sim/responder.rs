@@ -7,8 +7,8 @@
 
 use super::slaves::{Heard, Slaves};
 use super::Slave;
-use crate::line::rtu::{self, FrameLen, MAX_FRAME_LEN};
-use crate::line::{LineTiming, Transport};
+use crate::line::framing::{Completion, Silence};
+use crate::line::{Framing, LineTiming, Transport};
 use crate::timer::sleep_until;
 use std::io;
 use std::time::Duration;
@@ -36,11 +36,20 @@ pub struct Responder {
 }
 
 impl Responder {
+    /// Slaves on an RTU line at `timing`; a request whose length its bytes cannot tell ends
+    /// after `silence` (at least t3.5).
     pub fn new(timing: LineTiming, silence: Duration) -> Self {
+        Self::framed(timing, Framing::Rtu, silence.max(timing.t35))
+    }
+
+    /// Slaves on a line of `framing` at `timing`. RTU: a request whose length its bytes cannot
+    /// tell ends after `silence`. ASCII: `silence` between characters (the inter-character
+    /// timeout) drops a request cut short.
+    pub fn framed(timing: LineTiming, framing: Framing, silence: Duration) -> Self {
         Responder {
-            slaves: Slaves::default(),
+            slaves: Slaves::new(framing),
             timing,
-            silence: silence.max(timing.t35),
+            silence,
             stats: ResponderStats::default(),
         }
     }
@@ -55,21 +64,23 @@ impl Responder {
 
     /// Answer requests on `port` until it fails; returns why.
     pub async fn serve<T: Transport>(&mut self, port: &mut T) -> io::Error {
-        let mut buf = Vec::with_capacity(MAX_FRAME_LEN);
+        let framing = self.slaves.framing();
+        let mut buf = Vec::with_capacity(framing.max_frame_len());
         loop {
-            match rtu::request_len(&buf) {
-                FrameLen::Exact(n) if buf.len() >= n => {
+            let completion = framing.request_completion(&buf);
+            match completion {
+                Completion::Whole(n) => {
                     let request: Vec<u8> = buf.drain(..n).collect();
                     if let Err(e) = self.answer(port, &request).await {
                         return e;
                     }
                     continue;
                 }
-                FrameLen::Invalid => {
+                Completion::Invalid => {
                     self.stats.bad_frames += 1;
                     buf.clear();
                 }
-                _ if buf.len() > MAX_FRAME_LEN => {
+                _ if buf.len() > framing.max_frame_len() => {
                     self.stats.bad_frames += 1;
                     buf.clear();
                 }
@@ -84,7 +95,7 @@ impl Responder {
                         // Silence ends the frame: whole if only silence could tell its length,
                         // otherwise cut short.
                         let request = std::mem::take(&mut buf);
-                        if rtu::request_len(&request) == FrameLen::BySilence {
+                        if completion == Completion::Open(Silence::EndsFrame) {
                             if let Err(e) = self.answer(port, &request).await {
                                 return e;
                             }
@@ -135,8 +146,13 @@ impl Responder {
             } => (address, function, reply),
         };
         self.stats.requests += 1;
-        // The slave knows the request is over after t3.5 of silence, then takes its own time.
-        let start = at + self.timing.t35 + reply.delay;
+        // The slave knows the request is over after t3.5 of silence (RTU) or at its LF (ASCII),
+        // then takes its own time.
+        let heard_at = match self.slaves.framing() {
+            Framing::Rtu => at + self.timing.t35,
+            Framing::Ascii => at,
+        };
+        let start = heard_at + reply.delay;
         sleep_until(start).await;
         match reply
             .pause

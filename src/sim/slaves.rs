@@ -1,11 +1,12 @@
 //! The simulated slaves of one line by address, and what becomes of a request frame among them:
-//! the one place a simulated RTU slave hears a frame, for the simulated line and for the
-//! responder on a real serial port alike. A frame with a bad CRC is ignored, as a slave must; a
-//! broadcast is carried out by every slave and answered by none; any other frame goes to the
-//! slave at its address, whose answer, if any, the caller puts on its wire.
+//! the one place a simulated slave hears a frame, for the simulated line and for the responder on
+//! a real serial port alike, in the line's framing (RTU or ASCII). A frame whose check (CRC, LRC)
+//! fails is ignored, as a slave must; a broadcast is carried out by every slave and answered by
+//! none; any other frame goes to the slave at its address, whose answer, if any, the caller puts
+//! on its wire. The slaves answer in the line's framing (see [`super::faults::Faulty`]).
 
 use super::{Slave, Transmission};
-use crate::line::{rtu, BROADCAST};
+use crate::line::{Framing, BROADCAST};
 use std::collections::BTreeMap;
 use tokio::time::Instant;
 
@@ -28,30 +29,46 @@ pub enum Heard {
     },
 }
 
-/// The slaves on one line, by address.
+/// The slaves on one line, by address, and the line's framing.
 #[derive(Default)]
-pub struct Slaves(BTreeMap<u8, Box<dyn Slave>>);
+pub struct Slaves {
+    slaves: BTreeMap<u8, Box<dyn Slave>>,
+    framing: Framing,
+    /// The PDU of the frame being heard.
+    pdu: Vec<u8>,
+}
 
 impl Slaves {
+    /// No slaves yet, on a line of `framing`.
+    pub fn new(framing: Framing) -> Self {
+        Slaves {
+            framing,
+            ..Slaves::default()
+        }
+    }
+
+    pub fn framing(&self) -> Framing {
+        self.framing
+    }
+
     /// Put `slave` at `address`, replacing any slave there.
     pub fn insert(&mut self, address: u8, slave: Box<dyn Slave>) {
-        self.0.insert(address, slave);
+        self.slaves.insert(address, slave);
     }
 
     /// Hand `frame`, a whole request frame that ended on the wire at `at`, to the slaves.
     pub fn hear(&mut self, frame: &[u8], at: Instant) -> Heard {
-        if !rtu::crc_ok(frame) {
+        let Some(address) = self.framing.decode_into(frame, &mut self.pdu) else {
             return Heard::Corrupt;
-        }
-        let address = frame[0];
-        let pdu = rtu::pdu_of(frame);
+        };
+        let pdu = &self.pdu;
         if address == BROADCAST {
-            for slave in self.0.values_mut() {
+            for slave in self.slaves.values_mut() {
                 slave.handle(BROADCAST, pdu, at);
             }
             return Heard::Broadcast;
         }
-        let Some(slave) = self.0.get_mut(&address) else {
+        let Some(slave) = self.slaves.get_mut(&address) else {
             return Heard::NotHere;
         };
         let function = pdu[0];
@@ -69,6 +86,8 @@ impl Slaves {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::line::{ascii, rtu};
+    use crate::sim::faults::{Faults, Faulty};
     use crate::sim::RegisterBank;
     use std::time::Duration;
 
@@ -105,5 +124,30 @@ mod tests {
         assert_eq!(slaves.hear(&[0x01, 0x03], now), Heard::Corrupt);
         let other = rtu::encode(9, &[0x03, 0x00, 0x00, 0x00, 0x01]);
         assert_eq!(slaves.hear(&other, now), Heard::NotHere);
+    }
+
+    #[test]
+    fn on_an_ascii_line_the_slaves_hear_ascii_and_answer_in_ascii() {
+        let mut slaves = Slaves::new(Framing::Ascii);
+        let bank = RegisterBank::new(Duration::ZERO);
+        let slave = Faulty::framed(bank, Faults::default(), 1, Framing::Ascii);
+        slaves.insert(1, Box::new(slave));
+        let now = Instant::now();
+        let write = ascii::encode(1, &[0x06, 0x00, 0x04, 0x13, 0x88]);
+        let Heard::Answered { reply, .. } = slaves.hear(&write, now) else {
+            panic!("no answer to an ASCII write");
+        };
+        assert_eq!(reply.bytes, b":0106000413885A\r\n");
+        let read = b":010300040002F6\r\n";
+        let Heard::Answered { reply, .. } = slaves.hear(read, now) else {
+            panic!("no answer to an ASCII read");
+        };
+        assert_eq!(reply.bytes, b":010304138800005D\r\n");
+        let rtu_read = rtu::encode(1, &[0x03, 0x00, 0x04, 0x00, 0x02]);
+        assert_eq!(
+            slaves.hear(&rtu_read, now),
+            Heard::Corrupt,
+            "RTU on an ASCII line"
+        );
     }
 }
