@@ -9,7 +9,7 @@
 //! a `python3` on the PATH that has pymodbus; without one a test checks nothing and says so, or
 //! fails under `MBGW_REQUIRE_TOOLS=1`, as for the other external tools.
 
-use crate::support::{addr, demo_path, pty_config, start, within, RawMaster, Scrape};
+use crate::support::{addr, pty_config, start, within, RawMaster, Scrape};
 use modbus_gateway::line::rtu;
 use std::ffi::OsString;
 use std::io::{BufRead, BufReader, Read};
@@ -23,6 +23,8 @@ const ASCII_MASTER: &str = concat!(
     "/tests/peers/pymodbus_ascii_master.py"
 );
 const BINARY: &str = env!("CARGO_BIN_EXE_modbus-gateway");
+/// The drives of config/demo.toml on a 9600 7E1 Modbus ASCII line.
+const ASCII_DEMO: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/config/demo-ascii.toml");
 
 /// The script's device id. Not 1: see [`IGNORED`].
 const UNIT: u8 = 10;
@@ -538,29 +540,14 @@ impl Drop for Running {
     }
 }
 
-/// config/demo.toml with its bus on Modbus ASCII at that framing's default format, 7E1 (its
-/// `data_bits = 8` gives way to `framing = "ascii"`), written where tests keep files; its path.
-fn ascii_demo_config() -> String {
-    let demo = std::fs::read_to_string(demo_path()).expect("config/demo.toml reads");
-    let ascii = demo.replacen("data_bits = 8\n", "framing = \"ascii\"\n", 1);
-    assert_ne!(ascii, demo, "config/demo.toml no longer sets data_bits = 8");
-    let path = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join("peers-ascii-demo.toml");
-    std::fs::write(&path, ascii).expect("write the ASCII demo config");
-    path.into_os_string()
-        .into_string()
-        .expect("the target directory's path is UTF-8")
-}
-
 #[tokio::test]
-#[ignore = "waits for ASCII in simulate"]
 async fn a_pymodbus_ascii_master_reads_and_writes_the_simulated_drives_on_a_pty() {
     let Some(python) = python_with_pymodbus() else {
         return;
     };
-    let config = ascii_demo_config();
     let mut simulator = Running(
         Command::new(BINARY)
-            .args(["--config", &config, "simulate", "--device", "pty"])
+            .args(["--config", ASCII_DEMO, "simulate", "--device", "pty"])
             .env("MBGW__LOG__LEVEL", "warn")
             .env_remove("RUST_LOG")
             .stdout(Stdio::piped())
@@ -579,7 +566,7 @@ async fn a_pymodbus_ascii_master_reads_and_writes_the_simulated_drives_on_a_pty(
     .await
     .expect("the reading task runs")
     .expect("read simulate's stdout");
-    // "serving bus demo on /dev/pts/N at 9600 baud 7E1"
+    // "serving bus demo-ascii on /dev/pts/N at 9600 baud 7E1 (Modbus ASCII)"
     let path = line
         .split_whitespace()
         .nth(4)

@@ -1,6 +1,6 @@
 """pymodbus's serial client as a third-party Modbus ASCII master for tests/peers.rs: it talks to
-the simulated drives of config/demo.toml (with `framing = "ascii"`) that `modbus-gateway simulate`
-serves on the pty at PATH, the one argument.
+the simulated drives of config/demo-ascii.toml (those of config/demo.toml on a 9600 7E1 ASCII
+line) that `modbus-gateway simulate` serves on the pty at PATH, the one argument.
 
 Stdout, one line each, flushed:
   sent HEX                          bytes the client put on the line
