@@ -14,7 +14,8 @@
 //! - `drives`: the simulated drives of config/demo.toml: registers, exceptions, ramps, timing.
 //! - `faults`: each fault knob of a simulated slave and what the gateway makes of it.
 //! - `serial`: the real serial path on pty pairs, with a third-party client.
-//! - `peers`: third-party slaves on the serial path: pymodbus's RTU server (Python) on a pty.
+//! - `peers`: third-party peers on the serial path: pymodbus's RTU and ASCII servers behind the
+//!   gateway, its ASCII client on `simulate`.
 //! - `simulate`: the `simulate` subcommand answering RTU masters on a pty.
 //! - `service`: the gateway under a service manager: graceful stop.
 //! - `metrics`: `/metrics`, `/healthz`, `/readyz` after known traffic; promtool; shipped rules.
