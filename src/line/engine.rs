@@ -60,8 +60,8 @@ pub enum TxError {
     #[error("no reply to this request within the response timeout")]
     Timeout,
     /// The frame's check failed (the name and message predate framings other than RTU).
-    #[error("reply failed its CRC check")]
-    Crc,
+    #[error("reply failed its check (CRC-16 on RTU, LRC on ASCII)")]
+    Check,
     #[error("reply incomplete, or longer than a frame")]
     Frame,
     #[error("line never fell silent for the gap before the frame")]
@@ -361,7 +361,7 @@ impl<T> LineMaster<T> {
     ) -> Option<Result<Reply, TxError>> {
         let late_reply_possible = self.late_reply_window(slave).is_some();
         let Some(address) = self.framing.decode_into(&self.rx[..len], &mut self.pdu) else {
-            return Some(Err(TxError::Crc));
+            return Some(Err(TxError::Check));
         };
         let pdu = &self.pdu;
         match reply::judge(address, pdu, slave, request, form) {
@@ -373,7 +373,7 @@ impl<T> LineMaster<T> {
                 self.counters.foreign_frames += 1;
                 None
             }
-            Verdict::Corrupt => Some(Err(TxError::Crc)),
+            Verdict::Corrupt => Some(Err(TxError::Check)),
         }
     }
 }
@@ -502,7 +502,7 @@ mod tests {
         })];
         let (_line, mut master) = line(vec![(1, plan)]);
         let result = master.transact(1, &READ, FOREVER).await;
-        assert!(matches!(result, Err(TxError::Crc)), "{result:?}");
+        assert!(matches!(result, Err(TxError::Check)), "{result:?}");
     }
 
     #[tokio::test(start_paused = true)]
@@ -605,7 +605,7 @@ mod tests {
         let (_line, mut master) = line(vec![(1, plan)]);
         assert!(matches!(
             master.transact(1, &READ, TIMEOUT).await,
-            Err(TxError::Crc)
+            Err(TxError::Check)
         ));
         assert_eq!(master.late_reply_window(1), None);
         master.transact(1, &READ, TIMEOUT).await.unwrap();

@@ -19,7 +19,7 @@ pub enum Fate {
     MalformedReply,
     /// No reply to this request within the response timeout, retries included.
     Timeout,
-    /// The last reply failed its CRC check.
+    /// The last reply failed its check: its CRC, or its LRC on an ASCII bus.
     CrcError,
     /// The last reply was incomplete at its deadline, or longer than a frame can be.
     FrameError,
@@ -98,7 +98,7 @@ impl Fate {
                     RequestError::ShuttingDown => Fate::Shutdown,
                     RequestError::NoResponse { last, .. } => match last {
                         TxError::Timeout => Fate::Timeout,
-                        TxError::Crc => Fate::CrcError,
+                        TxError::Check => Fate::CrcError,
                         TxError::Frame => Fate::FrameError,
                         TxError::LineBusy => Fate::LineBusy,
                         TxError::PortLost(_) => Fate::PortDown,

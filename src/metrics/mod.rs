@@ -289,7 +289,7 @@ mod tests {
         );
         let crc: Outcome = Err(RequestError::NoResponse {
             attempts: 1,
-            last: TxError::Crc,
+            last: TxError::Check,
         });
         assert_eq!(Fate::of(&crc).0, Fate::CrcError);
         assert_eq!(

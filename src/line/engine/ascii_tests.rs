@@ -125,7 +125,7 @@ async fn a_bad_lrc_ends_the_try_as_a_check_error() {
         vec![sends(b":010304138800005C\r\n", Duration::ZERO)],
     )]);
     let result = master.transact(1, &READ, FOREVER).await;
-    assert!(matches!(result, Err(TxError::Crc)), "{result:?}");
+    assert!(matches!(result, Err(TxError::Check)), "{result:?}");
 }
 
 #[tokio::test(start_paused = true)]
