@@ -122,6 +122,11 @@ impl Dispatcher {
     }
 
     /// A master has gone: drop whatever it still has queued.
+    /// `client` sent an RTU over TCP request whose CRC failed: counted, never answered.
+    pub fn bad_frame(&self, client: &Client) {
+        self.metrics.tcp.bad_crc(client.master, &client.peer);
+    }
+
     pub fn forget(&self, master: MasterId) {
         for bus in &self.table().buses {
             bus.forget(master);

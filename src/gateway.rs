@@ -12,7 +12,7 @@ use crate::routing::Router;
 use crate::shutdown::{self, Stop};
 use crate::sim::{self, SimLine};
 use crate::tcp::server::Shared;
-use crate::tcp::{self, Policy};
+use crate::tcp::{self, Policy, Upstream};
 use std::io;
 use std::net::SocketAddr;
 use std::path::Path;
@@ -142,9 +142,16 @@ impl Gateway {
     /// Bind every listener and start every bus. Fails only if a listen address cannot be bound;
     /// a serial port that cannot be opened yet is retried by its bus while the rest serves.
     pub async fn start(config: &Config) -> Result<Gateway, StartError> {
-        let listeners = tcp::bind(&config.server.listen)
-            .await
-            .map_err(|(addr, source)| StartError::Listen { addr, source })?;
+        let mut listeners = Vec::new();
+        for (addrs, upstream) in [
+            (&config.server.listen, Upstream::Mbap),
+            (&config.server.listen_rtu_over_tcp, Upstream::RtuOverTcp),
+        ] {
+            let bound = tcp::bind(addrs, upstream)
+                .await
+                .map_err(|(addr, source)| StartError::Listen { addr, source })?;
+            listeners.extend(bound);
+        }
         let metrics_listen = config.metrics.listen;
         let listen_error = |source| StartError::Listen {
             addr: metrics_listen,
@@ -190,7 +197,7 @@ impl Gateway {
         let local_addrs = listeners.iter().map(|l| l.addr).collect();
         let mut listener_tasks = JoinSet::new();
         for listener in listeners {
-            info!(listen = %listener.addr, "accepting Modbus TCP masters");
+            info!(listen = %listener.addr, protocol = listener.upstream.name(), "accepting masters");
             listener_tasks.spawn(tcp::serve(listener, shared.clone()));
         }
         Ok(Gateway {
@@ -324,7 +331,8 @@ impl Gateway {
         }
     }
 
-    /// The bound listen addresses (port 0 in the configuration becomes the real port here).
+    /// The bound listen addresses (port 0 in the configuration becomes the real port here):
+    /// `server.listen`'s, then `server.listen_rtu_over_tcp`'s.
     pub fn local_addrs(&self) -> &[SocketAddr] {
         &self.local_addrs
     }

@@ -59,5 +59,6 @@ pub mod testing {
     pub use crate::routing::Router;
     pub use crate::tcp::server::set_keepalive;
     pub use crate::tcp::session::{self, Activity, SessionError};
+    pub use crate::tcp::upstream::Upstream;
     pub use crate::tcp::SessionLimits;
 }

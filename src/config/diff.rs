@@ -62,6 +62,9 @@ impl ConfigDiff {
         if new.server.listen != old.server.listen {
             need_restart.push("server.listen");
         }
+        if new.server.listen_rtu_over_tcp != old.server.listen_rtu_over_tcp {
+            need_restart.push("server.listen_rtu_over_tcp");
+        }
         if new.metrics != old.metrics {
             need_restart.push("metrics.listen");
         }
@@ -85,6 +88,7 @@ impl ConfigDiff {
 fn policy(server: &Server) -> Server {
     let mut server = server.clone();
     server.listen.clear();
+    server.listen_rtu_over_tcp.clear();
     server.shutdown_timeout = Duration::ZERO;
     server
 }
@@ -153,14 +157,20 @@ mod tests {
     fn listen_addresses_and_the_log_format_need_a_restart_in_a_fixed_order() {
         let old = config(&buses(&["a"]));
         let new = config(&format!(
-            "[server]\nlisten = \"127.0.0.1:5020\"\n[metrics]\nlisten = \"127.0.0.1:9020\"\n\
+            "[server]\nlisten = \"127.0.0.1:5020\"\nlisten_rtu_over_tcp = \"127.0.0.1:5021\"\n\
+             [metrics]\nlisten = \"127.0.0.1:9020\"\n\
              [log]\nformat = \"json\"\nlevel = \"debug\"\n{}",
             buses(&["a"])
         ));
         let diff = ConfigDiff::new(&old, &new);
         assert_eq!(
             diff.need_restart,
-            ["server.listen", "metrics.listen", "log.format"]
+            [
+                "server.listen",
+                "server.listen_rtu_over_tcp",
+                "metrics.listen",
+                "log.format"
+            ]
         );
         assert!(diff.log_level);
         assert!(!diff.connection_policy, "listen is not part of the policy");

@@ -51,6 +51,7 @@ fn server() -> impl Strategy<Value = Server> {
             (when_full, frame_timeout, keepalive, allow, read_only),
         )| Server {
             listen,
+            listen_rtu_over_tcp: Vec::new(),
             max_connections,
             idle_timeout: idle,
             pipeline_depth: depth,

@@ -14,6 +14,9 @@ pub struct Server {
     /// One address, a comma-separated string of them, or a list.
     #[serde(with = "text_list")]
     pub listen: Vec<SocketAddr>,
+    /// Where masters that send plain RTU frames on TCP (RTU over TCP) connect; none by default.
+    #[serde(with = "text_list", skip_serializing_if = "Vec::is_empty")]
+    pub listen_rtu_over_tcp: Vec<SocketAddr>,
     /// TCP connections open at once, over all listeners; more are refused.
     pub max_connections: usize,
     /// A connection with no request and nothing pending for this long is closed ("0s": never).
@@ -56,6 +59,7 @@ impl Default for Server {
     fn default() -> Self {
         Server {
             listen: defaults::listen(),
+            listen_rtu_over_tcp: Vec::new(),
             max_connections: defaults::MAX_CONNECTIONS,
             idle_timeout: defaults::IDLE_TIMEOUT,
             pipeline_depth: defaults::PIPELINE_DEPTH,

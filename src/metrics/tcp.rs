@@ -16,6 +16,7 @@ pub struct TcpMetrics {
     accepted: IntCounter,
     rejected: IntCounterVec,
     closed: IntCounterVec,
+    bad_crc: IntCounter,
     /// Whether connections are being refused for `max_connections`, so a storm logs once.
     refusing: AtomicBool,
     /// When a refusal for `server.allow` was last logged at warn, so a scan logs little.
@@ -57,14 +58,28 @@ impl TcpMetrics {
         for reason in Closing::ALL {
             closed.with_label_values(&[reason.label()]);
         }
+        let bad_crc = define
+            .int_counter(
+                "modbus_gateway_tcp_bad_crc_total",
+                "RTU over TCP requests whose CRC failed, dropped unanswered as a slave would.",
+                &[],
+            )
+            .with_label_values::<&str>(&[]);
         TcpMetrics {
             open,
             accepted,
             rejected,
             closed,
+            bad_crc,
             refusing: AtomicBool::new(false),
             not_allowed_logged: Mutex::new(None),
         }
+    }
+
+    /// An RTU over TCP request from `master` failed its CRC and was dropped unanswered.
+    pub fn bad_crc(&self, master: u64, peer: &dyn Display) {
+        self.bad_crc.inc();
+        debug!(target: TCP_EVENTS, master, %peer, "RTU over TCP request with a bad CRC dropped");
     }
 
     pub fn accepted(&self, master: u64, peer: &dyn Display, read_only: bool) {

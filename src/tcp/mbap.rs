@@ -26,13 +26,15 @@ pub(crate) struct Request {
     pub pdu: Vec<u8>,
 }
 
-/// A stream that is not Modbus TCP; the connection is closed.
+/// A stream that is not Modbus TCP (or not RTU over TCP); the connection is closed.
 #[derive(Debug, PartialEq, Eq, thiserror::Error)]
 pub enum FrameError {
     #[error("protocol id {0} is not 0 (Modbus)")]
     Protocol(u16),
     #[error("length field {0} is outside {MIN_LENGTH}-{MAX_LENGTH}")]
     Length(u16),
+    #[error("RTU over TCP: bytes that are no request frame, longer than a frame")]
+    RtuTooLong,
 }
 
 /// Take one request off the front of `buf`: `Ok(None)` until a whole one is in.
@@ -252,6 +254,7 @@ mod tests {
                         prop_assert_eq!(length, u16::from_be_bytes([bytes[4], bytes[5]]));
                         prop_assert!(!(MIN_LENGTH..=MAX_LENGTH).contains(&length));
                     }
+                    Err(FrameError::RtuTooLong) => prop_assert!(false, "MBAP never reads RTU"),
                 }
             }
 

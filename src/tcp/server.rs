@@ -6,6 +6,7 @@
 
 use super::access::Access;
 use super::session::{self, Activity, SessionLimits};
+use super::upstream::Upstream;
 use crate::bus::MasterId;
 use crate::config::{self, WhenFull};
 use crate::dispatch::{Client, Dispatcher, Rights};
@@ -31,16 +32,25 @@ const KEEPALIVE_PROBES: u32 = 3;
 
 pub(crate) struct Listener {
     pub addr: SocketAddr,
+    pub upstream: Upstream,
     listener: TcpListener,
 }
 
-/// Bind every address, or fail naming the one that could not be bound.
-pub(crate) async fn bind(addrs: &[SocketAddr]) -> Result<Vec<Listener>, (SocketAddr, io::Error)> {
+/// Bind every address, for masters that frame their requests as `upstream` says, or fail naming
+/// the one that could not be bound.
+pub(crate) async fn bind(
+    addrs: &[SocketAddr],
+    upstream: Upstream,
+) -> Result<Vec<Listener>, (SocketAddr, io::Error)> {
     let mut listeners = Vec::with_capacity(addrs.len());
     for &addr in addrs {
         let listener = TcpListener::bind(addr).await.map_err(|e| (addr, e))?;
         let addr = listener.local_addr().map_err(|e| (addr, e))?;
-        listeners.push(Listener { addr, listener });
+        listeners.push(Listener {
+            addr,
+            upstream,
+            listener,
+        });
     }
     Ok(listeners)
 }
@@ -212,6 +222,7 @@ pub(crate) async fn serve(listener: Listener, shared: Arc<Shared>) {
         // Making room may wait for a session to close: not in the accept loop.
         let shared = shared.clone();
         let listen = listener.addr;
+        let upstream = listener.upstream;
         tokio::spawn(async move {
             let Some(permit) = shared.slot(policy.when_full).await else {
                 shared
@@ -220,7 +231,7 @@ pub(crate) async fn serve(listener: Listener, shared: Arc<Shared>) {
                     .rejected(Rejection::MaxConnections, &listen, &peer);
                 return;
             };
-            run_session(stream, peer, rights, &policy, &shared).await;
+            run_session(stream, upstream, peer, rights, &policy, &shared).await;
             drop(permit);
         });
     }
@@ -228,6 +239,7 @@ pub(crate) async fn serve(listener: Listener, shared: Arc<Shared>) {
 
 async fn run_session(
     stream: TcpStream,
+    upstream: Upstream,
     peer: SocketAddr,
     rights: Rights,
     policy: &Policy,
@@ -249,6 +261,7 @@ async fn run_session(
     let client = Client::new(master, peer, rights);
     let error = session::run(
         stream,
+        upstream,
         client,
         &activity,
         &shared.dispatcher,

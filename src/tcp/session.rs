@@ -6,6 +6,7 @@
 //! queued requests go too.
 
 use super::mbap::{self, FrameError, Header};
+use super::upstream::{Decoded, Upstream};
 use crate::dispatch::{Client, Dispatcher};
 use crate::error::{Outcome, RequestError};
 use crate::metrics::Closing;
@@ -75,7 +76,7 @@ impl Activity {
 pub enum SessionError {
     #[error("master closed the connection")]
     Closed,
-    #[error("not Modbus TCP: {0}")]
+    #[error("not a Modbus request: {0}")]
     Frame(#[from] FrameError),
     #[error("idle for {0:?}")]
     Idle(Duration),
@@ -131,6 +132,7 @@ async fn next_outcome(in_flight: &mut VecDeque<InFlight>) -> Outcome {
 /// until a stop: then read no more, answer what was read, and close.
 pub async fn run<S: AsyncRead + AsyncWrite + Unpin>(
     mut stream: S,
+    upstream: Upstream,
     mut client: Client,
     activity: &Activity,
     dispatcher: &Dispatcher,
@@ -139,6 +141,7 @@ pub async fn run<S: AsyncRead + AsyncWrite + Unpin>(
 ) -> SessionError {
     let error = serve(
         &mut stream,
+        upstream,
         &mut client,
         activity,
         dispatcher,
@@ -152,6 +155,7 @@ pub async fn run<S: AsyncRead + AsyncWrite + Unpin>(
 
 async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
     stream: &mut S,
+    upstream: Upstream,
     client: &mut Client,
     activity: &Activity,
     dispatcher: &Dispatcher,
@@ -167,8 +171,12 @@ async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
     let mut stopped = stopping.deadline().is_some();
     loop {
         while in_flight.len() < limits.pipeline_depth {
-            match mbap::decode(&mut inbound) {
-                Ok(Some(request)) => {
+            match upstream.decode(&mut inbound) {
+                Ok(Some(Decoded::BadCrc)) => {
+                    partial_since = None;
+                    dispatcher.bad_frame(client);
+                }
+                Ok(Some(Decoded::Request(request))) => {
                     last_activity = Instant::now();
                     partial_since = None;
                     let function = request.pdu[0];
@@ -203,8 +211,7 @@ async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
             outcome = next_outcome(&mut in_flight) => {
                 let Some(done) = in_flight.pop_front() else { continue };
                 if let Some(pdu) = reply_pdu(done.function, outcome) {
-                    outbound.clear();
-                    mbap::encode(done.header, &pdu, &mut outbound);
+                    upstream.encode(done.header, &pdu, &mut outbound);
                     if let Err(error) = stream.write_all(&outbound).await {
                         return error.into();
                     }
