@@ -13,8 +13,8 @@ use modbus_gateway::shutdown::Stopping;
 use modbus_gateway::sim::{RegisterBank, SimLine};
 use modbus_gateway::testing::session::{self, Activity, SessionError};
 use modbus_gateway::testing::Router;
-use modbus_gateway::testing::SessionLimits;
 use modbus_gateway::testing::{Client, Dispatcher, Rights};
+use modbus_gateway::testing::{SessionLimits, Upstream};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -182,6 +182,7 @@ async fn session_on_pipe(
         let activity = Activity::default();
         session::run(
             server,
+            Upstream::Mbap,
             client,
             &activity,
             &dispatcher,

@@ -16,6 +16,7 @@
 //! - `serial`: the real serial path on pty pairs, with a third-party client.
 //! - `peers`: third-party peers on the serial path: pymodbus's RTU and ASCII servers behind the
 //!   gateway, its ASCII client on `simulate`.
+//! - `rtu_over_tcp`: masters sending plain RTU frames on TCP: framing, bad CRCs, exceptions as RTU.
 //! - `simulate`: the `simulate` subcommand answering RTU masters on a pty.
 //! - `service`: the gateway under a service manager: graceful stop.
 //! - `metrics`: `/metrics`, `/healthz`, `/readyz` after known traffic; promtool; shipped rules.
@@ -44,6 +45,7 @@ mod faults;
 mod line;
 mod metrics;
 mod peers;
+mod rtu_over_tcp;
 mod serial;
 mod service;
 mod simulate;
