@@ -121,12 +121,12 @@ impl Dispatcher {
         receiver
     }
 
-    /// A master has gone: drop whatever it still has queued.
     /// `client` sent an RTU over TCP request whose CRC failed: counted, never answered.
     pub fn bad_frame(&self, client: &Client) {
         self.metrics.tcp.bad_crc(client.master, &client.peer);
     }
 
+    /// A master has gone: drop whatever it still has queued.
     pub fn forget(&self, master: MasterId) {
         for bus in &self.table().buses {
             bus.forget(master);

@@ -50,6 +50,7 @@ struct Running {
 
 pub struct Gateway {
     local_addrs: Vec<SocketAddr>,
+    udp_addrs: Vec<SocketAddr>,
     metrics_addr: SocketAddr,
     metrics: Arc<Metrics>,
     /// The configuration in force: the one started with, or the last reloaded.
@@ -152,6 +153,9 @@ impl Gateway {
                 .map_err(|(addr, source)| StartError::Listen { addr, source })?;
             listeners.extend(bound);
         }
+        let udp_listeners = tcp::udp::bind(&config.server.listen_udp)
+            .await
+            .map_err(|(addr, source)| StartError::Listen { addr, source })?;
         let metrics_listen = config.metrics.listen;
         let listen_error = |source| StartError::Listen {
             addr: metrics_listen,
@@ -196,12 +200,18 @@ impl Gateway {
         ));
         let local_addrs = listeners.iter().map(|l| l.addr).collect();
         let mut listener_tasks = JoinSet::new();
+        let udp_addrs = udp_listeners.iter().map(|l| l.addr).collect();
+        for listener in udp_listeners {
+            info!(listen = %listener.addr, protocol = "Modbus UDP", "accepting masters");
+            listener_tasks.spawn(tcp::udp::serve(listener, shared.clone()));
+        }
         for listener in listeners {
             info!(listen = %listener.addr, protocol = listener.upstream.name(), "accepting masters");
             listener_tasks.spawn(tcp::serve(listener, shared.clone()));
         }
         Ok(Gateway {
             local_addrs,
+            udp_addrs,
             metrics_addr,
             metrics,
             config: Mutex::new(config.clone()),
@@ -335,6 +345,11 @@ impl Gateway {
     /// `server.listen`'s, then `server.listen_rtu_over_tcp`'s.
     pub fn local_addrs(&self) -> &[SocketAddr] {
         &self.local_addrs
+    }
+
+    /// The bound `server.listen_udp` addresses.
+    pub fn udp_addrs(&self) -> &[SocketAddr] {
+        &self.udp_addrs
     }
 
     /// The bound address of the metrics endpoint.

@@ -65,6 +65,9 @@ impl ConfigDiff {
         if new.server.listen_rtu_over_tcp != old.server.listen_rtu_over_tcp {
             need_restart.push("server.listen_rtu_over_tcp");
         }
+        if new.server.listen_udp != old.server.listen_udp {
+            need_restart.push("server.listen_udp");
+        }
         if new.metrics != old.metrics {
             need_restart.push("metrics.listen");
         }
@@ -89,6 +92,7 @@ fn policy(server: &Server) -> Server {
     let mut server = server.clone();
     server.listen.clear();
     server.listen_rtu_over_tcp.clear();
+    server.listen_udp.clear();
     server.shutdown_timeout = Duration::ZERO;
     server
 }
@@ -158,6 +162,7 @@ mod tests {
         let old = config(&buses(&["a"]));
         let new = config(&format!(
             "[server]\nlisten = \"127.0.0.1:5020\"\nlisten_rtu_over_tcp = \"127.0.0.1:5021\"\n\
+             listen_udp = \"127.0.0.1:5022\"\n\
              [metrics]\nlisten = \"127.0.0.1:9020\"\n\
              [log]\nformat = \"json\"\nlevel = \"debug\"\n{}",
             buses(&["a"])
@@ -168,6 +173,7 @@ mod tests {
             [
                 "server.listen",
                 "server.listen_rtu_over_tcp",
+                "server.listen_udp",
                 "metrics.listen",
                 "log.format"
             ]

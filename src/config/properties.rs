@@ -52,6 +52,7 @@ fn server() -> impl Strategy<Value = Server> {
         )| Server {
             listen,
             listen_rtu_over_tcp: Vec::new(),
+            listen_udp: Vec::new(),
             max_connections,
             idle_timeout: idle,
             pipeline_depth: depth,

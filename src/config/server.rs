@@ -17,6 +17,9 @@ pub struct Server {
     /// Where masters that send plain RTU frames on TCP (RTU over TCP) connect; none by default.
     #[serde(with = "text_list", skip_serializing_if = "Vec::is_empty")]
     pub listen_rtu_over_tcp: Vec<SocketAddr>,
+    /// Where Modbus UDP masters send their datagrams; none by default.
+    #[serde(with = "text_list", skip_serializing_if = "Vec::is_empty")]
+    pub listen_udp: Vec<SocketAddr>,
     /// TCP connections open at once, over all listeners; more are refused.
     pub max_connections: usize,
     /// A connection with no request and nothing pending for this long is closed ("0s": never).
@@ -60,6 +63,7 @@ impl Default for Server {
         Server {
             listen: defaults::listen(),
             listen_rtu_over_tcp: Vec::new(),
+            listen_udp: Vec::new(),
             max_connections: defaults::MAX_CONNECTIONS,
             idle_timeout: defaults::IDLE_TIMEOUT,
             pipeline_depth: defaults::PIPELINE_DEPTH,

@@ -9,6 +9,7 @@ mod bus;
 pub mod http;
 mod labels;
 mod tcp;
+mod udp;
 
 pub use bus::BusMetrics;
 
@@ -17,6 +18,7 @@ pub use labels::{Closing, ExceptionSource, Fate, Rejection};
 
 use labels::{decimal, hex};
 pub use tcp::TcpMetrics;
+pub use udp::{UdpDrop, UdpMetrics};
 
 use crate::config;
 use crate::error::{Answer, Outcome};
@@ -116,6 +118,7 @@ pub struct Metrics {
     counters: RequestCounters,
     buses: BusFamilies,
     pub tcp: TcpMetrics,
+    pub udp: UdpMetrics,
     /// Gauges read from their source at scrape time (queue depths).
     scrape_hooks: Mutex<Vec<ScrapeHook>>,
 }
@@ -145,6 +148,7 @@ impl Metrics {
             },
             buses: BusFamilies::new(&define),
             tcp: TcpMetrics::new(&define),
+            udp: UdpMetrics::new(&define),
             scrape_hooks: Mutex::new(Vec::new()),
             registry: registry.clone(),
         };

@@ -114,6 +114,11 @@ impl Shared {
         }
     }
 
+    /// A master id no other master has had.
+    pub(crate) fn new_master(&self) -> MasterId {
+        self.next_master.fetch_add(1, Ordering::Relaxed)
+    }
+
     pub(crate) fn policy(&self) -> Arc<Policy> {
         self.policy
             .lock()
@@ -253,7 +258,7 @@ async fn run_session(
             debug!(%peer, %error, "cannot set TCP keepalive");
         }
     }
-    let master: MasterId = shared.next_master.fetch_add(1, Ordering::Relaxed);
+    let master = shared.new_master();
     let tcp = &shared.metrics.tcp;
     tcp.accepted(master, &peer, rights == Rights::ReadOnly);
     let activity = Arc::new(Activity::default());

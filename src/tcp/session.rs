@@ -111,7 +111,7 @@ struct InFlight {
 }
 
 /// The PDU a master gets for an outcome: the slave's own bytes, or the gateway's exception.
-fn reply_pdu(function: u8, outcome: Outcome) -> Option<Vec<u8>> {
+pub(crate) fn reply_pdu(function: u8, outcome: Outcome) -> Option<Vec<u8>> {
     match outcome {
         Ok(answer) => answer.into_pdu(),
         Err(error) => Some(exception_pdu(function, error.exception_code()).to_vec()),

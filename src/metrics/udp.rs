@@ -1,0 +1,56 @@
+//! Modbus UDP's metrics and events: datagrams dropped, by reason.
+
+use super::{Definer, TCP_EVENTS};
+use prometheus::IntCounterVec;
+use std::fmt::Display;
+use tracing::debug;
+
+/// Why a datagram was dropped: the `reason` label.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum UdpDrop {
+    /// From a source outside `server.allow`.
+    NotAllowed,
+    /// Not exactly one MBAP request.
+    Malformed,
+    /// Its source already had `pipeline_depth` requests pending.
+    Overloaded,
+}
+
+impl UdpDrop {
+    pub const ALL: [UdpDrop; 3] = [UdpDrop::NotAllowed, UdpDrop::Malformed, UdpDrop::Overloaded];
+
+    pub fn label(self) -> &'static str {
+        match self {
+            UdpDrop::NotAllowed => "not_allowed",
+            UdpDrop::Malformed => "malformed",
+            UdpDrop::Overloaded => "overloaded",
+        }
+    }
+}
+
+/// The UDP side: datagrams dropped unanswered.
+pub struct UdpMetrics {
+    dropped: IntCounterVec,
+}
+
+impl UdpMetrics {
+    pub(super) fn new(define: &Definer) -> Self {
+        let dropped = define.int_counter(
+            "modbus_gateway_udp_dropped_total",
+            "Modbus UDP datagrams dropped unanswered, by reason.",
+            &["reason"],
+        );
+        for reason in UdpDrop::ALL {
+            dropped.with_label_values(&[reason.label()]);
+        }
+        UdpMetrics { dropped }
+    }
+
+    /// A datagram from `peer` was dropped for `reason`. Logged at debug only: a flood must not
+    /// flood the log.
+    pub fn dropped(&self, reason: UdpDrop, peer: &dyn Display) {
+        let reason = reason.label();
+        self.dropped.with_label_values(&[reason]).inc();
+        debug!(target: TCP_EVENTS, %peer, reason, "UDP datagram dropped");
+    }
+}
