@@ -17,6 +17,7 @@
 //! - `peers`: third-party peers on the serial path: pymodbus's RTU and ASCII servers behind the
 //!   gateway, its ASCII client on `simulate`.
 //! - `rtu_over_tcp`: masters sending plain RTU frames on TCP: framing, bad CRCs, exceptions as RTU.
+//! - `udp`: Modbus UDP masters: replies to their source, access lists, what is dropped.
 //! - `simulate`: the `simulate` subcommand answering RTU masters on a pty.
 //! - `service`: the gateway under a service manager: graceful stop.
 //! - `metrics`: `/metrics`, `/healthz`, `/readyz` after known traffic; promtool; shipped rules.
@@ -51,3 +52,4 @@ mod service;
 mod simulate;
 mod tcp;
 mod transparency;
+mod udp;

@@ -1,0 +1,207 @@
+//! Modbus UDP masters (`listen_udp`): one MBAP request per datagram, the reply to the source it
+//! came from; the buses, routes and access lists they share with TCP masters; what is dropped.
+
+use crate::support::{start, Scrape, PATIENCE};
+use modbus_gateway::Gateway;
+use std::net::SocketAddr;
+use std::time::Duration;
+use tokio::net::UdpSocket;
+
+async fn gateway(extra_server: &str) -> Gateway {
+    start(&format!(
+        "[server]\nlisten = \"127.0.0.1:0\"\nlisten_udp = \"127.0.0.1:0\"\n{extra_server}\n\
+         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nresponse_timeout = \"200ms\"\n\
+         [[bus.sim_slave]]\naddress = \"1-4\"\n"
+    ))
+    .await
+}
+
+fn udp_addr(gateway: &Gateway) -> SocketAddr {
+    gateway.udp_addrs()[0]
+}
+
+/// An MBAP request datagram.
+fn adu(transaction: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {
+    let length = u16::try_from(pdu.len() + 1).unwrap();
+    [
+        &transaction.to_be_bytes()[..],
+        &[0, 0],
+        &length.to_be_bytes(),
+        &[unit],
+        pdu,
+    ]
+    .concat()
+}
+
+async fn master() -> UdpSocket {
+    UdpSocket::bind("127.0.0.1:0").await.unwrap()
+}
+
+/// The next datagram, if one comes within `wait`.
+async fn receive(socket: &UdpSocket, wait: Duration) -> Option<Vec<u8>> {
+    let mut buf = vec![0u8; 512];
+    let (len, _) = tokio::time::timeout(wait, socket.recv_from(&mut buf))
+        .await
+        .ok()?
+        .ok()?;
+    buf.truncate(len);
+    Some(buf)
+}
+
+#[tokio::test]
+async fn a_udp_master_writes_and_reads_the_line_and_its_replies_come_to_its_own_address() {
+    let gateway = gateway("").await;
+    let socket = master().await;
+    let write = [0x06, 0x00, 0x02, 0x12, 0x34];
+    socket
+        .send_to(&adu(7, 1, &write), udp_addr(&gateway))
+        .await
+        .unwrap();
+    assert_eq!(receive(&socket, PATIENCE).await.unwrap(), adu(7, 1, &write));
+    socket
+        .send_to(
+            &adu(8, 1, &[0x03, 0x00, 0x02, 0x00, 0x01]),
+            udp_addr(&gateway),
+        )
+        .await
+        .unwrap();
+    assert_eq!(
+        receive(&socket, PATIENCE).await.unwrap(),
+        adu(8, 1, &[0x03, 0x02, 0x12, 0x34])
+    );
+    // The gateway's own answers too: no route for unit 250.
+    socket
+        .send_to(&adu(9, 250, &[0x03, 0, 0, 0, 1]), udp_addr(&gateway))
+        .await
+        .unwrap();
+    assert_eq!(
+        receive(&socket, PATIENCE).await.unwrap(),
+        adu(9, 250, &[0x83, 0x0A])
+    );
+}
+
+#[tokio::test]
+async fn a_write_by_udp_is_read_back_by_a_modbus_tcp_master() {
+    let gateway = gateway("").await;
+    let socket = master().await;
+    let write = [0x06, 0x00, 0x05, 0x00, 0x2A];
+    socket
+        .send_to(&adu(1, 2, &write), udp_addr(&gateway))
+        .await
+        .unwrap();
+    assert_eq!(receive(&socket, PATIENCE).await.unwrap(), adu(1, 2, &write));
+    let mut tcp = crate::support::RawMaster::connect(gateway.local_addrs()[0]).await;
+    assert_eq!(
+        tcp.call(1, 2, &[0x03, 0x00, 0x05, 0x00, 0x01]).await,
+        [0x03, 0x02, 0x00, 0x2A]
+    );
+}
+
+#[tokio::test]
+async fn a_datagram_from_a_source_outside_allow_is_dropped_and_never_reaches_the_line() {
+    let gateway = gateway("allow = \"10.0.0.0/8\"").await;
+    let socket = master().await;
+    socket
+        .send_to(&adu(1, 1, &[0x03, 0, 0, 0, 1]), udp_addr(&gateway))
+        .await
+        .unwrap();
+    assert_eq!(receive(&socket, Duration::from_millis(300)).await, None);
+    assert_eq!(gateway.sim_line("sim").unwrap().stats().master_frames, 0);
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(
+        scrape.value("modbus_gateway_udp_dropped_total{reason=\"not_allowed\"}"),
+        1.0
+    );
+}
+
+#[tokio::test]
+async fn a_malformed_datagram_is_dropped_and_counted_and_the_next_one_is_answered() {
+    let gateway = gateway("").await;
+    let socket = master().await;
+    let read = adu(3, 1, &[0x03, 0, 0, 0, 1]);
+    // Cut short, two requests in one datagram, a wrong protocol id.
+    let two = [read.clone(), read.clone()].concat();
+    let mut wrong_protocol = read.clone();
+    wrong_protocol[3] = 1;
+    for bad in [&read[..9], &two[..], &wrong_protocol[..]] {
+        socket.send_to(bad, udp_addr(&gateway)).await.unwrap();
+    }
+    socket.send_to(&read, udp_addr(&gateway)).await.unwrap();
+    assert_eq!(
+        receive(&socket, PATIENCE).await.unwrap(),
+        adu(3, 1, &[0x03, 0x02, 0, 0])
+    );
+    assert_eq!(receive(&socket, Duration::from_millis(200)).await, None);
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(
+        scrape.value("modbus_gateway_udp_dropped_total{reason=\"malformed\"}"),
+        3.0
+    );
+}
+
+#[tokio::test]
+async fn a_flood_from_one_source_is_cut_at_pipeline_depth_and_another_source_is_still_served() {
+    let gateway = gateway("pipeline_depth = 4").await;
+    let flooder = master().await;
+    for id in 0..200u16 {
+        flooder
+            .send_to(&adu(id, 1, &[0x03, 0, 0, 0, 10]), udp_addr(&gateway))
+            .await
+            .unwrap();
+    }
+    let polite = master().await;
+    polite
+        .send_to(&adu(1, 2, &[0x03, 0, 0, 0, 1]), udp_addr(&gateway))
+        .await
+        .unwrap();
+    assert_eq!(
+        receive(&polite, PATIENCE).await.unwrap(),
+        adu(1, 2, &[0x03, 0x02, 0, 0])
+    );
+    let mut answered = 0;
+    while receive(&flooder, Duration::from_millis(300))
+        .await
+        .is_some()
+    {
+        answered += 1;
+    }
+    assert!(answered <= 4 * 2, "{answered} answered");
+    let scrape = Scrape::of(&gateway).await;
+    let dropped = scrape.value("modbus_gateway_udp_dropped_total{reason=\"overloaded\"}");
+    assert_eq!(
+        dropped + f64::from(answered),
+        200.0,
+        "each dropped or answered"
+    );
+}
+
+#[tokio::test]
+async fn two_thousand_random_datagrams_leave_the_gateway_serving_and_the_line_untouched() {
+    let gateway = gateway("").await;
+    let socket = master().await;
+    let mut rng = fastrand::Rng::with_seed(16);
+    for _ in 0..2000 {
+        let len = rng.usize(0..300);
+        let datagram: Vec<u8> = (0..len).map(|_| rng.u8(..)).collect();
+        let _ = socket.send_to(&datagram, udp_addr(&gateway)).await;
+    }
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    assert_eq!(gateway.sim_line("sim").unwrap().stats().master_frames, 0);
+    socket
+        .send_to(&adu(1, 1, &[0x03, 0, 0, 0, 1]), udp_addr(&gateway))
+        .await
+        .unwrap();
+    let mut reply = None;
+    // Replies to random datagrams that happened to be requests may come first.
+    for _ in 0..10 {
+        match receive(&socket, PATIENCE).await {
+            Some(r) if r == adu(1, 1, &[0x03, 0x02, 0, 0]) => {
+                reply = Some(r);
+                break;
+            }
+            Some(_) => continue,
+            None => break,
+        }
+    }
+    assert!(reply.is_some(), "still serving");
+}
