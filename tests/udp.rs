@@ -205,3 +205,72 @@ async fn two_thousand_random_datagrams_leave_the_gateway_serving_and_the_line_un
     }
     assert!(reply.is_some(), "still serving");
 }
+
+#[tokio::test]
+async fn masters_of_all_three_kinds_polling_one_bus_are_all_answered_and_share_it_fairly() {
+    use modbus_gateway::line::rtu;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let gateway = start(
+        "[server]\nlisten = \"127.0.0.1:0\"\nlisten_rtu_over_tcp = \"127.0.0.1:0\"\n\
+         listen_udp = \"127.0.0.1:0\"\n\
+         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\n\
+         [[bus.sim_slave]]\naddress = \"1-3\"\n",
+    )
+    .await;
+    let run_for = Duration::from_secs(2);
+    let read = [0x03, 0x00, 0x00, 0x00, 0x0A];
+    let answer_len = 2 + 20;
+    let tcp_addr = gateway.local_addrs()[0];
+    let rtu_addr = gateway.local_addrs()[1];
+    let udp = udp_addr(&gateway);
+    let tcp = tokio::spawn(async move {
+        let mut master = crate::support::RawMaster::connect(tcp_addr).await;
+        let (mut done, start) = (0u32, tokio::time::Instant::now());
+        while start.elapsed() < run_for {
+            let id = u16::try_from(done % 60_000).unwrap();
+            assert_eq!(master.call(id, 1, &read).await.len(), answer_len);
+            done += 1;
+        }
+        done
+    });
+    let rtu_master = tokio::spawn(async move {
+        let mut stream = tokio::net::TcpStream::connect(rtu_addr).await.unwrap();
+        let request = rtu::encode(2, &read);
+        let mut reply = vec![0u8; 1 + answer_len + 2];
+        let (mut done, start) = (0u32, tokio::time::Instant::now());
+        while start.elapsed() < run_for {
+            stream.write_all(&request).await.unwrap();
+            tokio::time::timeout(PATIENCE, stream.read_exact(&mut reply))
+                .await
+                .unwrap()
+                .unwrap();
+            assert!(rtu::crc_ok(&reply));
+            done += 1;
+        }
+        done
+    });
+    let udp_master = tokio::spawn(async move {
+        let socket = master().await;
+        let (mut done, start) = (0u32, tokio::time::Instant::now());
+        while start.elapsed() < run_for {
+            let id = u16::try_from(done % 60_000).unwrap();
+            socket.send_to(&adu(id, 3, &read), udp).await.unwrap();
+            let reply = receive(&socket, PATIENCE).await.expect("a reply");
+            assert_eq!(&reply[..2], &id.to_be_bytes());
+            assert_eq!(reply.len(), 7 + answer_len);
+            done += 1;
+        }
+        done
+    });
+    let counts = [
+        tcp.await.unwrap(),
+        rtu_master.await.unwrap(),
+        udp_master.await.unwrap(),
+    ];
+    let (least, most) = (*counts.iter().min().unwrap(), *counts.iter().max().unwrap());
+    assert!(least > 10, "{counts:?}");
+    assert!(
+        most <= 2 * least,
+        "unfair: {counts:?} (Modbus TCP, RTU over TCP, UDP)"
+    );
+}

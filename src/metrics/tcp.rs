@@ -91,7 +91,14 @@ impl TcpMetrics {
 
     /// A connection refused at accept. For `max_connections`, logged once until a connection is
     /// accepted again; for `server.allow`, at most once per ten seconds.
-    pub fn rejected(&self, reason: Rejection, listen: &dyn Display, peer: &dyn Display) {
+    /// A master of `protocol` was refused at `listen`.
+    pub fn rejected(
+        &self,
+        reason: Rejection,
+        protocol: &str,
+        listen: &dyn Display,
+        peer: &dyn Display,
+    ) {
         self.rejected.with_label_values(&[reason.label()]).inc();
         let (warn, event) = match reason {
             Rejection::MaxConnections => (
@@ -112,9 +119,9 @@ impl TcpMetrics {
         };
         let reason = reason.label();
         if warn {
-            warn!(target: TCP_EVENTS, %listen, %peer, reason, "{event}");
+            warn!(target: TCP_EVENTS, protocol, %listen, %peer, reason, "{event}");
         } else {
-            debug!(target: TCP_EVENTS, %listen, %peer, reason, "connection refused");
+            debug!(target: TCP_EVENTS, protocol, %listen, %peer, reason, "connection refused");
         }
     }
 

@@ -51,6 +51,6 @@ impl UdpMetrics {
     pub fn dropped(&self, reason: UdpDrop, peer: &dyn Display) {
         let reason = reason.label();
         self.dropped.with_label_values(&[reason]).inc();
-        debug!(target: TCP_EVENTS, %peer, reason, "UDP datagram dropped");
+        debug!(target: TCP_EVENTS, protocol = "Modbus UDP", %peer, reason, "datagram dropped");
     }
 }

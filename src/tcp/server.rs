@@ -221,7 +221,8 @@ pub(crate) async fn serve(listener: Listener, shared: Arc<Shared>) {
         let policy = shared.policy();
         let tcp = &shared.metrics.tcp;
         let Some(rights) = policy.access.admit(peer.ip()) else {
-            tcp.rejected(Rejection::NotAllowed, &listener.addr, &peer);
+            let protocol = listener.upstream.name();
+            tcp.rejected(Rejection::NotAllowed, protocol, &listener.addr, &peer);
             continue;
         };
         // Making room may wait for a session to close: not in the accept loop.
@@ -230,10 +231,12 @@ pub(crate) async fn serve(listener: Listener, shared: Arc<Shared>) {
         let upstream = listener.upstream;
         tokio::spawn(async move {
             let Some(permit) = shared.slot(policy.when_full).await else {
-                shared
-                    .metrics
-                    .tcp
-                    .rejected(Rejection::MaxConnections, &listen, &peer);
+                shared.metrics.tcp.rejected(
+                    Rejection::MaxConnections,
+                    upstream.name(),
+                    &listen,
+                    &peer,
+                );
                 return;
             };
             run_session(stream, upstream, peer, rights, &policy, &shared).await;
