@@ -10,7 +10,7 @@
 use clap::Parser;
 use mio_serial::SerialPort;
 use modbus_gateway::bus::Port;
-use modbus_gateway::line::{Framing, LineTiming, Parity, SerialFormat};
+use modbus_gateway::line::{rtu, Framing, LineTiming, Parity, SerialFormat};
 use modbus_gateway::sim::responder::Responder;
 use modbus_gateway::sim::RegisterBank;
 use serde::Serialize;
@@ -21,7 +21,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::TcpStream;
+use tokio::net::{TcpStream, UdpSocket};
 
 /// Read 10 holding registers from 0000H: 8 bytes on the wire, 25 back.
 const READ_10: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x0A];
@@ -72,9 +72,23 @@ enum Load {
     Idle,
 }
 
+/// How the bench's masters talk to the gateway.
+#[derive(Clone, Copy, PartialEq)]
+enum Kind {
+    /// Modbus TCP.
+    Tcp,
+    /// RTU frames on a TCP connection.
+    RtuOverTcp,
+    /// Modbus UDP.
+    Udp,
+    /// The three kinds in turn, master by master.
+    Mixed,
+}
+
 struct Scenario {
     name: String,
     line: Line,
+    kind: Kind,
     framing: Framing,
     format: SerialFormat,
     masters: usize,
@@ -98,6 +112,7 @@ fn scenarios() -> Vec<Scenario> {
             all.push(Scenario {
                 name: format!("sim-{baud}-{label}-read-{masters}"),
                 line: Line::Sim,
+                kind: Kind::Tcp,
                 framing: Framing::Rtu,
                 format: format(baud, parity),
                 masters,
@@ -107,6 +122,7 @@ fn scenarios() -> Vec<Scenario> {
         all.push(Scenario {
             name: format!("sim-{baud}-{label}-mix-100"),
             line: Line::Sim,
+            kind: Kind::Tcp,
             framing: Framing::Rtu,
             format: format(baud, parity),
             masters: 100,
@@ -117,15 +133,36 @@ fn scenarios() -> Vec<Scenario> {
         all.push(Scenario {
             name: format!("ascii-9600-7E1-read-{masters}"),
             line: Line::Sim,
+            kind: Kind::Tcp,
             framing: Framing::Ascii,
             format: ascii_7e1,
             masters,
             load: Load::Read,
         });
     }
+    for (kind, label) in [
+        (Kind::RtuOverTcp, "rtu-over-tcp"),
+        (Kind::Udp, "udp"),
+        (Kind::Mixed, "mixed-kinds"),
+    ] {
+        // A mix of one master is one Modbus TCP master: the mix has 99, 33 of each kind.
+        let counts: &[usize] = if kind == Kind::Mixed { &[99] } else { &[1, 99] };
+        for &masters in counts {
+            all.push(Scenario {
+                name: format!("sim-115200-8N1-{label}-read-{masters}"),
+                line: Line::Sim,
+                kind,
+                framing: Framing::Rtu,
+                format: format(115_200, Parity::None),
+                masters,
+                load: Load::Read,
+            });
+        }
+    }
     all.push(Scenario {
         name: "pty-115200-untimed-read-1".into(),
         line: Line::Pty,
+        kind: Kind::Tcp,
         framing: Framing::Rtu,
         format: format(115_200, Parity::None),
         masters: 1,
@@ -135,6 +172,7 @@ fn scenarios() -> Vec<Scenario> {
         all.push(Scenario {
             name: format!("idle-{masters}"),
             line: Line::Sim,
+            kind: Kind::Tcp,
             framing: Framing::Rtu,
             format: format(9600, Parity::Even),
             masters,
@@ -173,6 +211,8 @@ fn free_addr() -> std::io::Result<SocketAddr> {
 struct Gateway {
     child: Child,
     listen: SocketAddr,
+    listen_rtu_over_tcp: SocketAddr,
+    listen_udp: SocketAddr,
     _config: tempfile_path::TempPath,
 }
 
@@ -196,6 +236,10 @@ mod tempfile_path {
 impl Gateway {
     async fn start(binary: &PathBuf, scenario: &Scenario, device: &str) -> Result<Gateway, String> {
         let listen = free_addr().map_err(|e| e.to_string())?;
+        let listen_rtu_over_tcp = free_addr().map_err(|e| e.to_string())?;
+        let listen_udp = std::net::UdpSocket::bind("127.0.0.1:0")
+            .and_then(|s| s.local_addr())
+            .map_err(|e| e.to_string())?;
         let metrics = free_addr().map_err(|e| e.to_string())?;
         let f = &scenario.format;
         let parity = match f.parity {
@@ -205,7 +249,8 @@ impl Gateway {
         };
         let masters = scenario.masters.max(1);
         let mut config = format!(
-            "[server]\nlisten = \"{listen}\"\nmax_connections = {}\n\
+            "[server]\nlisten = \"{listen}\"\nlisten_rtu_over_tcp = \"{listen_rtu_over_tcp}\"\n\
+             listen_udp = \"{listen_udp}\"\nmax_connections = {}\n\
              [metrics]\nlisten = \"{metrics}\"\n[log]\nlevel = \"warn\"\n\
              [[bus]]\nname = \"bench\"\ndevice = \"{device}\"\nframing = \"{}\"\nbaud = {}\n\
              data_bits = {}\nparity = \"{parity}\"\n\
@@ -235,6 +280,8 @@ impl Gateway {
         let gateway = Gateway {
             child,
             listen,
+            listen_rtu_over_tcp,
+            listen_udp,
             _config: tempfile_path::TempPath(path),
         };
         let started = Instant::now();
@@ -302,34 +349,81 @@ fn untimed_slave(format: &SerialFormat) -> Result<(String, tokio::task::JoinHand
     Ok((path, task))
 }
 
+/// One master's way to the gateway.
+enum Conn {
+    Tcp(TcpStream),
+    RtuOverTcp(TcpStream),
+    Udp(UdpSocket),
+}
+
+impl Conn {
+    /// Send `pdu` to `slave` and wait for its answer; true if it is a normal reply.
+    async fn exchange(
+        &mut self,
+        tid: u16,
+        slave: u8,
+        pdu: &[u8],
+        reply: &mut [u8],
+    ) -> std::io::Result<bool> {
+        match self {
+            Conn::Tcp(stream) => {
+                stream.write_all(&mbap(tid, slave, pdu)).await?;
+                stream.read_exact(&mut reply[..7]).await?;
+                let len = usize::from(u16::from_be_bytes([reply[4], reply[5]]));
+                stream.read_exact(&mut reply[7..6 + len]).await?;
+                Ok(reply[..2] == tid.to_be_bytes() && reply[7] & 0x80 == 0)
+            }
+            Conn::RtuOverTcp(stream) => {
+                stream.write_all(&rtu::encode(slave, pdu)).await?;
+                // Address and function, then the rest by the reply's own length.
+                stream.read_exact(&mut reply[..3]).await?;
+                let len = match rtu::reply_len(&reply[..3], slave, pdu) {
+                    rtu::FrameLen::Exact(n) => n,
+                    _ => return Ok(false),
+                };
+                stream.read_exact(&mut reply[3..len]).await?;
+                Ok(rtu::crc_ok(&reply[..len]) && reply[1] & 0x80 == 0)
+            }
+            Conn::Udp(socket) => {
+                socket.send(&mbap(tid, slave, pdu)).await?;
+                let len = socket.recv(reply).await?;
+                Ok(len > 7 && reply[..2] == tid.to_be_bytes() && reply[7] & 0x80 == 0)
+            }
+        }
+    }
+}
+
+/// The MBAP request for `pdu` to `unit`.
+fn mbap(tid: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {
+    let mut adu = Vec::with_capacity(7 + pdu.len());
+    adu.extend_from_slice(&tid.to_be_bytes());
+    adu.extend_from_slice(&[0, 0]);
+    adu.extend_from_slice(&u16::try_from(pdu.len() + 1).unwrap_or(0).to_be_bytes());
+    adu.push(unit);
+    adu.extend_from_slice(pdu);
+    adu
+}
+
 /// One master's loop: request, reply, again, until `stop`. Returns (completed at, latency).
 async fn master(
-    mut stream: TcpStream,
+    mut conn: Conn,
     index: usize,
     load: Load,
     stop: Arc<AtomicBool>,
 ) -> std::io::Result<Vec<(Instant, Duration, bool)>> {
     let mut done = Vec::new();
-    let mut slave = (index % usize::from(SLAVES)) as u8 + 1;
+    let mut slave = u8::try_from(index % usize::from(SLAVES)).unwrap_or(0) + 1;
     let mut tid: u16 = 0;
-    let mut reply = vec![0u8; 260];
+    let mut reply = vec![0u8; 512];
     while !stop.load(Ordering::Relaxed) {
         tid = tid.wrapping_add(1);
         let write = load == Load::Mix && tid.is_multiple_of(4);
         let pdu: &[u8] = if write { &WRITE_1 } else { &READ_10 };
-        let mut adu = Vec::with_capacity(12);
-        adu.extend_from_slice(&tid.to_be_bytes());
-        adu.extend_from_slice(&[0, 0, 0, pdu.len() as u8 + 1, slave]);
-        adu.extend_from_slice(pdu);
         let sent = Instant::now();
-        stream.write_all(&adu).await?;
-        stream.read_exact(&mut reply[..7]).await?;
-        let len = usize::from(u16::from_be_bytes([reply[4], reply[5]]));
-        stream.read_exact(&mut reply[7..6 + len]).await?;
-        if reply[..2] != tid.to_be_bytes() || reply[7] & 0x80 != 0 {
+        if !conn.exchange(tid, slave, pdu, &mut reply).await? {
             return Err(std::io::Error::other(format!(
                 "master {index}: unexpected reply {:02X?}",
-                &reply[..6 + len]
+                &reply[..16]
             )));
         }
         let now = Instant::now();
@@ -345,16 +439,38 @@ fn percentile(sorted: &[Duration], p: f64) -> Option<f64> {
     Some(sorted[rank].as_secs_f64() * 1e3)
 }
 
-async fn connect_all(addr: SocketAddr, n: usize) -> Result<Vec<TcpStream>, String> {
-    let mut streams = Vec::with_capacity(n);
-    for _ in 0..n {
-        let stream = TcpStream::connect(addr)
-            .await
-            .map_err(|e| format!("connect: {e} (raise `ulimit -n` for many masters)"))?;
-        stream.set_nodelay(true).map_err(|e| e.to_string())?;
-        streams.push(stream);
+/// `n` masters of `kind` (the three kinds in turn for `Kind::Mixed`).
+async fn connect_all(gateway: &Gateway, kind: Kind, n: usize) -> Result<Vec<Conn>, String> {
+    let failed = |e: std::io::Error| format!("connect: {e} (raise `ulimit -n` for many masters)");
+    let kinds = [Kind::Tcp, Kind::RtuOverTcp, Kind::Udp];
+    let mut conns = Vec::with_capacity(n);
+    for i in 0..n {
+        let kind = if kind == Kind::Mixed {
+            kinds[i % 3]
+        } else {
+            kind
+        };
+        conns.push(match kind {
+            Kind::Udp => {
+                let socket = UdpSocket::bind("127.0.0.1:0").await.map_err(failed)?;
+                socket.connect(gateway.listen_udp).await.map_err(failed)?;
+                Conn::Udp(socket)
+            }
+            Kind::RtuOverTcp => {
+                let stream = TcpStream::connect(gateway.listen_rtu_over_tcp)
+                    .await
+                    .map_err(failed)?;
+                stream.set_nodelay(true).map_err(|e| e.to_string())?;
+                Conn::RtuOverTcp(stream)
+            }
+            Kind::Tcp | Kind::Mixed => {
+                let stream = TcpStream::connect(gateway.listen).await.map_err(failed)?;
+                stream.set_nodelay(true).map_err(|e| e.to_string())?;
+                Conn::Tcp(stream)
+            }
+        });
     }
-    Ok(streams)
+    Ok(conns)
 }
 
 async fn run(cli: &Cli, binary: &PathBuf, s: &Scenario) -> Result<Report, String> {
@@ -368,7 +484,7 @@ async fn run(cli: &Cli, binary: &PathBuf, s: &Scenario) -> Result<Report, String
     };
     let gateway = Gateway::start(binary, s, &device).await?;
     let pid = gateway.pid();
-    let streams = connect_all(gateway.listen, s.masters).await?;
+    let streams = connect_all(&gateway, s.kind, s.masters).await?;
     let mut report = Report {
         scenario: s.name.clone(),
         baud: s.format.baud,
