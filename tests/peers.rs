@@ -650,3 +650,75 @@ async fn a_pymodbus_ascii_master_reads_and_writes_the_simulated_drives_on_a_pty(
         String::from_utf8_lossy(&received)
     );
 }
+
+/// pymodbus's network master script.
+const NET_MASTER: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/tests/peers/pymodbus_net_master.py"
+);
+
+/// Run the network master script as `kind` against `addr` for `unit`; its result lines.
+async fn net_master(
+    python: &OsString,
+    kind: &str,
+    addr: std::net::SocketAddr,
+    unit: u8,
+) -> Vec<String> {
+    let python = python.clone();
+    let args = [
+        NET_MASTER.to_owned(),
+        kind.to_owned(),
+        addr.ip().to_string(),
+        addr.port().to_string(),
+        unit.to_string(),
+    ];
+    let output = within(
+        "the pymodbus master finishes",
+        tokio::task::spawn_blocking(move || {
+            Command::new(python)
+                .args(&args)
+                .stderr(Stdio::inherit())
+                .output()
+        }),
+    )
+    .await
+    .expect("the task runs")
+    .expect("python runs");
+    assert!(output.status.success(), "{kind}: {:?}", output.status);
+    String::from_utf8_lossy(&output.stdout)
+        .lines()
+        .map(str::to_owned)
+        .collect()
+}
+
+#[tokio::test]
+async fn pymodbus_rtu_over_tcp_and_udp_masters_write_and_read_the_sim_line_through_the_gateway() {
+    let Some(python) = python_with_pymodbus() else {
+        return;
+    };
+    let gateway = crate::support::start(
+        "[server]\nlisten = \"127.0.0.1:0\"\nlisten_rtu_over_tcp = \"127.0.0.1:0\"\n\
+         listen_udp = \"127.0.0.1:0\"\n\
+         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\n\
+         [[bus.sim_slave]]\naddress = \"1-2\"\n",
+    )
+    .await;
+    let rtu_over_tcp = gateway.local_addrs()[1];
+    let udp = gateway.udp_addrs()[0];
+    for (kind, addr, unit) in [("rtu-over-tcp", rtu_over_tcp, 1), ("udp", udp, 2)] {
+        assert_eq!(
+            net_master(&python, kind, addr, unit).await,
+            ["result 6 ok", "result 3 4242 0", "result 3 0 0 0"],
+            "{kind}"
+        );
+    }
+    // Each wrote its own slave; a Modbus TCP master reads both writes back.
+    let mut tcp = crate::support::RawMaster::connect(gateway.local_addrs()[0]).await;
+    for unit in [1, 2] {
+        assert_eq!(
+            tcp.call(u16::from(unit), unit, &[0x03, 0x00, 0x05, 0x00, 0x01])
+                .await,
+            [0x03, 0x02, 0x10, 0x92]
+        );
+    }
+}

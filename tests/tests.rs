@@ -15,7 +15,7 @@
 //! - `faults`: each fault knob of a simulated slave and what the gateway makes of it.
 //! - `serial`: the real serial path on pty pairs, with a third-party client.
 //! - `peers`: third-party peers on the serial path: pymodbus's RTU and ASCII servers behind the
-//!   gateway, its ASCII client on `simulate`.
+//!   gateway, its ASCII client on `simulate`, its RTU-over-TCP and UDP clients on the gateway.
 //! - `rtu_over_tcp`: masters sending plain RTU frames on TCP: framing, bad CRCs, exceptions as RTU.
 //! - `udp`: Modbus UDP masters: replies to their source, access lists, what is dropped.
 //! - `simulate`: the `simulate` subcommand answering RTU masters on a pty.
