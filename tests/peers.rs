@@ -722,3 +722,36 @@ async fn pymodbus_rtu_over_tcp_and_udp_masters_write_and_read_the_sim_line_throu
         );
     }
 }
+
+#[tokio::test]
+async fn pymodbus_rtu_over_tcp_and_udp_masters_reach_pymodbus_rtu_slave_on_a_pty_through_the_gateway(
+) {
+    let Some(python) = python_with_pymodbus() else {
+        return;
+    };
+    let Some(slave) = Pymodbus::start("rtu").await else {
+        return;
+    };
+    let config = pty_config(&slave.path, RESPONSE_TIMEOUT).replace(
+        "listen = \"127.0.0.1:0\"\n",
+        "listen = \"127.0.0.1:0\"\nlisten_rtu_over_tcp = \"127.0.0.1:0\"\n\
+         listen_udp = \"127.0.0.1:0\"\n",
+    );
+    let gateway = start(&config).await;
+    // The script's registers 0-9 hold 1000-1009; each master writes register 5 and reads it
+    // back with register 6, then reads 0-2.
+    for (kind, addr) in [
+        ("rtu-over-tcp", gateway.local_addrs()[1]),
+        ("udp", gateway.udp_addrs()[0]),
+    ] {
+        assert_eq!(
+            net_master(&python, kind, addr, UNIT).await,
+            [
+                "result 6 ok",
+                "result 3 4242 1006",
+                "result 3 1000 1001 1002"
+            ],
+            "{kind}"
+        );
+    }
+}
