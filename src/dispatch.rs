@@ -6,7 +6,7 @@
 use crate::bus::{BusHandle, MasterId};
 use crate::error::{Outcome, RequestError};
 use crate::line::BROADCAST;
-use crate::metrics::Metrics;
+use crate::metrics::{Metrics, Protocol};
 use crate::pdu;
 use crate::routing::Router;
 use std::net::SocketAddr;
@@ -27,6 +27,8 @@ pub struct Client {
     pub master: MasterId,
     pub peer: SocketAddr,
     pub rights: Rights,
+    /// How it talks to the gateway: Modbus TCP unless [`Client::speaking`] says otherwise.
+    pub protocol: Protocol,
     refused: u64,
 }
 
@@ -36,8 +38,14 @@ impl Client {
             master,
             peer,
             rights,
+            protocol: Protocol::Tcp,
             refused: 0,
         }
+    }
+
+    /// The same master, speaking `protocol`.
+    pub fn speaking(self, protocol: Protocol) -> Self {
+        Client { protocol, ..self }
     }
 }
 
@@ -106,7 +114,12 @@ impl Dispatcher {
                 RequestError::NotBroadcastable(function)
             }
             Some(target) => {
-                return table.buses[target.bus].submit(client.master, target.address, pdu)
+                return table.buses[target.bus].submit_as(
+                    client.protocol,
+                    client.master,
+                    target.address,
+                    pdu,
+                )
             }
         };
         // Counted against the bus and slave the unit routes to, if any, else the unit id.
@@ -115,7 +128,8 @@ impl Dispatcher {
             None => ("", unit),
         };
         let outcome = Err(refusal);
-        self.metrics.request(bus, slave, function, &outcome);
+        self.metrics
+            .request(bus, slave, function, client.protocol, &outcome);
         let (reply, receiver) = oneshot::channel();
         let _ = reply.send(outcome);
         receiver

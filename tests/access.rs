@@ -16,10 +16,11 @@ async fn masters_outside_server_allow_are_refused_at_accept_and_counted() {
     let mut outsider = RawMaster::connect(addr(&gateway)).await;
     assert!(outsider.is_closed().await, "127.0.0.1 is not allowed");
     let scrape = Scrape::of(&gateway).await;
-    let refused = "modbus_gateway_tcp_connections_rejected_total{reason=\"not_allowed\"}";
+    let refused =
+        "modbus_gateway_tcp_connections_rejected_total{protocol=\"tcp\",reason=\"not_allowed\"}";
     assert_eq!(scrape.value(refused), 1.0);
     assert_eq!(
-        scrape.value("modbus_gateway_tcp_connections_accepted_total"),
+        scrape.value("modbus_gateway_tcp_connections_accepted_total{protocol=\"tcp\"}"),
         0.0
     );
 
@@ -69,7 +70,7 @@ async fn read_only_masters_read_but_anything_else_gets_0x01_and_never_reaches_th
     let scrape = Scrape::of(&gateway).await;
     for function in ["0x06", "0x10", "0x08", "0x41"] {
         let series = format!(
-            "modbus_gateway_requests_total{{bus=\"sim\",function=\"{function}\",outcome=\"read_only\",slave=\"1\"}}"
+            "modbus_gateway_requests_total{{bus=\"sim\",function=\"{function}\",outcome=\"read_only\",protocol=\"tcp\",slave=\"1\"}}"
         );
         assert_eq!(scrape.value(&series), 1.0, "{series}");
     }

@@ -117,7 +117,7 @@ async fn a_reply_with_a_bad_lrc_gets_0x0b_after_every_retry_and_counts_as_a_crc_
     let scrape = Scrape::of(&gateway).await;
     assert_eq!(
         scrape.value(
-            "modbus_gateway_requests_total{bus=\"sim\",function=\"0x03\",outcome=\"crc_error\",slave=\"9\"}"
+            "modbus_gateway_requests_total{bus=\"sim\",function=\"0x03\",outcome=\"crc_error\",protocol=\"tcp\",slave=\"9\"}"
         ),
         1.0
     );
@@ -141,7 +141,7 @@ async fn a_reply_cut_short_gets_0x0b_once_the_byte_timeout_has_passed() {
     let scrape = Scrape::of(&gateway).await;
     assert_eq!(
         scrape.value(
-            "modbus_gateway_requests_total{bus=\"sim\",function=\"0x03\",outcome=\"frame_error\",slave=\"9\"}"
+            "modbus_gateway_requests_total{bus=\"sim\",function=\"0x03\",outcome=\"frame_error\",protocol=\"tcp\",slave=\"9\"}"
         ),
         1.0
     );
@@ -288,7 +288,7 @@ async fn on_an_ascii_line_a_pause_longer_than_the_byte_timeout_splits_the_reply_
     let scrape = Scrape::of(&gateway).await;
     assert_eq!(
         scrape.value(
-            "modbus_gateway_requests_total{bus=\"sim\",function=\"0x03\",outcome=\"frame_error\",slave=\"9\"}"
+            "modbus_gateway_requests_total{bus=\"sim\",function=\"0x03\",outcome=\"frame_error\",protocol=\"tcp\",slave=\"9\"}"
         ),
         1.0
     );

@@ -48,7 +48,7 @@ fn counted(metrics: &Metrics, slave: u8, function: u8, outcome: &str) -> f64 {
     scrape(metrics)
         .get(&format!(
             "modbus_gateway_requests_total{{bus=\"line\",function=\"0x{function:02X}\",\
-             outcome=\"{outcome}\",slave=\"{slave}\"}}"
+             outcome=\"{outcome}\",protocol=\"tcp\",slave=\"{slave}\"}}"
         ))
         .unwrap_or(0.0)
 }

@@ -37,6 +37,7 @@ fn requests(bus: &str, slave: &str, outcome: &str) -> String {
             ("slave", slave),
             ("function", "0x03"),
             ("outcome", outcome),
+            ("protocol", "tcp"),
         ],
     )
 }
@@ -147,9 +148,12 @@ async fn known_traffic_moves_each_counter_and_histogram_by_exactly_what_it_cause
             "slave {slave} last success"
         );
     }
-    assert_eq!(after.value("modbus_gateway_tcp_connections"), 1.0);
     assert_eq!(
-        after.value("modbus_gateway_tcp_connections_accepted_total"),
+        after.value("modbus_gateway_tcp_connections{protocol=\"tcp\"}"),
+        1.0
+    );
+    assert_eq!(
+        after.value("modbus_gateway_tcp_connections_accepted_total{protocol=\"tcp\"}"),
         1.0
     );
 }
@@ -236,10 +240,15 @@ async fn requests_of_a_master_that_left_are_counted_dropped_and_never_sent() {
         .count();
     assert_eq!(sent, 1, "only the request already on the wire was sent");
     assert_eq!(
-        scrape.value("modbus_gateway_tcp_connections_closed_total{reason=\"by_master\"}"),
+        scrape.value(
+            "modbus_gateway_tcp_connections_closed_total{protocol=\"tcp\",reason=\"by_master\"}"
+        ),
         1.0
     );
-    assert_eq!(scrape.value("modbus_gateway_tcp_connections"), 0.0);
+    assert_eq!(
+        scrape.value("modbus_gateway_tcp_connections{protocol=\"tcp\"}"),
+        0.0
+    );
 }
 
 #[tokio::test]
@@ -259,21 +268,23 @@ async fn refused_and_broken_connections_are_counted_by_reason() {
     let scrape = within("the close is counted", async {
         loop {
             let scrape = Scrape::of(&gateway).await;
-            if scrape.value("modbus_gateway_tcp_connections") == 0.0 {
+            if scrape.value("modbus_gateway_tcp_connections{protocol=\"tcp\"}") == 0.0 {
                 return scrape;
             }
             tokio::time::sleep(Duration::from_millis(5)).await;
         }
     })
     .await;
-    let reason = |name: &str, reason: &str| scrape.value(&series(name, &[("reason", reason)]));
+    let reason = |name: &str, reason: &str| {
+        scrape.value(&series(name, &[("protocol", "tcp"), ("reason", reason)]))
+    };
     let rejected = "modbus_gateway_tcp_connections_rejected_total";
     let closed = "modbus_gateway_tcp_connections_closed_total";
     assert_eq!(reason(rejected, "max_connections"), 1.0);
     assert_eq!(reason(closed, "protocol_error"), 1.0);
     assert_eq!(reason(closed, "by_master"), 0.0);
     assert_eq!(
-        scrape.value("modbus_gateway_tcp_connections_accepted_total"),
+        scrape.value("modbus_gateway_tcp_connections_accepted_total{protocol=\"tcp\"}"),
         1.0
     );
 }

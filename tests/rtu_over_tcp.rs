@@ -207,7 +207,7 @@ async fn bytes_that_cannot_be_an_rtu_request_close_the_connection() {
     assert!(matches!(read, Ok(Ok(0) | Err(_))), "{read:?}");
     let scrape = Scrape::of(&gateway).await;
     assert_eq!(
-        scrape.value("modbus_gateway_tcp_connections_closed_total{reason=\"protocol_error\"}"),
+        scrape.value("modbus_gateway_tcp_connections_closed_total{protocol=\"rtu_over_tcp\",reason=\"protocol_error\"}"),
         2.0
     );
     assert_eq!(gateway.sim_line("sim").unwrap().stats().master_frames, 0);

@@ -1108,7 +1108,10 @@ async fn a_hundred_masters_on_faulty_slaves_and_a_vanishing_port_get_one_answer_
         "answers from slaves",
     );
     assert!(outcome("dropped") <= pending);
-    assert_eq!(after.value("modbus_gateway_tcp_connections"), 0.0);
+    assert_eq!(
+        after.value("modbus_gateway_tcp_connections{protocol=\"tcp\"}"),
+        0.0
+    );
 
     // The heap is back at its warm level.
     let new_series = series(&after).saturating_sub(series(&before));

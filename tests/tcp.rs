@@ -251,9 +251,9 @@ async fn at_max_connections_a_new_master_closes_the_connection_idle_longest() {
         assert_eq!(masters[i].call(10, 1, &READ_1).await, [0x03, 0x02, 0, 0]);
     }
     let scrape = Scrape::of(&gateway).await;
-    let closed = "modbus_gateway_tcp_connections_closed_total{reason=\"evicted\"}";
+    let closed = "modbus_gateway_tcp_connections_closed_total{protocol=\"tcp\",reason=\"evicted\"}";
     assert_eq!(scrape.value(closed), 1.0);
-    let refused = "modbus_gateway_tcp_connections_rejected_total{reason=\"max_connections\"}";
+    let refused = "modbus_gateway_tcp_connections_rejected_total{protocol=\"tcp\",reason=\"max_connections\"}";
     assert_eq!(scrape.value(refused), 0.0);
 }
 
@@ -290,9 +290,9 @@ async fn at_max_connections_with_every_master_waiting_for_a_reply_a_new_one_is_r
     assert_eq!(first.recv().await.pdu, [0x03, 0x02, 0, 0]);
     assert_eq!(second.recv().await.pdu, [0x03, 0x02, 0, 0]);
     let scrape = Scrape::of(&gateway).await;
-    let refused = "modbus_gateway_tcp_connections_rejected_total{reason=\"max_connections\"}";
+    let refused = "modbus_gateway_tcp_connections_rejected_total{protocol=\"tcp\",reason=\"max_connections\"}";
     assert_eq!(scrape.value(refused), 1.0);
-    let closed = "modbus_gateway_tcp_connections_closed_total{reason=\"evicted\"}";
+    let closed = "modbus_gateway_tcp_connections_closed_total{protocol=\"tcp\",reason=\"evicted\"}";
     assert_eq!(scrape.value(closed), 0.0);
 }
 
@@ -350,7 +350,8 @@ async fn an_mbap_length_longer_than_what_came_closes_the_connection_and_is_count
         liar.is_closed().await,
         "closed: the promised bytes never came"
     );
-    let closed = "modbus_gateway_tcp_connections_closed_total{reason=\"frame_timeout\"}";
+    let closed =
+        "modbus_gateway_tcp_connections_closed_total{protocol=\"tcp\",reason=\"frame_timeout\"}";
     within("the close is counted", async {
         while Scrape::of(&gateway).await.value(closed) != 1.0 {
             tokio::time::sleep(Duration::from_millis(5)).await;

@@ -273,4 +273,19 @@ async fn masters_of_all_three_kinds_polling_one_bus_are_all_answered_and_share_i
         most <= 2 * least,
         "unfair: {counts:?} (Modbus TCP, RTU over TCP, UDP)"
     );
+    // Each kind's requests are counted under its own protocol label.
+    let scrape = Scrape::of(&gateway).await;
+    for (protocol, count) in ["tcp", "rtu_over_tcp", "udp"].iter().zip(counts) {
+        let counted: f64 = scrape
+            .series_of("modbus_gateway_requests_total")
+            .iter()
+            .filter(|(series, _)| series.contains(&format!("protocol=\"{protocol}\"")))
+            .map(|(_, value)| value)
+            .sum();
+        assert_eq!(counted, f64::from(count), "{protocol}");
+    }
+    assert_eq!(
+        scrape.value("modbus_gateway_tcp_connections_accepted_total{protocol=\"rtu_over_tcp\"}"),
+        1.0
+    );
 }

@@ -21,7 +21,7 @@ pub use reconfigure::{longest_transaction, BusUpdates, Reconfigure};
 pub use task::BusTask;
 
 use crate::error::{Outcome, RequestError};
-use crate::metrics::BusMetrics;
+use crate::metrics::{BusMetrics, Protocol};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
@@ -98,13 +98,25 @@ impl BusHandle {
             .unwrap_or_else(PoisonError::into_inner) = Instant::now();
     }
 
-    /// Queue `pdu` for `slave`. The receiver yields the outcome; refusals (port down, queue full)
-    /// are in it at once.
+    /// Queue `pdu` for `slave` from a Modbus TCP master. The receiver yields the outcome;
+    /// refusals (port down, queue full) are in it at once.
     pub fn submit(&self, master: MasterId, slave: u8, pdu: Vec<u8>) -> oneshot::Receiver<Outcome> {
+        self.submit_as(Protocol::Tcp, master, slave, pdu)
+    }
+
+    /// [`BusHandle::submit`] for a master that speaks `protocol`.
+    pub fn submit_as(
+        &self,
+        protocol: Protocol,
+        master: MasterId,
+        slave: u8,
+        pdu: Vec<u8>,
+    ) -> oneshot::Receiver<Outcome> {
         let (reply, outcome) = oneshot::channel();
         let now = Instant::now();
         let job = Job {
             master,
+            protocol,
             slave,
             pdu,
             queued_at: now,
@@ -131,14 +143,15 @@ impl BusHandle {
     /// Drop the queued requests of a master that has gone; they are never sent.
     pub fn forget(&self, master: MasterId) {
         for job in self.queue.forget(master) {
-            self.metrics.request(job.slave, job.function(), None);
+            self.metrics
+                .request(job.slave, job.function(), job.protocol, None);
         }
     }
 
     /// Every request ends here, or in [`BusHandle::forget`]: counted by outcome, then answered.
     fn answer(&self, job: Job, outcome: Outcome) {
         self.metrics
-            .request(job.slave, job.function(), Some(&outcome));
+            .request(job.slave, job.function(), job.protocol, Some(&outcome));
         let _ = job.reply.send(outcome);
     }
 }

@@ -3,6 +3,7 @@
 //! one that sends a request at a time. A master that leaves takes its queued requests with it.
 
 use crate::error::Outcome;
+use crate::metrics::Protocol;
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Mutex, MutexGuard, PoisonError};
@@ -16,6 +17,8 @@ pub type MasterId = u64;
 #[derive(Debug)]
 pub struct Job {
     pub master: MasterId,
+    /// How the master talks to the gateway, for the requests' `protocol` label.
+    pub protocol: Protocol,
     pub slave: u8,
     pub pdu: Vec<u8>,
     /// When it was queued.
@@ -157,6 +160,7 @@ mod tests {
         let (reply, rx) = oneshot::channel();
         let job = Job {
             master,
+            protocol: Protocol::Tcp,
             slave: 1,
             pdu: vec![0x03, tag],
             queued_at: Instant::now(),

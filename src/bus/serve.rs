@@ -114,7 +114,7 @@ impl BusTask {
     async fn run_job(&mut self, serving: &mut Serving<'_>, job: Job) -> Option<Served> {
         let metrics = &self.handle.metrics;
         if job.reply.is_closed() {
-            metrics.request(job.slave, job.function(), None);
+            metrics.request(job.slave, job.function(), job.protocol, None);
             return None;
         }
         metrics.dequeued(job.queued_at.elapsed());

@@ -29,6 +29,7 @@ fn job(slave: u8, pdu: &[u8]) -> (Job, oneshot::Receiver<Outcome>) {
     let now = Instant::now();
     let job = Job {
         master: 1,
+        protocol: crate::metrics::Protocol::Tcp,
         slave,
         pdu: pdu.to_vec(),
         queued_at: now,

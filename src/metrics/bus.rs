@@ -2,7 +2,7 @@
 //! transaction's round trip and retries, a slave's state as `bus::health` reports it, a port
 //! opened, lost or failing to open, what went over the line.
 
-use super::labels::{decimal, seconds_since_epoch, Fate};
+use super::labels::{decimal, seconds_since_epoch, Fate, Protocol};
 use super::{Definer, RequestCounters, BUS_EVENTS};
 use crate::config;
 use crate::error::{Answer, Outcome, RequestError};
@@ -287,8 +287,9 @@ impl BusMetrics {
     }
 
     /// Count a request's outcome; `None` if it was dropped unsent because its master left.
-    pub fn request(&self, slave: u8, function: u8, outcome: Option<&Outcome>) {
-        self.counters.count(&self.name, slave, function, outcome);
+    pub fn request(&self, slave: u8, function: u8, protocol: Protocol, outcome: Option<&Outcome>) {
+        self.counters
+            .count(&self.name, slave, function, protocol, outcome);
     }
 
     /// The line took a request after it waited `wait` in the queue.

@@ -14,7 +14,7 @@ mod udp;
 pub use bus::BusMetrics;
 
 use bus::BusFamilies;
-pub use labels::{Closing, ExceptionSource, Fate, Rejection};
+pub use labels::{Closing, ExceptionSource, Fate, Protocol, Rejection};
 
 use labels::{decimal, hex};
 pub use tcp::TcpMetrics;
@@ -83,11 +83,18 @@ struct RequestCounters {
 impl RequestCounters {
     /// `outcome` is `None` for a request dropped unsent because its master left. Every outcome
     /// but an answer is also logged at debug level, under the same name as its label.
-    fn count(&self, bus: &str, slave: u8, function: u8, outcome: Option<&Outcome>) {
+    fn count(
+        &self,
+        bus: &str,
+        slave: u8,
+        function: u8,
+        protocol: Protocol,
+        outcome: Option<&Outcome>,
+    ) {
         let (fate, exception) = outcome.map_or((Fate::Dropped, None), Fate::of);
         let label = fate.label();
         self.requests
-            .with_label_values(&[bus, decimal(slave), hex(function), label])
+            .with_label_values(&[bus, decimal(slave), hex(function), label, protocol.label()])
             .inc();
         let function = hex(function);
         match outcome {
@@ -137,8 +144,9 @@ impl Metrics {
             counters: RequestCounters {
                 requests: define.int_counter(
                     "modbus_gateway_requests_total",
-                    "Modbus TCP requests by bus, slave address, function code and outcome.",
-                    &["bus", "slave", "function", "outcome"],
+                    "Requests by bus, slave address, function code, outcome and the master's \
+                     protocol.",
+                    &["bus", "slave", "function", "outcome", "protocol"],
                 ),
                 exceptions: define.int_counter(
                     "modbus_gateway_exceptions_total",
@@ -190,8 +198,16 @@ impl Metrics {
 
     /// Count a request the gateway answered without a bus (no route, a refused function code).
     /// `bus` is empty when the unit has no route; `slave` is then the unit id.
-    pub fn request(&self, bus: &str, slave: u8, function: u8, outcome: &Outcome) {
-        self.counters.count(bus, slave, function, Some(outcome));
+    pub fn request(
+        &self,
+        bus: &str,
+        slave: u8,
+        function: u8,
+        protocol: Protocol,
+        outcome: &Outcome,
+    ) {
+        self.counters
+            .count(bus, slave, function, protocol, Some(outcome));
     }
 
     /// Every metric in the Prometheus text format.
@@ -236,7 +252,10 @@ mod tests {
             value(&text, "modbus_gateway_build_info{version=\"0.1.0\"}"),
             Some(1.0)
         );
-        assert_eq!(value(&text, "modbus_gateway_tcp_connections"), Some(0.0));
+        assert_eq!(
+            value(&text, "modbus_gateway_tcp_connections{protocol=\"tcp\"}"),
+            Some(0.0)
+        );
     }
 
     #[test]
@@ -314,16 +333,17 @@ mod tests {
     fn a_request_counts_once_by_outcome_and_its_exception_by_source() {
         let metrics = Metrics::new();
         let line1 = metrics.bus(&bus(""));
-        line1.request(7, 0x03, Some(&Ok(Answer::Reply(vec![0x83, 0x02]))));
-        line1.request(7, 0x03, Some(&Ok(Answer::Reply(vec![0x83, 0x02]))));
-        line1.request(7, 0x10, None);
-        metrics.request("", 250, 0x03, &Err(RequestError::NoRoute(250)));
+        let tcp = Protocol::Tcp;
+        line1.request(7, 0x03, tcp, Some(&Ok(Answer::Reply(vec![0x83, 0x02]))));
+        line1.request(7, 0x03, tcp, Some(&Ok(Answer::Reply(vec![0x83, 0x02]))));
+        line1.request(7, 0x10, tcp, None);
+        metrics.request("", 250, 0x03, tcp, &Err(RequestError::NoRoute(250)));
         let text = metrics.render().unwrap();
         let series = [
-            ("modbus_gateway_requests_total{bus=\"line1\",function=\"0x03\",outcome=\"exception\",slave=\"7\"}", 2.0),
+            ("modbus_gateway_requests_total{bus=\"line1\",function=\"0x03\",outcome=\"exception\",protocol=\"tcp\",slave=\"7\"}", 2.0),
             ("modbus_gateway_exceptions_total{bus=\"line1\",code=\"0x02\",slave=\"7\",source=\"slave\"}", 2.0),
-            ("modbus_gateway_requests_total{bus=\"line1\",function=\"0x10\",outcome=\"dropped\",slave=\"7\"}", 1.0),
-            ("modbus_gateway_requests_total{bus=\"\",function=\"0x03\",outcome=\"no_route\",slave=\"250\"}", 1.0),
+            ("modbus_gateway_requests_total{bus=\"line1\",function=\"0x10\",outcome=\"dropped\",protocol=\"tcp\",slave=\"7\"}", 1.0),
+            ("modbus_gateway_requests_total{bus=\"\",function=\"0x03\",outcome=\"no_route\",protocol=\"tcp\",slave=\"250\"}", 1.0),
             ("modbus_gateway_exceptions_total{bus=\"\",code=\"0x0A\",slave=\"250\",source=\"gateway\"}", 1.0),
         ];
         for (series, expected) in series {

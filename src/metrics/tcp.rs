@@ -1,9 +1,9 @@
 //! The TCP side's metrics and events: connections open, accepted, refused and closed, writes
 //! refused on read-only connections.
 
-use super::labels::{hex, Closing, Rejection};
+use super::labels::{hex, Closing, Protocol, Rejection};
 use super::{Definer, TCP_EVENTS};
-use prometheus::{IntCounter, IntCounterVec, IntGauge};
+use prometheus::{IntCounter, IntCounterVec, IntGaugeVec};
 use std::fmt::Display;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Mutex, PoisonError};
@@ -12,8 +12,8 @@ use tracing::{debug, info, warn};
 
 /// The TCP side: connections open, accepted, refused and closed.
 pub struct TcpMetrics {
-    open: IntGauge,
-    accepted: IntCounter,
+    open: IntGaugeVec,
+    accepted: IntCounterVec,
     rejected: IntCounterVec,
     closed: IntCounterVec,
     bad_crc: IntCounter,
@@ -28,35 +28,36 @@ const NOT_ALLOWED_LOG_INTERVAL: Duration = Duration::from_secs(10);
 
 impl TcpMetrics {
     pub(super) fn new(define: &Definer) -> Self {
-        let open = define
-            .int_gauge(
-                "modbus_gateway_tcp_connections",
-                "Modbus TCP connections open now.",
-                &[],
-            )
-            .with_label_values::<&str>(&[]);
-        let accepted = define
-            .int_counter(
-                "modbus_gateway_tcp_connections_accepted_total",
-                "Modbus TCP connections accepted.",
-                &[],
-            )
-            .with_label_values::<&str>(&[]);
+        let open = define.int_gauge(
+            "modbus_gateway_tcp_connections",
+            "TCP connections of masters open now, by protocol.",
+            &["protocol"],
+        );
+        let accepted = define.int_counter(
+            "modbus_gateway_tcp_connections_accepted_total",
+            "TCP connections of masters accepted, by protocol.",
+            &["protocol"],
+        );
         let rejected = define.int_counter(
             "modbus_gateway_tcp_connections_rejected_total",
-            "Modbus TCP connections refused at accept, by reason.",
-            &["reason"],
+            "TCP connections of masters refused at accept, by reason and protocol.",
+            &["reason", "protocol"],
         );
-        for reason in Rejection::ALL {
-            rejected.with_label_values(&[reason.label()]);
-        }
         let closed = define.int_counter(
             "modbus_gateway_tcp_connections_closed_total",
-            "Modbus TCP connections that ended, by reason.",
-            &["reason"],
+            "TCP connections of masters that ended, by reason and protocol.",
+            &["reason", "protocol"],
         );
+        // Every series of Modbus TCP at zero from the start; those of RTU over TCP appear with
+        // its first connection.
+        let tcp = Protocol::Tcp.label();
+        open.with_label_values(&[tcp]);
+        accepted.with_label_values(&[tcp]);
+        for reason in Rejection::ALL {
+            rejected.with_label_values(&[reason.label(), tcp]);
+        }
         for reason in Closing::ALL {
-            closed.with_label_values(&[reason.label()]);
+            closed.with_label_values(&[reason.label(), tcp]);
         }
         let bad_crc = define
             .int_counter(
@@ -82,24 +83,28 @@ impl TcpMetrics {
         debug!(target: TCP_EVENTS, master, %peer, "RTU over TCP request with a bad CRC dropped");
     }
 
-    pub fn accepted(&self, master: u64, peer: &dyn Display, read_only: bool) {
-        self.accepted.inc();
-        self.open.inc();
+    pub fn accepted(&self, protocol: Protocol, master: u64, peer: &dyn Display, read_only: bool) {
+        let label = protocol.label();
+        self.accepted.with_label_values(&[label]).inc();
+        self.open.with_label_values(&[label]).inc();
         self.refusing.store(false, Ordering::Relaxed);
-        debug!(target: TCP_EVENTS, master, %peer, read_only, "master connected");
+        debug!(target: TCP_EVENTS, protocol = label, master, %peer, read_only, "master connected");
     }
 
-    /// A connection refused at accept. For `max_connections`, logged once until a connection is
-    /// accepted again; for `server.allow`, at most once per ten seconds.
-    /// A master of `protocol` was refused at `listen`.
+    /// A connection of a master of `protocol` refused at `listen`. For `max_connections`, logged
+    /// once until a connection is accepted again; for `server.allow`, at most once per ten
+    /// seconds.
     pub fn rejected(
         &self,
         reason: Rejection,
-        protocol: &str,
+        protocol: Protocol,
         listen: &dyn Display,
         peer: &dyn Display,
     ) {
-        self.rejected.with_label_values(&[reason.label()]).inc();
+        let protocol = protocol.label();
+        self.rejected
+            .with_label_values(&[reason.label(), protocol])
+            .inc();
         let (warn, event) = match reason {
             Rejection::MaxConnections => (
                 !self.refusing.swap(true, Ordering::Relaxed),
@@ -138,15 +143,25 @@ impl TcpMetrics {
 
     /// A connection accepted earlier has ended. Protocol errors are logged; a master leaving
     /// is routine.
-    pub fn closed(&self, reason: Closing, master: u64, peer: &dyn Display, error: &dyn Display) {
-        self.open.dec();
-        self.closed.with_label_values(&[reason.label()]).inc();
+    pub fn closed(
+        &self,
+        protocol: Protocol,
+        reason: Closing,
+        master: u64,
+        peer: &dyn Display,
+        error: &dyn Display,
+    ) {
+        let protocol = protocol.label();
+        self.open.with_label_values(&[protocol]).dec();
+        self.closed
+            .with_label_values(&[reason.label(), protocol])
+            .inc();
         if matches!(reason, Closing::ProtocolError | Closing::FrameTimeout) {
-            warn!(target: TCP_EVENTS, master, %peer, %error, "connection closed");
+            warn!(target: TCP_EVENTS, protocol, master, %peer, %error, "connection closed");
         } else if reason == Closing::Evicted {
-            info!(target: TCP_EVENTS, master, %peer, "closed the connection idle longest to admit a new master");
+            info!(target: TCP_EVENTS, protocol, master, %peer, "closed the connection idle longest to admit a new master");
         } else {
-            debug!(target: TCP_EVENTS, master, %peer, %error, "master disconnected");
+            debug!(target: TCP_EVENTS, protocol, master, %peer, %error, "master disconnected");
         }
     }
 }

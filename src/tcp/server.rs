@@ -221,7 +221,7 @@ pub(crate) async fn serve(listener: Listener, shared: Arc<Shared>) {
         let policy = shared.policy();
         let tcp = &shared.metrics.tcp;
         let Some(rights) = policy.access.admit(peer.ip()) else {
-            let protocol = listener.upstream.name();
+            let protocol = listener.upstream.protocol();
             tcp.rejected(Rejection::NotAllowed, protocol, &listener.addr, &peer);
             continue;
         };
@@ -233,7 +233,7 @@ pub(crate) async fn serve(listener: Listener, shared: Arc<Shared>) {
             let Some(permit) = shared.slot(policy.when_full).await else {
                 shared.metrics.tcp.rejected(
                     Rejection::MaxConnections,
-                    upstream.name(),
+                    upstream.protocol(),
                     &listen,
                     &peer,
                 );
@@ -263,10 +263,11 @@ async fn run_session(
     }
     let master = shared.new_master();
     let tcp = &shared.metrics.tcp;
-    tcp.accepted(master, &peer, rights == Rights::ReadOnly);
+    let protocol = upstream.protocol();
+    tcp.accepted(protocol, master, &peer, rights == Rights::ReadOnly);
     let activity = Arc::new(Activity::default());
     shared.sessions().insert(master, activity.clone());
-    let client = Client::new(master, peer, rights);
+    let client = Client::new(master, peer, rights).speaking(upstream.protocol());
     let error = session::run(
         stream,
         upstream,
@@ -278,5 +279,5 @@ async fn run_session(
     )
     .await;
     shared.sessions().remove(&master);
-    tcp.closed(error.closing(), master, &peer, &error);
+    tcp.closed(protocol, error.closing(), master, &peer, &error);
 }

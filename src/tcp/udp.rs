@@ -7,7 +7,7 @@
 use super::mbap;
 use super::server::Shared;
 use crate::dispatch::Client;
-use crate::metrics::UdpDrop;
+use crate::metrics::{Protocol, UdpDrop};
 use bytes::BytesMut;
 use std::collections::HashMap;
 use std::io;
@@ -71,9 +71,10 @@ pub(crate) async fn serve(listener: UdpListener, shared: Arc<Shared>) {
         let depth = shared.policy().limits.pipeline_depth;
         let outcome = {
             let mut sources = pending.lock().unwrap_or_else(PoisonError::into_inner);
-            let (client, count) = sources
-                .entry(peer)
-                .or_insert_with(|| (Client::new(shared.new_master(), peer, rights), 0));
+            let (client, count) = sources.entry(peer).or_insert_with(|| {
+                let client = Client::new(shared.new_master(), peer, rights);
+                (client.speaking(Protocol::Udp), 0)
+            });
             if *count >= depth {
                 None
             } else {

@@ -5,6 +5,7 @@
 
 use super::mbap::{self, FrameError, Header, Request};
 use crate::line::rtu::{self, FrameLen};
+use crate::metrics::Protocol;
 use bytes::BytesMut;
 
 /// A listener's framing.
@@ -30,6 +31,14 @@ impl Upstream {
         match self {
             Upstream::Mbap => "Modbus TCP",
             Upstream::RtuOverTcp => "RTU over TCP",
+        }
+    }
+
+    /// The `protocol` label of its masters' connections and requests.
+    pub fn protocol(self) -> Protocol {
+        match self {
+            Upstream::Mbap => Protocol::Tcp,
+            Upstream::RtuOverTcp => Protocol::RtuOverTcp,
         }
     }
 
