@@ -755,3 +755,50 @@ async fn pymodbus_rtu_over_tcp_and_udp_masters_reach_pymodbus_rtu_slave_on_a_pty
         );
     }
 }
+
+/// Run mbpoll (libmodbus's command-line master) with `args`; its standard output.
+async fn mbpoll(mbpoll: &std::path::Path, args: Vec<String>) -> String {
+    let mbpoll = mbpoll.to_owned();
+    let output = within(
+        "mbpoll finishes",
+        tokio::task::spawn_blocking(move || {
+            Command::new(mbpoll)
+                .args(&args)
+                .stderr(Stdio::inherit())
+                .output()
+        }),
+    )
+    .await
+    .expect("the task runs")
+    .expect("mbpoll runs");
+    let text = String::from_utf8_lossy(&output.stdout).into_owned();
+    assert!(output.status.success(), "{:?}\n{text}", output.status);
+    text
+}
+
+#[tokio::test]
+async fn mbpoll_writes_and_reads_the_sim_line_over_modbus_tcp_beside_the_other_kinds() {
+    // Debian's mbpoll (1.4.11) speaks Modbus TCP and RTU only: neither RTU over TCP nor UDP.
+    let Some(tool) = crate::support::tool("mbpoll") else {
+        return;
+    };
+    let gateway = crate::support::start(
+        "[server]\nlisten = \"127.0.0.1:0\"\n\
+         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\n\
+         [[bus.sim_slave]]\naddress = \"1-2\"\n",
+    )
+    .await;
+    let port = gateway.local_addrs()[0].port().to_string();
+    let common = |extra: &[&str]| -> Vec<String> {
+        let mut args: Vec<String> = ["-m", "tcp", "-p", &port, "-a", "2", "-0", "-1"]
+            .iter()
+            .map(|s| (*s).to_owned())
+            .collect();
+        args.extend(extra.iter().map(|s| (*s).to_owned()));
+        args
+    };
+    mbpoll(&tool, common(&["-r", "5", "127.0.0.1", "4242"])).await;
+    let read = mbpoll(&tool, common(&["-r", "5", "-c", "2", "127.0.0.1"])).await;
+    assert!(read.contains("[5]: \t4242"), "{read}");
+    assert!(read.contains("[6]: \t0"), "{read}");
+}
