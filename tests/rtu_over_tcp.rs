@@ -212,3 +212,31 @@ async fn bytes_that_cannot_be_an_rtu_request_close_the_connection() {
     );
     assert_eq!(gateway.sim_line("sim").unwrap().stats().master_frames, 0);
 }
+
+#[tokio::test]
+async fn a_full_queue_answers_0x06_as_an_rtu_frame_after_the_requests_before_it() {
+    let gateway = start(
+        "[server]\nlisten = \"127.0.0.1:0\"\nlisten_rtu_over_tcp = \"127.0.0.1:0\"\n\
+         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nresponse_timeout = \"200ms\"\n\
+         queue_depth = 1\n[[bus.sim_slave]]\naddress = 1\n",
+    )
+    .await;
+    let mut master = TcpStream::connect(rtu_addr(&gateway)).await.unwrap();
+    // Three reads of silent unit 9 at once: the queue holds one, so at least one is refused
+    // (which depends on whether the line has taken the first yet); all come back in order.
+    let read = rtu::encode(9, &[0x03, 0x00, 0x00, 0x00, 0x01]);
+    let replies = exchange(
+        &mut master,
+        &[read.clone(), read.clone(), read].concat(),
+        15,
+    )
+    .await;
+    let (timeout, full) = (rtu::encode(9, &[0x83, 0x0B]), rtu::encode(9, &[0x83, 0x06]));
+    let replies: Vec<&[u8]> = replies.chunks(5).collect();
+    assert!(
+        replies.iter().all(|r| *r == timeout || *r == full),
+        "{replies:02X?}"
+    );
+    assert!(replies.contains(&&full[..]), "{replies:02X?}");
+    assert_eq!(replies[0], timeout, "the first went on the line");
+}
