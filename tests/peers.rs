@@ -664,26 +664,14 @@ async fn net_master(
     addr: std::net::SocketAddr,
     unit: u8,
 ) -> Vec<String> {
-    let python = python.clone();
-    let args = [
+    let args = vec![
         NET_MASTER.to_owned(),
         kind.to_owned(),
         addr.ip().to_string(),
         addr.port().to_string(),
         unit.to_string(),
     ];
-    let output = within(
-        "the pymodbus master finishes",
-        tokio::task::spawn_blocking(move || {
-            Command::new(python)
-                .args(&args)
-                .stderr(Stdio::inherit())
-                .output()
-        }),
-    )
-    .await
-    .expect("the task runs")
-    .expect("python runs");
+    let output = run_to_end(python.into(), args).await;
     assert!(output.status.success(), "{kind}: {:?}", output.status);
     String::from_utf8_lossy(&output.stdout)
         .lines()
@@ -756,13 +744,13 @@ async fn pymodbus_rtu_over_tcp_and_udp_masters_reach_pymodbus_rtu_slave_on_a_pty
     }
 }
 
-/// Run mbpoll (libmodbus's command-line master) with `args`; its standard output.
-async fn mbpoll(mbpoll: &std::path::Path, args: Vec<String>) -> String {
-    let mbpoll = mbpoll.to_owned();
-    let output = within(
-        "mbpoll finishes",
+/// Run `program` with `args` to its end (bounded by the patience); its output.
+async fn run_to_end(program: std::path::PathBuf, args: Vec<String>) -> std::process::Output {
+    let what = format!("{} finishes", program.display());
+    within(
+        &what,
         tokio::task::spawn_blocking(move || {
-            Command::new(mbpoll)
+            Command::new(program)
                 .args(&args)
                 .stderr(Stdio::inherit())
                 .output()
@@ -770,7 +758,12 @@ async fn mbpoll(mbpoll: &std::path::Path, args: Vec<String>) -> String {
     )
     .await
     .expect("the task runs")
-    .expect("mbpoll runs");
+    .expect("the program runs")
+}
+
+/// Run mbpoll (libmodbus's command-line master) with `args`; its standard output.
+async fn mbpoll(mbpoll: &std::path::Path, args: Vec<String>) -> String {
+    let output = run_to_end(mbpoll.to_owned(), args).await;
     let text = String::from_utf8_lossy(&output.stdout).into_owned();
     assert!(output.status.success(), "{:?}\n{text}", output.status);
     text
