@@ -240,3 +240,25 @@ async fn a_full_queue_answers_0x06_as_an_rtu_frame_after_the_requests_before_it(
     assert!(replies.contains(&&full[..]), "{replies:02X?}");
     assert_eq!(replies[0], timeout, "the first went on the line");
 }
+
+#[tokio::test]
+async fn two_user_defined_requests_sent_together_never_frame_and_close_at_frame_timeout() {
+    let gateway = gateway("frame_timeout = \"300ms\"").await;
+    let mut master = TcpStream::connect(rtu_addr(&gateway)).await.unwrap();
+    let request = rtu::encode(1, &[0x41, 0x01, 0x02]);
+    master
+        .write_all(&[request.clone(), request].concat())
+        .await
+        .unwrap();
+    let mut byte = [0u8; 1];
+    let read = tokio::time::timeout(PATIENCE, master.read(&mut byte)).await;
+    assert!(matches!(read, Ok(Ok(0) | Err(_))), "{read:?}");
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(
+        scrape.value(
+            "modbus_gateway_tcp_connections_closed_total{protocol=\"rtu_over_tcp\",reason=\"frame_timeout\"}"
+        ),
+        1.0
+    );
+    assert_eq!(gateway.sim_line("sim").unwrap().stats().master_frames, 0);
+}

@@ -69,6 +69,7 @@ pub(crate) async fn serve(listener: UdpListener, shared: Arc<Shared>) {
             continue;
         };
         let depth = shared.policy().limits.pipeline_depth;
+        let (header, function) = (request.header, request.pdu[0]);
         let outcome = {
             let mut sources = pending.lock().unwrap_or_else(PoisonError::into_inner);
             let (client, count) = sources.entry(peer).or_insert_with(|| {
@@ -79,11 +80,7 @@ pub(crate) async fn serve(listener: UdpListener, shared: Arc<Shared>) {
                 None
             } else {
                 *count += 1;
-                Some(
-                    shared
-                        .dispatcher
-                        .submit(client, request.header.unit, request.pdu.clone()),
-                )
+                Some(shared.dispatcher.submit(client, header.unit, request.pdu))
             }
         };
         let Some(outcome) = outcome else {
@@ -92,14 +89,13 @@ pub(crate) async fn serve(listener: UdpListener, shared: Arc<Shared>) {
         };
         let socket = listener.socket.clone();
         let pending = pending.clone();
-        let function = request.pdu[0];
         tokio::spawn(async move {
             let outcome = outcome
                 .await
                 .unwrap_or(Err(crate::error::RequestError::PortDown));
             if let Some(pdu) = super::session::reply_pdu(function, outcome) {
                 let mut reply = Vec::with_capacity(MAX_DATAGRAM);
-                mbap::encode(request.header, &pdu, &mut reply);
+                mbap::encode(header, &pdu, &mut reply);
                 let _ = socket.send_to(&reply, peer).await;
             }
             done(&pending, peer);
