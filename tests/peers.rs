@@ -166,6 +166,26 @@ fn unhex(text: &str) -> Vec<u8> {
         .collect()
 }
 
+/// Send each case's request to [`UNIT`] in turn and check its reply PDU; the requests and the
+/// replies, each in order, for checking the wire.
+async fn call_each<'a>(
+    master: &mut RawMaster,
+    cases: &[(&'a [u8], &'a [u8])],
+    what: &str,
+) -> (Vec<&'a [u8]>, Vec<&'a [u8]>) {
+    within(what, async {
+        for (transaction, (request, reply)) in (1..).zip(cases) {
+            assert_eq!(
+                master.call(transaction, UNIT, request).await,
+                *reply,
+                "request {request:02X?}"
+            );
+        }
+    })
+    .await;
+    cases.iter().copied().unzip()
+}
+
 /// Each PDU as an RTU frame to or from [`UNIT`], back to back: what the line carries.
 fn frames(pdus: &[&[u8]]) -> Vec<u8> {
     pdus.iter().flat_map(|pdu| rtu::encode(UNIT, pdu)).collect()
@@ -203,19 +223,7 @@ async fn pymodbus_serial_server_answers_pass_through_the_gateway_byte_for_byte()
         // 03 read register 0x20, which the slave does not have: exception 02, illegal address.
         (&[0x03, 0x00, 0x20, 0x00, 0x01], &[0x83, 0x02]),
     ];
-    within("five transactions", async {
-        for (transaction, (request, reply)) in (1..).zip(cases) {
-            assert_eq!(
-                master.call(transaction, UNIT, request).await,
-                reply,
-                "request {request:02X?}"
-            );
-        }
-    })
-    .await;
-
-    let requests: Vec<&[u8]> = cases.iter().map(|(request, _)| *request).collect();
-    let replies: Vec<&[u8]> = cases.iter().map(|(_, reply)| *reply).collect();
+    let (requests, replies) = call_each(&mut master, &cases, "five transactions").await;
     let (to_slave, to_gateway) = slave
         .wire(frames(&requests).len(), frames(&replies).len())
         .await;
@@ -441,19 +449,7 @@ async fn pymodbus_ascii_serial_server_answers_every_function_through_the_gateway
         // 03 read register 0x20, which the slave does not have: exception 02, illegal address.
         (&[0x03, 0x00, 0x20, 0x00, 0x01], &[0x83, 0x02]),
     ];
-    within("twelve transactions", async {
-        for (transaction, (request, reply)) in (1..).zip(cases) {
-            assert_eq!(
-                master.call(transaction, UNIT, request).await,
-                reply,
-                "request {request:02X?}"
-            );
-        }
-    })
-    .await;
-
-    let requests: Vec<&[u8]> = cases.iter().map(|(request, _)| *request).collect();
-    let replies: Vec<&[u8]> = cases.iter().map(|(_, reply)| *reply).collect();
+    let (requests, replies) = call_each(&mut master, &cases, "twelve transactions").await;
     let (requests, requests_len) = ascii_expected(UNIT, &requests);
     let (replies, replies_len) = ascii_expected(UNIT, &replies);
     let (to_slave, to_gateway) = slave.wire(requests_len, replies_len).await;
@@ -495,19 +491,7 @@ async fn an_ascii_slave_answering_in_lower_case_hex_is_understood_and_its_replie
         // 02 read discrete inputs 0-11: odd ones on; on the wire aa 0a.
         (&[0x02, 0x00, 0x00, 0x00, 0x0C], &[0x02, 0x02, 0xAA, 0x0A]),
     ];
-    within("three transactions", async {
-        for (transaction, (request, reply)) in (1..).zip(cases) {
-            assert_eq!(
-                master.call(transaction, UNIT, request).await,
-                reply,
-                "request {request:02X?}"
-            );
-        }
-    })
-    .await;
-
-    let requests: Vec<&[u8]> = cases.iter().map(|(request, _)| *request).collect();
-    let replies: Vec<&[u8]> = cases.iter().map(|(_, reply)| *reply).collect();
+    let (requests, replies) = call_each(&mut master, &cases, "three transactions").await;
     let (requests, requests_len) = ascii_expected(UNIT, &requests);
     let (replies, replies_len) = ascii_expected(UNIT, &replies);
     let (to_slave, to_gateway) = slave.wire(requests_len, replies_len).await;
