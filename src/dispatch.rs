@@ -13,12 +13,26 @@ use std::net::SocketAddr;
 use std::sync::{Arc, PoisonError, RwLock};
 use tokio::sync::oneshot;
 
-/// What a master may ask for (`server.read_only`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// What a master may ask for: from its address (`server.read_only`) and, on a TLS connection,
+/// its certificate's role. Ordered from least to most, so the stricter of two is their `min`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Rights {
-    ReadWrite,
+    /// Nothing: every request gets 0x01, unsent (a TLS role with access `"none"`).
+    NoAccess,
     /// Only requests known to change nothing on a slave; anything else gets 0x01, unsent.
     ReadOnly,
+    ReadWrite,
+}
+
+impl Rights {
+    /// The `access` field of the logs.
+    pub fn name(self) -> &'static str {
+        match self {
+            Rights::NoAccess => "none",
+            Rights::ReadOnly => "read_only",
+            Rights::ReadWrite => "read_write",
+        }
+    }
 }
 
 /// The master requests come from: one per connection.
@@ -100,12 +114,17 @@ impl Dispatcher {
             _ if !pdu::is_valid_request_function(function) => {
                 RequestError::InvalidFunction(function)
             }
-            _ if client.rights == Rights::ReadOnly && !pdu::is_read_only(&pdu) => {
+            _ if client.rights == Rights::NoAccess
+                || client.rights == Rights::ReadOnly && !pdu::is_read_only(&pdu) =>
+            {
                 client.refused += 1;
                 let first = client.refused == 1;
                 let tcp = &self.metrics.tcp;
-                tcp.write_refused(client.master, &client.peer, function, first);
-                RequestError::ReadOnly(function)
+                tcp.request_refused(client.master, &client.peer, function, client.rights, first);
+                match client.rights {
+                    Rights::NoAccess => RequestError::NoAccess(function),
+                    _ => RequestError::ReadOnly(function),
+                }
             }
             None => RequestError::NoRoute(unit),
             Some(target)

@@ -45,6 +45,8 @@ pub enum RequestError {
     InvalidFunction(u8),
     #[error("function code {0:#04x} may change the slave, and the master is read-only")]
     ReadOnly(u8),
+    #[error("function code {0:#04x} refused: the master's TLS role allows nothing")]
+    NoAccess(u8),
     #[error("no route for unit {0}")]
     NoRoute(u8),
     #[error("function code {0:#04x} cannot be broadcast")]
@@ -70,7 +72,8 @@ impl RequestError {
         match self {
             RequestError::InvalidFunction(_)
             | RequestError::NotBroadcastable(_)
-            | RequestError::ReadOnly(_) => ExceptionCode::IllegalFunction,
+            | RequestError::ReadOnly(_)
+            | RequestError::NoAccess(_) => ExceptionCode::IllegalFunction,
             RequestError::NoRoute(_) | RequestError::PortDown | RequestError::ShuttingDown => {
                 ExceptionCode::GatewayPathUnavailable
             }

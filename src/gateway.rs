@@ -12,6 +12,7 @@ use crate::routing::Router;
 use crate::shutdown::{self, Stop};
 use crate::sim::{self, SimLine};
 use crate::tcp::server::Shared;
+use crate::tcp::tls::TlsServer;
 use crate::tcp::{self, Policy, Upstream};
 use std::io;
 use std::net::SocketAddr;
@@ -27,6 +28,8 @@ use tracing::{info, warn};
 pub enum StartError {
     #[error("cannot listen on {addr}: {source}")]
     Listen { addr: SocketAddr, source: io::Error },
+    #[error("{0}")]
+    Tls(ConfigErrors),
     #[error("bus {bus}: simulated slave {address}: {reason}")]
     SimSlave {
         bus: String,
@@ -50,6 +53,7 @@ struct Running {
 
 pub struct Gateway {
     local_addrs: Vec<SocketAddr>,
+    tls_addrs: Vec<SocketAddr>,
     udp_addrs: Vec<SocketAddr>,
     metrics_addr: SocketAddr,
     metrics: Arc<Metrics>,
@@ -94,18 +98,66 @@ pub fn power_on_line(bus: &config::Bus) -> Result<SimLine, StartError> {
 }
 
 /// Read `path` with the `MBGW__` variables among `env` over it, and check it through and
-/// through: the configuration's own checks and the simulated drives' parameters, which only the
-/// simulator knows. What the daemon runs, checks (`check-config`) and reloads.
+/// through: the configuration's own checks, the simulated drives' parameters, which only the
+/// simulator knows, and the `[server.tls]` files. What the daemon runs, checks (`check-config`)
+/// and reloads.
 pub fn load_config(
     path: &Path,
     env: impl IntoIterator<Item = (String, String)>,
 ) -> Result<Config, ConfigErrors> {
-    Config::load_with(path, env, &sim::Drives)
+    let config = Config::load_with(path, env, &sim::Drives)?;
+    if let Some(tls) = &config.server.tls {
+        TlsServer::load(tls)?;
+    }
+    Ok(config)
 }
 
-/// [`load_config`] for TOML text, with no environment.
+/// [`load_config`] for TOML text, with no environment, and the `[server.tls]` files left for
+/// [`Gateway::start`] to read.
 pub fn config_from_toml(text: &str) -> Result<Config, ConfigErrors> {
     Config::from_toml_str_with(text, &sim::Drives)
+}
+
+/// Every TCP listener of `server`: Modbus TCP, RTU over TCP, then TLS.
+async fn bind_tcp(server: &config::Server) -> Result<Vec<tcp::server::Listener>, StartError> {
+    let mut listeners = Vec::new();
+    for (addrs, upstream) in [
+        (&server.listen, Upstream::Mbap),
+        (&server.listen_rtu_over_tcp, Upstream::RtuOverTcp),
+        (&server.listen_tls, Upstream::Tls),
+    ] {
+        let bound = tcp::bind(addrs, upstream)
+            .await
+            .map_err(|(addr, source)| StartError::Listen { addr, source })?;
+        listeners.extend(bound);
+    }
+    Ok(listeners)
+}
+
+/// The TLS server of `[server.tls]`, read from its files now, with its certificate's expiry
+/// exported and warned of; `None` without that table.
+fn load_tls(
+    server: &config::Server,
+    metrics: &Metrics,
+) -> Result<Option<Arc<TlsServer>>, StartError> {
+    let Some(settings) = &server.tls else {
+        return Ok(None);
+    };
+    let tls = TlsServer::load(settings).map_err(StartError::Tls)?;
+    let certificate = &tls.certificate;
+    metrics.tls.certificate_expires(certificate.expires);
+    let now = std::time::SystemTime::now();
+    let days_left = certificate.days_left(now);
+    let subject = &certificate.subject;
+    match certificate.expiry_warning(now) {
+        Some(warning) => {
+            warn!(file = %settings.certificate.display(), subject, days_left, "{warning}")
+        }
+        None => {
+            info!(file = %settings.certificate.display(), subject, days_left, "TLS server certificate loaded")
+        }
+    }
+    Ok(Some(Arc::new(tls)))
 }
 
 /// The running bus named `name`, taken out of `buses` (the last one takes its place, which is
@@ -143,16 +195,9 @@ impl Gateway {
     /// Bind every listener and start every bus. Fails only if a listen address cannot be bound;
     /// a serial port that cannot be opened yet is retried by its bus while the rest serves.
     pub async fn start(config: &Config) -> Result<Gateway, StartError> {
-        let mut listeners = Vec::new();
-        for (addrs, upstream) in [
-            (&config.server.listen, Upstream::Mbap),
-            (&config.server.listen_rtu_over_tcp, Upstream::RtuOverTcp),
-        ] {
-            let bound = tcp::bind(addrs, upstream)
-                .await
-                .map_err(|(addr, source)| StartError::Listen { addr, source })?;
-            listeners.extend(bound);
-        }
+        let metrics = Arc::new(Metrics::new());
+        let tls = load_tls(&config.server, &metrics)?;
+        let listeners = bind_tcp(&config.server).await?;
         let udp_listeners = tcp::udp::bind(&config.server.listen_udp)
             .await
             .map_err(|(addr, source)| StartError::Listen { addr, source })?;
@@ -165,7 +210,6 @@ impl Gateway {
             .await
             .map_err(listen_error)?;
         let metrics_addr = metrics_listener.local_addr().map_err(listen_error)?;
-        let metrics = Arc::new(Metrics::new());
         let mut buses = Vec::with_capacity(config.bus.len());
         for settings in &config.bus {
             let device = device_for(settings, None)?;
@@ -180,7 +224,7 @@ impl Gateway {
         let (stop, stopping) = shutdown::channel();
         let shared = Arc::new(Shared::new(
             dispatcher,
-            Policy::of(&config.server),
+            Policy::of(&config.server, tls),
             config.server.max_connections,
             metrics.clone(),
             stopping,
@@ -198,7 +242,10 @@ impl Gateway {
             metrics.clone(),
             not_ready,
         ));
-        let local_addrs = listeners.iter().map(|l| l.addr).collect();
+        let (tls_listeners, plain) = listeners.iter().partition(|l| l.upstream == Upstream::Tls);
+        let addrs =
+            |listeners: Vec<&tcp::server::Listener>| listeners.iter().map(|l| l.addr).collect();
+        let (tls_addrs, local_addrs) = (addrs(tls_listeners), addrs(plain));
         let mut listener_tasks = JoinSet::new();
         let udp_addrs = udp_listeners.iter().map(|l| l.addr).collect();
         for listener in udp_listeners {
@@ -211,6 +258,7 @@ impl Gateway {
         }
         Ok(Gateway {
             local_addrs,
+            tls_addrs,
             udp_addrs,
             metrics_addr,
             metrics,
@@ -249,7 +297,8 @@ impl Gateway {
         let mut config = self.config.lock().unwrap_or_else(PoisonError::into_inner);
         let mut running = self.buses.lock().unwrap_or_else(PoisonError::into_inner);
         let diff = ConfigDiff::new(&config, new);
-        // Every device first, so that a failure leaves everything as it was.
+        // The TLS files and every device first, so that a failure leaves everything as it was.
+        let tls = load_tls(&new.server, &self.metrics)?;
         let devices = new
             .bus
             .iter()
@@ -289,8 +338,12 @@ impl Gateway {
             done.applied
                 .push("connection limits and access (for new connections)".to_owned());
         }
+        if tls.is_some() {
+            done.applied
+                .push("TLS certificate, key, client CA and roles (for new connections)".to_owned());
+        }
         self.shared
-            .set_policy(Policy::of(&new.server), new.server.max_connections);
+            .set_policy(Policy::of(&new.server, tls), new.server.max_connections);
         if diff.shutdown_timeout {
             done.applied.push("server.shutdown_timeout".to_owned());
         }
@@ -345,6 +398,11 @@ impl Gateway {
     /// `server.listen`'s, then `server.listen_rtu_over_tcp`'s.
     pub fn local_addrs(&self) -> &[SocketAddr] {
         &self.local_addrs
+    }
+
+    /// The bound `server.listen_tls` addresses.
+    pub fn tls_addrs(&self) -> &[SocketAddr] {
+        &self.tls_addrs
     }
 
     /// The bound `server.listen_udp` addresses.

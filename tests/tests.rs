@@ -17,6 +17,7 @@
 //! - `peers`: third-party peers on the serial path: pymodbus's RTU and ASCII servers behind the
 //!   gateway, its ASCII client on `simulate`, its RTU-over-TCP and UDP clients on the gateway.
 //! - `rtu_over_tcp`: masters sending plain RTU frames on TCP: framing, bad CRCs, exceptions as RTU.
+//! - `tls`: Modbus/TCP Security: roles, refused certificates, handshake timeout, many TLS masters.
 //! - `udp`: Modbus UDP masters: replies to their source, access lists, what is dropped.
 //! - `simulate`: the `simulate` subcommand answering RTU masters on a pty.
 //! - `service`: the gateway under a service manager: graceful stop.
@@ -51,5 +52,6 @@ mod serial;
 mod service;
 mod simulate;
 mod tcp;
+mod tls;
 mod transparency;
 mod udp;

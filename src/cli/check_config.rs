@@ -3,23 +3,70 @@
 
 use crate::config::Config;
 use crate::line::Framing;
+use crate::tcp::tls::TlsServer;
 use std::path::Path;
 use std::process::ExitCode;
+use std::time::SystemTime;
 
-/// Print the description of the valid configuration `config` read from `path`, unless `quiet`.
+/// Print the description of the valid configuration `config` read from `path`, unless `quiet`;
+/// warn on standard error of a TLS server certificate that expires within 30 days.
 pub fn check_config(path: &Path, config: &Config, quiet: bool) -> ExitCode {
+    let tls = match config.server.tls.as_ref().map(TlsServer::load).transpose() {
+        Ok(tls) => tls,
+        // The files changed since they were checked a moment ago.
+        Err(errors) => {
+            for e in &errors.0 {
+                eprintln!("modbus-gateway: {}: {e}", path.display());
+            }
+            return ExitCode::from(super::EXIT_CONFIG);
+        }
+    };
+    let now = SystemTime::now();
+    if let Some(warning) = tls.as_ref().and_then(|t| t.certificate.expiry_warning(now)) {
+        eprintln!(
+            "modbus-gateway: {}: warning: server.tls.certificate: {warning}",
+            path.display()
+        );
+    }
     if !quiet {
-        print!("{}", describe(path, config));
+        print!("{}", describe(path, config, tls.as_ref(), now));
     }
     ExitCode::SUCCESS
+}
+
+/// What the TLS listeners will serve: the certificate, its expiry, the CA, the roles.
+fn describe_tls(config: &Config, tls: &TlsServer, now: SystemTime) -> String {
+    let certificate = &tls.certificate;
+    let expires = humantime::format_rfc3339_seconds(certificate.expires);
+    let days = certificate.days_left(now);
+    let mut roles: Vec<String> = Vec::new();
+    if let Some(settings) = &config.server.tls {
+        roles.extend(
+            settings
+                .roles
+                .iter()
+                .map(|(role, access)| format!("{role} {}", access.name())),
+        );
+        roles.push(format!(
+            "any other certificate {}",
+            settings.default_role_access.name()
+        ));
+    }
+    format!(
+        "# TLS: server certificate {}, expires {expires} (in {days} days); client certificates \
+         must chain to {} CA certificate(s); roles: {}.\n",
+        certificate.subject,
+        certificate.client_cas,
+        roles.join(", ")
+    )
 }
 
 fn ms(d: std::time::Duration) -> String {
     format!("{:.3} ms", d.as_secs_f64() * 1e3)
 }
 
-/// The resolved configuration, preceded by what it means on each line.
-fn describe(path: &Path, config: &Config) -> String {
+/// The resolved configuration, preceded by what it means on each line and for TLS masters.
+fn describe(path: &Path, config: &Config, tls: Option<&TlsServer>, now: SystemTime) -> String {
     let mut out = format!("# {} is valid.\n", path.display());
     for bus in &config.bus {
         let format = bus.format();
@@ -44,6 +91,9 @@ fn describe(path: &Path, config: &Config) -> String {
                 ms(master.silence),
             ),
         };
+    }
+    if let Some(tls) = tls {
+        out += &describe_tls(config, tls, now);
     }
     out + "\n" + &config.to_toml()
 }

@@ -3,7 +3,8 @@
 //! changes nothing (deriving values is [`resolve`](super::resolve)'s); reports every problem, in
 //! the order of the file, each with its key path. Knows nothing of how a drive is simulated.
 
-use super::{Bus, Config, ConfigError, ConfigErrors, Route, Server, SimSlave, UnitSet};
+use super::OTHER_ROLE;
+use super::{Bus, Config, ConfigError, ConfigErrors, Route, Server, SimSlave, Tls, UnitSet};
 use super::{MAX_SLAVE_ADDRESS, SIM_DEVICE};
 use crate::line::{Framing, SerialFormat};
 use crate::pdu::EXCEPTION_BIT;
@@ -89,6 +90,33 @@ fn check_server(server: &Server, report: &mut Report) {
             "server.keepalive",
             "must be \"0s\" (off) or at least 1s (TCP counts it in seconds)",
         );
+    }
+    match &server.tls {
+        None if !server.listen_tls.is_empty() => report.fail(
+            "server.tls",
+            "server.listen_tls needs a [server.tls] table: certificate, private_key and client_ca",
+        ),
+        None => {}
+        Some(tls) => check_tls(tls, report),
+    }
+}
+
+fn check_tls(tls: &Tls, report: &mut Report) {
+    for name in tls.roles.keys() {
+        if name.is_empty() {
+            report.fail("server.tls.roles", "a role needs a name");
+        } else if name == OTHER_ROLE {
+            report.fail(
+                format!("server.tls.roles.{name}"),
+                format!(
+                    "`{OTHER_ROLE}` is the role label of certificates whose role is not in the \
+                     table; give the role another name"
+                ),
+            );
+        }
+    }
+    if tls.handshake_timeout.is_zero() {
+        report.fail("server.tls.handshake_timeout", "must be longer than 0");
     }
 }
 

@@ -14,6 +14,9 @@ pub const PIPELINE_DEPTH: usize = 16;
 pub const SHUTDOWN_TIMEOUT: Duration = Duration::from_secs(10);
 pub const FRAME_TIMEOUT: Duration = Duration::from_secs(5);
 pub const KEEPALIVE: Duration = Duration::from_secs(60);
+pub fn tls_handshake_timeout() -> Duration {
+    Duration::from_secs(10)
+}
 pub fn metrics_listen() -> SocketAddr {
     SocketAddr::from(([127, 0, 0, 1], 9502))
 }

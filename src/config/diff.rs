@@ -68,6 +68,9 @@ impl ConfigDiff {
         if new.server.listen_udp != old.server.listen_udp {
             need_restart.push("server.listen_udp");
         }
+        if new.server.listen_tls != old.server.listen_tls {
+            need_restart.push("server.listen_tls");
+        }
         if new.metrics != old.metrics {
             need_restart.push("metrics.listen");
         }
@@ -93,6 +96,7 @@ fn policy(server: &Server) -> Server {
     server.listen.clear();
     server.listen_rtu_over_tcp.clear();
     server.listen_udp.clear();
+    server.listen_tls.clear();
     server.shutdown_timeout = Duration::ZERO;
     server
 }

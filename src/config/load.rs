@@ -44,7 +44,8 @@ impl fmt::Display for ConfigErrors {
 }
 
 impl ConfigErrors {
-    fn one(key: impl Into<String>, reason: impl fmt::Display) -> Self {
+    /// One problem, at `key`.
+    pub(crate) fn one(key: impl Into<String>, reason: impl fmt::Display) -> Self {
         ConfigErrors(vec![ConfigError {
             key: key.into(),
             reason: reason.to_string(),

@@ -16,6 +16,7 @@ mod resolve;
 mod route;
 mod serde_adapters;
 mod server;
+mod tls;
 mod unit_set;
 
 pub use bus::{Bus, SimModel, SimSlave, Slave, SIM_DEVICE};
@@ -26,6 +27,7 @@ pub use log::{Log, LogFormat};
 pub use metrics::Metrics;
 pub use route::Route;
 pub use server::{Server, WhenFull};
+pub use tls::{RoleAccess, Tls, OTHER_ROLE};
 pub use unit_set::UnitSet;
 
 use serde::{Deserialize, Serialize};

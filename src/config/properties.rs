@@ -45,14 +45,24 @@ fn server() -> impl Strategy<Value = Server> {
         prop::collection::vec(net(), 0..4),
         prop::collection::vec(net(), 0..4),
     );
-    (limits, guard).prop_map(
+    let tls = (
+        prop::collection::vec(socket_addr(), 0..3),
+        prop::option::of(tls()),
+    );
+    (limits, guard, tls).prop_map(
         |(
             (listen, max_connections, idle, depth, shutdown),
             (when_full, frame_timeout, keepalive, allow, read_only),
+            (listen_tls, tls),
         )| Server {
             listen,
             listen_rtu_over_tcp: Vec::new(),
             listen_udp: Vec::new(),
+            listen_tls: if tls.is_some() {
+                listen_tls
+            } else {
+                Vec::new()
+            },
             max_connections,
             idle_timeout: idle,
             pipeline_depth: depth,
@@ -62,8 +72,34 @@ fn server() -> impl Strategy<Value = Server> {
             keepalive,
             allow,
             read_only,
+            tls,
         },
     )
+}
+
+fn role_access() -> impl Strategy<Value = RoleAccess> {
+    prop::sample::select(vec![
+        RoleAccess::ReadWrite,
+        RoleAccess::ReadOnly,
+        RoleAccess::None,
+    ])
+}
+
+fn tls() -> impl Strategy<Value = Tls> {
+    let roles = prop::collection::btree_map(
+        prop::sample::select(vec!["operator", "viewer", "Engineering", "historian-2"])
+            .prop_map(str::to_owned),
+        role_access(),
+        0..4,
+    );
+    (roles, role_access(), duration()).prop_map(|(roles, default_role_access, handshake)| Tls {
+        certificate: "/etc/modbus-gateway/tls/server.crt".into(),
+        private_key: "/etc/modbus-gateway/tls/server.key".into(),
+        client_ca: "/etc/modbus-gateway/tls/client-ca.crt".into(),
+        roles,
+        default_role_access,
+        handshake_timeout: handshake,
+    })
 }
 
 /// An IPv4 or IPv6 network, host bits cleared as the loader clears them.

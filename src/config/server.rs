@@ -3,6 +3,7 @@
 
 use super::defaults;
 use super::serde_adapters::{duration, text_list};
+use super::Tls;
 use ipnet::IpNet;
 use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
@@ -20,6 +21,9 @@ pub struct Server {
     /// Where Modbus UDP masters send their datagrams; none by default.
     #[serde(with = "text_list", skip_serializing_if = "Vec::is_empty")]
     pub listen_udp: Vec<SocketAddr>,
+    /// Where Modbus/TCP Security (TLS) masters connect; none by default. Needs `tls`.
+    #[serde(with = "text_list", skip_serializing_if = "Vec::is_empty")]
+    pub listen_tls: Vec<SocketAddr>,
     /// TCP connections open at once, over all listeners; more are refused.
     pub max_connections: usize,
     /// A connection with no request and nothing pending for this long is closed ("0s": never).
@@ -44,6 +48,9 @@ pub struct Server {
     /// Masters connecting from these may only read: anything else gets exception 0x01.
     #[serde(with = "text_list", skip_serializing_if = "Vec::is_empty")]
     pub read_only: Vec<IpNet>,
+    /// The certificates and roles of the `listen_tls` listeners.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub tls: Option<Tls>,
 }
 
 /// What a connection beyond `server.max_connections` does.
@@ -64,6 +71,7 @@ impl Default for Server {
             listen: defaults::listen(),
             listen_rtu_over_tcp: Vec::new(),
             listen_udp: Vec::new(),
+            listen_tls: Vec::new(),
             max_connections: defaults::MAX_CONNECTIONS,
             idle_timeout: defaults::IDLE_TIMEOUT,
             pipeline_depth: defaults::PIPELINE_DEPTH,
@@ -73,6 +81,7 @@ impl Default for Server {
             keepalive: defaults::KEEPALIVE,
             allow: Vec::new(),
             read_only: Vec::new(),
+            tls: None,
         }
     }
 }

@@ -42,6 +42,8 @@ pub enum Fate {
     Dropped,
     /// A request from a read-only master that may change the slave; never sent (0x01).
     ReadOnly,
+    /// A request from a master whose TLS role allows nothing; never sent (0x01).
+    NoAccess,
     /// The slave is down (timed out again and again) and it was not its probe's turn; never
     /// sent (0x0B).
     SlaveDown,
@@ -65,6 +67,7 @@ impl Fate {
             Fate::Shutdown => "shutdown",
             Fate::Dropped => "dropped",
             Fate::ReadOnly => "read_only",
+            Fate::NoAccess => "no_access",
             Fate::SlaveDown => "slave_down",
         }
     }
@@ -90,6 +93,7 @@ impl Fate {
                         Fate::Refused
                     }
                     RequestError::ReadOnly(_) => Fate::ReadOnly,
+                    RequestError::NoAccess(_) => Fate::NoAccess,
                     RequestError::SlaveDown { .. } => Fate::SlaveDown,
                     RequestError::NoRoute(_) => Fate::NoRoute,
                     RequestError::PortDown => Fate::PortDown,
@@ -123,6 +127,8 @@ pub enum Protocol {
     RtuOverTcp,
     /// Modbus UDP (`server.listen_udp`).
     Udp,
+    /// Modbus/TCP Security: Modbus TCP in TLS (`server.listen_tls`).
+    Tls,
 }
 
 impl Protocol {
@@ -131,6 +137,7 @@ impl Protocol {
             Protocol::Tcp => "tcp",
             Protocol::RtuOverTcp => "rtu_over_tcp",
             Protocol::Udp => "udp",
+            Protocol::Tls => "tls",
         }
     }
 }
@@ -158,15 +165,19 @@ pub enum Rejection {
     MaxConnections,
     /// The peer's address is outside `server.allow`.
     NotAllowed,
+    /// The TLS handshake failed or did not finish within `server.tls.handshake_timeout`.
+    TlsHandshake,
 }
 
 impl Rejection {
+    /// The refusals every TCP listener may make (a TLS handshake only fails on a TLS one).
     pub const ALL: [Rejection; 2] = [Rejection::MaxConnections, Rejection::NotAllowed];
 
     pub fn label(self) -> &'static str {
         match self {
             Rejection::MaxConnections => "max_connections",
             Rejection::NotAllowed => "not_allowed",
+            Rejection::TlsHandshake => "tls_handshake",
         }
     }
 }

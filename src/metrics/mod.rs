@@ -9,6 +9,7 @@ mod bus;
 pub mod http;
 mod labels;
 mod tcp;
+mod tls;
 mod udp;
 
 pub use bus::BusMetrics;
@@ -18,6 +19,7 @@ pub use labels::{Closing, ExceptionSource, Fate, Protocol, Rejection};
 
 use labels::{decimal, hex};
 pub use tcp::TcpMetrics;
+pub use tls::{TlsMaster, TlsMetrics};
 pub use udp::{UdpDrop, UdpMetrics};
 
 use crate::config;
@@ -126,6 +128,7 @@ pub struct Metrics {
     buses: BusFamilies,
     pub tcp: TcpMetrics,
     pub udp: UdpMetrics,
+    pub tls: TlsMetrics,
     /// Gauges read from their source at scrape time (queue depths).
     scrape_hooks: Mutex<Vec<ScrapeHook>>,
 }
@@ -157,6 +160,7 @@ impl Metrics {
             buses: BusFamilies::new(&define),
             tcp: TcpMetrics::new(&define),
             udp: UdpMetrics::new(&define),
+            tls: TlsMetrics::new(&define),
             scrape_hooks: Mutex::new(Vec::new()),
             registry: registry.clone(),
         };

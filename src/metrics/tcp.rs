@@ -3,6 +3,7 @@
 
 use super::labels::{hex, Closing, Protocol, Rejection};
 use super::{Definer, TCP_EVENTS};
+use crate::dispatch::Rights;
 use prometheus::{IntCounter, IntCounterVec, IntGaugeVec};
 use std::fmt::Display;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -101,10 +102,8 @@ impl TcpMetrics {
         listen: &dyn Display,
         peer: &dyn Display,
     ) {
+        self.count_rejected(reason, protocol);
         let protocol = protocol.label();
-        self.rejected
-            .with_label_values(&[reason.label(), protocol])
-            .inc();
         let (warn, event) = match reason {
             Rejection::MaxConnections => (
                 !self.refusing.swap(true, Ordering::Relaxed),
@@ -121,6 +120,7 @@ impl TcpMetrics {
                 }
                 (due, "refusing a master outside server.allow")
             }
+            Rejection::TlsHandshake => (false, "TLS handshake failed"),
         };
         let reason = reason.label();
         if warn {
@@ -130,14 +130,31 @@ impl TcpMetrics {
         }
     }
 
-    /// A read-only master asked for something that may change a slave (counted with the
-    /// request, as `read_only`). Logged at warn for the first on each connection.
-    pub fn write_refused(&self, master: u64, peer: &dyn Display, function: u8, first: bool) {
+    /// Count a connection refused at accept, without logging it.
+    pub(super) fn count_rejected(&self, reason: Rejection, protocol: Protocol) {
+        self.rejected
+            .with_label_values(&[reason.label(), protocol.label()])
+            .inc();
+    }
+
+    /// A master asked for something its `rights` do not allow (counted with the request, as
+    /// `read_only` or `no_access`). Logged at warn for the first on each connection.
+    pub fn request_refused(
+        &self,
+        master: u64,
+        peer: &dyn Display,
+        function: u8,
+        rights: Rights,
+        first: bool,
+    ) {
         let function = hex(function);
-        if first {
-            warn!(target: TCP_EVENTS, master, %peer, function, "refusing writes from a read-only master (0x01)");
+        let access = rights.name();
+        if !first {
+            debug!(target: TCP_EVENTS, master, %peer, function, access, "request refused");
+        } else if rights == Rights::NoAccess {
+            warn!(target: TCP_EVENTS, master, %peer, function, access, "refusing every request of a master whose role allows none (0x01)");
         } else {
-            debug!(target: TCP_EVENTS, master, %peer, function, "write refused");
+            warn!(target: TCP_EVENTS, master, %peer, function, access, "refusing writes from a read-only master (0x01)");
         }
     }
 

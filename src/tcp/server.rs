@@ -1,16 +1,19 @@
-//! The listeners: accept masters on every `server.listen` address; refuse those outside
+//! The listeners: accept masters on every `server.listen*` address; refuse those outside
 //! `server.allow` and, at `max_connections`, make room by closing the connection idle longest
 //! (or refuse, with `when_full = "refuse"`). Refused masters are accepted and closed at once, so
 //! they see the refusal instead of hanging in the backlog. Each accepted connection gets
-//! TCP_NODELAY, keepalive probes, and one session task.
+//! TCP_NODELAY, keepalive probes, and one session task. On a TLS listener the handshake comes
+//! first (after `allow`, before a connection slot: a peer that has not proved who it is never
+//! closes an authenticated master's connection), and the certificate's role narrows the rights.
 
 use super::access::Access;
 use super::session::{self, Activity, SessionLimits};
+use super::tls::{Identity, TlsServer};
 use super::upstream::Upstream;
 use crate::bus::MasterId;
 use crate::config::{self, WhenFull};
 use crate::dispatch::{Client, Dispatcher, Rights};
-use crate::metrics::{Metrics, Rejection};
+use crate::metrics::{Metrics, Rejection, TlsMaster};
 use crate::shutdown::Stopping;
 use socket2::{SockRef, TcpKeepalive};
 use std::collections::HashMap;
@@ -19,9 +22,10 @@ use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
+use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
-use tracing::{debug, warn};
+use tracing::{debug, error, warn};
 
 /// Pause after an accept error such as running out of file descriptors, so the loop does not spin.
 const ACCEPT_ERROR_PAUSE: Duration = Duration::from_millis(100);
@@ -29,6 +33,9 @@ const ACCEPT_ERROR_PAUSE: Duration = Duration::from_millis(100);
 const EVICTION_WAIT: Duration = Duration::from_secs(1);
 /// Keepalive probes a silent peer gets before its connection is dropped.
 const KEEPALIVE_PROBES: u32 = 3;
+/// TLS handshakes worked on at once; more wait their turn (within the handshake timeout), so a
+/// crowd of masters reconnecting together cannot take every core.
+const HANDSHAKES_AT_ONCE: usize = 32;
 
 pub(crate) struct Listener {
     pub addr: SocketAddr,
@@ -55,7 +62,8 @@ pub(crate) async fn bind(
     Ok(listeners)
 }
 
-/// How connections are admitted and served: `[server]` minus the listen addresses.
+/// How connections are admitted and served: `[server]` minus the listen addresses, and the TLS
+/// server that the `[server.tls]` files made.
 #[derive(Clone, Debug)]
 pub(crate) struct Policy {
     pub limits: SessionLimits,
@@ -63,10 +71,13 @@ pub(crate) struct Policy {
     pub when_full: WhenFull,
     /// `None`: no keepalive probes.
     pub keepalive: Option<Duration>,
+    /// For the TLS listeners.
+    pub tls: Option<Arc<TlsServer>>,
 }
 
 impl Policy {
-    pub(crate) fn of(server: &config::Server) -> Policy {
+    /// The policy of `server`, with `tls` for its TLS listeners.
+    pub(crate) fn of(server: &config::Server, tls: Option<Arc<TlsServer>>) -> Policy {
         Policy {
             limits: SessionLimits {
                 pipeline_depth: server.pipeline_depth,
@@ -76,6 +87,7 @@ impl Policy {
             access: Access::new(server.allow.clone(), server.read_only.clone()),
             when_full: server.when_full,
             keepalive: Some(server.keepalive).filter(|t| !t.is_zero()),
+            tls,
         }
     }
 }
@@ -90,6 +102,7 @@ pub(crate) struct Shared {
     pub stopping: Stopping,
     max_connections: AtomicUsize,
     next_master: AtomicU64,
+    handshakes: Semaphore,
     /// The running sessions, for making room at `max_connections`.
     sessions: Mutex<HashMap<MasterId, Arc<Activity>>>,
 }
@@ -110,6 +123,7 @@ impl Shared {
             stopping,
             max_connections: AtomicUsize::new(max_connections),
             next_master: AtomicU64::new(1),
+            handshakes: Semaphore::new(HANDSHAKES_AT_ONCE),
             sessions: Mutex::new(HashMap::new()),
         }
     }
@@ -225,49 +239,126 @@ pub(crate) async fn serve(listener: Listener, shared: Arc<Shared>) {
             tcp.rejected(Rejection::NotAllowed, protocol, &listener.addr, &peer);
             continue;
         };
-        // Making room may wait for a session to close: not in the accept loop.
+        prepare(&stream, &policy, peer);
+        // A handshake, or making room, may wait: not in the accept loop.
+        let master = Master {
+            listen: listener.addr,
+            upstream: listener.upstream,
+            peer,
+            rights,
+        };
         let shared = shared.clone();
-        let listen = listener.addr;
-        let upstream = listener.upstream;
         tokio::spawn(async move {
-            let Some(permit) = shared.slot(policy.when_full).await else {
-                shared.metrics.tcp.rejected(
-                    Rejection::MaxConnections,
-                    upstream.protocol(),
-                    &listen,
-                    &peer,
-                );
-                return;
-            };
-            run_session(stream, upstream, peer, rights, &policy, &shared).await;
-            drop(permit);
+            if master.upstream == Upstream::Tls {
+                accept_tls(stream, master, &policy, &shared).await;
+            } else {
+                admit(stream, master, None, &policy, &shared).await;
+            }
         });
     }
 }
 
-async fn run_session(
-    stream: TcpStream,
+/// A connection accepted on a listener, not yet served.
+struct Master {
+    listen: SocketAddr,
     upstream: Upstream,
     peer: SocketAddr,
+    /// What its address allows.
     rights: Rights,
-    policy: &Policy,
-    shared: &Shared,
-) {
+}
+
+fn prepare(stream: &TcpStream, policy: &Policy, peer: SocketAddr) {
     if let Err(error) = stream.set_nodelay(true) {
         debug!(%peer, %error, "cannot set TCP_NODELAY");
     }
     if let Some(idle) = policy.keepalive {
-        if let Err(error) = set_keepalive(&stream, idle) {
+        if let Err(error) = set_keepalive(stream, idle) {
             debug!(%peer, %error, "cannot set TCP keepalive");
         }
     }
-    let master = shared.new_master();
+}
+
+/// The TLS handshake, within the handshake timeout; then the master is admitted with the rights
+/// both its address and its certificate's role allow.
+async fn accept_tls(stream: TcpStream, mut master: Master, policy: &Policy, shared: &Shared) {
+    let Some(tls) = policy.tls.clone() else {
+        error!(listen = %master.listen, "a TLS listener without [server.tls]; connection closed");
+        return;
+    };
+    let handshake = async {
+        let _turn = shared.handshakes.acquire().await;
+        tls.acceptor.accept(stream).await
+    };
+    let failed = |error: &dyn std::fmt::Display| {
+        let metrics = &shared.metrics;
+        metrics
+            .tls
+            .handshake_failed(&metrics.tcp, &master.listen, master.peer, error);
+    };
+    let stream = match tokio::time::timeout(tls.handshake_timeout, handshake).await {
+        Ok(Ok(stream)) => stream,
+        Ok(Err(error)) => return failed(&error),
+        Err(_) => {
+            let timeout = humantime::format_duration(tls.handshake_timeout);
+            return failed(&format_args!("not finished within {timeout}"));
+        }
+    };
+    let identity = tls.identify(stream.get_ref().1.peer_certificates());
+    master.rights = master.rights.min(identity.rights);
+    admit(stream, master, Some(identity), policy, shared).await;
+}
+
+/// Serve `master` once it has a connection slot; refused if none comes.
+async fn admit<S: AsyncRead + AsyncWrite + Unpin>(
+    stream: S,
+    master: Master,
+    identity: Option<Identity>,
+    policy: &Policy,
+    shared: &Shared,
+) {
+    let Some(permit) = shared.slot(policy.when_full).await else {
+        shared.metrics.tcp.rejected(
+            Rejection::MaxConnections,
+            master.upstream.protocol(),
+            &master.listen,
+            &master.peer,
+        );
+        return;
+    };
+    run_session(stream, master, identity, policy, shared).await;
+    drop(permit);
+}
+
+async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
+    stream: S,
+    master: Master,
+    identity: Option<Identity>,
+    policy: &Policy,
+    shared: &Shared,
+) {
+    let Master {
+        upstream,
+        peer,
+        rights,
+        ..
+    } = master;
+    let id = shared.new_master();
     let tcp = &shared.metrics.tcp;
     let protocol = upstream.protocol();
-    tcp.accepted(protocol, master, &peer, rights == Rights::ReadOnly);
+    tcp.accepted(protocol, id, &peer, rights == Rights::ReadOnly);
+    if let Some(identity) = &identity {
+        shared.metrics.tls.accepted(&TlsMaster {
+            master: id,
+            peer,
+            role_label: &identity.role_label,
+            role: identity.role.as_deref(),
+            access: rights.name(),
+            subject: &identity.subject,
+        });
+    }
     let activity = Arc::new(Activity::default());
-    shared.sessions().insert(master, activity.clone());
-    let client = Client::new(master, peer, rights).speaking(upstream.protocol());
+    shared.sessions().insert(id, activity.clone());
+    let client = Client::new(id, peer, rights).speaking(protocol);
     let error = session::run(
         stream,
         upstream,
@@ -278,6 +369,6 @@ async fn run_session(
         shared.stopping.clone(),
     )
     .await;
-    shared.sessions().remove(&master);
-    tcp.closed(protocol, error.closing(), master, &peer, &error);
+    shared.sessions().remove(&id);
+    tcp.closed(protocol, error.closing(), id, &peer, &error);
 }

@@ -1,7 +1,8 @@
-//! How a master frames its requests on its connection: MBAP (Modbus TCP, `server.listen`) or
-//! plain RTU frames on the stream (RTU over TCP, `server.listen_rtu_over_tcp`, as serial device
-//! servers and mbpoll's `-m enc` send them). The session is the same for both; only the framing
-//! of requests and replies differs. Pure functions over buffers.
+//! How a master frames its requests on its connection: MBAP (Modbus TCP, `server.listen`; the
+//! same inside TLS, `server.listen_tls`) or plain RTU frames on the stream (RTU over TCP,
+//! `server.listen_rtu_over_tcp`, as serial device servers and mbpoll's `-m enc` send them). The
+//! session is the same for all; only the framing of requests and replies differs. Pure
+//! functions over buffers.
 
 use super::mbap::{self, FrameError, Header, Request};
 use crate::line::rtu::{self, FrameLen};
@@ -15,6 +16,8 @@ pub enum Upstream {
     Mbap,
     /// RTU over TCP: address, PDU, CRC-16, no header; replies the same way.
     RtuOverTcp,
+    /// Modbus/TCP Security: MBAP, as Modbus TCP, inside a TLS session.
+    Tls,
 }
 
 /// What the front of a connection's buffer holds.
@@ -31,6 +34,7 @@ impl Upstream {
         match self {
             Upstream::Mbap => "Modbus TCP",
             Upstream::RtuOverTcp => "RTU over TCP",
+            Upstream::Tls => "Modbus/TCP Security",
         }
     }
 
@@ -39,6 +43,7 @@ impl Upstream {
         match self {
             Upstream::Mbap => Protocol::Tcp,
             Upstream::RtuOverTcp => Protocol::RtuOverTcp,
+            Upstream::Tls => Protocol::Tls,
         }
     }
 
@@ -46,7 +51,7 @@ impl Upstream {
     /// is in. An error closes the connection.
     pub(crate) fn decode(self, buf: &mut BytesMut) -> Result<Option<Decoded>, FrameError> {
         match self {
-            Upstream::Mbap => Ok(mbap::decode(buf)?.map(Decoded::Request)),
+            Upstream::Mbap | Upstream::Tls => Ok(mbap::decode(buf)?.map(Decoded::Request)),
             Upstream::RtuOverTcp => decode_rtu(buf),
         }
     }
@@ -55,7 +60,7 @@ impl Upstream {
     pub(crate) fn encode(self, header: Header, pdu: &[u8], out: &mut Vec<u8>) {
         out.clear();
         match self {
-            Upstream::Mbap => mbap::encode(header, pdu, out),
+            Upstream::Mbap | Upstream::Tls => mbap::encode(header, pdu, out),
             Upstream::RtuOverTcp => rtu::encode_into(out, header.unit, pdu),
         }
     }

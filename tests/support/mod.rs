@@ -1,6 +1,8 @@
 //! What the integration tests share: a gateway started from TOML text on a loopback port, a raw
 //! Modbus TCP master that sees every byte, and an RTU slave on a pty pair (the real serial path).
 
+pub mod tls;
+
 use modbus_gateway::bus::{BusHandle, BusTask, Device};
 use modbus_gateway::error::Outcome;
 use modbus_gateway::gateway::{config_from_toml, load_config};
@@ -160,9 +162,13 @@ pub async fn wait_for_bus(gateway: &Gateway, name: &str, up: bool) {
     .await;
 }
 
+/// What a master talks over: a TCP connection, or a TLS session on one.
+pub trait Duplex: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin + Send {}
+impl<S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin + Send> Duplex for S {}
+
 /// A Modbus TCP master that writes and reads raw ADUs.
 pub struct RawMaster {
-    stream: TcpStream,
+    stream: Box<dyn Duplex>,
 }
 
 /// A reply as the master received it.
@@ -178,7 +184,14 @@ impl RawMaster {
         let stream = within("connect", TcpStream::connect(addr))
             .await
             .expect("gateway accepts");
-        RawMaster { stream }
+        Self::over(stream)
+    }
+
+    /// A master on a stream already connected (a TLS session, say).
+    pub fn over(stream: impl Duplex + 'static) -> Self {
+        RawMaster {
+            stream: Box::new(stream),
+        }
     }
 
     pub fn adu(transaction: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {

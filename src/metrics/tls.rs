@@ -1,0 +1,125 @@
+//! Modbus/TCP Security's metrics and events: connections by certificate role, the server
+//! certificate's expiry, and handshakes that failed (counted with the other refusals, as
+//! `reason="tls_handshake"`, and logged at most once a minute per peer address).
+
+use super::labels::{Protocol, Rejection};
+use super::{Definer, TcpMetrics, TCP_EVENTS};
+use prometheus::{IntCounterVec, IntGauge};
+use std::collections::HashMap;
+use std::fmt::Display;
+use std::net::{IpAddr, SocketAddr};
+use std::sync::{Mutex, PoisonError};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use tracing::{debug, info, warn};
+
+/// At most one warning per peer address per this interval about its failed handshakes.
+const HANDSHAKE_LOG_INTERVAL: Duration = Duration::from_secs(60);
+/// Peers whose last warning is remembered; beyond that, failures of new peers are logged at
+/// debug until the oldest are a minute old, so a scan of many addresses cannot grow the map.
+const HANDSHAKE_LOG_PEERS: usize = 1024;
+
+pub struct TlsMetrics {
+    accepted: IntCounterVec,
+    expiry: IntGauge,
+    /// When a failed handshake of each peer address was last logged at warn.
+    handshake_logged: Mutex<HashMap<IpAddr, Instant>>,
+}
+
+/// What the log says of a master that completed its handshake.
+pub struct TlsMaster<'a> {
+    pub master: u64,
+    pub peer: SocketAddr,
+    /// The `role` label: a role of `server.tls.roles`, or `other`.
+    pub role_label: &'a str,
+    /// The role its certificate carries, as written, if any.
+    pub role: Option<&'a str>,
+    /// What it may do: `read_write`, `read_only` or `none`.
+    pub access: &'static str,
+    pub subject: &'a str,
+}
+
+impl TlsMetrics {
+    pub(super) fn new(define: &Definer) -> Self {
+        let accepted = define.int_counter(
+            "modbus_gateway_tls_connections_accepted_total",
+            "Modbus/TCP Security connections that completed their handshake, by the role of the \
+             master's certificate (a role of server.tls.roles, or other).",
+            &["role"],
+        );
+        let expiry = define
+            .int_gauge(
+                "modbus_gateway_tls_certificate_expiry_seconds",
+                "Unix time at which the first certificate of the TLS server's chain expires; 0 \
+                 without TLS listeners.",
+                &[],
+            )
+            .with_label_values::<&str>(&[]);
+        TlsMetrics {
+            accepted,
+            expiry,
+            handshake_logged: Mutex::new(HashMap::new()),
+        }
+    }
+
+    /// The server certificate in force expires at `expires`.
+    pub fn certificate_expires(&self, expires: SystemTime) {
+        let seconds = match expires.duration_since(UNIX_EPOCH) {
+            Ok(after) => i64::try_from(after.as_secs()).unwrap_or(i64::MAX),
+            Err(_) => 0,
+        };
+        self.expiry.set(seconds);
+    }
+
+    /// A master completed its handshake: counted by role, logged with it.
+    pub fn accepted(&self, master: &TlsMaster<'_>) {
+        self.accepted.with_label_values(&[master.role_label]).inc();
+        info!(
+            target: TCP_EVENTS,
+            protocol = Protocol::Tls.label(),
+            master = master.master,
+            peer = %master.peer,
+            role = master.role.unwrap_or(""),
+            access = master.access,
+            subject = master.subject,
+            "master connected with a certificate"
+        );
+    }
+
+    /// A TLS handshake from `peer` failed (or timed out): counted with the refused connections,
+    /// logged at warn at most once a minute per peer address.
+    pub fn handshake_failed(
+        &self,
+        tcp: &TcpMetrics,
+        listen: &dyn Display,
+        peer: SocketAddr,
+        error: &dyn Display,
+    ) {
+        tcp.count_rejected(Rejection::TlsHandshake, Protocol::Tls);
+        let now = Instant::now();
+        let due = {
+            let mut logged = self
+                .handshake_logged
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner);
+            if logged.len() >= HANDSHAKE_LOG_PEERS {
+                logged.retain(|_, at| now.duration_since(*at) < HANDSHAKE_LOG_INTERVAL);
+            }
+            let ip = peer.ip().to_canonical();
+            let due = logged
+                .get(&ip)
+                .is_none_or(|at| now.duration_since(*at) >= HANDSHAKE_LOG_INTERVAL);
+            if due && (logged.len() < HANDSHAKE_LOG_PEERS || logged.contains_key(&ip)) {
+                logged.insert(ip, now);
+                true
+            } else {
+                false
+            }
+        };
+        let reason = Rejection::TlsHandshake.label();
+        if due {
+            warn!(target: TCP_EVENTS, protocol = "tls", %listen, %peer, reason, %error, "TLS handshake failed; connection closed");
+        } else {
+            debug!(target: TCP_EVENTS, protocol = "tls", %listen, %peer, reason, %error, "TLS handshake failed");
+        }
+    }
+}

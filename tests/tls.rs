@@ -1,0 +1,312 @@
+//! Modbus/TCP Security: masters on TLS with certificates made at test time; what each role may
+//! do, who is refused at the handshake, and that a refusal disturbs nobody else.
+
+use crate::support::tls::{days_from_now, tls_connect, tls_master, Issued, Pki, Role};
+use crate::support::{
+    panics_on_this_thread, sim_config_with_server, start, within, RawMaster, Scrape,
+};
+use modbus_gateway::Gateway;
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::Arc;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::sync::Barrier;
+
+/// Read holding register 0x0010, one word.
+const READ: [u8; 5] = [0x03, 0x00, 0x10, 0x00, 0x01];
+/// Write 0x1234 to holding register 0x0010.
+const WRITE: [u8; 5] = [0x06, 0x00, 0x10, 0x12, 0x34];
+/// What the register bank holds there until written.
+const READ_ANSWER: [u8; 4] = [0x03, 0x02, 0x00, 0x00];
+/// Exception 0x01 (illegal function) to each.
+const READ_REFUSED: [u8; 2] = [0x83, 0x01];
+const WRITE_REFUSED: [u8; 2] = [0x86, 0x01];
+
+const ROLES: &str = "roles = { operator = \"read_write\", viewer = \"read_only\" }";
+
+/// A CA, the gateway's certificate, and a gateway on the sim line (slaves 1-4) with a TLS
+/// listener and `tls_extra` in `[server.tls]`.
+async fn tls_gateway(tls_extra: &str) -> (Pki, Issued, Gateway) {
+    let pki = Pki::new("plant-ca");
+    let server = pki.server("gateway", "gateway", 365);
+    let toml = sim_config_with_server(
+        &format!(
+            "listen_tls = \"127.0.0.1:0\"\n{}",
+            pki.tls_table(&server, tls_extra)
+        ),
+        "",
+    );
+    let gateway = start(&toml).await;
+    (pki, server, gateway)
+}
+
+fn tls_addr(gateway: &Gateway) -> SocketAddr {
+    gateway.tls_addrs()[0]
+}
+
+fn requests(outcome: &str, function: &str) -> String {
+    format!(
+        "modbus_gateway_requests_total{{bus=\"sim\",function=\"{function}\",outcome=\"{outcome}\",\
+         protocol=\"tls\",slave=\"1\"}}"
+    )
+}
+
+fn accepted(role: &str) -> String {
+    format!("modbus_gateway_tls_connections_accepted_total{{role=\"{role}\"}}")
+}
+
+const HANDSHAKE_FAILED: &str = "modbus_gateway_tcp_connections_rejected_total{protocol=\"tls\",\
+                                reason=\"tls_handshake\"}";
+
+#[tokio::test]
+async fn an_operator_certificate_reads_and_writes() {
+    let (pki, _server, gateway) = tls_gateway(ROLES).await;
+    let operator = pki.master("operator", Role::Named("operator"));
+    let mut master = tls_master(tls_addr(&gateway), &pki.connector(Some(&operator))).await;
+    assert_eq!(master.call(1, 1, &WRITE).await, WRITE, "the write's echo");
+    assert_eq!(master.call(2, 1, &READ).await, [0x03, 0x02, 0x12, 0x34]);
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(scrape.value(&requests("ok", "0x06")), 1.0);
+    assert_eq!(scrape.value(&accepted("operator")), 1.0);
+    assert_eq!(
+        scrape.value("modbus_gateway_tcp_connections{protocol=\"tls\"}"),
+        1.0
+    );
+}
+
+#[tokio::test]
+async fn a_viewer_reads_and_gets_exception_01_for_writes_which_never_reach_the_line() {
+    let (pki, _server, gateway) = tls_gateway(ROLES).await;
+    let viewer = pki.master("viewer", Role::Named("viewer"));
+    let line = gateway.sim_line("sim").expect("sim line");
+    let mut master = tls_master(tls_addr(&gateway), &pki.connector(Some(&viewer))).await;
+    assert_eq!(master.call(1, 1, &READ).await, READ_ANSWER);
+    let frames_after_read = line.frames().len();
+    assert_eq!(master.call(2, 1, &WRITE).await, WRITE_REFUSED);
+    // Write multiple registers, and a user-defined code: refused as well.
+    let write_many = [0x10, 0x00, 0x10, 0x00, 0x01, 0x02, 0xAB, 0xCD];
+    assert_eq!(master.call(3, 1, &write_many).await, [0x90, 0x01]);
+    assert_eq!(master.call(4, 1, &[0x41, 0x00]).await, [0xC1, 0x01]);
+    assert_eq!(
+        line.frames().len(),
+        frames_after_read,
+        "nothing more on the line"
+    );
+    assert_eq!(master.call(5, 1, &READ).await, READ_ANSWER);
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(scrape.value(&requests("read_only", "0x06")), 1.0);
+    assert_eq!(scrape.value(&accepted("viewer")), 1.0);
+}
+
+#[tokio::test]
+async fn a_certificate_without_a_role_or_with_an_unlisted_one_gets_the_default_role_access() {
+    // By default: nothing, not even reads.
+    let (pki, _server, gateway) = tls_gateway(ROLES).await;
+    let line = gateway.sim_line("sim").expect("sim line");
+    for (file, role) in [
+        ("anonymous", Role::Without),
+        ("intern", Role::Named("intern")),
+    ] {
+        let certificate = pki.master(file, role);
+        let mut master = tls_master(tls_addr(&gateway), &pki.connector(Some(&certificate))).await;
+        assert_eq!(master.call(1, 1, &READ).await, READ_REFUSED, "{file}");
+        assert_eq!(master.call(2, 1, &WRITE).await, WRITE_REFUSED, "{file}");
+    }
+    assert!(line.frames().is_empty(), "nothing reached the line");
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(scrape.value(&requests("no_access", "0x03")), 2.0);
+    assert_eq!(scrape.value(&accepted("other")), 2.0);
+
+    // With default_role_access = "read_only": they read, and may not write.
+    let (pki, _server, gateway) =
+        tls_gateway(&format!("{ROLES}\ndefault_role_access = \"read_only\"")).await;
+    let anonymous = pki.master("anonymous", Role::Without);
+    let mut master = tls_master(tls_addr(&gateway), &pki.connector(Some(&anonymous))).await;
+    assert_eq!(master.call(1, 1, &READ).await, READ_ANSWER);
+    assert_eq!(master.call(2, 1, &WRITE).await, WRITE_REFUSED);
+}
+
+#[tokio::test]
+async fn a_read_only_address_keeps_an_operator_certificate_to_reads() {
+    let pki = Pki::new("plant-ca");
+    let server = pki.server("gateway", "gateway", 365);
+    let toml = sim_config_with_server(
+        &format!(
+            "listen_tls = \"127.0.0.1:0\"\nread_only = \"127.0.0.1\"\n{}",
+            pki.tls_table(&server, ROLES)
+        ),
+        "",
+    );
+    let gateway = start(&toml).await;
+    let operator = pki.master("operator", Role::Named("operator"));
+    let mut master = tls_master(tls_addr(&gateway), &pki.connector(Some(&operator))).await;
+    assert_eq!(master.call(1, 1, &READ).await, READ_ANSWER);
+    assert_eq!(master.call(2, 1, &WRITE).await, WRITE_REFUSED);
+}
+
+/// True once the session is closed: a reply never comes.
+async fn refused(mut master: RawMaster) -> bool {
+    master.send(9, 1, &READ).await;
+    master.is_closed().await
+}
+
+#[tokio::test]
+async fn a_foreign_ca_an_expired_certificate_no_certificate_and_plain_tcp_are_each_refused_while_other_masters_are_served(
+) {
+    let panics = panics_on_this_thread();
+    let (pki, _server, gateway) = tls_gateway(ROLES).await;
+    let at = tls_addr(&gateway);
+    let operator = pki.master("operator", Role::Named("operator"));
+    let mut working = tls_master(at, &pki.connector(Some(&operator))).await;
+    assert_eq!(working.call(1, 1, &READ).await, READ_ANSWER);
+
+    // A certificate with the operator role, from a CA the gateway does not trust.
+    let rogue = Pki::new("rogue-ca");
+    let forged = rogue.master("operator", Role::Named("operator"));
+    // It trusts the gateway's CA, so only the gateway can refuse it.
+    let connector = pki.connector(Some(&forged));
+    let expired = pki.master_valid("expired", Role::Named("operator"), (-30, -1));
+    let attempts: [(&str, tokio_rustls::TlsConnector); 3] = [
+        ("another CA", connector),
+        ("expired", pki.connector(Some(&expired))),
+        ("no certificate", pki.connector(None)),
+    ];
+    for (n, (what, connector)) in attempts.into_iter().enumerate() {
+        // TLS 1.3 lets the client finish before the server has checked its certificate: the
+        // refusal is a closed session either way.
+        if let Ok(session) = tls_connect(at, &connector).await {
+            assert!(refused(RawMaster::over(session)).await, "{what}: closed");
+        }
+        let tid = 10 + n as u16;
+        assert_eq!(
+            working.call(tid, 1, &READ).await,
+            READ_ANSWER,
+            "after {what}, the operator is still served"
+        );
+    }
+    // A Modbus TCP master on the TLS port gets no answer: at most a TLS alert record (content
+    // type 0x15), then the connection closes.
+    let mut plain = tokio::net::TcpStream::connect(at).await.expect("connect");
+    plain
+        .write_all(&RawMaster::adu(1, 1, &READ))
+        .await
+        .expect("send");
+    let mut got = Vec::new();
+    let _ = within("plain TCP is closed", plain.read_to_end(&mut got)).await;
+    assert!(
+        got.is_empty() || got[0] == 0x15,
+        "not a Modbus reply: {got:02X?}"
+    );
+    assert_eq!(working.call(20, 1, &READ).await, READ_ANSWER);
+
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(scrape.value(HANDSHAKE_FAILED), 4.0);
+    assert_eq!(
+        scrape.value(&accepted("operator")),
+        1.0,
+        "only the operator"
+    );
+    assert_eq!(panics_on_this_thread(), panics);
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_peer_that_never_finishes_its_handshake_is_closed_at_the_handshake_timeout() {
+    let (_pki, _server, gateway) = tls_gateway("handshake_timeout = \"3s\"").await;
+    let mut silent = tokio::net::TcpStream::connect(tls_addr(&gateway))
+        .await
+        .expect("connect");
+    let started = tokio::time::Instant::now();
+    let mut byte = [0u8; 1];
+    let read = within("the gateway closes", silent.read(&mut byte)).await;
+    assert!(matches!(read, Ok(0) | Err(_)), "closed: {read:?}");
+    let waited = started.elapsed();
+    assert!(
+        (std::time::Duration::from_secs(3)..std::time::Duration::from_secs(4)).contains(&waited),
+        "closed after {waited:?}"
+    );
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(scrape.value(HANDSHAKE_FAILED), 1.0);
+    drop(silent.write_all(b"late").await);
+}
+
+#[tokio::test]
+async fn the_server_certificate_expiry_is_exported_as_a_unix_time() {
+    let (_pki, server, gateway) = tls_gateway(ROLES).await;
+    let scrape = Scrape::of(&gateway).await;
+    let expiry = scrape.value("modbus_gateway_tls_certificate_expiry_seconds");
+    assert!(
+        (expiry - days_from_now(365)).abs() < 120.0,
+        "expiry {expiry}, certificate {}",
+        server.cert_path.display()
+    );
+}
+
+const MASTERS: usize = 200;
+/// Completions before counting starts, so that every master has joined the rotation.
+const WARM_UP: usize = 2 * MASTERS;
+/// Completions counted: five rounds of the rotation.
+const WINDOW: usize = 5 * MASTERS;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_hundred_tls_masters_polling_at_once_are_answered_correctly_and_fairly() {
+    let pki = Pki::new("plant-ca");
+    let server = pki.server("gateway", "gateway", 365);
+    let gateway = start(&format!(
+        "[server]\nlisten = \"127.0.0.1:0\"\nlisten_tls = \"127.0.0.1:0\"\n{}\
+         [[bus]]\nname = \"fast\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\
+         queue_depth = 2048\nqueue_timeout = \"60s\"\n\
+         [[bus.sim_slave]]\naddress = \"1-4\"\n",
+        pki.tls_table(&server, "roles = { viewer = \"read_only\" }")
+    ))
+    .await;
+    let at = tls_addr(&gateway);
+    let viewer = pki.master("viewer", Role::Named("viewer"));
+    let connector = pki.connector(Some(&viewer));
+    let barrier = Arc::new(Barrier::new(MASTERS));
+    let total = Arc::new(AtomicUsize::new(0));
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut masters = Vec::new();
+    for m in 0..MASTERS {
+        let (barrier, total, stop) = (barrier.clone(), total.clone(), stop.clone());
+        let connector = connector.clone();
+        masters.push(tokio::spawn(async move {
+            let mut master = tls_master(at, &connector).await;
+            let unit = 1 + (m % 4) as u8;
+            // Input register N reads N: each master asks for its own and checks the answer.
+            let register = m as u16;
+            let request = [0x04, (register >> 8) as u8, register as u8, 0x00, 0x01];
+            barrier.wait().await;
+            let mut counted = 0usize;
+            for tid in 1.. {
+                let pdu = master.call(tid, unit, &request).await;
+                assert_eq!(pdu, [0x04, 0x02, request[1], request[2]], "master {m}");
+                let n = total.fetch_add(1, Ordering::Relaxed) + 1;
+                if stop.load(Ordering::Relaxed) {
+                    break;
+                }
+                if n > WARM_UP {
+                    counted += 1;
+                }
+                if n >= WARM_UP + WINDOW {
+                    stop.store(true, Ordering::Relaxed);
+                }
+            }
+            counted
+        }));
+    }
+    let mut counts = Vec::new();
+    for master in masters {
+        counts.push(
+            within("every master finishes", master)
+                .await
+                .expect("master task"),
+        );
+    }
+    let min = *counts.iter().min().unwrap();
+    let max = *counts.iter().max().unwrap();
+    eprintln!("completions per TLS master: min {min}, max {max}");
+    assert!(min >= 1, "a master got nothing: {counts:?}");
+    assert!(max <= 2 * min, "unfair: min {min}, max {max}: {counts:?}");
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(scrape.value(&accepted("viewer")), MASTERS as f64);
+}
