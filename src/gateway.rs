@@ -147,15 +147,12 @@ fn load_tls(
     let certificate = &tls.certificate;
     metrics.tls.certificate_expires(certificate.expires);
     let now = std::time::SystemTime::now();
-    let days_left = certificate.days_left(now);
+    let expires = certificate.expiry(now);
     let subject = &certificate.subject;
+    let file = settings.certificate.display().to_string();
     match certificate.expiry_warning(now) {
-        Some(warning) => {
-            warn!(file = %settings.certificate.display(), subject, days_left, "{warning}")
-        }
-        None => {
-            info!(file = %settings.certificate.display(), subject, days_left, "TLS server certificate loaded")
-        }
+        Some(warning) => warn!(file, subject, expires, "{warning}"),
+        None => info!(file, subject, expires, "TLS server certificate loaded"),
     }
     Ok(Some(Arc::new(tls)))
 }

@@ -307,6 +307,13 @@ fn the_installed_default_config_is_valid_and_names_every_key() {
         "units",
         "bus",
         "offset",
+        "listen_tls",
+        "certificate",
+        "private_key",
+        "client_ca",
+        "roles",
+        "default_role_access",
+        "handshake_timeout",
     ]);
     for key in keys {
         let set = format!("\n{key} = ");

@@ -5,8 +5,8 @@
 //! broken file; `check-config --quiet`.
 
 use crate::support::{
-    addr, connect_when_listening, exit_status, free_addr, http_get, signal, start, within,
-    RawMaster, Scrape,
+    addr, connect_when_listening, exit_status, free_addr, http_get, signal, start, until_logged,
+    within, RawMaster, Scrape,
 };
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -320,15 +320,6 @@ fn save(path: &std::path::Path, text: &str) {
 }
 
 /// Wait until the gateway's log (in `path`) says `what`.
-async fn until_logged(path: &std::path::Path, what: &str) {
-    within(&format!("the log says {what:?}"), async {
-        while !std::fs::read_to_string(path).unwrap().contains(what) {
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    })
-    .await;
-}
-
 const READ: [u8; 5] = [0x03, 0x00, 0x04, 0x00, 0x01];
 
 #[tokio::test]

@@ -1,4 +1,5 @@
 //! The integration tests, in one crate so they build once. Where a new test goes:
+//! - `docs`: the README names every configuration key and every metric.
 //! - `cli`: the binary: check-config, config errors, environment, run and stop, logs. (The bench's
 //!   test is in `bench/tests/`.)
 //! - `tcp`: the Modbus TCP side and masters that abuse it: pipelining and floods, MBAP errors and
@@ -41,6 +42,7 @@ mod access;
 mod answers;
 mod ascii;
 mod cli;
+mod docs;
 mod drives;
 mod fairness;
 mod faults;

@@ -3,10 +3,12 @@
 
 use crate::support::tls::{days_from_now, tls_connect, tls_master, Issued, Pki, Role};
 use crate::support::{
-    panics_on_this_thread, sim_config_with_server, start, within, RawMaster, Scrape,
+    exit_status, free_addr, panics_on_this_thread, signal, sim_config_with_server, start,
+    until_logged, within, RawMaster, Scrape,
 };
 use modbus_gateway::Gateway;
 use std::net::SocketAddr;
+use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -309,4 +311,207 @@ async fn two_hundred_tls_masters_polling_at_once_are_answered_correctly_and_fair
     assert!(max <= 2 * min, "unfair: min {min}, max {max}: {counts:?}");
     let scrape = Scrape::of(&gateway).await;
     assert_eq!(scrape.value(&accepted("viewer")), MASTERS as f64);
+}
+
+const BINARY: &str = env!("CARGO_BIN_EXE_modbus-gateway");
+
+/// The certificate a TLS session's server presented.
+fn server_certificate(
+    session: &tokio_rustls::client::TlsStream<tokio::net::TcpStream>,
+) -> rustls::pki_types::CertificateDer<'static> {
+    let certificates = session
+        .get_ref()
+        .1
+        .peer_certificates()
+        .expect("a server certificate");
+    certificates[0].clone().into_owned()
+}
+
+/// A TLS session with a gateway process, once it listens on `addr`.
+async fn tls_session_when_listening(
+    addr: SocketAddr,
+    connector: &tokio_rustls::TlsConnector,
+) -> tokio_rustls::client::TlsStream<tokio::net::TcpStream> {
+    within("the gateway listens", async {
+        loop {
+            if let Ok(session) = tls_connect(addr, connector).await {
+                return session;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        }
+    })
+    .await
+}
+
+#[tokio::test]
+async fn sighup_serves_a_rotated_certificate_to_new_masters_keeps_open_ones_and_refuses_a_broken_key_by_name(
+) {
+    let pki = Pki::new("plant-ca");
+    let first = pki.server("gateway", "gateway-2026", 365);
+    let (listen, tls, metrics) = (free_addr(), free_addr(), free_addr());
+    let config = pki.dir.join("gateway.toml");
+    let log = pki.dir.join("gateway.log");
+    std::fs::write(
+        &config,
+        format!(
+            "[server]\nlisten = \"{listen}\"\nlisten_tls = \"{tls}\"\n{}\
+             [metrics]\nlisten = \"{metrics}\"\n\
+             [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\n\
+             [[bus.sim_slave]]\naddress = 1\n",
+            pki.tls_table(&first, ROLES)
+        ),
+    )
+    .unwrap();
+    let child = Command::new(BINARY)
+        .args(["--config", config.to_str().unwrap(), "run"])
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let operator = pki.master("operator", Role::Named("operator"));
+    let connector = pki.connector(Some(&operator));
+    let session = tls_session_when_listening(tls, &connector).await;
+    assert_eq!(server_certificate(&session), first.der());
+    let mut open = RawMaster::over(session);
+    assert_eq!(open.call(1, 1, &WRITE).await, WRITE);
+
+    // Renewed in place, as certbot or a plant's PKI would.
+    let renewed = pki.server("gateway", "gateway-2027", 730);
+    signal(&child, "HUP");
+    until_logged(&log, "configuration reloaded").await;
+    let session = tls_connect(tls, &connector).await.expect("handshake");
+    assert_eq!(
+        server_certificate(&session),
+        renewed.der(),
+        "a new master sees the new one"
+    );
+    let mut new = RawMaster::over(session);
+    assert_eq!(new.call(1, 1, &READ).await, [0x03, 0x02, 0x12, 0x34]);
+    assert_eq!(
+        open.call(2, 1, &READ).await,
+        [0x03, 0x02, 0x12, 0x34],
+        "the open session works"
+    );
+
+    // A key file broken mid-copy: refused by name; the renewed certificate stays in force.
+    std::fs::write(&renewed.key_path, "-----BEGIN PRIVATE KEY-----\ntruncated").unwrap();
+    signal(&child, "HUP");
+    until_logged(&log, "configuration not reloaded").await;
+    let session = tls_connect(tls, &connector).await.expect("handshake");
+    assert_eq!(server_certificate(&session), renewed.der());
+    assert_eq!(
+        RawMaster::over(session).call(1, 1, &READ).await,
+        [0x03, 0x02, 0x12, 0x34]
+    );
+    assert_eq!(open.call(3, 1, &READ).await, [0x03, 0x02, 0x12, 0x34]);
+
+    // Three plain Modbus TCP masters on the TLS port: three refusals, one warning.
+    for _ in 0..3 {
+        let mut plain = tokio::net::TcpStream::connect(tls).await.expect("connect");
+        plain
+            .write_all(&RawMaster::adu(1, 1, &READ))
+            .await
+            .expect("send");
+        let _ = within("closed", plain.read_to_end(&mut Vec::new())).await;
+    }
+    signal(&child, "TERM");
+    assert_eq!(exit_status(child).await.code(), Some(0));
+    let text = std::fs::read_to_string(&log).unwrap();
+    let warnings = text.matches("TLS handshake failed").count();
+    assert_eq!(warnings, 1, "once a minute per peer: {text}");
+    let refusal = text
+        .lines()
+        .find(|line| line.contains("configuration not reloaded"))
+        .unwrap();
+    assert!(refusal.contains("server.tls.private_key"), "{refusal}");
+    assert!(text.contains("TLS server certificate loaded"), "{text}");
+}
+
+/// `check-config` on a configuration with a TLS table for `server`: its exit code, stdout, stderr.
+fn check_config(pki: &Pki, server: &Issued) -> (Option<i32>, String, String) {
+    let config = pki.dir.join("check.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[server]\nlisten_tls = \"127.0.0.1:802\"\n{}\
+             [[bus]]\nname = \"sim\"\ndevice = \"sim\"\n",
+            pki.tls_table(server, ROLES)
+        ),
+    )
+    .unwrap();
+    let output = Command::new(BINARY)
+        .args(["--config", config.to_str().unwrap(), "check-config"])
+        .output()
+        .unwrap();
+    let text = |bytes: Vec<u8>| String::from_utf8(bytes).unwrap();
+    (
+        output.status.code(),
+        text(output.stdout),
+        text(output.stderr),
+    )
+}
+
+#[test]
+fn check_config_reports_the_certificate_expiry_in_days_and_warns_within_thirty() {
+    let pki = Pki::new("plant-ca");
+    let server = pki.server("gateway", "gateway", 365);
+    let (code, stdout, stderr) = check_config(&pki, &server);
+    assert_eq!(code, Some(0), "{stderr}");
+    assert!(
+        stdout.contains("# TLS: server certificate CN=gateway, expires 20")
+            && stdout.contains(
+                "(in 364 days); client certificates must chain to 1 CA certificate(s); \
+             roles: operator read_write, viewer read_only, any other certificate none."
+            ),
+        "{stdout}"
+    );
+    assert!(stderr.is_empty(), "{stderr}");
+
+    let soon = pki.server("soon", "gateway", 10);
+    let (code, stdout, stderr) = check_config(&pki, &soon);
+    assert_eq!(code, Some(0), "a warning, not an error");
+    assert!(stdout.contains("(in 9 days)"), "{stdout}");
+    assert!(
+        stderr
+            .contains("warning: server.tls.certificate: the server certificate expires in 9 days"),
+        "{stderr}"
+    );
+}
+
+#[test]
+fn check_config_names_a_key_that_is_not_the_certificates_and_exits_2() {
+    let pki = Pki::new("plant-ca");
+    let server = pki.server("gateway", "gateway", 365);
+    let other = pki.server("other", "other", 365);
+    std::fs::copy(&other.key_path, &server.key_path).unwrap();
+    let (code, _, stderr) = check_config(&pki, &server);
+    assert_eq!(code, Some(2));
+    assert!(
+        stderr.contains("server.tls.private_key: ")
+            && stderr.contains("is not the key of the certificate in"),
+        "{stderr}"
+    );
+}
+
+#[tokio::test]
+async fn a_master_outside_allow_is_closed_before_any_handshake() {
+    let pki = Pki::new("plant-ca");
+    let server = pki.server("gateway", "gateway", 365);
+    let toml = sim_config_with_server(
+        &format!(
+            "listen_tls = \"127.0.0.1:0\"\nallow = \"10.0.0.0/8\"\n{}",
+            pki.tls_table(&server, ROLES)
+        ),
+        "",
+    );
+    let gateway = start(&toml).await;
+    let operator = pki.master("operator", Role::Named("operator"));
+    let attempt = tls_connect(tls_addr(&gateway), &pki.connector(Some(&operator))).await;
+    assert!(attempt.is_err(), "no TLS session without a handshake");
+    let scrape = Scrape::of(&gateway).await;
+    let not_allowed =
+        "modbus_gateway_tcp_connections_rejected_total{protocol=\"tls\",reason=\"not_allowed\"}";
+    assert_eq!(scrape.value(not_allowed), 1.0);
+    assert_eq!(scrape.get(HANDSHAKE_FAILED), None, "no handshake was tried");
 }

@@ -38,7 +38,7 @@ pub fn check_config(path: &Path, config: &Config, quiet: bool) -> ExitCode {
 fn describe_tls(config: &Config, tls: &TlsServer, now: SystemTime) -> String {
     let certificate = &tls.certificate;
     let expires = humantime::format_rfc3339_seconds(certificate.expires);
-    let days = certificate.days_left(now);
+    let expiry = certificate.expiry(now);
     let mut roles: Vec<String> = Vec::new();
     if let Some(settings) = &config.server.tls {
         roles.extend(
@@ -53,7 +53,7 @@ fn describe_tls(config: &Config, tls: &TlsServer, now: SystemTime) -> String {
         ));
     }
     format!(
-        "# TLS: server certificate {}, expires {expires} (in {days} days); client certificates \
+        "# TLS: server certificate {}, expires {expires} ({expiry}); client certificates \
          must chain to {} CA certificate(s); roles: {}.\n",
         certificate.subject,
         certificate.client_cas,

@@ -23,7 +23,7 @@ use x509_parser::certificate::X509Certificate;
 pub(crate) const ROLE_OID: &str = "1.3.6.1.4.1.50316.802.1";
 
 /// A server certificate expiring within this many days is warned about.
-pub(crate) const EXPIRY_WARNING_DAYS: i64 = 30;
+pub(crate) const EXPIRY_WARNING_DAYS: u64 = 30;
 
 /// The server side of the TLS listeners, as one reading of `[server.tls]` made it: new
 /// connections take the one in force when they are accepted, and keep it.
@@ -58,31 +58,36 @@ impl std::fmt::Debug for TlsServer {
 }
 
 impl CertificateInfo {
-    /// What to warn an operator of at `now`: a certificate expired, or expiring within
-    /// [`EXPIRY_WARNING_DAYS`].
-    pub(crate) fn expiry_warning(&self, now: SystemTime) -> Option<String> {
-        let days = self.days_left(now);
-        if days < 0 {
-            Some(format!(
-                "the server certificate expired {} days ago: masters will refuse it",
-                -days
-            ))
-        } else if days < EXPIRY_WARNING_DAYS {
-            Some(format!(
-                "the server certificate expires in {days} days: renew it before masters refuse it"
-            ))
-        } else {
-            None
+    /// Whole days left at `now`, or `Err` with the whole days since it expired.
+    pub(crate) fn days_left(&self, now: SystemTime) -> Result<u64, u64> {
+        const DAY: u64 = 86_400;
+        match self.expires.duration_since(now) {
+            Ok(left) if !left.is_zero() => Ok(left.as_secs() / DAY),
+            Ok(_) => Err(0),
+            Err(past) => Err(past.duration().as_secs() / DAY),
         }
     }
 
-    /// Whole days from `now` to the expiry; negative once expired.
-    pub(crate) fn days_left(&self, now: SystemTime) -> i64 {
-        let seconds = match self.expires.duration_since(now) {
-            Ok(left) => i64::try_from(left.as_secs()).unwrap_or(i64::MAX),
-            Err(past) => -i64::try_from(past.duration().as_secs()).unwrap_or(i64::MAX),
-        };
-        seconds.div_euclid(86_400)
+    /// When it expires, as `check-config` says it: "in 364 days" or "7 days ago".
+    pub(crate) fn expiry(&self, now: SystemTime) -> String {
+        match self.days_left(now) {
+            Ok(days) => format!("in {days} days"),
+            Err(days) => format!("{days} days ago"),
+        }
+    }
+
+    /// What to warn an operator of at `now`: a certificate expired, or expiring within
+    /// [`EXPIRY_WARNING_DAYS`].
+    pub(crate) fn expiry_warning(&self, now: SystemTime) -> Option<String> {
+        match self.days_left(now) {
+            Err(days) => Some(format!(
+                "the server certificate expired {days} days ago: masters will refuse it"
+            )),
+            Ok(days) if days < EXPIRY_WARNING_DAYS => Some(format!(
+                "the server certificate expires in {days} days: renew it before masters refuse it"
+            )),
+            Ok(_) => None,
+        }
     }
 }
 
@@ -278,4 +283,218 @@ pub(crate) fn role_of(certificate: &X509Certificate<'_>) -> Option<String> {
         .find(|extension| extension.oid.to_id_string() == ROLE_OID)?;
     let (_, role) = String::from_der(extension.value).ok()?;
     Some(role)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rcgen::{
+        BasicConstraints, CertificateParams, CertifiedIssuer, CustomExtension, DnType,
+        ExtendedKeyUsagePurpose, IsCa, KeyPair, KeyUsagePurpose, SanType,
+    };
+    use std::path::PathBuf;
+
+    const ROLE: &[u64] = &[1, 3, 6, 1, 4, 1, 50316, 802, 1];
+
+    /// A directory of PEM files for one test, removed at the end.
+    struct Files(PathBuf);
+
+    impl Files {
+        fn new(name: &str) -> Files {
+            let dir =
+                std::env::temp_dir().join(format!("mbgw-tls-unit-{}-{name}", std::process::id()));
+            std::fs::create_dir_all(&dir).unwrap();
+            Files(dir)
+        }
+
+        fn write(&self, name: &str, text: &str) -> PathBuf {
+            let path = self.0.join(name);
+            std::fs::write(&path, text).unwrap();
+            path
+        }
+    }
+
+    impl Drop for Files {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+
+    fn ca(name: &str) -> CertifiedIssuer<'static, KeyPair> {
+        let mut params = CertificateParams::new(Vec::<String>::new()).unwrap();
+        params.distinguished_name.push(DnType::CommonName, name);
+        params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
+        params.key_usages = vec![KeyUsagePurpose::KeyCertSign];
+        CertifiedIssuer::self_signed(params, KeyPair::generate().unwrap()).unwrap()
+    }
+
+    /// A certificate signed by `ca`, its PEM and its key's PEM; `role` as the RoleOID's DER.
+    fn issue(
+        ca: &CertifiedIssuer<'static, KeyPair>,
+        name: &str,
+        role: Option<Vec<u8>>,
+        days: i64,
+    ) -> (String, String) {
+        let mut params = CertificateParams::new(Vec::<String>::new()).unwrap();
+        params.distinguished_name.push(DnType::CommonName, name);
+        params.subject_alt_names = vec![SanType::IpAddress([127, 0, 0, 1].into())];
+        let now = time::OffsetDateTime::now_utc();
+        params.not_before = now - time::Duration::days(1);
+        params.not_after = now + time::Duration::days(days);
+        params.extended_key_usages = vec![
+            ExtendedKeyUsagePurpose::ServerAuth,
+            ExtendedKeyUsagePurpose::ClientAuth,
+        ];
+        if let Some(der) = role {
+            params
+                .custom_extensions
+                .push(CustomExtension::from_oid_content(ROLE, der));
+        }
+        let key = KeyPair::generate().unwrap();
+        let cert = params.signed_by(&key, ca).unwrap();
+        (cert.pem(), key.serialize_pem())
+    }
+
+    /// `text` as a DER UTF8String.
+    fn utf8(text: &str) -> Vec<u8> {
+        let mut der = vec![0x0C, u8::try_from(text.len()).unwrap()];
+        der.extend_from_slice(text.as_bytes());
+        der
+    }
+
+    fn settings(files: &Files, server: &(String, String), ca_pem: &str) -> config::Tls {
+        config::Tls {
+            certificate: files.write("server.crt", &server.0),
+            private_key: files.write("server.key", &server.1),
+            client_ca: files.write("ca.crt", ca_pem),
+            roles: [
+                ("operator".to_owned(), RoleAccess::ReadWrite),
+                ("viewer".to_owned(), RoleAccess::ReadOnly),
+            ]
+            .into(),
+            default_role_access: RoleAccess::None,
+            handshake_timeout: Duration::from_secs(10),
+        }
+    }
+
+    fn keys(errors: ConfigErrors) -> Vec<String> {
+        errors
+            .0
+            .into_iter()
+            .map(|e| format!("{}: {}", e.key, e.reason))
+            .collect()
+    }
+
+    #[test]
+    fn the_role_is_the_role_oids_utf8_string_and_maps_through_the_table() {
+        let files = Files::new("roles");
+        let ca = ca("plant");
+        let server = issue(&ca, "gateway", None, 90);
+        let tls = TlsServer::load(&settings(&files, &server, &ca.pem())).unwrap();
+        let identify = |role: Option<Vec<u8>>| {
+            let (pem, _) = issue(&ca, "master", role, 90);
+            let der = CertificateDer::from_pem_slice(pem.as_bytes()).unwrap();
+            tls.identify(Some(&[der]))
+        };
+        let operator = identify(Some(utf8("operator")));
+        assert_eq!(
+            (
+                operator.role_label.as_str(),
+                operator.role.as_deref(),
+                operator.rights
+            ),
+            ("operator", Some("operator"), Rights::ReadWrite)
+        );
+        assert_eq!(operator.subject, "CN=master");
+        assert_eq!(identify(Some(utf8("viewer"))).rights, Rights::ReadOnly);
+        // Unlisted, absent, in the wrong case, or not a UTF8String (a PrintableString): the
+        // default, counted as `other`.
+        for role in [
+            Some(utf8("intern")),
+            None,
+            Some(utf8("Viewer")),
+            Some(vec![0x13, 2, b'o', b'k']),
+        ] {
+            let other = identify(role.clone());
+            assert_eq!(
+                (other.role_label.as_str(), other.rights),
+                ("other", Rights::NoAccess),
+                "{role:?}"
+            );
+        }
+        assert_eq!(
+            identify(Some(utf8("intern"))).role.as_deref(),
+            Some("intern")
+        );
+    }
+
+    #[test]
+    fn a_key_that_is_not_the_certificates_is_refused_by_its_key() {
+        let files = Files::new("mismatch");
+        let ca = ca("plant");
+        let (cert, _) = issue(&ca, "gateway", None, 90);
+        let (_, other_key) = issue(&ca, "other", None, 90);
+        let errors =
+            keys(TlsServer::load(&settings(&files, &(cert, other_key), &ca.pem())).unwrap_err());
+        assert_eq!(errors.len(), 1);
+        assert!(
+            errors[0].starts_with("server.tls.private_key: ")
+                && errors[0].contains("is not the key of the certificate"),
+            "{errors:?}"
+        );
+    }
+
+    #[test]
+    fn every_unreadable_or_empty_file_is_named_by_its_key_in_one_report() {
+        let files = Files::new("broken");
+        let mut settings = settings(&files, &(String::new(), String::new()), "not PEM\n");
+        settings.certificate = files.0.join("missing.crt");
+        let errors = keys(TlsServer::load(&settings).unwrap_err());
+        assert_eq!(errors.len(), 3, "{errors:?}");
+        assert!(
+            errors[0].starts_with("server.tls.certificate: cannot read ")
+                && errors[0].contains("missing.crt")
+        );
+        assert!(
+            errors[1].starts_with("server.tls.private_key: ")
+                && errors[1].contains("no PEM private key")
+        );
+        assert!(
+            errors[2].starts_with("server.tls.client_ca: ")
+                && errors[2].contains("no PEM certificate")
+        );
+    }
+
+    #[test]
+    fn the_expiry_is_the_chains_earliest_and_warned_of_within_thirty_days() {
+        let files = Files::new("expiry");
+        let ca = ca("plant");
+        // The server's own certificate lasts 90 days; the next one in its chain, 20.
+        let (own, key) = issue(&ca, "gateway", None, 90);
+        let (next, _) = issue(&ca, "intermediate", None, 20);
+        let tls = TlsServer::load(&settings(&files, &(own + &next, key), &ca.pem())).unwrap();
+        let now = SystemTime::now();
+        let info = &tls.certificate;
+        assert_eq!(info.days_left(now), Ok(19), "20 days less a few seconds");
+        assert_eq!(info.client_cas, 1);
+        let warning = info.expiry_warning(now).expect("a warning");
+        assert!(warning.contains("expires in 19 days"), "{warning}");
+        let later = now + Duration::from_secs(25 * 86_400);
+        assert_eq!(info.days_left(later), Err(5));
+        assert!(info
+            .expiry_warning(later)
+            .unwrap()
+            .contains("expired 5 days ago"));
+        assert_eq!(info.expiry(later), "5 days ago");
+        let just_past = info.expires + Duration::from_secs(1);
+        assert_eq!(
+            info.days_left(just_past),
+            Err(0),
+            "expired is never \"0 days left\""
+        );
+        assert_eq!(
+            info.expiry_warning(now - Duration::from_secs(20 * 86_400)),
+            None
+        );
+    }
 }

@@ -491,6 +491,16 @@ pub async fn connect_when_listening(addr: SocketAddr) -> RawMaster {
     .await
 }
 
+/// Wait (bounded) until the log file at `path` contains `what`.
+pub async fn until_logged(path: &Path, what: &str) {
+    within(&format!("the log says {what:?}"), async {
+        while !std::fs::read_to_string(path).unwrap().contains(what) {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+}
+
 /// Send signal `name` (TERM, HUP, KILL...) to a child process.
 pub fn signal(child: &std::process::Child, name: &str) {
     let status = std::process::Command::new("kill")
