@@ -1,7 +1,9 @@
 //! Modbus/TCP Security: masters on TLS with certificates made at test time; what each role may
 //! do, who is refused at the handshake, and that a refusal disturbs nobody else.
 
-use crate::support::tls::{days_from_now, tls_connect, tls_master, Issued, Pki, Role};
+use crate::support::tls::{
+    connector_with, days_from_now, tls_connect, tls_master, Issued, Pki, Role,
+};
 use crate::support::{
     exit_status, free_addr, panics_on_this_thread, signal, sim_config_with_server, start,
     until_logged, within, RawMaster, Scrape,
@@ -74,6 +76,26 @@ async fn an_operator_certificate_reads_and_writes() {
         scrape.value("modbus_gateway_tcp_connections{protocol=\"tls\"}"),
         1.0
     );
+}
+
+#[tokio::test]
+async fn tls_1_2_and_tls_1_3_masters_are_both_served() {
+    let (pki, _server, gateway) = tls_gateway(ROLES).await;
+    let operator = pki.master("operator", Role::Named("operator"));
+    for version in [&rustls::version::TLS12, &rustls::version::TLS13] {
+        let connector = connector_with(&pki.ca_path, Some(&operator), &[version]);
+        let session = tls_connect(tls_addr(&gateway), &connector)
+            .await
+            .expect("handshake");
+        let negotiated = session.get_ref().1.protocol_version();
+        assert_eq!(negotiated, Some(version.version));
+        let mut master = RawMaster::over(session);
+        assert_eq!(
+            master.call(1, 1, &READ).await,
+            READ_ANSWER,
+            "{negotiated:?}"
+        );
+    }
 }
 
 #[tokio::test]
@@ -168,10 +190,13 @@ async fn a_foreign_ca_an_expired_certificate_no_certificate_and_plain_tcp_are_ea
     // It trusts the gateway's CA, so only the gateway can refuse it.
     let connector = pki.connector(Some(&forged));
     let expired = pki.master_valid("expired", Role::Named("operator"), (-30, -1));
-    let attempts: [(&str, tokio_rustls::TlsConnector); 3] = [
+    // A certificate of the right CA, but for servers only (extended key usage serverAuth).
+    let server_only = pki.server("server-only", "operator", 365);
+    let attempts: [(&str, tokio_rustls::TlsConnector); 4] = [
         ("another CA", connector),
         ("expired", pki.connector(Some(&expired))),
         ("no certificate", pki.connector(None)),
+        ("a server certificate", pki.connector(Some(&server_only))),
     ];
     for (n, (what, connector)) in attempts.into_iter().enumerate() {
         // TLS 1.3 lets the client finish before the server has checked its certificate: the
@@ -202,7 +227,7 @@ async fn a_foreign_ca_an_expired_certificate_no_certificate_and_plain_tcp_are_ea
     assert_eq!(working.call(20, 1, &READ).await, READ_ANSWER);
 
     let scrape = Scrape::of(&gateway).await;
-    assert_eq!(scrape.value(HANDSHAKE_FAILED), 4.0);
+    assert_eq!(scrape.value(HANDSHAKE_FAILED), 5.0);
     assert_eq!(
         scrape.value(&accepted("operator")),
         1.0,
@@ -514,4 +539,33 @@ async fn a_master_outside_allow_is_closed_before_any_handshake() {
         "modbus_gateway_tcp_connections_rejected_total{protocol=\"tls\",reason=\"not_allowed\"}";
     assert_eq!(scrape.value(not_allowed), 1.0);
     assert_eq!(scrape.get(HANDSHAKE_FAILED), None, "no handshake was tried");
+}
+
+#[tokio::test(start_paused = true)]
+async fn an_idle_tls_session_ends_with_close_notify_not_a_cut() {
+    let pki = Pki::new("plant-ca");
+    let server = pki.server("gateway", "gateway", 365);
+    let toml = sim_config_with_server(
+        &format!(
+            "listen_tls = \"127.0.0.1:0\"\nidle_timeout = \"5s\"\n{}",
+            pki.tls_table(&server, ROLES)
+        ),
+        "",
+    );
+    let gateway = start(&toml).await;
+    let operator = pki.master("operator", Role::Named("operator"));
+    let mut session = tls_connect(tls_addr(&gateway), &pki.connector(Some(&operator)))
+        .await
+        .expect("handshake");
+    session
+        .write_all(&RawMaster::adu(1, 1, &READ))
+        .await
+        .expect("send");
+    let mut reply = [0u8; 11];
+    within("reply", session.read_exact(&mut reply))
+        .await
+        .expect("reply");
+    // rustls reads a close without close_notify as an UnexpectedEof error.
+    let end = within("idle close", session.read(&mut [0u8; 1])).await;
+    assert!(matches!(end, Ok(0)), "a clean TLS close: {end:?}");
 }

@@ -22,6 +22,8 @@ use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::sync::{oneshot, Notify};
 use tokio::time::{sleep_until, Instant};
 
+/// Longest a TLS session's close_notify may take to send.
+const CLOSE_NOTIFY_WAIT: Duration = Duration::from_secs(1);
 /// Room for a few whole requests before a read must wait.
 const READ_BUFFER: usize = 1024;
 
@@ -150,6 +152,12 @@ pub async fn run<S: AsyncRead + AsyncWrite + Unpin>(
     )
     .await;
     dispatcher.forget(client.master);
+    // A TLS session ends with close_notify, so the master can tell a close from a cut; a
+    // master that stopped reading does not hold it up.
+    let closable = !matches!(error, SessionError::Closed | SessionError::Io(_));
+    if upstream == Upstream::Tls && closable {
+        let _ = tokio::time::timeout(CLOSE_NOTIFY_WAIT, stream.shutdown()).await;
+    }
     error
 }
 

@@ -158,13 +158,22 @@ impl Pki {
 
 /// A TLS client that trusts the CAs of `ca_path` and presents `master` (or no certificate).
 pub fn connector(ca_path: &Path, master: Option<&Issued>) -> TlsConnector {
+    connector_with(ca_path, master, rustls::DEFAULT_VERSIONS)
+}
+
+/// [`connector`] speaking only the TLS `versions` given.
+pub fn connector_with(
+    ca_path: &Path,
+    master: Option<&Issued>,
+    versions: &[&'static rustls::SupportedProtocolVersion],
+) -> TlsConnector {
     let mut roots = rustls::RootCertStore::empty();
     for ca in CertificateDer::pem_file_iter(ca_path).expect("CA file") {
         roots.add(ca.expect("CA")).expect("a CA");
     }
     let provider = Arc::new(rustls::crypto::ring::default_provider());
     let builder = rustls::ClientConfig::builder_with_provider(provider)
-        .with_safe_default_protocol_versions()
+        .with_protocol_versions(versions)
         .expect("versions")
         .with_root_certificates(roots);
     let config = match master {
