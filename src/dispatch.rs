@@ -4,6 +4,7 @@
 //! receiver for its outcome.
 
 use crate::bus::{BusHandle, MasterId};
+use crate::config::UnitSet;
 use crate::error::{Outcome, RequestError};
 use crate::line::BROADCAST;
 use crate::metrics::{Metrics, Protocol};
@@ -41,6 +42,8 @@ pub struct Client {
     pub master: MasterId,
     pub peer: SocketAddr,
     pub rights: Rights,
+    /// The unit ids it may address (its TLS role's `units`); `None`: any.
+    pub units: Option<UnitSet>,
     /// How it talks to the gateway: Modbus TCP unless [`Client::speaking`] says otherwise.
     pub protocol: Protocol,
     refused: u64,
@@ -52,6 +55,7 @@ impl Client {
             master,
             peer,
             rights,
+            units: None,
             protocol: Protocol::Tcp,
             refused: 0,
         }
@@ -60,6 +64,11 @@ impl Client {
     /// The same master, speaking `protocol`.
     pub fn speaking(self, protocol: Protocol) -> Self {
         Client { protocol, ..self }
+    }
+
+    /// The same master, allowed to address `units` only (`None`: any).
+    pub fn addressing(self, units: Option<UnitSet>) -> Self {
+        Client { units, ..self }
     }
 }
 
@@ -113,6 +122,13 @@ impl Dispatcher {
         let refusal = match target {
             _ if !pdu::is_valid_request_function(function) => {
                 RequestError::InvalidFunction(function)
+            }
+            _ if client.units.is_some_and(|units| !units.contains(unit)) => {
+                client.refused += 1;
+                let first = client.refused == 1;
+                let tcp = &self.metrics.tcp;
+                tcp.unit_refused(client.master, &client.peer, unit, first);
+                RequestError::UnitNotPermitted(unit)
             }
             _ if client.rights == Rights::NoAccess
                 || client.rights == Rights::ReadOnly && !pdu::is_read_only(&pdu) =>

@@ -47,6 +47,8 @@ pub enum RequestError {
     ReadOnly(u8),
     #[error("function code {0:#04x} refused: the master's TLS role allows nothing")]
     NoAccess(u8),
+    #[error("unit {0} refused: the master's TLS role may not address it")]
+    UnitNotPermitted(u8),
     #[error("no route for unit {0}")]
     NoRoute(u8),
     #[error("function code {0:#04x} cannot be broadcast")]
@@ -73,7 +75,8 @@ impl RequestError {
             RequestError::InvalidFunction(_)
             | RequestError::NotBroadcastable(_)
             | RequestError::ReadOnly(_)
-            | RequestError::NoAccess(_) => ExceptionCode::IllegalFunction,
+            | RequestError::NoAccess(_)
+            | RequestError::UnitNotPermitted(_) => ExceptionCode::IllegalFunction,
             RequestError::NoRoute(_) | RequestError::PortDown | RequestError::ShuttingDown => {
                 ExceptionCode::GatewayPathUnavailable
             }

@@ -151,6 +151,24 @@ async fn a_certificate_without_a_role_or_with_an_unlisted_one_gets_the_default_r
 }
 
 #[tokio::test]
+async fn a_role_with_units_may_address_those_units_only() {
+    let (pki, _server, gateway) =
+        tls_gateway("roles = { line-b = { access = \"read_write\", units = \"2-3\" } }").await;
+    let line = gateway.sim_line("sim").expect("sim line");
+    let line_b = pki.master("line-b", Role::Named("line-b"));
+    let mut master = tls_master(tls_addr(&gateway), &pki.connector(Some(&line_b))).await;
+    assert_eq!(master.call(1, 2, &WRITE).await, WRITE);
+    assert_eq!(master.call(2, 3, &READ).await, READ_ANSWER);
+    let frames = line.frames().len();
+    assert_eq!(master.call(3, 1, &READ).await, READ_REFUSED, "unit 1");
+    assert_eq!(master.call(4, 4, &WRITE).await, WRITE_REFUSED, "unit 4");
+    assert_eq!(line.frames().len(), frames, "nothing more on the line");
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(scrape.value(&requests("no_access", "0x03")), 1.0);
+    assert_eq!(scrape.value(&accepted("line-b")), 1.0);
+}
+
+#[tokio::test]
 async fn a_read_only_address_keeps_an_operator_certificate_to_reads() {
     let pki = Pki::new("plant-ca");
     let server = pki.server("gateway", "gateway", 365);

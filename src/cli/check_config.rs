@@ -41,12 +41,10 @@ fn describe_tls(config: &Config, tls: &TlsServer, now: SystemTime) -> String {
     let expiry = certificate.expiry(now);
     let mut roles: Vec<String> = Vec::new();
     if let Some(settings) = &config.server.tls {
-        roles.extend(
-            settings
-                .roles
-                .iter()
-                .map(|(role, access)| format!("{role} {}", access.name())),
-        );
+        roles.extend(settings.roles.iter().map(|(name, role)| match role.units {
+            None => format!("{name} {}", role.access.name()),
+            Some(units) => format!("{name} {} on units {units}", role.access.name()),
+        }));
         roles.push(format!(
             "any other certificate {}",
             settings.default_role_access.name()

@@ -102,7 +102,13 @@ fn check_server(server: &Server, report: &mut Report) {
 }
 
 fn check_tls(tls: &Tls, report: &mut Report) {
-    for name in tls.roles.keys() {
+    for (name, role) in &tls.roles {
+        if role.units.is_some_and(|units| units.is_empty()) {
+            report.fail(
+                format!("server.tls.roles.{name}.units"),
+                "names no unit: leave it out for any unit, or give access = \"none\"",
+            );
+        }
         if name.is_empty() {
             report.fail("server.tls.roles", "a role needs a name");
         } else if name == OTHER_ROLE {

@@ -27,7 +27,7 @@ pub use log::{Log, LogFormat};
 pub use metrics::Metrics;
 pub use route::Route;
 pub use server::{Server, WhenFull};
-pub use tls::{RoleAccess, Tls, OTHER_ROLE};
+pub use tls::{Role, RoleAccess, Tls, OTHER_ROLE};
 pub use unit_set::UnitSet;
 
 use serde::{Deserialize, Serialize};

@@ -89,7 +89,14 @@ fn tls() -> impl Strategy<Value = Tls> {
     let roles = prop::collection::btree_map(
         prop::sample::select(vec!["operator", "viewer", "Engineering", "historian-2"])
             .prop_map(str::to_owned),
-        role_access(),
+        (
+            role_access(),
+            prop::option::of(prop::sample::select(vec!["1", "10-19,30", "0-255"])),
+        )
+            .prop_map(|(access, units)| Role {
+                access,
+                units: units.map(|units| units.parse().expect("a unit set")),
+            }),
         0..4,
     );
     (roles, role_access(), duration()).prop_map(|(roles, default_role_access, handshake)| Tls {

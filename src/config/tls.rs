@@ -4,6 +4,7 @@
 
 use super::defaults;
 use super::serde_adapters::duration;
+use super::UnitSet;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -20,13 +21,83 @@ pub struct Tls {
     pub client_ca: PathBuf,
     /// What each role (the RoleOID extension of a master's certificate) may do.
     #[serde(default)]
-    pub roles: BTreeMap<String, RoleAccess>,
+    pub roles: BTreeMap<String, Role>,
     /// What a certificate with no role, or a role not in `roles`, may do.
     #[serde(default)]
     pub default_role_access: RoleAccess,
     /// The TLS handshake must be over this long after the connection is accepted.
     #[serde(with = "duration", default = "defaults::tls_handshake_timeout")]
     pub handshake_timeout: Duration,
+}
+
+/// What one role may do: its access, and the unit ids it may address (`None`: any). Written
+/// `"read_only"`, or `{ access = "read_write", units = "1-10" }`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Role {
+    pub access: RoleAccess,
+    pub units: Option<UnitSet>,
+}
+
+impl From<RoleAccess> for Role {
+    fn from(access: RoleAccess) -> Role {
+        Role {
+            access,
+            units: None,
+        }
+    }
+}
+
+/// The table form of a role.
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RoleTable {
+    access: RoleAccess,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    units: Option<UnitSet>,
+}
+
+impl Serialize for Role {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        match self.units {
+            None => self.access.serialize(s),
+            Some(units) => RoleTable {
+                access: self.access,
+                units: Some(units),
+            }
+            .serialize(s),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for Role {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct Visitor;
+        impl<'de> serde::de::Visitor<'de> for Visitor {
+            type Value = Role;
+
+            fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str(
+                    "\"read_write\", \"read_only\", \"none\", or a table like \
+                     { access = \"read_write\", units = \"1-10\" }",
+                )
+            }
+
+            fn visit_str<E: serde::de::Error>(self, text: &str) -> Result<Role, E> {
+                RoleAccess::deserialize(serde::de::value::StrDeserializer::<E>::new(text))
+                    .map(Role::from)
+            }
+
+            fn visit_map<A: serde::de::MapAccess<'de>>(self, map: A) -> Result<Role, A::Error> {
+                let table =
+                    RoleTable::deserialize(serde::de::value::MapAccessDeserializer::new(map))?;
+                Ok(Role {
+                    access: table.access,
+                    units: table.units,
+                })
+            }
+        }
+        d.deserialize_any(Visitor)
+    }
 }
 
 /// What a role allows.
@@ -72,16 +143,51 @@ mod tests {
         ))
         .unwrap();
         let tls = c.server.tls.as_ref().unwrap();
-        assert_eq!(tls.roles["operator"], RoleAccess::ReadWrite);
-        assert_eq!(tls.roles["viewer"], RoleAccess::ReadOnly);
+        assert_eq!(tls.roles["operator"], RoleAccess::ReadWrite.into());
+        assert_eq!(tls.roles["viewer"], RoleAccess::ReadOnly.into());
         assert_eq!(
             tls.roles["Guest"],
-            RoleAccess::None,
+            RoleAccess::None.into(),
             "role names keep their case"
         );
         assert_eq!(tls.default_role_access, RoleAccess::None);
         assert_eq!(tls.handshake_timeout, std::time::Duration::from_secs(10));
         assert_eq!(Config::from_toml_str(&c.to_toml()).unwrap(), c);
+    }
+
+    #[test]
+    fn a_role_may_be_a_table_that_also_names_the_units_it_may_address() {
+        let c = Config::from_toml_str(&format!(
+            "{TLS}roles = {{ operator = \"read_write\", \
+             line2 = {{ access = \"read_write\", units = \"10-19,30\" }}, \
+             auditor = {{ access = \"read_only\" }} }}\n{MINIMAL}"
+        ))
+        .unwrap();
+        let roles = &c.server.tls.as_ref().unwrap().roles;
+        let line2 = roles["line2"];
+        assert_eq!(line2.access, RoleAccess::ReadWrite);
+        let units = line2.units.unwrap();
+        assert!(units.contains(10) && units.contains(19) && units.contains(30));
+        assert!(!units.contains(20) && !units.contains(1));
+        assert_eq!(roles["auditor"], RoleAccess::ReadOnly.into());
+        assert_eq!(roles["operator"], RoleAccess::ReadWrite.into());
+        // Printed back: the simple form where it suffices.
+        let printed = c.to_toml();
+        assert!(printed.contains("operator = \"read_write\""), "{printed}");
+        assert_eq!(Config::from_toml_str(&printed).unwrap(), c);
+        let e = errors(&format!(
+            "{TLS}roles = {{ line2 = {{ access = \"read_write\", unit = 5 }} }}\n{MINIMAL}"
+        ));
+        assert!(e[0].starts_with("server.tls.roles.line2"), "{e:?}");
+        assert!(e[0].contains("unknown field `unit`"), "{e:?}");
+        let e = errors(&format!(
+            "{TLS}roles = {{ line2 = {{ access = \"read_write\", units = [] }} }}\n{MINIMAL}"
+        ));
+        assert_eq!(e.len(), 1, "{e:?}");
+        assert!(
+            e[0].starts_with("server.tls.roles.line2.units: names no unit"),
+            "{e:?}"
+        );
     }
 
     #[test]

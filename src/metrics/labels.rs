@@ -42,7 +42,8 @@ pub enum Fate {
     Dropped,
     /// A request from a read-only master that may change the slave; never sent (0x01).
     ReadOnly,
-    /// A request from a master whose TLS role allows nothing; never sent (0x01).
+    /// A request from a master whose TLS role allows nothing, or not that unit; never sent
+    /// (0x01).
     NoAccess,
     /// The slave is down (timed out again and again) and it was not its probe's turn; never
     /// sent (0x0B).
@@ -93,7 +94,7 @@ impl Fate {
                         Fate::Refused
                     }
                     RequestError::ReadOnly(_) => Fate::ReadOnly,
-                    RequestError::NoAccess(_) => Fate::NoAccess,
+                    RequestError::NoAccess(_) | RequestError::UnitNotPermitted(_) => Fate::NoAccess,
                     RequestError::SlaveDown { .. } => Fate::SlaveDown,
                     RequestError::NoRoute(_) => Fate::NoRoute,
                     RequestError::PortDown => Fate::PortDown,

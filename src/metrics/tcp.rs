@@ -137,6 +137,16 @@ impl TcpMetrics {
             .inc();
     }
 
+    /// A master whose role names the units it may address asked for another (counted with the
+    /// request, as `no_access`). Logged at warn for the first refusal on each connection.
+    pub fn unit_refused(&self, master: u64, peer: &dyn Display, unit: u8, first: bool) {
+        if first {
+            warn!(target: TCP_EVENTS, master, %peer, unit, "refusing a unit the master's role may not address (0x01)");
+        } else {
+            debug!(target: TCP_EVENTS, master, %peer, unit, "unit refused");
+        }
+    }
+
     /// A master asked for something its `rights` do not allow (counted with the request, as
     /// `read_only` or `no_access`). Logged at warn for the first on each connection.
     pub fn request_refused(

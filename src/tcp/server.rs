@@ -358,7 +358,10 @@ async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
     }
     let activity = Arc::new(Activity::default());
     shared.sessions().insert(id, activity.clone());
-    let client = Client::new(id, peer, rights).speaking(protocol);
+    let units = identity.as_ref().and_then(|identity| identity.units);
+    let client = Client::new(id, peer, rights)
+        .speaking(protocol)
+        .addressing(units);
     let error = session::run(
         stream,
         upstream,

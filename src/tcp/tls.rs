@@ -5,7 +5,7 @@
 //! Reads the PEM files `[server.tls]` names ([`TlsServer::load`], every problem named by its
 //! key) and inspects certificates; knows nothing of sessions or buses.
 
-use crate::config::{self, ConfigError, ConfigErrors, RoleAccess, OTHER_ROLE};
+use crate::config::{self, ConfigError, ConfigErrors, Role, RoleAccess, UnitSet, OTHER_ROLE};
 use crate::dispatch::Rights;
 use rustls::pki_types::pem::PemObject;
 use rustls::pki_types::{CertificateDer, PrivateKeyDer};
@@ -29,7 +29,7 @@ pub(crate) const EXPIRY_WARNING_DAYS: u64 = 30;
 /// connections take the one in force when they are accepted, and keep it.
 pub(crate) struct TlsServer {
     pub acceptor: TlsAcceptor,
-    roles: BTreeMap<String, RoleAccess>,
+    roles: BTreeMap<String, Role>,
     default_access: RoleAccess,
     pub handshake_timeout: Duration,
     /// What `check-config` and the logs say of the server's certificate.
@@ -99,6 +99,8 @@ pub(crate) struct Identity {
     /// The role the certificate carries, if any, as written.
     pub role: Option<String>,
     pub rights: Rights,
+    /// The unit ids its role may address; `None`: any.
+    pub units: Option<UnitSet>,
     pub subject: String,
 }
 
@@ -253,14 +255,15 @@ impl TlsServer {
         let listed = role
             .as_ref()
             .and_then(|name| self.roles.get_key_value(name));
-        let (role_label, access) = match listed {
-            Some((name, access)) => (name.clone(), *access),
-            None => (OTHER_ROLE.to_owned(), self.default_access),
+        let (role_label, granted) = match listed {
+            Some((name, granted)) => (name.clone(), *granted),
+            None => (OTHER_ROLE.to_owned(), Role::from(self.default_access)),
         };
         Identity {
             role_label,
             role,
-            rights: rights(access),
+            rights: rights(granted.access),
+            units: granted.units,
             subject,
         }
     }
@@ -368,8 +371,15 @@ mod tests {
             private_key: files.write("server.key", &server.1),
             client_ca: files.write("ca.crt", ca_pem),
             roles: [
-                ("operator".to_owned(), RoleAccess::ReadWrite),
-                ("viewer".to_owned(), RoleAccess::ReadOnly),
+                ("operator".to_owned(), RoleAccess::ReadWrite.into()),
+                ("viewer".to_owned(), RoleAccess::ReadOnly.into()),
+                (
+                    "line2".to_owned(),
+                    Role {
+                        access: RoleAccess::ReadWrite,
+                        units: Some("10-19".parse().unwrap()),
+                    },
+                ),
             ]
             .into(),
             default_role_access: RoleAccess::None,
@@ -407,6 +417,10 @@ mod tests {
         );
         assert_eq!(operator.subject, "CN=master");
         assert_eq!(identify(Some(utf8("viewer"))).rights, Rights::ReadOnly);
+        assert_eq!(operator.units, None, "any unit");
+        let line2 = identify(Some(utf8("line2")));
+        assert_eq!(line2.rights, Rights::ReadWrite);
+        assert_eq!(line2.units, Some("10-19".parse().unwrap()));
         // Unlisted, absent, in the wrong case, or not a UTF8String (a PrintableString): the
         // default, counted as `other`.
         for role in [
