@@ -1,13 +1,17 @@
 //! Third-party Modbus peers on the real serial path: pymodbus's serial server (Python, run by
 //! `tests/peers/pymodbus_slave.py`, RTU or ASCII) as the slave behind the gateway, on a pty cable,
 //! and pymodbus's ASCII client (`tests/peers/pymodbus_ascii_master.py`) as the master of the
-//! `simulate` subcommand's drives. The scripts log every byte either way, so these tests check the
-//! line as well as the masters; ASCII frames are read by a decoder of this file's own, not the
-//! gateway's codec, so the check is independent of the code under test.
+//! `simulate` subcommand's drives; its RTU-over-TCP, UDP and TLS clients as masters of the
+//! gateway (the TLS ones in `tls_walkthrough`, with the README's certificates). The scripts log
+//! every byte either way, so these tests check the line as well as the masters; ASCII frames are
+//! read by a decoder of this file's own, not the gateway's codec, so the check is independent of
+//! the code under test.
 //!
 //! Python comes from `MBGW_PYTHON` (`.ci/run` points it at a venv with the pinned pymodbus), else
 //! a `python3` on the PATH that has pymodbus; without one a test checks nothing and says so, or
 //! fails under `MBGW_REQUIRE_TOOLS=1`, as for the other external tools.
+
+mod tls_walkthrough;
 
 use crate::support::{addr, pty_config, start, within, RawMaster, Scrape};
 use modbus_gateway::line::rtu;
@@ -730,15 +734,18 @@ async fn pymodbus_rtu_over_tcp_and_udp_masters_reach_pymodbus_rtu_slave_on_a_pty
 
 /// Run `program` with `args` to its end (bounded by the patience); its output.
 async fn run_to_end(program: std::path::PathBuf, args: Vec<String>) -> std::process::Output {
-    let what = format!("{} finishes", program.display());
+    let mut command = Command::new(program);
+    command.args(args);
+    run_command(command).await
+}
+
+/// Run `command` to its end (bounded by the patience), its standard error passed through; its
+/// output.
+async fn run_command(mut command: Command) -> std::process::Output {
+    let what = format!("{:?} finishes", command.get_program());
     within(
         &what,
-        tokio::task::spawn_blocking(move || {
-            Command::new(program)
-                .args(&args)
-                .stderr(Stdio::inherit())
-                .output()
-        }),
+        tokio::task::spawn_blocking(move || command.stderr(Stdio::inherit()).output()),
     )
     .await
     .expect("the task runs")

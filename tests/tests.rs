@@ -16,7 +16,8 @@
 //! - `faults`: each fault knob of a simulated slave and what the gateway makes of it.
 //! - `serial`: the real serial path on pty pairs, with a third-party client.
 //! - `peers`: third-party peers on the serial path: pymodbus's RTU and ASCII servers behind the
-//!   gateway, its ASCII client on `simulate`, its RTU-over-TCP and UDP clients on the gateway.
+//!   gateway, its ASCII client on `simulate`, its RTU-over-TCP and UDP clients on the gateway;
+//!   `peers::tls_walkthrough` runs the README's TLS walkthrough (openssl) and its TLS client.
 //! - `rtu_over_tcp`: masters sending plain RTU frames on TCP: framing, bad CRCs, exceptions as RTU.
 //! - `tls`: Modbus/TCP Security: roles, refused certificates, handshake timeout, many TLS masters.
 //! - `udp`: Modbus UDP masters: replies to their source, access lists, what is dropped.
