@@ -35,6 +35,8 @@ pub struct TlsMaster<'a> {
     pub role: Option<&'a str>,
     /// What it may do: `read_write`, `read_only` or `none`.
     pub access: &'static str,
+    /// Why its certificate's RoleOID extension was not read as a role, if it has one.
+    pub role_problem: Option<&'static str>,
     pub subject: &'a str,
 }
 
@@ -83,6 +85,15 @@ impl TlsMetrics {
             subject = master.subject,
             "master connected with a certificate"
         );
+        if let Some(problem) = master.role_problem {
+            warn!(
+                target: TCP_EVENTS,
+                master = master.master,
+                peer = %master.peer,
+                subject = master.subject,
+                "certificate role ignored: {problem}; the master gets default_role_access"
+            );
+        }
     }
 
     /// A TLS handshake from `peer` failed (or timed out): counted with the refused connections,

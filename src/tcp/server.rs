@@ -353,6 +353,7 @@ async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
             role_label: &identity.role_label,
             role: identity.role.as_deref(),
             access: rights.name(),
+            role_problem: identity.role_problem,
             subject: &identity.subject,
         });
     }

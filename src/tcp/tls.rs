@@ -98,6 +98,8 @@ pub(crate) struct Identity {
     pub role_label: String,
     /// The role the certificate carries, if any, as written.
     pub role: Option<String>,
+    /// Why a RoleOID extension the certificate has was not read as a role.
+    pub role_problem: Option<&'static str>,
     pub rights: Rights,
     /// The unit ids its role may address; `None`: any.
     pub units: Option<UnitSet>,
@@ -250,7 +252,11 @@ impl TlsServer {
         let end_entity = chain.and_then(<[_]>::first).map(|der| parse(der));
         let (role, subject) = match &end_entity {
             Some(Ok(certificate)) => (role_of(certificate), certificate.subject().to_string()),
-            _ => (None, String::new()),
+            _ => (Ok(None), String::new()),
+        };
+        let (role, role_problem) = match role {
+            Ok(role) => (role, None),
+            Err(problem) => (None, Some(problem)),
         };
         let listed = role
             .as_ref()
@@ -262,6 +268,7 @@ impl TlsServer {
         Identity {
             role_label,
             role,
+            role_problem,
             rights: rights(granted.access),
             units: granted.units,
             subject,
@@ -277,15 +284,20 @@ fn rights(access: RoleAccess) -> Rights {
     }
 }
 
-/// The role in a certificate's RoleOID extension; `None` without one, or when it is not the
-/// UTF8String the spec says it is.
-pub(crate) fn role_of(certificate: &X509Certificate<'_>) -> Option<String> {
-    let extension = certificate
+/// The role in a certificate's RoleOID extension, `None` without one; an error when the
+/// extension is there but not the UTF8String the spec says it is.
+pub(crate) fn role_of(certificate: &X509Certificate<'_>) -> Result<Option<String>, &'static str> {
+    let Some(extension) = certificate
         .extensions()
         .iter()
-        .find(|extension| extension.oid.to_id_string() == ROLE_OID)?;
-    let (_, role) = String::from_der(extension.value).ok()?;
-    Some(role)
+        .find(|extension| extension.oid.to_id_string() == ROLE_OID)
+    else {
+        return Ok(None);
+    };
+    match String::from_der(extension.value) {
+        Ok(([], role)) => Ok(Some(role)),
+        _ => Err("the RoleOID extension is not one ASN.1 UTF8String"),
+    }
 }
 
 #[cfg(test)]
@@ -430,6 +442,8 @@ mod tests {
             Some(vec![0x13, 2, b'o', b'k']),
         ] {
             let other = identify(role.clone());
+            let printable = role.as_ref().is_some_and(|der| der[0] == 0x13);
+            assert_eq!(other.role_problem.is_some(), printable, "{role:?}");
             assert_eq!(
                 (other.role_label.as_str(), other.rights),
                 ("other", Rights::NoAccess),
