@@ -3,7 +3,8 @@
 //! Modules in the order a request flows through them:
 //! - [`config`]: the TOML file and `MBGW__` environment: loaded, checked per section, resolved
 //!   (derived values); diffed on reload. Imports no runtime module.
-//! - `tcp`: listeners, MBAP framing, one session task per master.
+//! - `tcp`: listeners (Modbus TCP, RTU over TCP, Modbus/TCP Security's TLS with certificate
+//!   roles, UDP), MBAP framing, one session task per master.
 //! - `dispatch`: the gateway's immediate answers, or the bus a request goes to.
 //! - `routing`: unit id to (bus, slave address), a pure table.
 //! - [`bus`]: one task per line, the only owner of its port: fair queue, reopen, one transaction
