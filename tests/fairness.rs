@@ -1,18 +1,13 @@
 //! Hundreds of masters at once on one line: every reply correct and to the right master, and the
 //! line shared fairly even when some masters pipeline and others do not.
 
-use crate::support::{addr, start, within, RawMaster};
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use crate::support::{addr, assert_fair, start, RawMaster, Rotation};
 use std::sync::Arc;
 use tokio::sync::Barrier;
 
 const MASTERS: usize = 200;
 /// Half the masters keep this many requests in flight; the other half one at a time.
 const GREEDY_PIPELINE: usize = 8;
-/// Completions before counting starts, so that every master has joined the rotation.
-const WARM_UP: usize = 2 * MASTERS;
-/// Completions counted: five rounds of the rotation.
-const WINDOW: usize = 5 * MASTERS;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn two_hundred_masters_are_all_served_correctly_and_fairly() {
@@ -25,11 +20,10 @@ async fn two_hundred_masters_are_all_served_correctly_and_fairly() {
     .await;
     let at = addr(&gateway);
     let barrier = Arc::new(Barrier::new(MASTERS));
-    let total = Arc::new(AtomicUsize::new(0));
-    let stop = Arc::new(AtomicBool::new(false));
+    let rotation = Rotation::new(MASTERS);
     let mut masters = Vec::new();
     for m in 0..MASTERS {
-        let (barrier, total, stop) = (barrier.clone(), total.clone(), stop.clone());
+        let (barrier, rotation) = (barrier.clone(), rotation.clone());
         masters.push(tokio::spawn(async move {
             let mut master = RawMaster::connect(at).await;
             let unit = 1 + (m % 4) as u8;
@@ -58,32 +52,14 @@ async fn two_hundred_masters_are_all_served_correctly_and_fairly() {
                     "master {m}"
                 );
                 expected_tid += 1;
-                let n = total.fetch_add(1, Ordering::Relaxed) + 1;
-                if stop.load(Ordering::Relaxed) {
-                    return counted;
-                }
-                if n > WARM_UP {
-                    counted += 1;
-                }
-                if n >= WARM_UP + WINDOW {
-                    stop.store(true, Ordering::Relaxed);
+                match rotation.completed() {
+                    None => return counted,
+                    Some(counts) => counted += usize::from(counts),
                 }
                 tid += 1;
                 master.send(tid, unit, &request).await;
             }
         }));
     }
-    let mut counts = Vec::new();
-    for master in masters {
-        counts.push(
-            within("every master finishes", master)
-                .await
-                .expect("master task"),
-        );
-    }
-    let min = *counts.iter().min().unwrap();
-    let max = *counts.iter().max().unwrap();
-    eprintln!("completions per master: min {min}, max {max}");
-    assert!(min >= 1, "a master got nothing: {counts:?}");
-    assert!(max <= 2 * min, "unfair: min {min}, max {max}: {counts:?}");
+    assert_fair(masters, "master").await;
 }

@@ -5,13 +5,12 @@ use crate::support::tls::{
     connector_with, days_from_now, tls_connect, tls_master, Issued, Pki, Role,
 };
 use crate::support::{
-    exit_status, free_addr, panics_on_this_thread, signal, sim_config_with_server, start,
-    until_logged, within, RawMaster, Scrape,
+    assert_fair, exit_status, free_addr, panics_on_this_thread, signal, sim_config_with_server,
+    start, until_logged, within, RawMaster, Rotation, Scrape,
 };
 use modbus_gateway::Gateway;
 use std::net::SocketAddr;
 use std::process::{Command, Stdio};
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::Barrier;
@@ -31,11 +30,16 @@ const ROLES: &str = "roles = { operator = \"read_write\", viewer = \"read_only\"
 /// A CA, the gateway's certificate, and a gateway on the sim line (slaves 1-4) with a TLS
 /// listener and `tls_extra` in `[server.tls]`.
 async fn tls_gateway(tls_extra: &str) -> (Pki, Issued, Gateway) {
+    tls_gateway_with("", tls_extra).await
+}
+
+/// [`tls_gateway`] with `server_extra` in `[server]` too.
+async fn tls_gateway_with(server_extra: &str, tls_extra: &str) -> (Pki, Issued, Gateway) {
     let pki = Pki::new("plant-ca");
     let server = pki.server("gateway", "gateway", 365);
     let toml = sim_config_with_server(
         &format!(
-            "listen_tls = \"127.0.0.1:0\"\n{}",
+            "listen_tls = \"127.0.0.1:0\"\n{server_extra}\n{}",
             pki.tls_table(&server, tls_extra)
         ),
         "",
@@ -170,16 +174,7 @@ async fn a_role_with_units_may_address_those_units_only() {
 
 #[tokio::test]
 async fn a_read_only_address_keeps_an_operator_certificate_to_reads() {
-    let pki = Pki::new("plant-ca");
-    let server = pki.server("gateway", "gateway", 365);
-    let toml = sim_config_with_server(
-        &format!(
-            "listen_tls = \"127.0.0.1:0\"\nread_only = \"127.0.0.1\"\n{}",
-            pki.tls_table(&server, ROLES)
-        ),
-        "",
-    );
-    let gateway = start(&toml).await;
+    let (pki, _server, gateway) = tls_gateway_with("read_only = \"127.0.0.1\"", ROLES).await;
     let operator = pki.master("operator", Role::Named("operator"));
     let mut master = tls_master(tls_addr(&gateway), &pki.connector(Some(&operator))).await;
     assert_eq!(master.call(1, 1, &READ).await, READ_ANSWER);
@@ -287,10 +282,6 @@ async fn the_server_certificate_expiry_is_exported_as_a_unix_time() {
 }
 
 const MASTERS: usize = 200;
-/// Completions before counting starts, so that every master has joined the rotation.
-const WARM_UP: usize = 2 * MASTERS;
-/// Completions counted: five rounds of the rotation.
-const WINDOW: usize = 5 * MASTERS;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn two_hundred_tls_masters_polling_at_once_are_answered_correctly_and_fairly() {
@@ -308,12 +299,10 @@ async fn two_hundred_tls_masters_polling_at_once_are_answered_correctly_and_fair
     let viewer = pki.master("viewer", Role::Named("viewer"));
     let connector = pki.connector(Some(&viewer));
     let barrier = Arc::new(Barrier::new(MASTERS));
-    let total = Arc::new(AtomicUsize::new(0));
-    let stop = Arc::new(AtomicBool::new(false));
+    let rotation = Rotation::new(MASTERS);
     let mut masters = Vec::new();
     for m in 0..MASTERS {
-        let (barrier, total, stop) = (barrier.clone(), total.clone(), stop.clone());
-        let connector = connector.clone();
+        let (barrier, rotation, connector) = (barrier.clone(), rotation.clone(), connector.clone());
         masters.push(tokio::spawn(async move {
             let mut master = tls_master(at, &connector).await;
             let unit = 1 + (m % 4) as u8;
@@ -325,33 +314,15 @@ async fn two_hundred_tls_masters_polling_at_once_are_answered_correctly_and_fair
             for tid in 1.. {
                 let pdu = master.call(tid, unit, &request).await;
                 assert_eq!(pdu, [0x04, 0x02, request[1], request[2]], "master {m}");
-                let n = total.fetch_add(1, Ordering::Relaxed) + 1;
-                if stop.load(Ordering::Relaxed) {
-                    break;
-                }
-                if n > WARM_UP {
-                    counted += 1;
-                }
-                if n >= WARM_UP + WINDOW {
-                    stop.store(true, Ordering::Relaxed);
+                match rotation.completed() {
+                    None => break,
+                    Some(counts) => counted += usize::from(counts),
                 }
             }
             counted
         }));
     }
-    let mut counts = Vec::new();
-    for master in masters {
-        counts.push(
-            within("every master finishes", master)
-                .await
-                .expect("master task"),
-        );
-    }
-    let min = *counts.iter().min().unwrap();
-    let max = *counts.iter().max().unwrap();
-    eprintln!("completions per TLS master: min {min}, max {max}");
-    assert!(min >= 1, "a master got nothing: {counts:?}");
-    assert!(max <= 2 * min, "unfair: min {min}, max {max}: {counts:?}");
+    assert_fair(masters, "TLS master").await;
     let scrape = Scrape::of(&gateway).await;
     assert_eq!(scrape.value(&accepted("viewer")), MASTERS as f64);
 }
@@ -539,16 +510,7 @@ fn check_config_names_a_key_that_is_not_the_certificates_and_exits_2() {
 
 #[tokio::test]
 async fn a_master_outside_allow_is_closed_before_any_handshake() {
-    let pki = Pki::new("plant-ca");
-    let server = pki.server("gateway", "gateway", 365);
-    let toml = sim_config_with_server(
-        &format!(
-            "listen_tls = \"127.0.0.1:0\"\nallow = \"10.0.0.0/8\"\n{}",
-            pki.tls_table(&server, ROLES)
-        ),
-        "",
-    );
-    let gateway = start(&toml).await;
+    let (pki, _server, gateway) = tls_gateway_with("allow = \"10.0.0.0/8\"", ROLES).await;
     let operator = pki.master("operator", Role::Named("operator"));
     let attempt = tls_connect(tls_addr(&gateway), &pki.connector(Some(&operator))).await;
     assert!(attempt.is_err(), "no TLS session without a handshake");
@@ -561,16 +523,7 @@ async fn a_master_outside_allow_is_closed_before_any_handshake() {
 
 #[tokio::test(start_paused = true)]
 async fn an_idle_tls_session_ends_with_close_notify_not_a_cut() {
-    let pki = Pki::new("plant-ca");
-    let server = pki.server("gateway", "gateway", 365);
-    let toml = sim_config_with_server(
-        &format!(
-            "listen_tls = \"127.0.0.1:0\"\nidle_timeout = \"5s\"\n{}",
-            pki.tls_table(&server, ROLES)
-        ),
-        "",
-    );
-    let gateway = start(&toml).await;
+    let (pki, _server, gateway) = tls_gateway_with("idle_timeout = \"5s\"", ROLES).await;
     let operator = pki.master("operator", Role::Named("operator"));
     let mut session = tls_connect(tls_addr(&gateway), &pki.connector(Some(&operator)))
         .await

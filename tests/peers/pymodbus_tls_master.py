@@ -22,19 +22,7 @@ import sys
 
 from pymodbus.client import AsyncModbusTlsClient
 
-
-def say(line):
-    sys.stdout.write(line + "\n")
-    sys.stdout.flush()
-
-
-def report(fc, response):
-    if response.isError():
-        say(f"exception {fc} {response.exception_code}")
-    elif fc == 3:
-        say(f"result {fc} " + " ".join(str(r) for r in response.registers))
-    else:
-        say(f"result {fc} ok")
+from replies import report
 
 
 async def main():

@@ -520,3 +520,57 @@ pub async fn exit_status(mut child: std::process::Child) -> std::process::ExitSt
     .expect("the waiting task runs")
     .expect("wait for the child")
 }
+
+/// The completions of many masters polling at once, counted in a window after a warm-up, for
+/// judging whether the line was shared fairly.
+pub struct Rotation {
+    total: std::sync::atomic::AtomicUsize,
+    over: std::sync::atomic::AtomicBool,
+    /// Completions before counting starts, so that every master has joined the rotation.
+    warm_up: usize,
+    /// Completions counted.
+    window: usize,
+}
+
+impl Rotation {
+    /// For `masters` masters: a warm-up of two rounds, a window of five.
+    pub fn new(masters: usize) -> Arc<Rotation> {
+        Arc::new(Rotation {
+            total: std::sync::atomic::AtomicUsize::new(0),
+            over: std::sync::atomic::AtomicBool::new(false),
+            warm_up: 2 * masters,
+            window: 5 * masters,
+        })
+    }
+
+    /// A master completed a request: whether it counts, or `None` once the window is over.
+    pub fn completed(&self) -> Option<bool> {
+        use std::sync::atomic::Ordering::Relaxed;
+        let n = self.total.fetch_add(1, Relaxed) + 1;
+        if self.over.load(Relaxed) {
+            return None;
+        }
+        if n >= self.warm_up + self.window {
+            self.over.store(true, Relaxed);
+        }
+        Some(n > self.warm_up)
+    }
+}
+
+/// Wait for every master's count of completions in the window, and check that none got less
+/// than half of what another got.
+pub async fn assert_fair(masters: Vec<JoinHandle<usize>>, what: &str) {
+    let mut counts = Vec::new();
+    for master in masters {
+        counts.push(
+            within("every master finishes", master)
+                .await
+                .expect("master task"),
+        );
+    }
+    let min = *counts.iter().min().unwrap();
+    let max = *counts.iter().max().unwrap();
+    eprintln!("completions per {what}: min {min}, max {max}");
+    assert!(min >= 1, "a {what} got nothing: {counts:?}");
+    assert!(max <= 2 * min, "unfair: min {min}, max {max}: {counts:?}");
+}
