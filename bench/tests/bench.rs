@@ -22,7 +22,11 @@ fn gateway() -> PathBuf {
 fn the_bench_reports_every_field_never_beats_physics_and_drives_the_pty_slave() {
     let out = Command::new(BENCH)
         .args(["--json", "--seconds", "1", "--rounds", "1"])
-        .args(["sim-115200-8N1-read-10", "pty", "idle-0"])
+        .args([
+            "sim-115200-8N1-read-10",
+            "pty-115200-untimed-read-1",
+            "idle-0",
+        ])
         .arg("--gateway")
         .arg(gateway())
         .output()
