@@ -321,6 +321,16 @@ impl Gateway {
             }
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
+        // The TLS listener may come up later: a whole handshake, as a bare connection closed
+        // at once would be logged as a failed one.
+        if let Some((listen_tls, pki)) = &gateway.tls {
+            while tls_connect(*listen_tls, pki).await.is_err() {
+                if started.elapsed() > Duration::from_secs(10) {
+                    return Err("the gateway did not start its TLS listener within 10 s".into());
+                }
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        }
         Ok(gateway)
     }
 
@@ -480,6 +490,14 @@ fn percentile(sorted: &[Duration], p: f64) -> Option<f64> {
     Some(sorted[rank].as_secs_f64() * 1e3)
 }
 
+/// A TLS session with the gateway's TLS listener at `listen`, presenting the master certificate.
+async fn tls_connect(listen: SocketAddr, pki: &tls::Pki) -> std::io::Result<TlsStream<TcpStream>> {
+    let stream = TcpStream::connect(listen).await?;
+    stream.set_nodelay(true)?;
+    let name = ServerName::IpAddress(listen.ip().into());
+    pki.connector.connect(name, stream).await
+}
+
 /// `n` masters of `kind` (the three kinds in turn for `Kind::Mixed`), connected one after
 /// another, and how long each connection took to set up (TCP connect to connected, or to the TLS
 /// handshake complete; none for UDP).
@@ -519,14 +537,9 @@ async fn connect_all(
             }
             Kind::Tls => {
                 let (listen, pki) = gateway.tls.as_ref().ok_or("no TLS listener")?;
-                let stream = TcpStream::connect(listen).await.map_err(failed)?;
-                stream.set_nodelay(true).map_err(|e| e.to_string())?;
-                let name = ServerName::IpAddress(listen.ip().into());
-                let stream = pki
-                    .connector
-                    .connect(name, stream)
+                let stream = tls_connect(*listen, pki)
                     .await
-                    .map_err(|e| format!("master {i}: TLS handshake: {e}"))?;
+                    .map_err(|e| format!("master {i}: TLS: {e}"))?;
                 Conn::Tls(Box::new(stream))
             }
         });
