@@ -20,8 +20,13 @@ use std::process::{Child, Command, ExitCode, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpStream, UdpSocket};
+use tokio_rustls::client::TlsStream;
+use tokio_rustls::rustls::pki_types::ServerName;
+
+mod tls;
 
 /// Read 10 holding registers from 0000H: 8 bytes on the wire, 25 back.
 const READ_10: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x0A];
@@ -81,6 +86,8 @@ enum Kind {
     RtuOverTcp,
     /// Modbus UDP.
     Udp,
+    /// Modbus/TCP Security: Modbus TCP inside TLS, with a client certificate.
+    Tls,
     /// The three kinds in turn, master by master.
     Mixed,
 }
@@ -143,6 +150,7 @@ fn scenarios() -> Vec<Scenario> {
     for (kind, label) in [
         (Kind::RtuOverTcp, "rtu-over-tcp"),
         (Kind::Udp, "udp"),
+        (Kind::Tls, "tls"),
         (Kind::Mixed, "mixed-kinds"),
     ] {
         // A mix of one master is one Modbus TCP master: the mix has 99, 33 of each kind.
@@ -159,15 +167,18 @@ fn scenarios() -> Vec<Scenario> {
             });
         }
     }
-    all.push(Scenario {
-        name: "pty-115200-untimed-read-1".into(),
-        line: Line::Pty,
-        kind: Kind::Tcp,
-        framing: Framing::Rtu,
-        format: format(115_200, Parity::None),
-        masters: 1,
-        load: Load::Read,
-    });
+    // Over TLS too: with no line timing to hide it, what a TLS record costs shows.
+    for (kind, name) in [(Kind::Tcp, "read"), (Kind::Tls, "tls-read")] {
+        all.push(Scenario {
+            name: format!("pty-115200-untimed-{name}-1"),
+            line: Line::Pty,
+            kind,
+            framing: Framing::Rtu,
+            format: format(115_200, Parity::None),
+            masters: 1,
+            load: Load::Read,
+        });
+    }
     for masters in [0, 1000] {
         all.push(Scenario {
             name: format!("idle-{masters}"),
@@ -201,6 +212,12 @@ struct Report {
     rss_mb: f64,
     cpu_us_per_tx: Option<f64>,
     seconds: f64,
+    /// Connection set-up, one master after another: TCP connect to connected (plain TCP, RTU
+    /// over TCP) or to the TLS handshake complete (TLS), median and slowest over the masters.
+    connect_p50_ms: Option<f64>,
+    connect_max_ms: Option<f64>,
+    /// The gateway's CPU time across the connect phase, per master.
+    connect_cpu_us: Option<f64>,
 }
 
 fn free_addr() -> std::io::Result<SocketAddr> {
@@ -213,6 +230,8 @@ struct Gateway {
     listen: SocketAddr,
     listen_rtu_over_tcp: SocketAddr,
     listen_udp: SocketAddr,
+    /// The TLS listener and the certificates (TLS scenarios only).
+    tls: Option<(SocketAddr, tls::Pki)>,
     _config: tempfile_path::TempPath,
 }
 
@@ -250,12 +269,22 @@ impl Gateway {
         let masters = scenario.masters.max(1);
         let mut config = format!(
             "[server]\nlisten = \"{listen}\"\nlisten_rtu_over_tcp = \"{listen_rtu_over_tcp}\"\n\
-             listen_udp = \"{listen_udp}\"\nmax_connections = {}\n\
-             [metrics]\nlisten = \"{metrics}\"\n[log]\nlevel = \"warn\"\n\
+             listen_udp = \"{listen_udp}\"\nmax_connections = {}\n",
+            masters + 16,
+        );
+        let tls = if scenario.kind == Kind::Tls {
+            let listen_tls = free_addr().map_err(|e| e.to_string())?;
+            let pki = tls::Pki::new(&scenario.name)?;
+            config += &format!("listen_tls = [\"{listen_tls}\"]\n{}", pki.table);
+            Some((listen_tls, pki))
+        } else {
+            None
+        };
+        config += &format!(
+            "[metrics]\nlisten = \"{metrics}\"\n[log]\nlevel = \"warn\"\n\
              [[bus]]\nname = \"bench\"\ndevice = \"{device}\"\nframing = \"{}\"\nbaud = {}\n\
              data_bits = {}\nparity = \"{parity}\"\n\
              stop_bits = {}\nqueue_depth = {}\nqueue_timeout = \"1h\"\n",
-            masters + 16,
             scenario.framing.name(),
             f.baud,
             f.data_bits,
@@ -282,6 +311,7 @@ impl Gateway {
             listen,
             listen_rtu_over_tcp,
             listen_udp,
+            tls,
             _config: tempfile_path::TempPath(path),
         };
         let started = Instant::now();
@@ -290,6 +320,16 @@ impl Gateway {
                 return Err("the gateway did not start listening within 10 s".into());
             }
             tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        // The TLS listener may come up later: a whole handshake, as a bare connection closed
+        // at once would be logged as a failed one.
+        if let Some((listen_tls, pki)) = &gateway.tls {
+            while tls_connect(*listen_tls, pki).await.is_err() {
+                if started.elapsed() > Duration::from_secs(10) {
+                    return Err("the gateway did not start its TLS listener within 10 s".into());
+                }
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
         }
         Ok(gateway)
     }
@@ -354,6 +394,22 @@ enum Conn {
     Tcp(TcpStream),
     RtuOverTcp(TcpStream),
     Udp(UdpSocket),
+    Tls(Box<TlsStream<TcpStream>>),
+}
+
+/// One Modbus TCP transaction on `stream`: the MBAP request, then the reply by its own length.
+async fn mbap_exchange<S: AsyncRead + AsyncWrite + Unpin>(
+    stream: &mut S,
+    tid: u16,
+    slave: u8,
+    pdu: &[u8],
+    reply: &mut [u8],
+) -> std::io::Result<bool> {
+    stream.write_all(&mbap(tid, slave, pdu)).await?;
+    stream.read_exact(&mut reply[..7]).await?;
+    let len = usize::from(u16::from_be_bytes([reply[4], reply[5]]));
+    stream.read_exact(&mut reply[7..6 + len]).await?;
+    Ok(reply[..2] == tid.to_be_bytes() && reply[7] & 0x80 == 0)
 }
 
 impl Conn {
@@ -366,13 +422,8 @@ impl Conn {
         reply: &mut [u8],
     ) -> std::io::Result<bool> {
         match self {
-            Conn::Tcp(stream) => {
-                stream.write_all(&mbap(tid, slave, pdu)).await?;
-                stream.read_exact(&mut reply[..7]).await?;
-                let len = usize::from(u16::from_be_bytes([reply[4], reply[5]]));
-                stream.read_exact(&mut reply[7..6 + len]).await?;
-                Ok(reply[..2] == tid.to_be_bytes() && reply[7] & 0x80 == 0)
-            }
+            Conn::Tcp(stream) => mbap_exchange(stream, tid, slave, pdu, reply).await,
+            Conn::Tls(stream) => mbap_exchange(stream.as_mut(), tid, slave, pdu, reply).await,
             Conn::RtuOverTcp(stream) => {
                 stream.write_all(&rtu::encode(slave, pdu)).await?;
                 // Address and function, then the rest by the reply's own length.
@@ -439,17 +490,33 @@ fn percentile(sorted: &[Duration], p: f64) -> Option<f64> {
     Some(sorted[rank].as_secs_f64() * 1e3)
 }
 
-/// `n` masters of `kind` (the three kinds in turn for `Kind::Mixed`).
-async fn connect_all(gateway: &Gateway, kind: Kind, n: usize) -> Result<Vec<Conn>, String> {
+/// A TLS session with the gateway's TLS listener at `listen`, presenting the master certificate.
+async fn tls_connect(listen: SocketAddr, pki: &tls::Pki) -> std::io::Result<TlsStream<TcpStream>> {
+    let stream = TcpStream::connect(listen).await?;
+    stream.set_nodelay(true)?;
+    let name = ServerName::IpAddress(listen.ip().into());
+    pki.connector.connect(name, stream).await
+}
+
+/// `n` masters of `kind` (the three kinds in turn for `Kind::Mixed`), connected one after
+/// another, and how long each connection took to set up (TCP connect to connected, or to the TLS
+/// handshake complete; none for UDP).
+async fn connect_all(
+    gateway: &Gateway,
+    kind: Kind,
+    n: usize,
+) -> Result<(Vec<Conn>, Vec<Duration>), String> {
     let failed = |e: std::io::Error| format!("connect: {e} (raise `ulimit -n` for many masters)");
     let kinds = [Kind::Tcp, Kind::RtuOverTcp, Kind::Udp];
     let mut conns = Vec::with_capacity(n);
+    let mut setup = Vec::with_capacity(n);
     for i in 0..n {
         let kind = if kind == Kind::Mixed {
             kinds[i % 3]
         } else {
             kind
         };
+        let began = Instant::now();
         conns.push(match kind {
             Kind::Udp => {
                 let socket = UdpSocket::bind("127.0.0.1:0").await.map_err(failed)?;
@@ -468,9 +535,19 @@ async fn connect_all(gateway: &Gateway, kind: Kind, n: usize) -> Result<Vec<Conn
                 stream.set_nodelay(true).map_err(|e| e.to_string())?;
                 Conn::Tcp(stream)
             }
+            Kind::Tls => {
+                let (listen, pki) = gateway.tls.as_ref().ok_or("no TLS listener")?;
+                let stream = tls_connect(*listen, pki)
+                    .await
+                    .map_err(|e| format!("master {i}: TLS: {e}"))?;
+                Conn::Tls(Box::new(stream))
+            }
         });
+        if kind != Kind::Udp {
+            setup.push(began.elapsed());
+        }
     }
-    Ok(conns)
+    Ok((conns, setup))
 }
 
 async fn run(cli: &Cli, binary: &PathBuf, s: &Scenario) -> Result<Report, String> {
@@ -484,7 +561,13 @@ async fn run(cli: &Cli, binary: &PathBuf, s: &Scenario) -> Result<Report, String
     };
     let gateway = Gateway::start(binary, s, &device).await?;
     let pid = gateway.pid();
-    let streams = connect_all(&gateway, s.kind, s.masters).await?;
+    let cpu_before = cpu_time(pid);
+    let (streams, mut setup) = connect_all(&gateway, s.kind, s.masters).await?;
+    // The gateway's side of the last handshake (a TLS 1.3 server checks the master's
+    // certificate after the master is done) and of the last accept.
+    tokio::time::sleep(Duration::from_millis(50)).await;
+    let connect_cpu = cpu_time(pid) - cpu_before;
+    setup.sort();
     let mut report = Report {
         scenario: s.name.clone(),
         baud: s.format.baud,
@@ -501,6 +584,10 @@ async fn run(cli: &Cli, binary: &PathBuf, s: &Scenario) -> Result<Report, String
         rss_mb: 0.0,
         cpu_us_per_tx: None,
         seconds: 0.0,
+        connect_p50_ms: percentile(&setup, 0.5),
+        connect_max_ms: setup.last().map(|d| d.as_secs_f64() * 1e3),
+        connect_cpu_us: (!setup.is_empty())
+            .then(|| connect_cpu.as_secs_f64() * 1e6 / setup.len() as f64),
     };
     if s.load == Load::Idle {
         tokio::time::sleep(Duration::from_secs(2)).await;
@@ -627,7 +714,7 @@ async fn main() -> ExitCode {
     });
     if !cli.json {
         println!(
-            "{:<30} {:>7} {:>9} {:>6} {:>6} {:>8} {:>8} {:>8} {:>8} {:>6} {:>7} {:>8}",
+            "{:<30} {:>7} {:>9} {:>6} {:>6} {:>8} {:>8} {:>8} {:>8} {:>6} {:>7} {:>8} {:>8} {:>8} {:>8}",
             "scenario",
             "masters",
             "tx",
@@ -639,7 +726,10 @@ async fn main() -> ExitCode {
             "+p50 ms",
             "jain",
             "rss MB",
-            "cpu us/tx"
+            "cpu us/tx",
+            "conn p50",
+            "conn max",
+            "cpu us/conn"
         );
     }
     let mut failed = false;
@@ -653,7 +743,7 @@ async fn main() -> ExitCode {
                 }
             },
             Ok(r) => println!(
-                "{:<30} {:>7} {:>9} {:>6.1} {:>6} {:>8} {:>8} {:>8} {:>8} {:>6} {:>7.1} {:>8}",
+                "{:<30} {:>7} {:>9} {:>6.1} {:>6} {:>8} {:>8} {:>8} {:>8} {:>6} {:>7.1} {:>8} {:>8} {:>8} {:>8}",
                 r.scenario,
                 r.masters,
                 r.transactions,
@@ -666,6 +756,9 @@ async fn main() -> ExitCode {
                 cell(r.fairness, 3),
                 r.rss_mb,
                 cell(r.cpu_us_per_tx, 1),
+                cell(r.connect_p50_ms, 2),
+                cell(r.connect_max_ms, 2),
+                cell(r.connect_cpu_us, 0),
             ),
             Err(e) => {
                 eprintln!("{}: {e}", s.name);

@@ -2,7 +2,7 @@
 //! it: `cargo test --workspace` builds both.
 
 use std::path::PathBuf;
-use std::process::Command;
+use std::process::{Command, Stdio};
 
 const BENCH: &str = env!("CARGO_BIN_EXE_modbus-gateway-bench");
 
@@ -22,7 +22,11 @@ fn gateway() -> PathBuf {
 fn the_bench_reports_every_field_never_beats_physics_and_drives_the_pty_slave() {
     let out = Command::new(BENCH)
         .args(["--json", "--seconds", "1", "--rounds", "1"])
-        .args(["sim-115200-8N1-read-10", "pty", "idle-0"])
+        .args([
+            "sim-115200-8N1-read-10",
+            "pty-115200-untimed-read-1",
+            "idle-0",
+        ])
         .arg("--gateway")
         .arg(gateway())
         .output()
@@ -55,6 +59,9 @@ fn the_bench_reports_every_field_never_beats_physics_and_drives_the_pty_slave() 
         "fairness",
         "cpu_us_per_tx",
         "rss_mb",
+        "connect_p50_ms",
+        "connect_max_ms",
+        "connect_cpu_us",
     ] {
         assert!(
             sim[field].as_f64().is_some_and(|v| v > 0.0),
@@ -67,4 +74,42 @@ fn the_bench_reports_every_field_never_beats_physics_and_drives_the_pty_slave() 
     assert!(pty["transactions"].as_u64().unwrap() > 0, "{pty}");
     assert!(pty["efficiency"].is_null(), "{pty}");
     assert!(reports[2]["rss_mb"].as_f64().unwrap() > 0.0);
+}
+
+#[test]
+fn tls_masters_present_a_certificate_with_a_role_and_the_bench_reports_their_handshakes() {
+    let scenario = "sim-115200-8N1-tls-read-1";
+    let child = Command::new(BENCH)
+        .args(["--json", "--seconds", "1", "--rounds", "1", scenario])
+        .arg("--gateway")
+        .arg(gateway())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("the bench runs");
+    let pki = std::env::temp_dir().join(format!("mbgw-bench-tls-{}-{scenario}", child.id()));
+    let out = child.wait_with_output().expect("the bench ends");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let tls: serde_json::Value =
+        serde_json::from_str(String::from_utf8(out.stdout).unwrap().trim()).unwrap();
+    assert_eq!(tls["scenario"], scenario);
+    // Refused requests would have failed the run: the role gave read access.
+    assert!(tls["transactions"].as_u64().unwrap() > 0, "{tls}");
+    for field in [
+        "efficiency",
+        "cpu_us_per_tx",
+        "connect_p50_ms",
+        "connect_max_ms",
+        "connect_cpu_us",
+    ] {
+        assert!(
+            tls[field].as_f64().is_some_and(|v| v > 0.0),
+            "{field}: {tls}"
+        );
+    }
+    assert!(!pki.exists(), "{} is left behind", pki.display());
 }
