@@ -311,6 +311,7 @@ fn the_installed_default_config_is_valid_and_names_every_key() {
         "certificate",
         "private_key",
         "client_ca",
+        "crl",
         "roles",
         "default_role_access",
         "handshake_timeout",

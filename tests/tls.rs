@@ -36,6 +36,12 @@ async fn tls_gateway(tls_extra: &str) -> (Pki, Issued, Gateway) {
 /// [`tls_gateway`] with `server_extra` in `[server]` too.
 async fn tls_gateway_with(server_extra: &str, tls_extra: &str) -> (Pki, Issued, Gateway) {
     let pki = Pki::new("plant-ca");
+    let (server, gateway) = tls_gateway_of(&pki, server_extra, tls_extra).await;
+    (pki, server, gateway)
+}
+
+/// [`tls_gateway_with`] on the CA `pki`.
+async fn tls_gateway_of(pki: &Pki, server_extra: &str, tls_extra: &str) -> (Issued, Gateway) {
     let server = pki.server("gateway", "gateway", 365);
     let toml = sim_config_with_server(
         &format!(
@@ -45,7 +51,7 @@ async fn tls_gateway_with(server_extra: &str, tls_extra: &str) -> (Pki, Issued, 
         "",
     );
     let gateway = start(&toml).await;
-    (pki, server, gateway)
+    (server, gateway)
 }
 
 fn tls_addr(gateway: &Gateway) -> SocketAddr {
@@ -247,6 +253,23 @@ async fn a_foreign_ca_an_expired_certificate_no_certificate_and_plain_tcp_are_ea
         "only the operator"
     );
     assert_eq!(panics_on_this_thread(), panics);
+}
+
+#[tokio::test]
+async fn a_certificate_the_crl_revokes_is_refused_and_the_others_are_served() {
+    let pki = Pki::new("plant-ca");
+    let stolen = pki.master("stolen-hmi", Role::Named("operator"));
+    let operator = pki.master("operator", Role::Named("operator"));
+    let crl = pki.crl("plant-ca.crl", &[&stolen]);
+    let tls_extra = format!("{ROLES}\ncrl = \"{}\"", crl.display());
+    let (_server, gateway) = tls_gateway_of(&pki, "", &tls_extra).await;
+    let at = tls_addr(&gateway);
+    if let Ok(session) = tls_connect(at, &pki.connector(Some(&stolen))).await {
+        assert!(refused(RawMaster::over(session)).await, "revoked: closed");
+    }
+    let mut master = tls_master(at, &pki.connector(Some(&operator))).await;
+    assert_eq!(master.call(1, 1, &WRITE).await, WRITE);
+    assert_eq!(Scrape::of(&gateway).await.value(HANDSHAKE_FAILED), 1.0);
 }
 
 #[tokio::test(start_paused = true)]

@@ -103,6 +103,7 @@ fn tls() -> impl Strategy<Value = Tls> {
         certificate: "/etc/modbus-gateway/tls/server.crt".into(),
         private_key: "/etc/modbus-gateway/tls/server.key".into(),
         client_ca: "/etc/modbus-gateway/tls/client-ca.crt".into(),
+        crl: None,
         roles,
         default_role_access,
         handshake_timeout: handshake,

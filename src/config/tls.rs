@@ -19,6 +19,10 @@ pub struct Tls {
     pub private_key: PathBuf,
     /// The CA certificates (PEM bundle) every master's certificate must chain to.
     pub client_ca: PathBuf,
+    /// Certificate revocation lists (PEM) of the CAs in `client_ca`: a master's certificate
+    /// listed there is refused.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub crl: Option<PathBuf>,
     /// What each role (the RoleOID extension of a master's certificate) may do.
     #[serde(default)]
     pub roles: BTreeMap<String, Role>,

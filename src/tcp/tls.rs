@@ -8,8 +8,9 @@
 use crate::config::{self, ConfigError, ConfigErrors, Role, RoleAccess, UnitSet, OTHER_ROLE};
 use crate::dispatch::Rights;
 use rustls::pki_types::pem::PemObject;
-use rustls::pki_types::{CertificateDer, PrivateKeyDer};
-use rustls::server::WebPkiClientVerifier;
+use rustls::pki_types::{CertificateDer, CertificateRevocationListDer, PrivateKeyDer};
+use rustls::server::danger::ClientCertVerifier;
+use rustls::server::{VerifierBuilderError, WebPkiClientVerifier};
 use rustls::{RootCertStore, ServerConfig};
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -134,6 +135,58 @@ fn read_certificates(path: &Path) -> Result<Vec<CertificateDer<'static>>, String
     Ok(certificates)
 }
 
+/// A problem with the key it is about: `("client_ca", "...")`.
+type KeyedProblem = (&'static str, String);
+
+/// The certificate revocation lists of a PEM file, or why there are none.
+fn read_crls(path: &Path) -> Result<Vec<CertificateRevocationListDer<'static>>, String> {
+    let pem = read(path)?;
+    let crls = CertificateRevocationListDer::pem_slice_iter(&pem)
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| format!("{}: not a PEM file of CRLs: {e}", path.display()))?;
+    if crls.is_empty() {
+        return Err(format!(
+            "{}: holds no PEM CRL (-----BEGIN X509 CRL-----)",
+            path.display()
+        ));
+    }
+    Ok(crls)
+}
+
+/// What checks a master's certificate: chained to `client_ca`, valid, for client
+/// authentication, and not revoked by `crls` where they cover its issuer; with the number of CA
+/// certificates. An error names its key (`client_ca` or `crl`).
+fn client_verifier(
+    settings: &config::Tls,
+    crls: Vec<CertificateRevocationListDer<'static>>,
+    provider: Arc<rustls::crypto::CryptoProvider>,
+) -> Result<(Arc<dyn ClientCertVerifier>, usize), KeyedProblem> {
+    let client_ca = settings.client_ca.display();
+    let cas = read_certificates(&settings.client_ca).map_err(|e| ("client_ca", e))?;
+    let count = cas.len();
+    let mut roots = RootCertStore::empty();
+    let (_, unusable) = roots.add_parsable_certificates(cas);
+    if unusable > 0 {
+        return Err((
+            "client_ca",
+            format!("{client_ca}: {unusable} of its {count} certificates cannot be a CA"),
+        ));
+    }
+    WebPkiClientVerifier::builder_with_provider(Arc::new(roots), provider)
+        .with_crls(crls)
+        // A CRL file need not cover every CA of the chain; those it covers are checked.
+        .allow_unknown_revocation_status()
+        .build()
+        .map(|verifier| (verifier, count))
+        .map_err(|e| match e {
+            VerifierBuilderError::InvalidCrl(e) => {
+                let crl = settings.crl.as_deref().unwrap_or(Path::new("")).display();
+                ("crl", format!("{crl}: not a CRL that can be used: {e:?}"))
+            }
+            e => ("client_ca", format!("{client_ca}: {e}")),
+        })
+}
+
 fn read(path: &Path) -> Result<Vec<u8>, String> {
     std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))
 }
@@ -191,24 +244,21 @@ impl TlsServer {
             })
             .map_err(|e| problems.fail("private_key", e))
             .ok();
-        let verifier = read_certificates(&settings.client_ca)
-            .and_then(|cas| {
-                let count = cas.len();
-                let mut roots = RootCertStore::empty();
-                let (_, unusable) = roots.add_parsable_certificates(cas);
-                if unusable > 0 {
-                    return Err(format!(
-                        "{}: {unusable} of its {count} certificates cannot be a CA",
-                        settings.client_ca.display()
-                    ));
-                }
-                WebPkiClientVerifier::builder_with_provider(Arc::new(roots), provider.clone())
-                    .build()
-                    .map(|verifier| (verifier, count))
-                    .map_err(|e| format!("{}: {e}", settings.client_ca.display()))
-            })
-            .map_err(|e| problems.fail("client_ca", e))
+        let crls = settings.crl.as_deref().map(read_crls).transpose();
+        // The CA file is checked even when the CRL file is broken: every problem in one report.
+        let usable_crls = crls
+            .as_ref()
+            .map_or(Vec::new(), |crls| crls.clone().unwrap_or_default());
+        let verifier = client_verifier(settings, usable_crls, provider.clone())
+            .map_err(|(key, e)| problems.fail(key, e))
             .ok();
+        let verifier = match crls {
+            Ok(_) => verifier,
+            Err(e) => {
+                problems.fail("crl", e);
+                None
+            }
+        };
         let (Some((certificate, chain)), Some(key), Some((verifier, client_cas))) =
             (chain, key, verifier)
         else {
@@ -382,6 +432,7 @@ mod tests {
             certificate: files.write("server.crt", &server.0),
             private_key: files.write("server.key", &server.1),
             client_ca: files.write("ca.crt", ca_pem),
+            crl: None,
             roles: [
                 ("operator".to_owned(), RoleAccess::ReadWrite.into()),
                 ("viewer".to_owned(), RoleAccess::ReadOnly.into()),
@@ -477,8 +528,10 @@ mod tests {
         let files = Files::new("broken");
         let mut settings = settings(&files, &(String::new(), String::new()), "not PEM\n");
         settings.certificate = files.0.join("missing.crt");
+        settings.crl = Some(files.write("ca.crl", "-----BEGIN CERTIFICATE-----\n"));
         let errors = keys(TlsServer::load(&settings).unwrap_err());
-        assert_eq!(errors.len(), 3, "{errors:?}");
+        assert_eq!(errors.len(), 4, "{errors:?}");
+        assert!(errors[3].starts_with("server.tls.crl: ") && errors[3].contains("ca.crl"));
         assert!(
             errors[0].starts_with("server.tls.certificate: cannot read ")
                 && errors[0].contains("missing.crt")

@@ -3,14 +3,15 @@
 
 use super::{within, RawMaster};
 use rcgen::{
-    BasicConstraints, CertificateParams, CertifiedIssuer, CustomExtension, DnType,
-    ExtendedKeyUsagePurpose, IsCa, KeyPair, KeyUsagePurpose, SanType,
+    BasicConstraints, CertificateParams, CertificateRevocationListParams, CertifiedIssuer,
+    CustomExtension, DnType, ExtendedKeyUsagePurpose, IsCa, KeyIdMethod, KeyPair, KeyUsagePurpose,
+    RevocationReason, RevokedCertParams, SanType, SerialNumber,
 };
 use rustls::pki_types::pem::PemObject;
 use rustls::pki_types::{CertificateDer, PrivateKeyDer, ServerName};
 use std::net::{IpAddr, Ipv4Addr, SocketAddr};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, SystemTime};
 use tokio::net::TcpStream;
@@ -20,9 +21,12 @@ use tokio_rustls::TlsConnector;
 /// The RoleOID of the MODBUS/TCP Security specification, as rcgen takes it.
 const ROLE_OID: &[u64] = &[1, 3, 6, 1, 4, 1, 50316, 802, 1];
 static DIRS: AtomicUsize = AtomicUsize::new(0);
+/// Serial numbers of the certificates issued, so that a CRL can name them.
+static SERIALS: AtomicU64 = AtomicU64::new(1000);
 
 /// A certificate and its key, as PEM, and where they were written.
 pub struct Issued {
+    pub serial: u64,
     pub cert_pem: String,
     pub key_pem: String,
     pub cert_path: PathBuf,
@@ -95,8 +99,11 @@ impl Pki {
     fn issue(&self, file: &str, mut params: CertificateParams) -> Issued {
         let key = KeyPair::generate().expect("key");
         params.use_authority_key_identifier_extension = true;
+        let serial = SERIALS.fetch_add(1, Ordering::Relaxed);
+        params.serial_number = Some(SerialNumber::from(serial));
         let cert = params.signed_by(&key, &self.ca).expect("signed");
         let issued = Issued {
+            serial,
             cert_pem: cert.pem(),
             key_pem: key.serialize_pem(),
             cert_path: self.dir.join(format!("{file}.crt")),
@@ -138,6 +145,31 @@ impl Pki {
     /// A master certificate valid for a year, with `role`.
     pub fn master(&self, file: &str, role: Role<'_>) -> Issued {
         self.master_valid(file, role, (-1, 365))
+    }
+
+    /// A CRL of this CA revoking `revoked`, written to `file` (PEM).
+    pub fn crl(&self, file: &str, revoked: &[&Issued]) -> PathBuf {
+        let now = time::OffsetDateTime::now_utc();
+        let params = CertificateRevocationListParams {
+            this_update: now - time::Duration::hours(1),
+            next_update: now + time::Duration::days(7),
+            crl_number: SerialNumber::from(1u64),
+            issuing_distribution_point: None,
+            revoked_certs: revoked
+                .iter()
+                .map(|issued| RevokedCertParams {
+                    serial_number: SerialNumber::from(issued.serial),
+                    revocation_time: now - time::Duration::minutes(5),
+                    reason_code: Some(RevocationReason::KeyCompromise),
+                    invalidity_date: None,
+                })
+                .collect(),
+            key_identifier_method: KeyIdMethod::Sha256,
+        };
+        let crl = params.signed_by(&self.ca).expect("a CRL");
+        let path = self.dir.join(file);
+        std::fs::write(&path, crl.pem().expect("PEM")).expect("write CRL");
+        path
     }
 
     /// The `[server.tls]` table for `server`, trusting this CA, with `extra` keys.
