@@ -3,7 +3,7 @@
 //! port down, queue full) or queued on the bus its unit routes to. Either way the session gets a
 //! receiver for its outcome.
 
-use crate::bus::{BusHandle, MasterId};
+use crate::bus::{BusHandle, MasterId, Origin};
 use crate::config::UnitSet;
 use crate::error::{Outcome, RequestError};
 use crate::line::BROADCAST;
@@ -44,6 +44,8 @@ pub struct Client {
     pub rights: Rights,
     /// The unit ids it may address (its TLS role's `units`); `None`: any.
     pub units: Option<UnitSet>,
+    /// Served before the others (`server.priority`).
+    pub priority: bool,
     /// How it talks to the gateway: Modbus TCP unless [`Client::speaking`] says otherwise.
     pub protocol: Protocol,
     refused: u64,
@@ -56,6 +58,7 @@ impl Client {
             peer,
             rights,
             units: None,
+            priority: false,
             protocol: Protocol::Tcp,
             refused: 0,
         }
@@ -64,6 +67,11 @@ impl Client {
     /// The same master, speaking `protocol`.
     pub fn speaking(self, protocol: Protocol) -> Self {
         Client { protocol, ..self }
+    }
+
+    /// The same master, served before the others if `priority`.
+    pub fn prioritised(self, priority: bool) -> Self {
+        Client { priority, ..self }
     }
 
     /// The same master, allowed to address `units` only (`None`: any).
@@ -149,12 +157,12 @@ impl Dispatcher {
                 RequestError::NotBroadcastable(function)
             }
             Some(target) => {
-                return table.buses[target.bus].submit_as(
-                    client.protocol,
-                    client.master,
-                    target.address,
-                    pdu,
-                )
+                let origin = Origin {
+                    master: client.master,
+                    protocol: client.protocol,
+                    priority: client.priority,
+                };
+                return table.buses[target.bus].submit_from(origin, target.address, pdu);
             }
         };
         // Counted against the bus and slave the unit routes to, if any, else the unit id.

@@ -67,7 +67,38 @@ pub enum RequestError {
     NoResponse { attempts: u32, last: TxError },
 }
 
+/// The same outcome again, for every read that shared one transaction.
+pub fn duplicate(outcome: &Outcome) -> Outcome {
+    match outcome {
+        Ok(answer) => Ok(answer.clone()),
+        Err(error) => Err(error.duplicate()),
+    }
+}
+
 impl RequestError {
+    /// The same failure again (an I/O error is remade from its kind and message).
+    pub fn duplicate(&self) -> RequestError {
+        match self {
+            RequestError::InvalidFunction(f) => RequestError::InvalidFunction(*f),
+            RequestError::ReadOnly(f) => RequestError::ReadOnly(*f),
+            RequestError::NoAccess(f) => RequestError::NoAccess(*f),
+            RequestError::UnitNotPermitted(u) => RequestError::UnitNotPermitted(*u),
+            RequestError::NoRoute(u) => RequestError::NoRoute(*u),
+            RequestError::NotBroadcastable(f) => RequestError::NotBroadcastable(*f),
+            RequestError::PortDown => RequestError::PortDown,
+            RequestError::QueueFull => RequestError::QueueFull,
+            RequestError::Expired => RequestError::Expired,
+            RequestError::ShuttingDown => RequestError::ShuttingDown,
+            RequestError::SlaveDown { timeouts } => RequestError::SlaveDown {
+                timeouts: *timeouts,
+            },
+            RequestError::NoResponse { attempts, last } => RequestError::NoResponse {
+                attempts: *attempts,
+                last: last.duplicate(),
+            },
+        }
+    }
+
     /// The exception the gateway answers with. Everything the gateway refuses on its own goes
     /// through here.
     pub fn exception_code(&self) -> ExceptionCode {

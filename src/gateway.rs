@@ -216,6 +216,9 @@ impl Gateway {
         for bus in &buses {
             bus.handle.first_open_attempt().await;
         }
+        for bus in &buses {
+            bus.handle.set_priority_share(config.server.priority_share);
+        }
         let handles = buses.iter().map(|b| b.handle.clone()).collect();
         let dispatcher = Dispatcher::new(Router::new(config), handles, metrics.clone());
         let (stop, stopping) = shutdown::channel();
@@ -328,6 +331,9 @@ impl Gateway {
         self.retire(removed, deadline);
         if diff.routes {
             done.applied.push("routes".to_owned());
+        }
+        for bus in running.iter() {
+            bus.handle.set_priority_share(new.server.priority_share);
         }
         let handles = running.iter().map(|r| r.handle.clone()).collect();
         self.shared.dispatcher.replace(Router::new(new), handles);

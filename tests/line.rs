@@ -431,7 +431,8 @@ async fn a_late_reply_never_answers_the_next_masters_request_of_the_same_form() 
         late_reply: Some(Duration::from_millis(80)),
         ..Faults::default()
     };
-    let keys = "baud = 19200\nresponse_timeout = \"50ms\"";
+    // Without coalescing, or the two identical reads would be one transaction.
+    let keys = "baud = 19200\nresponse_timeout = \"50ms\"\ncoalesce_reads = false";
     let (line, bus) = sim_bus(keys, |line| {
         let slave = Faulty::new(RegisterBank::new(Duration::ZERO), late, 1);
         line.add_slave(1, slave);

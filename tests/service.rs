@@ -33,7 +33,9 @@ async fn until_taken(metrics: std::net::SocketAddr, n: f64) {
         loop {
             let (_, text) = http_get(metrics, "/metrics").await;
             let scrape = Scrape::parse(text);
-            if scrape.get("modbus_gateway_queue_wait_seconds_count{bus=\"sim\"}") == Some(n) {
+            if scrape.get("modbus_gateway_queue_wait_seconds_count{bus=\"sim\",class=\"normal\"}")
+                == Some(n)
+            {
                 return;
             }
             tokio::time::sleep(Duration::from_millis(5)).await;

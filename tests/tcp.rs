@@ -269,8 +269,10 @@ async fn at_max_connections_with_every_master_waiting_for_a_reply_a_new_one_is_r
     let line = gateway.sim_line("sim").expect("a sim line");
     let mut first = RawMaster::connect(addr(&gateway)).await;
     let mut second = RawMaster::connect(addr(&gateway)).await;
+    // Two different reads, or the second would join the first rather than queue behind it.
+    let other_read = [0x03, 0x00, 0x07, 0x00, 0x01];
     first.send(1, 9, &READ_1).await;
-    second.send(2, 9, &READ_1).await;
+    second.send(2, 9, &other_read).await;
     // Both requests are in: one on the wire, one queued behind it.
     within("both requests are in flight", async {
         loop {

@@ -16,12 +16,14 @@ mod task;
 mod transaction;
 
 pub use port::{Device, Port};
-pub use queue::{FairQueue, Job, MasterId};
+pub use queue::{FairQueue, Follower, Job, MasterId, Origin, Pushed};
 pub use reconfigure::{longest_transaction, BusUpdates, Reconfigure};
 pub use task::BusTask;
 
-use crate::error::{Outcome, RequestError};
+use crate::config;
+use crate::error::{duplicate, Answer, Outcome, RequestError};
 use crate::metrics::{BusMetrics, Protocol};
+use crate::pdu;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
@@ -39,6 +41,30 @@ struct Heartbeat {
     stall_limit: Mutex<Duration>,
 }
 
+/// What a request meets as it is submitted, from the bus's settings: how long it may wait, and
+/// per slave whether reads coalesce and how old a cached answer may be.
+pub(crate) struct Intake {
+    queue_timeout: Duration,
+    coalesce: Box<[bool; 256]>,
+    cache: Box<[Duration; 256]>,
+}
+
+impl Intake {
+    pub(crate) fn of(settings: &config::Bus) -> Intake {
+        let mut intake = Intake {
+            queue_timeout: settings.queue_timeout,
+            coalesce: Box::new([settings.coalesce_reads; 256]),
+            cache: Box::new([Duration::ZERO; 256]),
+        };
+        for slave in &settings.slave {
+            let at = usize::from(slave.address);
+            intake.coalesce[at] = slave.coalesce_reads.unwrap_or(settings.coalesce_reads);
+            intake.cache[at] = slave.cache;
+        }
+        intake
+    }
+}
+
 /// What the rest of the gateway holds of a bus: its queue, whether its port is open, whether its
 /// task is making progress.
 #[derive(Clone)]
@@ -46,7 +72,7 @@ pub struct BusHandle {
     name: Arc<str>,
     queue: Arc<FairQueue>,
     up: Arc<AtomicBool>,
-    queue_timeout: Arc<Mutex<Duration>>,
+    intake: Arc<Mutex<Intake>>,
     metrics: Arc<BusMetrics>,
     heartbeat: Arc<Heartbeat>,
     /// Signalled once the task has made its first attempt to open the port.
@@ -101,41 +127,61 @@ impl BusHandle {
     /// Queue `pdu` for `slave` from a Modbus TCP master. The receiver yields the outcome;
     /// refusals (port down, queue full) are in it at once.
     pub fn submit(&self, master: MasterId, slave: u8, pdu: Vec<u8>) -> oneshot::Receiver<Outcome> {
-        self.submit_as(Protocol::Tcp, master, slave, pdu)
+        let origin = Origin {
+            master,
+            protocol: Protocol::Tcp,
+            priority: false,
+        };
+        self.submit_from(origin, slave, pdu)
     }
 
-    /// [`BusHandle::submit`] for a master that speaks `protocol`.
-    pub fn submit_as(
+    /// Priority masters' requests go before the others' up to `share` of the line.
+    pub fn set_priority_share(&self, share: f64) {
+        self.queue.set_priority_share(share);
+    }
+
+    /// [`BusHandle::submit`] for a master of any protocol and class: a read may be answered
+    /// from the cache, or join an identical one waiting.
+    pub fn submit_from(
         &self,
-        protocol: Protocol,
-        master: MasterId,
+        origin: Origin,
         slave: u8,
         pdu: Vec<u8>,
     ) -> oneshot::Receiver<Outcome> {
         let (reply, outcome) = oneshot::channel();
-        let now = Instant::now();
-        let job = Job {
-            master,
-            protocol,
-            slave,
-            pdu,
-            queued_at: now,
-            deadline: now
-                + *self
-                    .queue_timeout
-                    .lock()
-                    .unwrap_or_else(PoisonError::into_inner),
-            reply,
+        let (deadline, coalesce, cache) = {
+            let intake = self.intake.lock().unwrap_or_else(PoisonError::into_inner);
+            let at = usize::from(slave);
+            (
+                Instant::now() + intake.queue_timeout,
+                intake.coalesce[at] && slave != crate::line::BROADCAST && pdu::is_read_only(&pdu),
+                intake.cache[at],
+            )
         };
+        let mut job = Job::new(origin, slave, pdu, deadline, reply);
+        job.coalesce = coalesce;
         if !self.is_up() {
             self.answer(job, Err(RequestError::PortDown));
-        } else if let Err(job) = self.queue.push(job) {
-            let refusal = if self.queue.is_closed() {
-                RequestError::ShuttingDown
-            } else {
-                RequestError::QueueFull
-            };
-            self.answer(job, Err(refusal));
+            return outcome;
+        }
+        let (function, protocol) = (job.function(), job.protocol);
+        match self.queue.push(job, cache) {
+            Ok(Pushed::Queued) => {}
+            Ok(Pushed::Joined) => self.metrics.coalesced(slave),
+            Ok(Pushed::Cached) => {
+                self.metrics.cache_hit(slave);
+                let answered = Ok(Answer::Reply(Vec::new()));
+                self.metrics
+                    .request(slave, function, protocol, Some(&answered));
+            }
+            Err(job) => {
+                let refusal = if self.queue.is_closed() {
+                    RequestError::ShuttingDown
+                } else {
+                    RequestError::QueueFull
+                };
+                self.answer(job, Err(refusal));
+            }
         }
         outcome
     }
@@ -149,9 +195,22 @@ impl BusHandle {
     }
 
     /// Every request ends here, or in [`BusHandle::forget`]: counted by outcome, then answered.
-    fn answer(&self, job: Job, outcome: Outcome) {
+    /// Answer `job` and the reads that followed it with `outcome`; each is counted. A leader
+    /// answered already (it expired, its master left) is not answered again.
+    fn answer(&self, mut job: Job, outcome: Outcome) {
+        let function = job.function();
+        for follower in job.followers.drain(..) {
+            let outcome = duplicate(&outcome);
+            let counted = (!follower.reply.is_closed()).then_some(&outcome);
+            self.metrics
+                .request(job.slave, function, follower.protocol, counted);
+            let _ = follower.reply.send(outcome);
+        }
+        if job.answered {
+            return;
+        }
         self.metrics
-            .request(job.slave, job.function(), job.protocol, Some(&outcome));
+            .request(job.slave, function, job.protocol, Some(&outcome));
         let _ = job.reply.send(outcome);
     }
 }

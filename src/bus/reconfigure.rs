@@ -4,7 +4,7 @@
 //! longest one transaction can take among them.
 
 use super::port::{Device, Port};
-use super::{BusHandle, HEARTBEAT, STALL_MARGIN};
+use super::{BusHandle, Intake, HEARTBEAT, STALL_MARGIN};
 use crate::config;
 use crate::line::{Framing, ReplyForm};
 use crate::line::{LineMaster, MasterTiming};
@@ -124,10 +124,8 @@ impl Current {
             .stall_limit
             .lock()
             .unwrap_or_else(PoisonError::into_inner) = self.derived.stall_limit;
-        *handle
-            .queue_timeout
-            .lock()
-            .unwrap_or_else(PoisonError::into_inner) = update.settings.queue_timeout;
+        *handle.intake.lock().unwrap_or_else(PoisonError::into_inner) =
+            Intake::of(&update.settings);
         handle.queue.set_capacity(update.settings.queue_depth);
         handle.metrics.reconfigured(&update.settings);
         info!(bus = &*handle.name, reopen, "bus reconfigured");

@@ -32,6 +32,10 @@ struct Serving<'a> {
     /// Re-armed only when it fires: a new one per request would be due before the runtime's
     /// planned wake-up each time, and tokio answers that with a wake-up of its own driver.
     heartbeat: Pin<Box<Sleep>>,
+    /// No request is taken before this: the end of the gap after the last transaction, as it
+    /// ended. Stray bytes that push the gap back later do not hold the next request here; the
+    /// transaction deals with a line that stays busy.
+    take_after: Option<Instant>,
 }
 
 impl BusTask {
@@ -48,6 +52,7 @@ impl BusTask {
             deadline: stopping.deadline(),
             stopping,
             heartbeat: Box::pin(sleep(HEARTBEAT)),
+            take_after: None,
         };
         loop {
             self.handle.beat();
@@ -80,6 +85,13 @@ impl BusTask {
                 .try_pop()
                 .map_or(Next::End(Served::Stopped), Next::Run);
         }
+        // The next request is taken when the line is ready for its frame, not before: identical
+        // reads arriving meanwhile still join it, and a priority master's request still goes
+        // first.
+        let take_after = *serving
+            .take_after
+            .get_or_insert_with(|| serving.master.quiet_until());
+        let line_ready = Instant::now() >= take_after;
         tokio::select! {
             biased;
             at = serving.stopping.requested() => {
@@ -87,7 +99,11 @@ impl BusTask {
                 Next::Again
             }
             () = self.updates.changed() => Next::Again,
-            job = self.handle.queue.pop() => Next::Run(job),
+            () = crate::timer::sleep_until(take_after), if !line_ready => Next::Again,
+            job = self.handle.queue.pop(), if line_ready => {
+                serving.take_after = None;
+                Next::Run(job)
+            }
             idle = serving.master.watch_idle() => {
                 self.count_traffic(serving);
                 match idle {
@@ -111,15 +127,8 @@ impl BusTask {
 
     /// Answer `job`: from the line, or at once if nobody waits for it, it expired or its slave
     /// is down. Returns why serving ends, if it does.
-    async fn run_job(&mut self, serving: &mut Serving<'_>, job: Job) -> Option<Served> {
-        let metrics = &self.handle.metrics;
-        if job.reply.is_closed() {
-            metrics.request(job.slave, job.function(), job.protocol, None);
-            return None;
-        }
-        metrics.dequeued(job.queued_at.elapsed());
-        if Instant::now() > job.deadline {
-            self.handle.answer(job, Err(RequestError::Expired));
+    async fn run_job(&mut self, serving: &mut Serving<'_>, mut job: Job) -> Option<Served> {
+        if !self.settle_waiters(&mut job) {
             return None;
         }
         let admission = match job.slave {
@@ -145,6 +154,7 @@ impl BusTask {
         self.count_traffic(serving);
         match ran {
             Ran::Done(outcome) => {
+                self.remember(&job, &outcome);
                 self.handle.answer(job, outcome);
                 None
             }
@@ -152,6 +162,63 @@ impl BusTask {
                 self.handle.answer(job, Err(RequestError::PortDown));
                 Some(Served::Lost(error))
             }
+        }
+    }
+
+    /// Answer at once who no longer waits for `job`, or waited too long: its own master and
+    /// each follower. Whether anyone is left for the line to answer.
+    fn settle_waiters(&self, job: &mut Job) -> bool {
+        let metrics = &self.handle.metrics;
+        let now = Instant::now();
+        let (slave, function) = (job.slave, job.function());
+        let mut waiting = Vec::with_capacity(job.followers.len());
+        for follower in job.followers.drain(..) {
+            if follower.reply.is_closed() {
+                metrics.request(slave, function, follower.protocol, None);
+                continue;
+            }
+            metrics.dequeued(follower.queued_at.elapsed(), follower.priority);
+            if now > follower.deadline {
+                let expired = Err(RequestError::Expired);
+                metrics.request(slave, function, follower.protocol, Some(&expired));
+                let _ = follower.reply.send(expired);
+            } else {
+                waiting.push(follower);
+            }
+        }
+        job.followers = waiting;
+        if job.reply.is_closed() {
+            metrics.request(slave, function, job.protocol, None);
+            job.answered = true;
+        } else {
+            metrics.dequeued(job.queued_at.elapsed(), job.priority);
+            if now > job.deadline {
+                let expired = Err(RequestError::Expired);
+                metrics.request(slave, function, job.protocol, Some(&expired));
+                let (gone, _) = tokio::sync::oneshot::channel();
+                let _ = std::mem::replace(&mut job.reply, gone).send(expired);
+                job.answered = true;
+            }
+        }
+        !job.answered || !job.followers.is_empty()
+    }
+
+    /// Keep a slave's normal reply to a read for its `cache`, if it has one.
+    fn remember(&self, job: &Job, outcome: &crate::error::Outcome) {
+        let Ok(crate::error::Answer::Reply(pdu)) = outcome else {
+            return;
+        };
+        let normal = pdu
+            .first()
+            .is_some_and(|f| f & crate::pdu::EXCEPTION_BIT == 0);
+        let cache = self
+            .current
+            .settings
+            .slave
+            .iter()
+            .any(|s| s.address == job.slave && !s.cache.is_zero());
+        if normal && cache && crate::pdu::is_read_only(&job.pdu) {
+            self.handle.queue.remember(job, pdu);
         }
     }
 }

@@ -4,7 +4,7 @@
 
 use super::health::Health;
 use super::reconfigure::{Current, Updates};
-use super::{BusHandle, BusUpdates, Device, FairQueue, Heartbeat, Reconfigure, HEARTBEAT};
+use super::{BusHandle, BusUpdates, Device, FairQueue, Heartbeat, Intake, Reconfigure, HEARTBEAT};
 use crate::config;
 use crate::error::RequestError;
 use crate::line::LineMaster;
@@ -56,7 +56,7 @@ impl BusTask {
             name: settings.name.as_str().into(),
             queue,
             up: Arc::new(AtomicBool::new(false)),
-            queue_timeout: Arc::new(Mutex::new(settings.queue_timeout)),
+            intake: Arc::new(Mutex::new(Intake::of(&settings))),
             metrics: metrics.bus(&settings),
             heartbeat: Arc::new(Heartbeat {
                 last: Mutex::new(Instant::now()),

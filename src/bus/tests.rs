@@ -26,17 +26,16 @@ fn settings(keys: &str) -> config::Bus {
 
 fn job(slave: u8, pdu: &[u8]) -> (Job, oneshot::Receiver<Outcome>) {
     let (reply, outcome) = oneshot::channel();
-    let now = Instant::now();
-    let job = Job {
+    let origin = super::Origin {
         master: 1,
         protocol: crate::metrics::Protocol::Tcp,
-        slave,
-        pdu: pdu.to_vec(),
-        queued_at: now,
-        deadline: now + Duration::from_secs(60),
-        reply,
+        priority: false,
     };
-    (job, outcome)
+    let deadline = Instant::now() + Duration::from_secs(60);
+    (
+        Job::new(origin, slave, pdu.to_vec(), deadline, reply),
+        outcome,
+    )
 }
 
 /// A task on `line`, and a master on a port of it, for driving one transaction by hand.

@@ -77,7 +77,7 @@ impl BusTask {
                 Err(TxError::PortLost(error)) => return Ran::PortLost(error),
                 Err(last)
                     if attempts > retries
-                        || job.reply.is_closed()
+                        || job.abandoned()
                         || stop_at.is_some_and(|at| Instant::now() >= at) =>
                 {
                     break Err(RequestError::NoResponse { attempts, last });

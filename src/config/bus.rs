@@ -77,6 +77,9 @@ pub struct Bus {
     pub slave_down_after: u32,
     #[serde(default = "defaults::slave_probe_interval", with = "duration")]
     pub slave_probe_interval: Duration,
+    /// Identical reads from several masters waiting together are answered by one transaction.
+    #[serde(default = "defaults::coalesce_reads")]
+    pub coalesce_reads: bool,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub slave: Vec<Slave>,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -98,6 +101,12 @@ pub struct Slave {
     /// "non-standard Modbus" mode); the gateway reads both forms and passes on the standard one.
     #[serde(default, skip_serializing_if = "is_false")]
     pub wide_read_count: bool,
+    /// Overrides the bus's `coalesce_reads` for this slave (off for read-to-clear registers).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub coalesce_reads: Option<bool>,
+    /// Answer an identical read from the last answer while it is younger than this ("0s": never).
+    #[serde(default, with = "duration", skip_serializing_if = "is_zero")]
+    pub cache: Duration,
 }
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]

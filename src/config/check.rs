@@ -91,6 +91,15 @@ fn check_server(server: &Server, report: &mut Report) {
             "must be \"0s\" (off) or at least 1s (TCP counts it in seconds)",
         );
     }
+    if !(server.priority_share > 0.0 && server.priority_share <= 1.0) {
+        report.fail(
+            "server.priority_share",
+            format!(
+                "{} must be more than 0 and at most 1 (a share of the line's transactions)",
+                server.priority_share
+            ),
+        );
+    }
     match &server.tls {
         None if !server.listen_tls.is_empty() => report.fail(
             "server.tls",

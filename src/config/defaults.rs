@@ -69,6 +69,10 @@ pub fn reopen_delay_max() -> Duration {
 pub fn slave_down_after() -> u32 {
     3
 }
+pub fn coalesce_reads() -> bool {
+    true
+}
+pub const PRIORITY_SHARE: f64 = 0.9;
 pub fn slave_probe_interval() -> Duration {
     Duration::from_secs(5)
 }

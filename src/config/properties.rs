@@ -48,12 +48,14 @@ fn server() -> impl Strategy<Value = Server> {
     let tls = (
         prop::collection::vec(socket_addr(), 0..3),
         prop::option::of(tls()),
+        prop::collection::vec(net(), 0..3),
+        prop::sample::select(vec![0.25, 0.9, 1.0]),
     );
     (limits, guard, tls).prop_map(
         |(
             (listen, max_connections, idle, depth, shutdown),
             (when_full, frame_timeout, keepalive, allow, read_only),
-            (listen_tls, tls),
+            (listen_tls, tls, priority, priority_share),
         )| Server {
             listen,
             listen_rtu_over_tcp: Vec::new(),
@@ -72,6 +74,8 @@ fn server() -> impl Strategy<Value = Server> {
             keepalive,
             allow,
             read_only,
+            priority,
+            priority_share,
             tls,
         },
     )
@@ -170,17 +174,29 @@ fn address_sets(n: usize) -> impl Strategy<Value = Vec<UnitSet>> {
 fn slaves() -> impl Strategy<Value = Vec<Slave>> {
     (
         prop::collection::btree_set(1u8..=MAX_SLAVE_ADDRESS, 0..4),
-        prop::collection::vec((prop::option::of(duration()), any::<bool>()), 4),
+        prop::collection::vec(
+            (
+                prop::option::of(duration()),
+                any::<bool>(),
+                prop::option::of(any::<bool>()),
+                prop_oneof![Just(Duration::ZERO), duration()],
+            ),
+            4,
+        ),
     )
         .prop_map(|(addresses, knobs)| {
             addresses
                 .into_iter()
                 .zip(knobs)
-                .map(|(address, (response_timeout, wide_read_count))| Slave {
-                    address,
-                    response_timeout,
-                    wide_read_count,
-                })
+                .map(
+                    |(address, (response_timeout, wide_read_count, coalesce_reads, cache))| Slave {
+                        address,
+                        response_timeout,
+                        wide_read_count,
+                        coalesce_reads,
+                        cache,
+                    },
+                )
                 .collect()
         })
 }
@@ -268,7 +284,7 @@ fn bus() -> impl Strategy<Value = Bus> {
         any::<bool>(),
     );
     let queue = (1usize..=4096, duration(), duration(), duration());
-    let down = (0u32..=10, duration());
+    let down = (0u32..=10, duration(), any::<bool>());
     (line, timing, queue, down, slaves(), sim_slaves()).prop_map(
         |(line, timing, queue, down, slave, sim_slave)| {
             let (name, device, baud, (framing, data_bits), parity, stop_bits) = line;
@@ -301,6 +317,7 @@ fn bus() -> impl Strategy<Value = Bus> {
                 reopen_delay_max: reopen_delay + reopen_extra,
                 slave_down_after: down.0,
                 slave_probe_interval: down.1,
+                coalesce_reads: down.2,
                 slave,
                 sim_slave,
             }

@@ -48,6 +48,11 @@ pub struct Server {
     /// Masters connecting from these may only read: anything else gets exception 0x01.
     #[serde(with = "text_list", skip_serializing_if = "Vec::is_empty")]
     pub read_only: Vec<IpNet>,
+    /// Masters connecting from these are served before the others, on every bus.
+    #[serde(with = "text_list", skip_serializing_if = "Vec::is_empty")]
+    pub priority: Vec<IpNet>,
+    /// Most share of the line's transactions priority masters take while others wait.
+    pub priority_share: f64,
     /// The certificates and roles of the `listen_tls` listeners.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub tls: Option<Tls>,
@@ -81,6 +86,8 @@ impl Default for Server {
             keepalive: defaults::KEEPALIVE,
             allow: Vec::new(),
             read_only: Vec::new(),
+            priority: Vec::new(),
+            priority_share: defaults::PRIORITY_SHARE,
             tls: None,
         }
     }

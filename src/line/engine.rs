@@ -70,6 +70,19 @@ pub enum TxError {
     PortLost(io::Error),
 }
 
+impl TxError {
+    /// The same failure again (an I/O error is remade from its kind and message).
+    pub fn duplicate(&self) -> TxError {
+        match self {
+            TxError::Timeout => TxError::Timeout,
+            TxError::Check => TxError::Check,
+            TxError::Frame => TxError::Frame,
+            TxError::LineBusy => TxError::LineBusy,
+            TxError::PortLost(e) => TxError::PortLost(io::Error::new(e.kind(), e.to_string())),
+        }
+    }
+}
+
 /// What went over the line, and what the master saw there that was not an answer; cumulative,
 /// for metrics.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -167,6 +180,12 @@ impl<T: Transport> LineMaster<T> {
     }
 
     /// When the last frame was handed to the port: the start of its transaction on the wire.
+    /// The earliest the next frame may start, as far as is known now (stray bytes may push it
+    /// back).
+    pub fn quiet_until(&self) -> Instant {
+        self.quiet_until
+    }
+
     pub fn sent_at(&self) -> Instant {
         self.sent_at
     }

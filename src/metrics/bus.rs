@@ -29,12 +29,17 @@ pub(super) struct BusFamilies {
     discarded_frames: IntCounterVec,
     stray_bytes: IntCounterVec,
     retries: IntCounterVec,
+    coalesced: IntCounterVec,
+    cache_hits: IntCounterVec,
     slave_up: IntGaugeVec,
     slave_last_success: GaugeVec,
     port_up: IntGaugeVec,
     port_reopens: IntCounterVec,
     port_open_errors: IntCounterVec,
 }
+
+/// The `class` label of the queue wait: the others, then the priority masters.
+const CLASSES: [&str; 2] = ["normal", "priority"];
 
 impl BusFamilies {
     // A table of definitions, one metric each: longer than a function should be, and clearer
@@ -52,8 +57,9 @@ impl BusFamilies {
             ),
             queue_wait: define.histogram(
                 "modbus_gateway_queue_wait_seconds",
-                "Time requests spent in the bus queue before the line took them.",
-                bus,
+                "Time requests spent in the bus queue before the line took them, by class \
+                 (priority masters or the others).",
+                &["bus", "class"],
             ),
             queue_depth: define.int_gauge(
                 "modbus_gateway_queue_depth",
@@ -102,6 +108,17 @@ impl BusFamilies {
                 "Requests sent again after a failed attempt.",
                 bus_slave,
             ),
+            coalesced: define.int_counter(
+                "modbus_gateway_coalesced_requests_total",
+                "Reads answered by another master's identical read, without a transaction of \
+                 their own.",
+                bus_slave,
+            ),
+            cache_hits: define.int_counter(
+                "modbus_gateway_cache_hits_total",
+                "Reads answered from the slave's cache, without touching the line.",
+                bus_slave,
+            ),
             slave_up: define.int_gauge(
                 "modbus_gateway_slave_up",
                 "1 if the slave answered its last request (normally or with an exception), else \
@@ -145,7 +162,8 @@ impl BusFamilies {
             char_time: settings.line_timing().char_time.as_secs_f64(),
             counters,
             round_trip: self.round_trip.with_label_values(labels),
-            queue_wait: self.queue_wait.with_label_values(labels),
+            queue_wait: [CLASSES[0], CLASSES[1]]
+                .map(|class| self.queue_wait.with_label_values(&[name, class])),
             busy: self.busy.with_label_values(labels),
             sent: self.sent.with_label_values(labels),
             received: self.received.with_label_values(labels),
@@ -155,6 +173,8 @@ impl BusFamilies {
             port_reopens: self.port_reopens.with_label_values(labels),
             port_open_errors: self.port_open_errors.with_label_values(labels),
             retries: self.retries.clone(),
+            coalesced: self.coalesced.clone(),
+            cache_hits: self.cache_hits.clone(),
             slave_up: self.slave_up.clone(),
             slave_last_success: self.slave_last_success.clone(),
             slaves: BusMetrics::no_slaves(),
@@ -182,12 +202,16 @@ impl BusFamilies {
         }
         let _ = self.busy.remove_label_values(labels);
         let _ = self.round_trip.remove_label_values(labels);
-        let _ = self.queue_wait.remove_label_values(labels);
+        for class in CLASSES {
+            let _ = self.queue_wait.remove_label_values(&[&*bus.name, class]);
+        }
         for address in bus.known_slaves() {
             let labels = &[&*bus.name, decimal(address)];
             let _ = self.slave_up.remove_label_values(labels);
             let _ = self.slave_last_success.remove_label_values(labels);
-            let _ = self.retries.remove_label_values(labels);
+            for vec in [&self.retries, &self.coalesced, &self.cache_hits] {
+                let _ = vec.remove_label_values(labels);
+            }
         }
     }
 }
@@ -197,6 +221,8 @@ pub(super) struct SlaveMetrics {
     up: IntGauge,
     last_success: Gauge,
     retries: IntCounter,
+    coalesced: IntCounter,
+    cache_hits: IntCounter,
 }
 
 /// The metrics of one bus, label values resolved once. Shared by its handle and its task.
@@ -210,7 +236,8 @@ pub struct BusMetrics {
     pub(super) char_time: f64,
     pub(super) counters: RequestCounters,
     pub(super) round_trip: Histogram,
-    pub(super) queue_wait: Histogram,
+    /// Per class: the others', then the priority masters'.
+    pub(super) queue_wait: [Histogram; 2],
     pub(super) busy: Counter,
     pub(super) sent: IntCounter,
     pub(super) received: IntCounter,
@@ -220,6 +247,8 @@ pub struct BusMetrics {
     pub(super) port_reopens: IntCounter,
     pub(super) port_open_errors: IntCounter,
     pub(super) retries: IntCounterVec,
+    pub(super) coalesced: IntCounterVec,
+    pub(super) cache_hits: IntCounterVec,
     pub(super) slave_up: IntGaugeVec,
     pub(super) slave_last_success: GaugeVec,
     pub(super) slaves: Box<[OnceLock<SlaveMetrics>; 256]>,
@@ -243,6 +272,8 @@ impl BusMetrics {
                 up: self.slave_up.with_label_values(labels),
                 last_success: self.slave_last_success.with_label_values(labels),
                 retries: self.retries.with_label_values(labels),
+                coalesced: self.coalesced.with_label_values(labels),
+                cache_hits: self.cache_hits.with_label_values(labels),
             };
             slave.up.set(0);
             slave
@@ -292,9 +323,20 @@ impl BusMetrics {
             .count(&self.name, slave, function, protocol, outcome);
     }
 
-    /// The line took a request after it waited `wait` in the queue.
-    pub fn dequeued(&self, wait: Duration) {
-        self.queue_wait.observe(wait.as_secs_f64());
+    /// The line took a request after it waited `wait` in the queue; `priority` if it came from
+    /// a master in `server.priority`.
+    pub fn dequeued(&self, wait: Duration, priority: bool) {
+        self.queue_wait[usize::from(priority)].observe(wait.as_secs_f64());
+    }
+
+    /// A read to `slave` joined another master's identical one.
+    pub fn coalesced(&self, slave: u8) {
+        self.slave(slave).coalesced.inc();
+    }
+
+    /// A read to `slave` was answered from its cache.
+    pub fn cache_hit(&self, slave: u8) {
+        self.slave(slave).cache_hits.inc();
     }
 
     /// The line ran a request to `slave`: its round trip (`None` if it never got on the wire),

@@ -274,13 +274,16 @@ mod tests {
             "modbus_gateway_queue_depth{bus=\"line1\"}",
             "modbus_gateway_line_busy_seconds_total{bus=\"line1\"}",
             "modbus_gateway_round_trip_seconds_count{bus=\"line1\"}",
-            "modbus_gateway_queue_wait_seconds_count{bus=\"line1\"}",
+            "modbus_gateway_queue_wait_seconds_count{bus=\"line1\",class=\"normal\"}",
+            "modbus_gateway_queue_wait_seconds_count{bus=\"line1\",class=\"priority\"}",
             "modbus_gateway_port_reopens_total{bus=\"line1\"}",
             "modbus_gateway_slave_up{bus=\"line1\",slave=\"1\"}",
             "modbus_gateway_slave_up{bus=\"line1\",slave=\"2\"}",
             "modbus_gateway_slave_up{bus=\"line1\",slave=\"9\"}",
             "modbus_gateway_slave_last_success_timestamp_seconds{bus=\"line1\",slave=\"9\"}",
             "modbus_gateway_retries_total{bus=\"line1\",slave=\"9\"}",
+            "modbus_gateway_coalesced_requests_total{bus=\"line1\",slave=\"9\"}",
+            "modbus_gateway_cache_hits_total{bus=\"line1\",slave=\"9\"}",
         ] {
             assert_eq!(value(&text, series), Some(0.0), "{series}");
         }

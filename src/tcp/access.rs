@@ -10,11 +10,27 @@ pub(crate) struct Access {
     /// Empty: anyone may connect.
     allow: Vec<IpNet>,
     read_only: Vec<IpNet>,
+    priority: Vec<IpNet>,
 }
 
 impl Access {
     pub(crate) fn new(allow: Vec<IpNet>, read_only: Vec<IpNet>) -> Self {
-        Access { allow, read_only }
+        Access {
+            allow,
+            read_only,
+            priority: Vec::new(),
+        }
+    }
+
+    /// The same, with masters from `priority` served before the others.
+    pub(crate) fn with_priority(self, priority: Vec<IpNet>) -> Self {
+        Access { priority, ..self }
+    }
+
+    /// Whether a master from `peer` is in `server.priority`.
+    pub(crate) fn is_priority(&self, peer: IpAddr) -> bool {
+        let peer = peer.to_canonical();
+        self.priority.iter().any(|net| net.contains(&peer))
     }
 
     /// The rights of a master connecting from `peer`, or `None` if it may not connect.
@@ -81,6 +97,15 @@ mod tests {
         let access = Access::new(vec![], nets(&["172.16.0.0/12"]));
         assert_eq!(access.admit(ip("172.16.4.4")), Some(Rights::ReadOnly));
         assert_eq!(access.admit(ip("172.32.0.1")), Some(Rights::ReadWrite));
+    }
+
+    #[test]
+    fn priority_networks_are_told_apart_also_on_a_dual_stack_listener() {
+        let access = Access::default().with_priority(nets(&["10.1.0.0/16"]));
+        assert!(access.is_priority(ip("10.1.2.3")));
+        assert!(access.is_priority(ip("::ffff:10.1.2.3")));
+        assert!(!access.is_priority(ip("10.2.0.1")));
+        assert_eq!(access.admit(ip("10.1.2.3")), Some(Rights::ReadWrite));
     }
 
     #[test]

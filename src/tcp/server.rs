@@ -84,7 +84,8 @@ impl Policy {
                 idle_timeout: Some(server.idle_timeout).filter(|t| !t.is_zero()),
                 frame_timeout: server.frame_timeout,
             },
-            access: Access::new(server.allow.clone(), server.read_only.clone()),
+            access: Access::new(server.allow.clone(), server.read_only.clone())
+                .with_priority(server.priority.clone()),
             when_full: server.when_full,
             keepalive: Some(server.keepalive).filter(|t| !t.is_zero()),
             tls,
@@ -362,7 +363,8 @@ async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
     let units = identity.as_ref().and_then(|identity| identity.units);
     let client = Client::new(id, peer, rights)
         .speaking(protocol)
-        .addressing(units);
+        .addressing(units)
+        .prioritised(policy.access.is_priority(peer.ip()));
     let error = session::run(
         stream,
         upstream,

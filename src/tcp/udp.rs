@@ -60,7 +60,8 @@ pub(crate) async fn serve(listener: UdpListener, shared: Arc<Shared>) {
             }
         };
         let udp = &shared.metrics.udp;
-        let Some(rights) = shared.policy().access.admit(peer.ip()) else {
+        let policy = shared.policy();
+        let Some(rights) = policy.access.admit(peer.ip()) else {
             udp.dropped(UdpDrop::NotAllowed, &peer);
             continue;
         };
@@ -68,13 +69,14 @@ pub(crate) async fn serve(listener: UdpListener, shared: Arc<Shared>) {
             udp.dropped(UdpDrop::Malformed, &peer);
             continue;
         };
-        let depth = shared.policy().limits.pipeline_depth;
+        let depth = policy.limits.pipeline_depth;
+        let priority = policy.access.is_priority(peer.ip());
         let (header, function) = (request.header, request.pdu[0]);
         let outcome = {
             let mut sources = pending.lock().unwrap_or_else(PoisonError::into_inner);
             let (client, count) = sources.entry(peer).or_insert_with(|| {
                 let client = Client::new(shared.new_master(), peer, rights);
-                (client.speaking(Protocol::Udp), 0)
+                (client.speaking(Protocol::Udp).prioritised(priority), 0)
             });
             if *count >= depth {
                 None
