@@ -315,6 +315,9 @@ fn the_installed_default_config_is_valid_and_names_every_key() {
         "roles",
         "default_role_access",
         "handshake_timeout",
+        "priority",
+        "coalesce_reads",
+        "cache",
     ]);
     for key in keys {
         let set = format!("\n{key} = ");

@@ -18,6 +18,8 @@
 //! - `peers`: third-party peers on the serial path: pymodbus's RTU and ASCII servers behind the
 //!   gateway, its ASCII client on `simulate`, its RTU-over-TCP and UDP clients on the gateway;
 //!   `peers::tls_walkthrough` runs the README's TLS walkthrough (openssl) and its TLS client.
+//! - `reads`: many masters, one read: coalescing and its freshness, `coalesce_reads = false`,
+//!   the cache, priority masters and their share of the line.
 //! - `rtu_over_tcp`: masters sending plain RTU frames on TCP: framing, bad CRCs, exceptions as RTU.
 //! - `tls`: Modbus/TCP Security: roles, refused certificates, handshake timeout, many TLS masters.
 //! - `udp`: Modbus UDP masters: replies to their source, access lists, what is dropped.
@@ -50,6 +52,7 @@ mod faults;
 mod line;
 mod metrics;
 mod peers;
+mod reads;
 mod rtu_over_tcp;
 mod serial;
 mod service;

@@ -232,7 +232,7 @@ impl FairQueue {
                 epochs: Box::new([0; 256]),
                 following: HashMap::new(),
                 share: Share {
-                    priority: 1.0,
+                    priority: crate::config::defaults::PRIORITY_SHARE,
                     ..Share::default()
                 },
                 cache: HashMap::new(),
