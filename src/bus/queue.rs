@@ -464,12 +464,15 @@ impl Inner {
         let rings: &[usize] = if job.priority { &[1] } else { &[1, 0] };
         let leader = rings.iter().find_map(|&r| {
             self.turn[r].iter().find(|master| {
-                self.queues[master].front().is_some_and(|head| {
-                    head.coalesce
-                        && head.slave == job.slave
-                        && head.epoch == job.epoch
-                        && head.pdu == job.pdu
-                })
+                self.queues
+                    .get(master)
+                    .and_then(VecDeque::front)
+                    .is_some_and(|head| {
+                        head.coalesce
+                            && head.slave == job.slave
+                            && head.epoch == job.epoch
+                            && head.pdu == job.pdu
+                    })
             })
         });
         let Some(&leader) = leader else {
