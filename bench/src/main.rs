@@ -14,7 +14,7 @@ use modbus_gateway::line::{rtu, Framing, LineTiming, Parity, SerialFormat};
 use modbus_gateway::sim::responder::Responder;
 use modbus_gateway::sim::RegisterBank;
 use serde::Serialize;
-use std::net::SocketAddr;
+use std::net::{Ipv4Addr, SocketAddr};
 use std::path::PathBuf;
 use std::process::{Child, Command, ExitCode, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -22,18 +22,21 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::{TcpStream, UdpSocket};
+use tokio::net::{TcpSocket, TcpStream, UdpSocket};
 use tokio_rustls::client::TlsStream;
 use tokio_rustls::rustls::pki_types::ServerName;
 
 mod tls;
 
-/// Read 10 holding registers from 0000H: 8 bytes on the wire, 25 back.
+/// Read 10 holding registers from 0000H: 8 bytes on the wire, 25 back. Each master reads a block
+/// of its own of the same size (from 10 x its index) but in the `Same` load.
 const READ_10: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x0A];
 /// Write holding register 0001H: 8 bytes each way.
 const WRITE_1: [u8; 5] = [0x06, 0x00, 0x01, 0x12, 0x34];
 /// Slaves on the simulated line; masters spread their requests over them.
 const SLAVES: u8 = 247;
+/// The local address the priority master connects from, and `server.priority`.
+const PRIORITY_IP: Ipv4Addr = Ipv4Addr::new(127, 0, 0, 2);
 
 #[derive(Parser)]
 #[command(about = "Benchmark modbus-gateway: bus efficiency, latency, fairness, memory, CPU")]
@@ -69,12 +72,17 @@ enum Line {
 
 #[derive(Clone, Copy, PartialEq)]
 enum Load {
-    /// Read 10 holding registers, back to back.
+    /// Read 10 holding registers (a block of its own), back to back, from each slave in turn.
     Read,
     /// Every fourth request a write of one register, the rest reads of 10.
     Mix,
     /// Connected, sending nothing.
     Idle,
+    /// Every master reads the same 10 holding registers of slave 1, back to back: coalescing.
+    Same,
+    /// Every master reads its own 10 holding registers of slave 1, back to back: nothing to
+    /// coalesce.
+    Own,
 }
 
 /// How the bench's masters talk to the gateway.
@@ -100,6 +108,11 @@ struct Scenario {
     format: SerialFormat,
     masters: usize,
     load: Load,
+    /// `[[bus]] coalesce_reads` (the gateway's default: on).
+    coalesce: bool,
+    /// One more master, connecting from 127.0.0.2 (in `server.priority`), reading a block of its
+    /// own: back to back (`Some(ZERO)`) or one read per period.
+    priority: Option<Duration>,
 }
 
 fn scenarios() -> Vec<Scenario> {
@@ -124,6 +137,8 @@ fn scenarios() -> Vec<Scenario> {
                 format: format(baud, parity),
                 masters,
                 load: Load::Read,
+                coalesce: true,
+                priority: None,
             });
         }
         all.push(Scenario {
@@ -134,6 +149,8 @@ fn scenarios() -> Vec<Scenario> {
             format: format(baud, parity),
             masters: 100,
             load: Load::Mix,
+            coalesce: true,
+            priority: None,
         });
     }
     for masters in [1, 100] {
@@ -145,6 +162,8 @@ fn scenarios() -> Vec<Scenario> {
             format: ascii_7e1,
             masters,
             load: Load::Read,
+            coalesce: true,
+            priority: None,
         });
     }
     for (kind, label) in [
@@ -164,6 +183,8 @@ fn scenarios() -> Vec<Scenario> {
                 format: format(115_200, Parity::None),
                 masters,
                 load: Load::Read,
+                coalesce: true,
+                priority: None,
             });
         }
     }
@@ -177,6 +198,52 @@ fn scenarios() -> Vec<Scenario> {
             format: format(115_200, Parity::None),
             masters: 1,
             load: Load::Read,
+            coalesce: true,
+            priority: None,
+        });
+    }
+    // Many masters, one read: coalescing, and what it costs when there is nothing to coalesce.
+    for (baud, parity, label) in [(9600, Parity::Even, "8E1"), (115_200, Parity::None, "8N1")] {
+        for masters in [1, 10, 100] {
+            all.push(Scenario {
+                name: format!("many-{baud}-{label}-same-{masters}"),
+                line: Line::Sim,
+                kind: Kind::Tcp,
+                framing: Framing::Rtu,
+                format: format(baud, parity),
+                masters,
+                load: Load::Same,
+                coalesce: true,
+                priority: None,
+            });
+        }
+    }
+    for (coalesce, suffix) in [(true, ""), (false, "-uncoalesced")] {
+        all.push(Scenario {
+            name: format!("many-9600-8E1-own-100{suffix}"),
+            line: Line::Sim,
+            kind: Kind::Tcp,
+            framing: Framing::Rtu,
+            format: format(9600, Parity::Even),
+            masters: 100,
+            load: Load::Own,
+            coalesce,
+            priority: None,
+        });
+    }
+    // A priority master among 100 that saturate the line: polling back to back (the share
+    // limit decides), then every 200 ms (a fifth of the line).
+    for (period, label) in [(Duration::ZERO, ""), (Duration::from_millis(200), "-200ms")] {
+        all.push(Scenario {
+            name: format!("many-9600-8E1-priority{label}-100"),
+            line: Line::Sim,
+            kind: Kind::Tcp,
+            framing: Framing::Rtu,
+            format: format(9600, Parity::Even),
+            masters: 100,
+            load: Load::Own,
+            coalesce: true,
+            priority: Some(period),
         });
     }
     for masters in [0, 1000] {
@@ -188,6 +255,8 @@ fn scenarios() -> Vec<Scenario> {
             format: format(9600, Parity::Even),
             masters,
             load: Load::Idle,
+            coalesce: true,
+            priority: None,
         });
     }
     all
@@ -218,6 +287,32 @@ struct Report {
     connect_max_ms: Option<f64>,
     /// The gateway's CPU time across the connect phase, per master.
     connect_cpu_us: Option<f64>,
+    /// From the gateway's metrics, scraped at the window's ends (sim only): transactions on the
+    /// line (`modbus_gateway_round_trip_seconds_count`), per second, per answered request, and
+    /// requests answered by another's (`modbus_gateway_coalesced_requests_total`).
+    line_tx: Option<u64>,
+    line_tx_per_s: Option<f64>,
+    line_tx_per_answer: Option<f64>,
+    coalesced: Option<u64>,
+    /// The physical rate of the read, 1 / t_min, in transactions per second.
+    physical_tx_per_s: Option<f64>,
+    /// Masters reading the same block: answered reads per second over (masters x
+    /// physical_tx_per_s).
+    answered_vs_physical: Option<f64>,
+    /// The priority master (priority scenarios): its answered reads, its latency and its wait
+    /// (latency less one t_min) in transaction times (t_min), and the other masters' share of
+    /// the answered reads (here, of the line's transactions). `fairness` is then over the others.
+    priority_tx: Option<u64>,
+    priority_p50_tmin: Option<f64>,
+    priority_p99_tmin: Option<f64>,
+    priority_max_tmin: Option<f64>,
+    priority_wait_p50_tmin: Option<f64>,
+    priority_wait_p99_tmin: Option<f64>,
+    others_share: Option<f64>,
+    /// The gateway's mean queue wait by class (`modbus_gateway_queue_wait_seconds` sum over
+    /// count), in t_min.
+    queue_wait_priority_tmin: Option<f64>,
+    queue_wait_normal_tmin: Option<f64>,
 }
 
 fn free_addr() -> std::io::Result<SocketAddr> {
@@ -230,6 +325,7 @@ struct Gateway {
     listen: SocketAddr,
     listen_rtu_over_tcp: SocketAddr,
     listen_udp: SocketAddr,
+    metrics: SocketAddr,
     /// The TLS listener and the certificates (TLS scenarios only).
     tls: Option<(SocketAddr, tls::Pki)>,
     _config: tempfile_path::TempPath,
@@ -266,12 +362,15 @@ impl Gateway {
             Parity::Even => "even",
             Parity::Odd => "odd",
         };
-        let masters = scenario.masters.max(1);
+        let masters = scenario.masters.max(1) + usize::from(scenario.priority.is_some());
         let mut config = format!(
             "[server]\nlisten = \"{listen}\"\nlisten_rtu_over_tcp = \"{listen_rtu_over_tcp}\"\n\
              listen_udp = \"{listen_udp}\"\nmax_connections = {}\n",
             masters + 16,
         );
+        if scenario.priority.is_some() {
+            config += &format!("priority = [\"{PRIORITY_IP}\"]\n");
+        }
         let tls = if scenario.kind == Kind::Tls {
             let listen_tls = free_addr().map_err(|e| e.to_string())?;
             let pki = tls::Pki::new(&scenario.name)?;
@@ -291,6 +390,9 @@ impl Gateway {
             f.stop_bits,
             masters * 2 + 16,
         );
+        if !scenario.coalesce {
+            config += "coalesce_reads = false\n";
+        }
         if scenario.line == Line::Sim {
             config += &format!("[[bus.sim_slave]]\naddress = \"1-{SLAVES}\"\n");
         }
@@ -311,6 +413,7 @@ impl Gateway {
             listen,
             listen_rtu_over_tcp,
             listen_udp,
+            metrics,
             tls,
             _config: tempfile_path::TempPath(path),
         };
@@ -455,21 +558,42 @@ fn mbap(tid: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {
     adu
 }
 
-/// One master's loop: request, reply, again, until `stop`. Returns (completed at, latency).
+/// One master's loop: request, reply, again (after `period` from the last request, if not
+/// zero), until `stop`. Returns (completed at, latency).
 async fn master(
     mut conn: Conn,
     index: usize,
     load: Load,
+    period: Duration,
     stop: Arc<AtomicBool>,
 ) -> std::io::Result<Vec<(Instant, Duration, bool)>> {
     let mut done = Vec::new();
-    let mut slave = u8::try_from(index % usize::from(SLAVES)).unwrap_or(0) + 1;
+    let mut slave = match load {
+        Load::Same | Load::Own => 1,
+        _ => u8::try_from(index % usize::from(SLAVES)).unwrap_or(0) + 1,
+    };
+    // Its own block, 10 registers from 10 x index, so that no two masters' reads are identical
+    // and none is coalesced (but in `Same`): the same length as READ_10, the same time on the
+    // line.
+    let [hi, lo] = u16::try_from(index * 10).unwrap_or(0).to_be_bytes();
+    let own = [0x03, hi, lo, 0x00, 0x0A];
     let mut tid: u16 = 0;
     let mut reply = vec![0u8; 512];
+    let mut next = tokio::time::Instant::now();
     while !stop.load(Ordering::Relaxed) {
+        if !period.is_zero() {
+            tokio::time::sleep_until(next).await;
+            next += period;
+        }
         tid = tid.wrapping_add(1);
         let write = load == Load::Mix && tid.is_multiple_of(4);
-        let pdu: &[u8] = if write { &WRITE_1 } else { &READ_10 };
+        let pdu: &[u8] = if write {
+            &WRITE_1
+        } else if load == Load::Same {
+            &READ_10
+        } else {
+            &own
+        };
         let sent = Instant::now();
         if !conn.exchange(tid, slave, pdu, &mut reply).await? {
             return Err(std::io::Error::other(format!(
@@ -479,7 +603,9 @@ async fn master(
         }
         let now = Instant::now();
         done.push((now, now - sent, write));
-        slave = slave % SLAVES + 1;
+        if !matches!(load, Load::Same | Load::Own) {
+            slave = slave % SLAVES + 1;
+        }
     }
     Ok(done)
 }
@@ -550,6 +676,72 @@ async fn connect_all(
     Ok((conns, setup))
 }
 
+/// The priority master: a Modbus TCP connection from 127.0.0.2, which `server.priority` names.
+async fn priority_connect(gateway: &Gateway) -> Result<Conn, String> {
+    let failed = |e: std::io::Error| format!("priority master: {e}");
+    let socket = TcpSocket::new_v4().map_err(failed)?;
+    socket
+        .bind(SocketAddr::new(PRIORITY_IP.into(), 0))
+        .map_err(failed)?;
+    let stream = socket.connect(gateway.listen).await.map_err(failed)?;
+    stream.set_nodelay(true).map_err(failed)?;
+    Ok(Conn::Tcp(stream))
+}
+
+/// The gateway's metrics page.
+async fn scrape(addr: SocketAddr) -> Result<String, String> {
+    let failed = |e: std::io::Error| format!("scraping the metrics: {e}");
+    let mut stream = TcpStream::connect(addr).await.map_err(failed)?;
+    stream
+        .write_all(b"GET /metrics HTTP/1.1\r\nHost: bench\r\nConnection: close\r\n\r\n")
+        .await
+        .map_err(failed)?;
+    let mut page = String::new();
+    stream.read_to_string(&mut page).await.map_err(failed)?;
+    Ok(page)
+}
+
+/// The sum of the samples of `name` on the bench's bus with every one of `labels`.
+fn sample(page: &str, name: &str, labels: &[&str]) -> f64 {
+    page.lines()
+        .filter(|l| !l.starts_with('#'))
+        .filter_map(|l| {
+            let (series, value) = l.rsplit_once(' ')?;
+            let (metric, set) = series.split_once('{').unwrap_or((series, ""));
+            (metric == name
+                && set.contains("bus=\"bench\"")
+                && labels.iter().all(|x| set.contains(x)))
+            .then(|| value.parse::<f64>().ok())?
+        })
+        .sum()
+}
+
+/// What the window's metrics say: line transactions, coalesced requests, and the queue wait's
+/// sum and count by class.
+#[derive(Default)]
+struct Counters {
+    line_tx: f64,
+    coalesced: f64,
+    wait: [(f64, f64); 2],
+}
+
+impl Counters {
+    fn of(page: &str) -> Counters {
+        let wait = |class| {
+            let class = format!("class=\"{class}\"");
+            (
+                sample(page, "modbus_gateway_queue_wait_seconds_sum", &[&class]),
+                sample(page, "modbus_gateway_queue_wait_seconds_count", &[&class]),
+            )
+        };
+        Counters {
+            line_tx: sample(page, "modbus_gateway_round_trip_seconds_count", &[]),
+            coalesced: sample(page, "modbus_gateway_coalesced_requests_total", &[]),
+            wait: [wait("normal"), wait("priority")],
+        }
+    }
+}
+
 async fn run(cli: &Cli, binary: &PathBuf, s: &Scenario) -> Result<Report, String> {
     let timing = LineTiming::new(&s.format);
     let (device, slave) = match s.line {
@@ -562,7 +754,10 @@ async fn run(cli: &Cli, binary: &PathBuf, s: &Scenario) -> Result<Report, String
     let gateway = Gateway::start(binary, s, &device).await?;
     let pid = gateway.pid();
     let cpu_before = cpu_time(pid);
-    let (streams, mut setup) = connect_all(&gateway, s.kind, s.masters).await?;
+    let (mut streams, mut setup) = connect_all(&gateway, s.kind, s.masters).await?;
+    if s.priority.is_some() {
+        streams.push(priority_connect(&gateway).await?);
+    }
     // The gateway's side of the last handshake (a TLS 1.3 server checks the master's
     // certificate after the master is done) and of the last accept.
     tokio::time::sleep(Duration::from_millis(50)).await;
@@ -588,6 +783,21 @@ async fn run(cli: &Cli, binary: &PathBuf, s: &Scenario) -> Result<Report, String
         connect_max_ms: setup.last().map(|d| d.as_secs_f64() * 1e3),
         connect_cpu_us: (!setup.is_empty())
             .then(|| connect_cpu.as_secs_f64() * 1e6 / setup.len() as f64),
+        line_tx: None,
+        line_tx_per_s: None,
+        line_tx_per_answer: None,
+        coalesced: None,
+        physical_tx_per_s: None,
+        answered_vs_physical: None,
+        priority_tx: None,
+        priority_p50_tmin: None,
+        priority_p99_tmin: None,
+        priority_max_tmin: None,
+        priority_wait_p50_tmin: None,
+        priority_wait_p99_tmin: None,
+        others_share: None,
+        queue_wait_priority_tmin: None,
+        queue_wait_normal_tmin: None,
     };
     if s.load == Load::Idle {
         tokio::time::sleep(Duration::from_secs(2)).await;
@@ -610,7 +820,9 @@ async fn run(cli: &Cli, binary: &PathBuf, s: &Scenario) -> Result<Report, String
     } else {
         timing.t35
     };
-    let needed = pace * (cli.rounds * u32::try_from(s.masters).unwrap_or(u32::MAX));
+    // Masters reading the same block are answered together.
+    let turns = if s.load == Load::Same { 1 } else { s.masters };
+    let needed = pace * (cli.rounds * u32::try_from(turns).unwrap_or(u32::MAX));
     let length = Duration::from_secs_f64(cli.seconds).max(needed);
     let warm_up = Duration::from_secs(1).max(pace * u32::try_from(s.masters).unwrap_or(1));
 
@@ -618,19 +830,38 @@ async fn run(cli: &Cli, binary: &PathBuf, s: &Scenario) -> Result<Report, String
     let tasks: Vec<_> = streams
         .into_iter()
         .enumerate()
-        .map(|(i, stream)| tokio::spawn(master(stream, i, s.load, stop.clone())))
+        .map(|(i, stream)| {
+            let period = if i == s.masters {
+                s.priority.unwrap_or_default()
+            } else {
+                Duration::ZERO
+            };
+            tokio::spawn(master(stream, i, s.load, period, stop.clone()))
+        })
         .collect();
     tokio::time::sleep(warm_up).await;
+    let sim = s.line == Line::Sim;
+    let before = if sim {
+        Some(scrape(gateway.metrics).await?)
+    } else {
+        None
+    };
     let (start, cpu_start) = (Instant::now(), cpu_time(pid));
     tokio::time::sleep(length).await;
     let (end, cpu_end) = (Instant::now(), cpu_time(pid));
+    let after = if sim {
+        Some(scrape(gateway.metrics).await?)
+    } else {
+        None
+    };
     report.rss_mb = rss_mb(pid);
     stop.store(true, Ordering::Relaxed);
 
     let mut latencies = Vec::new();
     let mut per_master = Vec::with_capacity(s.masters);
     let mut physical = Duration::ZERO;
-    for task in tasks {
+    let mut priority = Vec::new();
+    for (i, task) in tasks.into_iter().enumerate() {
         let done = task
             .await
             .map_err(|e| e.to_string())?
@@ -639,7 +870,11 @@ async fn run(cli: &Cli, binary: &PathBuf, s: &Scenario) -> Result<Report, String
             .into_iter()
             .filter(|(at, _, _)| *at >= start && *at <= end)
             .collect();
-        per_master.push(within.len() as f64);
+        if i == s.masters {
+            priority = within.iter().map(|(_, latency, _)| *latency).collect();
+        } else {
+            per_master.push(within.len() as f64);
+        }
         for (_, latency, write) in within {
             latencies.push(latency);
             physical += if write { write_min } else { read_min };
@@ -661,10 +896,48 @@ async fn run(cli: &Cli, binary: &PathBuf, s: &Scenario) -> Result<Report, String
     report.max_ms = latencies.last().map(|d| d.as_secs_f64() * 1e3);
     report.fairness =
         (s.masters > 1 && squares > 0.0).then(|| sum * sum / (per_master.len() as f64 * squares));
+    let t_min = read_min.as_secs_f64();
+    if s.priority.is_some() {
+        priority.sort();
+        let in_tmin = |p| percentile(&priority, p).map(|ms| ms / 1e3 / t_min);
+        report.priority_tx = Some(priority.len() as u64);
+        report.priority_p50_tmin = in_tmin(0.5);
+        report.priority_p99_tmin = in_tmin(0.99);
+        report.priority_max_tmin = in_tmin(1.0);
+        report.priority_wait_p50_tmin = in_tmin(0.5).map(|t| t - 1.0);
+        report.priority_wait_p99_tmin = in_tmin(0.99).map(|t| t - 1.0);
+        report.others_share = (transactions > 0)
+            .then(|| (transactions - priority.len() as u64) as f64 / transactions as f64);
+    }
+    if let (Some(before), Some(after)) = (before, after) {
+        let (before, after) = (Counters::of(&before), Counters::of(&after));
+        let line_tx = after.line_tx - before.line_tx;
+        report.line_tx = Some(line_tx as u64);
+        report.line_tx_per_s = Some(line_tx / wall);
+        report.line_tx_per_answer = (transactions > 0).then(|| line_tx / transactions as f64);
+        report.coalesced = Some((after.coalesced - before.coalesced) as u64);
+        report.physical_tx_per_s = Some(1.0 / t_min);
+        if s.load == Load::Same {
+            report.answered_vs_physical = Some(report.tx_per_s * t_min / s.masters as f64);
+        }
+        let mean_wait = |class: usize| {
+            let (sum, count) = (
+                after.wait[class].0 - before.wait[class].0,
+                after.wait[class].1 - before.wait[class].1,
+            );
+            (count > 0.0).then(|| sum / count / t_min)
+        };
+        report.queue_wait_normal_tmin = mean_wait(0);
+        report.queue_wait_priority_tmin = mean_wait(1);
+    }
     report.cpu_us_per_tx =
         (transactions > 0).then(|| (cpu_end - cpu_start).as_secs_f64() * 1e6 / transactions as f64);
     if s.line == Line::Sim {
         report.efficiency = Some(physical.as_secs_f64() / wall);
+        // Coalesced reads took no time of the line: count its transactions instead.
+        if s.load == Load::Same {
+            report.efficiency = report.line_tx.map(|tx| tx as f64 * t_min / wall);
+        }
         if s.masters == 1 && s.load == Load::Read {
             let floor = read_min.as_secs_f64() * 1e3;
             report.added_p50_ms = report.p50_ms.map(|p| p - floor);
@@ -676,6 +949,77 @@ async fn run(cli: &Cli, binary: &PathBuf, s: &Scenario) -> Result<Report, String
 
 fn cell(value: Option<f64>, precision: usize) -> String {
     value.map_or("-".into(), |v| format!("{v:.precision$}"))
+}
+
+/// The many-masters scenarios' own columns: answered reads against the line's transactions.
+fn print_line_table(reports: &[Report]) {
+    let rows: Vec<_> = reports
+        .iter()
+        .filter(|r| r.scenario.starts_with("many-") && r.line_tx.is_some())
+        .collect();
+    if rows.is_empty() {
+        return;
+    }
+    println!(
+        "\n{:<30} {:>7} {:>10} {:>10} {:>8} {:>10} {:>9} {:>9}",
+        "scenario",
+        "masters",
+        "answered/s",
+        "line tx/s",
+        "phys/s",
+        "ans/(K*phys)",
+        "tx/answer",
+        "coalesced"
+    );
+    for r in rows {
+        println!(
+            "{:<30} {:>7} {:>10.1} {:>10} {:>8.2} {:>12} {:>9} {:>9}",
+            r.scenario,
+            r.masters,
+            r.tx_per_s,
+            cell(r.line_tx_per_s, 2),
+            r.physical_tx_per_s.unwrap_or_default(),
+            cell(r.answered_vs_physical, 3),
+            cell(r.line_tx_per_answer, 4),
+            r.coalesced.map_or("-".into(), |c| c.to_string()),
+        );
+    }
+}
+
+/// The priority scenarios' own columns, in transaction times (t_min).
+fn print_priority_table(reports: &[Report]) {
+    let rows: Vec<_> = reports.iter().filter(|r| r.priority_tx.is_some()).collect();
+    if rows.is_empty() {
+        return;
+    }
+    println!(
+        "\n{:<30} {:>7} {:>8} {:>8} {:>8} {:>9} {:>9} {:>10} {:>10} {:>8}",
+        "scenario (t_min units)",
+        "prio tx",
+        "lat p50",
+        "lat p99",
+        "lat max",
+        "wait p50",
+        "wait p99",
+        "gw wait P",
+        "gw wait N",
+        "others"
+    );
+    for r in rows {
+        println!(
+            "{:<30} {:>7} {:>8} {:>8} {:>8} {:>9} {:>9} {:>10} {:>10} {:>8}",
+            r.scenario,
+            r.priority_tx.unwrap_or_default(),
+            cell(r.priority_p50_tmin, 2),
+            cell(r.priority_p99_tmin, 2),
+            cell(r.priority_max_tmin, 2),
+            cell(r.priority_wait_p50_tmin, 2),
+            cell(r.priority_wait_p99_tmin, 2),
+            cell(r.queue_wait_priority_tmin, 2),
+            cell(r.queue_wait_normal_tmin, 1),
+            cell(r.others_share, 3),
+        );
+    }
 }
 
 #[tokio::main]
@@ -733,6 +1077,7 @@ async fn main() -> ExitCode {
         );
     }
     let mut failed = false;
+    let mut reports = Vec::new();
     for s in chosen {
         match run(&cli, &binary, s).await {
             Ok(r) if cli.json => match serde_json::to_string(&r) {
@@ -742,7 +1087,8 @@ async fn main() -> ExitCode {
                     failed = true;
                 }
             },
-            Ok(r) => println!(
+            Ok(r) => {
+                println!(
                 "{:<30} {:>7} {:>9} {:>6.1} {:>6} {:>8} {:>8} {:>8} {:>8} {:>6} {:>7.1} {:>8} {:>8} {:>8} {:>8}",
                 r.scenario,
                 r.masters,
@@ -759,13 +1105,17 @@ async fn main() -> ExitCode {
                 cell(r.connect_p50_ms, 2),
                 cell(r.connect_max_ms, 2),
                 cell(r.connect_cpu_us, 0),
-            ),
+                );
+                reports.push(r);
+            }
             Err(e) => {
                 eprintln!("{}: {e}", s.name);
                 failed = true;
             }
         }
     }
+    print_line_table(&reports);
+    print_priority_table(&reports);
     if failed {
         ExitCode::FAILURE
     } else {

@@ -113,3 +113,38 @@ fn tls_masters_present_a_certificate_with_a_role_and_the_bench_reports_their_han
     }
     assert!(!pki.exists(), "{} is left behind", pki.display());
 }
+
+#[test]
+fn masters_reading_the_same_block_share_the_line_s_transactions() {
+    let scenario = "many-9600-8E1-same-10";
+    let out = Command::new(BENCH)
+        .args(["--json", "--seconds", "1", "--rounds", "1", scenario])
+        .arg("--gateway")
+        .arg(gateway())
+        .output()
+        .expect("the bench runs");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let same: serde_json::Value =
+        serde_json::from_str(String::from_utf8(out.stdout).unwrap().trim()).unwrap();
+    assert_eq!(same["scenario"], scenario);
+    // The line's transactions come from the gateway's metrics: ten masters, far fewer.
+    let answered = same["transactions"].as_u64().unwrap();
+    let line = same["line_tx"].as_u64().unwrap();
+    assert!(line > 0 && line * 2 <= answered, "{same}");
+    assert!(same["coalesced"].as_u64().unwrap() > 0, "{same}");
+    for field in [
+        "line_tx_per_answer",
+        "physical_tx_per_s",
+        "answered_vs_physical",
+    ] {
+        assert!(
+            same[field].as_f64().is_some_and(|v| v > 0.0),
+            "{field}: {same}"
+        );
+    }
+    assert!(same["priority_tx"].is_null(), "{same}");
+}
