@@ -156,8 +156,10 @@ struct Cached {
     pdu: Vec<u8>,
 }
 
-/// How the line is shared between the two rings when both have requests: counts of the
-/// contested picks, halved now and then so that the recent past decides.
+/// How the line is shared between the two rings: counts of the recent transactions of each
+/// (halved now and then, so that the recent past decides). When both rings wait, the priority
+/// ring goes unless it has had `priority` of them already: a priority master that uses little
+/// of the line always goes first, and saturating ones leave the others the rest.
 #[derive(Default)]
 struct Share {
     /// Most share of contested picks the priority ring gets; 1.0 serves it always first.
@@ -171,8 +173,10 @@ impl Share {
 
     /// Whether the priority ring goes next when both rings wait.
     fn priority_next(&self) -> bool {
+        // Only if its share stays within `priority` with this pick, so the others' floor
+        // holds; with no history, the priority ring.
         let total = f64::from(self.priority_picks + self.other_picks + 1);
-        f64::from(self.priority_picks) < self.priority * total
+        total == 1.0 || f64::from(self.priority_picks + 1) <= self.priority * total
     }
 
     fn picked(&mut self, priority: bool) {
@@ -290,15 +294,12 @@ impl FairQueue {
         let mut inner = self.lock();
         let waiting = [0, 1].map(|r| inner.ready_master(r).is_some());
         let priority = match waiting {
-            [true, true] => {
-                let priority = inner.share.priority_next();
-                inner.share.picked(priority);
-                priority
-            }
+            [true, true] => inner.share.priority_next(),
             [false, true] => true,
             [true, false] => false,
             [false, false] => return None,
         };
+        inner.share.picked(priority);
         let at = inner.ready_master(ring(priority))?;
         let master = inner.turn[ring(priority)].remove(at)?;
         let queue = inner.queues.get_mut(&master)?;
@@ -767,7 +768,7 @@ mod tests {
         let first: Vec<MasterId> = (0..100).map(|_| q.try_pop().unwrap().master).collect();
         let priority = first.iter().filter(|&&m| m == 1).count();
         assert_eq!(priority, 75, "{first:?}");
-        assert_eq!(&first[..4], [1, 1, 1, 2]);
+        assert_eq!(&first[..5], [1, 2, 1, 1, 2]);
         // Alone, the priority ring takes the whole line, and so do the others.
         let q = FairQueue::new(16);
         q.set_priority_share(0.5);
