@@ -18,29 +18,40 @@ fn gateway() -> PathBuf {
     path
 }
 
-#[test]
-fn the_bench_reports_every_field_never_beats_physics_and_drives_the_pty_slave() {
-    let out = Command::new(BENCH)
+/// Run the bench with `--json`, one short round, on `scenarios`: its child and the report lines
+/// once it succeeded.
+fn bench_json(scenarios: &[&str], started: impl FnOnce(u32)) -> Vec<serde_json::Value> {
+    let child = Command::new(BENCH)
         .args(["--json", "--seconds", "1", "--rounds", "1"])
-        .args([
-            "sim-115200-8N1-read-10",
-            "pty-115200-untimed-read-1",
-            "idle-0",
-        ])
+        .args(scenarios)
         .arg("--gateway")
         .arg(gateway())
-        .output()
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
         .expect("the bench runs");
+    started(child.id());
+    let out = child.wait_with_output().expect("the bench ends");
     assert!(
         out.status.success(),
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let reports: Vec<serde_json::Value> = String::from_utf8(out.stdout)
+    String::from_utf8(out.stdout)
         .unwrap()
         .lines()
         .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{e}: {l}")))
-        .collect();
+        .collect()
+}
+
+#[test]
+fn the_bench_reports_every_field_never_beats_physics_and_drives_the_pty_slave() {
+    let scenarios = [
+        "sim-115200-8N1-read-10",
+        "pty-115200-untimed-read-1",
+        "idle-0",
+    ];
+    let reports = bench_json(&scenarios, |_| {});
     assert_eq!(reports.len(), 3);
     let sim = &reports[0];
     assert_eq!(sim["scenario"], "sim-115200-8N1-read-10");
@@ -79,23 +90,11 @@ fn the_bench_reports_every_field_never_beats_physics_and_drives_the_pty_slave() 
 #[test]
 fn tls_masters_present_a_certificate_with_a_role_and_the_bench_reports_their_handshakes() {
     let scenario = "sim-115200-8N1-tls-read-1";
-    let child = Command::new(BENCH)
-        .args(["--json", "--seconds", "1", "--rounds", "1", scenario])
-        .arg("--gateway")
-        .arg(gateway())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("the bench runs");
-    let pki = std::env::temp_dir().join(format!("mbgw-bench-tls-{}-{scenario}", child.id()));
-    let out = child.wait_with_output().expect("the bench ends");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let tls: serde_json::Value =
-        serde_json::from_str(String::from_utf8(out.stdout).unwrap().trim()).unwrap();
+    let mut pki = PathBuf::new();
+    let tls = bench_json(&[scenario], |id| {
+        pki = std::env::temp_dir().join(format!("mbgw-bench-tls-{id}-{scenario}"));
+    })
+    .remove(0);
     assert_eq!(tls["scenario"], scenario);
     // Refused requests would have failed the run: the role gave read access.
     assert!(tls["transactions"].as_u64().unwrap() > 0, "{tls}");
@@ -117,19 +116,7 @@ fn tls_masters_present_a_certificate_with_a_role_and_the_bench_reports_their_han
 #[test]
 fn masters_reading_the_same_block_share_the_line_s_transactions() {
     let scenario = "many-9600-8E1-same-10";
-    let out = Command::new(BENCH)
-        .args(["--json", "--seconds", "1", "--rounds", "1", scenario])
-        .arg("--gateway")
-        .arg(gateway())
-        .output()
-        .expect("the bench runs");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let same: serde_json::Value =
-        serde_json::from_str(String::from_utf8(out.stdout).unwrap().trim()).unwrap();
+    let same = bench_json(&[scenario], |_| {}).remove(0);
     assert_eq!(same["scenario"], scenario);
     // The line's transactions come from the gateway's metrics: ten masters, far fewer.
     let answered = same["transactions"].as_u64().unwrap();
