@@ -115,6 +115,23 @@ struct Scenario {
     priority: Option<Duration>,
 }
 
+impl Scenario {
+    /// Modbus TCP masters on the simulated RTU line, reads coalescing, no priority master.
+    fn sim(name: String, format: SerialFormat, masters: usize, load: Load) -> Scenario {
+        Scenario {
+            name,
+            line: Line::Sim,
+            kind: Kind::Tcp,
+            framing: Framing::Rtu,
+            format,
+            masters,
+            load,
+            coalesce: true,
+            priority: None,
+        }
+    }
+}
+
 fn scenarios() -> Vec<Scenario> {
     let format = |baud, parity| SerialFormat {
         baud,
@@ -126,44 +143,31 @@ fn scenarios() -> Vec<Scenario> {
         data_bits: 7,
         ..format(9600, Parity::Even)
     };
+    let sim_9600 = format(9600, Parity::Even);
+    let sim_115200 = format(115_200, Parity::None);
     let mut all = Vec::new();
     for (baud, parity, label) in [(9600, Parity::Even, "8E1"), (115_200, Parity::None, "8N1")] {
         for masters in [1, 10, 100, 1000] {
-            all.push(Scenario {
-                name: format!("sim-{baud}-{label}-read-{masters}"),
-                line: Line::Sim,
-                kind: Kind::Tcp,
-                framing: Framing::Rtu,
-                format: format(baud, parity),
+            let name = format!("sim-{baud}-{label}-read-{masters}");
+            all.push(Scenario::sim(
+                name,
+                format(baud, parity),
                 masters,
-                load: Load::Read,
-                coalesce: true,
-                priority: None,
-            });
+                Load::Read,
+            ));
         }
-        all.push(Scenario {
-            name: format!("sim-{baud}-{label}-mix-100"),
-            line: Line::Sim,
-            kind: Kind::Tcp,
-            framing: Framing::Rtu,
-            format: format(baud, parity),
-            masters: 100,
-            load: Load::Mix,
-            coalesce: true,
-            priority: None,
-        });
+        let name = format!("sim-{baud}-{label}-mix-100");
+        all.push(Scenario::sim(name, format(baud, parity), 100, Load::Mix));
     }
     for masters in [1, 100] {
         all.push(Scenario {
-            name: format!("ascii-9600-7E1-read-{masters}"),
-            line: Line::Sim,
-            kind: Kind::Tcp,
             framing: Framing::Ascii,
-            format: ascii_7e1,
-            masters,
-            load: Load::Read,
-            coalesce: true,
-            priority: None,
+            ..Scenario::sim(
+                format!("ascii-9600-7E1-read-{masters}"),
+                ascii_7e1,
+                masters,
+                Load::Read,
+            )
         });
     }
     for (kind, label) in [
@@ -175,89 +179,57 @@ fn scenarios() -> Vec<Scenario> {
         // A mix of one master is one Modbus TCP master: the mix has 99, 33 of each kind.
         let counts: &[usize] = if kind == Kind::Mixed { &[99] } else { &[1, 99] };
         for &masters in counts {
+            let name = format!("sim-115200-8N1-{label}-read-{masters}");
             all.push(Scenario {
-                name: format!("sim-115200-8N1-{label}-read-{masters}"),
-                line: Line::Sim,
                 kind,
-                framing: Framing::Rtu,
-                format: format(115_200, Parity::None),
-                masters,
-                load: Load::Read,
-                coalesce: true,
-                priority: None,
+                ..Scenario::sim(name, sim_115200, masters, Load::Read)
             });
         }
     }
     // Over TLS too: with no line timing to hide it, what a TLS record costs shows.
     for (kind, name) in [(Kind::Tcp, "read"), (Kind::Tls, "tls-read")] {
+        let name = format!("pty-115200-untimed-{name}-1");
         all.push(Scenario {
-            name: format!("pty-115200-untimed-{name}-1"),
             line: Line::Pty,
             kind,
-            framing: Framing::Rtu,
-            format: format(115_200, Parity::None),
-            masters: 1,
-            load: Load::Read,
-            coalesce: true,
-            priority: None,
+            ..Scenario::sim(name, sim_115200, 1, Load::Read)
         });
     }
     // Many masters, one read: coalescing, and what it costs when there is nothing to coalesce.
     for (baud, parity, label) in [(9600, Parity::Even, "8E1"), (115_200, Parity::None, "8N1")] {
         for masters in [1, 10, 100] {
-            all.push(Scenario {
-                name: format!("many-{baud}-{label}-same-{masters}"),
-                line: Line::Sim,
-                kind: Kind::Tcp,
-                framing: Framing::Rtu,
-                format: format(baud, parity),
+            let name = format!("many-{baud}-{label}-same-{masters}");
+            all.push(Scenario::sim(
+                name,
+                format(baud, parity),
                 masters,
-                load: Load::Same,
-                coalesce: true,
-                priority: None,
-            });
+                Load::Same,
+            ));
         }
     }
     for (coalesce, suffix) in [(true, ""), (false, "-uncoalesced")] {
+        let name = format!("many-9600-8E1-own-100{suffix}");
         all.push(Scenario {
-            name: format!("many-9600-8E1-own-100{suffix}"),
-            line: Line::Sim,
-            kind: Kind::Tcp,
-            framing: Framing::Rtu,
-            format: format(9600, Parity::Even),
-            masters: 100,
-            load: Load::Own,
             coalesce,
-            priority: None,
+            ..Scenario::sim(name, sim_9600, 100, Load::Own)
         });
     }
     // A priority master among 100 that saturate the line: polling back to back (the share
     // limit decides), then every 200 ms (a fifth of the line).
     for (period, label) in [(Duration::ZERO, ""), (Duration::from_millis(200), "-200ms")] {
+        let name = format!("many-9600-8E1-priority{label}-100");
         all.push(Scenario {
-            name: format!("many-9600-8E1-priority{label}-100"),
-            line: Line::Sim,
-            kind: Kind::Tcp,
-            framing: Framing::Rtu,
-            format: format(9600, Parity::Even),
-            masters: 100,
-            load: Load::Own,
-            coalesce: true,
             priority: Some(period),
+            ..Scenario::sim(name, sim_9600, 100, Load::Own)
         });
     }
     for masters in [0, 1000] {
-        all.push(Scenario {
-            name: format!("idle-{masters}"),
-            line: Line::Sim,
-            kind: Kind::Tcp,
-            framing: Framing::Rtu,
-            format: format(9600, Parity::Even),
+        all.push(Scenario::sim(
+            format!("idle-{masters}"),
+            sim_9600,
             masters,
-            load: Load::Idle,
-            coalesce: true,
-            priority: None,
-        });
+            Load::Idle,
+        ));
     }
     all
 }
