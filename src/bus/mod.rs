@@ -168,9 +168,9 @@ impl BusHandle {
         match self.queue.push(job, cache) {
             Ok(Pushed::Queued) => {}
             Ok(Pushed::Joined) => self.metrics.coalesced(slave),
-            Ok(Pushed::Cached) => {
+            Ok(Pushed::Cached(answer)) => {
                 self.metrics.cache_hit(slave);
-                let answered = Ok(Answer::Reply(Vec::new()));
+                let answered = Ok(Answer::Reply(answer));
                 self.metrics
                     .request(slave, function, protocol, Some(&answered));
             }
@@ -194,9 +194,9 @@ impl BusHandle {
         }
     }
 
-    /// Every request ends here, or in [`BusHandle::forget`]: counted by outcome, then answered.
-    /// Answer `job` and the reads that followed it with `outcome`; each is counted. A leader
-    /// answered already (it expired, its master left) is not answered again.
+    /// Every request ends here, or in [`BusHandle::forget`]: counted by outcome, then answered;
+    /// the reads that followed `job` get the same outcome. A leader answered already (it
+    /// expired, its master left) is not answered again.
     fn answer(&self, mut job: Job, outcome: Outcome) {
         let function = job.function();
         for follower in job.followers.drain(..) {

@@ -146,8 +146,8 @@ pub enum Pushed {
     Queued,
     /// Joined an identical read of another master.
     Joined,
-    /// Answered from the cache.
-    Cached,
+    /// Answered from the cache, with this.
+    Cached(Vec<u8>),
 }
 
 /// A cached answer to one read.
@@ -269,8 +269,8 @@ impl FairQueue {
             }
             job.epoch = inner.epochs[usize::from(job.slave)];
             if let Some(answer) = inner.cached(&job, cache) {
-                let _ = job.reply.send(Ok(Answer::Reply(answer)));
-                return Ok(Pushed::Cached);
+                let _ = job.reply.send(Ok(Answer::Reply(answer.clone())));
+                return Ok(Pushed::Cached(answer));
             }
             inner.len += 1;
             match inner.join(job) {
@@ -800,7 +800,10 @@ mod tests {
         let read = q.try_pop().unwrap();
         q.remember(&read, &[0x03, 0x04, 0, 1, 0, 2]);
         let (again, mut answer) = request(origin(2, false), 5, &READ);
-        assert_eq!(q.push(again, age).ok(), Some(Pushed::Cached));
+        assert_eq!(
+            q.push(again, age).ok(),
+            Some(Pushed::Cached(vec![0x03, 0x04, 0, 1, 0, 2]))
+        );
         assert_eq!(
             answer.try_recv().unwrap().unwrap(),
             Answer::Reply(vec![0x03, 0x04, 0, 1, 0, 2])

@@ -68,6 +68,8 @@ pub(super) struct Derived {
     pub(super) timing: MasterTiming,
     /// Response timeout per slave address, overrides applied.
     pub(super) timeouts: Box<[Duration; 256]>,
+    /// Per slave address: its reads' answers are cached (`cache`).
+    pub(super) cached: Box<[bool; 256]>,
     /// The longest the task may legitimately go between heartbeats: one transaction, or an
     /// idle heartbeat.
     pub(super) stall_limit: Duration,
@@ -80,6 +82,12 @@ impl Derived {
             framing: settings.framing,
             timing: settings.master_timing(),
             timeouts: timeouts(settings),
+            cached: Box::new(std::array::from_fn(|address| {
+                settings
+                    .slave
+                    .iter()
+                    .any(|s| usize::from(s.address) == address && !s.cache.is_zero())
+            })),
             stall_limit: Duration::ZERO,
             down: super::health::DownPolicy {
                 after: settings.slave_down_after,

@@ -211,12 +211,7 @@ impl BusTask {
         let normal = pdu
             .first()
             .is_some_and(|f| f & crate::pdu::EXCEPTION_BIT == 0);
-        let cache = self
-            .current
-            .settings
-            .slave
-            .iter()
-            .any(|s| s.address == job.slave && !s.cache.is_zero());
+        let cache = self.current.derived.cached[usize::from(job.slave)];
         if normal && cache && crate::pdu::is_read_only(&job.pdu) {
             self.handle.queue.remember(job, pdu);
         }
