@@ -12,7 +12,7 @@ fn every_configuration_key_is_documented_in_the_readme() {
     // Every optional table present, so that the printed configuration has every key.
     let config = Config::from_toml_str(
         "[server]\nlisten_rtu_over_tcp = \"127.0.0.1:1\"\nlisten_udp = \"127.0.0.1:1\"\n\
-         listen_tls = \"127.0.0.1:1\"\nallow = \"10.0.0.0/8\"\nread_only = \"10.1.0.0/16\"\n\
+         listen_tls = \"127.0.0.1:2\"\nallow = \"10.0.0.0/8\"\nread_only = \"10.1.0.0/16\"\n\
          priority = \"10.2.0.0/16\"\n\
          [server.tls]\ncertificate = \"a\"\nprivate_key = \"b\"\nclient_ca = \"c\"\ncrl = \"d\"\n\
          roles = { viewer = \"read_only\" }\n\

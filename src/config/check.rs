@@ -9,6 +9,7 @@ use super::{MAX_SLAVE_ADDRESS, SIM_DEVICE};
 use crate::line::{Framing, SerialFormat};
 use crate::pdu::EXCEPTION_BIT;
 use std::collections::BTreeMap;
+use std::net::SocketAddr;
 use std::time::Duration;
 
 pub(super) const MAX_RETRIES: u32 = 10;
@@ -63,6 +64,7 @@ impl Config {
         for (i, bus) in self.bus.iter().enumerate() {
             check_bus(i, bus, &mut names, drives, &mut report);
         }
+        check_devices_once(&self.bus, &mut report);
         check_routes(&self.route, &names, &mut report);
         if report.0.is_empty() {
             Ok(())
@@ -82,6 +84,7 @@ fn check_server(server: &Server, report: &mut Report) {
     if server.pipeline_depth == 0 {
         report.fail("server.pipeline_depth", "must be at least 1");
     }
+    check_listen_once(server, report);
     if server.frame_timeout.is_zero() {
         report.fail("server.frame_timeout", "must be longer than 0");
     }
@@ -132,6 +135,50 @@ fn check_tls(tls: &Tls, report: &mut Report) {
     }
     if tls.handshake_timeout.is_zero() {
         report.fail("server.tls.handshake_timeout", "must be longer than 0");
+    }
+}
+
+/// Every serial device is one bus's: two buses on one port would fight over it at run time.
+fn check_devices_once(buses: &[Bus], report: &mut Report) {
+    let mut owners: BTreeMap<&str, usize> = BTreeMap::new();
+    for (i, bus) in buses.iter().enumerate() {
+        if bus.is_sim() || bus.device.is_empty() {
+            continue;
+        }
+        if let Some(first) = owners.insert(&bus.device, i) {
+            owners.insert(&bus.device, first);
+            report.fail(
+                format!("bus[{i}].device"),
+                format!(
+                    "`{}` is already bus[{first}].device: two buses cannot share a serial port",
+                    bus.device
+                ),
+            );
+        }
+    }
+}
+
+/// Every address is listened on once per transport: the second listener could not be bound.
+/// Port 0 asks the system for a free port each time, so it may repeat.
+fn check_listen_once(server: &Server, report: &mut Report) {
+    let tcp = [
+        ("listen", &server.listen),
+        ("listen_rtu_over_tcp", &server.listen_rtu_over_tcp),
+        ("listen_tls", &server.listen_tls),
+    ];
+    for lists in [&tcp[..], &[("listen_udp", &server.listen_udp)][..]] {
+        let mut first: BTreeMap<SocketAddr, String> = BTreeMap::new();
+        for (key, addrs) in lists {
+            for (k, addr) in addrs.iter().enumerate().filter(|(_, a)| a.port() != 0) {
+                let here = format!("server.{key}[{k}]");
+                match first.get(addr) {
+                    Some(there) => report.fail(&here, format!("{addr} is already {there}")),
+                    None => {
+                        first.insert(*addr, here);
+                    }
+                }
+            }
+        }
     }
 }
 
@@ -418,6 +465,39 @@ mod tests {
         }
         let c = Config::from_toml_str(&format!("[server]\nkeepalive = \"0s\"\n{MINIMAL}"));
         assert!(c.is_ok(), "0s turns keepalive off");
+    }
+
+    #[test]
+    fn two_buses_on_one_serial_device_are_refused_naming_both() {
+        let e = errors(
+            "[[bus]]\nname = \"a\"\ndevice = \"/dev/ttyUSB0\"\n\
+             [[bus]]\nname = \"b\"\ndevice = \"sim\"\n\
+             [[bus]]\nname = \"c\"\ndevice = \"sim\"\n\
+             [[bus]]\nname = \"d\"\ndevice = \"/dev/ttyUSB0\"\n",
+        );
+        assert_eq!(
+            e,
+            [
+                "bus[3].device: `/dev/ttyUSB0` is already bus[0].device: two buses cannot share a \
+              serial port"
+            ]
+        );
+    }
+
+    #[test]
+    fn an_address_listened_on_twice_by_tcp_is_refused_naming_both_keys_but_udp_may_share_it() {
+        let e = errors(&format!(
+            "[server]\nlisten = [\"0.0.0.0:502\", \"127.0.0.1:5020\"]\n\
+             listen_rtu_over_tcp = \"127.0.0.1:5020\"\nlisten_udp = [\"0.0.0.0:502\", \
+             \"0.0.0.0:502\"]\n{MINIMAL}"
+        ));
+        assert_eq!(
+            e,
+            [
+                "server.listen_rtu_over_tcp[0]: 127.0.0.1:5020 is already server.listen[1]",
+                "server.listen_udp[1]: 0.0.0.0:502 is already server.listen_udp[0]",
+            ]
+        );
     }
 
     #[test]

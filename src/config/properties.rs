@@ -29,7 +29,8 @@ fn socket_addr() -> impl Strategy<Value = SocketAddr> {
 
 fn server() -> impl Strategy<Value = Server> {
     let limits = (
-        prop::collection::vec(socket_addr(), 1..4),
+        // Each address once: a second listener on one could not be bound.
+        prop::collection::btree_set(socket_addr(), 1..4).prop_map(Vec::from_iter),
         1usize..=100_000,
         prop_oneof![Just(Duration::ZERO), duration()],
         1usize..=64,
@@ -55,16 +56,19 @@ fn server() -> impl Strategy<Value = Server> {
         |(
             (listen, max_connections, idle, depth, shutdown),
             (when_full, frame_timeout, keepalive, allow, read_only),
-            (listen_tls, tls, priority, priority_share),
+            (mut listen_tls, tls, priority, priority_share),
         )| Server {
-            listen,
-            listen_rtu_over_tcp: Vec::new(),
-            listen_udp: Vec::new(),
             listen_tls: if tls.is_some() {
+                listen_tls.sort();
+                listen_tls.dedup();
+                listen_tls.retain(|addr| !listen.contains(addr));
                 listen_tls
             } else {
                 Vec::new()
             },
+            listen,
+            listen_rtu_over_tcp: Vec::new(),
+            listen_udp: Vec::new(),
             max_connections,
             idle_timeout: idle,
             pipeline_depth: depth,
@@ -365,9 +369,14 @@ fn config() -> impl Strategy<Value = Config> {
             (Just((server, metrics, log, buses)), routes(n))
         })
         .prop_map(|((server, metrics, log, mut bus), wanted)| {
-            // Unique names: the generated prefix plus the position.
+            // Unique names: the generated prefix plus the position; a serial device once.
+            let mut devices = std::collections::BTreeSet::new();
             for (i, b) in bus.iter_mut().enumerate() {
                 b.name = format!("{}{i}", b.name);
+                if !b.is_sim() && !devices.insert(b.device.clone()) {
+                    b.device = format!("{}-{i}", b.device);
+                    devices.insert(b.device.clone());
+                }
             }
             let mut routed = UnitSet::default();
             let mut route = Vec::new();
