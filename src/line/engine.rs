@@ -283,8 +283,11 @@ impl<T: Transport> LineMaster<T> {
     /// busy for `busy_limit` past the moment it should have been quiet.
     async fn wait_for_gap(&mut self, busy_limit: Duration) -> Result<(), TxError> {
         let give_up_at = self.quiet_until.max(Instant::now()) + busy_limit;
-        while Instant::now() < self.quiet_until {
+        loop {
             self.rx.clear();
+            // Bytes already in were on the line, even when the gap looks over by the clock: a
+            // port (or a USB adapter) may hand them over late. They restart the gap.
+            let over = Instant::now() >= self.quiet_until;
             tokio::select! {
                 biased;
                 received = self.port.recv(&mut self.rx) => {
@@ -294,10 +297,10 @@ impl<T: Transport> LineMaster<T> {
                         return Err(TxError::LineBusy);
                     }
                 }
-                () = self.timer.sleep_until(self.quiet_until) => return Ok(()),
+                () = self.timer.sleep_until(self.quiet_until), if !over => return Ok(()),
+                () = std::future::ready(()), if over => return Ok(()),
             }
         }
-        Ok(())
     }
 
     async fn read_reply(
