@@ -85,6 +85,28 @@ fn a_bad_config_exits_2_naming_the_key_and_the_reason() {
 }
 
 #[test]
+fn a_file_with_three_mistakes_reports_all_three_in_one_run_with_a_suggestion() {
+    let path = temp_config(
+        "three.toml",
+        "[[bus]]\nname = \"a\"\ndevice = \"sim\"\nparty = \"even\"\n\
+         response_timeout = \"0s\"\n[[bus.slave]]\naddress = 1\ntimeout = \"1s\"\n",
+    );
+    let out = gateway(&["--config", path.to_str().unwrap(), "check-config"], &[]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8(out.stderr).unwrap();
+    let lines: Vec<&str> = err.lines().collect();
+    let file = path.display();
+    assert_eq!(
+        lines,
+        [
+            format!("modbus-gateway: {file}: bus[0].party: unknown field `party`; did you mean `parity`?"),
+            format!("modbus-gateway: {file}: bus[0].slave[0].timeout: unknown field `timeout`; did you mean `response_timeout`?"),
+            format!("modbus-gateway: {file}: bus[0].response_timeout: must be longer than 0"),
+        ],
+    );
+}
+
+#[test]
 fn a_missing_config_file_exits_2_naming_it() {
     let out = gateway(
         &["--config", "/nonexistent/gateway.toml", "check-config"],
