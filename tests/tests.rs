@@ -1,5 +1,6 @@
 //! The integration tests, in one crate so they build once. Where a new test goes:
-//! - `docs`: the README names every configuration key and every metric.
+//! - `docs`: the reference pages (docs/) name every configuration key and every metric, and
+//!   every link between them and the README leads somewhere.
 //! - `cli`: the binary: check-config, config errors, environment, run and stop, logs. (The bench's
 //!   test is in `bench/tests/`.)
 //! - `tcp`: the Modbus TCP side and masters that abuse it: pipelining and floods, MBAP errors and
@@ -17,7 +18,7 @@
 //! - `serial`: the real serial path on pty pairs, with a third-party client.
 //! - `peers`: third-party peers on the serial path: pymodbus's RTU and ASCII servers behind the
 //!   gateway, its ASCII client on `simulate`, its RTU-over-TCP and UDP clients on the gateway;
-//!   `peers::tls_walkthrough` runs the README's TLS walkthrough (openssl) and its TLS client.
+//!   `peers::tls_walkthrough` runs the TLS walkthrough of docs/security.md (openssl) and its TLS client.
 //! - `reads`: many masters, one read: coalescing and its freshness, `coalesce_reads = false`,
 //!   the cache, priority masters and their share of the line.
 //! - `rtu_over_tcp`: masters sending plain RTU frames on TCP: framing, bad CRCs, exceptions as RTU.
