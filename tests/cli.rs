@@ -107,6 +107,50 @@ fn a_file_with_three_mistakes_reports_all_three_in_one_run_with_a_suggestion() {
 }
 
 #[test]
+fn the_manual_page_and_completions_need_no_configuration_and_name_every_subcommand() {
+    let missing = "/nonexistent/gateway.toml";
+    let out = gateway(&["--config", missing, "man"], &[]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let page = String::from_utf8(out.stdout).unwrap();
+    assert!(page.starts_with(".ie"), "roff: {page}");
+    for section in [
+        "NAME",
+        "SYNOPSIS",
+        "OPTIONS",
+        "SUBCOMMANDS",
+        "FILES",
+        "EXIT STATUS",
+    ] {
+        assert!(
+            page.contains(&format!(".SH {section}")),
+            "{section}: {page}"
+        );
+    }
+    for subcommand in ["check\\-config", "simulate", "completions"] {
+        assert!(page.contains(subcommand), "{subcommand}: {page}");
+    }
+    let dir = temp_config("unused", "").with_file_name("man");
+    let out = gateway(&["man", "--out-dir", dir.to_str().unwrap()], &[]);
+    assert!(out.status.success());
+    for file in [
+        "modbus-gateway.1",
+        "modbus-gateway-check-config.1",
+        "modbus-gateway-run.1",
+    ] {
+        assert!(dir.join(file).is_file(), "{file}");
+    }
+    let out = gateway(&["--config", missing, "completions", "bash"], &[]);
+    assert!(out.status.success());
+    let script = String::from_utf8(out.stdout).unwrap();
+    assert!(script.contains("complete -F _modbus__gateway"), "{script}");
+    assert!(script.contains("check-config"), "{script}");
+}
+
+#[test]
 fn a_missing_config_file_exits_2_naming_it() {
     let out = gateway(
         &["--config", "/nonexistent/gateway.toml", "check-config"],
