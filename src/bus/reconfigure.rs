@@ -145,6 +145,7 @@ impl Current {
     /// Set the master's timing and reply forms from the settings.
     pub(super) fn configure(&self, master: &mut LineMaster<Port>) {
         master.set_timing(self.derived.timing);
+        master.set_echo(self.settings.rs485.echo);
         for address in 0..=u8::MAX {
             master.set_reply_form(address, ReplyForm::Standard);
         }

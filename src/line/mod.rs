@@ -25,8 +25,15 @@ pub const BROADCAST: u8 = 0;
 /// A byte pipe onto an RS-485 line as a UART driver presents it.
 pub trait Transport: Send {
     /// Hand a whole frame to the driver. Returns when the driver holds it, which is before the
-    /// last byte has left the wire.
+    /// last byte has left the wire, unless [`Transport::returns_when_sent`].
     fn send(&mut self, frame: &[u8]) -> impl Future<Output = io::Result<()>> + Send;
+
+    /// Whether `send` returns only once the frame has left the wire (a port that switches the
+    /// RS-485 transceiver itself drops its driver then), so the end of transmission is when it
+    /// returns.
+    fn returns_when_sent(&self) -> bool {
+        false
+    }
 
     /// Wait for received bytes and append them to `buf`. `Ok(0)` means the port is gone (an
     /// unplugged adapter reads 0 bytes forever). Must be cancel-safe: a receive that is dropped

@@ -4,6 +4,7 @@
 
 use super::labels::{decimal, seconds_since_epoch, Fate, Protocol};
 use super::{Definer, RequestCounters, BUS_EVENTS};
+use crate::bus::latency::LatencyTimer;
 use crate::config;
 use crate::error::{Answer, Outcome, RequestError};
 use crate::line::LineCounters;
@@ -36,6 +37,7 @@ pub(super) struct BusFamilies {
     port_up: IntGaugeVec,
     port_reopens: IntCounterVec,
     port_open_errors: IntCounterVec,
+    latency_timer: GaugeVec,
 }
 
 /// The `class` label of the queue wait: the others, then the priority masters.
@@ -145,6 +147,12 @@ impl BusFamilies {
                 "Attempts to open the serial port that failed.",
                 bus,
             ),
+            latency_timer: define.gauge(
+                "modbus_gateway_serial_latency_timer_seconds",
+                "The USB serial adapter's latency timer, read when the port was opened; no series \
+                 if the device has none.",
+                bus,
+            ),
         }
     }
 
@@ -172,6 +180,7 @@ impl BusFamilies {
             port_up: self.port_up.with_label_values(labels),
             port_reopens: self.port_reopens.with_label_values(labels),
             port_open_errors: self.port_open_errors.with_label_values(labels),
+            latency_timer: self.latency_timer.clone(),
             retries: self.retries.clone(),
             coalesced: self.coalesced.clone(),
             cache_hits: self.cache_hits.clone(),
@@ -201,6 +210,7 @@ impl BusFamilies {
             let _ = vec.remove_label_values(labels);
         }
         let _ = self.busy.remove_label_values(labels);
+        let _ = self.latency_timer.remove_label_values(labels);
         let _ = self.round_trip.remove_label_values(labels);
         for class in CLASSES {
             let _ = self.queue_wait.remove_label_values(&[&*bus.name, class]);
@@ -246,6 +256,7 @@ pub struct BusMetrics {
     pub(super) port_up: IntGauge,
     pub(super) port_reopens: IntCounter,
     pub(super) port_open_errors: IntCounter,
+    pub(super) latency_timer: GaugeVec,
     pub(super) retries: IntCounterVec,
     pub(super) coalesced: IntCounterVec,
     pub(super) cache_hits: IntCounterVec,
@@ -421,6 +432,29 @@ impl BusMetrics {
     pub fn port_lost(&self, device: &str, error: &dyn Display) {
         self.port_up.set(0);
         warn!(target: BUS_EVENTS, bus = &*self.name, device, %error, "serial port lost; answering 0x0A and reopening");
+    }
+
+    /// The USB adapter's latency timer as the port's open found (and maybe set) it, or `None` if
+    /// the device has none. `key` is the bus's (`bus[0]`).
+    pub fn latency_timer(&self, device: &str, key: &str, timer: Option<&LatencyTimer>) {
+        let bus = &*self.name;
+        let Some(timer) = timer else {
+            let _ = self.latency_timer.remove_label_values(&[bus]);
+            return;
+        };
+        let latency_timer_ms = timer.value.as_millis();
+        let file = timer.file.display().to_string();
+        match &timer.refused {
+            None => {
+                info!(target: BUS_EVENTS, bus, device, latency_timer_ms, file, "USB adapter latency timer");
+            }
+            Some(error) => {
+                warn!(target: BUS_EVENTS, bus, device, latency_timer_ms, file, %error, "cannot set {key}.latency_timer; the adapter keeps its timer (see docs/rs485.md for a udev rule)");
+            }
+        }
+        self.latency_timer
+            .with_label_values(&[bus])
+            .set(timer.value.as_secs_f64());
     }
 
     /// An open failed; only the first failure of an outage is logged above debug level.
