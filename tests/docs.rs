@@ -3,8 +3,21 @@
 use modbus_gateway::Config;
 use std::collections::BTreeSet;
 
+/// The README and the pages of docs/, one after the other.
 fn readme() -> String {
-    std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md")).unwrap()
+    let root = env!("CARGO_MANIFEST_DIR");
+    let mut text = std::fs::read_to_string(format!("{root}/README.md")).unwrap();
+    let mut pages: Vec<_> = std::fs::read_dir(format!("{root}/docs"))
+        .map(|dir| dir.map(|entry| entry.unwrap().path()).collect())
+        .unwrap_or_default();
+    pages.sort();
+    for page in pages
+        .iter()
+        .filter(|p| p.extension().is_some_and(|e| e == "md"))
+    {
+        text += &std::fs::read_to_string(page).unwrap();
+    }
+    text
 }
 
 #[test]
@@ -19,6 +32,10 @@ fn every_configuration_key_is_documented_in_the_readme() {
          [[bus]]\nname = \"a\"\ndevice = \"sim\"\n\
          [[bus.slave]]\naddress = 1\ncoalesce_reads = false\ncache = \"1s\"\n\
          [[bus.sim_slave]]\naddress = 1\n\
+         [[bus]]\nname = \"b\"\ndevice = \"/dev/ttyS1\"\nlatency_timer = \"1ms\"\n\
+         [bus.rs485]\nmode = \"kernel\"\nrts_on_send = true\nrts_after_send = false\n\
+         delay_before_send = \"1ms\"\ndelay_after_send = \"1ms\"\nrx_during_tx = true\n\
+         echo = true\n\
          [[route]]\nunits = \"255\"\nbus = \"a\"\naddress = 1\n",
     )
     .expect("a valid configuration");

@@ -196,3 +196,40 @@ async fn the_daemon_logs_once_that_the_device_refuses_rs485_mode_naming_the_key(
     assert!(refusals[0].contains(ENOTTY), "{log}");
     assert!(refusals[0].contains("answering 0x0A"), "{log}");
 }
+
+#[test]
+fn check_config_prints_each_serial_buss_rs485_mode_and_latency_timer() {
+    let dir = std::env::temp_dir().join(format!("mbgw-rs485-check-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let config = dir.join("gateway.toml");
+    std::fs::write(
+        &config,
+        "[[bus]]\nname = \"usb\"\ndevice = \"/dev/ttyUSB0\"\nlatency_timer = \"1ms\"\n\
+         [bus.rs485]\necho = true\n\
+         [[bus]]\nname = \"uart\"\ndevice = \"/dev/ttyS1\"\n\
+         [bus.rs485]\nmode = \"rts\"\ndelay_after_send = \"2ms\"\n",
+    )
+    .unwrap();
+    let out = Command::new(BINARY)
+        .args(["--config", config.to_str().unwrap(), "check-config"])
+        .env_remove("RUST_LOG")
+        .output()
+        .unwrap();
+    let _ = std::fs::remove_dir_all(&dir);
+    assert!(out.status.success(), "{out:?}");
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains(
+            "# bus usb: rs485.mode off (the adapter switches the transceiver); each frame is \
+             read back (echo); a USB adapter's latency timer is set to 1.000 ms.\n"
+        ),
+        "{text}"
+    );
+    assert!(
+        text.contains(
+            "# bus uart: rs485.mode rts (the gateway raises RTS for each frame, drops it 2.000 \
+             ms after the last character); a USB adapter's latency timer is left as it is.\n"
+        ),
+        "{text}"
+    );
+}

@@ -358,7 +358,6 @@ impl Transport for Port {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::time::Duration;
     use tokio::time::timeout;
 
     /// Both ends of a pty, each as a port.
@@ -377,6 +376,39 @@ mod tests {
             assert!(n > 0);
         }
         buf
+    }
+
+    #[test]
+    fn a_change_of_rs485_settings_or_latency_timer_reopens_the_port_but_a_new_index_does_not() {
+        let device = |driver: SerialDriver| Device::Serial {
+            path: "/dev/ttyS1".into(),
+            format: SerialFormat {
+                baud: 19_200,
+                data_bits: 8,
+                parity: Parity::Even,
+                stop_bits: 1,
+            },
+            driver,
+        };
+        let first = device(SerialDriver::default());
+        let moved = device(SerialDriver {
+            key: "bus[3]".into(),
+            ..SerialDriver::default()
+        });
+        assert!(first.same_as(&moved));
+        let rts = device(SerialDriver {
+            rs485: Rs485 {
+                mode: Rs485Mode::Rts,
+                ..Rs485::default()
+            },
+            ..SerialDriver::default()
+        });
+        assert!(!first.same_as(&rts));
+        let latency = device(SerialDriver {
+            latency_timer: Some(Duration::from_millis(1)),
+            ..SerialDriver::default()
+        });
+        assert!(!first.same_as(&latency));
     }
 
     #[tokio::test]

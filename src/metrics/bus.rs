@@ -468,3 +468,40 @@ impl BusMetrics {
         }
     }
 }
+
+#[cfg(test)]
+mod latency_tests {
+    use crate::bus::latency::LatencyTimer;
+    use crate::metrics::Metrics;
+    use std::time::Duration;
+
+    const SERIES: &str = "modbus_gateway_serial_latency_timer_seconds{bus=\"line1\"}";
+
+    fn sample(metrics: &Metrics) -> Option<f64> {
+        let text = metrics.render().unwrap();
+        text.lines()
+            .find_map(|line| line.strip_prefix(SERIES)?.strip_prefix(' '))
+            .map(|v| v.parse().unwrap())
+    }
+
+    #[test]
+    fn the_latency_timer_found_at_open_is_exported_in_seconds_and_dropped_when_there_is_none() {
+        let metrics = Metrics::new();
+        let settings =
+            crate::Config::from_toml_str("[[bus]]\nname = \"line1\"\ndevice = \"/dev/ttyUSB0\"\n")
+                .unwrap()
+                .bus
+                .remove(0);
+        let bus = metrics.bus(&settings);
+        assert_eq!(sample(&metrics), None, "unknown until the port opens");
+        let timer = LatencyTimer {
+            file: "/sys/bus/usb-serial/devices/ttyUSB0/latency_timer".into(),
+            value: Duration::from_millis(16),
+            refused: None,
+        };
+        bus.latency_timer("/dev/ttyUSB0", "bus[0]", Some(&timer));
+        assert_eq!(sample(&metrics), Some(0.016));
+        bus.latency_timer("/dev/ttyUSB0", "bus[0]", None);
+        assert_eq!(sample(&metrics), None);
+    }
+}
