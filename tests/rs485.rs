@@ -54,6 +54,7 @@ async fn a_pty_refuses_kernel_and_rts_mode_with_an_error_naming_the_key_and_its_
         let key = format!("bus[2].rs485.mode = \"{}\"", mode.as_str());
         assert!(text.starts_with(&key), "{text}");
         assert!(text.contains(what) && text.contains(ENOTTY), "{text}");
+        assert_eq!(error.kind(), std::io::ErrorKind::Unsupported);
     }
 }
 
@@ -195,6 +196,7 @@ async fn the_daemon_logs_once_that_the_device_refuses_rs485_mode_naming_the_key(
     assert_eq!(refusals.len(), 1, "{log}");
     assert!(refusals[0].contains(ENOTTY), "{log}");
     assert!(refusals[0].contains("answering 0x0A"), "{log}");
+    assert!(refusals[0].contains("ERROR"), "logged as an error: {log}");
 }
 
 #[test]

@@ -120,7 +120,7 @@ async fn writable(fd: &impl AsRawFd) -> io::Result<()> {
 
 impl Device {
     /// Whether `other` opens the same line the same way: the same serial device in the same
-    /// format, or the same simulated line.
+    /// format with the same RS-485 settings and latency timer, or the same simulated line.
     pub fn same_as(&self, other: &Device) -> bool {
         match (self, other) {
             (

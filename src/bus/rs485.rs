@@ -55,10 +55,11 @@ fn millis(delay: Duration) -> u32 {
     u32::try_from(delay.as_millis()).unwrap_or(u32::MAX)
 }
 
-/// The error a port's open fails with when its device refuses what `key` asks for.
+/// The error a port's open fails with when its device refuses what `key` asks for: of kind
+/// `Unsupported`, whatever the device answered, which the message carries.
 pub fn refused(key: &str, mode: Rs485Mode, what: &str, error: &io::Error) -> io::Error {
     io::Error::new(
-        error.kind(),
+        io::ErrorKind::Unsupported,
         format!(
             "{key} = \"{}\": the device refuses {what}: {error}",
             mode.as_str()

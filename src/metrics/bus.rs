@@ -13,9 +13,10 @@ use prometheus::{
     IntGauge, IntGaugeVec,
 };
 use std::fmt::Display;
+use std::io;
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 use std::time::Duration;
-use tracing::{debug, info, warn};
+use tracing::{debug, error, info, warn};
 
 /// The families of every bus's series, registry-wide; each bus takes its label values.
 pub(super) struct BusFamilies {
@@ -457,11 +458,15 @@ impl BusMetrics {
             .set(timer.value.as_secs_f64());
     }
 
-    /// An open failed; only the first failure of an outage is logged above debug level.
-    pub fn open_failed(&self, device: &str, error: &dyn Display, first: bool) {
+    /// An open failed; only the first failure of an outage is logged above debug level, at
+    /// error if the device refuses what the configuration asks of it (retrying will not cure
+    /// that), else at warn.
+    pub fn open_failed(&self, device: &str, error: &io::Error, first: bool) {
         self.port_open_errors.inc();
         let bus = &*self.name;
-        if first {
+        if first && error.kind() == io::ErrorKind::Unsupported {
+            error!(target: BUS_EVENTS, bus, device, %error, "cannot open serial port; answering 0x0A and retrying");
+        } else if first {
             warn!(target: BUS_EVENTS, bus, device, %error, "cannot open serial port; answering 0x0A and retrying");
         } else {
             debug!(target: BUS_EVENTS, bus, device, %error, "serial port still cannot be opened");
