@@ -11,7 +11,7 @@ use crate::timer::LineTimer;
 use mio_serial::SerialStream;
 use std::future::Future;
 use std::io::{self, Read, Write};
-use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
+use std::os::fd::{AsRawFd, FromRawFd, OwnedFd, RawFd};
 use std::pin::pin;
 use std::task::{Context, Waker};
 use std::time::Duration;
@@ -84,6 +84,8 @@ struct RtsSwitch {
     after: Duration,
     line: LineTiming,
     timer: LineTimer,
+    /// Sets RTS: [`rs485::set_rts`] (a test records instead).
+    set_rts: fn(RawFd, bool) -> io::Result<()>,
 }
 
 impl Port {
@@ -217,6 +219,7 @@ fn drive_transceiver(
                 after: settings.delay_after_send,
                 line: LineTiming::new(format),
                 timer: LineTimer::new(),
+                set_rts: rs485::set_rts,
             };
             Ok(Port::serial(stream)?.with_rts(rts))
         }
@@ -271,7 +274,7 @@ impl SerialFd {
             return write_all(&self.fd, frame).await;
         };
         let raw = self.fd.as_raw_fd();
-        rs485::set_rts(raw, rts.on_send)?;
+        (rts.set_rts)(raw, rts.on_send)?;
         if !rts.before.is_zero() {
             rts.timer.sleep_until(Instant::now() + rts.before).await;
         }
@@ -282,7 +285,7 @@ impl SerialFd {
             rts.timer.sleep_until(out).await;
         }
         // Dropped even after a failed write, so the line is never left driven.
-        let dropped = rs485::set_rts(raw, rts.after_send);
+        let dropped = (rts.set_rts)(raw, rts.after_send);
         written.and(dropped)
     }
 }
@@ -409,6 +412,60 @@ mod tests {
             ..SerialDriver::default()
         });
         assert!(!first.same_as(&latency));
+    }
+
+    /// RTS levels set, and when.
+    static RTS: std::sync::Mutex<Vec<(Instant, bool)>> = std::sync::Mutex::new(Vec::new());
+
+    fn record_rts(_: RawFd, level: bool) -> io::Result<()> {
+        RTS.lock().unwrap().push((Instant::now(), level));
+        Ok(())
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn in_rts_mode_rts_drops_once_the_frames_last_character_has_left_the_wire() {
+        let (mut far, near) = SerialStream::pair().unwrap();
+        let format = SerialFormat {
+            baud: 9600,
+            data_bits: 8,
+            parity: Parity::None,
+            stop_bits: 2,
+        };
+        let line = LineTiming::new(&format);
+        let (before, after) = (Duration::from_millis(1), Duration::from_millis(2));
+        let mut port = Port::serial(near).unwrap().with_rts(RtsSwitch {
+            on_send: true,
+            after_send: false,
+            before,
+            after,
+            line,
+            timer: LineTimer::new(),
+            set_rts: record_rts,
+        });
+        assert!(port.returns_when_sent());
+        let frame = [0x01, 0x03, 0x00, 0x04, 0x00, 0x02, 0x85, 0xCA];
+        let started = Instant::now();
+        port.send(&frame).await.unwrap();
+        let returned = Instant::now();
+        let events = RTS.lock().unwrap().clone();
+        // Raised at once; dropped the delay before, the frame's 8 characters and the delay
+        // after later (tokio's timer wakes on whole milliseconds), when send returns.
+        let earliest = started + before + line.frame_time(frame.len()) + after;
+        let resolution = Duration::from_millis(1);
+        assert_eq!(events.len(), 2, "{events:?}");
+        assert_eq!(events[0], (started, true));
+        let (dropped_at, level) = events[1];
+        assert!(!level);
+        assert!(dropped_at >= earliest, "{:?} early", earliest - dropped_at);
+        assert!(
+            dropped_at <= earliest + 2 * resolution,
+            "{:?} late",
+            dropped_at - earliest
+        );
+        assert_eq!(returned, dropped_at);
+        let mut buf = [0u8; 8];
+        std::io::Read::read_exact(&mut far, &mut buf).unwrap();
+        assert_eq!(buf, frame);
     }
 
     #[tokio::test]
