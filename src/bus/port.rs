@@ -73,6 +73,8 @@ pub struct SerialFd {
     fd: AsyncFd<SerialStream>,
     /// Set when the gateway switches the transceiver with RTS (`rs485.mode = "rts"`).
     rts: Option<RtsSwitch>,
+    /// In the kernel's RS-485 mode: the delays its driver keeps before and after each frame.
+    kernel_delays: Duration,
 }
 
 /// RTS around each frame: its level while sending and after, the delays before the first byte
@@ -93,7 +95,11 @@ impl Port {
     pub fn serial(stream: SerialStream) -> io::Result<Port> {
         // SAFETY: the AsyncFd owns the stream, so its descriptor stays open and the same.
         let fd = unsafe { AsyncFd::register_with_interest(stream, Interest::READABLE) }?;
-        Ok(Port::Serial(SerialFd { fd, rts: None }))
+        Ok(Port::Serial(SerialFd {
+            fd,
+            rts: None,
+            kernel_delays: Duration::ZERO,
+        }))
     }
 
     /// The port, switching RTS around each frame.
@@ -205,7 +211,12 @@ fn drive_transceiver(
                 asked_flags = format!("{:#x}", wanted.flags),
                 "kernel RS-485 mode on"
             );
-            Port::serial(stream)
+            let delays = got.delay_rts_before_send + got.delay_rts_after_send;
+            let mut port = Port::serial(stream)?;
+            if let Port::Serial(serial) = &mut port {
+                serial.kernel_delays = Duration::from_millis(u64::from(delays));
+            }
+            Ok(port)
         }
         Rs485Mode::Rts => {
             let idle = settings.rts_level_after_send();
@@ -312,8 +323,12 @@ impl Transport for Port {
         }
     }
 
-    fn returns_when_sent(&self) -> bool {
-        matches!(self, Port::Serial(SerialFd { rts: Some(_), .. }))
+    fn end_of_transmission(&self, returned: Instant, frame_time: Duration) -> Instant {
+        match self {
+            Port::Serial(SerialFd { rts: Some(_), .. }) => returned,
+            Port::Serial(SerialFd { kernel_delays, .. }) => returned + *kernel_delays + frame_time,
+            Port::Sim(_) => returned + frame_time,
+        }
     }
 
     async fn recv(&mut self, buf: &mut Vec<u8>) -> io::Result<usize> {
@@ -442,7 +457,8 @@ mod tests {
             timer: LineTimer::new(),
             set_rts: record_rts,
         });
-        assert!(port.returns_when_sent());
+        let now = Instant::now();
+        assert_eq!(port.end_of_transmission(now, line.frame_time(8)), now);
         let frame = [0x01, 0x03, 0x00, 0x04, 0x00, 0x02, 0x85, 0xCA];
         let started = Instant::now();
         port.send(&frame).await.unwrap();

@@ -323,11 +323,7 @@ impl<T: Transport> LineMaster<T> {
         let returned = Instant::now();
         self.counters.sent_bytes += self.tx.len() as u64;
         let frame_time = self.timing.line.frame_time(self.tx.len());
-        let end_of_tx = if self.port.returns_when_sent() {
-            returned
-        } else {
-            returned + frame_time
-        };
+        let end_of_tx = self.port.end_of_transmission(returned, frame_time);
         self.sent_at = end_of_tx.checked_sub(frame_time).unwrap_or(returned);
         self.quiet_until = end_of_tx + self.timing.gap;
         Ok(end_of_tx)

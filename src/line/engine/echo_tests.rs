@@ -17,13 +17,14 @@ const READ_ANSWER: [u8; 6] = [0x03, 0x04, 0x13, 0x88, 0x00, 0x00];
 
 /// A line that, for each frame sent, hands back what `echo` makes of the frame, then `reply`;
 /// its `send` takes `send_time` and, if `returns_when_sent`, says it returns once the frame is
-/// out.
+/// out; `driver_delays` is the time a kernel's RS-485 mode adds around a frame.
 struct ScriptedLine {
     pending: VecDeque<u8>,
     echo: fn(&[u8]) -> Vec<u8>,
     reply: Vec<u8>,
     send_time: Duration,
     returns_when_sent: bool,
+    driver_delays: Duration,
 }
 
 impl Transport for ScriptedLine {
@@ -47,8 +48,12 @@ impl Transport for ScriptedLine {
         Ok(())
     }
 
-    fn returns_when_sent(&self) -> bool {
-        self.returns_when_sent
+    fn end_of_transmission(&self, returned: Instant, frame_time: Duration) -> Instant {
+        if self.returns_when_sent {
+            returned
+        } else {
+            returned + self.driver_delays + frame_time
+        }
     }
 }
 
@@ -65,6 +70,7 @@ fn master(echo: fn(&[u8]) -> Vec<u8>, reply: Vec<u8>) -> LineMaster<ScriptedLine
         reply,
         send_time: Duration::ZERO,
         returns_when_sent: false,
+        driver_delays: Duration::ZERO,
     };
     let mut master = LineMaster::new(
         port,
@@ -134,5 +140,25 @@ async fn a_port_that_returns_once_the_frame_is_out_starts_the_response_timeout_t
     assert_eq!(
         master.sent_at(),
         started + send_time - master.timing.line.frame_time(8)
+    );
+}
+
+#[tokio::test(start_paused = true)]
+async fn the_kernels_rs485_delays_push_the_start_of_the_response_timeout_back() {
+    let mut master = master(|_| Vec::new(), Vec::new());
+    master.set_echo(false);
+    let delays = Duration::from_millis(15);
+    master.port.driver_delays = delays;
+    master.wait_for_gap(TIMEOUT).await.unwrap();
+    let started = Instant::now();
+    let result = master.transact(1, &READ, TIMEOUT).await;
+    assert!(matches!(result, Err(TxError::Timeout)), "{result:?}");
+    let earliest = started + delays + master.timing.line.frame_time(8) + TIMEOUT;
+    let ended = Instant::now();
+    assert!(ended >= earliest, "{:?} early", earliest - ended);
+    assert!(
+        ended <= earliest + TIMER_RESOLUTION,
+        "{:?} late",
+        ended - earliest
     );
 }
