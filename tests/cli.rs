@@ -384,6 +384,14 @@ fn the_installed_default_config_is_valid_and_names_every_key() {
         "priority",
         "coalesce_reads",
         "cache",
+        "latency_timer",
+        "mode",
+        "rts_on_send",
+        "rts_after_send",
+        "delay_before_send",
+        "delay_after_send",
+        "rx_during_tx",
+        "echo",
     ]);
     for key in keys {
         let set = format!("\n{key} = ");

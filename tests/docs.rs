@@ -24,6 +24,10 @@ fn every_configuration_key_is_documented_in_the_configuration_reference() {
          [[bus]]\nname = \"a\"\ndevice = \"sim\"\n\
          [[bus.slave]]\naddress = 1\ncoalesce_reads = false\ncache = \"1s\"\n\
          [[bus.sim_slave]]\naddress = 1\n\
+         [[bus]]\nname = \"b\"\ndevice = \"/dev/ttyS1\"\nlatency_timer = \"1ms\"\n\
+         [bus.rs485]\nmode = \"kernel\"\nrts_on_send = true\nrts_after_send = false\n\
+         delay_before_send = \"1ms\"\ndelay_after_send = \"1ms\"\nrx_during_tx = true\n\
+         echo = true\n\
          [[route]]\nunits = \"255\"\nbus = \"a\"\naddress = 1\n",
     )
     .expect("a valid configuration");

@@ -16,6 +16,8 @@
 //! - `drives`: the simulated drives of config/demo.toml: registers, exceptions, ramps, timing.
 //! - `faults`: each fault knob of a simulated slave and what the gateway makes of it.
 //! - `serial`: the real serial path on pty pairs, with a third-party client.
+//! - `rs485`: `[bus.rs485]` on ptys: a refused direction control (0x0A, the error naming the
+//!   key), a line that echoes.
 //! - `peers`: third-party peers on the serial path: pymodbus's RTU and ASCII servers behind the
 //!   gateway, its ASCII client on `simulate`, its RTU-over-TCP and UDP clients on the gateway;
 //!   `peers::tls_walkthrough` runs the TLS walkthrough of docs/security.md (openssl) and its TLS client.
@@ -54,6 +56,7 @@ mod line;
 mod metrics;
 mod peers;
 mod reads;
+mod rs485;
 mod rtu_over_tcp;
 mod serial;
 mod service;

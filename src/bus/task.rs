@@ -3,6 +3,7 @@
 //! still queued.
 
 use super::health::Health;
+use super::latency::{self, SYSFS};
 use super::reconfigure::{Current, Updates};
 use super::{BusHandle, BusUpdates, Device, FairQueue, Heartbeat, Intake, Reconfigure, HEARTBEAT};
 use crate::config;
@@ -11,6 +12,7 @@ use crate::line::LineMaster;
 use crate::metrics::Metrics;
 use crate::shutdown::Stopping;
 use std::io;
+use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 use tokio::time::{sleep, sleep_until, Instant};
@@ -109,6 +111,7 @@ impl BusTask {
                         .take()
                         .map(|(since, failed_opens)| (since.elapsed(), failed_opens));
                     metrics.port_opened(device, down);
+                    self.adjust_latency_timer();
                     delay = self.current.settings.reopen_delay;
                     let mut master = LineMaster::new(
                         port,
@@ -148,6 +151,17 @@ impl BusTask {
             delay = (delay * 2).min(self.current.settings.reopen_delay_max);
         }
         self.finish();
+    }
+
+    /// Read the USB adapter's latency timer, set it if configured, and report it.
+    fn adjust_latency_timer(&self) {
+        let device = &self.current.device;
+        if let (Some(path), Some(driver)) = (device.path(), device.driver()) {
+            let timer = latency::adjust(Path::new(SYSFS), Path::new(path), driver.latency_timer);
+            self.handle
+                .metrics
+                .latency_timer(path, &driver.key, timer.as_ref());
+        }
     }
 
     /// Stopped: nothing more is queued, and what was gets 0x0A.

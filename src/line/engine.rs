@@ -66,6 +66,9 @@ pub enum TxError {
     Frame,
     #[error("line never fell silent for the gap before the frame")]
     LineBusy,
+    /// On a line that echoes (`rs485.echo`): the frame did not come back as sent, in time.
+    #[error("the line did not echo the frame as sent (a collision, or no echo)")]
+    Echo,
     #[error("serial port lost: {0}")]
     PortLost(io::Error),
 }
@@ -78,6 +81,7 @@ impl TxError {
             TxError::Check => TxError::Check,
             TxError::Frame => TxError::Frame,
             TxError::LineBusy => TxError::LineBusy,
+            TxError::Echo => TxError::Echo,
             TxError::PortLost(e) => TxError::PortLost(io::Error::new(e.kind(), e.to_string())),
         }
     }
@@ -127,6 +131,8 @@ pub struct LineMaster<T> {
     forms: Box<[ReplyForm; 256]>,
     /// Per slave address: until when a reply to one of its earlier tries may still come.
     late_until: Box<[Option<Instant>; 256]>,
+    /// The line hands back every byte sent (`rs485.echo`).
+    echo: bool,
     timer: LineTimer,
 }
 
@@ -161,6 +167,7 @@ impl<T: Transport> LineMaster<T> {
             counters: LineCounters::default(),
             forms: Box::new([ReplyForm::Standard; 256]),
             late_until: Box::new([None; 256]),
+            echo: false,
             timer: LineTimer::new(),
         }
     }
@@ -168,6 +175,12 @@ impl<T: Transport> LineMaster<T> {
     /// Keep to `timing` from the next frame on (a reconfigured line in the same format).
     pub fn set_timing(&mut self, timing: MasterTiming) {
         self.timing = timing;
+    }
+
+    /// Whether the line echoes every frame sent: then each frame is read back, and must come
+    /// back as sent, before its reply.
+    pub fn set_echo(&mut self, echo: bool) {
+        self.echo = echo;
     }
 
     /// Expect replies from `slave` in `form`; its answers are still returned in standard form.
@@ -227,12 +240,18 @@ impl<T: Transport> LineMaster<T> {
         response_timeout: Duration,
     ) -> Result<Reply, TxError> {
         let end_of_tx = self.send_frame(slave, request, response_timeout).await?;
-        let result = self
-            .read_reply(slave, request, end_of_tx, response_timeout)
-            .await;
+        self.rx.clear();
+        let result = match self.take_echo(end_of_tx + response_timeout).await {
+            Ok(()) => {
+                self.read_reply(slave, request, end_of_tx, response_timeout)
+                    .await
+            }
+            Err(error) => Err(error),
+        };
         match &result {
-            // Silence, or only other frames: the slave may still answer.
-            Err(TxError::Timeout) => {
+            // Silence, or only other frames: the slave may still answer. So may it when the
+            // echo failed: the request may have reached it.
+            Err(TxError::Timeout | TxError::Echo) => {
                 self.expect_late_reply(slave, Instant::now() + response_timeout);
             }
             // Taken while an earlier try's reply could still come: it may have been that reply,
@@ -255,7 +274,37 @@ impl<T: Transport> LineMaster<T> {
     ) -> Result<(), TxError> {
         let end_of_tx = self.send_frame(BROADCAST, request, busy_limit).await?;
         self.quiet_until = self.quiet_until.max(end_of_tx + turnaround);
+        self.rx.clear();
+        self.take_echo(end_of_tx + turnaround.max(self.timing.silence))
+            .await?;
         self.timer.sleep_until(end_of_tx).await;
+        Ok(())
+    }
+
+    /// On a line that echoes: read back the frame just sent, by `deadline`. Bytes past it stay
+    /// in `rx`, the start of the reply; the echo is neither a reply nor stray.
+    async fn take_echo(&mut self, deadline: Instant) -> Result<(), TxError> {
+        if !self.echo {
+            return Ok(());
+        }
+        let len = self.tx.len();
+        while self.rx.len() < len {
+            if self.rx[..] != self.tx[..self.rx.len()] {
+                return Err(TxError::Echo);
+            }
+            tokio::select! {
+                biased;
+                received = self.port.recv(&mut self.rx) => {
+                    self.counters.received_bytes += port_lost(received)? as u64;
+                    self.quiet_until = self.quiet_until.max(Instant::now() + self.timing.gap);
+                }
+                () = self.timer.sleep_until(deadline) => return Err(TxError::Echo),
+            }
+        }
+        if self.rx[..len] != self.tx[..] {
+            return Err(TxError::Echo);
+        }
+        self.rx.drain(..len);
         Ok(())
     }
 
@@ -271,9 +320,11 @@ impl<T: Transport> LineMaster<T> {
         self.port.clear_input().map_err(TxError::PortLost)?;
         self.framing.encode_into(&mut self.tx, address, pdu);
         self.port.send(&self.tx).await.map_err(TxError::PortLost)?;
-        self.sent_at = Instant::now();
+        let returned = Instant::now();
         self.counters.sent_bytes += self.tx.len() as u64;
-        let end_of_tx = self.sent_at + self.timing.line.frame_time(self.tx.len());
+        let frame_time = self.timing.line.frame_time(self.tx.len());
+        let end_of_tx = self.port.end_of_transmission(returned, frame_time);
+        self.sent_at = end_of_tx.checked_sub(frame_time).unwrap_or(returned);
         self.quiet_until = end_of_tx + self.timing.gap;
         Ok(end_of_tx)
     }
@@ -310,7 +361,6 @@ impl<T: Transport> LineMaster<T> {
         end_of_tx: Instant,
         response_timeout: Duration,
     ) -> Result<Reply, TxError> {
-        self.rx.clear();
         let form = self.forms[usize::from(slave)];
         // The reply must start within the response timeout; once it has, it gets the time its
         // length needs on the wire, plus the silence allowance for bursty adapters.
@@ -402,6 +452,9 @@ impl<T> LineMaster<T> {
 
 #[cfg(test)]
 mod ascii_tests;
+
+#[cfg(test)]
+mod echo_tests;
 
 #[cfg(test)]
 mod tests {

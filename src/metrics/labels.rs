@@ -104,7 +104,7 @@ impl Fate {
                     RequestError::NoResponse { last, .. } => match last {
                         TxError::Timeout => Fate::Timeout,
                         TxError::Check => Fate::CrcError,
-                        TxError::Frame => Fate::FrameError,
+                        TxError::Frame | TxError::Echo => Fate::FrameError,
                         TxError::LineBusy => Fate::LineBusy,
                         TxError::PortLost(_) => Fate::PortDown,
                     },
