@@ -123,7 +123,7 @@ pub enum Seen {
 
 /// A frame on the wire, as recorded while [`LineMaster::record_frames`] is on.
 #[derive(Clone, Debug, PartialEq, Eq)]
-pub struct WireFrame {
+pub struct RecordedFrame {
     /// When it was handed to the port, or was complete.
     pub at: SystemTime,
     pub seen: Seen,
@@ -134,9 +134,9 @@ pub struct WireFrame {
     pub bytes: Vec<u8>,
 }
 
-impl WireFrame {
+impl RecordedFrame {
     fn new(seen: Seen, address: u8, function: u8, bytes: &[u8]) -> Self {
-        WireFrame {
+        RecordedFrame {
             at: SystemTime::now(),
             seen,
             address,
@@ -168,7 +168,7 @@ pub struct LineMaster<T> {
     /// Whether frames are recorded for the trace: only while someone watches, so that the line
     /// copies nothing otherwise.
     recording: bool,
-    recorded: Vec<WireFrame>,
+    recorded: Vec<RecordedFrame>,
 }
 
 fn device_gone() -> io::Error {
@@ -224,7 +224,7 @@ impl<T: Transport> LineMaster<T> {
     }
 
     /// The frames recorded since the last call, oldest first.
-    pub fn recorded(&mut self) -> std::vec::Drain<'_, WireFrame> {
+    pub fn recorded(&mut self) -> std::vec::Drain<'_, RecordedFrame> {
         self.recorded.drain(..)
     }
 
@@ -327,7 +327,7 @@ impl<T: Transport> LineMaster<T> {
         self.sent_at = Instant::now();
         if self.recording {
             let function = pdu.first().copied().unwrap_or(0);
-            let frame = WireFrame::new(Seen::Sent, address, function, &self.tx);
+            let frame = RecordedFrame::new(Seen::Sent, address, function, &self.tx);
             self.recorded.push(frame);
         }
         self.counters.sent_bytes += self.tx.len() as u64;
@@ -463,7 +463,7 @@ impl<T> LineMaster<T> {
                 Seen::Foreign
             };
             let function = self.pdu.first().copied().unwrap_or(0);
-            let frame = WireFrame::new(seen, address, function, &self.rx[..len]);
+            let frame = RecordedFrame::new(seen, address, function, &self.rx[..len]);
             self.recorded.push(frame);
         }
         judged
@@ -481,7 +481,7 @@ impl<T> LineMaster<T> {
             let bytes = &self.rx[..len];
             let (address, function) = self.framing.header(bytes);
             let (address, function) = (address.unwrap_or(0), function.unwrap_or(0));
-            let frame = WireFrame::new(Seen::Reply, address, function, bytes);
+            let frame = RecordedFrame::new(Seen::Reply, address, function, bytes);
             self.recorded.push(frame);
         }
     }
@@ -598,6 +598,38 @@ mod tests {
             Reply::Fits(READ_ANSWER.to_vec())
         );
         assert_eq!(master.counters().foreign_frames, 1);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn frames_are_recorded_only_while_asked_for_each_as_it_was_on_the_wire() {
+        let mut both = rtu::encode(9, &READ_ANSWER);
+        both.extend(rtu::encode(1, &READ_ANSWER));
+        let plan = vec![
+            reply(1, &READ_ANSWER, Duration::ZERO),
+            Some(Transmission {
+                bytes: both,
+                delay: Duration::ZERO,
+                pause: None,
+            }),
+        ];
+        let (_line, mut master) = line(vec![(1, plan)]);
+        master.transact(1, &READ, TIMEOUT).await.unwrap();
+        assert_eq!(master.recorded().count(), 0, "nothing while not asked");
+        master.record_frames(true);
+        master.transact(1, &READ, TIMEOUT).await.unwrap();
+        let recorded: Vec<_> = master
+            .recorded()
+            .map(|f| (f.seen, f.address, f.function, f.bytes))
+            .collect();
+        assert_eq!(
+            recorded,
+            [
+                (Seen::Sent, 1, 0x03, rtu::encode(1, &READ)),
+                (Seen::Foreign, 9, 0x03, rtu::encode(9, &READ_ANSWER)),
+                (Seen::Reply, 1, 0x03, rtu::encode(1, &READ_ANSWER)),
+            ]
+        );
+        assert_eq!(master.recorded().count(), 0, "each frame is taken once");
     }
 
     #[tokio::test(start_paused = true)]
