@@ -1,10 +1,22 @@
-//! The README documents what the code has: every configuration key and every metric.
+//! The README and docs/*.md document what the code has: every configuration key and every
+//! metric.
 
 use modbus_gateway::Config;
 use std::collections::BTreeSet;
 
+/// The README and the pages under docs/, as one text.
 fn readme() -> String {
-    std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md")).unwrap()
+    let root = env!("CARGO_MANIFEST_DIR");
+    let mut text = std::fs::read_to_string(format!("{root}/README.md")).unwrap();
+    if let Ok(pages) = std::fs::read_dir(format!("{root}/docs")) {
+        for page in pages {
+            let path = page.unwrap().path();
+            if path.extension().is_some_and(|e| e == "md") {
+                text.push_str(&std::fs::read_to_string(path).unwrap());
+            }
+        }
+    }
+    text
 }
 
 #[test]
