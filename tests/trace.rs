@@ -182,6 +182,33 @@ async fn after_three_requests_a_trace_reader_receives_six_frames_with_their_hex_
     gateway.shutdown().await;
 }
 
+#[tokio::test]
+async fn on_an_ascii_line_the_trace_shows_the_ascii_frames_characters() {
+    let gateway = start(
+        "[server]\nlisten = \"127.0.0.1:0\"\n\
+         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nframing = \"ascii\"\nbaud = 9600\n\
+         [[bus.sim_slave]]\naddress = \"1-4\"\n",
+    )
+    .await;
+    let mut trace = Trace::open(gateway.metrics_addr(), "").await;
+    let mut master = RawMaster::connect(gateway.local_addrs()[0]).await;
+    master.call(1, 1, &[0x03, 0x00, 0x00, 0x00, 0x02]).await;
+    let got: Vec<_> = [trace.frame().await, trace.frame().await]
+        .iter()
+        .map(fields)
+        .collect();
+    // `:`, address 01, the PDU and the LRC (the two's complement of the bytes' sum) as hex
+    // pairs, CR LF.
+    assert_eq!(
+        got,
+        [
+            expect("sim", "tx", 1, 3, &hex(b":010300000002FA\r\n"), "ok"),
+            expect("sim", "rx", 1, 3, &hex(b":01030400000000F8\r\n"), "ok"),
+        ]
+    );
+    gateway.shutdown().await;
+}
+
 /// Buses `a` and `b` with register slaves 1 and 2 each: units 1-2 on `a`, 11-12 on `b`.
 const TWO_BUSES: &str = "[server]\nlisten = \"127.0.0.1:0\"\n\
     [[bus]]\nname = \"a\"\ndevice = \"sim\"\nbaud = 19200\nparity = \"even\"\n\
