@@ -1,6 +1,6 @@
 //! The HTTP endpoint on `metrics.listen`: `/metrics` (Prometheus text format), `/healthz` (the
 //! process answers) and `/readyz` (every bus has its port open, else 503 naming those that have
-//! not), `/trace` (the live trace of the lines, [`sse`](super::sse)). HTTP/1.1 by hyper; a few
+//! not), `/trace` (the live trace of the lines, `metrics::sse`). HTTP/1.1 by hyper; a few
 //! scrapers at a time, each bounded in time, so a stuck client cannot hold the endpoint; a trace
 //! stream is bounded in number instead, and lasts as long as its reader.
 
