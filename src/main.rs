@@ -1,10 +1,12 @@
 //! The `modbus-gateway` command: `run` (the default) serves the configured gateway until SIGINT or
 //! SIGTERM; `check-config` validates the file and prints the resolved configuration; `simulate`
-//! serves a bus's simulated slaves on a real serial device or a pty. This file is the command
-//! line and the dispatch; each subcommand is in the library's [`modbus_gateway::cli`].
+//! serves a bus's simulated slaves on a real serial device or a pty; `trace` prints the frames on
+//! the lines of a running gateway; `completions` and `man` describe this command line. This file
+//! is the command line and the dispatch; each subcommand but those two is in the library's
+//! [`modbus_gateway::cli`].
 
 use clap::{CommandFactory, Parser, Subcommand};
-use modbus_gateway::cli::{self, check_config::check_config, run::run, simulate::simulate};
+use modbus_gateway::cli::{self, check_config::check_config, run::run, simulate::simulate, trace};
 use modbus_gateway::config::DEFAULT_PATH;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -46,6 +48,19 @@ enum Command {
         #[arg(long)]
         bus: Option<String>,
     },
+    /// Print the frames on the lines of a running gateway as they happen, decoded, one line per
+    /// frame (from its metrics endpoint's /trace), until Ctrl-C.
+    Trace {
+        /// Only this bus's frames.
+        #[arg(long)]
+        bus: Option<String>,
+        /// Only the frames to and from this slave address (0-247).
+        #[arg(long, value_parser = clap::value_parser!(u8).range(0..=247))]
+        slave: Option<u8>,
+        /// The trace's URL (default: `metrics.listen` of the configuration, path /trace).
+        #[arg(long)]
+        url: Option<String>,
+    },
     /// Print a completion script for a shell (bash: save it as
     /// /usr/share/bash-completion/completions/modbus-gateway).
     Completions {
@@ -68,6 +83,15 @@ fn main() -> ExitCode {
         Some(Command::Man { out_dir }) => return man_pages(out_dir.as_deref()),
         _ => {}
     }
+    // Given its URL, the trace needs no configuration: it may run on another machine.
+    if let Some(Command::Trace {
+        bus,
+        slave,
+        url: Some(url),
+    }) = &cli.command
+    {
+        return trace::trace(url, bus.as_deref(), *slave);
+    }
     let config = match cli::load(&cli.config) {
         Ok(config) => config,
         Err(code) => return code,
@@ -76,6 +100,10 @@ fn main() -> ExitCode {
         Command::CheckConfig { quiet } => check_config(&cli.config, &config, quiet),
         Command::Run => run(&cli.config, config),
         Command::Simulate { device, bus } => simulate(config, bus.as_deref(), &device),
+        Command::Trace { bus, slave, .. } => {
+            let url = trace::url_of(config.metrics.listen);
+            trace::trace(&url, bus.as_deref(), slave)
+        }
         Command::Completions { .. } | Command::Man { .. } => unreachable!("handled before loading"),
     }
 }

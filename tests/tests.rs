@@ -29,6 +29,7 @@
 //! - `simulate`: the `simulate` subcommand answering RTU masters on a pty.
 //! - `service`: the gateway under a service manager: graceful stop.
 //! - `metrics`: `/metrics`, `/healthz`, `/readyz` after known traffic; promtool; shipped rules.
+//! - `trace`: `GET /trace` and the `trace` subcommand: frames, filters, slow readers, limits.
 //!
 //! `support` has the shared pieces: gateway start-up, a raw master, a pty slave.
 //!
@@ -63,5 +64,6 @@ mod service;
 mod simulate;
 mod tcp;
 mod tls;
+mod trace;
 mod transparency;
 mod udp;

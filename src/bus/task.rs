@@ -11,6 +11,7 @@ use crate::error::RequestError;
 use crate::line::LineMaster;
 use crate::metrics::Metrics;
 use crate::shutdown::Stopping;
+use crate::trace::BusTap;
 use std::io;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -41,6 +42,8 @@ pub struct BusTask {
     pub(super) handle: BusHandle,
     pub(super) updates: Updates,
     pub(super) health: Health,
+    /// Where the line's frames go while someone watches.
+    pub(super) trace: BusTap,
 }
 
 impl BusTask {
@@ -54,8 +57,10 @@ impl BusTask {
             let len = weak.upgrade().map_or(0, |queue| queue.len());
             depth.set(i64::try_from(len).unwrap_or(i64::MAX));
         });
+        let name: Arc<str> = settings.name.as_str().into();
+        let trace = metrics.trace.register(name.clone());
         let handle = BusHandle {
-            name: settings.name.as_str().into(),
+            name,
             queue,
             up: Arc::new(AtomicBool::new(false)),
             intake: Arc::new(Mutex::new(Intake::of(&settings))),
@@ -71,6 +76,7 @@ impl BusTask {
             handle,
             updates: Updates::new(Reconfigure { settings, device }),
             health: Health::default(),
+            trace,
         }
     }
 

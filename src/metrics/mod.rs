@@ -8,6 +8,7 @@
 mod bus;
 pub mod http;
 mod labels;
+mod sse;
 mod tcp;
 mod tls;
 mod udp;
@@ -129,6 +130,8 @@ pub struct Metrics {
     pub tcp: TcpMetrics,
     pub udp: UdpMetrics,
     pub tls: TlsMetrics,
+    /// The live trace of the lines' frames (`GET /trace`).
+    pub trace: Arc<crate::trace::TraceHub>,
     /// Gauges read from their source at scrape time (queue depths).
     scrape_hooks: Mutex<Vec<ScrapeHook>>,
 }
@@ -161,6 +164,7 @@ impl Metrics {
             tcp: TcpMetrics::new(&define),
             udp: UdpMetrics::new(&define),
             tls: TlsMetrics::new(&define),
+            trace: Arc::new(crate::trace::TraceHub::new()),
             scrape_hooks: Mutex::new(Vec::new()),
             registry: registry.clone(),
         };
