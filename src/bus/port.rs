@@ -1,6 +1,6 @@
 //! What a bus opens: a serial device through tokio-serial, or the simulated line. Both become a
 //! [`Port`] the RTU master drives through [`Transport`]. A serial port may drive its RS-485
-//! transceiver itself ([`rs485`](super::rs485)): in `rts` mode it raises RTS before a frame and
+//! transceiver itself ([`rs485`]): in `rts` mode it raises RTS before a frame and
 //! drops it once the frame's last character has left the wire, by the clock, never by tcdrain.
 
 use super::rs485::{self, SerialRs485};

@@ -1,6 +1,6 @@
 //! How frames look on the wire of one line, for the [`engine`](super::engine): encoding a PDU to
 //! an address, telling when a received frame is complete, and checking and unwrapping it: Modbus
-//! RTU ([`rtu`](super::rtu)) or Modbus ASCII ([`ascii`](super::ascii)). Pure functions over
+//! RTU ([`rtu`]) or Modbus ASCII ([`ascii`]). Pure functions over
 //! bytes; knows nothing of ports, time or what a reply means.
 //!
 //! An enum rather than a trait: the spec defines exactly two serial framings, a line's framing is
