@@ -8,11 +8,12 @@
 mod bus;
 pub mod http;
 mod labels;
+pub mod status;
 mod tcp;
 mod tls;
 mod udp;
 
-pub use bus::BusMetrics;
+pub use bus::{BusMetrics, SlaveSnapshot};
 
 use bus::BusFamilies;
 pub use labels::{Closing, ExceptionSource, Fate, Protocol, Rejection};
