@@ -203,15 +203,19 @@ def shows_demo(snapshot):
         address in drives and model in drives[address] for address, model in DEMO_DRIVES.items())
 
 
-def traffic(port, seconds):
-    """Two masters polling the drives, for a screenshot with data in it."""
+# Two registers each demo drive answers: the Goodrive state words, the Pd inverter's
+# frequency reference and running frequency.
+STATE_REGISTER = {1: 0x2100, 2: 0x2100, 3: 0x2100, 4: 0x1000}
+
+
+def traffic(port, stop):
+    """Two masters polling the drives until `stop` is set, for a screenshot with data in it."""
     def poll(units):
         master = Master(port)
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
+        while not stop.is_set():
             for unit in units:
-                master.read(unit, 0x2100, 2)
-            time.sleep(0.2)
+                master.read(unit, STATE_REGISTER[unit], 2)
+            stop.wait(0.2)
         master.close()
     threads = [threading.Thread(target=poll, args=(units,)) for units in ((1, 2), (3, 4))]
     for thread in threads:
@@ -242,11 +246,16 @@ def main():
         print(f"status page in {CHROMIUM}: bus {DEMO_BUS}, drives {sorted(DEMO_DRIVES)}, "
               f"and the frame {request} in the trace panel ({len(frame['frames'])} frames shown)")
         if screenshot:
-            for thread in traffic(modbus_port, 5.0):
-                thread.join()
-            browser.wait_for("a fresh poll", lambda s: True)
-            time.sleep(2.5)  # one more poll of /status with the traffic in it
-            browser.screenshot(screenshot)
+            stop = threading.Event()
+            threads = traffic(modbus_port, stop)
+            try:
+                browser.wait_for("the two polling masters", lambda s: s["masters"].count("tcp") == 2)
+                time.sleep(4.5)  # two more polls of /status with the traffic in them
+                browser.screenshot(screenshot)
+            finally:
+                stop.set()
+                for thread in threads:
+                    thread.join()
             print(f"screenshot: {screenshot}")
     finally:
         browser.close()

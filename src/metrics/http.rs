@@ -1,7 +1,7 @@
 //! The HTTP endpoint on `metrics.listen`: `/` (the status page), `/status` (its data, JSON),
 //! `/metrics` (Prometheus text format), `/healthz` (the process answers) and `/readyz` (every bus
-//! has its port open, else 503 naming those that have not). HTTP/1.1 by hyper; a few scrapers at a time, each bounded in time, so a stuck client
-//! cannot hold the endpoint.
+//! has its port open, else 503 naming those that have not). HTTP/1.1 by hyper; a few scrapers
+//! at a time, each bounded in time, so a stuck client cannot hold the endpoint.
 
 use super::status::{self, Status};
 use super::Metrics;
