@@ -4,7 +4,7 @@
 //! gracefully. Owns their tasks: dropping the gateway stops them. Also where a configuration is
 //! loaded with its simulated drives checked ([`load_config`]): the one place that knows both.
 
-use crate::bus::{BusHandle, BusTask, BusUpdates, Device, Reconfigure};
+use crate::bus::{BusHandle, BusTask, BusUpdates, Device, Reconfigure, SerialDriver};
 use crate::config::{self, BusChange, Config, ConfigDiff, ConfigErrors};
 use crate::dispatch::Dispatcher;
 use crate::metrics::{self, status, Metrics};
@@ -259,9 +259,10 @@ fn take(buses: &mut Vec<Running>, name: &str) -> Option<Running> {
     Some(buses.swap_remove(at))
 }
 
-/// The device a bus's settings name; a simulated line is kept when its format and slaves are
-/// unchanged (`current`), so its slaves keep their state.
+/// The device `bus[index]`'s settings name; a simulated line is kept when its format and slaves
+/// are unchanged (`current`), so its slaves keep their state.
 fn device_for(
+    index: usize,
     settings: &config::Bus,
     current: Option<(&config::Bus, &Device)>,
 ) -> Result<Device, StartError> {
@@ -269,6 +270,7 @@ fn device_for(
         return Ok(Device::Serial {
             path: settings.device.clone(),
             format: settings.format(),
+            driver: SerialDriver::of(index, settings),
         });
     }
     if let Some((old, device @ Device::Sim(_))) = current {
@@ -303,8 +305,8 @@ impl Gateway {
             .map_err(listen_error)?;
         let metrics_addr = metrics_listener.local_addr().map_err(listen_error)?;
         let mut buses = Vec::with_capacity(config.bus.len());
-        for settings in &config.bus {
-            let device = device_for(settings, None)?;
+        for (index, settings) in config.bus.iter().enumerate() {
+            let device = device_for(index, settings, None)?;
             buses.push(Self::start_bus(settings, device, &metrics));
         }
         // Started means each bus has tried its port once, so what is reported next is true.
@@ -394,9 +396,10 @@ impl Gateway {
         let devices = new
             .bus
             .iter()
-            .map(|settings| {
+            .enumerate()
+            .map(|(index, settings)| {
                 let current = running.iter().find(|r| r.settings.name == settings.name);
-                device_for(settings, current.map(|r| (&r.settings, &r.device)))
+                device_for(index, settings, current.map(|r| (&r.settings, &r.device)))
             })
             .collect::<Result<Vec<_>, _>>()?;
         let mut done = Reloaded::default();

@@ -20,7 +20,8 @@
 //!
 //! Shared by all: [`pdu`] (the one table of function codes, and exception codes) and [`error`]
 //! (what fails a request, and the one place that turns it into an exception), [`shutdown`] (the
-//! stop signal), [`timer`] (sleeps precise to well under a millisecond for the line's timing).
+//! stop signal), [`timer`] (sleeps precise to well under a millisecond for the line's timing),
+//! [`trace`] (the live trace of the frames on the lines, for `GET /trace`).
 //! [`gateway`] wires the parts together; [`cli`] is the command's subcommands (run the gateway,
 //! check the configuration, `simulate`: serve the simulated slaves on a real serial port
 //! instead); `logging` sets up the daemon's log output.
@@ -48,6 +49,7 @@ pub mod shutdown;
 pub mod sim;
 mod tcp;
 pub mod timer;
+pub mod trace;
 
 pub use config::Config;
 pub use gateway::Gateway;

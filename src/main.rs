@@ -1,16 +1,26 @@
 //! The `modbus-gateway` command: `run` (the default) serves the configured gateway until SIGINT or
 //! SIGTERM; `check-config` validates the file and prints the resolved configuration; `simulate`
-//! serves a bus's simulated slaves on a real serial device or a pty. This file is the command
-//! line and the dispatch; each subcommand is in the library's [`modbus_gateway::cli`].
+//! serves a bus's simulated slaves on a real serial device or a pty; `trace` prints the frames on
+//! the lines of a running gateway; `completions` and `man` describe this command line. This file
+//! is the command line and the dispatch; each subcommand but those two is in the library's
+//! [`modbus_gateway::cli`].
 
-use clap::{Parser, Subcommand};
-use modbus_gateway::cli::{self, check_config::check_config, run::run, simulate::simulate};
+use clap::{CommandFactory, Parser, Subcommand};
+use modbus_gateway::cli::{self, check_config::check_config, run::run, simulate::simulate, trace};
 use modbus_gateway::config::DEFAULT_PATH;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
 #[derive(Parser)]
-#[command(version, about = "Modbus TCP to Modbus RTU (RS-485) gateway")]
+#[command(
+    version,
+    about = "Modbus TCP to Modbus RTU (RS-485) gateway",
+    long_about = "Modbus TCP to Modbus RTU (RS-485) gateway. Masters on Ethernet (Modbus TCP, RTU \
+                  over TCP, UDP, Modbus/TCP Security) share RS-485 lines of Modbus RTU or ASCII \
+                  slaves: the gateway is the one master of each line, with the serial line \
+                  spec's timing, fair sharing between masters, its own exceptions (0x0A, 0x0B, \
+                  0x06) and Prometheus metrics. Without a subcommand it runs the gateway."
+)]
 struct Cli {
     /// Configuration file (TOML). MBGW__SECTION__KEY environment variables override it.
     #[arg(long, short, global = true, default_value = DEFAULT_PATH)]
@@ -38,10 +48,50 @@ enum Command {
         #[arg(long)]
         bus: Option<String>,
     },
+    /// Print the frames on the lines of a running gateway as they happen, decoded, one line per
+    /// frame (from its metrics endpoint's /trace), until Ctrl-C.
+    Trace {
+        /// Only this bus's frames.
+        #[arg(long)]
+        bus: Option<String>,
+        /// Only the frames to and from this slave address (0-247).
+        #[arg(long, value_parser = clap::value_parser!(u8).range(0..=247))]
+        slave: Option<u8>,
+        /// The trace's URL (default: `metrics.listen` of the configuration, path /trace).
+        #[arg(long)]
+        url: Option<String>,
+    },
+    /// Print a completion script for a shell (bash: save it as
+    /// /usr/share/bash-completion/completions/modbus-gateway).
+    Completions {
+        /// The shell to complete in.
+        shell: clap_complete::Shell,
+    },
+    /// Print the manual page (roff, as `man -l -` reads it), or write every page to a directory.
+    Man {
+        /// Write modbus-gateway.1 and a page per subcommand here instead.
+        #[arg(long, value_name = "DIR")]
+        out_dir: Option<PathBuf>,
+    },
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    // These describe the command line itself: no configuration needed.
+    match cli.command {
+        Some(Command::Completions { shell }) => return print_completions(shell),
+        Some(Command::Man { out_dir }) => return man_pages(out_dir.as_deref()),
+        _ => {}
+    }
+    // Given its URL, the trace needs no configuration: it may run on another machine.
+    if let Some(Command::Trace {
+        bus,
+        slave,
+        url: Some(url),
+    }) = &cli.command
+    {
+        return trace::trace(url, bus.as_deref(), *slave);
+    }
     let config = match cli::load(&cli.config) {
         Ok(config) => config,
         Err(code) => return code,
@@ -50,5 +100,78 @@ fn main() -> ExitCode {
         Command::CheckConfig { quiet } => check_config(&cli.config, &config, quiet),
         Command::Run => run(&cli.config, config),
         Command::Simulate { device, bus } => simulate(config, bus.as_deref(), &device),
+        Command::Trace { bus, slave, .. } => {
+            let url = trace::url_of(config.metrics.listen);
+            trace::trace(&url, bus.as_deref(), slave)
+        }
+        Command::Completions { .. } | Command::Man { .. } => unreachable!("handled before loading"),
+    }
+}
+
+fn print_completions(shell: clap_complete::Shell) -> ExitCode {
+    let mut command = Cli::command();
+    clap_complete::generate(
+        shell,
+        &mut command,
+        "modbus-gateway",
+        &mut std::io::stdout(),
+    );
+    ExitCode::SUCCESS
+}
+
+/// What the manual page says beyond the options: files, environment, exit status, where to read on.
+const MAN_SECTIONS: &str = r#".SH FILES
+.TP
+/etc/modbus\-gateway/gateway.toml
+The configuration (a conffile of the Debian package). Every key is described in
+/usr/share/doc/modbus\-gateway/docs/configuration.md.
+.TP
+/usr/share/doc/modbus\-gateway/
+The README, the reference pages (docs/), the demo configurations and the Prometheus files.
+.SH ENVIRONMENT
+.TP
+MBGW__SECTION__KEY
+Overrides a configuration key: MBGW__SERVER__LISTEN, MBGW__BUS__0__BAUD (array entries by index).
+.TP
+RUST_LOG
+Overrides log.level (tracing's filter syntax).
+.SH EXIT STATUS
+0 on a clean stop (SIGTERM, SIGINT) or a valid configuration; 2 when the configuration cannot be
+used (each problem is written to stderr, naming its key); 1 on any other failure.
+.SH SIGNALS
+SIGHUP reloads the configuration; a configuration that cannot be used is refused and the one in
+force stays. SIGTERM and SIGINT stop the gateway after the transactions in flight.
+.SH SEE ALSO
+systemctl(1), journalctl(1), promtool(1)
+"#;
+
+/// The main page: clap's sections from the command line's definition, then [`MAN_SECTIONS`].
+fn render_main_page(out: &mut dyn std::io::Write) -> std::io::Result<()> {
+    let page = clap_mangen::Man::new(Cli::command());
+    page.render_title(out)?;
+    page.render_name_section(out)?;
+    page.render_synopsis_section(out)?;
+    page.render_description_section(out)?;
+    page.render_options_section(out)?;
+    page.render_subcommands_section(out)?;
+    out.write_all(MAN_SECTIONS.as_bytes())?;
+    page.render_version_section(out)
+}
+
+/// The main page on stdout, or every page in `out_dir`.
+fn man_pages(out_dir: Option<&std::path::Path>) -> ExitCode {
+    let written = match out_dir {
+        None => render_main_page(&mut std::io::stdout()),
+        Some(dir) => std::fs::create_dir_all(dir)
+            .and_then(|()| clap_mangen::generate_to(Cli::command(), dir))
+            .and_then(|()| std::fs::File::create(dir.join("modbus-gateway.1")))
+            .and_then(|mut file| render_main_page(&mut file)),
+    };
+    match written {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(error) => {
+            eprintln!("modbus-gateway: cannot write the manual pages: {error}");
+            ExitCode::FAILURE
+        }
     }
 }

@@ -30,6 +30,23 @@ pub enum ExceptionCode {
     GatewayTargetFailedToRespond = 0x0B,
 }
 
+/// The name the Modbus Application Protocol V1.1b3 gives exception code `code`, if it names it.
+/// Codes it does not name are the vendor's (the reference drives use 05-09 in their own senses).
+pub fn exception_name(code: u8) -> Option<&'static str> {
+    Some(match code {
+        0x01 => "illegal function",
+        0x02 => "illegal data address",
+        0x03 => "illegal data value",
+        0x04 => "server device failure",
+        0x05 => "acknowledge",
+        0x06 => "server device busy",
+        0x08 => "memory parity error",
+        0x0A => "gateway path unavailable",
+        0x0B => "gateway target device failed to respond",
+        _ => return None,
+    })
+}
+
 /// The public function codes of the Modbus Application Protocol V1.1b3, by the spec's names.
 pub mod code {
     pub const READ_COILS: u8 = 0x01;

@@ -85,6 +85,72 @@ fn a_bad_config_exits_2_naming_the_key_and_the_reason() {
 }
 
 #[test]
+fn a_file_with_three_mistakes_reports_all_three_in_one_run_with_a_suggestion() {
+    let path = temp_config(
+        "three.toml",
+        "[[bus]]\nname = \"a\"\ndevice = \"sim\"\nparty = \"even\"\n\
+         response_timeout = \"0s\"\n[[bus.slave]]\naddress = 1\ntimeout = \"1s\"\n",
+    );
+    let out = gateway(&["--config", path.to_str().unwrap(), "check-config"], &[]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8(out.stderr).unwrap();
+    let lines: Vec<&str> = err.lines().collect();
+    let file = path.display();
+    assert_eq!(
+        lines,
+        [
+            format!("modbus-gateway: {file}: bus[0].party: unknown field `party`; did you mean `parity`?"),
+            format!("modbus-gateway: {file}: bus[0].slave[0].timeout: unknown field `timeout`; did you mean `response_timeout`?"),
+            format!("modbus-gateway: {file}: bus[0].response_timeout: must be longer than 0"),
+        ],
+    );
+}
+
+#[test]
+fn the_manual_page_and_completions_need_no_configuration_and_name_every_subcommand() {
+    let missing = "/nonexistent/gateway.toml";
+    let out = gateway(&["--config", missing, "man"], &[]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let page = String::from_utf8(out.stdout).unwrap();
+    assert!(page.starts_with(".ie"), "roff: {page}");
+    for section in [
+        "NAME",
+        "SYNOPSIS",
+        "OPTIONS",
+        "SUBCOMMANDS",
+        "FILES",
+        "EXIT STATUS",
+    ] {
+        assert!(
+            page.contains(&format!(".SH {section}")),
+            "{section}: {page}"
+        );
+    }
+    for subcommand in ["check\\-config", "simulate", "completions"] {
+        assert!(page.contains(subcommand), "{subcommand}: {page}");
+    }
+    let dir = temp_config("unused", "").with_file_name("man");
+    let out = gateway(&["man", "--out-dir", dir.to_str().unwrap()], &[]);
+    assert!(out.status.success());
+    for file in [
+        "modbus-gateway.1",
+        "modbus-gateway-check-config.1",
+        "modbus-gateway-run.1",
+    ] {
+        assert!(dir.join(file).is_file(), "{file}");
+    }
+    let out = gateway(&["--config", missing, "completions", "bash"], &[]);
+    assert!(out.status.success());
+    let script = String::from_utf8(out.stdout).unwrap();
+    assert!(script.contains("complete -F _modbus__gateway"), "{script}");
+    assert!(script.contains("check-config"), "{script}");
+}
+
+#[test]
 fn a_missing_config_file_exits_2_naming_it() {
     let out = gateway(
         &["--config", "/nonexistent/gateway.toml", "check-config"],
@@ -318,6 +384,14 @@ fn the_installed_default_config_is_valid_and_names_every_key() {
         "priority",
         "coalesce_reads",
         "cache",
+        "latency_timer",
+        "mode",
+        "rts_on_send",
+        "rts_after_send",
+        "delay_before_send",
+        "delay_after_send",
+        "rx_during_tx",
+        "echo",
     ]);
     for key in keys {
         let set = format!("\n{key} = ");
@@ -331,13 +405,11 @@ fn the_installed_default_config_is_valid_and_names_every_key() {
 
 #[test]
 fn every_test_the_failure_behaviour_section_names_exists() {
-    let readme =
-        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md")).unwrap();
-    let section = readme
-        .split("\n## Failure behaviour\n")
-        .nth(1)
-        .and_then(|rest| rest.split("\n## ").next())
-        .expect("README has a Failure behaviour section");
+    let section = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/docs/failure-behaviour.md"
+    ))
+    .unwrap();
     let mut named = 0;
     for quoted in section.split('`').skip(1).step_by(2) {
         let Some((module, test)) = quoted.split_once("::") else {
@@ -351,7 +423,7 @@ fn every_test_the_failure_behaviour_section_names_exists() {
             std::fs::read_to_string(&path).unwrap_or_else(|_| panic!("{path} for `{quoted}`"));
         assert!(
             source.contains(&format!("fn {test}(")),
-            "README names `{quoted}`, which {path} does not have"
+            "docs/failure-behaviour.md names `{quoted}`, which {path} does not have"
         );
         named += 1;
     }

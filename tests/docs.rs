@@ -1,14 +1,19 @@
-//! The README documents what the code has: every configuration key and every metric.
+//! The documentation says what the code has: every configuration key is in the configuration
+//! reference (docs/configuration.md), every metric in docs/monitoring.md; and every link between
+//! the README and the docs/ pages leads to a file and a heading that exist.
 
 use modbus_gateway::Config;
 use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
 
-fn readme() -> String {
-    std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md")).unwrap()
+const ROOT: &str = env!("CARGO_MANIFEST_DIR");
+
+fn page(path: &str) -> String {
+    std::fs::read_to_string(Path::new(ROOT).join(path)).unwrap_or_else(|e| panic!("{path}: {e}"))
 }
 
 #[test]
-fn every_configuration_key_is_documented_in_the_readme() {
+fn every_configuration_key_is_documented_in_the_configuration_reference() {
     // Every optional table present, so that the printed configuration has every key.
     let config = Config::from_toml_str(
         "[server]\nlisten_rtu_over_tcp = \"127.0.0.1:1\"\nlisten_udp = \"127.0.0.1:1\"\n\
@@ -19,6 +24,10 @@ fn every_configuration_key_is_documented_in_the_readme() {
          [[bus]]\nname = \"a\"\ndevice = \"sim\"\n\
          [[bus.slave]]\naddress = 1\ncoalesce_reads = false\ncache = \"1s\"\n\
          [[bus.sim_slave]]\naddress = 1\n\
+         [[bus]]\nname = \"b\"\ndevice = \"/dev/ttyS1\"\nlatency_timer = \"1ms\"\n\
+         [bus.rs485]\nmode = \"kernel\"\nrts_on_send = true\nrts_after_send = false\n\
+         delay_before_send = \"1ms\"\ndelay_after_send = \"1ms\"\nrx_during_tx = true\n\
+         echo = true\n\
          [[route]]\nunits = \"255\"\nbus = \"a\"\naddress = 1\n",
     )
     .expect("a valid configuration");
@@ -30,19 +39,19 @@ fn every_configuration_key_is_documented_in_the_readme() {
         .filter(|key| *key != "viewer")
         .collect();
     assert!(keys.len() > 40, "{keys:?}");
-    let readme = readme();
+    let reference = page("docs/configuration.md");
     let missing: Vec<&&str> = keys
         .iter()
-        .filter(|key| !readme.contains(&format!("`{key}`")))
+        .filter(|key| !reference.contains(&format!("`{key}`")))
         .collect();
     assert!(
         missing.is_empty(),
-        "keys the README does not name: {missing:?}"
+        "keys docs/configuration.md does not name: {missing:?}"
     );
 }
 
 #[test]
-fn every_metric_is_documented_in_the_readme() {
+fn every_metric_is_documented_in_the_monitoring_page() {
     let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/src/metrics");
     let mut names = BTreeSet::new();
     for entry in std::fs::read_dir(dir).unwrap() {
@@ -58,13 +67,103 @@ fn every_metric_is_documented_in_the_readme() {
         }
     }
     assert!(names.len() > 20, "{names:?}");
-    let readme = readme();
+    let monitoring = page("docs/monitoring.md");
     let missing: Vec<&String> = names
         .iter()
-        .filter(|name| !readme.contains(&format!("`{name}`")))
+        .filter(|name| !monitoring.contains(&format!("`{name}`")))
         .collect();
     assert!(
         missing.is_empty(),
-        "metrics the README does not document: {missing:?}"
+        "metrics docs/monitoring.md does not document: {missing:?}"
     );
+}
+
+/// GitHub's anchor for a heading: lowercase, punctuation other than `-` and `_` dropped, spaces
+/// as `-`.
+fn anchor(heading: &str) -> String {
+    heading
+        .trim()
+        .to_lowercase()
+        .chars()
+        .filter(|c| c.is_alphanumeric() || matches!(c, '-' | '_' | ' '))
+        .map(|c| if c == ' ' { '-' } else { c })
+        .collect()
+}
+
+/// The anchors of a Markdown file's headings (outside fenced blocks).
+fn anchors(text: &str) -> BTreeSet<String> {
+    let mut fenced = false;
+    let mut found = BTreeSet::new();
+    for line in text.lines() {
+        if line.starts_with("```") {
+            fenced = !fenced;
+        } else if !fenced && line.starts_with('#') {
+            found.insert(anchor(line.trim_start_matches('#')));
+        }
+    }
+    found
+}
+
+/// The targets of a Markdown text's inline links `[text](target)`.
+fn links(text: &str) -> Vec<String> {
+    text.split("](")
+        .skip(1)
+        .filter_map(|rest| rest.split_once(')').map(|(target, _)| target.to_owned()))
+        .collect()
+}
+
+#[test]
+fn every_link_between_the_readme_and_the_docs_pages_leads_somewhere() {
+    let mut files: Vec<PathBuf> = vec![Path::new(ROOT).join("README.md")];
+    for entry in std::fs::read_dir(Path::new(ROOT).join("docs")).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "md") {
+            files.push(path);
+        }
+    }
+    assert!(files.len() > 8, "the reference is in docs/: {files:?}");
+    let mut checked = 0;
+    for file in &files {
+        let text = std::fs::read_to_string(file).unwrap();
+        for target in links(&text) {
+            if target.starts_with("http") || target.contains(' ') {
+                continue;
+            }
+            let (path, fragment) = target.split_once('#').unwrap_or((&target, ""));
+            let linked = if path.is_empty() {
+                file.clone()
+            } else {
+                file.parent().unwrap().join(path)
+            };
+            assert!(
+                linked.exists(),
+                "{}: the link to {target} leads to no file",
+                file.display()
+            );
+            if !fragment.is_empty() {
+                let headings = anchors(&std::fs::read_to_string(&linked).unwrap());
+                assert!(
+                    headings.contains(fragment),
+                    "{}: the link to {target} names no heading there",
+                    file.display()
+                );
+            }
+            checked += 1;
+        }
+    }
+    assert!(checked > 20, "only {checked} links");
+}
+
+#[test]
+fn the_readme_links_every_docs_page() {
+    let readme = page("README.md");
+    for entry in std::fs::read_dir(Path::new(ROOT).join("docs")).unwrap() {
+        let name = entry.unwrap().file_name().into_string().unwrap();
+        if name.ends_with(".md") {
+            assert!(
+                readme.contains(&format!("](docs/{name})")),
+                "README.md does not link docs/{name}"
+            );
+        }
+    }
 }

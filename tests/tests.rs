@@ -1,5 +1,6 @@
 //! The integration tests, in one crate so they build once. Where a new test goes:
-//! - `docs`: the README names every configuration key and every metric.
+//! - `docs`: the reference pages (docs/) name every configuration key and every metric, and
+//!   every link between them and the README leads somewhere.
 //! - `cli`: the binary: check-config, config errors, environment, run and stop, logs. (The bench's
 //!   test is in `bench/tests/`.)
 //! - `tcp`: the Modbus TCP side and masters that abuse it: pipelining and floods, MBAP errors and
@@ -15,9 +16,11 @@
 //! - `drives`: the simulated drives of config/demo.toml: registers, exceptions, ramps, timing.
 //! - `faults`: each fault knob of a simulated slave and what the gateway makes of it.
 //! - `serial`: the real serial path on pty pairs, with a third-party client.
+//! - `rs485`: `[bus.rs485]` on ptys: a refused direction control (0x0A, the error naming the
+//!   key), a line that echoes.
 //! - `peers`: third-party peers on the serial path: pymodbus's RTU and ASCII servers behind the
 //!   gateway, its ASCII client on `simulate`, its RTU-over-TCP and UDP clients on the gateway;
-//!   `peers::tls_walkthrough` runs the README's TLS walkthrough (openssl) and its TLS client.
+//!   `peers::tls_walkthrough` runs the TLS walkthrough of docs/security.md (openssl) and its TLS client.
 //! - `reads`: many masters, one read: coalescing and its freshness, `coalesce_reads = false`,
 //!   the cache, priority masters and their share of the line.
 //! - `rtu_over_tcp`: masters sending plain RTU frames on TCP: framing, bad CRCs, exceptions as RTU.
@@ -27,6 +30,7 @@
 //! - `service`: the gateway under a service manager: graceful stop.
 //! - `metrics`: `/metrics`, `/healthz`, `/readyz` after known traffic; promtool; shipped rules.
 //! - `status`: the status page `/` and its data `/status` after known traffic.
+//! - `trace`: `GET /trace` and the `trace` subcommand: frames, filters, slow readers, limits.
 //!
 //! `support` has the shared pieces: gateway start-up, a raw master, a pty slave.
 //!
@@ -54,6 +58,7 @@ mod line;
 mod metrics;
 mod peers;
 mod reads;
+mod rs485;
 mod rtu_over_tcp;
 mod serial;
 mod service;
@@ -61,5 +66,6 @@ mod simulate;
 mod status;
 mod tcp;
 mod tls;
+mod trace;
 mod transparency;
 mod udp;

@@ -60,6 +60,47 @@ struct Cli {
     /// The gateway binary (default: `modbus-gateway` next to this program).
     #[arg(long)]
     gateway: Option<PathBuf>,
+    /// A reader on the gateway's `GET /trace` from before the warm-up to the end: one that reads
+    /// every event, or one that never reads (and loses events).
+    #[arg(long, value_enum)]
+    trace: Option<TraceReader>,
+}
+
+#[derive(Clone, Copy, PartialEq, clap::ValueEnum)]
+enum TraceReader {
+    Reading,
+    Stalled,
+}
+
+/// A trace reader while it lives.
+enum Watching {
+    Reading(tokio::task::JoinHandle<()>),
+    Stalled(#[allow(dead_code)] TcpStream),
+}
+
+impl Drop for Watching {
+    fn drop(&mut self) {
+        if let Watching::Reading(task) = self {
+            task.abort();
+        }
+    }
+}
+
+/// Open `GET /trace` on the metrics endpoint at `addr` and read it as `how` says.
+async fn watch_trace(addr: SocketAddr, how: TraceReader) -> Result<Watching, String> {
+    let failed = |e: std::io::Error| format!("opening the trace: {e}");
+    let mut stream = TcpStream::connect(addr).await.map_err(failed)?;
+    stream
+        .write_all(b"GET /trace HTTP/1.1\r\nHost: bench\r\n\r\n")
+        .await
+        .map_err(failed)?;
+    Ok(match how {
+        TraceReader::Stalled => Watching::Stalled(stream),
+        TraceReader::Reading => Watching::Reading(tokio::spawn(async move {
+            let mut buf = vec![0; 64 * 1024];
+            while matches!(stream.read(&mut buf).await, Ok(n) if n > 0) {}
+        })),
+    })
 }
 
 #[derive(Clone, Copy, PartialEq)]
@@ -798,6 +839,10 @@ async fn run(cli: &Cli, binary: &PathBuf, s: &Scenario) -> Result<Report, String
     let length = Duration::from_secs_f64(cli.seconds).max(needed);
     let warm_up = Duration::from_secs(1).max(pace * u32::try_from(s.masters).unwrap_or(1));
 
+    let _trace = match cli.trace {
+        Some(how) => Some(watch_trace(gateway.metrics, how).await?),
+        None => None,
+    };
     let stop = Arc::new(AtomicBool::new(false));
     let tasks: Vec<_> = streams
         .into_iter()

@@ -8,14 +8,16 @@
 //! it between transactions (`reconfigure`). Knows nothing of TCP.
 
 pub mod health;
+pub mod latency;
 pub mod port;
 pub mod queue;
 mod reconfigure;
+pub mod rs485;
 mod serve;
 mod task;
 mod transaction;
 
-pub use port::{Device, Port};
+pub use port::{Device, Port, SerialDriver};
 pub use queue::{FairQueue, Follower, Job, MasterId, Origin, Pushed};
 pub use reconfigure::{longest_transaction, BusUpdates, Reconfigure};
 pub use task::BusTask;

@@ -1,16 +1,23 @@
 //! What a bus opens: a serial device through tokio-serial, or the simulated line. Both become a
-//! [`Port`] the RTU master drives through [`Transport`].
+//! [`Port`] the RTU master drives through [`Transport`]. A serial port may drive its RS-485
+//! transceiver itself ([`rs485`](super::rs485)): in `rts` mode it raises RTS before a frame and
+//! drops it once the frame's last character has left the wire, by the clock, never by tcdrain.
 
-use crate::line::{Parity, SerialFormat, Transport};
+use super::rs485::{self, SerialRs485};
+use crate::config::{Rs485, Rs485Mode};
+use crate::line::{LineTiming, Parity, SerialFormat, Transport};
 use crate::sim::{SimLine, SimPort};
+use crate::timer::LineTimer;
 use mio_serial::SerialStream;
 use std::future::Future;
 use std::io::{self, Read, Write};
-use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
+use std::os::fd::{AsRawFd, FromRawFd, OwnedFd, RawFd};
 use std::pin::pin;
 use std::task::{Context, Waker};
+use std::time::Duration;
 use tokio::io::unix::AsyncFd;
 use tokio::io::Interest;
+use tokio::time::Instant;
 use tokio_serial::{ClearBuffer, DataBits, FlowControl, SerialPort, StopBits};
 
 /// Largest read from a serial port in one call.
@@ -19,8 +26,38 @@ const READ_CHUNK: usize = 256;
 /// How to open a bus's line.
 #[derive(Clone)]
 pub enum Device {
-    Serial { path: String, format: SerialFormat },
+    Serial {
+        path: String,
+        format: SerialFormat,
+        driver: SerialDriver,
+    },
     Sim(SimLine),
+}
+
+/// What a bus asks of a serial port's driver beyond the format.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SerialDriver {
+    pub rs485: Rs485,
+    /// A USB adapter's latency timer to set at open.
+    pub latency_timer: Option<Duration>,
+    /// The bus's key (`bus[0]`), for errors that name the key at fault.
+    pub key: String,
+}
+
+impl SerialDriver {
+    /// `bus[index]`'s settings.
+    pub fn of(index: usize, settings: &crate::config::Bus) -> SerialDriver {
+        SerialDriver {
+            rs485: settings.rs485.clone(),
+            latency_timer: settings.latency_timer,
+            key: format!("bus[{index}]"),
+        }
+    }
+
+    /// Whether a port opened for `self` serves `other` too.
+    fn same_as(&self, other: &SerialDriver) -> bool {
+        self.rs485 == other.rs485 && self.latency_timer == other.latency_timer
+    }
 }
 
 pub enum Port {
@@ -32,14 +69,45 @@ pub enum Port {
 /// tokio-serial does), the port would wake the runtime once more per frame, when the driver's
 /// output buffer drains while the master already waits for the reply. A write that would block
 /// (the driver's buffer full) waits on a registration of its own.
-pub struct SerialFd(AsyncFd<SerialStream>);
+pub struct SerialFd {
+    fd: AsyncFd<SerialStream>,
+    /// Set when the gateway switches the transceiver with RTS (`rs485.mode = "rts"`).
+    rts: Option<RtsSwitch>,
+    /// In the kernel's RS-485 mode: the delays its driver keeps before and after each frame.
+    kernel_delays: Duration,
+}
+
+/// RTS around each frame: its level while sending and after, the delays before the first byte
+/// and after the last, and the line's speed to know when the last byte is out.
+struct RtsSwitch {
+    on_send: bool,
+    after_send: bool,
+    before: Duration,
+    after: Duration,
+    line: LineTiming,
+    timer: LineTimer,
+    /// Sets RTS: [`rs485::set_rts`] (a test records instead).
+    set_rts: fn(RawFd, bool) -> io::Result<()>,
+}
 
 impl Port {
     /// A serial port (or pty) opened in non-blocking mode.
     pub fn serial(stream: SerialStream) -> io::Result<Port> {
         // SAFETY: the AsyncFd owns the stream, so its descriptor stays open and the same.
         let fd = unsafe { AsyncFd::register_with_interest(stream, Interest::READABLE) }?;
-        Ok(Port::Serial(SerialFd(fd)))
+        Ok(Port::Serial(SerialFd {
+            fd,
+            rts: None,
+            kernel_delays: Duration::ZERO,
+        }))
+    }
+
+    /// The port, switching RTS around each frame.
+    fn with_rts(mut self, rts: RtsSwitch) -> Port {
+        if let Port::Serial(serial) = &mut self {
+            serial.rts = Some(rts);
+        }
+        self
     }
 }
 
@@ -60,43 +128,176 @@ async fn writable(fd: &impl AsRawFd) -> io::Result<()> {
 
 impl Device {
     /// Whether `other` opens the same line the same way: the same serial device in the same
-    /// format, or the same simulated line.
+    /// format with the same RS-485 settings and latency timer, or the same simulated line.
     pub fn same_as(&self, other: &Device) -> bool {
         match (self, other) {
-            (Device::Serial { path, format }, Device::Serial { path: p, format: f }) => {
-                path == p && format == f
-            }
+            (
+                Device::Serial {
+                    path,
+                    format,
+                    driver,
+                },
+                Device::Serial {
+                    path: p,
+                    format: f,
+                    driver: d,
+                },
+            ) => path == p && format == f && driver.same_as(d),
             (Device::Sim(line), Device::Sim(other)) => line.same_line(other),
             _ => false,
         }
     }
 
     /// Open the line. Serial ports are opened exclusively, so two gateways cannot share one.
+    /// A device that refuses the RS-485 mode asked for fails the open, naming the key.
     pub fn open(&self) -> io::Result<Port> {
         match self {
-            Device::Serial { path, format } => {
-                let data_bits = match format.data_bits {
-                    7 => DataBits::Seven,
-                    _ => DataBits::Eight,
-                };
-                let parity = match format.parity {
-                    Parity::None => tokio_serial::Parity::None,
-                    Parity::Even => tokio_serial::Parity::Even,
-                    Parity::Odd => tokio_serial::Parity::Odd,
-                };
-                let stop_bits = match format.stop_bits {
-                    2 => StopBits::Two,
-                    _ => StopBits::One,
-                };
-                let builder = tokio_serial::new(path, format.baud)
-                    .data_bits(data_bits)
-                    .parity(parity)
-                    .stop_bits(stop_bits)
-                    .flow_control(FlowControl::None);
-                Port::serial(SerialStream::open(&builder)?)
+            Device::Serial {
+                path,
+                format,
+                driver,
+            } => {
+                let stream = open_serial(path, format)?;
+                drive_transceiver(stream, path, format, driver)
             }
             Device::Sim(line) => line.open().map(Port::Sim),
         }
+    }
+
+    /// The path of a serial device.
+    pub fn path(&self) -> Option<&str> {
+        match self {
+            Device::Serial { path, .. } => Some(path),
+            Device::Sim(_) => None,
+        }
+    }
+
+    /// What the bus asks of its serial driver; `None` on the simulated line.
+    pub fn driver(&self) -> Option<&SerialDriver> {
+        match self {
+            Device::Serial { driver, .. } => Some(driver),
+            Device::Sim(_) => None,
+        }
+    }
+}
+
+/// Put the open `stream` in the RS-485 mode `driver` asks for.
+fn drive_transceiver(
+    stream: SerialStream,
+    path: &str,
+    format: &SerialFormat,
+    driver: &SerialDriver,
+) -> io::Result<Port> {
+    let settings = &driver.rs485;
+    let key = format!("{}.rs485.mode", driver.key);
+    let fd = stream.as_raw_fd();
+    match settings.mode {
+        Rs485Mode::Off => Port::serial(stream),
+        Rs485Mode::Kernel => {
+            let wanted = SerialRs485::of(settings);
+            let got = rs485::enable_kernel_mode(fd, &wanted).map_err(|e| {
+                rs485::refused(
+                    &key,
+                    settings.mode,
+                    "the kernel's RS-485 mode (TIOCSRS485)",
+                    &e,
+                )
+            })?;
+            tracing::info!(
+                device = path,
+                flags = format!("{:#x}", got.flags),
+                delay_rts_before_send_ms = got.delay_rts_before_send,
+                delay_rts_after_send_ms = got.delay_rts_after_send,
+                asked_flags = format!("{:#x}", wanted.flags),
+                "kernel RS-485 mode on"
+            );
+            let delays = got.delay_rts_before_send + got.delay_rts_after_send;
+            let mut port = Port::serial(stream)?;
+            if let Port::Serial(serial) = &mut port {
+                serial.kernel_delays = Duration::from_millis(u64::from(delays));
+            }
+            Ok(port)
+        }
+        Rs485Mode::Rts => {
+            let idle = settings.rts_level_after_send();
+            rs485::set_rts(fd, idle).map_err(|e| {
+                rs485::refused(&key, settings.mode, "RTS control (TIOCMBIC/TIOCMBIS)", &e)
+            })?;
+            let rts = RtsSwitch {
+                on_send: settings.rts_level_on_send(),
+                after_send: idle,
+                before: settings.delay_before_send,
+                after: settings.delay_after_send,
+                line: LineTiming::new(format),
+                timer: LineTimer::new(),
+                set_rts: rs485::set_rts,
+            };
+            Ok(Port::serial(stream)?.with_rts(rts))
+        }
+    }
+}
+
+/// Open `path` in `format`, without flow control.
+fn open_serial(path: &str, format: &SerialFormat) -> io::Result<SerialStream> {
+    let data_bits = match format.data_bits {
+        7 => DataBits::Seven,
+        _ => DataBits::Eight,
+    };
+    let parity = match format.parity {
+        Parity::None => tokio_serial::Parity::None,
+        Parity::Even => tokio_serial::Parity::Even,
+        Parity::Odd => tokio_serial::Parity::Odd,
+    };
+    let stop_bits = match format.stop_bits {
+        2 => StopBits::Two,
+        _ => StopBits::One,
+    };
+    let builder = tokio_serial::new(path, format.baud)
+        .data_bits(data_bits)
+        .parity(parity)
+        .stop_bits(stop_bits)
+        .flow_control(FlowControl::None);
+    Ok(SerialStream::open(&builder)?)
+}
+
+/// Hand all of `frame` to the driver. Returns once the kernel holds the bytes. Never flush: on a
+/// serial port that is a blocking tcdrain on the runtime thread.
+async fn write_all(fd: &AsyncFd<SerialStream>, frame: &[u8]) -> io::Result<()> {
+    let mut rest = frame;
+    while !rest.is_empty() {
+        match fd.get_ref().write(rest) {
+            Ok(0) => return Err(io::ErrorKind::WriteZero.into()),
+            Ok(n) => rest = &rest[n..],
+            Err(e) if e.kind() == io::ErrorKind::WouldBlock => writable(fd).await?,
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(())
+}
+
+impl SerialFd {
+    /// Send `frame`; with RTS switching, raise RTS first and drop it once the frame's last
+    /// character has left the wire (its length at the line's speed from when the write started,
+    /// the line being idle then) plus `delay_after_send`, waited for on a timer.
+    async fn send(&mut self, frame: &[u8]) -> io::Result<()> {
+        let Some(rts) = &mut self.rts else {
+            return write_all(&self.fd, frame).await;
+        };
+        let raw = self.fd.as_raw_fd();
+        (rts.set_rts)(raw, rts.on_send)?;
+        if !rts.before.is_zero() {
+            rts.timer.sleep_until(Instant::now() + rts.before).await;
+        }
+        let started = Instant::now();
+        let written = write_all(&self.fd, frame).await;
+        if written.is_ok() {
+            let out = started + rts.line.frame_time(frame.len()) + rts.after;
+            rts.timer.sleep_until(out).await;
+        }
+        // Dropped even after a failed write, so the line is never left driven.
+        let dropped = (rts.set_rts)(raw, rts.after_send);
+        written.and(dropped)
     }
 }
 
@@ -117,28 +318,22 @@ fn may_hold_input(fd: &AsyncFd<SerialStream>) -> bool {
 impl Transport for Port {
     async fn send(&mut self, frame: &[u8]) -> io::Result<()> {
         match self {
-            // write_all returns once the kernel holds the bytes. Never flush: on a serial port
-            // that is a blocking tcdrain on the runtime thread.
-            Port::Serial(SerialFd(fd)) => {
-                let mut rest = frame;
-                while !rest.is_empty() {
-                    match fd.get_ref().write(rest) {
-                        Ok(0) => return Err(io::ErrorKind::WriteZero.into()),
-                        Ok(n) => rest = &rest[n..],
-                        Err(e) if e.kind() == io::ErrorKind::WouldBlock => writable(fd).await?,
-                        Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
-                        Err(e) => return Err(e),
-                    }
-                }
-                Ok(())
-            }
+            Port::Serial(serial) => serial.send(frame).await,
             Port::Sim(port) => port.send(frame).await,
+        }
+    }
+
+    fn end_of_transmission(&self, returned: Instant, frame_time: Duration) -> Instant {
+        match self {
+            Port::Serial(SerialFd { rts: Some(_), .. }) => returned,
+            Port::Serial(SerialFd { kernel_delays, .. }) => returned + *kernel_delays + frame_time,
+            Port::Sim(_) => returned + frame_time,
         }
     }
 
     async fn recv(&mut self, buf: &mut Vec<u8>) -> io::Result<usize> {
         match self {
-            Port::Serial(SerialFd(fd)) => {
+            Port::Serial(SerialFd { fd, .. }) => {
                 let mut chunk = [0u8; READ_CHUNK];
                 let n = loop {
                     let mut ready = fd.readable().await?;
@@ -165,7 +360,7 @@ impl Transport for Port {
 
     fn clear_input(&mut self) -> io::Result<()> {
         match self {
-            Port::Serial(SerialFd(fd)) => {
+            Port::Serial(SerialFd { fd, .. }) => {
                 if !may_hold_input(fd) {
                     return Ok(());
                 }
@@ -181,7 +376,6 @@ impl Transport for Port {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::time::Duration;
     use tokio::time::timeout;
 
     /// Both ends of a pty, each as a port.
@@ -200,6 +394,94 @@ mod tests {
             assert!(n > 0);
         }
         buf
+    }
+
+    #[test]
+    fn a_change_of_rs485_settings_or_latency_timer_reopens_the_port_but_a_new_index_does_not() {
+        let device = |driver: SerialDriver| Device::Serial {
+            path: "/dev/ttyS1".into(),
+            format: SerialFormat {
+                baud: 19_200,
+                data_bits: 8,
+                parity: Parity::Even,
+                stop_bits: 1,
+            },
+            driver,
+        };
+        let first = device(SerialDriver::default());
+        let moved = device(SerialDriver {
+            key: "bus[3]".into(),
+            ..SerialDriver::default()
+        });
+        assert!(first.same_as(&moved));
+        let rts = device(SerialDriver {
+            rs485: Rs485 {
+                mode: Rs485Mode::Rts,
+                ..Rs485::default()
+            },
+            ..SerialDriver::default()
+        });
+        assert!(!first.same_as(&rts));
+        let latency = device(SerialDriver {
+            latency_timer: Some(Duration::from_millis(1)),
+            ..SerialDriver::default()
+        });
+        assert!(!first.same_as(&latency));
+    }
+
+    /// RTS levels set, and when.
+    static RTS: std::sync::Mutex<Vec<(Instant, bool)>> = std::sync::Mutex::new(Vec::new());
+
+    fn record_rts(_: RawFd, level: bool) -> io::Result<()> {
+        RTS.lock().unwrap().push((Instant::now(), level));
+        Ok(())
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn in_rts_mode_rts_drops_once_the_frames_last_character_has_left_the_wire() {
+        let (mut far, near) = SerialStream::pair().unwrap();
+        let format = SerialFormat {
+            baud: 9600,
+            data_bits: 8,
+            parity: Parity::None,
+            stop_bits: 2,
+        };
+        let line = LineTiming::new(&format);
+        let (before, after) = (Duration::from_millis(1), Duration::from_millis(2));
+        let mut port = Port::serial(near).unwrap().with_rts(RtsSwitch {
+            on_send: true,
+            after_send: false,
+            before,
+            after,
+            line,
+            timer: LineTimer::new(),
+            set_rts: record_rts,
+        });
+        let now = Instant::now();
+        assert_eq!(port.end_of_transmission(now, line.frame_time(8)), now);
+        let frame = [0x01, 0x03, 0x00, 0x04, 0x00, 0x02, 0x85, 0xCA];
+        let started = Instant::now();
+        port.send(&frame).await.unwrap();
+        let returned = Instant::now();
+        let events = RTS.lock().unwrap().clone();
+        // Raised at once; dropped the delay before, the frame's 8 characters and the delay
+        // after later (tokio's timer wakes on whole milliseconds), when send returns.
+        let earliest = started + before + line.frame_time(frame.len()) + after;
+        let resolution = Duration::from_millis(1);
+        assert_eq!(events.len(), 2, "{events:?}");
+        assert_eq!(events[0], (started, true));
+        let (dropped_at, level) = events[1];
+        assert!(!level);
+        assert!(dropped_at >= earliest, "{:?} early", earliest - dropped_at);
+        assert!(
+            dropped_at <= earliest + 2 * resolution,
+            "{:?} late",
+            dropped_at - earliest
+        );
+        assert_eq!(returned, dropped_at);
+        let mut buf = [0u8; 8];
+        std::io::Read::read_exact(&mut far, &mut buf).unwrap();
+        assert_eq!(buf, frame);
     }
 
     #[tokio::test]

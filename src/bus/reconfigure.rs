@@ -45,7 +45,8 @@ fn needs_reopen(device: &Device, settings: &config::Bus, update: &Reconfigure) -
 
 /// The longest one transaction on a bus with `settings` can take: the gap before its frame,
 /// which stray bytes may hold busy for as long as a response timeout, then the longest response
-/// timeout, two longest frames, the silence that ends a reply and a broadcast's turnaround.
+/// timeout, two longest frames, the RS-485 delays around the request, the silence that ends a
+/// reply and a broadcast's turnaround.
 /// Whoever waits for a transaction to end adds its own margin to this.
 pub fn longest_transaction(settings: &config::Bus) -> Duration {
     Derived::of(settings).longest_transaction(settings.turnaround_delay)
@@ -74,6 +75,8 @@ pub(super) struct Derived {
     /// idle heartbeat.
     pub(super) stall_limit: Duration,
     pub(super) down: super::health::DownPolicy,
+    /// What the RS-485 direction control adds around each frame sent.
+    driver_delays: Duration,
 }
 
 impl Derived {
@@ -89,6 +92,7 @@ impl Derived {
                     .any(|s| usize::from(s.address) == address && !s.cache.is_zero())
             })),
             stall_limit: Duration::ZERO,
+            driver_delays: settings.rs485.delay_before_send + settings.rs485.delay_after_send,
             down: super::health::DownPolicy {
                 after: settings.slave_down_after,
                 probe_interval: settings.slave_probe_interval,
@@ -102,7 +106,11 @@ impl Derived {
     fn longest_transaction(&self, turnaround: Duration) -> Duration {
         let longest_timeout = self.timeouts.iter().copied().max().unwrap_or_default();
         let longest_frame = self.timing.line.frame_time(self.framing.max_frame_len());
-        longest_timeout * 2 + longest_frame * 2 + self.timing.silence + turnaround
+        longest_timeout * 2
+            + longest_frame * 2
+            + self.driver_delays
+            + self.timing.silence
+            + turnaround
     }
 }
 
@@ -145,6 +153,7 @@ impl Current {
     /// Set the master's timing and reply forms from the settings.
     pub(super) fn configure(&self, master: &mut LineMaster<Port>) {
         master.set_timing(self.derived.timing);
+        master.set_echo(self.settings.rs485.echo);
         for address in 0..=u8::MAX {
             master.set_reply_form(address, ReplyForm::Standard);
         }

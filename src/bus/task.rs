@@ -3,6 +3,7 @@
 //! still queued.
 
 use super::health::Health;
+use super::latency::{self, SYSFS};
 use super::reconfigure::{Current, Updates};
 use super::{BusHandle, BusUpdates, Device, FairQueue, Heartbeat, Intake, Reconfigure, HEARTBEAT};
 use crate::config;
@@ -10,7 +11,9 @@ use crate::error::RequestError;
 use crate::line::LineMaster;
 use crate::metrics::Metrics;
 use crate::shutdown::Stopping;
+use crate::trace::BusTap;
 use std::io;
+use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 use tokio::time::{sleep, sleep_until, Instant};
@@ -39,6 +42,8 @@ pub struct BusTask {
     pub(super) handle: BusHandle,
     pub(super) updates: Updates,
     pub(super) health: Health,
+    /// Where the line's frames go while someone watches.
+    pub(super) trace: BusTap,
 }
 
 impl BusTask {
@@ -52,8 +57,10 @@ impl BusTask {
             let len = weak.upgrade().map_or(0, |queue| queue.len());
             depth.set(i64::try_from(len).unwrap_or(i64::MAX));
         });
+        let name: Arc<str> = settings.name.as_str().into();
+        let trace = metrics.trace.register(name.clone());
         let handle = BusHandle {
-            name: settings.name.as_str().into(),
+            name,
             queue,
             up: Arc::new(AtomicBool::new(false)),
             intake: Arc::new(Mutex::new(Intake::of(&settings))),
@@ -69,6 +76,7 @@ impl BusTask {
             handle,
             updates: Updates::new(Reconfigure { settings, device }),
             health: Health::default(),
+            trace,
         }
     }
 
@@ -109,6 +117,7 @@ impl BusTask {
                         .take()
                         .map(|(since, failed_opens)| (since.elapsed(), failed_opens));
                     metrics.port_opened(device, down);
+                    self.adjust_latency_timer();
                     delay = self.current.settings.reopen_delay;
                     let mut master = LineMaster::new(
                         port,
@@ -148,6 +157,17 @@ impl BusTask {
             delay = (delay * 2).min(self.current.settings.reopen_delay_max);
         }
         self.finish();
+    }
+
+    /// Read the USB adapter's latency timer, set it if configured, and report it.
+    fn adjust_latency_timer(&self) {
+        let device = &self.current.device;
+        if let (Some(path), Some(driver)) = (device.path(), device.driver()) {
+            let timer = latency::adjust(Path::new(SYSFS), Path::new(path), driver.latency_timer);
+            self.handle
+                .metrics
+                .latency_timer(path, &driver.key, timer.as_ref());
+        }
     }
 
     /// Stopped: nothing more is queued, and what was gets 0x0A.

@@ -8,8 +8,10 @@ use super::task::BusTask;
 use super::{Job, Port};
 use crate::error::{Answer, Outcome, RequestError};
 use crate::line::BROADCAST;
-use crate::line::{LineMaster, TxError};
+use crate::line::{LineMaster, Seen, TxError};
+use crate::metrics::Fate;
 use crate::pdu;
+use crate::trace::{Direction, TraceEvent, FOREIGN};
 use std::io;
 use tokio::time::Instant;
 use tracing::debug;
@@ -50,8 +52,11 @@ impl BusTask {
         stop_at: Option<Instant>,
         probe: bool,
     ) -> Ran {
+        // The one cost of the trace with nobody watching: this load.
+        let tracing = self.trace.hub().active();
+        master.record_frames(tracing);
         if job.slave == BROADCAST {
-            return self.broadcast(master, job).await;
+            return self.broadcast(master, job, tracing).await;
         }
         let settings = &self.current.settings;
         let retries = if probe {
@@ -69,6 +74,9 @@ impl BusTask {
             self.handle.beat();
             let previous = master.sent_at();
             let result = master.transact(job.slave, &job.pdu, timeout).await;
+            if tracing {
+                self.trace_try(master, Fate::of_try(&result));
+            }
             if master.sent_at() != previous {
                 first_sent_at.get_or_insert(master.sent_at());
             }
@@ -97,7 +105,7 @@ impl BusTask {
     }
 
     /// Send a broadcast; its answer, if the configuration wants one, is the gateway's own.
-    async fn broadcast(&mut self, master: &mut LineMaster<Port>, job: &Job) -> Ran {
+    async fn broadcast(&mut self, master: &mut LineMaster<Port>, job: &Job, tracing: bool) -> Ran {
         let settings = &self.current.settings;
         let sent = master
             .broadcast(
@@ -106,6 +114,12 @@ impl BusTask {
                 settings.response_timeout,
             )
             .await;
+        if tracing {
+            let fate = sent
+                .as_ref()
+                .map_or_else(Fate::of_failed_try, |()| Fate::Ok);
+            self.trace_try(master, fate);
+        }
         Ran::Done(match sent {
             Ok(()) => Ok(settings
                 .broadcast_reply
@@ -115,6 +129,28 @@ impl BusTask {
             Err(TxError::PortLost(error)) => return Ran::PortLost(error),
             Err(last) => Err(RequestError::NoResponse { attempts: 1, last }),
         })
+    }
+
+    /// Publish the frames of the try that just ended, which ended as `fate`, to the trace.
+    fn trace_try(&self, master: &mut LineMaster<Port>, fate: Fate) {
+        let hub = self.trace.hub();
+        for frame in master.recorded() {
+            hub.publish(TraceEvent {
+                time: frame.at,
+                bus: self.trace.bus().clone(),
+                direction: match frame.seen {
+                    Seen::Sent => Direction::Tx,
+                    Seen::Reply | Seen::Foreign => Direction::Rx,
+                },
+                slave: frame.address,
+                function: frame.function,
+                bytes: frame.bytes,
+                outcome: match frame.seen {
+                    Seen::Foreign => FOREIGN,
+                    Seen::Sent | Seen::Reply => fate.label(),
+                },
+            });
+        }
     }
 
     /// Tell the slave's health how the request ended, and the metrics what changed.

@@ -1,7 +1,7 @@
 //! `check-config`: the resolved configuration, preceded by what it means on each line (timing
 //! worked out from the baud and format). Knows nothing of serving.
 
-use crate::config::Config;
+use crate::config::{Bus, Config, Rs485Mode};
 use crate::line::Framing;
 use crate::tcp::tls::TlsServer;
 use std::path::Path;
@@ -63,6 +63,32 @@ fn ms(d: std::time::Duration) -> String {
     format!("{:.3} ms", d.as_secs_f64() * 1e3)
 }
 
+/// Who drives the bus's RS-485 transceiver, whether the line echoes, and the latency timer.
+fn describe_driver(bus: &Bus) -> String {
+    let rs485 = &bus.rs485;
+    let mode = match rs485.mode {
+        Rs485Mode::Off => "off (the adapter switches the transceiver)".to_owned(),
+        Rs485Mode::Kernel => "kernel (TIOCSRS485)".to_owned(),
+        Rs485Mode::Rts => format!(
+            "rts (the gateway raises RTS for each frame, drops it {} after the last character)",
+            ms(rs485.delay_after_send)
+        ),
+    };
+    let echo = if rs485.echo {
+        "; each frame is read back (echo)"
+    } else {
+        ""
+    };
+    let latency = bus.latency_timer.map_or_else(
+        || "left as it is".to_owned(),
+        |timer| format!("set to {}", ms(timer)),
+    );
+    format!(
+        "# bus {}: rs485.mode {mode}{echo}; a USB adapter's latency timer is {latency}.\n",
+        bus.name
+    )
+}
+
 /// The resolved configuration, preceded by what it means on each line and for TLS masters.
 fn describe(path: &Path, config: &Config, tls: Option<&TlsServer>, now: SystemTime) -> String {
     let mut out = format!("# {} is valid.\n", path.display());
@@ -89,6 +115,9 @@ fn describe(path: &Path, config: &Config, tls: Option<&TlsServer>, now: SystemTi
                 ms(master.silence),
             ),
         };
+        if !bus.is_sim() {
+            out += &describe_driver(bus);
+        }
     }
     if let Some(tls) = tls {
         out += &describe_tls(config, tls, now);

@@ -3,7 +3,7 @@
 //! powers the slaves on and reopens a lost device; the serving itself is [`crate::sim::responder`].
 
 use super::{start_runtime, stop_signal, EXIT_CONFIG};
-use crate::bus::{Device, Port};
+use crate::bus::{Device, Port, SerialDriver};
 use crate::config::{Bus, Config};
 use crate::line::{Framing, Parity};
 use crate::sim::{self, responder::Responder};
@@ -95,6 +95,7 @@ fn open(bus: &Bus, path: &str) -> io::Result<Port> {
     let device = |format| Device::Serial {
         path: path.to_owned(),
         format,
+        driver: SerialDriver::default(),
     };
     match device(format).open() {
         Err(e) if format.parity != Parity::None && e.kind() == io::ErrorKind::InvalidInput => {

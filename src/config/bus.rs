@@ -6,7 +6,7 @@ use super::defaults;
 use super::serde_adapters::{
     duration, is_false, is_zero, is_zero_f64, is_zero_usize, opt_duration,
 };
-use super::UnitSet;
+use super::{Rs485, UnitSet};
 use crate::line::{Framing, LineTiming, MasterTiming, Parity, SerialFormat};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -80,6 +80,17 @@ pub struct Bus {
     /// Identical reads from several masters waiting together are answered by one transaction.
     #[serde(default = "defaults::coalesce_reads")]
     pub coalesce_reads: bool,
+    /// Who switches the RS-485 transceiver's direction, and whether the line echoes.
+    #[serde(default, skip_serializing_if = "Rs485::is_default")]
+    pub rs485: Rs485,
+    /// USB serial adapters: set the driver's latency timer to this at open (1-255 ms); left out,
+    /// it stays as it is.
+    #[serde(
+        default,
+        with = "opt_duration",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub latency_timer: Option<Duration>,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub slave: Vec<Slave>,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]

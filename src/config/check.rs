@@ -3,6 +3,7 @@
 //! changes nothing (deriving values is [`resolve`](super::resolve)'s); reports every problem, in
 //! the order of the file, each with its key path. Knows nothing of how a drive is simulated.
 
+use super::rs485::LATENCY_TIMER_MS;
 use super::OTHER_ROLE;
 use super::{Bus, Config, ConfigError, ConfigErrors, Route, Server, SimSlave, Tls, UnitSet};
 use super::{MAX_SLAVE_ADDRESS, SIM_DEVICE};
@@ -217,6 +218,7 @@ fn check_bus(
         report.fail(key("device"), "needs a serial device path or \"sim\"");
     }
     check_line(bus, &key, report);
+    check_serial_driver(bus, &key, report);
     check_slaves(i, bus, report);
     if !bus.sim_slave.is_empty() && !bus.is_sim() {
         report.fail(
@@ -276,6 +278,25 @@ fn check_line(bus: &Bus, key: &dyn Fn(&str) -> String, report: &mut Report) {
     }
     if bus.queue_depth == 0 {
         report.fail(key("queue_depth"), "must be at least 1");
+    }
+}
+
+/// `[bus.rs485]` and `latency_timer`: what the gateway asks of the serial driver.
+fn check_serial_driver(bus: &Bus, key: &dyn Fn(&str) -> String, report: &mut Report) {
+    for (field, reason) in bus.rs485.problems(bus.is_sim()) {
+        report.fail(key(&format!("rs485.{field}")), reason);
+    }
+    if let Some(timer) = bus.latency_timer {
+        if bus.is_sim() {
+            report.fail(key("latency_timer"), "a simulated line has no USB adapter");
+        } else if !LATENCY_TIMER_MS.contains(&timer.as_millis())
+            || timer.subsec_nanos() % 1_000_000 != 0
+        {
+            report.fail(
+                key("latency_timer"),
+                "must be whole milliseconds, 1ms to 255ms",
+            );
+        }
     }
 }
 

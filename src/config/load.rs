@@ -128,14 +128,52 @@ impl Config {
             .map_err(|e| ConfigErrors::one("(config)", e))
     }
 
+    /// Deserialize, check and resolve. A key that cannot be read is reported and taken out, and
+    /// the rest read again, so one run names every unknown key and unreadable value (up to
+    /// [`MAX_REPORTED`]); the checks run on what remains, and report what the removed keys do not
+    /// explain. A missing required key ends the reading: nothing can stand in for it.
     fn finish(
         raw: config::Config,
         drives: Option<&dyn DriveCheck>,
     ) -> Result<Config, ConfigErrors> {
-        let mut config: Config = serde_path_to_error::deserialize(raw).map_err(named)?;
-        config.check(drives)?;
-        config.resolve();
-        Ok(config)
+        let mut root: config::Value = raw
+            .try_deserialize()
+            .map_err(|e| ConfigErrors::one("(config)", e))?;
+        let mut errors = Vec::new();
+        let mut removed: Vec<String> = Vec::new();
+        loop {
+            let error = match serde_path_to_error::deserialize::<_, Config>(root.clone()) {
+                Ok(mut config) => {
+                    // Tables are read in no particular order: report in key order.
+                    errors.sort_by(|a: &ConfigError, b| a.key.cmp(&b.key));
+                    let checked = config.check(drives);
+                    if errors.is_empty() {
+                        checked?;
+                        config.resolve();
+                        return Ok(config);
+                    }
+                    if let Err(more) = checked {
+                        let explained = |e: &ConfigError| removed.iter().any(|r| under(&e.key, r));
+                        errors.extend(more.0.into_iter().filter(|e| !explained(e)));
+                    }
+                    return Err(ConfigErrors(errors));
+                }
+                Err(error) => error,
+            };
+            let segments: Vec<_> = error.path().iter().cloned().collect();
+            let named = named(error);
+            if removed.iter().any(|r| under(&named.key, r)) {
+                // Already reported: taking the key out changed nothing that matters.
+                break;
+            }
+            errors.push(named);
+            match remove(&mut root, &segments) {
+                Some(key) if errors.len() < MAX_REPORTED => removed.push(key),
+                _ => break,
+            }
+        }
+        errors.sort_by(|a, b| a.key.cmp(&b.key));
+        Err(ConfigErrors(errors))
     }
 
     /// The resolved configuration as TOML, defaults included.
@@ -144,8 +182,90 @@ impl Config {
     }
 }
 
+/// Most errors one run reports; a file past this is probably not a gateway configuration.
+const MAX_REPORTED: usize = 50;
+
+/// Whether `key` is `prefix` or a key inside it (`bus[0].baud` is under `bus[0]`).
+fn under(key: &str, prefix: &str) -> bool {
+    key.strip_prefix(prefix)
+        .is_some_and(|rest| rest.is_empty() || rest.starts_with(['.', '[']))
+}
+
+/// Take the table key at `path` out of `root`; for a path ending inside an array, the key that
+/// holds the array (taking one element out would renumber the others). Returns the path of what
+/// was taken out, or `None` when there is nothing there to take.
+fn remove(root: &mut config::Value, path: &[serde_path_to_error::Segment]) -> Option<String> {
+    use config::ValueKind;
+    use serde_path_to_error::Segment;
+    let last_key = path
+        .iter()
+        .rposition(|s| matches!(s, Segment::Map { .. }))?;
+    let mut node = root;
+    let mut taken = String::new();
+    for segment in &path[..last_key] {
+        match (segment, &mut node.kind) {
+            (Segment::Map { key }, ValueKind::Table(table)) => {
+                if !taken.is_empty() {
+                    taken.push('.');
+                }
+                taken.push_str(key);
+                node = table.get_mut(key)?;
+            }
+            (Segment::Seq { index }, ValueKind::Array(items)) => {
+                taken.push_str(&format!("[{index}]"));
+                node = items.get_mut(*index)?;
+            }
+            _ => return None,
+        }
+    }
+    let Segment::Map { key } = &path[last_key] else {
+        return None;
+    };
+    let ValueKind::Table(table) = &mut node.kind else {
+        return None;
+    };
+    table.remove(key)?;
+    if !taken.is_empty() {
+        taken.push('.');
+    }
+    taken.push_str(key);
+    Some(taken)
+}
+
+/// serde's reason for an unknown key (`unknown field `party`, expected one of `name`, `parity`,
+/// ...`), with the nearest expected name suggested when one is close, as cargo and clap do:
+/// `unknown field `party`; did you mean `parity`?`.
+fn with_suggestion(reason: String) -> String {
+    let Some(rest) = reason.strip_prefix("unknown field `") else {
+        return reason;
+    };
+    let Some((given, expected)) = rest.split_once('`') else {
+        return reason;
+    };
+    let candidates: Vec<&str> = expected.split('`').skip(1).step_by(2).collect();
+    // Close in spelling (clap's measure and threshold), or else the one key that has the name as
+    // a word of its own (`timeout` for `response_timeout`).
+    let close = candidates
+        .iter()
+        .map(|c| (strsim::jaro(given, c), *c))
+        .filter(|(score, _)| *score > 0.7)
+        .max_by(|a, b| a.0.total_cmp(&b.0))
+        .map(|(_, c)| c);
+    let mut containing = candidates
+        .iter()
+        .filter(|c| c.split('_').any(|word| word == given));
+    let word = match (containing.next(), containing.next()) {
+        (Some(only), None) => Some(*only),
+        _ => None,
+    };
+    match close.or(word) {
+        Some(name) => format!("unknown field `{given}`; did you mean `{name}`?"),
+        None => reason,
+    }
+}
+
 /// A deserialization error as the key path it happened at and why.
-fn named(e: serde_path_to_error::Error<config::ConfigError>) -> ConfigErrors {
+fn named(e: serde_path_to_error::Error<config::ConfigError>) -> ConfigError {
     let path = e.path().to_string();
     let path = if path == "." { String::new() } else { path };
     let join = |field: &str| match path.as_str() {
@@ -156,7 +276,10 @@ fn named(e: serde_path_to_error::Error<config::ConfigError>) -> ConfigErrors {
         // config-rs names a missing field by its whole (unseparated) path: keep the field.
         config::ConfigError::NotFound(missing) => {
             let field = missing.rsplit([']', '.']).next().unwrap_or(&missing);
-            ConfigErrors::one(join(field), "is required")
+            ConfigError {
+                key: join(field),
+                reason: "is required".to_owned(),
+            }
         }
         other => {
             let mut reason = other.to_string();
@@ -168,7 +291,10 @@ fn named(e: serde_path_to_error::Error<config::ConfigError>) -> ConfigErrors {
             } else {
                 path
             };
-            ConfigErrors::one(key, reason)
+            ConfigError {
+                key,
+                reason: with_suggestion(reason),
+            }
         }
     }
 }
@@ -220,6 +346,52 @@ mod tests {
         assert!(e[0].contains("soon"), "{e:?}");
         let e = errors(&format!("[server]\nlisten = \"localhost\"\n{MINIMAL}"));
         assert!(e[0].starts_with("server.listen:"), "{e:?}");
+    }
+
+    #[test]
+    fn every_unknown_key_and_unreadable_value_is_reported_in_one_run_with_suggestions() {
+        let text = format!(
+            "{MINIMAL}\nparty = \"even\"\nbaud = \"fast\"\nresponse_timeout = \"0s\"\n\
+             [metrics]\nlistne = \"127.0.0.1:9000\"\nzzz = 1\n"
+        );
+        let e = errors(&text);
+        assert_eq!(
+            e,
+            [
+                "bus[0].baud: invalid type: string \"fast\", expected an integer",
+                "bus[0].party: unknown field `party`; did you mean `parity`?",
+                "metrics.listne: unknown field `listne`; did you mean `listen`?",
+                "metrics.zzz: unknown field `zzz`, expected `listen`",
+                "bus[0].response_timeout: must be longer than 0",
+            ],
+        );
+    }
+
+    #[test]
+    fn the_checks_run_on_what_remains_once_the_unreadable_keys_are_out() {
+        let text = format!(
+            "[server]\nmax_connections = \"many\"\n{MINIMAL}\nparty = \"even\"\nresponse_timeout = \"0s\"\n"
+        );
+        let e = errors(&text);
+        assert_eq!(e.len(), 3, "{e:?}");
+        assert_eq!(
+            e[0],
+            "bus[0].party: unknown field `party`; did you mean `parity`?"
+        );
+        assert!(e[1].starts_with("server.max_connections: invalid"), "{e:?}");
+        assert_eq!(e[2], "bus[0].response_timeout: must be longer than 0");
+    }
+
+    #[test]
+    fn a_name_close_to_nothing_gets_the_list_of_what_is_expected() {
+        assert_eq!(
+            with_suggestion("unknown field `q`, expected one of `name`, `parity`".into()),
+            "unknown field `q`, expected one of `name`, `parity`"
+        );
+        assert_eq!(
+            with_suggestion("invalid type: string".into()),
+            "invalid type: string"
+        );
     }
 
     #[test]

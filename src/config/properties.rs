@@ -322,6 +322,8 @@ fn bus() -> impl Strategy<Value = Bus> {
                 slave_down_after: down.0,
                 slave_probe_interval: down.1,
                 coalesce_reads: down.2,
+                rs485: Rs485::default(),
+                latency_timer: None,
                 slave,
                 sim_slave,
             }

@@ -20,7 +20,7 @@ use super::timing::LineTiming;
 use super::{Transport, BROADCAST};
 use crate::timer::LineTimer;
 use std::io;
-use std::time::Duration;
+use std::time::{Duration, SystemTime};
 use tokio::time::Instant;
 
 /// The times the master keeps on its line.
@@ -66,6 +66,9 @@ pub enum TxError {
     Frame,
     #[error("line never fell silent for the gap before the frame")]
     LineBusy,
+    /// On a line that echoes (`rs485.echo`): the frame did not come back as sent, in time.
+    #[error("the line did not echo the frame as sent (a collision, or no echo)")]
+    Echo,
     #[error("serial port lost: {0}")]
     PortLost(io::Error),
 }
@@ -78,6 +81,7 @@ impl TxError {
             TxError::Check => TxError::Check,
             TxError::Frame => TxError::Frame,
             TxError::LineBusy => TxError::LineBusy,
+            TxError::Echo => TxError::Echo,
             TxError::PortLost(e) => TxError::PortLost(io::Error::new(e.kind(), e.to_string())),
         }
     }
@@ -109,6 +113,43 @@ impl LineCounters {
     }
 }
 
+/// What a frame recorded for the trace was to the master.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Seen {
+    /// A request (or broadcast) the master sent.
+    Sent,
+    /// The frame that ended a try: its answer, a malformed reply, a frame that failed its check
+    /// or was incomplete.
+    Reply,
+    /// A whole frame that answered nothing: another slave's, a late reply to an earlier try.
+    Foreign,
+}
+
+/// A frame on the wire, as recorded while [`LineMaster::record_frames`] is on.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct RecordedFrame {
+    /// When it was handed to the port, or was complete.
+    pub at: SystemTime,
+    pub seen: Seen,
+    /// The address and function code it carries (0 where its bytes do not reach them).
+    pub address: u8,
+    pub function: u8,
+    /// The whole frame as on the wire.
+    pub bytes: Vec<u8>,
+}
+
+impl RecordedFrame {
+    fn new(seen: Seen, address: u8, function: u8, bytes: &[u8]) -> Self {
+        RecordedFrame {
+            at: SystemTime::now(),
+            seen,
+            address,
+            function,
+            bytes: bytes.to_vec(),
+        }
+    }
+}
+
 pub struct LineMaster<T> {
     port: T,
     framing: Framing,
@@ -127,7 +168,13 @@ pub struct LineMaster<T> {
     forms: Box<[ReplyForm; 256]>,
     /// Per slave address: until when a reply to one of its earlier tries may still come.
     late_until: Box<[Option<Instant>; 256]>,
+    /// The line hands back every byte sent (`rs485.echo`).
+    echo: bool,
     timer: LineTimer,
+    /// Whether frames are recorded for the trace: only while someone watches, so that the line
+    /// copies nothing otherwise.
+    recording: bool,
+    recorded: Vec<RecordedFrame>,
 }
 
 fn device_gone() -> io::Error {
@@ -161,7 +208,10 @@ impl<T: Transport> LineMaster<T> {
             counters: LineCounters::default(),
             forms: Box::new([ReplyForm::Standard; 256]),
             late_until: Box::new([None; 256]),
+            echo: false,
             timer: LineTimer::new(),
+            recording: false,
+            recorded: Vec::new(),
         }
     }
 
@@ -170,9 +220,25 @@ impl<T: Transport> LineMaster<T> {
         self.timing = timing;
     }
 
+    /// Whether the line echoes every frame sent: then each frame is read back, and must come
+    /// back as sent, before its reply.
+    pub fn set_echo(&mut self, echo: bool) {
+        self.echo = echo;
+    }
+
     /// Expect replies from `slave` in `form`; its answers are still returned in standard form.
     pub fn set_reply_form(&mut self, slave: u8, form: ReplyForm) {
         self.forms[usize::from(slave)] = form;
+    }
+
+    /// Record the frames on the wire from now on (for the trace), or stop.
+    pub fn record_frames(&mut self, on: bool) {
+        self.recording = on;
+    }
+
+    /// The frames recorded since the last call, oldest first.
+    pub fn recorded(&mut self) -> std::vec::Drain<'_, RecordedFrame> {
+        self.recorded.drain(..)
     }
 
     pub fn counters(&self) -> LineCounters {
@@ -227,12 +293,18 @@ impl<T: Transport> LineMaster<T> {
         response_timeout: Duration,
     ) -> Result<Reply, TxError> {
         let end_of_tx = self.send_frame(slave, request, response_timeout).await?;
-        let result = self
-            .read_reply(slave, request, end_of_tx, response_timeout)
-            .await;
+        self.rx.clear();
+        let result = match self.take_echo(end_of_tx + response_timeout).await {
+            Ok(()) => {
+                self.read_reply(slave, request, end_of_tx, response_timeout)
+                    .await
+            }
+            Err(error) => Err(error),
+        };
         match &result {
-            // Silence, or only other frames: the slave may still answer.
-            Err(TxError::Timeout) => {
+            // Silence, or only other frames: the slave may still answer. So may it when the
+            // echo failed: the request may have reached it.
+            Err(TxError::Timeout | TxError::Echo) => {
                 self.expect_late_reply(slave, Instant::now() + response_timeout);
             }
             // Taken while an earlier try's reply could still come: it may have been that reply,
@@ -255,7 +327,37 @@ impl<T: Transport> LineMaster<T> {
     ) -> Result<(), TxError> {
         let end_of_tx = self.send_frame(BROADCAST, request, busy_limit).await?;
         self.quiet_until = self.quiet_until.max(end_of_tx + turnaround);
+        self.rx.clear();
+        self.take_echo(end_of_tx + turnaround.max(self.timing.silence))
+            .await?;
         self.timer.sleep_until(end_of_tx).await;
+        Ok(())
+    }
+
+    /// On a line that echoes: read back the frame just sent, by `deadline`. Bytes past it stay
+    /// in `rx`, the start of the reply; the echo is neither a reply nor stray.
+    async fn take_echo(&mut self, deadline: Instant) -> Result<(), TxError> {
+        if !self.echo {
+            return Ok(());
+        }
+        let len = self.tx.len();
+        while self.rx.len() < len {
+            if self.rx[..] != self.tx[..self.rx.len()] {
+                return Err(TxError::Echo);
+            }
+            tokio::select! {
+                biased;
+                received = self.port.recv(&mut self.rx) => {
+                    self.counters.received_bytes += port_lost(received)? as u64;
+                    self.quiet_until = self.quiet_until.max(Instant::now() + self.timing.gap);
+                }
+                () = self.timer.sleep_until(deadline) => return Err(TxError::Echo),
+            }
+        }
+        if self.rx[..len] != self.tx[..] {
+            return Err(TxError::Echo);
+        }
+        self.rx.drain(..len);
         Ok(())
     }
 
@@ -271,9 +373,16 @@ impl<T: Transport> LineMaster<T> {
         self.port.clear_input().map_err(TxError::PortLost)?;
         self.framing.encode_into(&mut self.tx, address, pdu);
         self.port.send(&self.tx).await.map_err(TxError::PortLost)?;
-        self.sent_at = Instant::now();
+        let returned = Instant::now();
+        if self.recording {
+            let function = pdu.first().copied().unwrap_or(0);
+            let frame = RecordedFrame::new(Seen::Sent, address, function, &self.tx);
+            self.recorded.push(frame);
+        }
         self.counters.sent_bytes += self.tx.len() as u64;
-        let end_of_tx = self.sent_at + self.timing.line.frame_time(self.tx.len());
+        let frame_time = self.timing.line.frame_time(self.tx.len());
+        let end_of_tx = self.port.end_of_transmission(returned, frame_time);
+        self.sent_at = end_of_tx.checked_sub(frame_time).unwrap_or(returned);
         self.quiet_until = end_of_tx + self.timing.gap;
         Ok(end_of_tx)
     }
@@ -310,7 +419,6 @@ impl<T: Transport> LineMaster<T> {
         end_of_tx: Instant,
         response_timeout: Duration,
     ) -> Result<Reply, TxError> {
-        self.rx.clear();
         let form = self.forms[usize::from(slave)];
         // The reply must start within the response timeout; once it has, it gets the time its
         // length needs on the wire, plus the silence allowance for bursty adapters.
@@ -329,14 +437,14 @@ impl<T: Transport> LineMaster<T> {
                     }
                 },
                 _ if self.rx.is_empty() => first_byte_by,
-                Completion::Invalid => return Err(TxError::Frame),
+                Completion::Invalid => return self.frame_error(),
                 Completion::AtLeast(n) => {
                     first_byte_by + self.timing.line.frame_time(n) + self.timing.silence
                 }
                 Completion::Open(_) => last_byte_at + self.timing.silence,
             };
             if self.rx.len() > self.framing.max_frame_len() {
-                return Err(TxError::Frame);
+                return self.frame_error();
             }
             // Bytes first: a reply whose last byte is in when the deadline comes is still in time.
             tokio::select! {
@@ -351,7 +459,7 @@ impl<T: Transport> LineMaster<T> {
                         return Err(TxError::Timeout);
                     }
                     if completion != Completion::Open(Silence::EndsFrame) {
-                        return Err(TxError::Frame);
+                        return self.frame_error();
                     }
                     match self.judge(self.rx.len(), slave, request, form) {
                         Some(reply) => return reply,
@@ -383,10 +491,11 @@ impl<T> LineMaster<T> {
     ) -> Option<Result<Reply, TxError>> {
         let late_reply_possible = self.late_reply_window(slave).is_some();
         let Some(address) = self.framing.decode_into(&self.rx[..len], &mut self.pdu) else {
+            self.record_undecoded(len);
             return Some(Err(TxError::Check));
         };
         let pdu = &self.pdu;
-        match reply::judge(address, pdu, slave, request, form) {
+        let judged = match reply::judge(address, pdu, slave, request, form) {
             Verdict::Answer => Some(Ok(Reply::Fits(reply::answer_pdu(pdu, form)))),
             Verdict::Malformed if !late_reply_possible => {
                 Some(Ok(Reply::Malformed(reply::answer_pdu(pdu, form))))
@@ -396,12 +505,43 @@ impl<T> LineMaster<T> {
                 None
             }
             Verdict::Corrupt => Some(Err(TxError::Check)),
+        };
+        if self.recording {
+            let seen = if judged.is_some() {
+                Seen::Reply
+            } else {
+                Seen::Foreign
+            };
+            let function = self.pdu.first().copied().unwrap_or(0);
+            let frame = RecordedFrame::new(seen, address, function, &self.rx[..len]);
+            self.recorded.push(frame);
+        }
+        judged
+    }
+
+    /// The try ends with bytes that make no frame: recorded as they came.
+    fn frame_error(&mut self) -> Result<Reply, TxError> {
+        self.record_undecoded(self.rx.len());
+        Err(TxError::Frame)
+    }
+
+    /// Record the first `len` bytes received, which end the try but are no valid frame.
+    fn record_undecoded(&mut self, len: usize) {
+        if self.recording {
+            let bytes = &self.rx[..len];
+            let (address, function) = self.framing.header(bytes);
+            let (address, function) = (address.unwrap_or(0), function.unwrap_or(0));
+            let frame = RecordedFrame::new(Seen::Reply, address, function, bytes);
+            self.recorded.push(frame);
         }
     }
 }
 
 #[cfg(test)]
 mod ascii_tests;
+
+#[cfg(test)]
+mod echo_tests;
 
 #[cfg(test)]
 mod tests {
@@ -511,6 +651,38 @@ mod tests {
             Reply::Fits(READ_ANSWER.to_vec())
         );
         assert_eq!(master.counters().foreign_frames, 1);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn frames_are_recorded_only_while_asked_for_each_as_it_was_on_the_wire() {
+        let mut both = rtu::encode(9, &READ_ANSWER);
+        both.extend(rtu::encode(1, &READ_ANSWER));
+        let plan = vec![
+            reply(1, &READ_ANSWER, Duration::ZERO),
+            Some(Transmission {
+                bytes: both,
+                delay: Duration::ZERO,
+                pause: None,
+            }),
+        ];
+        let (_line, mut master) = line(vec![(1, plan)]);
+        master.transact(1, &READ, TIMEOUT).await.unwrap();
+        assert_eq!(master.recorded().count(), 0, "nothing while not asked");
+        master.record_frames(true);
+        master.transact(1, &READ, TIMEOUT).await.unwrap();
+        let recorded: Vec<_> = master
+            .recorded()
+            .map(|f| (f.seen, f.address, f.function, f.bytes))
+            .collect();
+        assert_eq!(
+            recorded,
+            [
+                (Seen::Sent, 1, 0x03, rtu::encode(1, &READ)),
+                (Seen::Foreign, 9, 0x03, rtu::encode(9, &READ_ANSWER)),
+                (Seen::Reply, 1, 0x03, rtu::encode(1, &READ_ANSWER)),
+            ]
+        );
+        assert_eq!(master.recorded().count(), 0, "each frame is taken once");
     }
 
     #[tokio::test(start_paused = true)]

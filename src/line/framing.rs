@@ -121,6 +121,21 @@ impl Framing {
         }
     }
 
+    /// The address and function code a frame's first bytes claim, as far as they go, whether or
+    /// not the frame passes its check: for showing a frame that is no reply as it came.
+    pub fn header(self, frame: &[u8]) -> (Option<u8>, Option<u8>) {
+        match self {
+            Framing::Rtu => (frame.first().copied(), frame.get(1).copied()),
+            Framing::Ascii => {
+                let pair = |at: usize| {
+                    let digits = std::str::from_utf8(frame.get(at..at + 2)?).ok()?;
+                    u8::from_str_radix(digits, 16).ok()
+                };
+                (pair(1), pair(3))
+            }
+        }
+    }
+
     /// Characters on the wire of a frame carrying a PDU of `pdu_len` bytes: RTU adds the
     /// address and the CRC; ASCII writes address, PDU and LRC as hex pairs between `:` and CR LF.
     pub fn frame_len(self, pdu_len: usize) -> usize {

@@ -11,13 +11,15 @@ pub mod reply;
 pub mod rtu;
 pub mod timing;
 
-pub use engine::{LineCounters, LineMaster, MasterTiming, Reply, TxError};
+pub use engine::{LineCounters, LineMaster, MasterTiming, RecordedFrame, Reply, Seen, TxError};
 pub use framing::Framing;
 pub use reply::{ReplyForm, Verdict};
 pub use timing::{LineTiming, Parity, SerialFormat};
 
 use std::future::Future;
 use std::io;
+use std::time::Duration;
+use tokio::time::Instant;
 
 /// The slave address that every slave obeys and none answers, in every serial framing.
 pub const BROADCAST: u8 = 0;
@@ -25,8 +27,17 @@ pub const BROADCAST: u8 = 0;
 /// A byte pipe onto an RS-485 line as a UART driver presents it.
 pub trait Transport: Send {
     /// Hand a whole frame to the driver. Returns when the driver holds it, which is before the
-    /// last byte has left the wire.
+    /// last byte has left the wire, unless the transport says otherwise in
+    /// [`Transport::end_of_transmission`].
     fn send(&mut self, frame: &[u8]) -> impl Future<Output = io::Result<()>> + Send;
+
+    /// When a frame whose `send` returned at `returned`, and which takes `frame_time` on the
+    /// wire, is out and the line free for the reply: by default `frame_time` later. A port that
+    /// switches the RS-485 transceiver itself returns once it has dropped its driver (then); the
+    /// kernel's RS-485 mode adds its delays around the frame.
+    fn end_of_transmission(&self, returned: Instant, frame_time: Duration) -> Instant {
+        returned + frame_time
+    }
 
     /// Wait for received bytes and append them to `buf`. `Ok(0)` means the port is gone (an
     /// unplugged adapter reads 0 bytes forever). Must be cancel-safe: a receive that is dropped

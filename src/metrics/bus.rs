@@ -4,6 +4,7 @@
 
 use super::labels::{decimal, seconds_since_epoch, Fate, Protocol};
 use super::{Definer, RequestCounters, BUS_EVENTS};
+use crate::bus::latency::LatencyTimer;
 use crate::config;
 use crate::error::{Answer, Outcome, RequestError};
 use crate::line::LineCounters;
@@ -14,9 +15,10 @@ use prometheus::{
 };
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::fmt::Display;
+use std::io;
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
-use tracing::{debug, info, warn};
+use tracing::{debug, error, info, warn};
 
 /// The families of every bus's series, registry-wide; each bus takes its label values.
 pub(super) struct BusFamilies {
@@ -38,6 +40,7 @@ pub(super) struct BusFamilies {
     port_up: IntGaugeVec,
     port_reopens: IntCounterVec,
     port_open_errors: IntCounterVec,
+    latency_timer: GaugeVec,
 }
 
 /// The `class` label of the queue wait: the others, then the priority masters.
@@ -147,6 +150,12 @@ impl BusFamilies {
                 "Attempts to open the serial port that failed.",
                 bus,
             ),
+            latency_timer: define.gauge(
+                "modbus_gateway_serial_latency_timer_seconds",
+                "The USB serial adapter's latency timer, read when the port was opened; no series \
+                 if the device has none.",
+                bus,
+            ),
         }
     }
 
@@ -174,6 +183,7 @@ impl BusFamilies {
             port_up: self.port_up.with_label_values(labels),
             port_reopens: self.port_reopens.with_label_values(labels),
             port_open_errors: self.port_open_errors.with_label_values(labels),
+            latency_timer: self.latency_timer.clone(),
             retries: self.retries.clone(),
             coalesced: self.coalesced.clone(),
             cache_hits: self.cache_hits.clone(),
@@ -203,6 +213,7 @@ impl BusFamilies {
             let _ = vec.remove_label_values(labels);
         }
         let _ = self.busy.remove_label_values(labels);
+        let _ = self.latency_timer.remove_label_values(labels);
         let _ = self.round_trip.remove_label_values(labels);
         for class in CLASSES {
             let _ = self.queue_wait.remove_label_values(&[&*bus.name, class]);
@@ -263,6 +274,7 @@ pub struct BusMetrics {
     pub(super) port_up: IntGauge,
     pub(super) port_reopens: IntCounter,
     pub(super) port_open_errors: IntCounter,
+    pub(super) latency_timer: GaugeVec,
     pub(super) retries: IntCounterVec,
     pub(super) coalesced: IntCounterVec,
     pub(super) cache_hits: IntCounterVec,
@@ -515,14 +527,78 @@ impl BusMetrics {
         warn!(target: BUS_EVENTS, bus = &*self.name, device, %error, "serial port lost; answering 0x0A and reopening");
     }
 
-    /// An open failed; only the first failure of an outage is logged above debug level.
-    pub fn open_failed(&self, device: &str, error: &dyn Display, first: bool) {
+    /// The USB adapter's latency timer as the port's open found (and maybe set) it, or `None` if
+    /// the device has none. `key` is the bus's (`bus[0]`).
+    pub fn latency_timer(&self, device: &str, key: &str, timer: Option<&LatencyTimer>) {
+        let bus = &*self.name;
+        let Some(timer) = timer else {
+            let _ = self.latency_timer.remove_label_values(&[bus]);
+            return;
+        };
+        let latency_timer_ms = timer.value.as_millis();
+        let file = timer.file.display().to_string();
+        match &timer.refused {
+            None => {
+                info!(target: BUS_EVENTS, bus, device, latency_timer_ms, file, "USB adapter latency timer");
+            }
+            Some(error) => {
+                warn!(target: BUS_EVENTS, bus, device, latency_timer_ms, file, %error, "cannot set {key}.latency_timer; the adapter keeps its timer (see docs/rs485.md for a udev rule)");
+            }
+        }
+        self.latency_timer
+            .with_label_values(&[bus])
+            .set(timer.value.as_secs_f64());
+    }
+
+    /// An open failed; only the first failure of an outage is logged above debug level, at
+    /// error if the device refuses what the configuration asks of it (retrying will not cure
+    /// that), else at warn.
+    pub fn open_failed(&self, device: &str, error: &io::Error, first: bool) {
         self.port_open_errors.inc();
         let bus = &*self.name;
-        if first {
+        if first && error.kind() == io::ErrorKind::Unsupported {
+            error!(target: BUS_EVENTS, bus, device, %error, "cannot open serial port; answering 0x0A and retrying");
+        } else if first {
             warn!(target: BUS_EVENTS, bus, device, %error, "cannot open serial port; answering 0x0A and retrying");
         } else {
             debug!(target: BUS_EVENTS, bus, device, %error, "serial port still cannot be opened");
         }
+    }
+}
+
+#[cfg(test)]
+mod latency_tests {
+    use crate::bus::latency::LatencyTimer;
+    use crate::metrics::Metrics;
+    use std::time::Duration;
+
+    const SERIES: &str = "modbus_gateway_serial_latency_timer_seconds{bus=\"line1\"}";
+
+    fn sample(metrics: &Metrics) -> Option<f64> {
+        let text = metrics.render().unwrap();
+        text.lines()
+            .find_map(|line| line.strip_prefix(SERIES)?.strip_prefix(' '))
+            .map(|v| v.parse().unwrap())
+    }
+
+    #[test]
+    fn the_latency_timer_found_at_open_is_exported_in_seconds_and_dropped_when_there_is_none() {
+        let metrics = Metrics::new();
+        let settings =
+            crate::Config::from_toml_str("[[bus]]\nname = \"line1\"\ndevice = \"/dev/ttyUSB0\"\n")
+                .unwrap()
+                .bus
+                .remove(0);
+        let bus = metrics.bus(&settings);
+        assert_eq!(sample(&metrics), None, "unknown until the port opens");
+        let timer = LatencyTimer {
+            file: "/sys/bus/usb-serial/devices/ttyUSB0/latency_timer".into(),
+            value: Duration::from_millis(16),
+            refused: None,
+        };
+        bus.latency_timer("/dev/ttyUSB0", "bus[0]", Some(&timer));
+        assert_eq!(sample(&metrics), Some(0.016));
+        bus.latency_timer("/dev/ttyUSB0", "bus[0]", None);
+        assert_eq!(sample(&metrics), None);
     }
 }

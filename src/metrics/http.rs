@@ -1,13 +1,16 @@
 //! The HTTP endpoint on `metrics.listen`: `/` (the status page), `/status` (its data, JSON),
-//! `/metrics` (Prometheus text format), `/healthz` (the process answers) and `/readyz` (every bus
-//! has its port open, else 503 naming those that have not). HTTP/1.1 by hyper; a few scrapers
-//! at a time, each bounded in time, so a stuck client cannot hold the endpoint.
+//! `/metrics` (Prometheus text format), `/healthz` (the process answers), `/readyz` (every bus
+//! has its port open, else 503 naming those that have not) and `/trace` (the live trace of the
+//! lines, `metrics::sse`). HTTP/1.1 by hyper; a few scrapers at a time, each bounded in time, so
+//! a stuck client cannot hold the endpoint; a trace stream is bounded in number instead, and
+//! lasts as long as its reader.
 
+use super::sse;
 use super::status::{self, Status};
 use super::Metrics;
 use base64::prelude::{Engine, BASE64_STANDARD};
 use bytes::Bytes;
-use http_body_util::Full;
+use http_body_util::{Either, Full};
 use hyper::body::Incoming;
 use hyper::header::{
     HeaderValue, ALLOW, CACHE_CONTROL, CONTENT_SECURITY_POLICY, CONTENT_TYPE,
@@ -17,6 +20,7 @@ use hyper::service::service_fn;
 use hyper::{Method, Request, Response, StatusCode};
 use hyper_util::rt::{TokioIo, TokioTimer};
 use std::convert::Infallible;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 use tokio::net::TcpListener;
@@ -75,16 +79,32 @@ pub async fn serve(
         };
         let state = state.clone();
         tokio::spawn(async move {
-            let service = service_fn(move |request| {
-                let response = respond(&state, &request);
+            // Whether the connection carries a trace stream, which lasts as long as its reader.
+            let streaming = Arc::new(AtomicBool::new(false));
+            let streams = streaming.clone();
+            let service = service_fn(move |request: Request<Incoming>| {
+                let response =
+                    if request.uri().path() == "/trace" && request.method() == Method::GET {
+                        let response = sse::respond(&state.metrics.trace, request.uri().query());
+                        streams.fetch_or(response.status() == StatusCode::OK, Ordering::Relaxed);
+                        response
+                    } else {
+                        respond(&state, &request).map(Either::Left)
+                    };
                 async move { Ok::<_, Infallible>(response) }
             });
             let connection = hyper::server::conn::http1::Builder::new()
                 .timer(TokioTimer::new())
                 .header_read_timeout(HEADER_TIMEOUT)
                 .serve_connection(TokioIo::new(stream), service);
-            // A connection past its lifetime is simply dropped.
-            if let Ok(Err(error)) = tokio::time::timeout(CONNECTION_LIFETIME, connection).await {
+            let mut connection = std::pin::pin!(connection);
+            // A connection past its lifetime is simply dropped, unless it streams the trace.
+            let ended = match tokio::time::timeout(CONNECTION_LIFETIME, connection.as_mut()).await {
+                Ok(ended) => Some(ended),
+                Err(_) if streaming.load(Ordering::Relaxed) => Some(connection.await),
+                Err(_) => None,
+            };
+            if let Some(Err(error)) = ended {
                 debug!(%peer, %error, "metrics endpoint: connection failed");
             }
             drop(slot);
@@ -192,7 +212,8 @@ fn respond(state: &State, request: &Request<Incoming>) -> Response<Full<Bytes>> 
         _ => response(
             StatusCode::NOT_FOUND,
             TEXT,
-            "not found; try / (the status page), /status, /metrics, /healthz or /readyz\n".into(),
+            "not found; try / (the status page), /status, /trace, /metrics, /healthz or /readyz\n"
+                .into(),
         ),
     }
 }

@@ -3,7 +3,7 @@
 //! and codes as strings made once. Bounded sets, all of them; nothing here counts.
 
 use crate::error::{Answer, Outcome, RequestError};
-use crate::line::TxError;
+use crate::line::{Reply, TxError};
 use std::sync::OnceLock;
 use std::time::{SystemTime, UNIX_EPOCH};
 
@@ -101,19 +101,42 @@ impl Fate {
                     RequestError::QueueFull => Fate::QueueFull,
                     RequestError::Expired => Fate::Expired,
                     RequestError::ShuttingDown => Fate::Shutdown,
-                    RequestError::NoResponse { last, .. } => match last {
-                        TxError::Timeout => Fate::Timeout,
-                        TxError::Check => Fate::CrcError,
-                        TxError::Frame => Fate::FrameError,
-                        TxError::LineBusy => Fate::LineBusy,
-                        TxError::PortLost(_) => Fate::PortDown,
-                    },
+                    RequestError::NoResponse { last, .. } => Fate::of_failed_try(last),
                 };
                 (
                     fate,
                     Some((ExceptionSource::Gateway, error.exception_code() as u8)),
                 )
             }
+        }
+    }
+}
+
+impl Fate {
+    /// The fate of one try on the line (a request may take several), as the trace shows it.
+    pub fn of_try(result: &Result<Reply, TxError>) -> Fate {
+        match result {
+            Ok(Reply::Fits(pdu))
+                if pdu
+                    .first()
+                    .is_some_and(|f| f & crate::pdu::EXCEPTION_BIT != 0) =>
+            {
+                Fate::Exception
+            }
+            Ok(Reply::Fits(_)) => Fate::Ok,
+            Ok(Reply::Malformed(_)) => Fate::MalformedReply,
+            Err(error) => Fate::of_failed_try(error),
+        }
+    }
+
+    /// The fate of a try that got no answer.
+    pub fn of_failed_try(error: &TxError) -> Fate {
+        match error {
+            TxError::Timeout => Fate::Timeout,
+            TxError::Check => Fate::CrcError,
+            TxError::Frame | TxError::Echo => Fate::FrameError,
+            TxError::LineBusy => Fate::LineBusy,
+            TxError::PortLost(_) => Fate::PortDown,
         }
     }
 }

@@ -8,6 +8,7 @@
 mod bus;
 pub mod http;
 mod labels;
+mod sse;
 pub mod status;
 mod tcp;
 mod tls;
@@ -130,6 +131,8 @@ pub struct Metrics {
     pub tcp: TcpMetrics,
     pub udp: UdpMetrics,
     pub tls: TlsMetrics,
+    /// The live trace of the lines' frames (`GET /trace`).
+    pub trace: Arc<crate::trace::TraceHub>,
     /// Gauges read from their source at scrape time (queue depths).
     scrape_hooks: Mutex<Vec<ScrapeHook>>,
 }
@@ -162,6 +165,7 @@ impl Metrics {
             tcp: TcpMetrics::new(&define),
             udp: UdpMetrics::new(&define),
             tls: TlsMetrics::new(&define),
+            trace: Arc::new(crate::trace::TraceHub::new()),
             scrape_hooks: Mutex::new(Vec::new()),
             registry: registry.clone(),
         };

@@ -18,8 +18,8 @@ const UTILISATION_WINDOW: Duration = Duration::from_secs(60);
 /// Samples of a line's busy time closer together than this are not kept.
 const SAMPLE_SPACING: Duration = Duration::from_secs(1);
 
-/// The whole page's data.
-#[derive(Clone, Debug, Serialize)]
+/// The whole page's data; its default, a gateway with nothing to show.
+#[derive(Clone, Debug, Default, Serialize)]
 pub struct Status {
     pub version: &'static str,
     /// When the answer was made (RFC 3339, UTC).

@@ -1,4 +1,4 @@
-//! The README's walkthrough "Modbus/TCP Security (TLS)", run as a user would: its shell blocks
+//! The walkthrough "Modbus/TCP Security (TLS)" (docs/security.md), run as a user would: its shell blocks
 //! (openssl) make a CA, the gateway's certificate and the operator's and viewer's in a fresh
 //! directory, `config/demo-tls.toml` serves them, and pymodbus's TLS client
 //! (`tests/peers/pymodbus_tls_master.py`, and the README's own Python) is the master. The
@@ -15,7 +15,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
-const README: &str = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md"));
+/// The walkthrough's page.
+const README: &str = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/docs/security.md"));
 const DEMO_TLS: &str = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/config/demo-tls.toml"));
 const HEADING: &str = "## Modbus/TCP Security (TLS)";
 const TLS_MASTER: &str = concat!(
@@ -30,7 +31,7 @@ static DIRS: AtomicUsize = AtomicUsize::new(0);
 fn section() -> &'static str {
     let start = README
         .find(&format!("\n{HEADING}\n"))
-        .unwrap_or_else(|| panic!("README.md has no section `{HEADING}`"));
+        .unwrap_or_else(|| panic!("docs/security.md has no section `{HEADING}`"));
     let body = &README[start + HEADING.len() + 2..];
     &body[..body.find("\n## ").unwrap_or(body.len())]
 }
@@ -62,7 +63,7 @@ fn blocks(lang: &str) -> Vec<String> {
     );
     assert!(
         !found.is_empty(),
-        "`{HEADING}` in README.md has no ```{lang} block"
+        "`{HEADING}` in docs/security.md has no ```{lang} block"
     );
     found
 }

@@ -1,0 +1,448 @@
+//! The `trace` subcommand: read `GET /trace` from a running gateway's metrics endpoint and print
+//! each frame decoded for a terminal, one line per frame, until Ctrl-C. What a frame means comes
+//! from the function-code table in [`crate::pdu`]; the wire format from [`crate::line`]. Knows
+//! nothing of how the gateway makes the stream.
+
+use super::stop_signal;
+use crate::line::{ascii, rtu};
+use crate::pdu::{self, code};
+use bytes::Bytes;
+use http_body_util::{BodyExt, Empty};
+use hyper::header::HOST;
+use hyper::{Request, StatusCode, Uri};
+use hyper_util::rt::TokioIo;
+use serde::Deserialize;
+use std::fmt::Write as _;
+use std::io::Write as _;
+use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
+use std::process::ExitCode;
+use tokio::net::TcpStream;
+
+/// The trace URL of the metrics endpoint listening on `listen` (a wildcard address is reached
+/// on loopback).
+pub fn url_of(listen: SocketAddr) -> String {
+    let ip = match listen.ip() {
+        IpAddr::V4(ip) if ip.is_unspecified() => IpAddr::V4(Ipv4Addr::LOCALHOST),
+        IpAddr::V6(ip) if ip.is_unspecified() => IpAddr::V6(Ipv6Addr::LOCALHOST),
+        ip => ip,
+    };
+    format!("http://{}/trace", SocketAddr::new(ip, listen.port()))
+}
+
+/// `url` (`/trace` when it names no path) with the filters in its query.
+fn with_filters(url: &str, bus: Option<&str>, slave: Option<u8>) -> Result<Uri, String> {
+    let uri: Uri = url.parse().map_err(|e| format!("`{url}` is no URL: {e}"))?;
+    if uri.scheme_str() != Some("http") || uri.authority().is_none() {
+        return Err(format!(
+            "`{url}`: an http:// URL with host and port is needed"
+        ));
+    }
+    let path = match uri.path() {
+        "" | "/" => "/trace",
+        path => path,
+    };
+    let mut query: Vec<String> = uri.query().map(str::to_owned).into_iter().collect();
+    query.extend(bus.map(|bus| format!("bus={bus}")));
+    query.extend(slave.map(|slave| format!("slave={slave}")));
+    let query = if query.is_empty() {
+        String::new()
+    } else {
+        format!("?{}", query.join("&"))
+    };
+    let authority = uri.authority().map(ToString::to_string).unwrap_or_default();
+    format!("http://{authority}{path}{query}")
+        .parse()
+        .map_err(|e| format!("`{url}`: {e}"))
+}
+
+/// Print the frames of the trace at `url`, filtered, until Ctrl-C (exit 0) or until the stream
+/// cannot be had or ends (exit 1, saying why).
+pub fn trace(url: &str, bus: Option<&str>, slave: Option<u8>) -> ExitCode {
+    let uri = match with_filters(url, bus, slave) {
+        Ok(uri) => uri,
+        Err(e) => {
+            eprintln!("modbus-gateway: trace: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let runtime = match tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(runtime) => runtime,
+        Err(e) => {
+            eprintln!("modbus-gateway: trace: cannot start the runtime: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    runtime.block_on(async {
+        tokio::select! {
+            error = follow(&uri) => {
+                eprintln!("modbus-gateway: trace: {uri}: {error}");
+                ExitCode::FAILURE
+            }
+            () = stop_signal() => ExitCode::SUCCESS,
+        }
+    })
+}
+
+/// Read the stream at `uri` and print it; returns why it ended.
+async fn follow(uri: &Uri) -> String {
+    let authority = uri.authority().map(ToString::to_string).unwrap_or_default();
+    let stream = match TcpStream::connect(&authority).await {
+        Ok(stream) => stream,
+        Err(e) => return format!("cannot reach the gateway's metrics endpoint: {e}"),
+    };
+    let (mut sender, connection) = match hyper::client::conn::http1::handshake::<_, Empty<Bytes>>(
+        TokioIo::new(stream),
+    )
+    .await
+    {
+        Ok(handshake) => handshake,
+        Err(e) => return format!("cannot talk HTTP to it: {e}"),
+    };
+    tokio::spawn(connection);
+    let path = uri.path_and_query().map_or("/trace", |p| p.as_str());
+    let request = match Request::get(path)
+        .header(HOST, &authority)
+        .body(Empty::new())
+    {
+        Ok(request) => request,
+        Err(e) => return e.to_string(),
+    };
+    let mut response = match sender.send_request(request).await {
+        Ok(response) => response,
+        Err(e) => return format!("no answer: {e}"),
+    };
+    let status = response.status();
+    if status != StatusCode::OK {
+        let body = response.into_body().collect().await.ok();
+        let text = body.map(|b| String::from_utf8_lossy(&b.to_bytes()).trim().to_owned());
+        return format!("refused ({status}): {}", text.unwrap_or_default());
+    }
+    let mut events = Events::default();
+    let mut out = std::io::stdout().lock();
+    while let Some(frame) = response.body_mut().frame().await {
+        let Ok(frame) = frame else {
+            return "the stream broke off".into();
+        };
+        let Some(data) = frame.data_ref() else {
+            continue;
+        };
+        for line in events.feed(&String::from_utf8_lossy(data)) {
+            if writeln!(out, "{line}").and_then(|()| out.flush()).is_err() {
+                return "cannot write to stdout".into();
+            }
+        }
+    }
+    "the gateway ended the trace".into()
+}
+
+/// Server-Sent Events, cut into events as their text comes, each turned into a line to print.
+#[derive(Default)]
+struct Events {
+    pending: String,
+}
+
+impl Events {
+    /// The lines to print for the events completed by `text`.
+    fn feed(&mut self, text: &str) -> Vec<String> {
+        self.pending.push_str(text);
+        let mut lines = Vec::new();
+        while let Some(end) = self.pending.find("\n\n") {
+            let event: String = self.pending.drain(..end + 2).collect();
+            let (mut kind, mut data) = ("message", String::new());
+            for line in event.lines() {
+                if let Some(value) = line.strip_prefix("event:") {
+                    kind = if value.trim() == "frame" {
+                        "frame"
+                    } else if value.trim() == "lost" {
+                        "lost"
+                    } else {
+                        "other"
+                    };
+                } else if let Some(value) = line.strip_prefix("data:") {
+                    data.push_str(value.trim_start());
+                }
+            }
+            match kind {
+                "frame" => lines.push(match serde_json::from_str::<Frame>(&data) {
+                    Ok(frame) => frame.describe(),
+                    Err(e) => format!("(an event this version cannot read: {e}: {data})"),
+                }),
+                "lost" => {
+                    let lost = serde_json::from_str::<Lost>(&data).map_or(0, |l| l.lost);
+                    lines.push(format!("lost {lost} events"));
+                }
+                _ => {}
+            }
+        }
+        lines
+    }
+}
+
+#[derive(Deserialize)]
+struct Lost {
+    lost: u64,
+}
+
+/// A `frame` event's data.
+#[derive(Deserialize)]
+struct Frame {
+    time: String,
+    bus: String,
+    direction: String,
+    slave: u8,
+    function: u8,
+    hex: String,
+    outcome: String,
+}
+
+fn word(pdu: &[u8], at: usize) -> Option<u16> {
+    Some(u16::from_be_bytes([*pdu.get(at)?, *pdu.get(at + 1)?]))
+}
+
+/// `addr A count N`, `addr A value 0xV`: the two words after the function code.
+fn address_and(pdu: &[u8], second: &str) -> String {
+    match (word(pdu, 1), word(pdu, 3)) {
+        (Some(address), Some(n)) if second == "count" => format!("addr {address} count {n}"),
+        (Some(address), Some(value)) => format!("addr {address} {second} 0x{value:04x}"),
+        _ => String::new(),
+    }
+}
+
+/// What a request says beyond its function.
+fn request_fields(pdu: &[u8]) -> String {
+    match pdu[0] {
+        code::READ_COILS
+        | code::READ_DISCRETE_INPUTS
+        | code::READ_HOLDING_REGISTERS
+        | code::READ_INPUT_REGISTERS
+        | code::WRITE_MULTIPLE_COILS => address_and(pdu, "count"),
+        code::WRITE_SINGLE_COIL | code::WRITE_SINGLE_REGISTER => address_and(pdu, "value"),
+        code::WRITE_MULTIPLE_REGISTERS => {
+            let values = registers(pdu.get(6..).unwrap_or_default());
+            format!("{}: {values}", address_and(pdu, "count"))
+        }
+        _ => String::new(),
+    }
+}
+
+/// What a normal reply says beyond its function.
+fn reply_fields(pdu: &[u8]) -> String {
+    let counted = pdu.get(2..).unwrap_or_default();
+    match pdu[0] {
+        code::READ_HOLDING_REGISTERS
+        | code::READ_INPUT_REGISTERS
+        | code::READ_WRITE_MULTIPLE_REGISTERS => {
+            format!("{} registers: {}", counted.len() / 2, registers(counted))
+        }
+        code::READ_COILS | code::READ_DISCRETE_INPUTS => {
+            format!(
+                "{} bytes of bits: {}",
+                counted.len(),
+                crate::trace::hex(counted)
+            )
+        }
+        code::WRITE_SINGLE_COIL | code::WRITE_SINGLE_REGISTER => address_and(pdu, "value"),
+        code::WRITE_MULTIPLE_COILS | code::WRITE_MULTIPLE_REGISTERS => address_and(pdu, "count"),
+        _ => String::new(),
+    }
+}
+
+/// `0x0000 0x0001`: big-endian registers.
+fn registers(bytes: &[u8]) -> String {
+    let words: Vec<String> = bytes
+        .chunks_exact(2)
+        .map(|w| format!("0x{:02x}{:02x}", w[0], w[1]))
+        .collect();
+    words.join(" ")
+}
+
+/// The PDU a wire frame carries: an ASCII frame's if it is one, else an RTU frame's (whether or
+/// not its check passes: the outcome says that).
+fn pdu_of(frame: &[u8]) -> Option<Vec<u8>> {
+    let mut pdu = Vec::new();
+    if frame.first() == Some(&b':') && ascii::decode_into(frame, &mut pdu).is_some() {
+        return Some(pdu);
+    }
+    (frame.len() >= 4).then(|| rtu::pdu_of(frame).to_vec())
+}
+
+impl Frame {
+    /// One line for a terminal: `14:00:00.123456 line1 tx  slave 1    read holding registers
+    /// 0x03  addr 0 count 2   01 03 00 00 00 02 c4 0b`.
+    fn describe(&self) -> String {
+        // The time of day (UTC) of the RFC 3339 time: between the `T` and the `Z`.
+        let time = self
+            .time
+            .split_once('T')
+            .map_or(self.time.as_str(), |(_, t)| t.trim_end_matches('Z'));
+        let bytes: Vec<u8> = self
+            .hex
+            .split_whitespace()
+            .filter_map(|b| u8::from_str_radix(b, 16).ok())
+            .collect();
+        let pdu = pdu_of(&bytes).filter(|pdu| !pdu.is_empty());
+        let mut line = format!(
+            "{time} {} {:<3} slave {:<3}  ",
+            self.bus, self.direction, self.slave
+        );
+        let function = self.function;
+        if self.direction == "tx" {
+            let name = pdu::function(function).map_or("function", |f| f.name);
+            let _ = write!(line, "{} 0x{function:02x}", name.to_lowercase());
+            if let Some(pdu) = &pdu {
+                push_fields(&mut line, &request_fields(pdu));
+            }
+            // An answer's outcome is on its own line; a try that got none says so here.
+            if !matches!(self.outcome.as_str(), "ok" | "exception") {
+                let _ = write!(line, "  ({})", self.outcome);
+            }
+        } else {
+            let _ = write!(line, "0x{function:02x} ");
+            let readable = matches!(self.outcome.as_str(), "ok" | "foreign" | "malformed_reply");
+            match &pdu {
+                Some(pdu) if function & pdu::EXCEPTION_BIT != 0 && pdu.len() > 1 => {
+                    let code = pdu[1];
+                    let _ = write!(line, "exception 0x{code:02x}");
+                    if let Some(name) = pdu::exception_name(code) {
+                        let _ = write!(line, " {name}");
+                    }
+                    if self.outcome != "exception" {
+                        let _ = write!(line, " ({})", self.outcome);
+                    }
+                }
+                Some(pdu) if readable => {
+                    line.push_str(&self.outcome);
+                    push_fields(&mut line, &reply_fields(pdu));
+                }
+                _ => line.push_str(&self.outcome),
+            }
+        }
+        let _ = write!(line, "   {}", self.hex);
+        line
+    }
+}
+
+fn push_fields(line: &mut String, fields: &str) {
+    if !fields.is_empty() {
+        line.push_str("  ");
+        line.push_str(fields);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn frame(direction: &str, hex: &str, outcome: &str) -> Frame {
+        let bytes: Vec<u8> = hex
+            .split(' ')
+            .map(|b| u8::from_str_radix(b, 16).unwrap())
+            .collect();
+        Frame {
+            time: "2026-11-23T14:00:00.123456Z".into(),
+            bus: "line1".into(),
+            direction: direction.into(),
+            slave: bytes[0],
+            function: bytes[1],
+            hex: hex.into(),
+            outcome: outcome.into(),
+        }
+    }
+
+    #[test]
+    fn a_read_and_its_reply_are_decoded_with_their_registers() {
+        // Slave 1, read 2 holding registers from 0000H; its answer 0x0000 0x0001.
+        let tx = frame("tx", "01 03 00 00 00 02 c4 0b", "ok");
+        assert_eq!(
+            tx.describe(),
+            "14:00:00.123456 line1 tx  slave 1    read holding registers 0x03  addr 0 count 2   \
+             01 03 00 00 00 02 c4 0b"
+        );
+        let rx = frame("rx", "01 03 04 00 00 00 01 3b f3", "ok");
+        assert_eq!(
+            rx.describe(),
+            "14:00:00.123456 line1 rx  slave 1    0x03 ok  2 registers: 0x0000 0x0001   \
+             01 03 04 00 00 00 01 3b f3"
+        );
+    }
+
+    #[test]
+    fn an_exception_is_named_and_a_vendor_code_is_shown_by_number() {
+        let rx = frame("rx", "01 83 02 c0 f1", "exception");
+        assert!(
+            rx.describe()
+                .contains("slave 1    0x83 exception 0x02 illegal data address   01 83 02 c0 f1"),
+            "{}",
+            rx.describe()
+        );
+        let vendor = frame("rx", "01 86 07 03 a2", "exception");
+        assert!(
+            vendor.describe().contains("0x86 exception 0x07   "),
+            "{}",
+            vendor.describe()
+        );
+    }
+
+    #[test]
+    fn a_request_that_got_no_reply_shows_its_outcome_and_writes_show_their_values() {
+        let tx = frame("tx", "05 06 00 01 13 88 d4 d8", "timeout");
+        assert!(
+            tx.describe().contains(
+                "tx  slave 5    write single register 0x06  addr 1 value 0x1388  (timeout)   05 06"
+            ),
+            "{}",
+            tx.describe()
+        );
+    }
+
+    #[test]
+    fn an_ascii_frame_is_decoded_from_its_characters() {
+        // `:` 01 03 0000 0002 LRC(FA) CR LF
+        let hex = crate::trace::hex(b":010300000002FA\r\n");
+        let mut tx = frame("tx", "01 03", "ok");
+        tx.hex = hex;
+        assert!(
+            tx.describe()
+                .contains("read holding registers 0x03  addr 0 count 2   3a 30 31"),
+            "{}",
+            tx.describe()
+        );
+    }
+
+    #[test]
+    fn events_are_cut_from_the_stream_wherever_its_chunks_end() {
+        let stream =
+            ": modbus-gateway trace\n\n: keepalive\n\nevent: lost\ndata: {\"lost\":17}\n\n\
+            event: frame\ndata: {\"time\":\"2026-11-23T14:00:00.123456Z\",\"bus\":\"line1\",\
+            \"direction\":\"tx\",\"slave\":1,\"function\":3,\"hex\":\"01 03 00 00 00 02 c4 0b\",\
+            \"outcome\":\"ok\"}\n\n";
+        let mut events = Events::default();
+        let mut lines = Vec::new();
+        for chunk in stream.as_bytes().chunks(7) {
+            lines.extend(events.feed(std::str::from_utf8(chunk).unwrap()));
+        }
+        assert_eq!(lines.len(), 2, "{lines:?}");
+        assert_eq!(lines[0], "lost 17 events");
+        assert!(
+            lines[1].starts_with("14:00:00.123456 line1 tx"),
+            "{lines:?}"
+        );
+    }
+
+    #[test]
+    fn the_url_gets_the_trace_path_and_the_filters() {
+        let uri = with_filters("http://127.0.0.1:9502", Some("line1"), Some(3)).unwrap();
+        assert_eq!(
+            uri.to_string(),
+            "http://127.0.0.1:9502/trace?bus=line1&slave=3"
+        );
+        assert_eq!(
+            url_of("0.0.0.0:9502".parse().unwrap()),
+            "http://127.0.0.1:9502/trace"
+        );
+        assert!(with_filters("ftp://x", None, None).is_err());
+    }
+}

@@ -1,0 +1,514 @@
+//! The live trace: `GET /trace` read over real HTTP from a gateway on the simulated line (frames,
+//! filters, timeouts, refusals, a stream that outlives the endpoint's connection lifetime), a
+//! reader that stops reading on the paused clock, the trace's gate with no reader, and the
+//! `trace` subcommand run as the real binary.
+
+use crate::support::{http_get, sim_bus_counted, start, start_sim, within, RawMaster};
+use bytes::Bytes;
+use http_body_util::{BodyExt, Empty};
+use hyper::body::Incoming;
+use modbus_gateway::metrics::Metrics;
+use modbus_gateway::sim::Source;
+use modbus_gateway::trace::Traced;
+use modbus_gateway::Config;
+use serde_json::Value;
+use std::io::BufRead;
+use std::net::SocketAddr;
+use std::process::{Command, Stdio};
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::net::TcpStream;
+
+const BINARY: &str = env!("CARGO_BIN_EXE_modbus-gateway");
+
+/// A reader of `GET /trace` on a real HTTP connection.
+struct Trace {
+    response: hyper::Response<Incoming>,
+    pending: String,
+}
+
+/// One SSE event: its name and its data as JSON, or a comment's text.
+#[derive(Debug)]
+enum Event {
+    Frame(Value),
+    Lost(u64),
+    Comment(String),
+}
+
+impl Trace {
+    async fn open(addr: SocketAddr, query: &str) -> Trace {
+        let stream = within("connect", TcpStream::connect(addr)).await.unwrap();
+        let (mut sender, connection) =
+            hyper::client::conn::http1::handshake(hyper_util::rt::TokioIo::new(stream))
+                .await
+                .unwrap();
+        tokio::spawn(connection);
+        let request = hyper::Request::get(format!("/trace{query}"))
+            .header(hyper::header::HOST, addr.to_string())
+            .body(Empty::<Bytes>::new())
+            .unwrap();
+        let response = within("trace response", sender.send_request(request))
+            .await
+            .unwrap();
+        assert_eq!(response.status(), 200);
+        let headers = response.headers();
+        assert_eq!(headers["content-type"], "text/event-stream");
+        assert_eq!(headers["cache-control"], "no-cache");
+        let mut trace = Trace {
+            response,
+            pending: String::new(),
+        };
+        assert!(
+            matches!(trace.next().await, Some(Event::Comment(c)) if c == "modbus-gateway trace"),
+            "the stream opens with its comment"
+        );
+        trace
+    }
+
+    /// The next event, comments included; `None` once the stream has ended.
+    async fn next(&mut self) -> Option<Event> {
+        loop {
+            if let Some(end) = self.pending.find("\n\n") {
+                let text: String = self.pending.drain(..end + 2).collect();
+                let text = text.trim_end();
+                if let Some(comment) = text.strip_prefix(": ") {
+                    return Some(Event::Comment(comment.to_owned()));
+                }
+                let (name, data) = text.split_once('\n').expect("event and data lines");
+                let data: Value = serde_json::from_str(data.strip_prefix("data: ").unwrap())
+                    .unwrap_or_else(|e| panic!("{e}: {text}"));
+                return Some(match name {
+                    "event: frame" => Event::Frame(data),
+                    "event: lost" => Event::Lost(data["lost"].as_u64().unwrap()),
+                    _ => panic!("unknown event {text}"),
+                });
+            }
+            let frame = within("a trace event", self.response.body_mut().frame()).await?;
+            let data = frame.unwrap().into_data().unwrap();
+            self.pending.push_str(std::str::from_utf8(&data).unwrap());
+        }
+    }
+
+    /// The next frame event, skipping keepalives; a lost event fails.
+    async fn frame(&mut self) -> Value {
+        loop {
+            match self.next().await.expect("the stream goes on") {
+                Event::Frame(frame) => return frame,
+                Event::Comment(_) => {}
+                Event::Lost(n) => panic!("lost {n} events"),
+            }
+        }
+    }
+}
+
+/// A frame event's fields that the line decides: bus, direction, slave, function, hex, outcome.
+fn fields(frame: &Value) -> (String, String, u64, u64, String, String) {
+    let text = |key: &str| frame[key].as_str().unwrap().to_owned();
+    (
+        text("bus"),
+        text("direction"),
+        frame["slave"].as_u64().unwrap(),
+        frame["function"].as_u64().unwrap(),
+        text("hex"),
+        text("outcome"),
+    )
+}
+
+fn expect(
+    bus: &str,
+    direction: &str,
+    slave: u64,
+    function: u64,
+    hex: &str,
+    outcome: &str,
+) -> (String, String, u64, u64, String, String) {
+    (
+        bus.into(),
+        direction.into(),
+        slave,
+        function,
+        hex.into(),
+        outcome.into(),
+    )
+}
+
+/// `01 03 00 00`: the trace's hex.
+fn hex(bytes: &[u8]) -> String {
+    let pairs: Vec<String> = bytes.iter().map(|b| format!("{b:02x}")).collect();
+    pairs.join(" ")
+}
+
+#[tokio::test]
+async fn after_three_requests_a_trace_reader_receives_six_frames_with_their_hex_direction_and_outcome(
+) {
+    let gateway = start_sim("").await;
+    let mut trace = Trace::open(gateway.metrics_addr(), "").await;
+    let mut master = RawMaster::connect(gateway.local_addrs()[0]).await;
+    // Slave 1: two holding registers from 0000H; slave 2: two input registers from 0001H (a
+    // register slave's input register n holds n); slave 3: 126 registers, one too many.
+    master.call(1, 1, &[0x03, 0x00, 0x00, 0x00, 0x02]).await;
+    master.call(2, 2, &[0x04, 0x00, 0x01, 0x00, 0x02]).await;
+    master.call(3, 3, &[0x03, 0x00, 0x00, 0x00, 0x7E]).await;
+    let mut frames = Vec::new();
+    for _ in 0..6 {
+        frames.push(trace.frame().await);
+    }
+    let got: Vec<_> = frames.iter().map(fields).collect();
+    // CRCs computed apart from the gateway's (CRC-16/MODBUS, low byte first).
+    assert_eq!(
+        got,
+        [
+            expect("sim", "tx", 1, 3, "01 03 00 00 00 02 c4 0b", "ok"),
+            expect("sim", "rx", 1, 3, "01 03 04 00 00 00 00 fa 33", "ok"),
+            expect("sim", "tx", 2, 4, "02 04 00 01 00 02 20 38", "ok"),
+            expect("sim", "rx", 2, 4, "02 04 04 00 01 00 02 18 85", "ok"),
+            expect("sim", "tx", 3, 3, "03 03 00 00 00 7e c4 08", "exception"),
+            expect("sim", "rx", 3, 0x83, "03 83 03 a0 f1", "exception"),
+        ]
+    );
+    // The same frames, in the same order, as the simulated line carried them.
+    let line = gateway.sim_line("sim").unwrap();
+    let wire: Vec<String> = line.frames().iter().map(|f| hex(&f.bytes)).collect();
+    let traced: Vec<String> = got.iter().map(|f| f.4.clone()).collect();
+    assert_eq!(wire, traced);
+    assert_eq!(line.frames()[1].from, Source::Slave(1));
+    // RFC 3339 UTC times with microseconds, the request before its reply.
+    let times: Vec<&str> = frames.iter().map(|f| f["time"].as_str().unwrap()).collect();
+    for time in &times {
+        assert_eq!(time.len(), "2026-11-23T14:00:00.123456Z".len(), "{time}");
+        assert!(humantime::parse_rfc3339(time).is_ok(), "{time}");
+    }
+    assert!(times[0] < times[1] && times[1] < times[2], "{times:?}");
+    gateway.shutdown().await;
+}
+
+#[tokio::test]
+async fn on_an_ascii_line_the_trace_shows_the_ascii_frames_characters() {
+    let gateway = start(
+        "[server]\nlisten = \"127.0.0.1:0\"\n\
+         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nframing = \"ascii\"\nbaud = 9600\n\
+         [[bus.sim_slave]]\naddress = \"1-4\"\n",
+    )
+    .await;
+    let mut trace = Trace::open(gateway.metrics_addr(), "").await;
+    let mut master = RawMaster::connect(gateway.local_addrs()[0]).await;
+    master.call(1, 1, &[0x03, 0x00, 0x00, 0x00, 0x02]).await;
+    let got: Vec<_> = [trace.frame().await, trace.frame().await]
+        .iter()
+        .map(fields)
+        .collect();
+    // `:`, address 01, the PDU and the LRC (the two's complement of the bytes' sum) as hex
+    // pairs, CR LF.
+    assert_eq!(
+        got,
+        [
+            expect("sim", "tx", 1, 3, &hex(b":010300000002FA\r\n"), "ok"),
+            expect("sim", "rx", 1, 3, &hex(b":01030400000000F8\r\n"), "ok"),
+        ]
+    );
+    gateway.shutdown().await;
+}
+
+/// Buses `a` and `b` with register slaves 1 and 2 each: units 1-2 on `a`, 11-12 on `b`.
+const TWO_BUSES: &str = "[server]\nlisten = \"127.0.0.1:0\"\n\
+    [[bus]]\nname = \"a\"\ndevice = \"sim\"\nbaud = 19200\nparity = \"even\"\n\
+    [[bus.sim_slave]]\naddress = \"1-2\"\n\
+    [[bus]]\nname = \"b\"\ndevice = \"sim\"\nbaud = 19200\nparity = \"even\"\n\
+    [[bus.sim_slave]]\naddress = \"1-2\"\n\
+    [[route]]\nunits = \"1-2\"\nbus = \"a\"\n\
+    [[route]]\nunits = \"11-12\"\nbus = \"b\"\noffset = -10\n";
+
+#[tokio::test]
+async fn a_trace_filtered_by_bus_and_slave_gets_only_their_frames() {
+    let gateway = start(TWO_BUSES).await;
+    let metrics = gateway.metrics_addr();
+    let mut trace = Trace::open(metrics, "?bus=b&slave=2").await;
+    let mut master = RawMaster::connect(gateway.local_addrs()[0]).await;
+    let read = [0x03, 0x00, 0x00, 0x00, 0x01];
+    for (transaction, unit) in [(1, 1), (2, 2), (3, 11), (4, 12)] {
+        master.call(transaction, unit, &read).await;
+    }
+    // A second read of b's slave 2, of another register: had any other frame passed the
+    // filter, it would have come before.
+    master.call(5, 12, &[0x03, 0x00, 0x01, 0x00, 0x01]).await;
+    let got: Vec<_> = [
+        trace.frame().await,
+        trace.frame().await,
+        trace.frame().await,
+    ]
+    .iter()
+    .map(fields)
+    .collect();
+    assert_eq!(
+        got,
+        [
+            expect("b", "tx", 2, 3, "02 03 00 00 00 01 84 39", "ok"),
+            expect("b", "rx", 2, 3, "02 03 02 00 00 fc 44", "ok"),
+            expect(
+                "b",
+                "tx",
+                2,
+                3,
+                &hex(&rtu(2, &[0x03, 0x00, 0x01, 0x00, 0x01])),
+                "ok"
+            ),
+        ]
+    );
+    let (status, body) = http_get(metrics, "/trace?bus=c").await;
+    assert_eq!(status, 404);
+    assert!(body.contains("a, b"), "names the known buses: {body}");
+    let (status, _) = http_get(metrics, "/trace?slave=248").await;
+    assert_eq!(status, 400);
+    gateway.shutdown().await;
+}
+
+/// An RTU frame, CRC computed here bit by bit.
+fn rtu(address: u8, pdu: &[u8]) -> Vec<u8> {
+    let mut frame = vec![address];
+    frame.extend_from_slice(pdu);
+    let mut crc: u16 = 0xFFFF;
+    for byte in &frame {
+        crc ^= u16::from(*byte);
+        for _ in 0..8 {
+            crc = if crc & 1 == 1 {
+                (crc >> 1) ^ 0xA001
+            } else {
+                crc >> 1
+            };
+        }
+    }
+    frame.extend(crc.to_le_bytes());
+    frame
+}
+
+#[tokio::test]
+async fn a_request_that_gets_no_reply_is_one_tx_frame_with_outcome_timeout() {
+    let gateway = start_sim("[[bus.slave]]\naddress = 5\nresponse_timeout = \"50ms\"\n").await;
+    let mut trace = Trace::open(gateway.metrics_addr(), "").await;
+    let mut master = RawMaster::connect(gateway.local_addrs()[0]).await;
+    let read = [0x03, 0x00, 0x00, 0x00, 0x01];
+    master.call(1, 5, &read).await;
+    master.call(2, 1, &read).await;
+    let got: Vec<_> = [
+        trace.frame().await,
+        trace.frame().await,
+        trace.frame().await,
+    ]
+    .iter()
+    .map(fields)
+    .collect();
+    assert_eq!(
+        got,
+        [
+            expect("sim", "tx", 5, 3, "05 03 00 00 00 01 85 8e", "timeout"),
+            expect("sim", "tx", 1, 3, &hex(&rtu(1, &read)), "ok"),
+            expect("sim", "rx", 1, 3, &hex(&rtu(1, &[0x03, 0x02, 0, 0])), "ok"),
+        ]
+    );
+    gateway.shutdown().await;
+}
+
+#[tokio::test]
+async fn more_trace_readers_than_eight_are_refused_and_metrics_are_still_served() {
+    let gateway = start_sim("").await;
+    let metrics = gateway.metrics_addr();
+    let mut readers = Vec::new();
+    for _ in 0..modbus_gateway::trace::MAX_READERS {
+        readers.push(Trace::open(metrics, "").await);
+    }
+    let (status, body) = http_get(metrics, "/trace").await;
+    assert_eq!(status, 503, "{body}");
+    assert_eq!(http_get(metrics, "/metrics").await.0, 200);
+    // A reader that leaves frees its place, once a write to it fails: at the next frames or
+    // keepalive.
+    drop(readers.pop());
+    let mut master = RawMaster::connect(gateway.local_addrs()[0]).await;
+    within("a place frees", async {
+        loop {
+            master.call(1, 1, &[0x03, 0x00, 0x00, 0x00, 0x01]).await;
+            let stream = TcpStream::connect(metrics).await.unwrap();
+            let (mut sender, connection) =
+                hyper::client::conn::http1::handshake(hyper_util::rt::TokioIo::new(stream))
+                    .await
+                    .unwrap();
+            tokio::spawn(connection);
+            let request = hyper::Request::get("/trace")
+                .header(hyper::header::HOST, metrics.to_string())
+                .body(Empty::<Bytes>::new())
+                .unwrap();
+            if sender.send_request(request).await.unwrap().status() == 200 {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    })
+    .await;
+    gateway.shutdown().await;
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_trace_stream_outlives_the_endpoints_connection_lifetime_with_keepalives() {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let metrics = Arc::new(Metrics::new());
+    tokio::spawn(modbus_gateway::metrics::http::serve(
+        listener,
+        metrics,
+        Arc::new(Vec::<String>::new),
+        Arc::new(modbus_gateway::metrics::status::Status::default),
+    ));
+    let mut trace = Trace::open(addr, "").await;
+    // Other connections are closed after 120 s; a keepalive comes every 15 s.
+    for _ in 0..10 {
+        match trace.next().await {
+            Some(Event::Comment(comment)) => assert_eq!(comment, "keepalive"),
+            other => panic!("{other:?} instead of a keepalive"),
+        }
+    }
+}
+
+/// A bus on the simulated line at 9600 8E1, slaves 1-4, its task running, counting into
+/// `metrics` (whose trace hub it publishes to).
+fn sim_bus(metrics: &Metrics) -> modbus_gateway::bus::BusHandle {
+    let settings = Config::from_toml_str(
+        "[[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 9600\nparity = \"even\"\n\
+         [[bus.sim_slave]]\naddress = \"1-4\"\n",
+    )
+    .expect("test config")
+    .bus
+    .remove(0);
+    sim_bus_counted(settings, metrics).1
+}
+
+/// `n` reads one after the other; how long they took on the paused clock.
+async fn reads(bus: &modbus_gateway::bus::BusHandle, n: usize) -> Duration {
+    let started = tokio::time::Instant::now();
+    for _ in 0..n {
+        let (outcome, _) = crate::support::bus_call(bus, 1, &[0x03, 0x00, 0x00, 0x00, 0x02]).await;
+        assert!(outcome.is_ok());
+    }
+    started.elapsed()
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_reader_that_stops_reading_loses_events_and_never_slows_the_line() {
+    let metrics = Metrics::new();
+    let bus = sim_bus(&metrics);
+    crate::support::settle(&bus).await;
+    reads(&bus, 10).await;
+    let unwatched = reads(&bus, 600).await;
+    let mut reader = metrics.trace.subscribe().unwrap();
+    // Two frames a read: more than the reader may fall behind by.
+    let watched = reads(&bus, 600).await;
+    assert_eq!(watched, unwatched, "the line is exactly as fast");
+    assert_eq!(metrics.trace.published(), 1200);
+    let Traced::Lost(lost) = reader.next().await else {
+        panic!("the reader is told first that it lost events");
+    };
+    assert!(lost > 0);
+    let mut kept = 0;
+    while tokio::time::timeout(Duration::from_millis(1), reader.next())
+        .await
+        .is_ok()
+    {
+        kept += 1;
+    }
+    assert_eq!(lost + kept, 1200, "every event is either lost or read");
+}
+
+#[tokio::test(start_paused = true)]
+async fn with_no_trace_reader_the_bus_publishes_nothing() {
+    let metrics = Metrics::new();
+    let bus = sim_bus(&metrics);
+    crate::support::settle(&bus).await;
+    reads(&bus, 3).await;
+    assert_eq!(metrics.trace.published(), 0);
+    let _reader = metrics.trace.subscribe().unwrap();
+    reads(&bus, 3).await;
+    assert_eq!(metrics.trace.published(), 6);
+}
+
+#[tokio::test]
+async fn the_trace_subcommand_prints_each_frame_decoded() {
+    let gateway = start_sim("").await;
+    let url = format!("http://{}", gateway.metrics_addr());
+    let mut child = Command::new(BINARY)
+        .args(["trace", "--url", &url, "--slave", "2"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let (lines, mut printed) = tokio::sync::mpsc::unbounded_channel();
+    let stdout = child.stdout.take().unwrap();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(stdout).lines() {
+            if lines.send(line.unwrap()).is_err() {
+                return;
+            }
+        }
+    });
+    let mut master = RawMaster::connect(gateway.local_addrs()[0]).await;
+    let read = [0x04, 0x00, 0x01, 0x00, 0x02];
+    // The trace is connected once a read shows.
+    let first = within("the trace prints", async {
+        loop {
+            master.call(1, 2, &read).await;
+            if let Ok(Some(line)) =
+                tokio::time::timeout(Duration::from_millis(200), printed.recv()).await
+            {
+                return line;
+            }
+        }
+    })
+    .await;
+    let second = within("the reply", printed.recv()).await.unwrap();
+    // Without the time of day, UTC: `14:00:00.123456 `.
+    let untimed = |line: &str| line.split_once(' ').unwrap().1.to_owned();
+    assert_eq!(
+        untimed(&first),
+        "sim tx  slave 2    read input registers 0x04  addr 1 count 2   02 04 00 01 00 02 20 38"
+    );
+    assert_eq!(
+        untimed(&second),
+        "sim rx  slave 2    0x04 ok  2 registers: 0x0001 0x0002   02 04 04 00 01 00 02 18 85"
+    );
+    assert_eq!(
+        first.split(' ').next().unwrap().len(),
+        "14:00:00.123456".len()
+    );
+    // Ctrl-C ends it, successfully.
+    let pid = libc::pid_t::try_from(child.id()).unwrap();
+    // SAFETY: kill(2) on our own child's pid.
+    assert_eq!(unsafe { libc::kill(pid, libc::SIGINT) }, 0);
+    let status = within("the trace stops", async {
+        loop {
+            if let Some(status) = child.try_wait().unwrap() {
+                return status;
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    })
+    .await;
+    assert!(status.success(), "{status}");
+    gateway.shutdown().await;
+}
+
+#[test]
+fn the_trace_subcommand_exits_non_zero_saying_why_when_the_endpoint_cannot_be_reached() {
+    // A port that was free a moment ago: nothing listens on it.
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let output = Command::new(BINARY)
+        .args(["trace", "--url", &format!("http://127.0.0.1:{port}")])
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("cannot reach the gateway's metrics endpoint"),
+        "{stderr}"
+    );
+}
