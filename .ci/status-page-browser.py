@@ -1,6 +1,7 @@
 """Load the status page of a running demo gateway in headless Chromium and check what a person
-sees: the bus and the four demo drives in the tables, and in the trace panel a request sent after
-the page loaded. Fails on a script error or a Content-Security-Policy violation in the page.
+sees: the bus and the four demo drives in the tables, in the trace panel a request sent after the
+page loaded, its master among the connected ones, and with the slave filter set, that slave's
+frames alone. Fails on a script error or a Content-Security-Policy violation in the page.
 
 Chromium is driven over the DevTools protocol on a pipe (--remote-debugging-pipe: JSON messages
 ending in NUL, commands on fd 3, replies and events on fd 4), so the standard library is enough.
@@ -242,9 +243,26 @@ def main():
         browser.wait_for(
             f"the master {master.address()} among the connected masters",
             lambda s: master.address() in s["masters"])
+        # The slave filter opens the trace again for that slave alone.
+        browser.evaluate("""(() => {
+          document.getElementById('trace-clear').click();
+          const slave = document.getElementById('trace-slave');
+          slave.value = '2';
+          slave.dispatchEvent(new Event('change'));
+        })()""")
+        browser.wait_for("the trace open again for slave 2", lambda s: s["trace"] == "live")
+        master.read(1, 0x2103, 1)
+        wanted = master.read(2, 0x2103, 1)
+        filtered = browser.wait_for(
+            f"the request to drive 2 ({wanted}) in the trace filtered for slave 2",
+            lambda s: any(wanted in f["cells"] for f in s["frames"]))
+        others = [f for f in filtered["frames"] if f["slave"] != 2]
+        if others:
+            fail("frames of other slaves in the trace filtered for slave 2", others)
         master.close()
         print(f"status page in {CHROMIUM}: bus {DEMO_BUS}, drives {sorted(DEMO_DRIVES)}, "
-              f"and the frame {request} in the trace panel ({len(frame['frames'])} frames shown)")
+              f"the frame {request} in the trace panel ({len(frame['frames'])} frames shown), "
+              f"and with the slave filter only slave 2's")
         if screenshot:
             stop = threading.Event()
             threads = traffic(modbus_port, stop)

@@ -35,10 +35,10 @@ fn slave(status: &Value, address: u64) -> &Value {
         .unwrap_or_else(|| panic!("slave {address} not listed: {status:#}"))
 }
 
-/// One HTTP/1.1 GET: the response's head (status line and headers, lower-cased) and its body.
-async fn get_with_head(addr: SocketAddr, path: &str) -> (String, String) {
+/// One HTTP/1.1 request: the response's head (status line and headers, lower-cased) and its body.
+async fn request(addr: SocketAddr, method: &str, path: &str) -> (String, String) {
     let mut stream = within("connect", TcpStream::connect(addr)).await.unwrap();
-    let request = format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n");
+    let request = format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n");
     stream.write_all(request.as_bytes()).await.unwrap();
     let mut response = String::new();
     within("response", stream.read_to_string(&mut response))
@@ -138,7 +138,7 @@ async fn a_read_only_master_is_listed_with_its_rights() {
 #[tokio::test]
 async fn the_status_page_is_one_html_page_that_loads_nothing_from_elsewhere() {
     let gateway = start(LINE).await;
-    let (head, page) = get_with_head(gateway.metrics_addr(), "/").await;
+    let (head, page) = request(gateway.metrics_addr(), "GET", "/").await;
     assert!(head.starts_with("http/1.1 200"), "{head}");
     assert!(
         head.contains("\r\ncontent-type: text/html; charset=utf-8\r\n"),
@@ -161,6 +161,10 @@ async fn the_status_page_is_one_html_page_that_loads_nothing_from_elsewhere() {
     for table in ["buses", "slaves", "masters", "trace"] {
         assert!(page.contains(&format!("<tbody id=\"{table}\">")), "{table}");
     }
+    let (head_only, nothing) = request(gateway.metrics_addr(), "HEAD", "/").await;
+    assert!(head_only.starts_with("http/1.1 200"), "{head_only}");
+    assert!(head_only.contains("content-security-policy: default-src 'none'"));
+    assert_eq!(nothing, "");
     let (code, body) = http_get(gateway.metrics_addr(), "/nothing-here").await;
     assert_eq!(code, 404);
     assert!(body.contains("/ (the status page), /status"), "{body}");
