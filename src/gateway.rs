@@ -329,7 +329,7 @@ impl Gateway {
         let mut tasks = JoinSet::new();
         let config = Arc::new(Mutex::new(config.clone()));
         let status = status_source(shared.clone(), config.clone());
-        info!(listen = %metrics_addr, "serving the status page (/), /status, /metrics, /healthz and /readyz");
+        info!(listen = %metrics_addr, "serving the status page (/), /status, /trace, /metrics, /healthz and /readyz");
         tasks.spawn(metrics::http::serve(
             metrics_listener,
             metrics.clone(),
