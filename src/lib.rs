@@ -16,7 +16,7 @@
 //! - [`sim`]: the simulated RS-485 line and its slaves (`device = "sim"`): register banks and the
 //!   reference manuals' drives on one drive pipeline ([`sim::drive`]).
 //! - [`metrics`]: what all of the above count and log, and the HTTP endpoint that serves it with
-//!   the health checks.
+//!   the health checks and the status page.
 //!
 //! Shared by all: [`pdu`] (the one table of function codes, and exception codes) and [`error`]
 //! (what fails a request, and the one place that turns it into an exception), [`shutdown`] (the

@@ -29,6 +29,7 @@
 //! - `simulate`: the `simulate` subcommand answering RTU masters on a pty.
 //! - `service`: the gateway under a service manager: graceful stop.
 //! - `metrics`: `/metrics`, `/healthz`, `/readyz` after known traffic; promtool; shipped rules.
+//! - `status`: the status page `/` and its data `/status` after known traffic.
 //! - `trace`: `GET /trace` and the `trace` subcommand: frames, filters, slow readers, limits.
 //!
 //! `support` has the shared pieces: gateway start-up, a raw master, a pty slave.
@@ -62,6 +63,7 @@ mod rtu_over_tcp;
 mod serial;
 mod service;
 mod simulate;
+mod status;
 mod tcp;
 mod tls;
 mod trace;

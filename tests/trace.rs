@@ -355,6 +355,7 @@ async fn a_trace_stream_outlives_the_endpoints_connection_lifetime_with_keepaliv
         listener,
         metrics,
         Arc::new(Vec::<String>::new),
+        Arc::new(modbus_gateway::metrics::status::Status::default),
     ));
     let mut trace = Trace::open(addr, "").await;
     // Other connections are closed after 120 s; a keepalive comes every 15 s.

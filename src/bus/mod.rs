@@ -90,6 +90,11 @@ impl BusHandle {
         &self.metrics
     }
 
+    /// Requests waiting in its queue now.
+    pub fn queue_depth(&self) -> usize {
+        self.queue.len()
+    }
+
     /// True while the bus holds an open port.
     pub fn is_up(&self) -> bool {
         self.up.load(Ordering::Acquire)

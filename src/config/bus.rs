@@ -141,6 +141,17 @@ impl SimModel {
     pub fn is_drive(self) -> bool {
         self != SimModel::Registers
     }
+
+    /// As the configuration spells it.
+    pub fn name(self) -> &'static str {
+        match self {
+            SimModel::Registers => "registers",
+            SimModel::Gd20 => "gd20",
+            SimModel::Gd300 => "gd300",
+            SimModel::Gd10 => "gd10",
+            SimModel::PdInverter => "pd-inverter",
+        }
+    }
 }
 
 /// Slaves on a simulated line.

@@ -8,14 +8,16 @@ use crate::bus::latency::LatencyTimer;
 use crate::config;
 use crate::error::{Answer, Outcome, RequestError};
 use crate::line::LineCounters;
+use prometheus::core::Collector;
 use prometheus::{
     Counter, CounterVec, Gauge, GaugeVec, Histogram, HistogramVec, IntCounter, IntCounterVec,
     IntGauge, IntGaugeVec,
 };
+use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::fmt::Display;
 use std::io;
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
-use std::time::Duration;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
 use tracing::{debug, error, info, warn};
 
 /// The families of every bus's series, registry-wide; each bus takes its label values.
@@ -227,13 +229,28 @@ impl BusFamilies {
     }
 }
 
-/// A slave's own series.
+/// Round trips kept per slave for the status page's median.
+const RECENT_ROUND_TRIPS: usize = 32;
+
+/// A slave's own series, and its last round trips.
 pub(super) struct SlaveMetrics {
     up: IntGauge,
     last_success: Gauge,
     retries: IntCounter,
     coalesced: IntCounter,
     cache_hits: IntCounter,
+    round_trips: Mutex<VecDeque<Duration>>,
+}
+
+/// What the status page shows of a slave, as its metrics have it.
+pub struct SlaveSnapshot {
+    pub address: u8,
+    pub up: bool,
+    /// Its last answer, normal or exception.
+    pub last_answer: Option<SystemTime>,
+    pub round_trip_p50: Option<Duration>,
+    /// Its requests by outcome label.
+    pub requests: BTreeMap<String, u64>,
 }
 
 /// The metrics of one bus, label values resolved once. Shared by its handle and its task.
@@ -286,6 +303,7 @@ impl BusMetrics {
                 retries: self.retries.with_label_values(labels),
                 coalesced: self.coalesced.with_label_values(labels),
                 cache_hits: self.cache_hits.with_label_values(labels),
+                round_trips: Mutex::new(VecDeque::with_capacity(RECENT_ROUND_TRIPS)),
             };
             slave.up.set(0);
             slave
@@ -360,10 +378,18 @@ impl BusMetrics {
         round_trip: Option<Duration>,
         outcome: &Outcome,
     ) {
+        let metrics = self.slave(slave);
         if let Some(round_trip) = round_trip {
             self.round_trip.observe(round_trip.as_secs_f64());
+            let mut recent = metrics
+                .round_trips
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner);
+            if recent.len() == RECENT_ROUND_TRIPS {
+                recent.pop_front();
+            }
+            recent.push_back(round_trip);
         }
-        let metrics = self.slave(slave);
         metrics
             .retries
             .inc_by(u64::from(attempts.saturating_sub(1)));
@@ -398,6 +424,72 @@ impl BusMetrics {
         let bus = &*self.name;
         let probe_interval = humantime::format_duration(probe_interval).to_string();
         warn!(target: BUS_EVENTS, bus, slave, timeouts, probe_interval, "slave down; answering 0x0B without sending, probing once per interval");
+    }
+
+    /// Seconds characters were on the line since the bus started.
+    pub fn busy_seconds(&self) -> f64 {
+        self.busy.get()
+    }
+
+    /// Transactions on the line since the bus started.
+    pub fn transactions(&self) -> u64 {
+        self.round_trip.get_sample_count()
+    }
+
+    /// Every known slave (configured, simulated, or asked for), by address, as its series and
+    /// recent round trips have it.
+    pub fn slaves(&self) -> Vec<SlaveSnapshot> {
+        let mut requests = self.requests_by_slave();
+        self.known_slaves()
+            .filter_map(|address| {
+                let slave = self.slaves[usize::from(address)].get()?;
+                let last = slave.last_success.get();
+                let round_trips = slave
+                    .round_trips
+                    .lock()
+                    .unwrap_or_else(PoisonError::into_inner);
+                Some(SlaveSnapshot {
+                    address,
+                    up: slave.up.get() == 1,
+                    last_answer: (last > 0.0).then(|| UNIX_EPOCH + Duration::from_secs_f64(last)),
+                    round_trip_p50: super::status::median(round_trips.iter().copied()),
+                    requests: requests.remove(&address).unwrap_or_default(),
+                })
+            })
+            .collect()
+    }
+
+    /// This bus's request counts by slave and outcome, summed over functions and protocols.
+    fn requests_by_slave(&self) -> HashMap<u8, BTreeMap<String, u64>> {
+        let mut by_slave: HashMap<u8, BTreeMap<String, u64>> = HashMap::new();
+        for family in self.counters.requests.collect() {
+            for metric in family.get_metric() {
+                let label = |name: &str| {
+                    metric
+                        .get_label()
+                        .iter()
+                        .find(|pair| pair.name() == name)
+                        .map(|pair| pair.value())
+                };
+                if label("bus") != Some(&*self.name) {
+                    continue;
+                }
+                let (Some(Ok(slave)), Some(outcome)) =
+                    (label("slave").map(str::parse::<u8>), label("outcome"))
+                else {
+                    continue;
+                };
+                // Counters hold whole numbers.
+                #[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)]
+                let count = metric.get_counter().get_value() as u64;
+                *by_slave
+                    .entry(slave)
+                    .or_default()
+                    .entry(outcome.to_owned())
+                    .or_default() += count;
+            }
+        }
+        by_slave
     }
 
     /// What went over the line since the last call.

@@ -2,18 +2,19 @@
 //! both log and count from one call site: a request's outcome, a slave going silent or coming
 //! back, a port lost or reopened, a connection refused or closed. Labels are bounded (bus, slave
 //! address, function code, outcome, exception code, reason), never a peer address. [`http`] serves
-//! the text format and the health endpoints. Callers say what happened; this module knows nothing
-//! of frames, sockets or timing.
+//! the text format, the health endpoints and the status page ([`status`]). Callers say what
+//! happened; this module knows nothing of frames, sockets or timing.
 
 mod bus;
 pub mod http;
 mod labels;
 mod sse;
+pub mod status;
 mod tcp;
 mod tls;
 mod udp;
 
-pub use bus::BusMetrics;
+pub use bus::{BusMetrics, SlaveSnapshot};
 
 use bus::BusFamilies;
 pub use labels::{Closing, ExceptionSource, Fate, Protocol, Rejection};

@@ -13,7 +13,8 @@ use super::upstream::Upstream;
 use crate::bus::MasterId;
 use crate::config::{self, WhenFull};
 use crate::dispatch::{Client, Dispatcher, Rights};
-use crate::metrics::{Metrics, Rejection, TlsMaster};
+use crate::metrics::status::{self, MasterStatus};
+use crate::metrics::{Metrics, Protocol, Rejection, TlsMaster};
 use crate::shutdown::Stopping;
 use socket2::{SockRef, TcpKeepalive};
 use std::collections::HashMap;
@@ -21,7 +22,7 @@ use std::io;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
-use std::time::Duration;
+use std::time::{Duration, SystemTime};
 use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
@@ -104,8 +105,19 @@ pub(crate) struct Shared {
     max_connections: AtomicUsize,
     next_master: AtomicU64,
     handshakes: Semaphore,
-    /// The running sessions, for making room at `max_connections`.
-    sessions: Mutex<HashMap<MasterId, Arc<Activity>>>,
+    /// The running sessions, for making room at `max_connections` and for the status page.
+    sessions: Mutex<HashMap<MasterId, Session>>,
+}
+
+/// A running session as the listener knows it.
+struct Session {
+    activity: Arc<Activity>,
+    peer: SocketAddr,
+    protocol: Protocol,
+    rights: Rights,
+    role: Option<String>,
+    priority: bool,
+    since: SystemTime,
 }
 
 impl Shared {
@@ -180,8 +192,28 @@ impl Shared {
         let _ = self.connections.acquire_many(all).await;
     }
 
-    fn sessions(&self) -> std::sync::MutexGuard<'_, HashMap<MasterId, Arc<Activity>>> {
+    fn sessions(&self) -> std::sync::MutexGuard<'_, HashMap<MasterId, Session>> {
         self.sessions.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// The masters connected now, longest connected first.
+    pub(crate) fn masters(&self, now: SystemTime) -> Vec<MasterStatus> {
+        let sessions = self.sessions();
+        let mut masters: Vec<(&MasterId, &Session)> = sessions.iter().collect();
+        masters.sort_unstable_by_key(|(id, _)| **id);
+        masters
+            .into_iter()
+            .map(|(_, session)| MasterStatus {
+                address: session.peer.to_string(),
+                protocol: session.protocol.label(),
+                rights: session.rights.name(),
+                role: session.role.clone(),
+                priority: session.priority,
+                connected_since: status::rfc3339(session.since),
+                connected_seconds: status::seconds_between(session.since, now),
+                requests: session.activity.requests(),
+            })
+            .collect()
     }
 
     /// A connection slot: a free one, or, with `close_oldest_idle`, the one of the session idle
@@ -196,6 +228,7 @@ impl Shared {
         let oldest_idle = self
             .sessions()
             .values()
+            .map(|session| &session.activity)
             .filter_map(|activity| Some((activity.idle_since()?, activity.clone())))
             .min_by_key(|(since, _)| *since)
             .map(|(_, activity)| activity)?;
@@ -359,12 +392,24 @@ async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
         });
     }
     let activity = Arc::new(Activity::default());
-    shared.sessions().insert(id, activity.clone());
+    let priority = policy.access.is_priority(peer.ip());
+    shared.sessions().insert(
+        id,
+        Session {
+            activity: activity.clone(),
+            peer,
+            protocol,
+            rights,
+            role: identity.as_ref().and_then(|identity| identity.role.clone()),
+            priority,
+            since: SystemTime::now(),
+        },
+    );
     let units = identity.as_ref().and_then(|identity| identity.units);
     let client = Client::new(id, peer, rights)
         .speaking(protocol)
         .addressing(units)
-        .prioritised(policy.access.is_priority(peer.ip()));
+        .prioritised(priority);
     let error = session::run(
         stream,
         upstream,

@@ -15,7 +15,7 @@ use crate::shutdown::Stopping;
 use bytes::BytesMut;
 use std::collections::VecDeque;
 use std::io;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Mutex, PoisonError};
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
@@ -37,11 +37,12 @@ pub struct SessionLimits {
 }
 
 /// What the listener sees of a session: when it last had a request or sent an answer, whether
-/// requests are in flight, and a way to ask it to close once it has none.
+/// requests are in flight, how many it has had, and a way to ask it to close once it has none.
 #[derive(Debug)]
 pub struct Activity {
     last: Mutex<Instant>,
     busy: AtomicBool,
+    requests: AtomicU64,
     close: Notify,
 }
 
@@ -50,6 +51,7 @@ impl Default for Activity {
         Activity {
             last: Mutex::new(Instant::now()),
             busy: AtomicBool::new(false),
+            requests: AtomicU64::new(0),
             close: Notify::new(),
         }
     }
@@ -59,6 +61,11 @@ impl Activity {
     fn touch(&self, busy: bool) {
         *self.last.lock().unwrap_or_else(PoisonError::into_inner) = Instant::now();
         self.busy.store(busy, Ordering::Relaxed);
+    }
+
+    /// Requests read on the connection so far.
+    pub fn requests(&self) -> u64 {
+        self.requests.load(Ordering::Relaxed)
     }
 
     /// When it last had a request or sent an answer, if it has nothing in flight now.
@@ -193,6 +200,7 @@ async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
                         function,
                         outcome: dispatcher.submit(client, request.header.unit, request.pdu),
                     });
+                    activity.requests.fetch_add(1, Ordering::Relaxed);
                     activity.touch(true);
                 }
                 Ok(None) => break,

@@ -1,0 +1,283 @@
+"""Load the status page of a running demo gateway in headless Chromium and check what a person
+sees: the bus and the four demo drives in the tables, in the trace panel a request sent after the
+page loaded, its master among the connected ones, and with the slave filter set, that slave's
+frames alone. Fails on a script error or a Content-Security-Policy violation in the page.
+
+Chromium is driven over the DevTools protocol on a pipe (--remote-debugging-pipe: JSON messages
+ending in NUL, commands on fd 3, replies and events on fd 4), so the standard library is enough.
+
+Usage: status-page-browser.py METRICS_PORT MODBUS_PORT [--screenshot PATH]
+"""
+
+import base64
+import fcntl
+import json
+import os
+import select
+import shutil
+import socket
+import struct
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+
+CHROMIUM = os.environ.get("CHROMIUM", "chromium")
+WAIT = 20.0  # seconds for anything the page should show
+
+# What the page must show of config/demo.toml: its bus, and its drives by address and model.
+DEMO_BUS = "demo"
+DEMO_DRIVES = {1: "gd20", 2: "gd300", 3: "gd10", 4: "pd-inverter"}
+
+# What the tables, the trace state and the trace rows hold, as text (nothing yet while the page
+# loads).
+SNAPSHOT = """JSON.stringify({
+  buses: [...document.querySelectorAll('#buses tr[data-bus]')].map(r =>
+    ({bus: r.dataset.bus, text: r.textContent})),
+  slaves: [...document.querySelectorAll('#slaves tr[data-slave]')].map(r =>
+    ({bus: r.dataset.bus, slave: Number(r.dataset.slave), text: r.textContent})),
+  masters: document.getElementById('masters')?.textContent ?? '',
+  trace: document.getElementById('trace-state')?.textContent ?? '',
+  frames: [...document.querySelectorAll('#trace tr')].map(r =>
+    ({direction: r.dataset.direction, slave: Number(r.dataset.slave), bus: r.dataset.bus,
+      cells: [...r.cells].map(c => c.textContent)})),
+})"""
+
+
+class Browser:
+    """One headless Chromium and one page in it."""
+
+    def __init__(self, log):
+        self.profile = tempfile.mkdtemp(prefix="status-page-check-")
+        commands_read, self.commands = os.pipe()
+        self.events, events_write = os.pipe()
+        # Out of the way of fds 3 and 4, which the child gets them as.
+        high = [fcntl.fcntl(fd, fcntl.F_DUPFD, 10) for fd in (commands_read, events_write)]
+        for fd in (commands_read, events_write):
+            os.close(fd)
+
+        def child_fds():
+            os.dup2(high[0], 3)
+            os.dup2(high[1], 4)
+
+        self.process = subprocess.Popen(
+            [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
+             "--hide-scrollbars", "--remote-debugging-pipe", "--window-size=1280,900",
+             f"--user-data-dir={self.profile}", "about:blank"],
+            stdin=subprocess.DEVNULL, stdout=log, stderr=log,
+            pass_fds=(3, 4), preexec_fn=child_fds)
+        for fd in high:
+            os.close(fd)
+        self.buffer = b""
+        self.next_id = 0
+        self.session = None
+        self.problems = []  # script errors and policy violations seen in the page
+
+    def close(self):
+        self.process.kill()
+        self.process.wait()
+        os.close(self.commands)
+        os.close(self.events)
+        shutil.rmtree(self.profile, ignore_errors=True)
+
+    def _message(self, deadline):
+        while b"\0" not in self.buffer:
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([self.events], [], [], left)[0]:
+                raise TimeoutError("no answer from Chromium")
+            chunk = os.read(self.events, 65536)
+            if not chunk:
+                raise RuntimeError("Chromium closed its DevTools pipe")
+            self.buffer += chunk
+        message, self.buffer = self.buffer.split(b"\0", 1)
+        return json.loads(message)
+
+    def _event(self, message):
+        method, params = message.get("method"), message.get("params", {})
+        if method == "Runtime.exceptionThrown":
+            self.problems.append("script error: " + json.dumps(params["exceptionDetails"]))
+        elif method == "Log.entryAdded":
+            entry = params["entry"]
+            if entry.get("source") in ("security", "javascript") or \
+                    "Content Security Policy" in entry.get("text", ""):
+                self.problems.append(f"{entry.get('source')}: {entry.get('text')}")
+
+    def call(self, method, params=None, session=True):
+        self.next_id += 1
+        command = {"id": self.next_id, "method": method, "params": params or {}}
+        if session and self.session:
+            command["sessionId"] = self.session
+        os.write(self.commands, json.dumps(command).encode() + b"\0")
+        deadline = time.monotonic() + WAIT
+        while True:
+            message = self._message(deadline)
+            if message.get("id") == self.next_id:
+                if "error" in message:
+                    raise RuntimeError(f"{method}: {message['error']}")
+                return message["result"]
+            self._event(message)
+
+    def open(self, url):
+        target = self.call("Target.createTarget", {"url": "about:blank"}, session=False)
+        attached = self.call("Target.attachToTarget",
+                             {"targetId": target["targetId"], "flatten": True}, session=False)
+        self.session = attached["sessionId"]
+        self.call("Runtime.enable")
+        self.call("Log.enable")
+        self.call("Emulation.setDeviceMetricsOverride",
+                  {"width": 1280, "height": 900, "deviceScaleFactor": 1, "mobile": False})
+        self.call("Page.navigate", {"url": url})
+
+    def evaluate(self, expression):
+        result = self.call("Runtime.evaluate", {"expression": expression, "returnByValue": True})
+        if "exceptionDetails" in result:
+            raise RuntimeError(f"evaluate: {result['exceptionDetails']}")
+        return result["result"].get("value")
+
+    def snapshot(self):
+        return json.loads(self.evaluate(SNAPSHOT))
+
+    def wait_for(self, what, check):
+        """Poll the page until `check(snapshot)` is true; fail naming `what`."""
+        deadline = time.monotonic() + WAIT
+        while True:
+            snapshot = self.snapshot()
+            if self.problems:
+                fail("the page reported problems", self.problems)
+            if check(snapshot):
+                return snapshot
+            if time.monotonic() > deadline:
+                fail(f"the page never showed {what}", snapshot)
+            time.sleep(0.1)
+
+    def screenshot(self, path):
+        shot = self.call("Page.captureScreenshot", {"format": "png"})
+        with open(path, "wb") as file:
+            file.write(base64.b64decode(shot["data"]))
+
+
+def fail(what, detail):
+    print(f"status page check FAILED: {what}\n{json.dumps(detail, indent=1)}", file=sys.stderr)
+    raise SystemExit(1)
+
+
+def crc16(frame):
+    crc = 0xFFFF
+    for byte in frame:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+    return struct.pack("<H", crc)
+
+
+class Master:
+    """A Modbus TCP master on a plain socket."""
+
+    def __init__(self, port):
+        self.socket = socket.create_connection(("127.0.0.1", port), timeout=10)
+        self.transaction = 0
+
+    def address(self):
+        host, port = self.socket.getsockname()[:2]
+        return f"{host}:{port}"
+
+    def read(self, unit, register, count):
+        """Read holding registers; the RTU frame the gateway sends for it, as the trace shows it."""
+        self.transaction += 1
+        pdu = struct.pack(">BHH", 3, register, count)
+        self.socket.sendall(struct.pack(">HHHB", self.transaction, 0, len(pdu) + 1, unit) + pdu)
+        header = self.socket.recv(7, socket.MSG_WAITALL)
+        length = struct.unpack(">H", header[4:6])[0]
+        self.socket.recv(length - 1, socket.MSG_WAITALL)
+        frame = bytes([unit]) + pdu
+        return " ".join(f"{b:02x}" for b in frame + crc16(frame))
+
+    def close(self):
+        self.socket.close()
+
+
+def shows_demo(snapshot):
+    buses = [b for b in snapshot["buses"] if b["bus"] == DEMO_BUS and "open" in b["text"]]
+    drives = {s["slave"]: s["text"] for s in snapshot["slaves"] if s["bus"] == DEMO_BUS}
+    return buses and all(
+        address in drives and model in drives[address] for address, model in DEMO_DRIVES.items())
+
+
+# Two registers each demo drive answers: the Goodrive state words, the Pd inverter's
+# frequency reference and running frequency.
+STATE_REGISTER = {1: 0x2100, 2: 0x2100, 3: 0x2100, 4: 0x1000}
+
+
+def traffic(port, stop):
+    """Two masters polling the drives until `stop` is set, for a screenshot with data in it."""
+    def poll(units):
+        master = Master(port)
+        while not stop.is_set():
+            for unit in units:
+                master.read(unit, STATE_REGISTER[unit], 2)
+            stop.wait(0.2)
+        master.close()
+    threads = [threading.Thread(target=poll, args=(units,)) for units in ((1, 2), (3, 4))]
+    for thread in threads:
+        thread.start()
+    return threads
+
+
+def main():
+    metrics_port, modbus_port = int(sys.argv[1]), int(sys.argv[2])
+    screenshot = sys.argv[4] if len(sys.argv) > 4 and sys.argv[3] == "--screenshot" else None
+    log = open(os.environ.get("CHROMIUM_LOG", os.devnull), "ab")
+    browser = Browser(log)
+    try:
+        browser.open(f"http://127.0.0.1:{metrics_port}/")
+        browser.wait_for("the demo bus and its four drives", shows_demo)
+        browser.wait_for("the live trace connected", lambda s: s["trace"] == "live")
+        # Sent after the page loaded and its trace connected: the panel must show it.
+        master = Master(modbus_port)
+        request = master.read(3, 0x2103, 1)
+        frame = browser.wait_for(
+            f"the request to drive 3 ({request}) in the trace panel",
+            lambda s: any(f["direction"] == "tx" and f["slave"] == 3 and request in f["cells"]
+                          for f in s["frames"]))
+        browser.wait_for(
+            f"the master {master.address()} among the connected masters",
+            lambda s: master.address() in s["masters"])
+        # The slave filter opens the trace again for that slave alone.
+        browser.evaluate("""(() => {
+          document.getElementById('trace-clear').click();
+          const slave = document.getElementById('trace-slave');
+          slave.value = '2';
+          slave.dispatchEvent(new Event('change'));
+        })()""")
+        browser.wait_for("the trace open again for slave 2", lambda s: s["trace"] == "live")
+        master.read(1, 0x2103, 1)
+        wanted = master.read(2, 0x2103, 1)
+        filtered = browser.wait_for(
+            f"the request to drive 2 ({wanted}) in the trace filtered for slave 2",
+            lambda s: any(wanted in f["cells"] for f in s["frames"]))
+        others = [f for f in filtered["frames"] if f["slave"] != 2]
+        if others:
+            fail("frames of other slaves in the trace filtered for slave 2", others)
+        master.close()
+        print(f"status page in {CHROMIUM}: bus {DEMO_BUS}, drives {sorted(DEMO_DRIVES)}, "
+              f"the frame {request} in the trace panel ({len(frame['frames'])} frames shown), "
+              f"and with the slave filter only slave 2's")
+        if screenshot:
+            stop = threading.Event()
+            threads = traffic(modbus_port, stop)
+            try:
+                browser.wait_for("the two polling masters", lambda s: s["masters"].count("tcp") == 2)
+                time.sleep(4.5)  # two more polls of /status with the traffic in them
+                browser.screenshot(screenshot)
+            finally:
+                stop.set()
+                for thread in threads:
+                    thread.join()
+            print(f"screenshot: {screenshot}")
+    finally:
+        browser.close()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,186 @@
+//! What the status page shows, as data: the buses, their slaves and the masters connected now,
+//! served as JSON at `/status` and rendered by the page at `/` (`status.html`, compiled in).
+//! The values are read from where they are kept (the bus's metrics and handle, the listener's
+//! sessions); this module only holds their shape and the line's recent utilisation, which needs
+//! the busy time of a moment ago.
+
+use serde::Serialize;
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::sync::{Mutex, PoisonError};
+use std::time::{Duration, SystemTime};
+use tokio::time::Instant;
+
+/// The page itself: one self-contained HTML file, its script and style inline.
+pub const PAGE: &str = include_str!("status.html");
+
+/// The utilisation shown is the line's busy time over about this much of the recent past.
+const UTILISATION_WINDOW: Duration = Duration::from_secs(60);
+/// Samples of a line's busy time closer together than this are not kept.
+const SAMPLE_SPACING: Duration = Duration::from_secs(1);
+
+/// The whole page's data; its default, a gateway with nothing to show.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct Status {
+    pub version: &'static str,
+    /// When the answer was made (RFC 3339, UTC).
+    pub time: String,
+    pub uptime_seconds: f64,
+    pub buses: Vec<BusStatus>,
+    /// The masters connected now over TCP (Modbus TCP, RTU over TCP, TLS); UDP masters have no
+    /// connection and are not listed.
+    pub masters: Vec<MasterStatus>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct BusStatus {
+    pub name: String,
+    /// The serial device's path, or `"simulated"`.
+    pub device: String,
+    /// `rtu` or `ascii`.
+    pub framing: &'static str,
+    /// The serial format, e.g. `9600 8E1`.
+    pub format: String,
+    pub port_up: bool,
+    /// Share of the recent past (about a minute) the line carried characters, 0 to 1.
+    pub utilisation: f64,
+    pub queue_depth: usize,
+    pub queue_capacity: usize,
+    /// Transactions on the line since the bus started, retries included in each.
+    pub transactions: u64,
+    pub slaves: Vec<SlaveStatus>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct SlaveStatus {
+    pub address: u8,
+    /// The simulated drive's model, for a slave of a simulated line.
+    pub model: Option<&'static str>,
+    /// Whether its last transaction that tells got a valid answer (`modbus_gateway_slave_up`).
+    pub up: bool,
+    /// Its last answer, normal or exception (RFC 3339, UTC), or `null` if none yet.
+    pub last_answer: Option<String>,
+    pub last_answer_seconds_ago: Option<f64>,
+    /// The median of its recent round trips (the last 32 transactions), or `null` if none.
+    pub round_trip_p50_seconds: Option<f64>,
+    /// Its requests by outcome (the `outcome` label of `modbus_gateway_requests_total`).
+    pub requests: BTreeMap<String, u64>,
+    /// Its requests that did not end `ok`.
+    pub errors: u64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct MasterStatus {
+    /// The peer's `ip:port`.
+    pub address: String,
+    /// `tcp`, `rtu_over_tcp` or `tls`.
+    pub protocol: &'static str,
+    /// `read_write`, `read_only` or `none`.
+    pub rights: &'static str,
+    /// The role of its certificate, on a TLS connection that has one.
+    pub role: Option<String>,
+    pub priority: bool,
+    /// RFC 3339, UTC.
+    pub connected_since: String,
+    pub connected_seconds: f64,
+    /// Requests it has sent on this connection.
+    pub requests: u64,
+}
+
+/// `time` as RFC 3339 in UTC, to the millisecond.
+pub fn rfc3339(time: SystemTime) -> String {
+    humantime::format_rfc3339_millis(time).to_string()
+}
+
+/// Seconds from `then` to `now`, 0 if `then` is later.
+pub fn seconds_between(then: SystemTime, now: SystemTime) -> f64 {
+    now.duration_since(then).unwrap_or_default().as_secs_f64()
+}
+
+/// The median of `samples`, `None` if there are none.
+pub fn median(samples: impl IntoIterator<Item = Duration>) -> Option<Duration> {
+    let mut samples: Vec<Duration> = samples.into_iter().collect();
+    if samples.is_empty() {
+        return None;
+    }
+    samples.sort_unstable();
+    let middle = samples.len() / 2;
+    Some(if samples.len() % 2 == 1 {
+        samples[middle]
+    } else {
+        (samples[middle - 1] + samples[middle]) / 2
+    })
+}
+
+/// The recent utilisation of each line, from samples of its busy time taken as the status is
+/// asked for: busy seconds over the elapsed time since the oldest sample of the window, or since
+/// the line's first sample if the window holds nothing older than a second yet.
+#[derive(Default)]
+pub struct Utilisation {
+    samples: Mutex<HashMap<String, VecDeque<(Instant, f64)>>>,
+}
+
+impl Utilisation {
+    /// The utilisation of bus `name`, whose busy time is `busy` seconds at `now`; `since` is when
+    /// it started counting (for an answer before any earlier sample).
+    pub fn of(&self, name: &str, busy: f64, now: Instant, since: Instant) -> f64 {
+        let mut all = self.samples.lock().unwrap_or_else(PoisonError::into_inner);
+        let samples = all.entry(name.to_owned()).or_default();
+        while samples.len() > 1 && samples[1].0 + UTILISATION_WINDOW <= now {
+            samples.pop_front();
+        }
+        let (base_at, base_busy) = samples
+            .front()
+            .copied()
+            .filter(|(at, _)| *at + SAMPLE_SPACING <= now)
+            .unwrap_or((since, 0.0));
+        if samples
+            .back()
+            .is_none_or(|(at, _)| *at + SAMPLE_SPACING <= now)
+        {
+            samples.push_back((now, busy));
+        }
+        let elapsed = now.saturating_duration_since(base_at).as_secs_f64();
+        if elapsed <= 0.0 {
+            return 0.0;
+        }
+        ((busy - base_busy) / elapsed).clamp(0.0, 1.0)
+    }
+
+    /// Forget the buses not in `names` (removed by a reload).
+    pub fn keep_only(&self, names: &[&str]) {
+        self.samples
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .retain(|name, _| names.contains(&name.as_str()));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_median_of_an_odd_and_an_even_count_and_of_none() {
+        let ms = Duration::from_millis;
+        assert_eq!(median([ms(30), ms(10), ms(20)]), Some(ms(20)));
+        assert_eq!(median([ms(40), ms(10), ms(20), ms(30)]), Some(ms(25)));
+        assert_eq!(median([]), None);
+    }
+
+    #[test]
+    fn utilisation_is_the_busy_share_of_the_recent_window_not_of_all_time() {
+        let utilisation = Utilisation::default();
+        let start = Instant::now();
+        let at = |s: u64| start + Duration::from_secs(s);
+        // Before any sample: since the start.
+        assert!((utilisation.of("line1", 5.0, at(10), start) - 0.5).abs() < 1e-9);
+        // Busy all of the next 10 s.
+        assert!((utilisation.of("line1", 15.0, at(20), start) - 1.0).abs() < 1e-9);
+        // Then idle for two minutes: the busy past has left the window.
+        utilisation.of("line1", 15.0, at(100), start);
+        let idle = utilisation.of("line1", 15.0, at(140), start);
+        assert!(idle.abs() < 1e-9, "{idle}");
+        // Another line has its own samples.
+        assert!((utilisation.of("line2", 1.0, at(140), at(130)) - 0.1).abs() < 1e-9);
+    }
+}

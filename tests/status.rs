@@ -1,0 +1,172 @@
+//! The status page: `/status` (JSON) after known traffic through a real gateway on the simulated
+//! line, and `/` (the page), read over a real HTTP connection. `.ci/status-page-check` loads the
+//! page in a real browser.
+
+use crate::support::{addr, http_get, start, within, RawMaster};
+use serde_json::Value;
+use std::net::SocketAddr;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+
+/// Read two holding registers from 0000H: a register slave answers.
+const READ_2: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x02];
+/// 126 registers is one more than a read may ask for: the slave's exception 03.
+const READ_126: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x7E];
+
+/// One 9600 8E1 line "sim" with register slaves 1-4, and slave 5 configured but absent (silent)
+/// with a short timeout.
+const LINE: &str = "[server]\nlisten = \"127.0.0.1:0\"\n\
+    [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 9600\nparity = \"even\"\n\
+    [[bus.slave]]\naddress = 5\nresponse_timeout = \"50ms\"\n\
+    [[bus.sim_slave]]\naddress = \"1-4\"\nmodel = \"registers\"\n";
+
+async fn get_status(metrics: SocketAddr) -> Value {
+    let (code, body) = http_get(metrics, "/status").await;
+    assert_eq!(code, 200, "{body}");
+    serde_json::from_str(&body).unwrap_or_else(|e| panic!("/status is not JSON ({e}): {body}"))
+}
+
+/// The slave at `address` on the first bus.
+fn slave(status: &Value, address: u64) -> &Value {
+    let slaves = status["buses"][0]["slaves"].as_array().expect("slaves");
+    slaves
+        .iter()
+        .find(|s| s["address"] == address)
+        .unwrap_or_else(|| panic!("slave {address} not listed: {status:#}"))
+}
+
+/// One HTTP/1.1 request: the response's head (status line and headers, lower-cased) and its body.
+async fn request(addr: SocketAddr, method: &str, path: &str) -> (String, String) {
+    let mut stream = within("connect", TcpStream::connect(addr)).await.unwrap();
+    let request = format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n");
+    stream.write_all(request.as_bytes()).await.unwrap();
+    let mut response = String::new();
+    within("response", stream.read_to_string(&mut response))
+        .await
+        .unwrap();
+    let (head, body) = response.split_once("\r\n\r\n").expect("an HTTP response");
+    (head.to_lowercase(), body.to_owned())
+}
+
+#[tokio::test]
+async fn status_shows_the_bus_each_slave_s_answers_and_errors_and_the_connected_master() {
+    let gateway = start(LINE).await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    assert_eq!(master.call(1, 1, &READ_2).await[0], 0x03);
+    assert_eq!(master.call(2, 2, &READ_126).await, [0x83, 0x03]);
+    assert_eq!(master.call(3, 5, &READ_2).await, [0x83, 0x0B]);
+    let status = get_status(gateway.metrics_addr()).await;
+
+    assert_eq!(status["version"], env!("CARGO_PKG_VERSION"));
+    assert!(status["uptime_seconds"].as_f64().unwrap() > 0.0);
+    let bus = &status["buses"][0];
+    assert_eq!(bus["name"], "sim");
+    assert_eq!(bus["device"], "simulated");
+    assert_eq!(bus["framing"], "rtu");
+    assert_eq!(bus["port_up"], true);
+    assert_eq!(bus["queue_depth"], 0);
+    assert_eq!(bus["queue_capacity"], 256);
+    assert_eq!(bus["transactions"], 3);
+    let utilisation = bus["utilisation"].as_f64().unwrap();
+    assert!(utilisation > 0.0 && utilisation <= 1.0, "{utilisation}");
+
+    let answered = slave(&status, 1);
+    assert_eq!(answered["up"], true);
+    assert_eq!(answered["model"], "registers");
+    assert!(answered["last_answer"].as_str().unwrap().ends_with('Z'));
+    assert!(answered["last_answer_seconds_ago"].as_f64().unwrap() < 60.0);
+    // 8 bytes out and 9 back at 9600 8E1 are 19.5 ms of characters alone.
+    let p50 = answered["round_trip_p50_seconds"].as_f64().unwrap();
+    assert!(p50 > 0.0195 && p50 < 1.0, "{p50}");
+    assert_eq!(answered["requests"], serde_json::json!({ "ok": 1 }));
+    assert_eq!(answered["errors"], 0);
+
+    let refused = slave(&status, 2);
+    assert_eq!(refused["up"], true, "an exception is an answer");
+    assert_eq!(refused["requests"]["exception"], 1);
+    assert_eq!(refused["errors"], 1);
+
+    let silent = slave(&status, 5);
+    assert_eq!(silent["up"], false);
+    assert_eq!(silent["model"], Value::Null);
+    assert_eq!(silent["last_answer"], Value::Null);
+    assert_eq!(silent["requests"]["timeout"], 1);
+    assert_eq!(silent["errors"], 1);
+    let never_asked = slave(&status, 3);
+    assert_eq!(never_asked["requests"], serde_json::json!({}));
+    assert_eq!(never_asked["round_trip_p50_seconds"], Value::Null);
+
+    let masters = status["masters"].as_array().unwrap();
+    assert_eq!(masters.len(), 1, "{status:#}");
+    let master_status = &masters[0];
+    assert!(master_status["address"]
+        .as_str()
+        .unwrap()
+        .starts_with("127.0.0.1:"));
+    assert_eq!(master_status["protocol"], "tcp");
+    assert_eq!(master_status["rights"], "read_write");
+    assert_eq!(master_status["role"], Value::Null);
+    assert_eq!(master_status["requests"], 3);
+    drop(master);
+    within("the master that left is no longer listed", async {
+        while !get_status(gateway.metrics_addr()).await["masters"]
+            .as_array()
+            .unwrap()
+            .is_empty()
+        {
+            tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+        }
+    })
+    .await;
+    gateway.shutdown().await;
+}
+
+#[tokio::test]
+async fn a_read_only_master_is_listed_with_its_rights() {
+    let gateway = start(&LINE.replace(
+        "listen = \"127.0.0.1:0\"\n",
+        "listen = \"127.0.0.1:0\"\nread_only = [\"127.0.0.0/8\"]\n",
+    ))
+    .await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    master.call(1, 1, &READ_2).await;
+    let status = get_status(gateway.metrics_addr()).await;
+    assert_eq!(status["masters"][0]["rights"], "read_only", "{status:#}");
+    gateway.shutdown().await;
+}
+
+#[tokio::test]
+async fn the_status_page_is_one_html_page_that_loads_nothing_from_elsewhere() {
+    let gateway = start(LINE).await;
+    let (head, page) = request(gateway.metrics_addr(), "GET", "/").await;
+    assert!(head.starts_with("http/1.1 200"), "{head}");
+    assert!(
+        head.contains("\r\ncontent-type: text/html; charset=utf-8\r\n"),
+        "{head}"
+    );
+    let policy = head
+        .lines()
+        .find_map(|line| line.strip_prefix("content-security-policy: "))
+        .unwrap_or_else(|| panic!("no CSP: {head}"));
+    assert!(policy.contains("default-src 'none'"), "{policy}");
+    assert!(policy.contains("connect-src 'self'"), "{policy}");
+    assert!(policy.contains("script-src 'sha256-"), "{policy}");
+    assert!(page.starts_with("<!DOCTYPE html>"));
+    for external in ["http://", "https://", "//cdn", " src=", " href="] {
+        assert!(!page.contains(external), "the page holds {external:?}");
+    }
+    // It reads its data from this endpoint, and the trace from the trace endpoint.
+    assert!(page.contains("fetch(\"status\""));
+    assert!(page.contains("new EventSource(url)"));
+    for table in ["buses", "slaves", "masters", "trace"] {
+        assert!(page.contains(&format!("<tbody id=\"{table}\">")), "{table}");
+    }
+    let (head_only, nothing) = request(gateway.metrics_addr(), "HEAD", "/").await;
+    assert!(head_only.starts_with("http/1.1 200"), "{head_only}");
+    assert!(head_only.contains("content-security-policy: default-src 'none'"));
+    assert_eq!(nothing, "");
+    let (code, body) = http_get(gateway.metrics_addr(), "/nothing-here").await;
+    assert_eq!(code, 404);
+    assert!(body.contains("/ (the status page), /status"), "{body}");
+    gateway.shutdown().await;
+}
