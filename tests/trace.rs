@@ -99,10 +99,22 @@ impl Trace {
             }
         }
     }
+
+    /// The [`fields`] of the next `n` frame events.
+    async fn fields_of_next(&mut self, n: usize) -> Vec<Fields> {
+        let mut got = Vec::with_capacity(n);
+        for _ in 0..n {
+            got.push(fields(&self.frame().await));
+        }
+        got
+    }
 }
 
+/// Bus, direction, slave, function, hex, outcome.
+type Fields = (String, String, u64, u64, String, String);
+
 /// A frame event's fields that the line decides: bus, direction, slave, function, hex, outcome.
-fn fields(frame: &Value) -> (String, String, u64, u64, String, String) {
+fn fields(frame: &Value) -> Fields {
     let text = |key: &str| frame[key].as_str().unwrap().to_owned();
     (
         text("bus"),
@@ -121,7 +133,7 @@ fn expect(
     function: u64,
     hex: &str,
     outcome: &str,
-) -> (String, String, u64, u64, String, String) {
+) -> Fields {
     (
         bus.into(),
         direction.into(),
@@ -193,10 +205,7 @@ async fn on_an_ascii_line_the_trace_shows_the_ascii_frames_characters() {
     let mut trace = Trace::open(gateway.metrics_addr(), "").await;
     let mut master = RawMaster::connect(gateway.local_addrs()[0]).await;
     master.call(1, 1, &[0x03, 0x00, 0x00, 0x00, 0x02]).await;
-    let got: Vec<_> = [trace.frame().await, trace.frame().await]
-        .iter()
-        .map(fields)
-        .collect();
+    let got = trace.fields_of_next(2).await;
     // `:`, address 01, the PDU and the LRC (the two's complement of the bytes' sum) as hex
     // pairs, CR LF.
     assert_eq!(
@@ -231,14 +240,7 @@ async fn a_trace_filtered_by_bus_and_slave_gets_only_their_frames() {
     // A second read of b's slave 2, of another register: had any other frame passed the
     // filter, it would have come before.
     master.call(5, 12, &[0x03, 0x00, 0x01, 0x00, 0x01]).await;
-    let got: Vec<_> = [
-        trace.frame().await,
-        trace.frame().await,
-        trace.frame().await,
-    ]
-    .iter()
-    .map(fields)
-    .collect();
+    let got = trace.fields_of_next(3).await;
     assert_eq!(
         got,
         [
@@ -289,14 +291,7 @@ async fn a_request_that_gets_no_reply_is_one_tx_frame_with_outcome_timeout() {
     let read = [0x03, 0x00, 0x00, 0x00, 0x01];
     master.call(1, 5, &read).await;
     master.call(2, 1, &read).await;
-    let got: Vec<_> = [
-        trace.frame().await,
-        trace.frame().await,
-        trace.frame().await,
-    ]
-    .iter()
-    .map(fields)
-    .collect();
+    let got = trace.fields_of_next(3).await;
     assert_eq!(
         got,
         [
