@@ -461,7 +461,7 @@ async fn the_trace_subcommand_prints_each_frame_decoded() {
     let untimed = |line: &str| line.split_once(' ').unwrap().1.to_owned();
     assert_eq!(
         untimed(&first),
-        "sim tx  slave 2    read input registers 0x04  addr 1 count 2   02 04 00 01 00 02 20 38"
+        "sim tx  slave 2    read input registers 0x04  addr 0x0001 (1) count 2   02 04 00 01 00 02 20 38"
     );
     assert_eq!(
         untimed(&second),

@@ -202,11 +202,16 @@ fn word(pdu: &[u8], at: usize) -> Option<u16> {
     Some(u16::from_be_bytes([*pdu.get(at)?, *pdu.get(at + 1)?]))
 }
 
-/// `addr A count N`, `addr A value 0xV`: the two words after the function code.
+/// `addr 0xA (A) count N`, `addr 0xA (A) value 0xV`: the two words after the function code. The
+/// address in hex as drive manuals write it, and in decimal as SCADA tools do.
 fn address_and(pdu: &[u8], second: &str) -> String {
     match (word(pdu, 1), word(pdu, 3)) {
-        (Some(address), Some(n)) if second == "count" => format!("addr {address} count {n}"),
-        (Some(address), Some(value)) => format!("addr {address} {second} 0x{value:04x}"),
+        (Some(address), Some(n)) if second == "count" => {
+            format!("addr 0x{address:04x} ({address}) count {n}")
+        }
+        (Some(address), Some(value)) => {
+            format!("addr 0x{address:04x} ({address}) {second} 0x{value:04x}")
+        }
         _ => String::new(),
     }
 }
@@ -271,7 +276,7 @@ fn pdu_of(frame: &[u8]) -> Option<Vec<u8>> {
 
 impl Frame {
     /// One line for a terminal: `14:00:00.123456 line1 tx  slave 1    read holding registers
-    /// 0x03  addr 0 count 2   01 03 00 00 00 02 c4 0b`.
+    /// 0x03  addr 0x0000 (0) count 2   01 03 00 00 00 02 c4 0b`.
     fn describe(&self) -> String {
         // The time of day (UTC) of the RFC 3339 time: between the `T` and the `Z`.
         let time = self
@@ -358,7 +363,7 @@ mod tests {
         let tx = frame("tx", "01 03 00 00 00 02 c4 0b", "ok");
         assert_eq!(
             tx.describe(),
-            "14:00:00.123456 line1 tx  slave 1    read holding registers 0x03  addr 0 count 2   \
+            "14:00:00.123456 line1 tx  slave 1    read holding registers 0x03  addr 0x0000 (0) count 2   \
              01 03 00 00 00 02 c4 0b"
         );
         let rx = frame("rx", "01 03 04 00 00 00 01 3b f3", "ok");
@@ -391,7 +396,7 @@ mod tests {
         let tx = frame("tx", "05 06 00 01 13 88 d4 d8", "timeout");
         assert!(
             tx.describe().contains(
-                "tx  slave 5    write single register 0x06  addr 1 value 0x1388  (timeout)   05 06"
+                "tx  slave 5    write single register 0x06  addr 0x0001 (1) value 0x1388  (timeout)   05 06"
             ),
             "{}",
             tx.describe()
@@ -406,7 +411,7 @@ mod tests {
         tx.hex = hex;
         assert!(
             tx.describe()
-                .contains("read holding registers 0x03  addr 0 count 2   3a 30 31"),
+                .contains("read holding registers 0x03  addr 0x0000 (0) count 2   3a 30 31"),
             "{}",
             tx.describe()
         );
