@@ -88,12 +88,7 @@ impl Drop for Watching {
 
 /// Open `GET /trace` on the metrics endpoint at `addr` and read it as `how` says.
 async fn watch_trace(addr: SocketAddr, how: TraceReader) -> Result<Watching, String> {
-    let failed = |e: std::io::Error| format!("opening the trace: {e}");
-    let mut stream = TcpStream::connect(addr).await.map_err(failed)?;
-    stream
-        .write_all(b"GET /trace HTTP/1.1\r\nHost: bench\r\n\r\n")
-        .await
-        .map_err(failed)?;
+    let mut stream = http_get(addr, "/trace", "opening the trace").await?;
     Ok(match how {
         TraceReader::Stalled => Watching::Stalled(stream),
         TraceReader::Reading => Watching::Reading(tokio::spawn(async move {
@@ -701,14 +696,20 @@ async fn priority_connect(gateway: &Gateway) -> Result<Conn, String> {
     Ok(Conn::Tcp(stream))
 }
 
+/// A connection to the gateway's metrics endpoint at `addr` that has asked for `path` (the
+/// server closes it after the answer, or keeps streaming); errors say they happened `doing`.
+async fn http_get(addr: SocketAddr, path: &str, doing: &str) -> Result<TcpStream, String> {
+    let failed = |e: std::io::Error| format!("{doing}: {e}");
+    let mut stream = TcpStream::connect(addr).await.map_err(failed)?;
+    let request = format!("GET {path} HTTP/1.1\r\nHost: bench\r\nConnection: close\r\n\r\n");
+    stream.write_all(request.as_bytes()).await.map_err(failed)?;
+    Ok(stream)
+}
+
 /// The gateway's metrics page.
 async fn scrape(addr: SocketAddr) -> Result<String, String> {
     let failed = |e: std::io::Error| format!("scraping the metrics: {e}");
-    let mut stream = TcpStream::connect(addr).await.map_err(failed)?;
-    stream
-        .write_all(b"GET /metrics HTTP/1.1\r\nHost: bench\r\nConnection: close\r\n\r\n")
-        .await
-        .map_err(failed)?;
+    let mut stream = http_get(addr, "/metrics", "scraping the metrics").await?;
     let mut page = String::new();
     stream.read_to_string(&mut page).await.map_err(failed)?;
     Ok(page)
