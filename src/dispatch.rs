@@ -1,14 +1,16 @@
 //! Between the TCP sessions and the buses: each request is refused at once by the gateway (bad
-//! function code, a write from a read-only master, no route, a read to the broadcast address,
-//! port down, queue full) or queued on the bus its unit routes to. Either way the session gets a
+//! function code, a PDU longer or shorter than its function code says, a write from a read-only
+//! master, no route, a read to the broadcast address, port down, queue full) or queued on the
+//! bus its unit routes to. The length check comes first, for every protocol alike: bytes after
+//! a request are never sent, since a slave framing by length would take them as a request. Either way the session gets a
 //! receiver for its outcome.
 
 use crate::bus::{BusHandle, MasterId, Origin};
 use crate::config::UnitSet;
 use crate::error::{Outcome, RequestError};
 use crate::line::BROADCAST;
-use crate::metrics::{Metrics, Protocol};
-use crate::pdu;
+use crate::metrics::{Metrics, Protocol, Refusal};
+use crate::pdu::{self, RequestLen};
 use crate::routing::Router;
 use std::net::SocketAddr;
 use std::sync::{Arc, PoisonError, RwLock};
@@ -48,7 +50,6 @@ pub struct Client {
     pub priority: bool,
     /// How it talks to the gateway: Modbus TCP unless [`Client::speaking`] says otherwise.
     pub protocol: Protocol,
-    refused: u64,
 }
 
 impl Client {
@@ -60,7 +61,6 @@ impl Client {
             units: None,
             priority: false,
             protocol: Protocol::Tcp,
-            refused: 0,
         }
     }
 
@@ -127,28 +127,39 @@ impl Dispatcher {
         let function = pdu.first().copied().unwrap_or(0);
         let table = self.table();
         let target = table.router.resolve(unit);
+        let length = pdu::request_len(&pdu);
         let refusal = match target {
             _ if !pdu::is_valid_request_function(function) => {
                 RequestError::InvalidFunction(function)
             }
-            _ if client.units.is_some_and(|units| !units.contains(unit)) => {
-                client.refused += 1;
-                let first = client.refused == 1;
+            _ if matches!(length, RequestLen::Wrong { .. }) => {
+                let len = pdu.len();
+                self.metrics
+                    .tcp
+                    .bad_length(client.master, &client.peer, function, len);
+                RequestError::BadLength { function, len }
+            }
+            // Any bytes the gateway cannot measure could hold a frame to another unit.
+            _ if client.units.is_some() && length == RequestLen::Unchecked => {
                 let tcp = &self.metrics.tcp;
-                tcp.unit_refused(client.master, &client.peer, unit, first);
+                tcp.request_refused(client.master, &client.peer, function, Refusal::Unverifiable);
+                RequestError::Unverifiable(function)
+            }
+            _ if client.units.is_some_and(|units| !units.contains(unit)) => {
+                let tcp = &self.metrics.tcp;
+                tcp.unit_refused(client.master, &client.peer, unit);
                 RequestError::UnitNotPermitted(unit)
             }
             _ if client.rights == Rights::NoAccess
                 || client.rights == Rights::ReadOnly && !pdu::is_read_only(&pdu) =>
             {
-                client.refused += 1;
-                let first = client.refused == 1;
+                let (refusal, error) = match client.rights {
+                    Rights::NoAccess => (Refusal::NoAccess, RequestError::NoAccess(function)),
+                    _ => (Refusal::ReadOnly, RequestError::ReadOnly(function)),
+                };
                 let tcp = &self.metrics.tcp;
-                tcp.request_refused(client.master, &client.peer, function, client.rights, first);
-                match client.rights {
-                    Rights::NoAccess => RequestError::NoAccess(function),
-                    _ => RequestError::ReadOnly(function),
-                }
+                tcp.request_refused(client.master, &client.peer, function, refusal);
+                error
             }
             None => RequestError::NoRoute(unit),
             Some(target)
@@ -165,14 +176,18 @@ impl Dispatcher {
                 return table.buses[target.bus].submit_from(origin, target.address, pdu);
             }
         };
-        // Counted against the bus and slave the unit routes to, if any, else the unit id.
-        let (bus, slave) = match target {
-            Some(target) => (table.buses[target.bus].name(), target.address),
-            None => ("", unit),
-        };
+        // Counted against the bus and slave the unit routes to, if any; without a route, with
+        // no bus and no slave (the unit id is the master's to choose).
         let outcome = Err(refusal);
-        self.metrics
-            .request(bus, slave, function, client.protocol, &outcome);
+        match target {
+            Some(target) => table.buses[target.bus].metrics().request(
+                target.address,
+                function,
+                client.protocol,
+                Some(&outcome),
+            ),
+            None => self.metrics.unrouted(function, client.protocol, &outcome),
+        }
         let (reply, receiver) = oneshot::channel();
         let _ = reply.send(outcome);
         receiver

@@ -43,6 +43,12 @@ impl From<Reply> for Answer {
 pub enum RequestError {
     #[error("function code {0:#04x} is not valid in a request")]
     InvalidFunction(u8),
+    #[error(
+        "a function {function:#04x} request of {len} bytes: not the length its function gives it"
+    )]
+    BadLength { function: u8, len: usize },
+    #[error("function code {0:#04x} refused: its length cannot be checked, and the master's TLS role may address only some units")]
+    Unverifiable(u8),
     #[error("function code {0:#04x} may change the slave, and the master is read-only")]
     ReadOnly(u8),
     #[error("function code {0:#04x} refused: the master's TLS role allows nothing")]
@@ -80,6 +86,11 @@ impl RequestError {
     pub fn duplicate(&self) -> RequestError {
         match self {
             RequestError::InvalidFunction(f) => RequestError::InvalidFunction(*f),
+            RequestError::BadLength { function, len } => RequestError::BadLength {
+                function: *function,
+                len: *len,
+            },
+            RequestError::Unverifiable(f) => RequestError::Unverifiable(*f),
             RequestError::ReadOnly(f) => RequestError::ReadOnly(*f),
             RequestError::NoAccess(f) => RequestError::NoAccess(*f),
             RequestError::UnitNotPermitted(u) => RequestError::UnitNotPermitted(*u),
@@ -107,7 +118,9 @@ impl RequestError {
             | RequestError::NotBroadcastable(_)
             | RequestError::ReadOnly(_)
             | RequestError::NoAccess(_)
+            | RequestError::Unverifiable(_)
             | RequestError::UnitNotPermitted(_) => ExceptionCode::IllegalFunction,
+            RequestError::BadLength { .. } => ExceptionCode::IllegalDataValue,
             RequestError::NoRoute(_) | RequestError::PortDown | RequestError::ShuttingDown => {
                 ExceptionCode::GatewayPathUnavailable
             }

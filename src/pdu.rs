@@ -113,8 +113,10 @@ pub enum Len {
     /// A header of `count_at + 1` bytes whose last byte counts objects, each an id byte, a
     /// length byte and that many value bytes (Read Device Identification replies).
     Objects { count_at: usize },
-    /// The bytes cannot tell: the PDU ends when the line falls silent.
-    Unknown,
+    /// Diagnostics requests: bytes 1-2 are the sub-function. Those the spec defines with one
+    /// data word are five bytes; Return Query Data (0000H) and sub-functions the spec does not
+    /// define end by silence.
+    SubFunction,
 }
 
 /// What [`Len::of`] can tell from the bytes received so far.
@@ -171,9 +173,26 @@ pub enum Unit {
 }
 
 /// Diagnostics: echo, diagnostic register and the counters read; the rest restart or clear.
+/// Return Query Data (0000H) reads only with one word of data: its length is the master's to
+/// choose, so longer data could hold a whole frame that a slave framing by length would take as
+/// the next request, and a master that may only read must not be able to send one.
 fn diagnostics_reads(pdu: &[u8]) -> bool {
-    matches!(sub_function(pdu), Some(0x0000 | 0x0002 | 0x000B..=0x0012))
+    match sub_function(pdu) {
+        Some(RETURN_QUERY_DATA) => pdu.len() == 5,
+        Some(sub) => matches!(sub, 0x0002 | 0x000B..=0x0012),
+        None => false,
+    }
 }
+
+/// The diagnostics sub-function whose data is the master's to choose (any number of words).
+const RETURN_QUERY_DATA: u16 = 0x0000;
+/// The diagnostics sub-functions of the Modbus Application Protocol V1.1b3 with one data word:
+/// restart, diagnostic register, ASCII delimiter, listen only, clear counters, the eight
+/// counters, clear overrun.
+const DIAGNOSTICS_WITH_ONE_WORD: [u16; 14] = [
+    0x0001, 0x0002, 0x0003, 0x0004, 0x000A, 0x000B, 0x000C, 0x000D, 0x000E, 0x000F, 0x0010, 0x0011,
+    0x0012, 0x0014,
+];
 
 /// Encapsulated interface: only Read Device Identification is known to be a read.
 fn mei_reads(pdu: &[u8]) -> bool {
@@ -232,7 +251,7 @@ const ECHO_SUB_FUNCTION: Shape = Shape::Echo { from: 1, to: 3 };
 const ECHO_MEI_TYPE: Shape = Shape::Echo { from: 1, to: 2 };
 
 /// Every function code the gateway knows, in code order. Diagnostics replies echo their request,
-/// so only the request tells their length; diagnostics requests end by silence.
+/// so only the request tells their length.
 #[rustfmt::skip]
 pub const FUNCTIONS: &[Function] = &[
     // code, name,
@@ -252,7 +271,7 @@ pub const FUNCTIONS: &[Function] = &[
     row(READ_EXCEPTION_STATUS, "Read Exception Status",
         BARE, Len::Fixed(2), Read, Refused, Shape::Any),
     row(DIAGNOSTICS, "Diagnostics",
-        Len::Unknown, Len::Echo, ReadIf(diagnostics_reads), Refused, ECHO_SUB_FUNCTION),
+        Len::SubFunction, Len::Echo, ReadIf(diagnostics_reads), Refused, ECHO_SUB_FUNCTION),
     row(GET_COMM_EVENT_COUNTER, "Get Comm Event Counter",
         BARE, TWO_WORDS, Read, Refused, Shape::Any),
     row(GET_COMM_EVENT_LOG, "Get Comm Event Log",
@@ -326,7 +345,11 @@ impl Len {
                 Some(_) => PduLen::Unknown,
             },
             Len::Objects { count_at } => objects(pdu, count_at),
-            Len::Unknown => PduLen::Unknown,
+            Len::SubFunction => match sub_function(pdu) {
+                None => PduLen::Need(3),
+                Some(sub) if DIAGNOSTICS_WITH_ONE_WORD.contains(&sub) => PduLen::Exact(5),
+                Some(_) => PduLen::Unknown,
+            },
         }
     }
 }
@@ -368,6 +391,36 @@ fn objects(pdu: &[u8], count_at: usize) -> PduLen {
         }
     }
     exact(end)
+}
+
+/// How a request PDU's length compares with what its function code says.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RequestLen {
+    /// Exactly as long as its function says.
+    Fits,
+    /// Its bytes cannot tell how long it should be (a user-defined function code, a sub-function
+    /// or MEI type the table does not know, Return Query Data): it goes byte for byte.
+    Unchecked,
+    /// Shorter or longer than its function says: `expected` bytes, where the bytes tell.
+    Wrong { expected: Option<usize> },
+}
+
+/// Check `pdu`, a request, against the length its function code gives it. A longer PDU would
+/// carry bytes after the request that a slave framing by length takes as a request of its own
+/// (a hidden write, or a read whose answer comes late to another master); a shorter one is no
+/// request a slave can answer.
+pub fn request_len(pdu: &[u8]) -> RequestLen {
+    let Some(row) = pdu.first().and_then(|&code| function(code)) else {
+        return RequestLen::Unchecked;
+    };
+    match row.request.of(pdu, None) {
+        PduLen::Exact(len) if len == pdu.len() => RequestLen::Fits,
+        PduLen::Exact(len) => RequestLen::Wrong {
+            expected: Some(len),
+        },
+        PduLen::Need(_) | PduLen::Invalid => RequestLen::Wrong { expected: None },
+        PduLen::Unknown => RequestLen::Unchecked,
+    }
 }
 
 /// Requests that change nothing on the slave, so repeating them after a lost reply is harmless.
@@ -610,12 +663,81 @@ mod tests {
                 .find(|(request, _)| request[0] == row.code)
                 .unwrap_or_else(|| panic!("no worked frames for {:02X}", row.code));
             assert_eq!(reply[0], row.code);
-            if row.request == Len::Unknown {
+            if row.code == DIAGNOSTICS {
+                // Return Query Data: its data is the master's to choose, silence ends it.
                 assert_eq!(row.request.of(request, None), PduLen::Unknown);
             } else {
                 assert_measures_whole(row.request, request, None);
             }
             assert_measures_whole(row.reply, reply, Some(request));
         }
+    }
+
+    #[test]
+    fn a_request_longer_or_shorter_than_its_function_says_is_wrong_and_unknown_lengths_pass() {
+        // The hidden write of issue 25: a read, the CRC a slave expects, then a whole write frame.
+        let smuggled = [
+            0x03, 0x00, 0x00, 0x00, 0x01, // read 1 register from 0000H
+            0x84, 0x0A, // the CRC of 01 03 00 00 00 01
+            0x01, 0x06, 0x00, 0x05, 0x12, 0x34, 0x94, 0xBC, // write 1234H to 0005H of slave 1
+        ];
+        assert_eq!(
+            request_len(&smuggled),
+            RequestLen::Wrong { expected: Some(5) }
+        );
+        assert_eq!(request_len(&smuggled[..5]), RequestLen::Fits);
+        assert_eq!(
+            request_len(&[0x03, 0x00]),
+            RequestLen::Wrong { expected: Some(5) }
+        );
+        // Write multiple registers: its byte count says 4 bytes of data follow.
+        let write = [0x10, 0x00, 0x04, 0x00, 0x02, 0x04, 0x13, 0x88, 0x00, 0x32];
+        assert_eq!(request_len(&write), RequestLen::Fits);
+        assert_eq!(
+            request_len(&write[..9]),
+            RequestLen::Wrong { expected: Some(10) }
+        );
+        // Diagnostics: the defined sub-functions have one data word; Return Query Data and
+        // sub-functions the spec does not define go as they are.
+        assert_eq!(
+            request_len(&[0x08, 0x00, 0x0A, 0x00, 0x00]),
+            RequestLen::Fits
+        );
+        assert_eq!(
+            request_len(&[0x08, 0x00, 0x0A, 0x00, 0x00, 0x00]),
+            RequestLen::Wrong { expected: Some(5) }
+        );
+        assert_eq!(
+            request_len(&[0x08, 0x00]),
+            RequestLen::Wrong { expected: None }
+        );
+        assert_eq!(
+            request_len(&[0x08, 0x00, 0x00, 0x12, 0xAB, 0x12, 0xAB]),
+            RequestLen::Unchecked
+        );
+        assert_eq!(
+            request_len(&[0x08, 0x00, 0x15, 0, 0]),
+            RequestLen::Unchecked
+        );
+        // Read Device Identification is four bytes; other MEI types are unknown.
+        assert_eq!(request_len(&[0x2B, 0x0E, 0x01, 0x00]), RequestLen::Fits);
+        assert_eq!(
+            request_len(&[0x2B, 0x0E, 0x01, 0x00, 0x00]),
+            RequestLen::Wrong { expected: Some(4) }
+        );
+        assert_eq!(request_len(&[0x2B, 0x0D, 1, 2, 3]), RequestLen::Unchecked);
+        // User-defined codes.
+        assert_eq!(request_len(&[0x41, 1, 2, 3]), RequestLen::Unchecked);
+    }
+
+    #[test]
+    fn return_query_data_is_a_read_only_with_one_word_of_data() {
+        assert!(is_read_only(&[0x08, 0x00, 0x00, 0x12, 0xAB]));
+        // Room for a whole frame after the sub-function: not for a master that may only read.
+        let long = [
+            0x08, 0x00, 0x00, 0x01, 0x06, 0x00, 0x05, 0x12, 0x34, 0x94, 0xBC,
+        ];
+        assert!(!is_read_only(&long));
+        assert!(!is_read_only(&[0x08, 0x00, 0x00]));
     }
 }

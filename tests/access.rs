@@ -68,7 +68,8 @@ async fn read_only_masters_read_but_anything_else_gets_0x01_and_never_reaches_th
     assert_eq!(sent, [0x03, 0x03]);
 
     let scrape = Scrape::of(&gateway).await;
-    for function in ["0x06", "0x10", "0x08", "0x41"] {
+    // A function code the gateway does not know is counted as `other`.
+    for function in ["0x06", "0x10", "0x08", "other"] {
         let series = format!(
             "modbus_gateway_requests_total{{bus=\"sim\",function=\"{function}\",outcome=\"read_only\",protocol=\"tcp\",slave=\"1\"}}"
         );

@@ -31,7 +31,8 @@ fn counted_line_with_faulty_slave_2(bus_keys: &str, knobs: &str) -> (SimLine, Bu
     let text = format!(
         "[[bus]]\nname = \"line\"\ndevice = \"sim\"\nbaud = 9600\nresponse_timeout = \"200ms\"\n{bus_keys}\n\
          [[bus.sim_slave]]\naddress = 1\n\
-         [[bus.sim_slave]]\naddress = 2\n{knobs}\n"
+         [[bus.sim_slave]]\naddress = 2\n{knobs}\n\
+         [[bus.slave]]\naddress = 3\n"
     );
     let config = config_from_toml(&text).expect("test config");
     let metrics = Metrics::new();
@@ -43,11 +44,14 @@ fn scrape(metrics: &Metrics) -> Scrape {
     Scrape::parse(metrics.render().expect("metrics render"))
 }
 
-/// Requests to `slave` with `function` that the bus counted under `outcome`.
+/// Requests to `slave` with `function` that the bus counted under `outcome` (function codes
+/// the gateway does not know are all counted as `other`).
 fn counted(metrics: &Metrics, slave: u8, function: u8, outcome: &str) -> f64 {
+    let function = modbus_gateway::pdu::function(function)
+        .map_or_else(|| "other".to_owned(), |row| format!("0x{:02X}", row.code));
     scrape(metrics)
         .get(&format!(
-            "modbus_gateway_requests_total{{bus=\"line\",function=\"0x{function:02X}\",\
+            "modbus_gateway_requests_total{{bus=\"line\",function=\"{function}\",\
              outcome=\"{outcome}\",protocol=\"tcp\",slave=\"{slave}\"}}"
         ))
         .unwrap_or(0.0)

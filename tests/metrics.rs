@@ -90,9 +90,9 @@ async fn known_traffic_moves_each_counter_and_histogram_by_exactly_what_it_cause
         (exceptions("sim", "5", "gateway", "0x0B"), 1.0),
         (of_slave("modbus_gateway_retries_total", "5"), 1.0),
         (of_slave("modbus_gateway_retries_total", "1"), 0.0),
-        // No route: no bus, and the unit id in place of the slave address.
-        (requests("", "250", "no_route"), 1.0),
-        (exceptions("", "250", "gateway", "0x0A"), 1.0),
+        // No route: no bus, and no slave (the unit id is the master's to choose).
+        (requests("", "other", "no_route"), 1.0),
+        (exceptions("", "other", "gateway", "0x0A"), 1.0),
         // Four requests answered on the line, one timed out twice.
         (of_bus("modbus_gateway_round_trip_seconds_count"), 5.0),
         (

@@ -13,9 +13,9 @@ use tokio_serial::{SerialPortBuilderExt, SerialStream};
 const BINARY: &str = env!("CARGO_BIN_EXE_modbus-gateway");
 
 /// The serving process and the path it announced; stopped (and its exit checked) on drop.
-struct Simulator {
+pub struct Simulator {
     child: Option<Child>,
-    path: String,
+    pub path: String,
 }
 
 impl Simulator {
@@ -24,7 +24,7 @@ impl Simulator {
     }
 
     /// `simulate` on `config`'s simulated bus, which must announce `format`.
-    async fn start_with(config: &str, device: &str, format: &str) -> Simulator {
+    pub async fn start_with(config: &str, device: &str, format: &str) -> Simulator {
         let mut child = Command::new(BINARY)
             .args(["--config", config, "simulate", "--device", device])
             .env("MBGW__LOG__LEVEL", "warn")
@@ -58,7 +58,7 @@ impl Simulator {
     }
 
     /// SIGTERM, then the exit status must be 0.
-    async fn stop(mut self) {
+    pub async fn stop(mut self) {
         let child = self.child.take().expect("running");
         let killed = Command::new("kill")
             .args(["-s", "TERM", &child.id().to_string()])

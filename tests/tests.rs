@@ -7,6 +7,8 @@
 //!   length lies, half-sent requests, the connection limit and its policies, idle timeout,
 //!   keepalive, garbage.
 //! - `access`: `server.allow` and `server.read_only`.
+//! - `hostile`: masters that break the rules on purpose: frames hidden after a request, every
+//!   unit and function code to swell the metrics, floods of errors to drown the log.
 //! - `answers`: what the gateway answers itself: no route, broadcast, queue full, port down/back.
 //! - `ascii`: Modbus ASCII on the line, end to end: the manuals' frames, every function code, the
 //!   fault knobs in ASCII, metrics, reload.
@@ -54,6 +56,7 @@ mod docs;
 mod drives;
 mod fairness;
 mod faults;
+mod hostile;
 mod line;
 mod metrics;
 mod peers;

@@ -2,7 +2,7 @@
 //! transaction's round trip and retries, a slave's state as `bus::health` reports it, a port
 //! opened, lost or failing to open, what went over the line.
 
-use super::labels::{decimal, seconds_since_epoch, Fate, Protocol};
+use super::labels::{decimal, seconds_since_epoch, Fate, Protocol, OTHER};
 use super::{Definer, RequestCounters, BUS_EVENTS};
 use crate::bus::latency::LatencyTimer;
 use crate::config;
@@ -289,11 +289,34 @@ impl BusMetrics {
         Box::new(std::array::from_fn(|_| OnceLock::new()))
     }
 
-    /// The addresses whose series have been made.
+    /// The addresses whose series have been made: the known slaves.
     pub(super) fn known_slaves(&self) -> impl Iterator<Item = u8> + '_ {
-        (0..=u8::MAX).filter(|a| self.slaves[usize::from(*a)].get().is_some())
+        (0..=u8::MAX).filter(|a| self.is_known(*a))
     }
 
+    /// A slave is known once it is configured (`[[bus.slave]]`, simulated) or has answered: only
+    /// known slaves have series of their own and their address as a label value, so a master
+    /// asking every unit id makes no series for the addresses where nobody answers.
+    fn is_known(&self, address: u8) -> bool {
+        self.slaves[usize::from(address)].get().is_some()
+    }
+
+    /// The `slave` label of requests to `address`: the address of a known slave or of the
+    /// broadcast, else `other`.
+    fn slave_label(&self, address: u8) -> &'static str {
+        if address == crate::line::BROADCAST || self.is_known(address) {
+            decimal(address)
+        } else {
+            OTHER
+        }
+    }
+
+    /// The series of `address` if it is a known slave.
+    fn known(&self, address: u8) -> Option<&SlaveMetrics> {
+        self.slaves[usize::from(address)].get()
+    }
+
+    /// The series of `address`, made now if it was not known.
     fn slave(&self, address: u8) -> &SlaveMetrics {
         self.slaves[usize::from(address)].get_or_init(|| {
             let labels = &[&*self.name, decimal(address)];
@@ -349,6 +372,7 @@ impl BusMetrics {
 
     /// Count a request's outcome; `None` if it was dropped unsent because its master left.
     pub fn request(&self, slave: u8, function: u8, protocol: Protocol, outcome: Option<&Outcome>) {
+        let slave = self.slave_label(slave);
         self.counters
             .count(&self.name, slave, function, protocol, outcome);
     }
@@ -361,12 +385,16 @@ impl BusMetrics {
 
     /// A read to `slave` joined another master's identical one.
     pub fn coalesced(&self, slave: u8) {
-        self.slave(slave).coalesced.inc();
+        if let Some(slave) = self.known(slave) {
+            slave.coalesced.inc();
+        }
     }
 
     /// A read to `slave` was answered from its cache.
     pub fn cache_hit(&self, slave: u8) {
-        self.slave(slave).cache_hits.inc();
+        if let Some(slave) = self.known(slave) {
+            slave.cache_hits.inc();
+        }
     }
 
     /// The line ran a request to `slave`: its round trip (`None` if it never got on the wire),
@@ -378,9 +406,20 @@ impl BusMetrics {
         round_trip: Option<Duration>,
         outcome: &Outcome,
     ) {
-        let metrics = self.slave(slave);
         if let Some(round_trip) = round_trip {
             self.round_trip.observe(round_trip.as_secs_f64());
+        }
+        // An answer makes the slave known; a request nobody answered makes no series.
+        let answered = matches!(outcome, Ok(Answer::Reply(_) | Answer::Malformed(_)));
+        let metrics = if answered {
+            self.slave(slave)
+        } else {
+            match self.known(slave) {
+                Some(metrics) => metrics,
+                None => return,
+            }
+        };
+        if let Some(round_trip) = round_trip {
             let mut recent = metrics
                 .round_trips
                 .lock()
@@ -393,7 +432,7 @@ impl BusMetrics {
         metrics
             .retries
             .inc_by(u64::from(attempts.saturating_sub(1)));
-        if let Ok(Answer::Reply(_) | Answer::Malformed(_)) = outcome {
+        if answered {
             metrics.last_success.set(seconds_since_epoch());
         }
     }
@@ -408,21 +447,32 @@ impl BusMetrics {
     }
 
     /// `slave` stopped giving valid replies with the transaction that ended in `outcome`.
+    /// Logged at warn for a known slave; an address nobody has answered at is only a master's
+    /// guess, logged at debug.
     pub fn slave_failing(&self, slave: u8, outcome: &Outcome) {
-        self.slave(slave).up.set(0);
         let bus = &*self.name;
         let label = Fate::of(outcome).0.label();
+        let Some(metrics) = self.known(slave) else {
+            debug!(target: BUS_EVENTS, bus, slave, outcome = label, "no valid reply at an address no slave has answered at");
+            return;
+        };
+        metrics.up.set(0);
         if let Err(error @ RequestError::NoResponse { attempts, .. }) = outcome {
             warn!(target: BUS_EVENTS, bus, slave, attempts, outcome = label, %error, "slave gives no valid reply");
         }
     }
 
     /// `slave` timed out `timeouts` times in a row: its requests are answered 0x0B unsent (and
-    /// counted `slave_down`) but for one probe per `probe_interval`.
+    /// counted `slave_down`) but for one probe per `probe_interval`. Logged at warn for a known
+    /// slave, at debug for an address nobody has answered at.
     pub fn slave_down(&self, slave: u8, timeouts: u32, probe_interval: Duration) {
-        self.slave(slave).up.set(0);
         let bus = &*self.name;
         let probe_interval = humantime::format_duration(probe_interval).to_string();
+        let Some(metrics) = self.known(slave) else {
+            debug!(target: BUS_EVENTS, bus, slave, timeouts, probe_interval, "no slave answers at this address; answering 0x0B without sending, probing once per interval");
+            return;
+        };
+        metrics.up.set(0);
         warn!(target: BUS_EVENTS, bus, slave, timeouts, probe_interval, "slave down; answering 0x0B without sending, probing once per interval");
     }
 
@@ -436,7 +486,7 @@ impl BusMetrics {
         self.round_trip.get_sample_count()
     }
 
-    /// Every known slave (configured, simulated, or asked for), by address, as its series and
+    /// Every known slave (configured, simulated, or that has answered), by address, as its series and
     /// recent round trips have it.
     pub fn slaves(&self) -> Vec<SlaveSnapshot> {
         let mut requests = self.requests_by_slave();

@@ -30,6 +30,8 @@ pub enum Fate {
     /// A function code the gateway refuses itself: invalid, or a read to the broadcast address
     /// (0x01).
     Refused,
+    /// A request longer or shorter than its function code says; never sent (0x03).
+    BadLength,
     /// The bus queue was full (0x06).
     QueueFull,
     /// Not sent within the queue timeout (0x06).
@@ -42,8 +44,8 @@ pub enum Fate {
     Dropped,
     /// A request from a read-only master that may change the slave; never sent (0x01).
     ReadOnly,
-    /// A request from a master whose TLS role allows nothing, or not that unit; never sent
-    /// (0x01).
+    /// A request from a master whose TLS role allows nothing, or not that unit, or (limited to
+    /// some units) a request whose length the gateway cannot check; never sent (0x01).
     NoAccess,
     /// The slave is down (timed out again and again) and it was not its probe's turn; never
     /// sent (0x0B).
@@ -62,6 +64,7 @@ impl Fate {
             Fate::LineBusy => "line_busy",
             Fate::NoRoute => "no_route",
             Fate::Refused => "refused",
+            Fate::BadLength => "bad_length",
             Fate::QueueFull => "queue_full",
             Fate::Expired => "expired",
             Fate::PortDown => "port_down",
@@ -94,7 +97,10 @@ impl Fate {
                         Fate::Refused
                     }
                     RequestError::ReadOnly(_) => Fate::ReadOnly,
-                    RequestError::NoAccess(_) | RequestError::UnitNotPermitted(_) => Fate::NoAccess,
+                    RequestError::BadLength { .. } => Fate::BadLength,
+                    RequestError::NoAccess(_)
+                    | RequestError::UnitNotPermitted(_)
+                    | RequestError::Unverifiable(_) => Fate::NoAccess,
                     RequestError::SlaveDown { .. } => Fate::SlaveDown,
                     RequestError::NoRoute(_) => Fate::NoRoute,
                     RequestError::PortDown => Fate::PortDown,
@@ -246,6 +252,20 @@ impl Closing {
             Closing::FrameTimeout => "frame_timeout",
             Closing::Evicted => "evicted",
         }
+    }
+}
+
+/// The label value of what a master chose and the configuration does not bound: a unit id
+/// nobody answers at, a function code the gateway does not know.
+pub(super) const OTHER: &str = "other";
+
+/// The `function` label of a request: its code, as the spec writes it, if the gateway knows
+/// the function, else [`OTHER`]; so no master can make more series than the table has rows.
+pub(super) fn function(code: u8) -> &'static str {
+    if crate::pdu::function(code).is_some() {
+        hex(code)
+    } else {
+        OTHER
     }
 }
 

@@ -11,6 +11,7 @@ mod labels;
 mod sse;
 pub mod status;
 mod tcp;
+mod throttle;
 mod tls;
 mod udp;
 
@@ -19,8 +20,8 @@ pub use bus::{BusMetrics, SlaveSnapshot};
 use bus::BusFamilies;
 pub use labels::{Closing, ExceptionSource, Fate, Protocol, Rejection};
 
-use labels::{decimal, hex};
-pub use tcp::TcpMetrics;
+use labels::{hex, OTHER};
+pub use tcp::{Refusal, TcpMetrics};
 pub use tls::{TlsMaster, TlsMetrics};
 pub use udp::{UdpDrop, UdpMetrics};
 
@@ -85,22 +86,23 @@ struct RequestCounters {
 }
 
 impl RequestCounters {
-    /// `outcome` is `None` for a request dropped unsent because its master left. Every outcome
-    /// but an answer is also logged at debug level, under the same name as its label.
+    /// `outcome` is `None` for a request dropped unsent because its master left. `slave` is the
+    /// label value of the slave (its address, or `other`). Every outcome but an answer is also
+    /// logged at debug level, under the same name as its label.
     fn count(
         &self,
         bus: &str,
-        slave: u8,
+        slave: &str,
         function: u8,
         protocol: Protocol,
         outcome: Option<&Outcome>,
     ) {
         let (fate, exception) = outcome.map_or((Fate::Dropped, None), Fate::of);
         let label = fate.label();
+        let function = labels::function(function);
         self.requests
-            .with_label_values(&[bus, decimal(slave), hex(function), label, protocol.label()])
+            .with_label_values(&[bus, slave, function, label, protocol.label()])
             .inc();
-        let function = hex(function);
         match outcome {
             Some(Ok(Answer::Malformed(pdu))) => {
                 debug!(target: BUS_EVENTS, bus, slave, function, outcome = label, len = pdu.len(), "reply does not fit the request; forwarded as the slave sent it");
@@ -115,7 +117,7 @@ impl RequestCounters {
         }
         if let Some((source, code)) = exception {
             self.exceptions
-                .with_label_values(&[bus, decimal(slave), source.label(), hex(code)])
+                .with_label_values(&[bus, slave, source.label(), hex(code)])
                 .inc();
         }
     }
@@ -205,18 +207,12 @@ impl Metrics {
             .push(Box::new(hook));
     }
 
-    /// Count a request the gateway answered without a bus (no route, a refused function code).
-    /// `bus` is empty when the unit has no route; `slave` is then the unit id.
-    pub fn request(
-        &self,
-        bus: &str,
-        slave: u8,
-        function: u8,
-        protocol: Protocol,
-        outcome: &Outcome,
-    ) {
+    /// Count a request the gateway answered without a bus: its unit id has no route. Counted
+    /// with no bus and `slave="other"`: the unit id is the master's to choose, and a label it
+    /// chooses would let it make series without end.
+    pub fn unrouted(&self, function: u8, protocol: Protocol, outcome: &Outcome) {
         self.counters
-            .count(bus, slave, function, protocol, Some(outcome));
+            .count("", OTHER, function, protocol, Some(outcome));
     }
 
     /// Every metric in the Prometheus text format.
@@ -346,22 +342,64 @@ mod tests {
         let metrics = Metrics::new();
         let line1 = metrics.bus(&bus(""));
         let tcp = Protocol::Tcp;
-        line1.request(7, 0x03, tcp, Some(&Ok(Answer::Reply(vec![0x83, 0x02]))));
-        line1.request(7, 0x03, tcp, Some(&Ok(Answer::Reply(vec![0x83, 0x02]))));
+        let exception = Ok(Answer::Reply(vec![0x83, 0x02]));
+        // Slave 7 answers (with an exception), so it is known by its address.
+        line1.transaction(7, 1, Some(Duration::from_millis(20)), &exception);
+        line1.request(7, 0x03, tcp, Some(&exception));
+        line1.request(7, 0x03, tcp, Some(&exception));
         line1.request(7, 0x10, tcp, None);
-        metrics.request("", 250, 0x03, tcp, &Err(RequestError::NoRoute(250)));
+        metrics.unrouted(0x03, tcp, &Err(RequestError::NoRoute(250)));
         let text = metrics.render().unwrap();
         let series = [
             ("modbus_gateway_requests_total{bus=\"line1\",function=\"0x03\",outcome=\"exception\",protocol=\"tcp\",slave=\"7\"}", 2.0),
             ("modbus_gateway_exceptions_total{bus=\"line1\",code=\"0x02\",slave=\"7\",source=\"slave\"}", 2.0),
             ("modbus_gateway_requests_total{bus=\"line1\",function=\"0x10\",outcome=\"dropped\",protocol=\"tcp\",slave=\"7\"}", 1.0),
-            ("modbus_gateway_requests_total{bus=\"\",function=\"0x03\",outcome=\"no_route\",protocol=\"tcp\",slave=\"250\"}", 1.0),
-            ("modbus_gateway_exceptions_total{bus=\"\",code=\"0x0A\",slave=\"250\",source=\"gateway\"}", 1.0),
+            // No route: no bus, and no unit id (a label the master would choose).
+            ("modbus_gateway_requests_total{bus=\"\",function=\"0x03\",outcome=\"no_route\",protocol=\"tcp\",slave=\"other\"}", 1.0),
+            ("modbus_gateway_exceptions_total{bus=\"\",code=\"0x0A\",slave=\"other\",source=\"gateway\"}", 1.0),
         ];
         for (series, expected) in series {
             assert_eq!(value(&text, series), Some(expected), "{series}\n{text}");
         }
         assert_eq!(text.matches("modbus_gateway_exceptions_total{").count(), 2);
+    }
+
+    #[test]
+    fn requests_to_every_unit_with_every_function_code_make_series_only_for_known_slaves_and_codes()
+    {
+        let metrics = Metrics::new();
+        // Slave 3 is configured; nobody else has answered.
+        let line1 = metrics.bus(&bus("[[bus.slave]]\naddress = 3\n"));
+        let before = metrics.render().unwrap().lines().count();
+        let timeout: Outcome = Err(RequestError::NoResponse {
+            attempts: 1,
+            last: TxError::Timeout,
+        });
+        for unit in 1..=u8::MAX {
+            for function in 1..=u8::MAX {
+                line1.transaction(unit, 1, Some(Duration::from_millis(5)), &timeout);
+                line1.slave_failing(unit, &timeout);
+                line1.request(unit, function, Protocol::Udp, Some(&timeout));
+                metrics.unrouted(function, Protocol::Tcp, &Err(RequestError::NoRoute(unit)));
+            }
+        }
+        let text = metrics.render().unwrap();
+        let requests = text
+            .lines()
+            .filter(|l| l.starts_with("modbus_gateway_requests_total{"))
+            .count();
+        // Slave 3 and `other`, by the table's 19 codes and `other`, on the bus; `other` by
+        // the same 20 without a route.
+        assert_eq!(requests, 2 * 20 + 20, "{text}");
+        assert!(
+            text.contains(
+                "modbus_gateway_requests_total{bus=\"line1\",function=\"other\",outcome=\"timeout\",protocol=\"udp\",slave=\"other\"}"
+            ),
+            "{text}"
+        );
+        // No per-slave series for addresses nobody answered at.
+        assert!(!text.contains("modbus_gateway_slave_up{bus=\"line1\",slave=\"4\"}"));
+        assert!(text.lines().count() < before + 2 * 20 + 20 + 40, "{text}");
     }
 
     #[test]

@@ -1,11 +1,13 @@
-//! The TCP side's metrics and events: connections open, accepted, refused and closed, writes
-//! refused on read-only connections.
+//! The TCP side's metrics and events: connections open, accepted, refused and closed, requests
+//! refused for what the master may do or for their length. What a master's own doing causes is
+//! logged at warn at most once a minute per source address and kind ([`PeerThrottle`]).
 
 use super::labels::{hex, Closing, Protocol, Rejection};
+use super::throttle::PeerThrottle;
 use super::{Definer, TCP_EVENTS};
-use crate::dispatch::Rights;
 use prometheus::{IntCounter, IntCounterVec, IntGaugeVec};
 use std::fmt::Display;
+use std::net::SocketAddr;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Mutex, PoisonError};
 use std::time::Duration;
@@ -22,6 +24,46 @@ pub struct TcpMetrics {
     refusing: AtomicBool,
     /// When a refusal for `server.allow` was last logged at warn, so a scan logs little.
     not_allowed_logged: Mutex<Option<std::time::Instant>>,
+    /// Connections closed for breaking the framing or for a request that never arrived whole.
+    protocol_errors: PeerThrottle,
+    /// Requests refused for what the master may do.
+    refusals: PeerThrottle,
+    /// Requests refused for their length.
+    bad_lengths: PeerThrottle,
+}
+
+/// Why a request was refused for what its master may do (the request is counted `read_only` or
+/// `no_access`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Refusal {
+    /// A request that may change the slave, from a read-only master.
+    ReadOnly,
+    /// Any request, from a master whose TLS role allows none.
+    NoAccess,
+    /// A request whose length the gateway cannot check, from a master whose TLS role names the
+    /// units it may address: such bytes could hold a frame to another unit.
+    Unverifiable,
+}
+
+impl Refusal {
+    /// The `access` field of the log line.
+    fn access(self) -> &'static str {
+        match self {
+            Refusal::ReadOnly => "read_only",
+            Refusal::NoAccess => "none",
+            Refusal::Unverifiable => "units",
+        }
+    }
+
+    fn event(self) -> &'static str {
+        match self {
+            Refusal::ReadOnly => "refusing a write from a read-only master (0x01)",
+            Refusal::NoAccess => "refusing a request of a master whose role allows none (0x01)",
+            Refusal::Unverifiable => {
+                "refusing a request whose length cannot be checked from a master limited to some units (0x01)"
+            }
+        }
+    }
 }
 
 /// At most one warning per this interval about masters outside `server.allow`.
@@ -75,6 +117,9 @@ impl TcpMetrics {
             bad_crc,
             refusing: AtomicBool::new(false),
             not_allowed_logged: Mutex::new(None),
+            protocol_errors: PeerThrottle::new(),
+            refusals: PeerThrottle::new(),
+            bad_lengths: PeerThrottle::new(),
         }
     }
 
@@ -138,44 +183,53 @@ impl TcpMetrics {
     }
 
     /// A master whose role names the units it may address asked for another (counted with the
-    /// request, as `no_access`). Logged at warn for the first refusal on each connection.
-    pub fn unit_refused(&self, master: u64, peer: &dyn Display, unit: u8, first: bool) {
-        if first {
-            warn!(target: TCP_EVENTS, master, %peer, unit, "refusing a unit the master's role may not address (0x01)");
-        } else {
-            debug!(target: TCP_EVENTS, master, %peer, unit, "unit refused");
+    /// request, as `no_access`). Logged at warn at most once a minute per source address.
+    pub fn unit_refused(&self, master: u64, peer: &SocketAddr, unit: u8) {
+        match self.refusals.due(peer.ip()) {
+            Some(held_back) => {
+                warn!(target: TCP_EVENTS, master, %peer, unit, held_back, "refusing a unit the master's role may not address (0x01)");
+            }
+            None => debug!(target: TCP_EVENTS, master, %peer, unit, "unit refused"),
         }
     }
 
-    /// A master asked for something its `rights` do not allow (counted with the request, as
-    /// `read_only` or `no_access`). Logged at warn for the first on each connection.
-    pub fn request_refused(
-        &self,
-        master: u64,
-        peer: &dyn Display,
-        function: u8,
-        rights: Rights,
-        first: bool,
-    ) {
+    /// A master asked for something it may not (counted with the request, as `read_only` or
+    /// `no_access`). Logged at warn at most once a minute per source address, with how many
+    /// were held back since the last.
+    pub fn request_refused(&self, master: u64, peer: &SocketAddr, function: u8, refusal: Refusal) {
         let function = hex(function);
-        let access = rights.name();
-        if !first {
-            debug!(target: TCP_EVENTS, master, %peer, function, access, "request refused");
-        } else if rights == Rights::NoAccess {
-            warn!(target: TCP_EVENTS, master, %peer, function, access, "refusing every request of a master whose role allows none (0x01)");
-        } else {
-            warn!(target: TCP_EVENTS, master, %peer, function, access, "refusing writes from a read-only master (0x01)");
+        let access = refusal.access();
+        match self.refusals.due(peer.ip()) {
+            Some(held_back) => {
+                warn!(target: TCP_EVENTS, master, %peer, function, access, held_back, "{}", refusal.event());
+            }
+            None => debug!(target: TCP_EVENTS, master, %peer, function, access, "request refused"),
         }
     }
 
-    /// A connection accepted earlier has ended. Protocol errors are logged; a master leaving
-    /// is routine.
+    /// A request longer or shorter than its function code says was refused with 0x03, unsent
+    /// (counted with the request, as `bad_length`). Logged at warn at most once a minute per
+    /// source address.
+    pub fn bad_length(&self, master: u64, peer: &SocketAddr, function: u8, len: usize) {
+        let function = hex(function);
+        match self.bad_lengths.due(peer.ip()) {
+            Some(held_back) => {
+                warn!(target: TCP_EVENTS, master, %peer, function, len, held_back, "refusing a request not as long as its function code says (0x03); nothing sent");
+            }
+            None => {
+                debug!(target: TCP_EVENTS, master, %peer, function, len, "request of the wrong length refused")
+            }
+        }
+    }
+
+    /// A connection accepted earlier has ended. Protocol errors and frame timeouts are logged at
+    /// warn, at most once a minute per source address; a master leaving is routine.
     pub fn closed(
         &self,
         protocol: Protocol,
         reason: Closing,
         master: u64,
-        peer: &dyn Display,
+        peer: &SocketAddr,
         error: &dyn Display,
     ) {
         let protocol = protocol.label();
@@ -183,8 +237,16 @@ impl TcpMetrics {
         self.closed
             .with_label_values(&[reason.label(), protocol])
             .inc();
-        if matches!(reason, Closing::ProtocolError | Closing::FrameTimeout) {
-            warn!(target: TCP_EVENTS, protocol, master, %peer, %error, "connection closed");
+        let master_fault = matches!(reason, Closing::ProtocolError | Closing::FrameTimeout);
+        if master_fault {
+            match self.protocol_errors.due(peer.ip()) {
+                Some(held_back) => {
+                    warn!(target: TCP_EVENTS, protocol, master, %peer, %error, held_back, "connection closed");
+                }
+                None => {
+                    debug!(target: TCP_EVENTS, protocol, master, %peer, %error, "connection closed");
+                }
+            }
         } else if reason == Closing::Evicted {
             info!(target: TCP_EVENTS, protocol, master, %peer, "closed the connection idle longest to admit a new master");
         } else {

@@ -3,26 +3,19 @@
 //! `reason="tls_handshake"`, and logged at most once a minute per peer address).
 
 use super::labels::{Protocol, Rejection};
+use super::throttle::PeerThrottle;
 use super::{Definer, TcpMetrics, TCP_EVENTS};
 use prometheus::{IntCounterVec, IntGauge};
-use std::collections::HashMap;
 use std::fmt::Display;
-use std::net::{IpAddr, SocketAddr};
-use std::sync::{Mutex, PoisonError};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::net::SocketAddr;
+use std::time::{SystemTime, UNIX_EPOCH};
 use tracing::{debug, info, warn};
-
-/// At most one warning per peer address per this interval about its failed handshakes.
-const HANDSHAKE_LOG_INTERVAL: Duration = Duration::from_secs(60);
-/// Peers whose last warning is remembered; beyond that, failures of new peers are logged at
-/// debug until the oldest are a minute old, so a scan of many addresses cannot grow the map.
-const HANDSHAKE_LOG_PEERS: usize = 1024;
 
 pub struct TlsMetrics {
     accepted: IntCounterVec,
     expiry: IntGauge,
-    /// When a failed handshake of each peer address was last logged at warn.
-    handshake_logged: Mutex<HashMap<IpAddr, Instant>>,
+    /// Failed handshakes' warn lines, by peer address.
+    handshakes_failed: PeerThrottle,
 }
 
 /// What the log says of a master that completed its handshake.
@@ -59,7 +52,7 @@ impl TlsMetrics {
         TlsMetrics {
             accepted,
             expiry,
-            handshake_logged: Mutex::new(HashMap::new()),
+            handshakes_failed: PeerThrottle::new(),
         }
     }
 
@@ -106,29 +99,10 @@ impl TlsMetrics {
         error: &dyn Display,
     ) {
         tcp.count_rejected(Rejection::TlsHandshake, Protocol::Tls);
-        let now = Instant::now();
-        let due = {
-            let mut logged = self
-                .handshake_logged
-                .lock()
-                .unwrap_or_else(PoisonError::into_inner);
-            if logged.len() >= HANDSHAKE_LOG_PEERS {
-                logged.retain(|_, at| now.duration_since(*at) < HANDSHAKE_LOG_INTERVAL);
-            }
-            let ip = peer.ip().to_canonical();
-            let due = logged
-                .get(&ip)
-                .is_none_or(|at| now.duration_since(*at) >= HANDSHAKE_LOG_INTERVAL);
-            if due && (logged.len() < HANDSHAKE_LOG_PEERS || logged.contains_key(&ip)) {
-                logged.insert(ip, now);
-                true
-            } else {
-                false
-            }
-        };
+        let due = self.handshakes_failed.due(peer.ip());
         let reason = Rejection::TlsHandshake.label();
-        if due {
-            warn!(target: TCP_EVENTS, protocol = "tls", %listen, %peer, reason, %error, "TLS handshake failed; connection closed");
+        if let Some(held_back) = due {
+            warn!(target: TCP_EVENTS, protocol = "tls", %listen, %peer, reason, %error, held_back, "TLS handshake failed; connection closed");
         } else {
             debug!(target: TCP_EVENTS, protocol = "tls", %listen, %peer, reason, %error, "TLS handshake failed");
         }

@@ -9,6 +9,7 @@
 
 use super::slaves::{Heard, Slaves};
 use super::{Slave, Transmission};
+use crate::line::framing::{Completion, Silence};
 use crate::line::{Framing, LineTiming, Transport};
 use crate::timer::sleep_until;
 use std::collections::VecDeque;
@@ -251,24 +252,49 @@ impl LineState {
             self.stats.unread_frames += 1;
             return;
         }
-        match self.slaves.hear(bytes, end) {
-            Heard::Corrupt => self.stats.unread_frames += 1,
-            // A slave knows the request has ended after t3.5 of silence (RTU) or at its LF
-            // (ASCII), then processes it.
-            Heard::Answered { address, reply, .. } => {
-                let heard_at = match self.slaves.framing() {
-                    Framing::Rtu => end + timing.t35,
-                    Framing::Ascii => end,
-                };
-                self.transmit_from_slave(address, reply, heard_at);
+        // A slave finds a request's end by its function's length, as libmodbus does, or by
+        // silence where the bytes cannot tell: bytes after that length are a request of their
+        // own, heard after the first is answered.
+        let framing = self.slaves.framing();
+        // A slave knows the request has ended after t3.5 of silence (RTU) or at its LF (ASCII),
+        // then processes it.
+        let mut ready_at = match framing {
+            Framing::Rtu => end + timing.t35,
+            Framing::Ascii => end,
+        };
+        let mut rest = bytes;
+        while !rest.is_empty() {
+            let len = match framing.request_completion(rest) {
+                Completion::Whole(n) => n,
+                Completion::Open(Silence::EndsFrame) => rest.len(),
+                // Cut short by the silence after it, or no frame at all: dropped.
+                Completion::AtLeast(_)
+                | Completion::Open(Silence::FailsFrame)
+                | Completion::Invalid => {
+                    self.stats.unread_frames += 1;
+                    break;
+                }
+            };
+            let (frame, tail) = rest.split_at(len);
+            rest = tail;
+            match self.slaves.hear(frame, end) {
+                Heard::Corrupt => self.stats.unread_frames += 1,
+                Heard::Answered { address, reply, .. } => {
+                    ready_at = self.transmit_from_slave(address, reply, ready_at);
+                }
+                Heard::Broadcast | Heard::NotHere | Heard::Unanswered { .. } => {}
             }
-            Heard::Broadcast | Heard::NotHere | Heard::Unanswered { .. } => {}
         }
     }
 
     /// A paused transmission goes on the wire as two bursts: the monitor logs each, and the
-    /// master may talk in between without colliding.
-    fn transmit_from_slave(&mut self, address: u8, reply: Transmission, ready_at: Instant) {
+    /// master may talk in between without colliding. Returns when its last character is in.
+    fn transmit_from_slave(
+        &mut self,
+        address: u8,
+        reply: Transmission,
+        ready_at: Instant,
+    ) -> Instant {
         let char_time = self.timing.char_time;
         let mut bursts = vec![(ready_at + reply.delay, &reply.bytes[..])];
         if let Some(pause) = reply
@@ -281,6 +307,7 @@ impl LineState {
             let first_end = bursts[0].0 + char_time.saturating_mul(chars);
             bursts = vec![(bursts[0].0, first), (first_end + pause.gap, rest)];
         }
+        let mut last = ready_at;
         for (start, bytes) in bursts {
             let mut at = start;
             for &byte in bytes {
@@ -296,8 +323,10 @@ impl LineState {
                 bytes: bytes.to_vec(),
             });
             self.slave_tx.push_back((start, at));
+            last = at;
         }
         self.stats.slave_frames += 1;
+        last
     }
 
     /// Hand over every byte that has fully arrived by `now`.

@@ -1,0 +1,650 @@
+//! Masters that break the rules on purpose (issue 25): a request with a whole frame hidden after
+//! it, to make a slave write for a master that may only read, to cross another master's replies,
+//! or to make a healthy slave look dead; every unit id and function code at once, to make the
+//! metrics grow without end; protocol errors and refusals in a flood, to drown the log. The
+//! slaves that matter here frame requests by their function's length and take what follows as
+//! the next request: the simulated line, the `simulate` subcommand on a pty, and libmodbus.
+
+use crate::simulate::Simulator;
+use crate::support::tls::{tls_master, Pki, Role};
+use crate::support::{
+    free_addr, http_get, pty_config, sim_config_with_server, start, within, RawMaster, Scrape,
+};
+use modbus_gateway::line::rtu;
+use modbus_gateway::sim::Source;
+use std::ffi::OsString;
+use std::io::{BufRead, BufReader, Write};
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::process::{Child, ChildStdin, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use tokio::io::AsyncWriteExt;
+use tokio::net::{TcpStream, UdpSocket};
+
+const BINARY: &str = env!("CARGO_BIN_EXE_modbus-gateway");
+
+/// Read one holding register at 0000H.
+const READ_0: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x01];
+/// Read one holding register at 0005H, the one the hidden write aims at.
+const READ_5: [u8; 5] = [0x03, 0x00, 0x05, 0x00, 0x01];
+/// Write 1234H to holding register 0005H.
+const WRITE_5: [u8; 5] = [0x06, 0x00, 0x05, 0x12, 0x34];
+/// What the gateway answers a read of the wrong length: illegal data value.
+const BAD_LENGTH: [u8; 2] = [0x83, 0x03];
+
+/// `request` (a PDU to `unit`) followed by the CRC a slave expects after it and then `hidden`, a
+/// whole RTU frame: what a length-framing slave takes as two requests.
+fn smuggle(unit: u8, request: &[u8], hidden: &[u8]) -> Vec<u8> {
+    let first = rtu::encode(unit, request);
+    let mut pdu = first[1..].to_vec();
+    pdu.extend_from_slice(hidden);
+    pdu
+}
+
+/// One Modbus UDP request from a fresh source port; the reply's PDU.
+async fn udp_call(gateway: SocketAddr, unit: u8, pdu: &[u8]) -> Vec<u8> {
+    let socket = UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    socket
+        .send_to(&RawMaster::adu(7, unit, pdu), gateway)
+        .await
+        .unwrap();
+    let mut buf = [0u8; 300];
+    let (n, _) = within("a UDP reply", socket.recv_from(&mut buf))
+        .await
+        .unwrap();
+    buf[7..n].to_vec()
+}
+
+#[tokio::test]
+async fn a_read_only_master_cannot_hide_a_write_after_a_read_over_tcp_udp_or_tls() {
+    let pki = Pki::new("hostile-ca");
+    let server = pki.server("gateway", "gateway", 365);
+    let tls = pki.tls_table(&server, "roles = { viewer = \"read_only\" }");
+    let toml = sim_config_with_server(
+        &format!(
+            "listen_udp = \"127.0.0.1:0\"\nlisten_tls = \"127.0.0.1:0\"\n\
+             read_only = [\"127.0.0.0/8\"]\n{tls}"
+        ),
+        "",
+    );
+    let gateway = start(&toml).await;
+    let line = gateway.sim_line("sim").unwrap();
+    let attacks = [
+        // The write to the slave the read goes to, and to every slave at once.
+        smuggle(1, &READ_0, &rtu::encode(1, &WRITE_5)),
+        smuggle(1, &READ_0, &rtu::encode(0, &WRITE_5)),
+    ];
+    let mut tcp = RawMaster::connect(gateway.local_addrs()[0]).await;
+    let viewer = pki.master("viewer", Role::Named("viewer"));
+    let mut tls = tls_master(gateway.tls_addrs()[0], &pki.connector(Some(&viewer))).await;
+    for attack in &attacks {
+        assert_eq!(tcp.call(1, 1, attack).await, BAD_LENGTH, "over TCP");
+        let udp = udp_call(gateway.udp_addrs()[0], 1, attack).await;
+        assert_eq!(udp, BAD_LENGTH, "over UDP");
+        assert_eq!(tls.call(1, 1, attack).await, BAD_LENGTH, "over TLS");
+    }
+    // Nothing went on the line, so nothing was written.
+    assert_eq!(tcp.call(2, 1, &READ_5).await, [0x03, 0x02, 0x00, 0x00]);
+    let sent: Vec<Vec<u8>> = line
+        .frames()
+        .into_iter()
+        .filter(|f| f.from == Source::Master)
+        .map(|f| f.bytes)
+        .collect();
+    assert_eq!(sent, [rtu::encode(1, &READ_5)]);
+    let scrape = Scrape::of(&gateway).await;
+    for protocol in ["tcp", "udp", "tls"] {
+        let series = format!(
+            "modbus_gateway_requests_total{{bus=\"sim\",function=\"0x03\",outcome=\"bad_length\",\
+             protocol=\"{protocol}\",slave=\"1\"}}"
+        );
+        assert_eq!(scrape.value(&series), 2.0, "{series}");
+    }
+}
+
+#[tokio::test]
+async fn a_tls_role_limited_to_one_unit_cannot_reach_another_inside_a_request() {
+    let pki = Pki::new("hostile-units-ca");
+    let server = pki.server("gateway", "gateway", 365);
+    let tls = pki.tls_table(
+        &server,
+        "roles = { unit1 = { access = \"read_write\", units = \"1\" } }",
+    );
+    let toml = sim_config_with_server(&format!("listen_tls = \"127.0.0.1:0\"\n{tls}"), "");
+    let gateway = start(&toml).await;
+    let line = gateway.sim_line("sim").unwrap();
+    let unit1 = pki.master("unit1", Role::Named("unit1"));
+    let mut master = tls_master(gateway.tls_addrs()[0], &pki.connector(Some(&unit1))).await;
+    let to_unit_2 = rtu::encode(2, &WRITE_5);
+    // A write of unit 1 with unit 2's frame after it: refused for its length.
+    let write = smuggle(1, &WRITE_5, &to_unit_2);
+    assert_eq!(master.call(1, 1, &write).await, [0x86, 0x03]);
+    // A user-defined function code's length cannot be checked: refused to a role held to units.
+    let mut custom = vec![0x41];
+    custom.extend_from_slice(&to_unit_2);
+    assert_eq!(master.call(2, 1, &custom).await, [0xC1, 0x01]);
+    // Unit 1 itself is served as before.
+    assert_eq!(master.call(3, 1, &WRITE_5).await, WRITE_5);
+    let sent: Vec<Vec<u8>> = line
+        .frames()
+        .into_iter()
+        .filter(|f| f.from == Source::Master)
+        .map(|f| f.bytes)
+        .collect();
+    assert_eq!(sent, [rtu::encode(1, &WRITE_5)]);
+}
+
+/// libmodbus as an RTU slave on a pty (tests/peers/libmodbus_slave.py): device 10, holding
+/// register N at 1000 + N. Stopped when dropped.
+struct Libmodbus {
+    child: Child,
+    _stdin: ChildStdin,
+    path: String,
+    /// The requests it took whole and acted on, as hex.
+    requests: Arc<Mutex<Vec<String>>>,
+}
+
+const LIBMODBUS_UNIT: u8 = 10;
+
+impl Libmodbus {
+    /// `None` (the test checks nothing) without Python's ctypes or libmodbus, unless
+    /// `MBGW_REQUIRE_TOOLS` is set: then their absence fails the test.
+    async fn start() -> Option<Libmodbus> {
+        let python = std::env::var_os("MBGW_PYTHON").unwrap_or_else(|| OsString::from("python3"));
+        let usable = Command::new(&python)
+            .args(["-c", "import ctypes; ctypes.CDLL('libmodbus.so.5')"])
+            .status()
+            .is_ok_and(|status| status.success());
+        if !usable {
+            assert!(
+                std::env::var_os("MBGW_REQUIRE_TOOLS").is_none(),
+                "libmodbus (libmodbus5) is required (MBGW_REQUIRE_TOOLS is set) but cannot be loaded"
+            );
+            eprintln!("libmodbus cannot be loaded: this test checks nothing here");
+            return None;
+        }
+        let script =
+            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/peers/libmodbus_slave.py");
+        let mut child = Command::new(python)
+            .arg(script)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .spawn()
+            .expect("python runs");
+        let stdin = child.stdin.take().expect("stdin piped");
+        let mut lines = BufReader::new(child.stdout.take().expect("stdout piped")).lines();
+        let ready = within(
+            "libmodbus opens its port",
+            tokio::task::spawn_blocking(move || {
+                let first = lines.next();
+                (first, lines)
+            }),
+        )
+        .await
+        .unwrap();
+        let (first, lines) = ready;
+        let first = first.expect("a line").expect("utf-8");
+        let path = first
+            .strip_prefix("ready ")
+            .unwrap_or_else(|| panic!("unexpected: {first}"))
+            .to_owned();
+        let requests = Arc::new(Mutex::new(Vec::new()));
+        let seen = requests.clone();
+        std::thread::spawn(move || {
+            for line in lines.map_while(Result::ok) {
+                if let Some(hex) = line.strip_prefix("request ") {
+                    seen.lock().unwrap().push(hex.to_owned());
+                }
+            }
+        });
+        Some(Libmodbus {
+            child,
+            _stdin: stdin,
+            path,
+            requests,
+        })
+    }
+
+    /// The function codes of the requests it acted on.
+    fn functions(&self) -> Vec<u8> {
+        self.requests
+            .lock()
+            .unwrap()
+            .iter()
+            .map(|hex| u8::from_str_radix(&hex[2..4], 16).unwrap())
+            .collect()
+    }
+}
+
+impl Drop for Libmodbus {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A config file for `simulate`: register-bank slaves 1-4 at 115200 8N2 (a pty takes no parity).
+fn simulate_config() -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("mbgw-hostile-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("slaves.toml");
+    std::fs::write(
+        &path,
+        "[[bus]]\nname = \"slaves\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\
+         [[bus.sim_slave]]\naddress = \"1-4\"\n",
+    )
+    .unwrap();
+    path
+}
+
+async fn simulate_on_a_pty() -> Simulator {
+    let config = simulate_config();
+    Simulator::start_with(config.to_str().unwrap(), "pty", "115200 baud 8N2").await
+}
+
+/// A gateway on the serial device `path`, every master on loopback read-only.
+async fn read_only_gateway_on(path: &str, bus: &str) -> modbus_gateway::Gateway {
+    let toml = pty_config(path, bus).replace(
+        "listen = \"127.0.0.1:0\"\n",
+        "listen = \"127.0.0.1:0\"\nread_only = [\"127.0.0.0/8\"]\n",
+    );
+    start(&toml).await
+}
+
+#[tokio::test]
+async fn no_hidden_frame_reaches_a_slave_that_frames_by_length() {
+    // `simulate`: slave 1, register 5 at 0 until written.
+    let simulator = simulate_on_a_pty().await;
+    let gateway = read_only_gateway_on(&simulator.path, "").await;
+    let mut master = RawMaster::connect(gateway.local_addrs()[0]).await;
+    for hidden_to in [1, 0] {
+        let attack = smuggle(1, &READ_0, &rtu::encode(hidden_to, &WRITE_5));
+        assert_eq!(master.call(1, 1, &attack).await, BAD_LENGTH);
+    }
+    assert_eq!(master.call(2, 1, &READ_5).await, [0x03, 0x02, 0x00, 0x00]);
+    drop(gateway);
+    simulator.stop().await;
+
+    // libmodbus: device 10, register 5 at 1005 (03EDH).
+    let Some(slave) = Libmodbus::start().await else {
+        return;
+    };
+    let gateway = read_only_gateway_on(&slave.path, "").await;
+    let mut master = RawMaster::connect(gateway.local_addrs()[0]).await;
+    let unit = LIBMODBUS_UNIT;
+    for hidden_to in [unit, 0] {
+        let attack = smuggle(unit, &READ_0, &rtu::encode(hidden_to, &WRITE_5));
+        assert_eq!(master.call(1, unit, &attack).await, BAD_LENGTH);
+    }
+    assert_eq!(
+        master.call(2, unit, &READ_5).await,
+        [0x03, 0x02, 0x03, 0xED]
+    );
+    assert_eq!(
+        slave.functions(),
+        [0x03],
+        "libmodbus acted on the read alone"
+    );
+}
+
+#[tokio::test]
+async fn no_master_gets_another_masters_data_when_one_hides_a_second_read() {
+    let Some(slave) = Libmodbus::start().await else {
+        return;
+    };
+    let unit = LIBMODBUS_UNIT;
+    let gateway = start(&pty_config(&slave.path, "response_timeout = \"200ms\"")).await;
+    let addr = gateway.local_addrs()[0];
+    // A read of register 0 with a read of register 9 hidden after it, again and again.
+    let attacker = tokio::spawn(async move {
+        let mut master = RawMaster::connect(addr).await;
+        let attack = smuggle(
+            unit,
+            &READ_0,
+            &rtu::encode(unit, &[0x03, 0x00, 0x09, 0x00, 0x01]),
+        );
+        for tid in 0..20 {
+            assert_eq!(master.call(tid, unit, &attack).await, BAD_LENGTH);
+        }
+    });
+    // Meanwhile another master reads register 2 (1002, 03EAH) and must get exactly that.
+    let mut polite = RawMaster::connect(addr).await;
+    for tid in 0..40 {
+        assert_eq!(
+            polite
+                .call(tid, unit, &[0x03, 0x00, 0x02, 0x00, 0x01])
+                .await,
+            [0x03, 0x02, 0x03, 0xEA],
+            "read {tid}"
+        );
+    }
+    attacker.await.unwrap();
+    assert!(slave.functions().iter().all(|&f| f == 0x03));
+    assert_eq!(
+        slave.functions().len(),
+        40,
+        "only the polite reads reached it"
+    );
+}
+
+#[tokio::test]
+async fn over_long_reads_from_a_read_only_master_do_not_put_a_healthy_slave_down() {
+    let Some(slave) = Libmodbus::start().await else {
+        return;
+    };
+    let unit = LIBMODBUS_UNIT;
+    let gateway = read_only_gateway_on(
+        &slave.path,
+        "response_timeout = \"100ms\"\nslave_down_after = 3\nslave_probe_interval = \"10s\"",
+    )
+    .await;
+    let mut attacker = RawMaster::connect(gateway.local_addrs()[0]).await;
+    let mut polite = RawMaster::connect(gateway.local_addrs()[0]).await;
+    assert_eq!(
+        polite.call(1, unit, &READ_5).await,
+        [0x03, 0x02, 0x03, 0xED]
+    );
+    // A read with junk after it: a length-framing slave sees a bad CRC and stays silent.
+    let over_long = [0x03, 0x00, 0x00, 0x00, 0x01, 0xAA, 0xBB, 0xCC];
+    for round in 0..3u16 {
+        for tid in 0..3 {
+            assert_eq!(attacker.call(tid, unit, &over_long).await, BAD_LENGTH);
+        }
+        assert_eq!(
+            polite.call(round, unit, &READ_5).await,
+            [0x03, 0x02, 0x03, 0xED],
+            "round {round}"
+        );
+    }
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(
+        scrape.value("modbus_gateway_slave_up{bus=\"pty\",slave=\"10\"}"),
+        1.0
+    );
+}
+
+/// A request PDU of `function` as long as the gateway's table says (a bare code, a header with a
+/// zero count), or five bytes where the table cannot tell: so that every protocol's framing,
+/// RTU over TCP's too, takes it whole.
+fn well_formed(function: u8) -> Vec<u8> {
+    use modbus_gateway::pdu::PduLen;
+    if function == 0x2B {
+        // Read Device Identification, basic.
+        return vec![0x2B, 0x0E, 0x01, 0x00];
+    }
+    let mut pdu = vec![function, 0x00, 0x00, 0x00, 0x01];
+    let Some(row) = modbus_gateway::pdu::function(function) else {
+        return pdu;
+    };
+    loop {
+        match row.request.of(&pdu, None) {
+            PduLen::Exact(len) => {
+                pdu.resize(len, 0);
+                return pdu;
+            }
+            // A count byte reached is zero: the next turn measures the whole.
+            PduLen::Need(len) => pdu.resize(len, 0),
+            _ => return pdu,
+        }
+    }
+}
+
+/// How long the RTU reply at the front of `inbound` to `request` is, once that can be told.
+fn rtu_reply_len(inbound: &[u8], request: &[u8]) -> Option<usize> {
+    use modbus_gateway::pdu::PduLen;
+    let function = *inbound.get(1)?;
+    let pdu_len = if function & 0x80 != 0 {
+        2
+    } else {
+        match modbus_gateway::pdu::function(function)?
+            .reply
+            .of(&inbound[1..], Some(request))
+        {
+            PduLen::Exact(len) => len,
+            _ => return None,
+        }
+    };
+    (inbound.len() >= pdu_len + 3).then_some(pdu_len + 3)
+}
+
+/// The gateway binary, stopped on drop.
+struct Process(Child);
+
+impl Drop for Process {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+impl Process {
+    /// Resident memory now, from /proc.
+    fn rss_kib(&self) -> u64 {
+        let status = std::fs::read_to_string(format!("/proc/{}/status", self.0.id())).unwrap();
+        status
+            .lines()
+            .find_map(|l| l.strip_prefix("VmRSS:"))
+            .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+            .expect("VmRSS")
+    }
+}
+
+/// Listen addresses of a gateway process: Modbus TCP, UDP, RTU over TCP, metrics.
+struct Addrs {
+    tcp: SocketAddr,
+    udp: SocketAddr,
+    rtu: SocketAddr,
+    metrics: SocketAddr,
+}
+
+/// Run the binary on `bus_and_routes` with read-only masters, its log (warn and up) in `log`.
+async fn run_binary(name: &str, bus_and_routes: &str, log: Option<&PathBuf>) -> (Process, Addrs) {
+    let addrs = Addrs {
+        tcp: free_addr(),
+        udp: free_addr(),
+        rtu: free_addr(),
+        metrics: free_addr(),
+    };
+    let dir = std::env::temp_dir().join(format!("mbgw-hostile-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let config = dir.join(format!("{name}.toml"));
+    std::fs::write(
+        &config,
+        format!(
+            "[server]\nlisten = \"{}\"\nlisten_udp = \"{}\"\nlisten_rtu_over_tcp = \"{}\"\n\
+             read_only = [\"127.0.0.0/8\"]\n[metrics]\nlisten = \"{}\"\n[log]\nlevel = \"warn\"\n\
+             {bus_and_routes}",
+            addrs.tcp, addrs.udp, addrs.rtu, addrs.metrics
+        ),
+    )
+    .unwrap();
+    let stderr = match log {
+        Some(path) => Stdio::from(std::fs::File::create(path).unwrap()),
+        None => Stdio::null(),
+    };
+    let child = Command::new(BINARY)
+        .args(["--config", config.to_str().unwrap(), "run"])
+        .env_remove("RUST_LOG")
+        .env_remove("JOURNAL_STREAM")
+        .stdout(Stdio::null())
+        .stderr(stderr)
+        .spawn()
+        .expect("binary runs");
+    let process = Process(child);
+    crate::support::connect_when_listening(addrs.tcp).await;
+    (process, addrs)
+}
+
+/// Every unit id with every function code from one master, pipelined. RTU over TCP has no
+/// silence to end a request whose length its bytes cannot tell: each of those goes alone.
+async fn sweep_tcp(addr: SocketAddr, rtu_framing: bool) {
+    let mut stream = TcpStream::connect(addr).await.unwrap();
+    let mut batches: Vec<Vec<u8>> = vec![Vec::new()];
+    for function in 1..=u8::MAX {
+        let pdu = well_formed(function);
+        let unchecked = modbus_gateway::pdu::function(function)
+            .is_none_or(|row| row.request.of(&pdu, None) == modbus_gateway::pdu::PduLen::Unknown);
+        if rtu_framing && unchecked {
+            batches.push(vec![function]);
+            batches.push(Vec::new());
+        } else if let Some(batch) = batches.last_mut() {
+            batch.push(function);
+        }
+    }
+    let mut out = Vec::new();
+    for unit in 0..=u8::MAX {
+        for batch in batches.iter().filter(|b| !b.is_empty()) {
+            out.clear();
+            for &function in batch {
+                let pdu = well_formed(function);
+                if rtu_framing {
+                    out.extend_from_slice(&rtu::encode(unit, &pdu));
+                } else {
+                    out.extend_from_slice(&RawMaster::adu(u16::from(function), unit, &pdu));
+                }
+            }
+            stream.write_all(&out).await.unwrap();
+            read_replies(&mut stream, batch, rtu_framing).await;
+        }
+    }
+}
+
+/// One reply to each request of `functions`, in their order.
+async fn read_replies(stream: &mut TcpStream, functions: &[u8], rtu_framing: bool) {
+    let mut replies = 0;
+    let mut inbound = Vec::new();
+    while replies < functions.len() {
+        let mut chunk = [0u8; 4096];
+        let n = within("replies", tokio::io::AsyncReadExt::read(stream, &mut chunk))
+            .await
+            .unwrap();
+        assert!(n > 0, "the gateway closed the connection");
+        inbound.extend_from_slice(&chunk[..n]);
+        while replies < functions.len() {
+            let len = if rtu_framing {
+                rtu_reply_len(&inbound, &well_formed(functions[replies]))
+            } else if inbound.len() >= 6 {
+                let len = 6 + usize::from(u16::from_be_bytes([inbound[4], inbound[5]]));
+                (inbound.len() >= len).then_some(len)
+            } else {
+                None
+            };
+            let Some(len) = len else { break };
+            inbound.drain(..len);
+            replies += 1;
+        }
+    }
+}
+
+async fn sweep_udp(addr: SocketAddr) {
+    let socket = UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let mut buf = [0u8; 300];
+    for unit in 0..=u8::MAX {
+        for functions in (1..=u8::MAX).collect::<Vec<_>>().chunks(8) {
+            for &function in functions {
+                let adu = RawMaster::adu(u16::from(function), unit, &well_formed(function));
+                socket.send_to(&adu, addr).await.unwrap();
+            }
+            for _ in functions {
+                within("a UDP reply", socket.recv_from(&mut buf))
+                    .await
+                    .unwrap();
+            }
+        }
+    }
+}
+
+/// Series in a scrape: its lines that are not comments.
+fn series_count(text: &str) -> usize {
+    text.lines()
+        .filter(|l| !l.starts_with('#') && !l.is_empty())
+        .count()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_unit_with_every_function_code_over_each_protocol_leaves_series_and_memory_flat() {
+    // Slaves 1-4 on one simulated line; a second bus whose device never opens, so that units
+    // without a route are refused (no_route) instead of timing out on the line.
+    let buses = "[[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\
+                 response_timeout = \"20ms\"\n[[bus.sim_slave]]\naddress = \"1-4\"\n\
+                 [[bus]]\nname = \"absent\"\ndevice = \"/dev/mbgw-hostile-absent\"\n\
+                 [[route]]\nunits = \"1-4\"\nbus = \"sim\"\n";
+    let (gateway, addrs) = run_binary("sweep", buses, None).await;
+    let (_, before) = http_get(addrs.metrics, "/metrics").await;
+    sweep_tcp(addrs.tcp, false).await;
+    sweep_tcp(addrs.rtu, true).await;
+    sweep_udp(addrs.udp).await;
+    let (_, after) = http_get(addrs.metrics, "/metrics").await;
+    let rss = gateway.rss_kib();
+    // 3 x 65,025 requests. Labels bounded by the configuration: 4 slaves and `other`, the
+    // table's 19 function codes and `other`, the outcomes, 3 protocols.
+    let grown = series_count(&after) - series_count(&before);
+    assert!(grown < 1500, "{grown} new series:\n{after}");
+    assert!(
+        !after.contains("slave=\"200\""),
+        "a unit id nobody answers at is a label"
+    );
+    assert!(rss < 32 * 1024, "resident memory {rss} KiB after the sweep");
+    let refused = Scrape::parse(after)
+        .series_of("modbus_gateway_requests_total")
+        .len();
+    assert!(refused > 0);
+}
+
+/// Lines of `log` that contain `what`.
+fn logged(log: &PathBuf, what: &str) -> usize {
+    std::fs::read_to_string(log)
+        .unwrap_or_default()
+        .lines()
+        .filter(|l| l.contains(what))
+        .count()
+}
+
+#[tokio::test]
+async fn a_flood_of_protocol_errors_and_refusals_gets_one_warn_line_per_address_and_kind() {
+    let dir = std::env::temp_dir().join(format!("mbgw-hostile-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let log = dir.join("flood.log");
+    let bus = "[[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\
+               [[bus.sim_slave]]\naddress = \"1-4\"\n";
+    let (_gateway, addrs) = run_binary("flood", bus, Some(&log)).await;
+    for n in 0..50u16 {
+        // A broken MBAP header (protocol id 1): the connection is closed.
+        let mut stream = TcpStream::connect(addrs.tcp).await.unwrap();
+        stream
+            .write_all(&[0, 1, 0, 1, 0, 6, 1, 3, 0, 0, 0, 1])
+            .await
+            .unwrap();
+        let mut rest = Vec::new();
+        let _ = within(
+            "the gateway closes",
+            tokio::io::AsyncReadExt::read_to_end(&mut stream, &mut rest),
+        )
+        .await;
+        // A write from a read-only master, and a read of the wrong length, each on its own
+        // connection.
+        let mut master = RawMaster::connect(addrs.tcp).await;
+        assert_eq!(master.call(n, 1, &WRITE_5).await, [0x86, 0x01]);
+        let mut master = RawMaster::connect(addrs.tcp).await;
+        assert_eq!(master.call(n, 1, &[0x03, 0, 0, 0, 1, 0]).await, BAD_LENGTH);
+    }
+    // Everything was counted, whatever was logged.
+    let (_, text) = http_get(addrs.metrics, "/metrics").await;
+    let scrape = Scrape::parse(text);
+    assert_eq!(
+        scrape.value(
+            "modbus_gateway_tcp_connections_closed_total{protocol=\"tcp\",reason=\"protocol_error\"}"
+        ),
+        50.0
+    );
+    std::io::stderr().flush().unwrap();
+    let closed = logged(&log, "connection closed");
+    let read_only = logged(&log, "read-only master");
+    let length = logged(&log, "not as long as its function code says");
+    assert_eq!(
+        (closed, read_only, length),
+        (1, 1, 1),
+        "{}",
+        std::fs::read_to_string(&log).unwrap()
+    );
+}
