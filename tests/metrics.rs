@@ -464,3 +464,54 @@ async fn every_scrape_succeeds_while_eight_stalled_trace_readers_and_silent_sock
     );
     gateway.shutdown().await;
 }
+
+#[tokio::test]
+async fn a_connection_to_the_endpoint_that_sends_nothing_is_closed_within_seconds() {
+    use tokio::io::AsyncReadExt;
+    let gateway = start(LINE).await;
+    let mut silent = within(
+        "connect",
+        tokio::net::TcpStream::connect(gateway.metrics_addr()),
+    )
+    .await
+    .unwrap();
+    let mut byte = [0u8; 1];
+    // Well within the 10 s a request head may take once begun, well past the 2 s limit.
+    let closed = tokio::time::timeout(Duration::from_secs(6), silent.read(&mut byte)).await;
+    assert!(
+        matches!(closed, Ok(Ok(0) | Err(_))),
+        "closed without a byte: {closed:?}"
+    );
+    gateway.shutdown().await;
+}
+
+#[tokio::test]
+async fn the_endpoints_connections_get_tcp_keepalive_probes() {
+    let Some(ss) = crate::support::tool("ss") else {
+        return;
+    };
+    let gateway = start(LINE).await;
+    let metrics = gateway.metrics_addr();
+    // A trace stream: a connection that stays.
+    let _reader = crate::support::stalled_trace_reader(metrics).await;
+    let gateway_side = || {
+        let output = std::process::Command::new(&ss)
+            .args(["-tnoH", "state", "established"])
+            .arg(format!("( sport = :{} )", metrics.port()))
+            .output()
+            .expect("ss runs");
+        String::from_utf8_lossy(&output.stdout).into_owned()
+    };
+    // Once the stream is answered (its request read, nothing queued either way).
+    let mut sockets = gateway_side();
+    for _ in 0..100 {
+        if sockets.contains("timer:(keepalive,") {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        sockets = gateway_side();
+    }
+    assert_eq!(sockets.lines().count(), 1, "{sockets}");
+    assert!(sockets.contains("timer:(keepalive,"), "{sockets}");
+    gateway.shutdown().await;
+}
