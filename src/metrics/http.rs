@@ -201,6 +201,7 @@ pub async fn serve(
                 continue;
             }
         };
+        let phase = first_phase(&stream);
         let (id, close) = {
             let mut connections = state.connections();
             let now = Instant::now();
@@ -217,7 +218,7 @@ pub async fn serve(
                     continue;
                 }
             }
-            connections.add(first_phase(&stream), now)
+            connections.add(phase, now)
         };
         let state = state.clone();
         tokio::spawn(async move {
