@@ -393,8 +393,8 @@ async fn a_trace_stream_outlives_the_endpoints_connection_lifetime_with_keepaliv
         Arc::new(modbus_gateway::metrics::status::Status::default),
     ));
     let mut trace = Trace::open(addr, "").await;
-    // Other connections are closed after 120 s; a keepalive comes every 15 s.
-    for _ in 0..10 {
+    // Other connections are closed after 120 s; a keepalive comes every 5 s.
+    for _ in 0..30 {
         match trace.next().await {
             Some(Event::Comment(comment)) => assert_eq!(comment, "keepalive"),
             other => panic!("{other:?} instead of a keepalive"),

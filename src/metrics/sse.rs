@@ -25,7 +25,7 @@ pub(super) type Body = Either<Full<Bytes>, Channel<Bytes>>;
 const KEEPALIVE: Duration = Duration::from_secs(5);
 /// A stream that takes no chunk for this long, two keepalives, has a reader that stopped
 /// reading: its socket's buffers, the connection's and [`BUFFERED`] chunks are full.
-const STALLED_AFTER: Duration = Duration::from_secs(10);
+const STALLED_AFTER: Duration = Duration::from_secs(2 * KEEPALIVE.as_secs());
 /// Chunks waiting between a reader's task and its connection; past these the task waits, and
 /// the events it does not take meanwhile are lost to that reader.
 const BUFFERED: usize = 16;
