@@ -12,7 +12,9 @@
 //! newcomer needs it: when the endpoint is full the newcomer takes the place of the one that has
 //! waited longest, silent ones first ([`Connections::admit`]). A scrape, which sends its request
 //! as soon as it connects, is therefore never kept out by silent sockets or stalled trace
-//! readers. Every socket gets TCP keepalive probes, so a peer that vanished is noticed.
+//! readers. One request per connection (no keep-alive), so an answered connection holds no
+//! place. Every socket gets TCP keepalive probes, so a peer that vanished is noticed, and a
+//! fixed send buffer ([`SEND_BUFFER`]), so a client that stops reading is soon blocked.
 
 use super::sse;
 use super::status::{self, Status};
