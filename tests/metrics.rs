@@ -1,6 +1,7 @@
 //! What `/metrics`, `/healthz` and `/readyz` say about known traffic through a real gateway on
-//! the simulated line, read over a real HTTP connection; promtool's verdict on the scrape; and the
-//! shipped alert rules and dashboard naming only metrics the gateway exports.
+//! the simulated line, read over a real HTTP connection; promtool's verdict on the scrape; the
+//! shipped alert rules and dashboard naming only metrics the gateway exports; and scrapes that
+//! succeed while stalled trace readers and silent sockets hold the endpoint.
 
 use crate::support::{addr, http_get, start, within, RawMaster, Scrape};
 use modbus_gateway::sim::Source;
@@ -411,4 +412,106 @@ async fn the_shipped_alerts_and_dashboard_use_only_metrics_the_gateway_exports()
         checked += named.len();
     }
     assert!(checked > 10, "the shipped files name the gateway's metrics");
+}
+
+#[tokio::test]
+async fn every_scrape_succeeds_while_eight_stalled_trace_readers_and_silent_sockets_hold_the_endpoint(
+) {
+    use crate::support::{
+        fast_sim_config, keep_line_busy, silent_socket, stalled_trace_reader, status_line,
+        try_http_get,
+    };
+    let gateway = start(&fast_sim_config()).await;
+    let metrics = gateway.metrics_addr();
+    let traffic = keep_line_busy(addr(&gateway));
+    let mut stalled = Vec::new();
+    for _ in 0..modbus_gateway::trace::MAX_READERS {
+        stalled.push(stalled_trace_reader(metrics).await);
+    }
+    within("the stalled readers hold every place of the trace", async {
+        while status_line(metrics, "/trace").await != Some(503) {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await;
+    // A stalled reader is dropped after a while: two more a second take the places that free.
+    let more_stalled = tokio::spawn(async move {
+        loop {
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            stalled.push(stalled_trace_reader(metrics).await);
+        }
+    });
+    // Ten silent sockets, more than the places left, each opened again once closed.
+    let silent: Vec<_> = (0..10)
+        .map(|_| silent_socket(metrics, Duration::from_millis(100)))
+        .collect();
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let mut failed = Vec::new();
+    for scrape in 0..40 {
+        match try_http_get(metrics, "/metrics", Duration::from_secs(5)).await {
+            Ok((200, body)) if body.contains("modbus_gateway_build_info") => {}
+            other => failed.push((scrape, other)),
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    for task in silent.iter().chain([&more_stalled, &traffic]) {
+        task.abort();
+    }
+    assert!(
+        failed.is_empty(),
+        "{} of 40 scrapes failed: {failed:?}",
+        failed.len()
+    );
+    gateway.shutdown().await;
+}
+
+#[tokio::test]
+async fn a_connection_to_the_endpoint_that_sends_nothing_is_closed_within_seconds() {
+    use tokio::io::AsyncReadExt;
+    let gateway = start(LINE).await;
+    let mut silent = within(
+        "connect",
+        tokio::net::TcpStream::connect(gateway.metrics_addr()),
+    )
+    .await
+    .unwrap();
+    let mut byte = [0u8; 1];
+    // Well within the 10 s a request head may take once begun, well past the 2 s limit.
+    let closed = tokio::time::timeout(Duration::from_secs(6), silent.read(&mut byte)).await;
+    assert!(
+        matches!(closed, Ok(Ok(0) | Err(_))),
+        "closed without a byte: {closed:?}"
+    );
+    gateway.shutdown().await;
+}
+
+#[tokio::test]
+async fn the_endpoints_connections_get_tcp_keepalive_probes() {
+    let Some(ss) = crate::support::tool("ss") else {
+        return;
+    };
+    let gateway = start(LINE).await;
+    let metrics = gateway.metrics_addr();
+    // A trace stream: a connection that stays.
+    let _reader = crate::support::stalled_trace_reader(metrics).await;
+    let gateway_side = || {
+        let output = std::process::Command::new(&ss)
+            .args(["-tnoH", "state", "established"])
+            .arg(format!("( sport = :{} )", metrics.port()))
+            .output()
+            .expect("ss runs");
+        String::from_utf8_lossy(&output.stdout).into_owned()
+    };
+    // Once the stream is answered (its request read, nothing queued either way).
+    let mut sockets = gateway_side();
+    for _ in 0..100 {
+        if sockets.contains("timer:(keepalive,") {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        sockets = gateway_side();
+    }
+    assert_eq!(sockets.lines().count(), 1, "{sockets}");
+    assert!(sockets.contains("timer:(keepalive,"), "{sockets}");
+    gateway.shutdown().await;
 }

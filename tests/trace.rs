@@ -1,7 +1,7 @@
 //! The live trace: `GET /trace` read over real HTTP from a gateway on the simulated line (frames,
-//! filters, timeouts, refusals, a stream that outlives the endpoint's connection lifetime), a
-//! reader that stops reading on the paused clock, the trace's gate with no reader, and the
-//! `trace` subcommand run as the real binary.
+//! filters, timeouts, refusals, a stream that outlives the endpoint's connection lifetime, a
+//! stalled reader dropped), a reader that stops reading on the paused clock, the trace's gate
+//! with no reader, and the `trace` subcommand run as the real binary.
 
 use crate::support::{http_get, sim_bus_counted, start, start_sim, within, RawMaster};
 use bytes::Bytes;
@@ -341,6 +341,46 @@ async fn more_trace_readers_than_eight_are_refused_and_metrics_are_still_served(
     gateway.shutdown().await;
 }
 
+#[tokio::test]
+async fn a_trace_reader_whose_stream_stays_blocked_is_dropped_and_its_place_goes_to_a_new_reader() {
+    use crate::support::{
+        fast_sim_config, keep_line_busy, stalled_trace_reader, status_line, PATIENCE,
+    };
+    use tokio::io::AsyncReadExt;
+    let gateway = start(&fast_sim_config()).await;
+    let metrics = gateway.metrics_addr();
+    let traffic = keep_line_busy(gateway.local_addrs()[0]);
+    let mut stalled = Vec::new();
+    for _ in 0..modbus_gateway::trace::MAX_READERS {
+        stalled.push(stalled_trace_reader(metrics).await);
+    }
+    within("the stalled readers hold every place", async {
+        while status_line(metrics, "/trace").await != Some(503) {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await;
+    // Their streams block within a second or two; ten seconds later they are dropped.
+    tokio::time::timeout(2 * PATIENCE, async {
+        while status_line(metrics, "/trace").await != Some(200) {
+            tokio::time::sleep(Duration::from_millis(250)).await;
+        }
+    })
+    .await
+    .expect("a new reader gets a place once the stalled ones are dropped");
+    traffic.abort();
+    // Each stalled reader's connection was closed: what it had not read, then the end.
+    for mut reader in stalled {
+        let mut rest = Vec::new();
+        let end = within("the stalled reader's end", reader.read_to_end(&mut rest)).await;
+        assert!(
+            end.is_err() || String::from_utf8_lossy(&rest).contains("event: frame"),
+            "a stream of frames that ended"
+        );
+    }
+    gateway.shutdown().await;
+}
+
 #[tokio::test(start_paused = true)]
 async fn a_trace_stream_outlives_the_endpoints_connection_lifetime_with_keepalives() {
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
@@ -353,8 +393,8 @@ async fn a_trace_stream_outlives_the_endpoints_connection_lifetime_with_keepaliv
         Arc::new(modbus_gateway::metrics::status::Status::default),
     ));
     let mut trace = Trace::open(addr, "").await;
-    // Other connections are closed after 120 s; a keepalive comes every 15 s.
-    for _ in 0..10 {
+    // Other connections are closed after 120 s; a keepalive comes every 5 s.
+    for _ in 0..30 {
         match trace.next().await {
             Some(Event::Comment(comment)) => assert_eq!(comment, "keepalive"),
             other => panic!("{other:?} instead of a keepalive"),

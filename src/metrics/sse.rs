@@ -1,7 +1,9 @@
 //! `GET /trace`: the live trace of the lines as Server-Sent Events, one `frame` event per frame,
 //! filtered here by `bus` and `slave`. Each reader has a task of its own that takes events from
 //! the [`TraceHub`] and writes them into its response body; a reader that does not keep up loses
-//! events (told to it by a `lost` event) and never holds up anyone else.
+//! events (told to it by a `lost` event) and never holds up anyone else. A reader whose stream
+//! takes nothing for [`STALLED_AFTER`] (its socket full: it stopped reading) is dropped, so that
+//! it does not keep one of the [`MAX_READERS`] places.
 
 use crate::trace::{lost_sse, TraceHub, TraceReader, Traced, MAX_READERS};
 use bytes::Bytes;
@@ -9,15 +11,21 @@ use http_body_util::channel::{Channel, Sender};
 use http_body_util::{Either, Full};
 use hyper::header::{HeaderValue, CACHE_CONTROL, CONTENT_TYPE};
 use hyper::{Response, StatusCode};
+use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
+use tokio::sync::Notify;
+use tracing::info;
 
 /// A response of the metrics endpoint: whole, or the trace's stream.
 pub(super) type Body = Either<Full<Bytes>, Channel<Bytes>>;
 
 /// A comment line this often, so that a reader sees the stream is alive and a reader that has
 /// gone is noticed by the failed write.
-const KEEPALIVE: Duration = Duration::from_secs(15);
+const KEEPALIVE: Duration = Duration::from_secs(5);
+/// A stream that takes no chunk for this long, two keepalives, has a reader that stopped
+/// reading: its socket's buffers, the connection's and [`BUFFERED`] chunks are full.
+const STALLED_AFTER: Duration = Duration::from_secs(2 * KEEPALIVE.as_secs());
 /// Chunks waiting between a reader's task and its connection; past these the task waits, and
 /// the events it does not take meanwhile are lost to that reader.
 const BUFFERED: usize = 16;
@@ -86,8 +94,14 @@ fn text(status: StatusCode, body: String) -> Response<Body> {
     response
 }
 
-/// Answer `GET /trace?query`: the stream, or why not.
-pub(super) fn respond(hub: &Arc<TraceHub>, query: Option<&str>) -> Response<Body> {
+/// Answer `GET /trace?query` from `peer`: the stream, or why not. `hang_up` is told to close
+/// the connection when its reader has stalled.
+pub(super) fn respond(
+    hub: &Arc<TraceHub>,
+    query: Option<&str>,
+    peer: SocketAddr,
+    hang_up: Arc<Notify>,
+) -> Response<Body> {
     let filter = match filter(query, &hub.buses()) {
         Ok(filter) => filter,
         Err((status, message)) => return text(status, message),
@@ -99,7 +113,12 @@ pub(super) fn respond(hub: &Arc<TraceHub>, query: Option<&str>) -> Response<Body
         );
     };
     let (sender, body) = Channel::new(BUFFERED);
-    tokio::spawn(pump(reader, filter, sender));
+    tokio::spawn(async move {
+        if pump(reader, filter, sender).await == Ended::Stalled {
+            info!(%peer, "trace reader dropped: its stream took nothing for {STALLED_AFTER:?}");
+            hang_up.notify_one();
+        }
+    });
     let mut response = Response::new(Either::Right(body));
     let headers = response.headers_mut();
     headers.insert(CONTENT_TYPE, HeaderValue::from_static("text/event-stream"));
@@ -107,14 +126,28 @@ pub(super) fn respond(hub: &Arc<TraceHub>, query: Option<&str>) -> Response<Body
     response
 }
 
-/// Write what `reader` gets and `filter` admits into `body` until the body is gone.
-async fn pump(mut reader: TraceReader, filter: Filter, mut body: Sender<Bytes>) {
-    if body
-        .send_data(Bytes::from_static(OPENED.as_bytes()))
-        .await
-        .is_err()
-    {
-        return;
+/// Why a stream ended.
+#[derive(Debug, PartialEq, Eq)]
+enum Ended {
+    /// Its body is gone: the reader left.
+    Gone,
+    /// Its body took nothing for [`STALLED_AFTER`].
+    Stalled,
+}
+
+/// Hand `chunk` to `body`, unless the reader left or stalled.
+async fn send(body: &mut Sender<Bytes>, chunk: Bytes) -> Result<(), Ended> {
+    match tokio::time::timeout(STALLED_AFTER, body.send_data(chunk)).await {
+        Ok(Ok(())) => Ok(()),
+        Ok(Err(_)) => Err(Ended::Gone),
+        Err(_) => Err(Ended::Stalled),
+    }
+}
+
+/// Write what `reader` gets and `filter` admits into `body` until the reader leaves or stalls.
+async fn pump(mut reader: TraceReader, filter: Filter, mut body: Sender<Bytes>) -> Ended {
+    if let Err(ended) = send(&mut body, Bytes::from_static(OPENED.as_bytes())).await {
+        return ended;
     }
     let start = tokio::time::Instant::now() + KEEPALIVE;
     let mut keepalive = tokio::time::interval_at(start, KEEPALIVE);
@@ -139,8 +172,8 @@ async fn pump(mut reader: TraceReader, filter: Filter, mut body: Sender<Bytes>) 
             },
             _ = keepalive.tick() => Bytes::from_static(STILL_HERE.as_bytes()),
         };
-        if body.send_data(chunk).await.is_err() {
-            return;
+        if let Err(ended) = send(&mut body, chunk).await {
+            return ended;
         }
     }
 }
@@ -222,6 +255,33 @@ mod tests {
         assert_eq!(text, format!("{OPENED}{}", event(2).to_sse()));
         tokio::time::sleep(KEEPALIVE).await;
         assert_eq!(ready_chunks(&mut body).await, STILL_HERE);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_stream_that_takes_nothing_for_two_keepalives_ends_stalled_and_a_dropped_one_gone() {
+        let hub = Arc::new(TraceHub::new());
+        let (sender, body) = Channel::new(BUFFERED);
+        let stalled = tokio::spawn(pump(hub.subscribe().unwrap(), Filter::default(), sender));
+        tokio::task::yield_now().await;
+        // Nobody reads the body: the opening comment and the events fill it.
+        for _ in 0..BUFFERED {
+            hub.publish(event(1));
+            tokio::task::yield_now().await;
+        }
+        tokio::time::sleep(STALLED_AFTER - KEEPALIVE).await;
+        assert!(!stalled.is_finished(), "not stalled for long enough yet");
+        tokio::time::sleep(KEEPALIVE * 2).await;
+        assert!(stalled.is_finished(), "stalled by now");
+        assert_eq!(stalled.await.unwrap(), Ended::Stalled);
+        assert!(!hub.active(), "its place in the hub is free");
+        drop(body);
+
+        let (sender, body) = Channel::new(BUFFERED);
+        let gone = tokio::spawn(pump(hub.subscribe().unwrap(), Filter::default(), sender));
+        drop(body);
+        tokio::time::sleep(KEEPALIVE).await;
+        assert!(gone.is_finished(), "gone at the next keepalive");
+        assert_eq!(gone.await.unwrap(), Ended::Gone);
     }
 
     #[tokio::test(start_paused = true)]

@@ -574,3 +574,109 @@ pub async fn assert_fair(masters: Vec<JoinHandle<usize>>, what: &str) {
     assert!(min >= 1, "a {what} got nothing: {counts:?}");
     assert!(max <= 2 * min, "unfair: min {min}, max {max}: {counts:?}");
 }
+
+/// A gateway configuration with one simulated line at 115200 baud, fast enough that a trace
+/// reader that does not read is soon blocked.
+pub fn fast_sim_config() -> String {
+    "[server]\nlisten = \"127.0.0.1:0\"\n\
+     [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"even\"\n\
+     [[bus.sim_slave]]\naddress = \"1-4\"\n"
+        .to_owned()
+}
+
+/// A master reading 125 registers of slave 1 back to back until aborted, so that the trace has
+/// about a kilobyte to send per read.
+pub fn keep_line_busy(gateway: SocketAddr) -> JoinHandle<()> {
+    tokio::spawn(async move {
+        let mut master = RawMaster::connect(gateway).await;
+        for transaction in (0..=u16::MAX).cycle() {
+            if master
+                .try_call(transaction, 1, &[0x03, 0x00, 0x00, 0x00, 0x7D])
+                .await
+                .is_none()
+            {
+                return;
+            }
+        }
+    })
+}
+
+/// `GET /trace` from a client that never reads: its receive buffer made small before it
+/// connects, so that its stream blocks after a few events. Keep it to keep it connected.
+pub async fn stalled_trace_reader(metrics: SocketAddr) -> TcpStream {
+    let socket = tokio::net::TcpSocket::new_v4().expect("a socket");
+    socket.set_recv_buffer_size(1024).expect("SO_RCVBUF");
+    let mut stream = within("connect to the metrics endpoint", socket.connect(metrics))
+        .await
+        .expect("metrics endpoint accepts");
+    let request = format!("GET /trace HTTP/1.1\r\nHost: {metrics}\r\n\r\n");
+    stream.write_all(request.as_bytes()).await.expect("send");
+    stream
+}
+
+/// The status code of a GET of `path` on a fresh connection, read from the status line alone
+/// (a trace stream's body never ends); `None` if the endpoint closed the connection instead.
+pub async fn status_line(addr: SocketAddr, path: &str) -> Option<u16> {
+    let mut stream = TcpStream::connect(addr).await.ok()?;
+    let request = format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\n\r\n");
+    stream.write_all(request.as_bytes()).await.ok()?;
+    let mut head = Vec::new();
+    let mut byte = [0u8; 1];
+    while !head.ends_with(b"\r\n") {
+        match within("a status line", stream.read(&mut byte)).await {
+            Ok(1) => head.push(byte[0]),
+            _ => return None,
+        }
+    }
+    let head = String::from_utf8_lossy(&head).into_owned();
+    head.split(' ').nth(1)?.parse().ok()
+}
+
+/// [`http_get`], bounded by `limit`, that says what went wrong instead of failing the test.
+pub async fn try_http_get(
+    addr: SocketAddr,
+    path: &str,
+    limit: Duration,
+) -> Result<(u16, String), String> {
+    let get = async {
+        let mut stream = TcpStream::connect(addr)
+            .await
+            .map_err(|e| format!("connect: {e}"))?;
+        let request = format!("GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n");
+        stream
+            .write_all(request.as_bytes())
+            .await
+            .map_err(|e| format!("send: {e}"))?;
+        let mut response = String::new();
+        stream
+            .read_to_string(&mut response)
+            .await
+            .map_err(|e| format!("receive: {e}"))?;
+        let (head, body) = response
+            .split_once("\r\n\r\n")
+            .ok_or_else(|| format!("not an HTTP response: {response:?}"))?;
+        let status = head
+            .split(' ')
+            .nth(1)
+            .and_then(|code| code.parse().ok())
+            .ok_or_else(|| format!("no status in {head:?}"))?;
+        Ok((status, body.to_owned()))
+    };
+    tokio::time::timeout(limit, get)
+        .await
+        .unwrap_or_else(|_| Err(format!("no answer within {limit:?}")))
+}
+
+/// A client that connects to `addr` and sends nothing, connecting again whenever it is closed
+/// (after `pause`) and at least every 9 s, until aborted.
+pub fn silent_socket(addr: SocketAddr, pause: Duration) -> JoinHandle<()> {
+    tokio::spawn(async move {
+        loop {
+            if let Ok(mut stream) = TcpStream::connect(addr).await {
+                let mut byte = [0u8; 1];
+                let _ = tokio::time::timeout(Duration::from_secs(9), stream.read(&mut byte)).await;
+            }
+            tokio::time::sleep(pause).await;
+        }
+    })
+}
