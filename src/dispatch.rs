@@ -48,6 +48,9 @@ pub struct Client {
     pub priority: bool,
     /// How it talks to the gateway: Modbus TCP unless [`Client::speaking`] says otherwise.
     pub protocol: Protocol,
+    /// Whose share of a full bus queue its requests count against: its own, or one its listener
+    /// gives all the masters of one source address (Modbus UDP).
+    pub admission: MasterId,
     refused: u64,
 }
 
@@ -60,6 +63,7 @@ impl Client {
             units: None,
             priority: false,
             protocol: Protocol::Tcp,
+            admission: master,
             refused: 0,
         }
     }
@@ -159,6 +163,7 @@ impl Dispatcher {
             Some(target) => {
                 let origin = Origin {
                     master: client.master,
+                    admission: client.admission,
                     protocol: client.protocol,
                     priority: client.priority,
                 };
