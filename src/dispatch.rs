@@ -50,6 +50,9 @@ pub struct Client {
     pub priority: bool,
     /// How it talks to the gateway: Modbus TCP unless [`Client::speaking`] says otherwise.
     pub protocol: Protocol,
+    /// Whose share of a full bus queue its requests count against: its own, or one its listener
+    /// gives all the masters of one source address (Modbus UDP).
+    pub admission: MasterId,
 }
 
 impl Client {
@@ -61,6 +64,7 @@ impl Client {
             units: None,
             priority: false,
             protocol: Protocol::Tcp,
+            admission: master,
         }
     }
 
@@ -170,6 +174,7 @@ impl Dispatcher {
             Some(target) => {
                 let origin = Origin {
                     master: client.master,
+                    admission: client.admission,
                     protocol: client.protocol,
                     priority: client.priority,
                 };

@@ -1,7 +1,9 @@
-//! Hundreds of masters at once on one line: every reply correct and to the right master, and the
-//! line shared fairly even when some masters pipeline and others do not.
+//! Hundreds of masters at once on one line: every reply correct and to the right master, the
+//! line shared fairly even when some masters pipeline and others do not, and its queue too: a
+//! master that asks politely gets in however many others flood it.
 
-use crate::support::{addr, assert_fair, start, RawMaster, Rotation};
+use crate::support::{addr, assert_fair, polite_reads, start, within, Flood, RawMaster, Rotation};
+use std::net::SocketAddr;
 use std::sync::Arc;
 use tokio::sync::Barrier;
 
@@ -62,4 +64,66 @@ async fn two_hundred_masters_are_all_served_correctly_and_fairly() {
         }));
     }
     assert_fair(masters, "master").await;
+}
+
+/// Attacking connections, each keeping `PIPELINE` reads in flight back to back.
+const ATTACKERS: u16 = 40;
+const PIPELINE: u16 = 16;
+/// The polite master's reads, one at a time.
+const POLITE_READS: u16 = 20;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn forty_connections_pipelining_sixteen_reads_leave_a_polite_master_95_percent_answered() {
+    // Room for more requests than there are masters, for far fewer than the attackers send.
+    let gateway = start(
+        "[server]\nlisten = \"127.0.0.1:0\"\n\
+         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\
+         queue_depth = 64\nqueue_timeout = \"60s\"\n\
+         [[bus.sim_slave]]\naddress = \"1-2\"\n",
+    )
+    .await;
+    let at = addr(&gateway);
+    let flood = Flood::new();
+    let attackers: Vec<_> = (0..ATTACKERS)
+        .map(|a| tokio::spawn(pipeline(at, a, flood.clone())))
+        .collect();
+    flood.until_refused(usize::from(ATTACKERS)).await;
+    let answered = polite_reads(at, 2, POLITE_READS).await;
+    flood.stop();
+    for attacker in attackers {
+        within("an attacker stops", attacker)
+            .await
+            .expect("attacker task");
+    }
+    eprintln!("polite master: {answered} of {POLITE_READS} answered");
+    assert!(
+        answered * 100 >= 95 * POLITE_READS,
+        "polite master: {answered} of {POLITE_READS} answered"
+    );
+}
+
+/// An attacker: `PIPELINE` reads of its own input register in flight until the flood stops.
+/// Every reply in order, to its own request: the answer, or 0x06.
+async fn pipeline(at: SocketAddr, index: u16, flood: Arc<Flood>) {
+    let mut master = RawMaster::connect(at).await;
+    let [hi, lo] = index.to_be_bytes();
+    let request = [0x04, hi, lo, 0x00, 0x01];
+    let mut sent = 0u16;
+    for _ in 0..PIPELINE {
+        master.send(sent, 1, &request).await;
+        sent += 1;
+    }
+    let mut expected = 0u16;
+    while !flood.is_stopped() {
+        let reply = master.recv().await;
+        assert_eq!((reply.transaction, reply.unit), (expected, 1), "in order");
+        if reply.pdu == [0x84, 0x06] {
+            flood.refused();
+        } else {
+            assert_eq!(reply.pdu, [0x04, 0x02, hi, lo], "attacker {index}: its own");
+        }
+        expected = expected.wrapping_add(1);
+        master.send(sent, 1, &request).await;
+        sent = sent.wrapping_add(1);
+    }
 }

@@ -232,6 +232,7 @@ fn bus_settings(keys: &str) -> modbus_gateway::config::Bus {
 fn origin(master: u64, priority: bool) -> Origin {
     Origin {
         master,
+        admission: master,
         protocol: Protocol::Tcp,
         priority,
     }

@@ -1,9 +1,11 @@
 //! Modbus UDP masters (`listen_udp`): one MBAP request per datagram, the reply to the source it
-//! came from; the buses, routes and access lists they share with TCP masters; what is dropped.
+//! came from; the buses, routes and access lists they share with TCP masters; what is dropped;
+//! a flood from many ports of one address.
 
-use crate::support::{start, Scrape, PATIENCE};
+use crate::support::{polite_reads, start, within, Flood, Scrape, PATIENCE};
 use modbus_gateway::Gateway;
 use std::net::SocketAddr;
+use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::UdpSocket;
 
@@ -288,4 +290,68 @@ async fn masters_of_all_three_kinds_polling_one_bus_are_all_answered_and_share_i
         scrape.value("modbus_gateway_tcp_connections_accepted_total{protocol=\"rtu_over_tcp\"}"),
         1.0
     );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn forty_udp_ports_of_one_address_flooding_leave_a_polite_master_95_percent_answered() {
+    // Fewer places than ports: were each port a master of its own, they would hold one place
+    // each and a newcomer would wait for room.
+    let gateway = start(
+        "[server]\nlisten = \"127.0.0.1:0\"\nlisten_udp = \"127.0.0.1:0\"\n\
+         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\
+         queue_depth = 32\nqueue_timeout = \"60s\"\n\
+         [[bus.sim_slave]]\naddress = \"1-2\"\n",
+    )
+    .await;
+    let udp = udp_addr(&gateway);
+    let flood = Flood::new();
+    let mut ports = Vec::new();
+    for port in 0..40 {
+        ports.push(tokio::spawn(flood_from_port(udp, port, flood.clone())));
+    }
+    flood.until_refused(40).await;
+    let answered = polite_reads(gateway.local_addrs()[0], 2, 20).await;
+    flood.stop();
+    for port in ports {
+        within("a port stops", port).await.expect("port task");
+    }
+    eprintln!("polite master: {answered} of 20 answered");
+    assert!(answered >= 19, "polite master: {answered} of 20 answered");
+}
+
+/// One source port of 127.0.0.1 keeping 16 reads of its own input register in flight (as many
+/// as `pipeline_depth` lets it) until the flood stops: one more for each reply, and for each
+/// pause in the replies (a datagram lost). Each reply is the answer to its own read, or 0x06.
+async fn flood_from_port(udp: SocketAddr, index: u16, flood: Arc<Flood>) {
+    const PAUSE: Duration = Duration::from_millis(100);
+    let socket = master().await;
+    let [hi, lo] = index.to_be_bytes();
+    let request = [0x04, hi, lo, 0x00, 0x01];
+    let mut transaction = 0u16;
+    for _ in 0..16 {
+        socket
+            .send_to(&adu(transaction, 1, &request), udp)
+            .await
+            .unwrap();
+        transaction += 1;
+    }
+    while !flood.is_stopped() {
+        if let Some(reply) = receive(&socket, PAUSE).await {
+            let pdu = &reply[7..];
+            if pdu == [0x84, 0x06] {
+                flood.refused();
+            } else {
+                assert_eq!(pdu, [0x04, 0x02, hi, lo], "port {index}: its own");
+            }
+            assert_eq!(
+                &reply[2..7],
+                &[0, 0, 0, u8::try_from(pdu.len() + 1).unwrap(), 1]
+            );
+        }
+        socket
+            .send_to(&adu(transaction, 1, &request), udp)
+            .await
+            .unwrap();
+        transaction = transaction.wrapping_add(1);
+    }
 }

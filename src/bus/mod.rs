@@ -136,6 +136,7 @@ impl BusHandle {
     pub fn submit(&self, master: MasterId, slave: u8, pdu: Vec<u8>) -> oneshot::Receiver<Outcome> {
         let origin = Origin {
             master,
+            admission: master,
             protocol: Protocol::Tcp,
             priority: false,
         };
@@ -148,7 +149,8 @@ impl BusHandle {
     }
 
     /// [`BusHandle::submit`] for a master of any protocol and class: a read may be answered
-    /// from the cache, or join an identical one waiting.
+    /// from the cache, or join an identical one waiting. Admitted to a full queue in place of
+    /// another master's request, that one is refused (queue full).
     pub fn submit_from(
         &self,
         origin: Origin,
@@ -173,13 +175,20 @@ impl BusHandle {
         }
         let (function, protocol) = (job.function(), job.protocol);
         match self.queue.push(job, cache) {
-            Ok(Pushed::Queued) => {}
-            Ok(Pushed::Joined) => self.metrics.coalesced(slave),
-            Ok(Pushed::Cached(answer)) => {
-                self.metrics.cache_hit(slave);
-                let answered = Ok(Answer::Reply(answer));
-                self.metrics
-                    .request(slave, function, protocol, Some(&answered));
+            Ok((pushed, evicted)) => {
+                if let Some(evicted) = evicted {
+                    self.answer(evicted, Err(RequestError::QueueFull));
+                }
+                match pushed {
+                    Pushed::Queued => {}
+                    Pushed::Joined => self.metrics.coalesced(slave),
+                    Pushed::Cached(answer) => {
+                        self.metrics.cache_hit(slave);
+                        let answered = Ok(Answer::Reply(answer));
+                        self.metrics
+                            .request(slave, function, protocol, Some(&answered));
+                    }
+                }
             }
             Err(job) => {
                 let refusal = if self.queue.is_closed() {

@@ -10,12 +10,27 @@
 //! for its frame). A write to a slave starts a new epoch for it: no read joins a leader from an
 //! earlier epoch, and a cached answer (the opt-in per-slave cache kept here, under the same
 //! lock as the epochs) dies with its epoch.
+//!
+//! Admission is fair as well. `queue_depth` bounds the requests waiting for the line (followers
+//! included) over all masters, and while there is room every request goes in. Once the queue is
+//! full, a request still goes in if its master holds less than its *share* while another holds
+//! more than its own: the share is `queue_depth` divided among the masters with requests
+//! waiting, the newcomer included, rounded down and at least one. The newest request of the
+//! master holding the most is refused (0x06) to make room; a master in `server.priority` loses
+//! one only when no other master holds more than its share. So a master with nothing waiting
+//! gets in whenever another holds more than its share, a master within its share is never
+//! refused for another, and none can win a place back from the one that took it. When more
+//! masters wait than the queue holds, each holds at most one and a newcomer waits for room.
+//! What counts as one master here is a request's [`Origin::admission`]: a connection, or all
+//! the ports of one Modbus UDP source address. A follower counts against its own master; a
+//! refused leader's followers stay queued, the first of them leading in its place.
 
 use crate::error::{Answer, Outcome};
 use crate::line::BROADCAST;
 use crate::metrics::Protocol;
 use crate::pdu;
-use std::collections::{HashMap, VecDeque};
+use std::cmp::Reverse;
+use std::collections::{hash_map, HashMap, VecDeque};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
@@ -29,6 +44,9 @@ pub type MasterId = u64;
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Origin {
     pub master: MasterId,
+    /// Whose share of a full queue it counts against: the master's own id for a connection; for
+    /// Modbus UDP, one id for every port of a source address (ports cost a sender nothing).
+    pub admission: MasterId,
     /// How the master talks to the gateway, for the requests' `protocol` label.
     pub protocol: Protocol,
     /// Served before the others (`server.priority`).
@@ -39,6 +57,7 @@ pub struct Origin {
 #[derive(Debug)]
 pub struct Job {
     pub master: MasterId,
+    pub admission: MasterId,
     /// How the master talks to the gateway, for the requests' `protocol` label.
     pub protocol: Protocol,
     /// From a master in `server.priority`.
@@ -65,6 +84,7 @@ pub struct Job {
 #[derive(Debug)]
 pub struct Follower {
     pub master: MasterId,
+    pub admission: MasterId,
     pub protocol: Protocol,
     pub priority: bool,
     pub queued_at: Instant,
@@ -83,6 +103,7 @@ impl Job {
     ) -> Job {
         Job {
             master: origin.master,
+            admission: origin.admission,
             protocol: origin.protocol,
             priority: origin.priority,
             slave,
@@ -110,6 +131,7 @@ impl Job {
     fn follower(self) -> Follower {
         Follower {
             master: self.master,
+            admission: self.admission,
             protocol: self.protocol,
             priority: self.priority,
             queued_at: self.queued_at,
@@ -124,6 +146,7 @@ impl Follower {
     fn leading(self, leader: &Job) -> Job {
         Job {
             master: self.master,
+            admission: self.admission,
             protocol: self.protocol,
             priority: self.priority,
             slave: leader.slave,
@@ -210,6 +233,8 @@ struct Inner {
     turn: [VecDeque<MasterId>; RINGS],
     /// Jobs and followers waiting.
     len: usize,
+    /// Jobs and followers waiting, by whose share they count against; only keys holding some.
+    held: HashMap<MasterId, Held>,
     /// Closed for good: pushes are refused.
     closed: bool,
     /// Per slave: bumped by every write queued to it (all of them by a broadcast).
@@ -222,6 +247,14 @@ struct Inner {
     cache: HashMap<(u8, Vec<u8>), Cached>,
 }
 
+/// What one admission key has waiting.
+#[derive(Clone, Copy, Default)]
+struct Held {
+    requests: usize,
+    /// Of those, from masters in `server.priority`.
+    priority: usize,
+}
+
 /// Most answers a bus keeps cached; the oldest go first.
 const CACHE_ENTRIES: usize = 1024;
 
@@ -232,6 +265,7 @@ impl FairQueue {
                 queues: HashMap::new(),
                 turn: Default::default(),
                 len: 0,
+                held: HashMap::new(),
                 closed: false,
                 epochs: Box::new([0; 256]),
                 following: HashMap::new(),
@@ -257,34 +291,57 @@ impl FairQueue {
 
     /// Queue `job` behind its master's earlier ones, join it to an identical read waiting at the
     /// head of another master's FIFO (if `job.coalesce`), or answer it from the cache if an
-    /// answer younger than `cache` is there. A full or closed queue hands it back.
-    pub fn push(&self, mut job: Job, cache: Duration) -> Result<Pushed, Job> {
-        let pushed = {
+    /// answer younger than `cache` is there. A full queue takes it only in place of the newest
+    /// job of a master holding more than its share, which comes back with it, to be refused;
+    /// otherwise a full or closed queue hands `job` back.
+    pub fn push(&self, mut job: Job, cache: Duration) -> Result<(Pushed, Option<Job>), Job> {
+        let (pushed, evicted) = {
             let mut inner = self.lock();
-            if inner.len >= self.capacity.load(Ordering::Relaxed) || inner.closed {
+            if inner.closed {
                 return Err(job);
             }
-            if !pdu::is_read_only(&job.pdu) {
+            let capacity = self.capacity.load(Ordering::Relaxed);
+            let victim = if inner.len >= capacity {
+                match inner.victim(job.admission, capacity) {
+                    Some(victim) => Some(victim),
+                    None => return Err(job),
+                }
+            } else {
+                None
+            };
+            let read = pdu::is_read_only(&job.pdu);
+            if read {
+                job.epoch = inner.epochs[usize::from(job.slave)];
+                if let Some(answer) = inner.cached(&job, cache) {
+                    let _ = job.reply.send(Ok(Answer::Reply(answer.clone())));
+                    return Ok((Pushed::Cached(answer), None));
+                }
+            }
+            let evicted = match victim {
+                Some(victim) => match inner.evict(victim) {
+                    Some(evicted) => Some(evicted),
+                    None => return Err(job),
+                },
+                None => None,
+            };
+            if !read {
                 inner.new_epoch(job.slave);
+                job.epoch = inner.epochs[usize::from(job.slave)];
             }
-            job.epoch = inner.epochs[usize::from(job.slave)];
-            if let Some(answer) = inner.cached(&job, cache) {
-                let _ = job.reply.send(Ok(Answer::Reply(answer.clone())));
-                return Ok(Pushed::Cached(answer));
-            }
-            inner.len += 1;
-            match inner.join(job) {
+            inner.hold(job.admission, job.priority);
+            let pushed = match inner.join(job) {
                 Ok(()) => Pushed::Joined,
                 Err(job) => {
                     inner.enqueue(job);
                     Pushed::Queued
                 }
-            }
+            };
+            (pushed, evicted)
         };
         if pushed == Pushed::Queued {
             self.ready.notify_one();
         }
-        Ok(pushed)
+        Ok((pushed, evicted))
     }
 
     /// The next job: from the priority ring first, up to its share of the line while others
@@ -310,8 +367,9 @@ impl FairQueue {
             inner.turn[ring(priority)].push_back(master);
         }
         let job = job?;
-        inner.len -= 1 + job.followers.len();
+        inner.release(job.admission, job.priority);
         for follower in &job.followers {
+            inner.release(follower.admission, follower.priority);
             inner.unfollow(follower.master);
         }
         Some(job)
@@ -335,6 +393,7 @@ impl FairQueue {
         inner.turn = Default::default();
         inner.following.clear();
         inner.len = 0;
+        inner.held.clear();
         jobs
     }
 
@@ -363,9 +422,8 @@ impl FairQueue {
                 turn.retain(|&m| m != master);
             }
             for mut job in queue {
-                inner.len -= 1;
+                inner.release(job.admission, job.priority);
                 let followers = std::mem::take(&mut job.followers);
-                inner.len -= followers.len();
                 inner.promote(&job, followers);
                 gone.push(job);
             }
@@ -381,7 +439,9 @@ impl FairQueue {
                     left.extend(mine.into_iter().map(|f| f.leading(job)));
                 }
             }
-            inner.len -= left.len();
+            for job in &left {
+                inner.release(job.admission, job.priority);
+            }
             gone.extend(left);
         }
         if !gone.is_empty() {
@@ -490,6 +550,84 @@ impl Inner {
         }
     }
 
+    /// One more request waits, counted against `key`.
+    fn hold(&mut self, key: MasterId, priority: bool) {
+        self.len += 1;
+        let held = self.held.entry(key).or_default();
+        held.requests += 1;
+        held.priority += usize::from(priority);
+    }
+
+    /// A request counted against `key` waits no more.
+    fn release(&mut self, key: MasterId, priority: bool) {
+        self.len = self.len.saturating_sub(1);
+        if let hash_map::Entry::Occupied(mut entry) = self.held.entry(key) {
+            let held = entry.get_mut();
+            held.requests = held.requests.saturating_sub(1);
+            held.priority = held.priority.saturating_sub(usize::from(priority));
+            if held.requests == 0 {
+                entry.remove();
+            }
+        }
+    }
+
+    /// The key whose newest request a full queue of `capacity` refuses to admit one of
+    /// `newcomer`, if any: `newcomer` holds less than its share and the key more than its own;
+    /// the one holding the most, a priority master's only if no other qualifies.
+    fn victim(&self, newcomer: MasterId, capacity: usize) -> Option<MasterId> {
+        let holding = self.held.get(&newcomer).map_or(0, |held| held.requests);
+        let sharing = self.held.len() + usize::from(holding == 0);
+        let share = (capacity / sharing.max(1)).max(1);
+        if holding >= share {
+            return None;
+        }
+        self.held
+            .iter()
+            .filter(|(_, held)| held.requests > share)
+            .min_by_key(|&(&key, held)| (held.priority > 0, Reverse(held.requests), key))
+            .map(|(&key, _)| key)
+    }
+
+    /// Take out the newest request counted against `key`, to be refused: the last job of its
+    /// master with the most queued (one that no read follows, if there is such a master), or
+    /// else a read of it that follows another's. A refused leader's followers stay queued.
+    fn evict(&mut self, key: MasterId) -> Option<Job> {
+        let busiest = self
+            .queues
+            .iter()
+            .filter(|(_, queue)| queue.back().is_some_and(|job| job.admission == key))
+            .max_by_key(|&(&master, queue)| {
+                let led = queue.back().is_some_and(|job| !job.followers.is_empty());
+                (!led, queue.len(), Reverse(master))
+            })
+            .map(|(&master, _)| master);
+        if let Some(master) = busiest {
+            let queue = self.queues.get_mut(&master)?;
+            let mut job = queue.pop_back()?;
+            if queue.is_empty() {
+                self.queues.remove(&master);
+                for turn in &mut self.turn {
+                    turn.retain(|&m| m != master);
+                }
+            }
+            self.release(job.admission, job.priority);
+            let followers = std::mem::take(&mut job.followers);
+            self.promote(&job, followers);
+            return Some(job);
+        }
+        let job = self
+            .queues
+            .values_mut()
+            .flat_map(|queue| queue.iter_mut())
+            .find_map(|leader| {
+                let at = leader.followers.iter().rposition(|f| f.admission == key)?;
+                Some(leader.followers.remove(at).leading(leader))
+            })?;
+        self.unfollow(job.master);
+        self.release(job.admission, job.priority);
+        Some(job)
+    }
+
     fn enqueue(&mut self, job: Job) {
         let master = job.master;
         let priority = job.priority;
@@ -518,7 +656,7 @@ impl Inner {
     }
 
     /// The leader `job` is gone unsent: its first follower takes its place at the head of its
-    /// own master's FIFO, with the others following it.
+    /// own master's FIFO, with the others following it. They all still wait, as they did.
     fn promote(&mut self, job: &Job, followers: Vec<Follower>) {
         let mut followers = followers.into_iter();
         let Some(first) = followers.next() else {
@@ -527,7 +665,6 @@ impl Inner {
         self.unfollow(first.master);
         let mut promoted = first.leading(job);
         promoted.followers = followers.collect();
-        self.len += 1 + promoted.followers.len();
         let (master, priority) = (promoted.master, promoted.priority);
         let queue = self.queues.entry(master).or_default();
         queue.push_front(promoted);
@@ -548,9 +685,15 @@ mod tests {
     fn origin(master: MasterId, priority: bool) -> Origin {
         Origin {
             master,
+            admission: master,
             protocol: Protocol::Tcp,
             priority,
         }
+    }
+
+    /// What became of a pushed job, whatever it displaced.
+    fn pushed(result: Result<(Pushed, Option<Job>), Job>) -> Option<Pushed> {
+        result.ok().map(|(pushed, _)| pushed)
     }
 
     fn request(origin: Origin, slave: u8, pdu: &[u8]) -> (Job, oneshot::Receiver<Outcome>) {
@@ -590,6 +733,263 @@ mod tests {
             [(1, 0), (2, 0x12), (3, 0x13), (1, 1), (1, 2), (1, 3)]
         );
         assert!(q.is_empty());
+    }
+
+    /// The ids the ports of two Modbus UDP source addresses share for admission.
+    const ADDRESS: MasterId = 100;
+    const OTHER_ADDRESS: MasterId = 101;
+
+    /// A request of a Modbus UDP master: `port` at the address with id `address`.
+    fn datagram(port: MasterId, address: MasterId, tag: u8) -> (Job, oneshot::Receiver<Outcome>) {
+        let origin = Origin {
+            admission: address,
+            protocol: Protocol::Udp,
+            ..origin(port, false)
+        };
+        request(origin, 1, &[0x03, tag])
+    }
+
+    #[test]
+    fn a_full_queue_admits_a_newcomer_in_place_of_the_newest_job_of_the_master_holding_most() {
+        let q = FairQueue::new(6);
+        let mut keep = Vec::new();
+        for (master, tag) in [(1, 0), (1, 1), (1, 2), (1, 3), (2, 4), (2, 5)] {
+            let (j, rx) = job(master, tag);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        // Three masters: a share of two each. Master 1 holds four.
+        let (newcomer, _r) = job(3, 6);
+        let (pushed, evicted) = q.push(newcomer, NONE).expect("admitted");
+        assert_eq!(pushed, Pushed::Queued);
+        let evicted = evicted.expect("a job refused for it");
+        assert_eq!(
+            (evicted.master, evicted.pdu[1]),
+            (1, 3),
+            "master 1's newest"
+        );
+        assert_eq!(q.len(), 6, "queue_depth stays the total");
+        // Master 1, still above its share, cannot win the place back.
+        let (again, _r) = job(1, 7);
+        assert_eq!(q.push(again, NONE).unwrap_err().master, 1);
+        assert_eq!(order(&q), [(1, 0), (2, 4), (3, 6), (1, 1), (2, 5), (1, 2)]);
+    }
+
+    #[test]
+    fn a_full_queue_refuses_a_master_at_its_share_and_one_when_nobody_holds_more_than_theirs() {
+        let q = FairQueue::new(4);
+        let mut keep = Vec::new();
+        for (master, tag) in [(1, 0), (1, 1), (2, 2), (2, 3)] {
+            let (j, rx) = job(master, tag);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        // Two masters, two each: at their share.
+        let (more, _r) = job(2, 4);
+        assert_eq!(q.push(more, NONE).unwrap_err().master, 2);
+        // More masters than places: one each, and a newcomer waits for room.
+        let q = FairQueue::new(2);
+        for master in [1, 2] {
+            let (j, rx) = job(master, 0);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        let (newcomer, _r) = job(3, 0);
+        assert_eq!(q.push(newcomer, NONE).unwrap_err().master, 3);
+        assert_eq!(q.len(), 2);
+    }
+
+    #[test]
+    fn the_ports_of_one_udp_address_share_one_share_of_a_full_queue() {
+        let q = FairQueue::new(4);
+        let mut keep = Vec::new();
+        for port in 10..14 {
+            let (j, rx) = datagram(port, ADDRESS, port as u8);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        // A fifth port is no newcomer: its address holds the whole queue already.
+        let (port, _r) = datagram(14, ADDRESS, 0);
+        assert!(q.push(port, NONE).is_err());
+        // Another address and a connection are: the address keeps two.
+        let (other, _r) = datagram(20, OTHER_ADDRESS, 1);
+        let (_, evicted) = q.push(other, NONE).expect("another address");
+        assert!((10..14).contains(&evicted.expect("a port's job").master));
+        let (connection, _r) = job(1, 2);
+        let (_, evicted) = q.push(connection, NONE).expect("a connection");
+        assert!((10..14).contains(&evicted.expect("a port's job").master));
+        let masters: Vec<MasterId> = order(&q).iter().map(|&(m, _)| m).collect();
+        assert_eq!(
+            masters.iter().filter(|&&m| (10..14).contains(&m)).count(),
+            2
+        );
+        assert!(masters.contains(&20) && masters.contains(&1));
+    }
+
+    #[test]
+    fn a_refused_leaders_followers_stay_queued_and_the_first_leads_in_its_place() {
+        let q = FairQueue::new(4);
+        let other = [0x03, 0x00, 0x20, 0x00, 0x01];
+        // Master 1 follows master 3's read, then leads a read that master 2 follows: it holds two,
+        // its newest a leader.
+        let (lead, _r3) = request(origin(3, false), 6, &other);
+        q.push(lead, NONE).unwrap();
+        let (follows, _r1a) = request(origin(1, false), 6, &other);
+        assert_eq!(pushed(q.push(follows, NONE)), Some(Pushed::Joined));
+        let (leads, _r1b) = request(origin(1, false), 5, &READ);
+        assert_eq!(pushed(q.push(leads, NONE)), Some(Pushed::Queued));
+        let (joins, _r2) = request(origin(2, false), 5, &READ);
+        assert_eq!(pushed(q.push(joins, NONE)), Some(Pushed::Joined));
+        // Four masters, a share of one each.
+        let (newcomer, _r4) = request(origin(4, false), 7, &READ);
+        let (_, evicted) = q.push(newcomer, NONE).expect("admitted");
+        let evicted = evicted.expect("master 1's read refused");
+        assert_eq!((evicted.master, evicted.slave), (1, 5));
+        assert!(evicted.followers.is_empty(), "its follower stays");
+        assert_eq!(q.len(), 4);
+        // Each request once: master 3's read with master 1 following, master 2's in its place.
+        let mut served: Vec<(MasterId, u8, Vec<MasterId>)> = std::iter::from_fn(|| q.try_pop())
+            .map(|j| {
+                (
+                    j.master,
+                    j.slave,
+                    j.followers.iter().map(|f| f.master).collect(),
+                )
+            })
+            .collect();
+        served.sort_unstable();
+        assert_eq!(served, [(2, 5, vec![]), (3, 6, vec![1]), (4, 7, vec![])]);
+        assert!(q.is_empty());
+    }
+
+    #[test]
+    fn when_an_address_holds_only_followers_one_of_them_is_refused() {
+        let q = FairQueue::new(3);
+        let (lead, _r1) = request(origin(1, false), 5, &READ);
+        q.push(lead, NONE).unwrap();
+        let mut keep = Vec::new();
+        for port in [10, 11] {
+            let udp = Origin {
+                admission: ADDRESS,
+                ..origin(port, false)
+            };
+            let (follows, rx) = request(udp, 5, &READ);
+            assert_eq!(pushed(q.push(follows, NONE)), Some(Pushed::Joined));
+            keep.push(rx);
+        }
+        let (newcomer, _r2) = job(2, 0);
+        let (_, evicted) = q.push(newcomer, NONE).expect("admitted");
+        let evicted = evicted.expect("a follower refused");
+        assert!([10, 11].contains(&evicted.master));
+        assert_eq!((evicted.slave, &evicted.pdu[..]), (5, &READ[..]));
+        let leader = q.try_pop().unwrap();
+        assert_eq!(leader.master, 1);
+        assert_eq!(leader.followers.len(), 1);
+        assert_ne!(leader.followers[0].master, evicted.master);
+        assert_eq!(q.try_pop().unwrap().master, 2);
+        assert!(q.is_empty() && q.try_pop().is_none());
+    }
+
+    #[test]
+    fn a_priority_master_loses_a_place_only_when_no_other_master_holds_more_than_its_share() {
+        let q = FairQueue::new(7);
+        let mut keep = Vec::new();
+        for (master, priority, n) in [(1, true, 4), (2, false, 3)] {
+            for tag in 0..n {
+                let (j, rx) = request(origin(master, priority), 1, &[0x03, tag]);
+                q.push(j, NONE).unwrap();
+                keep.push(rx);
+            }
+        }
+        // Shares of two, then of one: master 2 gives way first though master 1 holds more.
+        let mut refused = Vec::new();
+        for newcomer in [3, 4, 5] {
+            let (j, _r) = job(newcomer, 9);
+            let (_, evicted) = q.push(j, NONE).expect("admitted");
+            refused.push(evicted.expect("one refused").master);
+        }
+        assert_eq!(refused, [2, 2, 1]);
+        assert_eq!(q.len(), 7);
+    }
+
+    #[test]
+    fn under_random_pushes_pops_and_departures_every_request_is_answered_once_to_its_own_master() {
+        const CAPACITY: usize = 8;
+        let mut rng = fastrand::Rng::with_seed(25);
+        let q = FairQueue::new(CAPACITY);
+        // Masters 1-6 connections (1 a priority one), 7-12 ports of two UDP addresses.
+        let origin_of = |master: MasterId| Origin {
+            admission: match master {
+                1..=6 => master,
+                _ => ADDRESS + master % 2,
+            },
+            ..origin(master, master == 1)
+        };
+        let answer = |reply: oneshot::Sender<Outcome>, master: MasterId| {
+            let _ = reply.send(Ok(Answer::Reply(vec![master as u8])));
+        };
+        let settle = |job: Job| {
+            for follower in job.followers {
+                answer(follower.reply, follower.master);
+            }
+            answer(job.reply, job.master);
+        };
+        let mut waiting: Vec<(MasterId, oneshot::Receiver<Outcome>)> = Vec::new();
+        for _ in 0..5000 {
+            // Answers so far: each to its own master; what waits is what the queue holds.
+            waiting.retain_mut(|(master, rx)| match rx.try_recv() {
+                Ok(outcome) => {
+                    assert_eq!(outcome.unwrap(), Answer::Reply(vec![*master as u8]));
+                    false
+                }
+                Err(oneshot::error::TryRecvError::Empty) => true,
+                Err(oneshot::error::TryRecvError::Closed) => panic!("master {master}: lost"),
+            });
+            assert_eq!(q.len(), waiting.len());
+            match rng.u8(0..10) {
+                0..=5 => {
+                    let master = rng.u64(1..=12);
+                    let pdu = [0x03, 0x00, rng.u8(0..3), 0x00, 0x01];
+                    let pdu = if rng.u8(0..8) == 0 { WRITE } else { pdu };
+                    let (j, rx) = request(origin_of(master), rng.u8(1..=2), &pdu);
+                    let key = j.admission;
+                    let mut held: HashMap<MasterId, usize> = HashMap::new();
+                    for (m, _) in &waiting {
+                        *held.entry(origin_of(*m).admission).or_default() += 1;
+                    }
+                    let holding = held.get(&key).copied().unwrap_or(0);
+                    let share = (CAPACITY / (held.len() + usize::from(holding == 0))).max(1);
+                    let room = waiting.len() < CAPACITY
+                        || holding < share && held.values().any(|&h| h > share);
+                    waiting.push((master, rx));
+                    match q.push(j, NONE) {
+                        Ok((_, evicted)) => {
+                            assert!(room, "admitted without room");
+                            if let Some(evicted) = evicted {
+                                assert!(held[&evicted.admission] > share);
+                                assert_ne!(evicted.admission, key);
+                                settle(evicted);
+                            }
+                        }
+                        Err(refused) => {
+                            assert!(!room, "master {master} refused with room");
+                            settle(refused);
+                        }
+                    }
+                    assert!(q.len() <= CAPACITY);
+                }
+                6..=8 => {
+                    if let Some(job) = q.try_pop() {
+                        settle(job);
+                    }
+                }
+                _ => q.forget(rng.u64(1..=12)).into_iter().for_each(settle),
+            }
+        }
+        q.drain().into_iter().for_each(settle);
+        for (master, mut rx) in waiting {
+            assert!(rx.try_recv().is_ok(), "master {master}: unanswered");
+        }
     }
 
     #[test]
@@ -648,14 +1048,14 @@ mod tests {
     fn identical_reads_of_other_masters_join_the_one_waiting_and_leave_with_it() {
         let q = FairQueue::new(16);
         let (leader, _r1) = request(origin(1, false), 5, &READ);
-        assert_eq!(q.push(leader, NONE).ok(), Some(Pushed::Queued));
+        assert_eq!(pushed(q.push(leader, NONE)), Some(Pushed::Queued));
         let (same, _r2) = request(origin(2, false), 5, &READ);
-        assert_eq!(q.push(same, NONE).ok(), Some(Pushed::Joined));
+        assert_eq!(pushed(q.push(same, NONE)), Some(Pushed::Joined));
         // Another slave, another register: a request of its own.
         let (other_slave, _r3) = request(origin(3, false), 6, &READ);
-        assert_eq!(q.push(other_slave, NONE).ok(), Some(Pushed::Queued));
+        assert_eq!(pushed(q.push(other_slave, NONE)), Some(Pushed::Queued));
         let (other_block, _r4) = request(origin(4, false), 5, &[0x03, 0x00, 0x11, 0x00, 0x02]);
-        assert_eq!(q.push(other_block, NONE).ok(), Some(Pushed::Queued));
+        assert_eq!(pushed(q.push(other_block, NONE)), Some(Pushed::Queued));
         assert_eq!(q.len(), 4, "a follower waits too");
         let first = q.try_pop().unwrap();
         assert_eq!(first.master, 1);
@@ -664,7 +1064,7 @@ mod tests {
         assert_eq!(q.len(), 2);
         // Taken: a read arriving now starts a transaction of its own.
         let (late, _r5) = request(origin(5, false), 5, &READ);
-        assert_eq!(q.push(late, NONE).ok(), Some(Pushed::Queued));
+        assert_eq!(pushed(q.push(late, NONE)), Some(Pushed::Queued));
     }
 
     #[test]
@@ -675,19 +1075,19 @@ mod tests {
         let (elsewhere, _r2) = request(origin(2, false), 6, &WRITE);
         q.push(elsewhere, NONE).unwrap();
         let (joins, _r3) = request(origin(3, false), 5, &READ);
-        assert_eq!(q.push(joins, NONE).ok(), Some(Pushed::Joined));
+        assert_eq!(pushed(q.push(joins, NONE)), Some(Pushed::Joined));
         let (write, _r4) = request(origin(4, false), 5, &WRITE);
         q.push(write, NONE).unwrap();
         let (after_write, _r5) = request(origin(5, false), 5, &READ);
         assert_eq!(
-            q.push(after_write, NONE).ok(),
+            pushed(q.push(after_write, NONE)),
             Some(Pushed::Queued),
             "after the write"
         );
         let (broadcast, _r6) = request(origin(6, false), 0, &WRITE);
         q.push(broadcast, NONE).unwrap();
         let (after_broadcast, _r7) = request(origin(7, false), 5, &READ);
-        assert_eq!(q.push(after_broadcast, NONE).ok(), Some(Pushed::Queued));
+        assert_eq!(pushed(q.push(after_broadcast, NONE)), Some(Pushed::Queued));
     }
 
     #[test]
@@ -699,7 +1099,7 @@ mod tests {
         let (write, _r2) = request(origin(2, false), 6, &WRITE);
         q.push(write, NONE).unwrap();
         let (read, _r3) = request(origin(2, false), 5, &READ);
-        assert_eq!(q.push(read, NONE).ok(), Some(Pushed::Queued));
+        assert_eq!(pushed(q.push(read, NONE)), Some(Pushed::Queued));
     }
 
     #[test]
@@ -710,7 +1110,7 @@ mod tests {
         let (leader, _r2) = request(origin(2, false), 5, &READ);
         q.push(leader, NONE).unwrap();
         let (follows, _r3) = request(origin(3, false), 5, &READ);
-        assert_eq!(q.push(follows, NONE).ok(), Some(Pushed::Joined));
+        assert_eq!(pushed(q.push(follows, NONE)), Some(Pushed::Joined));
         let (next, _r4) = request(origin(3, false), 5, &WRITE);
         q.push(next, NONE).unwrap();
         let masters: Vec<(MasterId, usize)> = std::iter::from_fn(|| q.try_pop())
@@ -783,9 +1183,9 @@ mod tests {
         let (normal, _r1) = request(origin(1, false), 5, &READ);
         q.push(normal, NONE).unwrap();
         let (urgent, _r2) = request(origin(2, true), 5, &READ);
-        assert_eq!(q.push(urgent, NONE).ok(), Some(Pushed::Queued));
+        assert_eq!(pushed(q.push(urgent, NONE)), Some(Pushed::Queued));
         let (normal_too, _r3) = request(origin(3, false), 5, &READ);
-        assert_eq!(q.push(normal_too, NONE).ok(), Some(Pushed::Joined));
+        assert_eq!(pushed(q.push(normal_too, NONE)), Some(Pushed::Joined));
         assert_eq!(q.try_pop().unwrap().master, 2, "the priority read first");
         // Master 3's read followed the priority one, the first identical read waiting.
         assert_eq!(q.try_pop().unwrap().followers.len(), 0);
@@ -801,7 +1201,7 @@ mod tests {
         q.remember(&read, &[0x03, 0x04, 0, 1, 0, 2]);
         let (again, mut answer) = request(origin(2, false), 5, &READ);
         assert_eq!(
-            q.push(again, age).ok(),
+            pushed(q.push(again, age)),
             Some(Pushed::Cached(vec![0x03, 0x04, 0, 1, 0, 2]))
         );
         assert_eq!(
@@ -810,14 +1210,14 @@ mod tests {
         );
         tokio::time::advance(age).await;
         let (stale, _r3) = request(origin(3, false), 5, &READ);
-        assert_eq!(q.push(stale, age).ok(), Some(Pushed::Queued), "too old");
+        assert_eq!(pushed(q.push(stale, age)), Some(Pushed::Queued), "too old");
         let stale = q.try_pop().unwrap();
         q.remember(&stale, &[0x03, 0x04, 0, 1, 0, 2]);
         let (write, _r4) = request(origin(4, false), 5, &WRITE);
         q.push(write, age).unwrap();
         let (after, _r5) = request(origin(5, false), 5, &READ);
         assert_eq!(
-            q.push(after, age).ok(),
+            pushed(q.push(after, age)),
             Some(Pushed::Queued),
             "the write dropped it"
         );
@@ -825,7 +1225,7 @@ mod tests {
         q.remember(&stale, &[0x03, 0x04, 9, 9, 9, 9]);
         let (later, _r6) = request(origin(6, false), 5, &READ);
         assert_eq!(
-            q.push(later, age).ok(),
+            pushed(q.push(later, age)),
             Some(Pushed::Joined),
             "it joins the read waiting; the answer from before the write is not there"
         );

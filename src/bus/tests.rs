@@ -28,6 +28,7 @@ fn job(slave: u8, pdu: &[u8]) -> (Job, oneshot::Receiver<Outcome>) {
     let (reply, outcome) = oneshot::channel();
     let origin = super::Origin {
         master: 1,
+        admission: 1,
         protocol: crate::metrics::Protocol::Tcp,
         priority: false,
     };

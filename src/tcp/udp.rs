@@ -1,17 +1,19 @@
 //! Modbus UDP (`server.listen_udp`): one MBAP request per datagram, its reply sent to the
 //! datagram's source and nowhere else. A master is a source address and port; while it has
-//! requests pending it is one master in the buses' fair queues, like a TCP connection. Datagrams
-//! from outside `server.allow`, malformed ones, and those beyond `pipeline_depth` pending for one
-//! source are dropped and counted, never queued without bound.
+//! requests pending it is one master in the buses' fair queues, like a TCP connection, but all
+//! the ports of one address count as one master for admission to a full queue (ports cost a
+//! sender nothing). Datagrams from outside `server.allow`, malformed ones, and those beyond
+//! `pipeline_depth` pending for one source are dropped and counted, never queued without bound.
 
 use super::mbap;
 use super::server::Shared;
+use crate::bus::MasterId;
 use crate::dispatch::Client;
 use crate::metrics::{Protocol, UdpDrop};
 use bytes::BytesMut;
-use std::collections::HashMap;
+use std::collections::{hash_map, HashMap};
 use std::io;
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 use tokio::net::UdpSocket;
@@ -43,8 +45,68 @@ pub(crate) async fn bind(
     Ok(listeners)
 }
 
-/// The sources with requests pending: their master id, client state and how many are pending.
-type Pending = Mutex<HashMap<SocketAddr, (Client, usize)>>;
+/// The sources with requests pending, and their addresses.
+#[derive(Default)]
+struct Sources {
+    /// By source: its client state (a master id of its own) and how many of its requests are
+    /// pending.
+    ports: HashMap<SocketAddr, (Client, usize)>,
+    /// By address: the id all its sources' requests count against in a full bus queue, and how
+    /// many of its sources are in `ports`.
+    addresses: HashMap<IpAddr, (MasterId, usize)>,
+}
+
+type Pending = Mutex<Sources>;
+
+impl Sources {
+    /// The client of `peer`; if it has nothing pending, a new one made by `make` from a new
+    /// master id, counted against its address's admission id (new too, if no other source of
+    /// the address has anything pending).
+    fn client(
+        &mut self,
+        peer: SocketAddr,
+        mut new_id: impl FnMut() -> MasterId,
+        make: impl FnOnce(MasterId) -> Client,
+    ) -> &mut (Client, usize) {
+        match self.ports.entry(peer) {
+            hash_map::Entry::Occupied(entry) => entry.into_mut(),
+            hash_map::Entry::Vacant(entry) => {
+                let (admission, ports) = self
+                    .addresses
+                    .entry(address_of(peer))
+                    .or_insert_with(|| (new_id(), 0));
+                *ports += 1;
+                let mut client = make(new_id());
+                client.admission = *admission;
+                entry.insert((client, 0))
+            }
+        }
+    }
+
+    /// One of `peer`'s requests is answered; a source with none pending is forgotten, and an
+    /// address with no source left, so the table holds only sources the buses are serving.
+    fn done(&mut self, peer: SocketAddr) {
+        let Some((_, count)) = self.ports.get_mut(&peer) else {
+            return;
+        };
+        *count -= 1;
+        if *count > 0 {
+            return;
+        }
+        self.ports.remove(&peer);
+        if let hash_map::Entry::Occupied(mut entry) = self.addresses.entry(address_of(peer)) {
+            entry.get_mut().1 -= 1;
+            if entry.get().1 == 0 {
+                entry.remove();
+            }
+        }
+    }
+}
+
+/// The address `peer` sends from, an IPv4 one however the socket reports it.
+fn address_of(peer: SocketAddr) -> IpAddr {
+    peer.ip().to_canonical()
+}
 
 /// Serve datagrams on `listener` forever.
 pub(crate) async fn serve(listener: UdpListener, shared: Arc<Shared>) {
@@ -74,9 +136,11 @@ pub(crate) async fn serve(listener: UdpListener, shared: Arc<Shared>) {
         let (header, function) = (request.header, request.pdu[0]);
         let outcome = {
             let mut sources = pending.lock().unwrap_or_else(PoisonError::into_inner);
-            let (client, count) = sources.entry(peer).or_insert_with(|| {
-                let client = Client::new(shared.new_master(), peer, rights);
-                (client.speaking(Protocol::Udp).prioritised(priority), 0)
+            let new_id = || shared.new_master();
+            let (client, count) = sources.client(peer, new_id, |master| {
+                Client::new(master, peer, rights)
+                    .speaking(Protocol::Udp)
+                    .prioritised(priority)
             });
             if *count >= depth {
                 None
@@ -112,26 +176,24 @@ fn request_of(datagram: &[u8]) -> Option<mbap::Request> {
     buf.is_empty().then_some(request)
 }
 
-/// One of `peer`'s requests is answered; a source with none pending is forgotten, so the table
-/// holds only sources the buses are serving.
+/// One of `peer`'s requests is answered (see [`Sources::done`]).
 fn done(pending: &Pending, peer: SocketAddr) {
-    let mut sources = pending.lock().unwrap_or_else(PoisonError::into_inner);
-    if let Some((_, count)) = sources.get_mut(&peer) {
-        *count -= 1;
-        if *count == 0 {
-            sources.remove(&peer);
-        }
-    }
-}
-
-/// The master id a source has while it has requests pending (for tests of fairness).
-#[cfg(test)]
-pub(crate) fn master_of(pending: &Pending, peer: SocketAddr) -> Option<crate::bus::MasterId> {
     pending
         .lock()
         .unwrap_or_else(PoisonError::into_inner)
+        .done(peer);
+}
+
+/// The master id a source has while it has requests pending, and the id its requests count
+/// against in a full bus queue (for tests of fairness).
+#[cfg(test)]
+fn ids_of(pending: &Pending, peer: SocketAddr) -> Option<(MasterId, MasterId)> {
+    pending
+        .lock()
+        .unwrap_or_else(PoisonError::into_inner)
+        .ports
         .get(&peer)
-        .map(|(client, _)| client.master)
+        .map(|(client, _)| (client.master, client.admission))
 }
 
 #[cfg(test)]
@@ -156,15 +218,68 @@ mod tests {
         assert!(request_of(&[]).is_none());
     }
 
+    /// `peer` sends a request, its client made with ids counting from `next`.
+    fn send(pending: &Pending, peer: SocketAddr, next: &mut MasterId) {
+        let mut sources = pending.lock().unwrap();
+        let new_id = || {
+            *next += 1;
+            *next
+        };
+        let (_, count) = sources.client(peer, new_id, |master| {
+            Client::new(master, peer, crate::dispatch::Rights::ReadWrite)
+        });
+        *count += 1;
+    }
+
     #[test]
     fn a_source_is_forgotten_once_nothing_of_it_is_pending() {
         let pending = Pending::default();
+        let mut next = 0;
         let peer: SocketAddr = ([127, 0, 0, 1], 5000).into();
-        let client = Client::new(7, peer, crate::dispatch::Rights::ReadWrite);
-        pending.lock().unwrap().insert(peer, (client, 2));
+        send(&pending, peer, &mut next);
+        send(&pending, peer, &mut next);
+        let ids = ids_of(&pending, peer).expect("pending");
         done(&pending, peer);
-        assert_eq!(master_of(&pending, peer), Some(7));
+        assert_eq!(ids_of(&pending, peer), Some(ids));
         done(&pending, peer);
-        assert_eq!(master_of(&pending, peer), None);
+        assert_eq!(ids_of(&pending, peer), None);
+        assert!(pending.lock().unwrap().addresses.is_empty());
+    }
+
+    #[test]
+    fn the_ports_of_one_address_share_one_admission_id_while_any_of_them_has_requests_pending() {
+        let pending = Pending::default();
+        let mut next = 0;
+        let port = |ip: &str, port: u16| SocketAddr::new(ip.parse().unwrap(), port);
+        let (a, b) = (port("127.0.0.1", 5000), port("127.0.0.1", 5001));
+        // The same address as a dual-stack socket reports it.
+        let mapped = port("::ffff:127.0.0.1", 5002);
+        let other = port("127.0.0.2", 5000);
+        for peer in [a, b, mapped, other] {
+            send(&pending, peer, &mut next);
+        }
+        let ids: Vec<(MasterId, MasterId)> = [a, b, mapped, other]
+            .iter()
+            .map(|&peer| ids_of(&pending, peer).expect("pending"))
+            .collect();
+        let masters: std::collections::HashSet<MasterId> = ids.iter().map(|&(m, _)| m).collect();
+        assert_eq!(masters.len(), 4, "a master of its own each: {ids:?}");
+        assert_eq!(ids[0].1, ids[1].1, "{ids:?}");
+        assert_eq!(ids[0].1, ids[2].1, "{ids:?}");
+        assert_ne!(ids[0].1, ids[3].1, "{ids:?}");
+        assert!(!masters.contains(&ids[0].1) && !masters.contains(&ids[3].1));
+        // The address keeps its id while one of its ports has a request pending.
+        done(&pending, a);
+        done(&pending, b);
+        send(&pending, a, &mut next);
+        assert_eq!(ids_of(&pending, a).expect("pending").1, ids[0].1);
+        done(&pending, a);
+        done(&pending, mapped);
+        send(&pending, b, &mut next);
+        assert_ne!(
+            ids_of(&pending, b).expect("pending").1,
+            ids[0].1,
+            "a new one"
+        );
     }
 }

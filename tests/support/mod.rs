@@ -680,3 +680,60 @@ pub fn silent_socket(addr: SocketAddr, pause: Duration) -> JoinHandle<()> {
         }
     })
 }
+
+/// Masters flooding a gateway (an attack): when to stop, and how many of their requests it
+/// refused with 0x06.
+#[derive(Default)]
+pub struct Flood {
+    stopped: std::sync::atomic::AtomicBool,
+    refused: std::sync::atomic::AtomicUsize,
+}
+
+impl Flood {
+    pub fn new() -> Arc<Flood> {
+        Arc::default()
+    }
+
+    pub fn stop(&self) {
+        self.stopped
+            .store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    pub fn is_stopped(&self) -> bool {
+        self.stopped.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// One of the flood's requests got 0x06.
+    pub fn refused(&self) {
+        self.refused
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    /// Wait (bounded) until `n` of the flood's requests were refused: the queue is full.
+    pub async fn until_refused(&self, n: usize) {
+        within("the flood fills the queue", async {
+            while self.refused.load(std::sync::atomic::Ordering::Relaxed) < n {
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
+        })
+        .await;
+    }
+}
+
+/// A polite master: `reads` reads of input register 1000 of `unit` (a register-bank slave), one
+/// at a time. How many were answered; the others must have got 0x06.
+pub async fn polite_reads(at: SocketAddr, unit: u8, reads: u16) -> u16 {
+    let mut master = RawMaster::connect(at).await;
+    let mut answered = 0;
+    for transaction in 0..reads {
+        // Input register N reads N.
+        match &master
+            .call(transaction, unit, &[0x04, 0x03, 0xE8, 0x00, 0x01])
+            .await[..]
+        {
+            [0x04, 0x02, 0x03, 0xE8] => answered += 1,
+            refused => assert_eq!(refused, [0x84, 0x06], "read {transaction}"),
+        }
+    }
+    answered
+}
