@@ -14,7 +14,7 @@
 //!   fault knobs in ASCII, metrics, reload.
 //! - `transparency`: function codes and exceptions byte for byte, on the sim line and a pty.
 //! - `line`: the serial line discipline on the paused clock: timeouts, t3.5, retries, efficiency.
-//! - `fairness`: hundreds of masters at once.
+//! - `fairness`: hundreds of masters at once, and floods of the bus queue.
 //! - `drives`: the simulated drives of config/demo.toml: registers, exceptions, ramps, timing.
 //! - `faults`: each fault knob of a simulated slave and what the gateway makes of it.
 //! - `serial`: the real serial path on pty pairs, with a third-party client.
