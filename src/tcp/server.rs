@@ -40,6 +40,14 @@ const KEEPALIVE_PROBES: u32 = 3;
 /// TLS handshakes worked on at once; more wait their turn (within the handshake timeout), so a
 /// crowd of masters reconnecting together cannot take every core.
 const HANDSHAKES_AT_ONCE: usize = 32;
+/// Of those, the most one source address may have at once; its others wait their turn, so a
+/// host whose peers stall mid-handshake keeps three quarters of the turns for the others.
+const HANDSHAKES_PER_ADDRESS: usize = HANDSHAKES_AT_ONCE / 4;
+/// How long a TLS peer may stay silent after its accept; it takes a handshake turn only once
+/// its first bytes (its ClientHello) arrive, so silent connections never keep a master's
+/// handshake waiting. A TLS master sends at once; this leaves room for a lost segment's
+/// retransmission and a slow client's key generation. Within the handshake timeout.
+const FIRST_BYTES_WAIT: Duration = Duration::from_secs(3);
 /// A master that completed a request this recently is working: it is never closed to make room
 /// for a new master (the newcomer is refused instead). Longer than any poll cycle a PLC, HMI or
 /// SCADA uses; a master quiet this long may be closed for a newcomer.
@@ -285,13 +293,15 @@ fn room_order(seen: &Seen, now: Instant) -> Option<(NotWorking, Instant)> {
 }
 
 /// What the connections of one source address hold now.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 struct Held {
     connections: usize,
+    /// Its share of the TLS handshake turns.
+    turns: Arc<Semaphore>,
 }
 
-/// The connections by source address, for `max_connections_per_address`. An address is in the
-/// map while it has a connection open.
+/// The connections by source address, for `max_connections_per_address` and
+/// [`HANDSHAKES_PER_ADDRESS`]. An address is in the map while it has a connection open.
 #[derive(Clone, Debug, Default)]
 struct Addresses(Arc<Mutex<HashMap<IpAddr, Held>>>);
 
@@ -304,13 +314,17 @@ impl Addresses {
     fn claim(&self, ip: IpAddr, limit: Option<usize>) -> Option<Ticket> {
         let ip = ip.to_canonical();
         let mut held = self.held();
-        let here = held.entry(ip).or_default();
+        let here = held.entry(ip).or_insert_with(|| Held {
+            connections: 0,
+            turns: Arc::new(Semaphore::new(HANDSHAKES_PER_ADDRESS)),
+        });
         if limit.is_some_and(|limit| here.connections >= limit) {
             return None;
         }
         here.connections += 1;
         Some(Ticket {
             addresses: self.clone(),
+            turns: here.turns.clone(),
             ip,
         })
     }
@@ -321,6 +335,8 @@ impl Addresses {
 struct Ticket {
     addresses: Addresses,
     ip: IpAddr,
+    /// Its address's handshake turns.
+    turns: Arc<Semaphore>,
 }
 
 impl Drop for Ticket {
@@ -416,13 +432,18 @@ fn prepare(stream: &TcpStream, policy: &Policy, peer: SocketAddr) {
 }
 
 /// The TLS handshake, within the handshake timeout; then the master is admitted with the rights
-/// both its address and its certificate's role allow.
+/// both its address and its certificate's role allow. A handshake turn (one of its address's
+/// share, then one of all) is taken once the peer has sent something, within
+/// [`FIRST_BYTES_WAIT`].
 async fn accept_tls(stream: TcpStream, mut master: Master, policy: &Policy, shared: &Shared) {
     let Some(tls) = policy.tls.clone() else {
         error!(listen = %master.listen, "a TLS listener without [server.tls]; connection closed");
         return;
     };
+    let turns = master.ticket.turns.clone();
     let handshake = async {
+        first_bytes(&stream).await?;
+        let _address_turn = turns.acquire().await;
         let _turn = shared.handshakes.acquire().await;
         tls.acceptor.accept(stream).await
     };
@@ -443,6 +464,26 @@ async fn accept_tls(stream: TcpStream, mut master: Master, policy: &Policy, shar
     let identity = tls.identify(stream.get_ref().1.peer_certificates());
     master.rights = master.rights.min(identity.rights);
     admit(stream, master, Some(identity), policy, shared).await;
+}
+
+/// Wait for a new connection's first bytes, for at most [`FIRST_BYTES_WAIT`]; an error if none
+/// come.
+async fn first_bytes(stream: &TcpStream) -> io::Result<()> {
+    match tokio::time::timeout(FIRST_BYTES_WAIT, stream.peek(&mut [0u8; 1])).await {
+        Ok(Ok(0)) => Err(io::Error::new(
+            io::ErrorKind::UnexpectedEof,
+            "closed before sending anything",
+        )),
+        Ok(Ok(_)) => Ok(()),
+        Ok(Err(error)) => Err(error),
+        Err(_) => {
+            let wait = humantime::format_duration(FIRST_BYTES_WAIT);
+            Err(io::Error::new(
+                io::ErrorKind::TimedOut,
+                format!("sent nothing within {wait}"),
+            ))
+        }
+    }
 }
 
 /// Serve `master` once it has a connection slot; refused if none comes.
@@ -592,6 +633,10 @@ mod tests {
         let mapped: IpAddr = "::ffff:127.0.0.9".parse().unwrap();
         let second = addresses.claim(mapped, Some(2)).unwrap();
         assert!(addresses.claim(ip, Some(2)).is_none());
+        assert!(
+            Arc::ptr_eq(&first.turns, &second.turns),
+            "one share of turns"
+        );
         let other: IpAddr = "127.0.0.10".parse().unwrap();
         assert!(addresses.claim(other, Some(2)).is_some());
         drop(first);
