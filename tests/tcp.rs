@@ -1,6 +1,7 @@
 //! The Modbus TCP side, and masters that abuse it: pipelining and pipelined floods, malformed
-//! and lying MBAP headers, garbage, half-sent requests, the connection limit and its policies,
-//! the idle timeout, keepalive.
+//! and lying MBAP headers, garbage, half-sent requests, the connection limit and its policies
+//! (which connections make room, the limit per address), masters that never read their
+//! replies, the idle timeout, keepalive.
 
 use crate::support::{
     addr, panics_on_this_thread, sim_config_with_server, start, start_sim, tool, within, RawMaster,

@@ -1,5 +1,6 @@
 //! Modbus/TCP Security: masters on TLS with certificates made at test time; what each role may
-//! do, who is refused at the handshake, and that a refusal disturbs nobody else.
+//! do, who is refused at the handshake, and that a refusal disturbs nobody else, nor do peers
+//! that stay silent or stall mid-handshake.
 
 use crate::support::tls::{
     connector_with, days_from_now, tls_connect, tls_connect_from, tls_master, Issued, Pki, Role,
