@@ -60,7 +60,7 @@ pub use gateway::Gateway;
 pub mod testing {
     pub use crate::dispatch::{Client, Dispatcher, Rights};
     pub use crate::routing::Router;
-    pub use crate::tcp::server::set_keepalive;
+    pub use crate::tcp::server::{set_keepalive, RECENTLY_ANSWERED};
     pub use crate::tcp::session::{self, Activity, SessionError};
     pub use crate::tcp::upstream::Upstream;
     pub use crate::tcp::SessionLimits;

@@ -1,6 +1,7 @@
 //! The Modbus TCP side, and masters that abuse it: pipelining and pipelined floods, malformed
-//! and lying MBAP headers, garbage, half-sent requests, the connection limit and its policies,
-//! the idle timeout, keepalive.
+//! and lying MBAP headers, garbage, half-sent requests, the connection limit and its policies
+//! (which connections make room, the limit per address), masters that never read their
+//! replies, the idle timeout, keepalive.
 
 use crate::support::{
     addr, panics_on_this_thread, sim_config_with_server, start, start_sim, tool, within, RawMaster,
@@ -12,9 +13,11 @@ use modbus_gateway::metrics::Metrics;
 use modbus_gateway::shutdown::Stopping;
 use modbus_gateway::sim::{RegisterBank, SimLine};
 use modbus_gateway::testing::session::{self, Activity, SessionError};
-use modbus_gateway::testing::Router;
 use modbus_gateway::testing::{Client, Dispatcher, Rights};
+use modbus_gateway::testing::{Router, RECENTLY_ANSWERED};
 use modbus_gateway::testing::{SessionLimits, Upstream};
+use modbus_gateway::Gateway;
+use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -127,7 +130,7 @@ async fn random_bytes_never_take_the_gateway_down() {
 #[tokio::test]
 async fn with_when_full_refuse_connections_beyond_max_connections_are_refused_and_a_freed_slot_is_reused(
 ) {
-    let keys = "max_connections = 3\nwhen_full = \"refuse\"";
+    let keys = "max_connections = 3\nmax_connections_per_address = 0\nwhen_full = \"refuse\"";
     let gateway = start(&sim_config_with_server(keys, "")).await;
     let mut open = Vec::new();
     for tid in 0..3 {
@@ -229,17 +232,27 @@ async fn a_connection_waiting_for_a_slow_reply_is_not_idle() {
 }
 
 const READ_1: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x01];
+/// The gateway's own answer to a unit no route serves (0x0A): no line time, as cheap as a
+/// request gets.
+const NO_ROUTE_UNIT: u8 = 250;
+const REFUSED_FULL: &str =
+    "modbus_gateway_tcp_connections_rejected_total{protocol=\"tcp\",reason=\"max_connections\"}";
+const EVICTED: &str =
+    "modbus_gateway_tcp_connections_closed_total{protocol=\"tcp\",reason=\"evicted\"}";
 
-#[tokio::test]
+#[tokio::test(start_paused = true)]
 async fn at_max_connections_a_new_master_closes_the_connection_idle_longest() {
-    let gateway = start(&sim_config_with_server("max_connections = 3", "")).await;
+    let keys = "max_connections = 3\nmax_connections_per_address = 0";
+    let gateway = start(&sim_config_with_server(keys, "")).await;
     let mut masters = Vec::new();
     for tid in 0..3 {
         let mut master = RawMaster::connect(addr(&gateway)).await;
         assert_eq!(master.call(tid, 1, &READ_1).await, [0x03, 0x02, 0, 0]);
         masters.push(master);
     }
-    // The first master polls again: the second is now the one idle longest.
+    // A minute of quiet: none of them is working any more...
+    tokio::time::sleep(RECENTLY_ANSWERED).await;
+    // ...until the first polls again: the second is now the one idle longest.
     assert_eq!(masters[0].call(9, 1, &READ_1).await, [0x03, 0x02, 0, 0]);
     let mut newcomer = RawMaster::connect(addr(&gateway)).await;
     assert_eq!(newcomer.call(1, 1, &READ_1).await, [0x03, 0x02, 0, 0]);
@@ -253,14 +266,13 @@ async fn at_max_connections_a_new_master_closes_the_connection_idle_longest() {
     let scrape = Scrape::of(&gateway).await;
     let closed = "modbus_gateway_tcp_connections_closed_total{protocol=\"tcp\",reason=\"evicted\"}";
     assert_eq!(scrape.value(closed), 1.0);
-    let refused = "modbus_gateway_tcp_connections_rejected_total{protocol=\"tcp\",reason=\"max_connections\"}";
-    assert_eq!(scrape.value(refused), 0.0);
+    assert_eq!(scrape.value(REFUSED_FULL), 0.0);
 }
 
 #[tokio::test]
 async fn at_max_connections_with_every_master_waiting_for_a_reply_a_new_one_is_refused() {
     let slow = "[[bus.sim_slave]]\naddress = 9\nprocessing_delay = \"400ms\"";
-    let keys = "max_connections = 2";
+    let keys = "max_connections = 2\nmax_connections_per_address = 0";
     let gateway = start(&sim_config_with_server(
         keys,
         &format!("response_timeout = \"2s\"\n{slow}"),
@@ -482,4 +494,202 @@ async fn accepted_connections_get_keepalive_probes_unless_it_is_off() {
             "keepalive = {keepalive}: {sockets}"
         );
     }
+}
+
+/// A PLC on its own host polling every second for `polls` seconds; each poll must be answered on
+/// the same connection, which must never be closed.
+async fn plc_polling_every_second(gateway: &Gateway, polls: u16) -> tokio::task::JoinHandle<()> {
+    let mut plc = RawMaster::connect_from([127, 0, 0, 2], addr(gateway)).await;
+    tokio::spawn(async move {
+        for tid in 0..polls {
+            let reply = plc.try_call(tid, 1, &READ_1).await;
+            assert_eq!(
+                reply.as_deref(),
+                Some(&[0x03, 0x02, 0, 0][..]),
+                "poll {tid}: the PLC was closed"
+            );
+            tokio::time::sleep(Duration::from_secs(1)).await;
+        }
+    })
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_plc_polling_every_second_is_never_evicted_by_a_burst_of_newcomers() {
+    let keys = "max_connections = 4\nmax_connections_per_address = 0";
+    let gateway = start(&sim_config_with_server(keys, "")).await;
+    let plc = plc_polling_every_second(&gateway, 20).await;
+    // Between two polls, each second, a burst of newcomers, more than there are slots; some
+    // send a request, some nothing.
+    let mut newcomers = Vec::new();
+    for second in 0..20u16 {
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        for i in 0..6u16 {
+            let mut newcomer = RawMaster::connect(addr(&gateway)).await;
+            if i % 2 == 0 {
+                newcomer.send(second * 10 + i, NO_ROUTE_UNIT, &READ_1).await;
+            }
+            newcomers.push(newcomer);
+        }
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+    within("the PLC polls twenty times", plc)
+        .await
+        .expect("the PLC was never closed");
+    let scrape = Scrape::of(&gateway).await;
+    assert!(
+        scrape.value(EVICTED) > 0.0,
+        "newcomers made room for each other"
+    );
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_plc_polling_every_second_is_never_evicted_by_an_attacker_keeping_connections_fresh() {
+    let keys = "max_connections = 20\nmax_connections_per_address = 0";
+    let gateway = start(&sim_config_with_server(keys, "")).await;
+    let plc = plc_polling_every_second(&gateway, 15).await;
+    // 19 connections, each answered every 300 ms, cheaply: every slot is taken.
+    let mut attackers = Vec::new();
+    for _ in 0..19 {
+        attackers.push(RawMaster::connect(addr(&gateway)).await);
+    }
+    let gateway_addr = addr(&gateway);
+    let attack = tokio::spawn(async move {
+        for round in 0..60u16 {
+            let mut fresh = Vec::new();
+            for mut attacker in attackers.drain(..) {
+                if attacker
+                    .try_call(round, NO_ROUTE_UNIT, &READ_1)
+                    .await
+                    .is_some()
+                {
+                    fresh.push(attacker);
+                }
+            }
+            attackers = fresh;
+            // And a newcomer each round, which would close the connection idle longest; kept
+            // fresh too if it gets in.
+            let mut newcomer = RawMaster::connect(gateway_addr).await;
+            if newcomer
+                .try_call(round, NO_ROUTE_UNIT, &READ_1)
+                .await
+                .is_some()
+            {
+                attackers.push(newcomer);
+            }
+            tokio::time::sleep(Duration::from_millis(300)).await;
+        }
+    });
+    within("the PLC polls fifteen times", plc)
+        .await
+        .expect("the PLC was never closed");
+    attack.abort();
+    let scrape = Scrape::of(&gateway).await;
+    assert!(
+        scrape.value(REFUSED_FULL) > 0.0,
+        "the newcomers were refused instead"
+    );
+}
+
+#[tokio::test]
+async fn connections_beyond_max_connections_per_address_are_refused_at_accept_and_counted() {
+    let keys = "max_connections_per_address = 2";
+    let gateway = start(&sim_config_with_server(keys, "")).await;
+    let per_address = "modbus_gateway_tcp_connections_rejected_total{protocol=\"tcp\",\
+                       reason=\"max_connections_per_address\"}";
+    assert_eq!(Scrape::of(&gateway).await.value(per_address), 0.0);
+    let mut one = RawMaster::connect_from([127, 0, 0, 3], addr(&gateway)).await;
+    let mut two = RawMaster::connect_from([127, 0, 0, 3], addr(&gateway)).await;
+    let mut three = RawMaster::connect_from([127, 0, 0, 3], addr(&gateway)).await;
+    assert!(three.is_closed().await, "a third from one address");
+    let mut other = RawMaster::connect_from([127, 0, 0, 4], addr(&gateway)).await;
+    for (tid, master) in [&mut one, &mut two, &mut other].into_iter().enumerate() {
+        assert_eq!(
+            master.call(tid as u16, 1, &READ_1).await,
+            [0x03, 0x02, 0, 0]
+        );
+    }
+    // One closes: the address has room again.
+    drop(one);
+    let reply = within("a freed place is reused", async {
+        loop {
+            let mut again = RawMaster::connect_from([127, 0, 0, 3], addr(&gateway)).await;
+            if let Some(reply) = again.try_call(9, 1, &READ_1).await {
+                return reply;
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    })
+    .await;
+    assert_eq!(reply, [0x03, 0x02, 0, 0]);
+    let scrape = Scrape::of(&gateway).await;
+    assert!(scrape.value(per_address) >= 1.0);
+    assert_eq!(scrape.value(REFUSED_FULL), 0.0);
+}
+
+/// Read 125 holding registers of unit 1: a 259-byte reply, from the cache after the first.
+const READ_125: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x7D];
+
+/// A master on its own host that sends reads as fast as the gateway takes them and never reads
+/// a reply; the task ends, with the time, once its connection has been closed under it.
+async fn never_reading(source: [u8; 4], gateway: &Gateway) -> tokio::task::JoinHandle<Duration> {
+    let socket = tokio::net::TcpSocket::new_v4().expect("a socket");
+    socket.bind(SocketAddr::from((source, 0))).expect("bind");
+    // A small window, so that a few replies fill it.
+    socket.set_recv_buffer_size(4096).expect("SO_RCVBUF");
+    let mut stream = within("connect", socket.connect(addr(gateway)))
+        .await
+        .expect("accepted");
+    let started = tokio::time::Instant::now();
+    tokio::spawn(async move {
+        let requests: Vec<u8> = (0..64u16)
+            .flat_map(|tid| RawMaster::adu(tid, 1, &READ_125))
+            .collect();
+        while stream.write_all(&requests).await.is_ok() {}
+        started.elapsed()
+    })
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_master_that_never_reads_its_replies_is_closed_after_frame_timeout_and_newcomers_are_admitted(
+) {
+    let frame_timeout = Duration::from_secs(10);
+    let keys = "max_connections = 4\nmax_connections_per_address = 0\nframe_timeout = \"10s\"";
+    let cached = "[[bus.slave]]\naddress = 1\ncache = \"1h\"";
+    let gateway = start(&sim_config_with_server(keys, cached)).await;
+    let mut stalled = Vec::new();
+    for host in 10..14 {
+        stalled.push(never_reading([127, 0, 0, host], &gateway).await);
+    }
+    // Every slot is taken, and every session waits for its master to read.
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let mut newcomer = RawMaster::connect(addr(&gateway)).await;
+    assert_eq!(
+        newcomer.try_call(1, 1, &READ_1).await.as_deref(),
+        Some(&[0x03, 0x02, 0, 0][..]),
+        "a newcomer is served: a session blocked in a write made room"
+    );
+    let mut closed_after = Vec::new();
+    for master in stalled {
+        closed_after.push(within("closed", master).await.expect("writer task"));
+    }
+    closed_after.sort();
+    // One made room; the others were closed a frame timeout after their writes blocked
+    // (within the first two seconds).
+    assert!(closed_after[0] < Duration::from_secs(3), "{closed_after:?}");
+    for after in &closed_after[1..] {
+        assert!(
+            (frame_timeout..frame_timeout + Duration::from_secs(2)).contains(after),
+            "{closed_after:?}"
+        );
+    }
+    let scrape = Scrape::of(&gateway).await;
+    let write_timeout =
+        "modbus_gateway_tcp_connections_closed_total{protocol=\"tcp\",reason=\"write_timeout\"}";
+    assert_eq!(scrape.value(write_timeout), 3.0);
+    assert_eq!(scrape.value(EVICTED), 1.0);
+    assert_eq!(
+        newcomer.call(2, 1, &READ_1).await,
+        [0x03, 0x02, 0, 0],
+        "the newcomer is still served"
+    );
 }

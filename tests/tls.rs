@@ -1,17 +1,19 @@
 //! Modbus/TCP Security: masters on TLS with certificates made at test time; what each role may
-//! do, who is refused at the handshake, and that a refusal disturbs nobody else.
+//! do, who is refused at the handshake, and that a refusal disturbs nobody else, nor do peers
+//! that stay silent or stall mid-handshake.
 
 use crate::support::tls::{
-    connector_with, days_from_now, tls_connect, tls_master, Issued, Pki, Role,
+    connector_with, days_from_now, tls_connect, tls_connect_from, tls_master, Issued, Pki, Role,
 };
 use crate::support::{
-    assert_fair, exit_status, free_addr, panics_on_this_thread, signal, sim_config_with_server,
-    start, until_logged, within, RawMaster, Rotation, Scrape,
+    assert_fair, connect_from, exit_status, free_addr, panics_on_this_thread, signal,
+    sim_config_with_server, start, until_logged, within, RawMaster, Rotation, Scrape,
 };
 use modbus_gateway::Gateway;
 use std::net::SocketAddr;
 use std::process::{Command, Stdio};
 use std::sync::Arc;
+use std::time::{Duration, Instant};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::Barrier;
 
@@ -562,4 +564,89 @@ async fn an_idle_tls_session_ends_with_close_notify_not_a_cut() {
     // rustls reads a close without close_notify as an UnexpectedEof error.
     let end = within("idle close", session.read(&mut [0u8; 1])).await;
     assert!(matches!(end, Ok(0)), "a clean TLS close: {end:?}");
+}
+
+#[tokio::test]
+async fn a_tls_master_completes_its_handshake_within_a_second_under_a_trickle_of_silent_connections(
+) {
+    let (pki, _server, gateway) = tls_gateway_with("", ROLES).await;
+    let operator = pki.master("operator", Role::Named("operator"));
+    let connector = pki.connector(Some(&operator));
+    // 40 connections that never send a byte, one every 25 ms from eight hosts (five each): more
+    // than the 32 handshakes worked on at once, all within the 10 s handshake timeout.
+    let mut silent = Vec::new();
+    for i in 0..40u8 {
+        silent.push(connect_from([127, 0, 0, 10 + i % 8], tls_addr(&gateway)).await);
+        tokio::time::sleep(Duration::from_millis(25)).await;
+    }
+    // A handshake on loopback takes milliseconds; the second is the bound, loose enough
+    // for a loaded two-core machine. Waiting for a turn a silent connection holds would take
+    // until its handshake timeout, nine seconds on.
+    let started = Instant::now();
+    let session = tokio::time::timeout(
+        Duration::from_secs(5),
+        tls_connect_from([127, 0, 0, 1], tls_addr(&gateway), &connector),
+    )
+    .await;
+    let took = started.elapsed();
+    let session = session
+        .unwrap_or_else(|_| panic!("no handshake within 5 s"))
+        .expect("handshake");
+    assert!(took < Duration::from_secs(1), "the handshake took {took:?}");
+    let mut master = RawMaster::over(session);
+    assert_eq!(master.call(1, 1, &READ).await, READ_ANSWER);
+    drop(silent);
+}
+
+#[tokio::test(start_paused = true)]
+async fn peers_of_one_address_stalling_mid_handshake_hold_at_most_eight_turns_and_others_are_served_at_once(
+) {
+    let (pki, _server, gateway) = tls_gateway_with("", ROLES).await;
+    let operator = pki.master("operator", Role::Named("operator"));
+    // 40 peers of one host send the first byte of a ClientHello (a handshake record) and stall:
+    // more than the 32 handshakes worked on at once.
+    let mut stalled = Vec::new();
+    for _ in 0..40 {
+        let mut peer = connect_from([127, 0, 0, 20], tls_addr(&gateway)).await;
+        peer.write_all(&[0x16]).await.expect("send");
+        stalled.push(peer);
+    }
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let started = tokio::time::Instant::now();
+    let mut master = tls_master_from([127, 0, 0, 21], &gateway, &pki, &operator).await;
+    // At once on the paused clock: not once a stalled peer's 10 s handshake timeout frees a turn.
+    assert!(
+        started.elapsed() < Duration::from_secs(1),
+        "the handshake waited {:?}",
+        started.elapsed()
+    );
+    assert_eq!(master.call(1, 1, &READ).await, READ_ANSWER);
+    drop(stalled);
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_connection_that_sends_nothing_is_closed_after_three_seconds() {
+    let (_pki, _server, gateway) = tls_gateway_with("", ROLES).await;
+    let mut silent = connect_from([127, 0, 0, 22], tls_addr(&gateway)).await;
+    let started = tokio::time::Instant::now();
+    let read = within("the gateway closes", silent.read(&mut [0u8; 1])).await;
+    assert!(matches!(read, Ok(0) | Err(_)), "closed: {read:?}");
+    let waited = started.elapsed();
+    assert!(
+        (Duration::from_secs(3)..Duration::from_secs(4)).contains(&waited),
+        "closed after {waited:?}, not at the 10 s handshake timeout"
+    );
+    assert_eq!(Scrape::of(&gateway).await.value(HANDSHAKE_FAILED), 1.0);
+}
+
+async fn tls_master_from(
+    source: [u8; 4],
+    gateway: &Gateway,
+    pki: &Pki,
+    master: &Issued,
+) -> RawMaster {
+    let session = tls_connect_from(source, tls_addr(gateway), &pki.connector(Some(master)))
+        .await
+        .expect("handshake");
+    RawMaster::over(session)
 }

@@ -478,6 +478,11 @@ mod tests {
                 "longer than 0",
             ),
             ("keepalive = \"500ms\"", "server.keepalive", "at least 1s"),
+            (
+                "max_connections_per_address = -1",
+                "server.max_connections_per_address",
+                "-1",
+            ),
         ] {
             let e = errors(&format!("[server]\n{keys}\n{MINIMAL}"));
             assert_eq!(e.len(), 1, "{e:?}");

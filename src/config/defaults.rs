@@ -9,6 +9,14 @@ pub fn listen() -> Vec<SocketAddr> {
     vec![SocketAddr::from(([0, 0, 0, 0], 502))]
 }
 pub const MAX_CONNECTIONS: usize = 1024;
+/// Slots one address leaves to the others by default (half of them, with fewer than twice as
+/// many in all).
+pub const SLOTS_FOR_OTHER_ADDRESSES: usize = 8;
+/// All but [`SLOTS_FOR_OTHER_ADDRESSES`]: one host never takes every slot, the PLCs, HMIs and
+/// SCADA on other hosts always find room, and a host with many masters still gets nearly all.
+pub fn max_connections_per_address(max_connections: usize) -> usize {
+    max_connections - SLOTS_FOR_OTHER_ADDRESSES.min(max_connections / 2)
+}
 pub const IDLE_TIMEOUT: Duration = Duration::from_secs(600);
 pub const PIPELINE_DEPTH: usize = 16;
 pub const SHUTDOWN_TIMEOUT: Duration = Duration::from_secs(10);

@@ -310,7 +310,12 @@ mod tests {
     #[test]
     fn a_minimal_file_gets_every_default() {
         let c = Config::from_toml_str(MINIMAL).unwrap();
-        assert_eq!(c.server, Server::default());
+        let per_address = defaults::max_connections_per_address(defaults::MAX_CONNECTIONS);
+        let server = Server {
+            max_connections_per_address: Some(per_address),
+            ..Server::default()
+        };
+        assert_eq!(c.server, server);
         assert_eq!(c.metrics.listen, defaults::metrics_listen());
         assert_eq!(
             (c.log.level.as_str(), c.log.format),

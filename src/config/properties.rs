@@ -51,12 +51,14 @@ fn server() -> impl Strategy<Value = Server> {
         prop::option::of(tls()),
         prop::collection::vec(net(), 0..3),
         prop::sample::select(vec![0.25, 0.9, 1.0]),
+        // Resolved: the loader fills in the default.
+        (0usize..=100_000).prop_map(Some),
     );
     (limits, guard, tls).prop_map(
         |(
             (listen, max_connections, idle, depth, shutdown),
             (when_full, frame_timeout, keepalive, allow, read_only),
-            (mut listen_tls, tls, priority, priority_share),
+            (mut listen_tls, tls, priority, priority_share, per_address),
         )| Server {
             listen_tls: if tls.is_some() {
                 listen_tls.sort();
@@ -70,6 +72,7 @@ fn server() -> impl Strategy<Value = Server> {
             listen_rtu_over_tcp: Vec::new(),
             listen_udp: Vec::new(),
             max_connections,
+            max_connections_per_address: per_address,
             idle_timeout: idle,
             pipeline_depth: depth,
             shutdown_timeout: shutdown,
@@ -447,6 +450,7 @@ fn mutations(config: &Config) -> Vec<(String, toml::Value)> {
         |key: &str, value| toml::Value::Table(toml::Table::from_iter([(key.to_owned(), value)]));
     let mut out = vec![
         ("server.max_connections".to_owned(), Integer(0)),
+        ("server.max_connections_per_address".to_owned(), Integer(-1)),
         ("server.pipeline_depth".to_owned(), Integer(0)),
         ("server.listen".to_owned(), text("localhost")),
         ("server.listen".to_owned(), toml::Value::Array(vec![])),
@@ -633,6 +637,7 @@ fn toml_document() -> impl Strategy<Value = String> {
             &[
                 "listen",
                 "max_connections",
+                "max_connections_per_address",
                 "idle_timeout",
                 "pipeline_depth",
             ],
@@ -663,6 +668,7 @@ fn toml_document() -> impl Strategy<Value = String> {
             &["\"127.0.0.1:5020\"", "[\"[::1]:502\", \"0.0.0.0:502\"]"],
         ),
         ("max_connections", &["1", "64"]),
+        ("max_connections_per_address", &["0", "4"]),
         ("idle_timeout", &["\"0s\"", "\"10m\""]),
         ("pipeline_depth", &["1", "16"]),
         ("level", &["\"debug\""]),

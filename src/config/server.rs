@@ -26,6 +26,12 @@ pub struct Server {
     pub listen_tls: Vec<SocketAddr>,
     /// TCP connections open at once, over all listeners; more are refused.
     pub max_connections: usize,
+    /// TCP connections one source address may hold at once; more are refused at accept. Left
+    /// out: all but 8 of `max_connections` (filled in by
+    /// [`Config::resolve`](super::Config::resolve)); 0, or `max_connections` or more: no limit of
+    /// its own per address.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub max_connections_per_address: Option<usize>,
     /// A connection with no request and nothing pending for this long is closed ("0s": never).
     #[serde(with = "duration")]
     pub idle_timeout: Duration,
@@ -58,12 +64,25 @@ pub struct Server {
     pub tls: Option<Tls>,
 }
 
+impl Server {
+    /// Connections one address may hold, once resolved; `None`: no limit but `max_connections`
+    /// (one that allows every slot is none: at `max_connections`, `when_full` decides).
+    pub fn connections_per_address(&self) -> Option<usize> {
+        let limit = self
+            .max_connections_per_address
+            .unwrap_or_else(|| defaults::max_connections_per_address(self.max_connections));
+        (limit > 0 && limit < self.max_connections).then_some(limit)
+    }
+}
+
 /// What a connection beyond `server.max_connections` does.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum WhenFull {
-    /// Close the connection that has been idle longest (nothing in flight), then accept; refuse
-    /// if every connection has a request in flight.
+    /// Close a connection that is not working, then accept: one whose master does not read its
+    /// replies, else one that never completed a request, else the one idle longest among those
+    /// that completed none recently; refuse if every connection is working (a request in
+    /// flight, or one answered recently).
     #[default]
     CloseOldestIdle,
     /// Refuse the new connection.
@@ -78,6 +97,7 @@ impl Default for Server {
             listen_udp: Vec::new(),
             listen_tls: Vec::new(),
             max_connections: defaults::MAX_CONNECTIONS,
+            max_connections_per_address: None,
             idle_timeout: defaults::IDLE_TIMEOUT,
             pipeline_depth: defaults::PIPELINE_DEPTH,
             shutdown_timeout: defaults::SHUTDOWN_TIMEOUT,

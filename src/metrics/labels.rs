@@ -191,8 +191,10 @@ impl ExceptionSource {
 /// Why a TCP connection was refused at accept: the `reason` label.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Rejection {
-    /// `max_connections` open, none of them idle (or `when_full = "refuse"`).
+    /// `max_connections` open, none of them evictable (or `when_full = "refuse"`).
     MaxConnections,
+    /// `max_connections_per_address` open from the peer's address.
+    MaxConnectionsPerAddress,
     /// The peer's address is outside `server.allow`.
     NotAllowed,
     /// The TLS handshake failed or did not finish within `server.tls.handshake_timeout`.
@@ -201,11 +203,16 @@ pub enum Rejection {
 
 impl Rejection {
     /// The refusals every TCP listener may make (a TLS handshake only fails on a TLS one).
-    pub const ALL: [Rejection; 2] = [Rejection::MaxConnections, Rejection::NotAllowed];
+    pub const ALL: [Rejection; 3] = [
+        Rejection::MaxConnections,
+        Rejection::MaxConnectionsPerAddress,
+        Rejection::NotAllowed,
+    ];
 
     pub fn label(self) -> &'static str {
         match self {
             Rejection::MaxConnections => "max_connections",
+            Rejection::MaxConnectionsPerAddress => "max_connections_per_address",
             Rejection::NotAllowed => "not_allowed",
             Rejection::TlsHandshake => "tls_handshake",
         }
@@ -227,12 +234,14 @@ pub enum Closing {
     Shutdown,
     /// A request's bytes did not all arrive within `frame_timeout`.
     FrameTimeout,
-    /// Idle longest of all when a new master came at `max_connections`.
+    /// Closed to make room for a new master at `max_connections` (see `when_full`).
     Evicted,
+    /// A reply waited `frame_timeout` for the master to read: it does not read its replies.
+    WriteTimeout,
 }
 
 impl Closing {
-    pub const ALL: [Closing; 7] = [
+    pub const ALL: [Closing; 8] = [
         Closing::ByMaster,
         Closing::ProtocolError,
         Closing::Idle,
@@ -240,6 +249,7 @@ impl Closing {
         Closing::Shutdown,
         Closing::FrameTimeout,
         Closing::Evicted,
+        Closing::WriteTimeout,
     ];
 
     pub fn label(self) -> &'static str {
@@ -251,6 +261,7 @@ impl Closing {
             Closing::Shutdown => "shutdown",
             Closing::FrameTimeout => "frame_timeout",
             Closing::Evicted => "evicted",
+            Closing::WriteTimeout => "write_timeout",
         }
     }
 }

@@ -24,6 +24,8 @@ pub struct TcpMetrics {
     refusing: AtomicBool,
     /// When a refusal for `server.allow` was last logged at warn, so a scan logs little.
     not_allowed_logged: Mutex<Option<std::time::Instant>>,
+    /// The same for `server.max_connections_per_address`.
+    per_address_logged: Mutex<Option<std::time::Instant>>,
     /// Connections closed for breaking the framing or for a request that never arrived whole.
     protocol_errors: PeerThrottle,
     /// Requests refused for what the master may do.
@@ -117,6 +119,7 @@ impl TcpMetrics {
             bad_crc,
             refusing: AtomicBool::new(false),
             not_allowed_logged: Mutex::new(None),
+            per_address_logged: Mutex::new(None),
             protocol_errors: PeerThrottle::new(),
             refusals: PeerThrottle::new(),
             bad_lengths: PeerThrottle::new(),
@@ -138,8 +141,8 @@ impl TcpMetrics {
     }
 
     /// A connection of a master of `protocol` refused at `listen`. For `max_connections`, logged
-    /// once until a connection is accepted again; for `server.allow`, at most once per ten
-    /// seconds.
+    /// once until a connection is accepted again; for `server.allow` and
+    /// `server.max_connections_per_address`, at most once per ten seconds each.
     pub fn rejected(
         &self,
         reason: Rejection,
@@ -165,6 +168,10 @@ impl TcpMetrics {
                 }
                 (due, "refusing a master outside server.allow")
             }
+            Rejection::MaxConnectionsPerAddress => (
+                due(&self.per_address_logged),
+                "refusing a connection beyond server.max_connections_per_address",
+            ),
             Rejection::TlsHandshake => (false, "TLS handshake failed"),
         };
         let reason = reason.label();
@@ -237,7 +244,10 @@ impl TcpMetrics {
         self.closed
             .with_label_values(&[reason.label(), protocol])
             .inc();
-        let master_fault = matches!(reason, Closing::ProtocolError | Closing::FrameTimeout);
+        let master_fault = matches!(
+            reason,
+            Closing::ProtocolError | Closing::FrameTimeout | Closing::WriteTimeout
+        );
         if master_fault {
             match self.protocol_errors.due(peer.ip()) {
                 Some(held_back) => {
@@ -248,9 +258,19 @@ impl TcpMetrics {
                 }
             }
         } else if reason == Closing::Evicted {
-            info!(target: TCP_EVENTS, protocol, master, %peer, "closed the connection idle longest to admit a new master");
+            info!(target: TCP_EVENTS, protocol, master, %peer, "closed a connection that was not working to admit a new master");
         } else {
             debug!(target: TCP_EVENTS, protocol, master, %peer, %error, "master disconnected");
         }
     }
+}
+
+/// Whether a warning last logged at `logged` may be logged again; if so, now is the last time.
+fn due(logged: &Mutex<Option<std::time::Instant>>) -> bool {
+    let mut logged = logged.lock().unwrap_or_else(PoisonError::into_inner);
+    let due = logged.is_none_or(|at| at.elapsed() >= NOT_ALLOWED_LOG_INTERVAL);
+    if due {
+        *logged = Some(std::time::Instant::now());
+    }
+    due
 }

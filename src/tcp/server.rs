@@ -1,13 +1,15 @@
 //! The listeners: accept masters on every `server.listen*` address; refuse those outside
-//! `server.allow` and, at `max_connections`, make room by closing the connection idle longest
-//! (or refuse, with `when_full = "refuse"`). Refused masters are accepted and closed at once, so
-//! they see the refusal instead of hanging in the backlog. Each accepted connection gets
-//! TCP_NODELAY, keepalive probes, and one session task. On a TLS listener the handshake comes
-//! first (after `allow`, before a connection slot: a peer that has not proved who it is never
-//! closes an authenticated master's connection), and the certificate's role narrows the rights.
+//! `server.allow` and those beyond `max_connections_per_address` from one address; at
+//! `max_connections`, make room by closing a connection that is not working (or refuse, with
+//! `when_full = "refuse"`, or when every connection is working). Refused masters are accepted
+//! and closed at once, so they see the refusal instead of hanging in the backlog. Each accepted
+//! connection gets TCP_NODELAY, keepalive probes, and one session task. On a TLS listener the
+//! handshake comes first (after `allow`, before a connection slot: a peer that has not proved
+//! who it is never closes an authenticated master's connection), and the certificate's role
+//! narrows the rights.
 
 use super::access::Access;
-use super::session::{self, Activity, SessionLimits};
+use super::session::{self, Activity, Seen, SessionLimits};
 use super::tls::{Identity, TlsServer};
 use super::upstream::Upstream;
 use crate::bus::MasterId;
@@ -19,13 +21,14 @@ use crate::shutdown::Stopping;
 use socket2::{SockRef, TcpKeepalive};
 use std::collections::HashMap;
 use std::io;
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::{Duration, SystemTime};
 use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
+use tokio::time::Instant;
 use tracing::{debug, error, warn};
 
 /// Pause after an accept error such as running out of file descriptors, so the loop does not spin.
@@ -37,6 +40,18 @@ const KEEPALIVE_PROBES: u32 = 3;
 /// TLS handshakes worked on at once; more wait their turn (within the handshake timeout), so a
 /// crowd of masters reconnecting together cannot take every core.
 const HANDSHAKES_AT_ONCE: usize = 32;
+/// Of those, the most one source address may have at once; its others wait their turn, so a
+/// host whose peers stall mid-handshake keeps three quarters of the turns for the others.
+const HANDSHAKES_PER_ADDRESS: usize = HANDSHAKES_AT_ONCE / 4;
+/// How long a TLS peer may stay silent after its accept; it takes a handshake turn only once
+/// its first bytes (its ClientHello) arrive, so silent connections never keep a master's
+/// handshake waiting. A TLS master sends at once; this leaves room for a lost segment's
+/// retransmission and a slow client's key generation. Within the handshake timeout.
+const FIRST_BYTES_WAIT: Duration = Duration::from_secs(3);
+/// A master that completed a request this recently is working: it is never closed to make room
+/// for a new master (the newcomer is refused instead). Longer than any poll cycle a PLC, HMI or
+/// SCADA uses; a master quiet this long may be closed for a newcomer.
+pub const RECENTLY_ANSWERED: Duration = Duration::from_secs(60);
 
 pub(crate) struct Listener {
     pub addr: SocketAddr,
@@ -70,6 +85,8 @@ pub(crate) struct Policy {
     pub limits: SessionLimits,
     pub access: Access,
     pub when_full: WhenFull,
+    /// Connections one address may hold; `None`: no limit.
+    pub per_address: Option<usize>,
     /// `None`: no keepalive probes.
     pub keepalive: Option<Duration>,
     /// For the TLS listeners.
@@ -88,6 +105,7 @@ impl Policy {
             access: Access::new(server.allow.clone(), server.read_only.clone())
                 .with_priority(server.priority.clone()),
             when_full: server.when_full,
+            per_address: server.connections_per_address(),
             keepalive: Some(server.keepalive).filter(|t| !t.is_zero()),
             tls,
         }
@@ -107,6 +125,7 @@ pub(crate) struct Shared {
     handshakes: Semaphore,
     /// The running sessions, for making room at `max_connections` and for the status page.
     sessions: Mutex<HashMap<MasterId, Session>>,
+    addresses: Addresses,
 }
 
 /// A running session as the listener knows it.
@@ -138,6 +157,7 @@ impl Shared {
             next_master: AtomicU64::new(1),
             handshakes: Semaphore::new(HANDSHAKES_AT_ONCE),
             sessions: Mutex::new(HashMap::new()),
+            addresses: Addresses::default(),
         }
     }
 
@@ -216,8 +236,9 @@ impl Shared {
             .collect()
     }
 
-    /// A connection slot: a free one, or, with `close_oldest_idle`, the one of the session idle
-    /// longest, once it has closed. `None` if every session has requests in flight.
+    /// A connection slot: a free one, or, with `close_oldest_idle`, that of the session first in
+    /// line to make room ([`room_order`]), once it has closed. `None` if every session is
+    /// working.
     async fn slot(&self, when_full: WhenFull) -> Option<OwnedSemaphorePermit> {
         if let Ok(permit) = self.connections.clone().try_acquire_owned() {
             return Some(permit);
@@ -225,18 +246,108 @@ impl Shared {
         if when_full == WhenFull::Refuse {
             return None;
         }
-        let oldest_idle = self
+        let now = Instant::now();
+        let first = self
             .sessions()
             .values()
             .map(|session| &session.activity)
-            .filter_map(|activity| Some((activity.idle_since()?, activity.clone())))
-            .min_by_key(|(since, _)| *since)
+            .filter_map(|activity| Some((room_order(&activity.seen(), now)?, activity.clone())))
+            .min_by_key(|(order, _)| *order)
             .map(|(_, activity)| activity)?;
-        oldest_idle.evict();
+        first.evict();
         tokio::time::timeout(EVICTION_WAIT, self.connections.clone().acquire_owned())
             .await
             .ok()?
             .ok()
+    }
+}
+
+/// Why a session may be closed to make room for a new master, in the order they go.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+enum NotWorking {
+    /// Its master leaves its replies unread.
+    Unread,
+    /// It never completed a request: a newcomer itself, or a leaked connection.
+    Unproven,
+    /// It completed none within [`RECENTLY_ANSWERED`].
+    Quiet,
+}
+
+/// Where a session stands in the line to make room for a new master at `now`: why it may go,
+/// and since when (the longest first); `None`: it is working and stays (a request in flight, or
+/// one answered within [`RECENTLY_ANSWERED`]).
+fn room_order(seen: &Seen, now: Instant) -> Option<(NotWorking, Instant)> {
+    if let Some(since) = seen.blocked {
+        return Some((NotWorking::Unread, since));
+    }
+    if seen.busy {
+        return None;
+    }
+    match seen.answered {
+        None => Some((NotWorking::Unproven, seen.last)),
+        Some(at) if now.saturating_duration_since(at) >= RECENTLY_ANSWERED => {
+            Some((NotWorking::Quiet, seen.last))
+        }
+        Some(_) => None,
+    }
+}
+
+/// What the connections of one source address hold now.
+#[derive(Debug)]
+struct Held {
+    connections: usize,
+    /// Its share of the TLS handshake turns.
+    turns: Arc<Semaphore>,
+}
+
+/// The connections by source address, for `max_connections_per_address` and
+/// [`HANDSHAKES_PER_ADDRESS`]. An address is in the map while it has a connection open.
+#[derive(Clone, Debug, Default)]
+struct Addresses(Arc<Mutex<HashMap<IpAddr, Held>>>);
+
+impl Addresses {
+    fn held(&self) -> std::sync::MutexGuard<'_, HashMap<IpAddr, Held>> {
+        self.0.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// A place for a new connection from `ip`, unless that address already holds `limit`.
+    fn claim(&self, ip: IpAddr, limit: Option<usize>) -> Option<Ticket> {
+        let ip = ip.to_canonical();
+        let mut held = self.held();
+        let here = held.entry(ip).or_insert_with(|| Held {
+            connections: 0,
+            turns: Arc::new(Semaphore::new(HANDSHAKES_PER_ADDRESS)),
+        });
+        if limit.is_some_and(|limit| here.connections >= limit) {
+            return None;
+        }
+        here.connections += 1;
+        Some(Ticket {
+            addresses: self.clone(),
+            turns: here.turns.clone(),
+            ip,
+        })
+    }
+}
+
+/// A connection's place in its address's count, given back when it is dropped.
+#[derive(Debug)]
+struct Ticket {
+    addresses: Addresses,
+    ip: IpAddr,
+    /// Its address's handshake turns.
+    turns: Arc<Semaphore>,
+}
+
+impl Drop for Ticket {
+    fn drop(&mut self) {
+        let mut held = self.addresses.held();
+        if let Some(here) = held.get_mut(&self.ip) {
+            here.connections = here.connections.saturating_sub(1);
+            if here.connections == 0 {
+                held.remove(&self.ip);
+            }
+        }
     }
 }
 
@@ -268,9 +379,14 @@ pub(crate) async fn serve(listener: Listener, shared: Arc<Shared>) {
         };
         let policy = shared.policy();
         let tcp = &shared.metrics.tcp;
+        let protocol = listener.upstream.protocol();
         let Some(rights) = policy.access.admit(peer.ip()) else {
-            let protocol = listener.upstream.protocol();
             tcp.rejected(Rejection::NotAllowed, protocol, &listener.addr, &peer);
+            continue;
+        };
+        let Some(ticket) = shared.addresses.claim(peer.ip(), policy.per_address) else {
+            let reason = Rejection::MaxConnectionsPerAddress;
+            tcp.rejected(reason, protocol, &listener.addr, &peer);
             continue;
         };
         prepare(&stream, &policy, peer);
@@ -280,6 +396,7 @@ pub(crate) async fn serve(listener: Listener, shared: Arc<Shared>) {
             upstream: listener.upstream,
             peer,
             rights,
+            ticket,
         };
         let shared = shared.clone();
         tokio::spawn(async move {
@@ -299,6 +416,8 @@ struct Master {
     peer: SocketAddr,
     /// What its address allows.
     rights: Rights,
+    /// Its place in its address's count, held until the connection ends.
+    ticket: Ticket,
 }
 
 fn prepare(stream: &TcpStream, policy: &Policy, peer: SocketAddr) {
@@ -313,13 +432,18 @@ fn prepare(stream: &TcpStream, policy: &Policy, peer: SocketAddr) {
 }
 
 /// The TLS handshake, within the handshake timeout; then the master is admitted with the rights
-/// both its address and its certificate's role allow.
+/// both its address and its certificate's role allow. A handshake turn (one of its address's
+/// share, then one of all) is taken once the peer has sent something, within
+/// [`FIRST_BYTES_WAIT`].
 async fn accept_tls(stream: TcpStream, mut master: Master, policy: &Policy, shared: &Shared) {
     let Some(tls) = policy.tls.clone() else {
         error!(listen = %master.listen, "a TLS listener without [server.tls]; connection closed");
         return;
     };
+    let turns = master.ticket.turns.clone();
     let handshake = async {
+        first_bytes(&stream).await?;
+        let _address_turn = turns.acquire().await;
         let _turn = shared.handshakes.acquire().await;
         tls.acceptor.accept(stream).await
     };
@@ -340,6 +464,26 @@ async fn accept_tls(stream: TcpStream, mut master: Master, policy: &Policy, shar
     let identity = tls.identify(stream.get_ref().1.peer_certificates());
     master.rights = master.rights.min(identity.rights);
     admit(stream, master, Some(identity), policy, shared).await;
+}
+
+/// Wait for a new connection's first bytes, for at most [`FIRST_BYTES_WAIT`]; an error if none
+/// come.
+async fn first_bytes(stream: &TcpStream) -> io::Result<()> {
+    match tokio::time::timeout(FIRST_BYTES_WAIT, stream.peek(&mut [0u8; 1])).await {
+        Ok(Ok(0)) => Err(io::Error::new(
+            io::ErrorKind::UnexpectedEof,
+            "closed before sending anything",
+        )),
+        Ok(Ok(_)) => Ok(()),
+        Ok(Err(error)) => Err(error),
+        Err(_) => {
+            let wait = humantime::format_duration(FIRST_BYTES_WAIT);
+            Err(io::Error::new(
+                io::ErrorKind::TimedOut,
+                format!("sent nothing within {wait}"),
+            ))
+        }
+    }
 }
 
 /// Serve `master` once it has a connection slot; refused if none comes.
@@ -374,6 +518,7 @@ async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
         upstream,
         peer,
         rights,
+        ticket: _ticket,
         ..
     } = master;
     let id = shared.new_master();
@@ -422,4 +567,82 @@ async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
     .await;
     shared.sessions().remove(&id);
     tcp.closed(protocol, error.closing(), id, &peer, &error);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn seen(last: Instant) -> Seen {
+        Seen {
+            last,
+            busy: false,
+            answered: None,
+            blocked: None,
+        }
+    }
+
+    #[test]
+    fn unread_then_unproven_then_quiet_make_room_and_working_sessions_never_do() {
+        let start = Instant::now();
+        let now = start + RECENTLY_ANSWERED * 3;
+        let at = |secs| start + Duration::from_secs(secs);
+        let unread = Seen {
+            busy: true,
+            answered: Some(now),
+            blocked: Some(at(150)),
+            ..seen(now)
+        };
+        let unproven = seen(at(170));
+        let quiet = Seen {
+            answered: Some(at(10)),
+            ..seen(at(10))
+        };
+        let polling = Seen {
+            answered: Some(now - RECENTLY_ANSWERED + Duration::from_millis(1)),
+            ..seen(at(0))
+        };
+        let in_flight = Seen {
+            busy: true,
+            ..seen(at(0))
+        };
+        assert_eq!(
+            room_order(&unread, now),
+            Some((NotWorking::Unread, at(150)))
+        );
+        assert_eq!(
+            room_order(&unproven, now),
+            Some((NotWorking::Unproven, at(170)))
+        );
+        assert_eq!(room_order(&quiet, now), Some((NotWorking::Quiet, at(10))));
+        assert!(room_order(&unread, now) < room_order(&unproven, now));
+        assert!(room_order(&unproven, now) < room_order(&quiet, now));
+        assert_eq!(
+            room_order(&polling, now),
+            None,
+            "answered within the window"
+        );
+        assert_eq!(room_order(&in_flight, now), None, "a request in flight");
+    }
+
+    #[test]
+    fn an_address_holds_at_most_its_limit_and_a_closed_connection_gives_its_place_back() {
+        let addresses = Addresses::default();
+        let ip: IpAddr = "127.0.0.9".parse().unwrap();
+        let first = addresses.claim(ip, Some(2)).unwrap();
+        let mapped: IpAddr = "::ffff:127.0.0.9".parse().unwrap();
+        let second = addresses.claim(mapped, Some(2)).unwrap();
+        assert!(addresses.claim(ip, Some(2)).is_none());
+        assert!(
+            Arc::ptr_eq(&first.turns, &second.turns),
+            "one share of turns"
+        );
+        let other: IpAddr = "127.0.0.10".parse().unwrap();
+        assert!(addresses.claim(other, Some(2)).is_some());
+        drop(first);
+        let third = addresses.claim(ip, Some(2)).unwrap();
+        assert!(addresses.claim(ip, None).is_some(), "no limit");
+        drop((second, third));
+        assert!(addresses.held().is_empty(), "nothing left behind");
+    }
 }

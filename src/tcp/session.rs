@@ -1,9 +1,9 @@
 //! One master's connection. Every whole request read is handed to the dispatcher at once, so
 //! pipelined requests queue (fairly) on the line right away; the answers go back in request
 //! order, each in its own MBAP header. A malformed header closes the connection; so does a
-//! request whose bytes trickle in slower than `frame_timeout`, a connection idle for
-//! `idle_timeout`, or the listener making room for a new master. When the master goes, its
-//! queued requests go too.
+//! request whose bytes trickle in slower than `frame_timeout`, a reply the master leaves unread
+//! as long, a connection idle for `idle_timeout`, or the listener making room for a new master.
+//! When the master goes, its queued requests go too.
 
 use super::mbap::{self, FrameError, Header};
 use super::upstream::{Decoded, Upstream};
@@ -14,9 +14,11 @@ use crate::pdu::exception_pdu;
 use crate::shutdown::Stopping;
 use bytes::BytesMut;
 use std::collections::VecDeque;
+use std::future::Future;
 use std::io;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Mutex, PoisonError};
+use std::task::Poll;
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::sync::{oneshot, Notify};
@@ -36,21 +38,38 @@ pub struct SessionLimits {
     pub frame_timeout: Duration,
 }
 
-/// What the listener sees of a session: when it last had a request or sent an answer, whether
-/// requests are in flight, how many it has had, and a way to ask it to close once it has none.
+/// What the listener sees of a session ([`Seen`]), how many requests it has had, and a way to
+/// ask it to close: at once if it is waiting for its master to read a reply, else once it has
+/// nothing in flight.
 #[derive(Debug)]
 pub struct Activity {
-    last: Mutex<Instant>,
-    busy: AtomicBool,
+    seen: Mutex<Seen>,
     requests: AtomicU64,
     close: Notify,
+}
+
+/// A session at one moment, for choosing which connection makes room for a new master.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Seen {
+    /// When it last had a request or sent an answer; its accept, before either.
+    pub last: Instant,
+    /// Requests in flight.
+    pub busy: bool,
+    /// When it last completed a request (its answer written); `None`: never.
+    pub answered: Option<Instant>,
+    /// Since when a reply has been waiting for the master to read (the socket's buffer full).
+    pub blocked: Option<Instant>,
 }
 
 impl Default for Activity {
     fn default() -> Self {
         Activity {
-            last: Mutex::new(Instant::now()),
-            busy: AtomicBool::new(false),
+            seen: Mutex::new(Seen {
+                last: Instant::now(),
+                busy: false,
+                answered: None,
+                blocked: None,
+            }),
             requests: AtomicU64::new(0),
             close: Notify::new(),
         }
@@ -58,9 +77,32 @@ impl Default for Activity {
 }
 
 impl Activity {
-    fn touch(&self, busy: bool) {
-        *self.last.lock().unwrap_or_else(PoisonError::into_inner) = Instant::now();
-        self.busy.store(busy, Ordering::Relaxed);
+    fn update(&self, change: impl FnOnce(&mut Seen)) {
+        change(&mut self.seen.lock().unwrap_or_else(PoisonError::into_inner));
+    }
+
+    /// A request was read.
+    fn requested(&self) {
+        self.requests.fetch_add(1, Ordering::Relaxed);
+        self.update(|seen| {
+            seen.last = Instant::now();
+            seen.busy = true;
+        });
+    }
+
+    /// A request was answered (its reply written, if it has one); `busy`: others are in flight.
+    fn answered(&self, busy: bool) {
+        self.update(|seen| {
+            let now = Instant::now();
+            seen.last = now;
+            seen.answered = Some(now);
+            seen.busy = busy;
+            seen.blocked = None;
+        });
+    }
+
+    fn blocked(&self) {
+        self.update(|seen| seen.blocked = Some(Instant::now()));
     }
 
     /// Requests read on the connection so far.
@@ -68,13 +110,12 @@ impl Activity {
         self.requests.load(Ordering::Relaxed)
     }
 
-    /// When it last had a request or sent an answer, if it has nothing in flight now.
-    pub fn idle_since(&self) -> Option<Instant> {
-        let last = *self.last.lock().unwrap_or_else(PoisonError::into_inner);
-        (!self.busy.load(Ordering::Relaxed)).then_some(last)
+    pub(crate) fn seen(&self) -> Seen {
+        *self.seen.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
-    /// Ask the session to close as soon as nothing is in flight.
+    /// Ask the session to close: at once if it waits for its master to read a reply, else as
+    /// soon as nothing is in flight.
     pub fn evict(&self) {
         self.close.notify_one();
     }
@@ -93,6 +134,8 @@ pub enum SessionError {
     FrameTimeout(Duration),
     #[error("closed to make room for a new master")]
     Evicted,
+    #[error("a reply waited {0:?} for the master to read it")]
+    WriteTimeout(Duration),
     #[error("the gateway is shutting down")]
     Shutdown,
     #[error("socket error: {0}")]
@@ -107,6 +150,7 @@ impl SessionError {
             SessionError::Idle(_) => Closing::Idle,
             SessionError::FrameTimeout(_) => Closing::FrameTimeout,
             SessionError::Evicted => Closing::Evicted,
+            SessionError::WriteTimeout(_) => Closing::WriteTimeout,
             SessionError::Io(_) => Closing::IoError,
             SessionError::Shutdown => Closing::Shutdown,
         }
@@ -137,6 +181,30 @@ async fn next_outcome(in_flight: &mut VecDeque<InFlight>) -> Outcome {
     }
 }
 
+/// Write one reply. It goes straight into the socket's buffer unless the master has left a
+/// buffer's worth of replies unread: then the session waits for it, evictable at once, for at
+/// most `limit` (the frame timeout: a master gets as long to take a reply as to send a request).
+async fn send<S: AsyncWrite + Unpin>(
+    stream: &mut S,
+    bytes: &[u8],
+    activity: &Activity,
+    limit: Duration,
+) -> Result<(), SessionError> {
+    let mut write = std::pin::pin!(stream.write_all(bytes));
+    let first = std::future::poll_fn(|cx| Poll::Ready(write.as_mut().poll(cx))).await;
+    if let Poll::Ready(written) = first {
+        return written.map_err(SessionError::from);
+    }
+    activity.blocked();
+    tokio::select! {
+        written = tokio::time::timeout(limit, write) => match written {
+            Ok(written) => written.map_err(SessionError::from),
+            Err(_) => Err(SessionError::WriteTimeout(limit)),
+        },
+        () = activity.close.notified() => Err(SessionError::Evicted),
+    }
+}
+
 /// Serve one master on `stream` (a TCP connection) until it leaves or breaks the protocol, or
 /// until a stop: then read no more, answer what was read, and close.
 pub async fn run<S: AsyncRead + AsyncWrite + Unpin>(
@@ -161,7 +229,12 @@ pub async fn run<S: AsyncRead + AsyncWrite + Unpin>(
     dispatcher.forget(client.master);
     // A TLS session ends with close_notify, so the master can tell a close from a cut; a
     // master that stopped reading does not hold it up.
-    let closable = !matches!(error, SessionError::Closed | SessionError::Io(_));
+    let unread = activity.seen().blocked.is_some();
+    let closable = !unread
+        && !matches!(
+            error,
+            SessionError::Closed | SessionError::Io(_) | SessionError::WriteTimeout(_)
+        );
     if upstream == Upstream::Tls && closable {
         let _ = tokio::time::timeout(CLOSE_NOTIFY_WAIT, stream.shutdown()).await;
     }
@@ -200,8 +273,7 @@ async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
                         function,
                         outcome: dispatcher.submit(client, request.header.unit, request.pdu),
                     });
-                    activity.requests.fetch_add(1, Ordering::Relaxed);
-                    activity.touch(true);
+                    activity.requested();
                 }
                 Ok(None) => break,
                 Err(error) => return error.into(),
@@ -228,12 +300,12 @@ async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
                 let Some(done) = in_flight.pop_front() else { continue };
                 if let Some(pdu) = reply_pdu(done.function, outcome) {
                     upstream.encode(done.header, &pdu, &mut outbound);
-                    if let Err(error) = stream.write_all(&outbound).await {
-                        return error.into();
+                    if let Err(error) = send(stream, &outbound, activity, limits.frame_timeout).await {
+                        return error;
                     }
                 }
                 last_activity = Instant::now();
-                activity.touch(!in_flight.is_empty());
+                activity.answered(!in_flight.is_empty());
             }
             read = stream.read_buf(&mut inbound), if can_read => match read {
                 Ok(0) => return SessionError::Closed,

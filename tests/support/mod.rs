@@ -162,6 +162,18 @@ pub async fn wait_for_bus(gateway: &Gateway, name: &str, up: bool) {
     .await;
 }
 
+/// A TCP connection to `addr` from the loopback address `source` (127.0.0.x: Linux answers for
+/// all of 127/8), as from a host of its own.
+pub async fn connect_from(source: [u8; 4], addr: SocketAddr) -> TcpStream {
+    let socket = tokio::net::TcpSocket::new_v4().expect("a socket");
+    socket
+        .bind(SocketAddr::from((source, 0)))
+        .expect("bind a loopback address");
+    within("connect", socket.connect(addr))
+        .await
+        .expect("gateway accepts")
+}
+
 /// What a master talks over: a TCP connection, or a TLS session on one.
 pub trait Duplex: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin + Send {}
 impl<S: tokio::io::AsyncRead + tokio::io::AsyncWrite + Unpin + Send> Duplex for S {}
@@ -185,6 +197,12 @@ impl RawMaster {
             .await
             .expect("gateway accepts");
         Self::over(stream)
+    }
+
+    /// A master connecting from the loopback address `source` (127.0.0.x), as from a host of
+    /// its own.
+    pub async fn connect_from(source: [u8; 4], addr: SocketAddr) -> Self {
+        Self::over(connect_from(source, addr).await)
     }
 
     /// A master on a stream already connected (a TLS session, say).

@@ -226,6 +226,23 @@ pub async fn tls_connect(
     connector: &TlsConnector,
 ) -> std::io::Result<TlsStream<TcpStream>> {
     let tcp = within("connect", TcpStream::connect(addr)).await?;
+    tls_handshake(tcp, addr, connector).await
+}
+
+/// [`tls_connect`] from the loopback address `source` (127.0.0.x).
+pub async fn tls_connect_from(
+    source: [u8; 4],
+    addr: SocketAddr,
+    connector: &TlsConnector,
+) -> std::io::Result<TlsStream<TcpStream>> {
+    tls_handshake(super::connect_from(source, addr).await, addr, connector).await
+}
+
+async fn tls_handshake(
+    tcp: TcpStream,
+    addr: SocketAddr,
+    connector: &TlsConnector,
+) -> std::io::Result<TlsStream<TcpStream>> {
     let name = ServerName::IpAddress(addr.ip().into());
     within("TLS handshake", connector.connect(name, tcp)).await
 }
