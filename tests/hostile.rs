@@ -287,15 +287,19 @@ async fn no_hidden_frame_reaches_a_slave_that_frames_by_length() {
     );
 }
 
-#[tokio::test]
-async fn no_master_gets_another_masters_data_when_one_hides_a_second_read() {
-    let Some(slave) = Libmodbus::start().await else {
-        return;
-    };
-    let unit = LIBMODBUS_UNIT;
-    let gateway = start(&pty_config(&slave.path, "response_timeout = \"200ms\"")).await;
+/// Masters of a gateway on the slave at `path`: one hides a read of register 9 after its read of
+/// register 0, again and again, while another reads register 2 and must get exactly that.
+async fn no_crossed_replies_with(path: &str, unit: u8) {
+    let gateway = start(&pty_config(path, "response_timeout = \"200ms\"")).await;
     let addr = gateway.local_addrs()[0];
-    // A read of register 0 with a read of register 9 hidden after it, again and again.
+    let mut polite = RawMaster::connect(addr).await;
+    // Registers 2 and 9 hold 1002 and 1009 (libmodbus's from the start).
+    for write in [
+        [0x06, 0x00, 0x02, 0x03, 0xEA],
+        [0x06, 0x00, 0x09, 0x03, 0xF1],
+    ] {
+        assert_eq!(polite.call(0, unit, &write).await, write);
+    }
     let attacker = tokio::spawn(async move {
         let mut master = RawMaster::connect(addr).await;
         let attack = smuggle(
@@ -307,8 +311,6 @@ async fn no_master_gets_another_masters_data_when_one_hides_a_second_read() {
             assert_eq!(master.call(tid, unit, &attack).await, BAD_LENGTH);
         }
     });
-    // Meanwhile another master reads register 2 (1002, 03EAH) and must get exactly that.
-    let mut polite = RawMaster::connect(addr).await;
     for tid in 0..40 {
         assert_eq!(
             polite
@@ -319,32 +321,39 @@ async fn no_master_gets_another_masters_data_when_one_hides_a_second_read() {
         );
     }
     attacker.await.unwrap();
-    assert!(slave.functions().iter().all(|&f| f == 0x03));
-    assert_eq!(
-        slave.functions().len(),
-        40,
-        "only the polite reads reached it"
-    );
 }
 
 #[tokio::test]
-async fn over_long_reads_from_a_read_only_master_do_not_put_a_healthy_slave_down() {
+async fn no_master_gets_another_masters_data_when_one_hides_a_second_read() {
+    let simulator = simulate_on_a_pty().await;
+    no_crossed_replies_with(&simulator.path, 1).await;
+    simulator.stop().await;
+
     let Some(slave) = Libmodbus::start().await else {
         return;
     };
-    let unit = LIBMODBUS_UNIT;
+    no_crossed_replies_with(&slave.path, LIBMODBUS_UNIT).await;
+    let functions = slave.functions();
+    assert_eq!(functions[..2], [0x06, 0x06]);
+    assert_eq!(
+        functions[2..],
+        [0x03; 40],
+        "only the polite reads reached libmodbus"
+    );
+}
+
+/// A read-only master sends reads with junk after them (a length-framing slave sees a bad CRC
+/// and stays silent) to the slave at `path`, three at a time, between another master's reads of
+/// register 5, which answers `register_5`. The slave must stay up.
+async fn stays_up_with(path: &str, unit: u8, register_5: [u8; 4]) {
     let gateway = read_only_gateway_on(
-        &slave.path,
+        path,
         "response_timeout = \"100ms\"\nslave_down_after = 3\nslave_probe_interval = \"10s\"",
     )
     .await;
     let mut attacker = RawMaster::connect(gateway.local_addrs()[0]).await;
     let mut polite = RawMaster::connect(gateway.local_addrs()[0]).await;
-    assert_eq!(
-        polite.call(1, unit, &READ_5).await,
-        [0x03, 0x02, 0x03, 0xED]
-    );
-    // A read with junk after it: a length-framing slave sees a bad CRC and stays silent.
+    assert_eq!(polite.call(1, unit, &READ_5).await, register_5);
     let over_long = [0x03, 0x00, 0x00, 0x00, 0x01, 0xAA, 0xBB, 0xCC];
     for round in 0..3u16 {
         for tid in 0..3 {
@@ -352,15 +361,25 @@ async fn over_long_reads_from_a_read_only_master_do_not_put_a_healthy_slave_down
         }
         assert_eq!(
             polite.call(round, unit, &READ_5).await,
-            [0x03, 0x02, 0x03, 0xED],
+            register_5,
             "round {round}"
         );
     }
     let scrape = Scrape::of(&gateway).await;
-    assert_eq!(
-        scrape.value("modbus_gateway_slave_up{bus=\"pty\",slave=\"10\"}"),
-        1.0
-    );
+    let up = format!("modbus_gateway_slave_up{{bus=\"pty\",slave=\"{unit}\"}}");
+    assert_eq!(scrape.value(&up), 1.0);
+}
+
+#[tokio::test]
+async fn over_long_reads_from_a_read_only_master_do_not_put_a_healthy_slave_down() {
+    let simulator = simulate_on_a_pty().await;
+    stays_up_with(&simulator.path, 1, [0x03, 0x02, 0x00, 0x00]).await;
+    simulator.stop().await;
+
+    let Some(slave) = Libmodbus::start().await else {
+        return;
+    };
+    stays_up_with(&slave.path, LIBMODBUS_UNIT, [0x03, 0x02, 0x03, 0xED]).await;
 }
 
 /// A request PDU of `function` as long as the gateway's table says (a bare code, a header with a
