@@ -2,7 +2,9 @@
 //! paused clock, against the line's record of the wire and the metrics it counts, and once over a
 //! real TCP socket.
 
-use crate::support::{addr, bus_call, settle, sim_bus_counted, start, RawMaster, Scrape};
+use crate::support::{
+    addr, bus_call, frames_from, settle, sim_bus_counted, start, RawMaster, Scrape,
+};
 use modbus_gateway::bus::BusHandle;
 use modbus_gateway::error::{Answer, Outcome};
 use modbus_gateway::gateway::config_from_toml;
@@ -66,14 +68,6 @@ fn line_count(metrics: &Metrics, name: &str) -> f64 {
 
 fn is_0x0b(outcome: &Outcome) -> bool {
     matches!(outcome, Err(e) if e.exception_code() as u8 == 0x0B)
-}
-
-fn frames_from(line: &SimLine, from: Source) -> Vec<Vec<u8>> {
-    line.frames()
-        .into_iter()
-        .filter(|f| f.from == from)
-        .map(|f| f.bytes)
-        .collect()
 }
 
 #[tokio::test(start_paused = true)]

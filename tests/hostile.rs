@@ -8,7 +8,8 @@
 use crate::simulate::Simulator;
 use crate::support::tls::{tls_master, Pki, Role};
 use crate::support::{
-    free_addr, http_get, pty_config, sim_config_with_server, start, within, RawMaster, Scrape,
+    frames_from, free_addr, http_get, pty_config, sim_config_with_server, start, within, RawMaster,
+    Scrape,
 };
 use modbus_gateway::line::rtu;
 use modbus_gateway::sim::Source;
@@ -85,12 +86,7 @@ async fn a_read_only_master_cannot_hide_a_write_after_a_read_over_tcp_udp_or_tls
     }
     // Nothing went on the line, so nothing was written.
     assert_eq!(tcp.call(2, 1, &READ_5).await, [0x03, 0x02, 0x00, 0x00]);
-    let sent: Vec<Vec<u8>> = line
-        .frames()
-        .into_iter()
-        .filter(|f| f.from == Source::Master)
-        .map(|f| f.bytes)
-        .collect();
+    let sent = frames_from(&line, Source::Master);
     assert_eq!(sent, [rtu::encode(1, &READ_5)]);
     let scrape = Scrape::of(&gateway).await;
     for protocol in ["tcp", "udp", "tls"] {
@@ -125,12 +121,7 @@ async fn a_tls_role_limited_to_one_unit_cannot_reach_another_inside_a_request() 
     assert_eq!(master.call(2, 1, &custom).await, [0xC1, 0x01]);
     // Unit 1 itself is served as before.
     assert_eq!(master.call(3, 1, &WRITE_5).await, WRITE_5);
-    let sent: Vec<Vec<u8>> = line
-        .frames()
-        .into_iter()
-        .filter(|f| f.from == Source::Master)
-        .map(|f| f.bytes)
-        .collect();
+    let sent = frames_from(&line, Source::Master);
     assert_eq!(sent, [rtu::encode(1, &WRITE_5)]);
 }
 
@@ -223,11 +214,14 @@ impl Drop for Libmodbus {
     }
 }
 
-/// A config file for `simulate`: register-bank slaves 1-4 at 115200 8N2 (a pty takes no parity).
+/// A config file of its own for `simulate`: register-bank slaves 1-4 at 115200 8N2 (a pty takes
+/// no parity). Of its own, so that no test reads it while another writes it.
 fn simulate_config() -> PathBuf {
+    static MADE: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let n = MADE.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let dir = std::env::temp_dir().join(format!("mbgw-hostile-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    let path = dir.join("slaves.toml");
+    let path = dir.join(format!("slaves-{n}.toml"));
     std::fs::write(
         &path,
         "[[bus]]\nname = \"slaves\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\
@@ -598,6 +592,7 @@ async fn every_unit_with_every_function_code_over_each_protocol_leaves_series_an
     // 3 x 65,025 requests. Labels bounded by the configuration: 4 slaves and `other`, the
     // table's 19 function codes and `other`, the outcomes, 3 protocols.
     let grown = series_count(&after) - series_count(&before);
+    eprintln!("the sweep: {grown} new series, resident memory {rss} KiB");
     assert!(grown < 1500, "{grown} new series:\n{after}");
     assert!(
         !after.contains("slave=\"200\""),

@@ -140,6 +140,15 @@ pub fn sim_config_with_server(server: &str, bus: &str) -> String {
     )
 }
 
+/// The frames `from` put on the simulated line so far, in order.
+pub fn frames_from(line: &SimLine, from: modbus_gateway::sim::Source) -> Vec<Vec<u8>> {
+    line.frames()
+        .into_iter()
+        .filter(|f| f.from == from)
+        .map(|f| f.bytes)
+        .collect()
+}
+
 pub fn addr(gateway: &Gateway) -> SocketAddr {
     gateway.local_addrs()[0]
 }
