@@ -1,6 +1,7 @@
 //! Modbus/TCP Security's metrics and events: connections by certificate role, the server
 //! certificate's expiry, and handshakes that failed (counted with the other refusals, as
-//! `reason="tls_handshake"`, and logged at most once a minute per peer address).
+//! `reason="tls_handshake"`). Failed handshakes and unreadable roles are logged at warn at most
+//! once a minute per peer address.
 
 use super::labels::{Protocol, Rejection};
 use super::throttle::PeerThrottle;
@@ -16,6 +17,8 @@ pub struct TlsMetrics {
     expiry: IntGauge,
     /// Failed handshakes' warn lines, by peer address.
     handshakes_failed: PeerThrottle,
+    /// Warn lines about certificate roles that could not be read, by peer address.
+    role_problems: PeerThrottle,
 }
 
 /// What the log says of a master that completed its handshake.
@@ -53,6 +56,7 @@ impl TlsMetrics {
             accepted,
             expiry,
             handshakes_failed: PeerThrottle::new(),
+            role_problems: PeerThrottle::new(),
         }
     }
 
@@ -79,13 +83,22 @@ impl TlsMetrics {
             "master connected with a certificate"
         );
         if let Some(problem) = master.role_problem {
-            warn!(
-                target: TCP_EVENTS,
-                master = master.master,
-                peer = %master.peer,
-                subject = master.subject,
-                "certificate role ignored: {problem}; the master gets default_role_access"
-            );
+            match self.role_problems.due(master.peer.ip()) {
+                Some(held_back) => warn!(
+                    target: TCP_EVENTS,
+                    master = master.master,
+                    peer = %master.peer,
+                    subject = master.subject,
+                    held_back,
+                    "certificate role ignored: {problem}; the master gets default_role_access"
+                ),
+                None => debug!(
+                    target: TCP_EVENTS,
+                    master = master.master,
+                    peer = %master.peer,
+                    "certificate role ignored: {problem}"
+                ),
+            }
         }
     }
 
