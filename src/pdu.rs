@@ -184,6 +184,29 @@ fn diagnostics_reads(pdu: &[u8]) -> bool {
     }
 }
 
+/// Read File Record reads only when its sub-requests are what the Modbus Application Protocol
+/// says: seven bytes each, reference type 6, a record number up to 270FH. Its bytes are the
+/// master's to choose, and a slave that does not implement the function may frame them its own
+/// way (libmodbus takes four bytes of any function it does not know as a frame, and what follows
+/// as the next request): a master that may only read does not get to choose them freely.
+fn file_records_read(pdu: &[u8]) -> bool {
+    let Some((&count, records)) = pdu.get(1..).and_then(<[u8]>::split_first) else {
+        return false;
+    };
+    usize::from(count) == records.len()
+        && !records.is_empty()
+        && records.len() % FILE_SUB_REQUEST == 0
+        && records.chunks(FILE_SUB_REQUEST).all(|record| {
+            record[0] == FILE_REFERENCE_TYPE
+                && u16::from_be_bytes([record[3], record[4]]) <= MAX_RECORD_NUMBER
+        })
+}
+
+/// A Read File Record sub-request: reference type, file number, record number, record length.
+const FILE_SUB_REQUEST: usize = 7;
+const FILE_REFERENCE_TYPE: u8 = 6;
+const MAX_RECORD_NUMBER: u16 = 0x270F;
+
 /// The diagnostics sub-function whose data is the master's to choose (any number of words).
 const RETURN_QUERY_DATA: u16 = 0x0000;
 /// The diagnostics sub-functions of the Modbus Application Protocol V1.1b3 with one data word:
@@ -283,7 +306,7 @@ pub const FUNCTIONS: &[Function] = &[
     row(REPORT_SERVER_ID, "Report Server ID",
         BARE, COUNT, Read, Refused, Shape::Any),
     row(READ_FILE_RECORD, "Read File Record",
-        COUNT, COUNT, Read, Refused, Shape::Any),
+        COUNT, COUNT, ReadIf(file_records_read), Refused, Shape::Any),
     row(WRITE_FILE_RECORD, "Write File Record",
         COUNT, COUNT, Write, EchoRequest, Shape::Any),
     row(MASK_WRITE_REGISTER, "Mask Write Register",
@@ -728,6 +751,28 @@ mod tests {
         assert_eq!(request_len(&[0x2B, 0x0D, 1, 2, 3]), RequestLen::Unchecked);
         // User-defined codes.
         assert_eq!(request_len(&[0x41, 1, 2, 3]), RequestLen::Unchecked);
+    }
+
+    #[test]
+    fn read_file_record_is_a_read_only_with_the_sub_requests_the_spec_gives_it() {
+        // File 4, record 1, two words; file 3, record 9, two words (the spec's example).
+        let spec = [
+            0x14, 0x0E, 0x06, 0x00, 0x04, 0x00, 0x01, 0x00, 0x02, 0x06, 0x00, 0x03, 0x00, 0x09,
+            0x00, 0x02,
+        ];
+        assert!(is_read_only(&spec));
+        let mut other_type = spec;
+        other_type[9] = 0x01;
+        assert!(!is_read_only(&other_type), "a reference type other than 6");
+        let mut record = spec;
+        record[5] = 0x27;
+        record[6] = 0x10;
+        assert!(!is_read_only(&record), "record number 2710H");
+        // Not whole sub-requests: room for bytes the spec does not give.
+        let mut short = spec[..15].to_vec();
+        short[1] = 0x0D;
+        assert!(!is_read_only(&short));
+        assert!(!is_read_only(&[0x14, 0x00]), "no sub-request");
     }
 
     #[test]
