@@ -15,7 +15,8 @@
 //! after the follower arrived (the leader is taken from the queue only when the line is ready
 //! for its frame). A write to a slave starts a new epoch for it: no read joins a leader from an
 //! earlier epoch, and a cached answer (the opt-in per-slave cache kept here, under the same
-//! lock as the epochs) dies with its epoch.
+//! lock as the epochs) dies with its epoch. The heads reads may join are indexed by (slave,
+//! epoch, PDU), so that neither a push nor a pop looks at every master's FIFO.
 //!
 //! Admission is fair as well. `queue_depth` bounds the requests waiting for the line (followers
 //! included) over all masters, and while there is room every request goes in. Once the queue is
@@ -298,13 +299,53 @@ impl Ring {
             self.keys.retain(|&k| k != key);
         }
     }
+}
 
-    /// Every master here, in serving order.
-    fn iter(&self) -> impl Iterator<Item = MasterId> + '_ {
-        self.keys
+/// A read others may join, as [`Leaders`] knows it: its slave, that slave's write epoch when it
+/// was queued, and its PDU.
+type ReadKey = (u8, u64, Vec<u8>);
+
+/// Per ring, the masters whose head is a read others may join, by that read, so that a read
+/// finds one to join without looking at every master's head.
+#[derive(Default)]
+struct Leaders([HashMap<ReadKey, Vec<MasterId>>; RINGS]);
+
+impl Leaders {
+    fn key(job: &Job) -> ReadKey {
+        (job.slave, job.epoch, job.pdu.clone())
+    }
+
+    /// `head` is at the head of its master's FIFO in ring `r` now.
+    fn add(&mut self, r: usize, head: &Job) {
+        if head.coalesce {
+            self.0[r]
+                .entry(Self::key(head))
+                .or_default()
+                .push(head.master);
+        }
+    }
+
+    /// `head` is at the head of its master's FIFO in ring `r` no more.
+    fn remove(&mut self, r: usize, head: &Job) {
+        if !head.coalesce {
+            return;
+        }
+        if let hash_map::Entry::Occupied(mut masters) = self.0[r].entry(Self::key(head)) {
+            masters.get_mut().retain(|&m| m != head.master);
+            if masters.get().is_empty() {
+                masters.remove();
+            }
+        }
+    }
+
+    /// A master whose head `job` may join: a priority one first, and for a priority job only
+    /// such a one.
+    fn find(&self, job: &Job) -> Option<MasterId> {
+        let rings: &[usize] = if job.priority { &[1] } else { &[1, 0] };
+        let key = Self::key(job);
+        rings
             .iter()
-            .filter_map(|key| self.masters.get(key))
-            .flatten()
+            .find_map(|&r| self.0[r].get(&key).and_then(|masters| masters.first()))
             .copied()
     }
 }
@@ -327,6 +368,8 @@ struct Inner {
     queues: HashMap<MasterId, Fifo>,
     /// Exactly the masters with queued jobs, in serving order, per ring.
     turn: [Ring; RINGS],
+    /// Exactly the masters whose head others' reads may join.
+    leaders: Leaders,
     /// Jobs and followers waiting.
     len: usize,
     /// Jobs and followers waiting, by whose share they count against; only keys holding some.
@@ -360,6 +403,7 @@ impl FairQueue {
             inner: Mutex::new(Inner {
                 queues: HashMap::new(),
                 turn: Default::default(),
+                leaders: Leaders::default(),
                 len: 0,
                 held: HashMap::new(),
                 closed: false,
@@ -455,8 +499,15 @@ impl FairQueue {
         inner.share.picked(priority);
         let r = ring(priority);
         let (place, master) = next[r]?;
+        let inner = &mut *inner;
         let queue = inner.queues.get_mut(&master)?;
         let job = queue.jobs.pop_front();
+        if let Some(job) = &job {
+            inner.leaders.remove(queue.ring, job);
+        }
+        if let Some(head) = queue.jobs.front() {
+            inner.leaders.add(queue.ring, head);
+        }
         let more = !queue.jobs.is_empty();
         if !more {
             inner.queues.remove(&master);
@@ -487,6 +538,7 @@ impl FairQueue {
         let mut inner = self.lock();
         let jobs = inner.queues.drain().flat_map(|(_, q)| q.jobs).collect();
         inner.turn = Default::default();
+        inner.leaders = Leaders::default();
         inner.following.clear();
         inner.len = 0;
         inner.held.clear();
@@ -515,6 +567,9 @@ impl FairQueue {
         let mut gone = Vec::new();
         if let Some(queue) = inner.queues.remove(&master) {
             inner.turn[queue.ring].remove(queue.key, master);
+            if let Some(head) = queue.jobs.front() {
+                inner.leaders.remove(queue.ring, head);
+            }
             for mut job in queue.jobs {
                 inner.release(job.admission, job.priority);
                 let followers = std::mem::take(&mut job.followers);
@@ -616,35 +671,23 @@ impl Inner {
         if !job.coalesce || master_busy {
             return Err(job);
         }
-        let rings: &[usize] = if job.priority { &[1] } else { &[1, 0] };
-        let leader = rings.iter().find_map(|&r| {
-            self.turn[r].iter().find(|master| {
-                self.queues
-                    .get(master)
-                    .and_then(|queue| queue.jobs.front())
-                    .is_some_and(|head| {
-                        head.coalesce
-                            && head.slave == job.slave
-                            && head.epoch == job.epoch
-                            && head.pdu == job.pdu
-                    })
-            })
-        });
-        let Some(leader) = leader else {
+        let head = self
+            .leaders
+            .find(&job)
+            .and_then(|leader| self.queues.get_mut(&leader))
+            .and_then(|queue| queue.jobs.front_mut())
+            .filter(|head| {
+                head.coalesce
+                    && head.slave == job.slave
+                    && head.epoch == job.epoch
+                    && head.pdu == job.pdu
+            });
+        let Some(head) = head else {
             return Err(job);
         };
         *self.following.entry(job.master).or_default() += 1;
-        let head = self
-            .queues
-            .get_mut(&leader)
-            .and_then(|queue| queue.jobs.front_mut());
-        match head {
-            Some(head) => {
-                head.followers.push(job.follower());
-                Ok(())
-            }
-            None => Err(job),
-        }
+        head.followers.push(job.follower());
+        Ok(())
     }
 
     /// One more request waits, counted against `key`.
@@ -705,6 +748,7 @@ impl Inner {
             let queue = self.queues.get_mut(&master)?;
             let mut job = queue.jobs.pop_back()?;
             if queue.jobs.is_empty() {
+                self.leaders.remove(queue.ring, &job);
                 self.turn[queue.ring].remove(queue.key, master);
                 self.queues.remove(&master);
             }
@@ -730,11 +774,19 @@ impl Inner {
     /// queued so far takes its place in the rotation.
     fn enqueue(&mut self, job: Job, first: bool) {
         match self.queues.entry(job.master) {
-            hash_map::Entry::Occupied(queue) if first => queue.into_mut().jobs.push_front(job),
+            hash_map::Entry::Occupied(queue) if first => {
+                let queue = queue.into_mut();
+                if let Some(head) = queue.jobs.front() {
+                    self.leaders.remove(queue.ring, head);
+                }
+                self.leaders.add(queue.ring, &job);
+                queue.jobs.push_front(job);
+            }
             hash_map::Entry::Occupied(queue) => queue.into_mut().jobs.push_back(job),
             hash_map::Entry::Vacant(queue) => {
                 let (r, key) = (ring(job.priority), job.admission);
                 self.turn[r].push(key, job.master);
+                self.leaders.add(r, &job);
                 queue.insert(Fifo {
                     jobs: VecDeque::from([job]),
                     ring: r,
@@ -829,6 +881,25 @@ mod tests {
             }
         }
         assert_eq!(placed.len(), inner.queues.len());
+        // The leaders are exactly the joinable heads, each under its own read and ring.
+        let mut heads: Vec<(usize, ReadKey, MasterId)> = inner
+            .queues
+            .values()
+            .filter_map(|queue| Some((queue.ring, queue.jobs.front()?)))
+            .filter(|(_, head)| head.coalesce)
+            .map(|(r, head)| (r, Leaders::key(head), head.master))
+            .collect();
+        let mut leaders: Vec<(usize, ReadKey, MasterId)> = (0..RINGS)
+            .flat_map(|r| {
+                inner.leaders.0[r].iter().flat_map(move |(key, masters)| {
+                    assert!(!masters.is_empty());
+                    masters.iter().map(move |&m| (r, key.clone(), m))
+                })
+            })
+            .collect();
+        heads.sort_unstable();
+        leaders.sort_unstable();
+        assert_eq!(heads, leaders);
         let mut held: HashMap<MasterId, usize> = HashMap::new();
         for job in inner.queues.values().flat_map(|queue| &queue.jobs) {
             *held.entry(job.admission).or_default() += 1;
