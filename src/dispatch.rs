@@ -50,8 +50,9 @@ pub struct Client {
     pub priority: bool,
     /// How it talks to the gateway: Modbus TCP unless [`Client::speaking`] says otherwise.
     pub protocol: Protocol,
-    /// Whose share of a full bus queue its requests count against: its own, or one its listener
-    /// gives all the masters of one source address (Modbus UDP).
+    /// Whose share of a full bus queue its requests count against and whose turn on the line
+    /// they take: its own, or one its listener gives all the masters of one source address
+    /// (Modbus UDP).
     pub admission: MasterId,
 }
 

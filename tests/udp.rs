@@ -2,7 +2,8 @@
 //! came from; the buses, routes and access lists they share with TCP masters; what is dropped;
 //! a flood from many ports of one address.
 
-use crate::support::{polite_reads, start, within, Flood, Scrape, PATIENCE};
+use crate::support::{frames_from, polite_reads, start, within, Flood, Scrape, PATIENCE};
+use modbus_gateway::sim::Source;
 use modbus_gateway::Gateway;
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -317,6 +318,50 @@ async fn forty_udp_ports_of_one_address_flooding_leave_a_polite_master_95_percen
     }
     eprintln!("polite master: {answered} of 20 answered");
     assert!(answered >= 19, "polite master: {answered} of 20 answered");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn forty_udp_ports_of_one_address_take_one_turn_so_a_polite_master_waits_at_most_one_of_their_transactions(
+) {
+    // Slow enough that the polite master's next read is queued well within one transaction of
+    // the flood, so what it waits for is the queue's order, not the scheduler's.
+    let gateway = start(
+        "[server]\nlisten = \"127.0.0.1:0\"\nlisten_udp = \"127.0.0.1:0\"\n\
+         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 19200\nparity = \"none\"\n\
+         queue_depth = 64\nqueue_timeout = \"60s\"\n\
+         [[bus.sim_slave]]\naddress = \"1-2\"\n",
+    )
+    .await;
+    let udp = udp_addr(&gateway);
+    let flood = Flood::new();
+    let ports: Vec<_> = (0..40)
+        .map(|port| tokio::spawn(flood_from_port(udp, port, flood.clone())))
+        .collect();
+    flood.until_refused(40).await;
+    // The flood reads slave 1, the polite master slave 2.
+    const READS: u16 = 10;
+    let answered = polite_reads(gateway.local_addrs()[0], 2, READS).await;
+    let line = gateway.sim_line("sim").expect("a simulated line");
+    let frames = frames_from(&line, Source::Master);
+    flood.stop();
+    for port in ports {
+        within("a port stops", port).await.expect("port task");
+    }
+    assert_eq!(answered, READS);
+    let polite: Vec<usize> = (0..frames.len())
+        .filter(|&at| frames[at].first() == Some(&2))
+        .collect();
+    assert_eq!(
+        polite.len(),
+        usize::from(READS),
+        "each read once on the wire"
+    );
+    // Between two of its reads: a transaction of the flood that may have started before its
+    // next read came, another if the flood's turn came first, and one spare for a slow
+    // scheduler. Were each port a master of its own, the flood's 40 turns would come first.
+    let between: Vec<usize> = polite.windows(2).map(|w| w[1] - w[0] - 1).collect();
+    eprintln!("flood transactions between the polite master's reads: {between:?}");
+    assert!(between.iter().all(|&n| n <= 3), "{between:?}");
 }
 
 /// One source port of 127.0.0.1 keeping 16 reads of its own input register in flight (as many

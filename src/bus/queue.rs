@@ -4,12 +4,19 @@
 //! served first up to `priority_share` of the line. A master that leaves takes its queued
 //! requests with it.
 //!
+//! The turns go round robin over [`Origin::admission`] keys, and within a key over its masters:
+//! a connection is a key of its own, while all the ports of one Modbus UDP source address share
+//! one turn (ports cost a sender nothing). So 40 ports of one host flooding the line take one
+//! transaction in two while a connection waits, not 40 in 41; each port still has its own FIFO,
+//! order and replies, and its turns come in rotation among its address's ports.
+//!
 //! Reads coalesce here: a read identical (slave, PDU) to one waiting at the head of another
 //! master's FIFO joins it as a [`Follower`] and is answered by its transaction, which starts
 //! after the follower arrived (the leader is taken from the queue only when the line is ready
 //! for its frame). A write to a slave starts a new epoch for it: no read joins a leader from an
 //! earlier epoch, and a cached answer (the opt-in per-slave cache kept here, under the same
-//! lock as the epochs) dies with its epoch.
+//! lock as the epochs) dies with its epoch. The heads reads may join are indexed by (slave,
+//! epoch, PDU), so that neither a push nor a pop looks at every master's FIFO.
 //!
 //! Admission is fair as well. `queue_depth` bounds the requests waiting for the line (followers
 //! included) over all masters, and while there is room every request goes in. Once the queue is
@@ -37,15 +44,16 @@ use std::time::Duration;
 use tokio::sync::{oneshot, Notify};
 use tokio::time::Instant;
 
-/// One TCP connection.
+/// One master: a connection, or one source port of a Modbus UDP address.
 pub type MasterId = u64;
 
 /// Who a request comes from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Origin {
     pub master: MasterId,
-    /// Whose share of a full queue it counts against: the master's own id for a connection; for
-    /// Modbus UDP, one id for every port of a source address (ports cost a sender nothing).
+    /// Whose share of a full queue it counts against and whose turn on the line it takes: the
+    /// master's own id for a connection; for Modbus UDP, one id for every port of a source
+    /// address (ports cost a sender nothing).
     pub admission: MasterId,
     /// How the master talks to the gateway, for the requests' `protocol` label.
     pub protocol: Protocol,
@@ -221,6 +229,134 @@ fn ring(priority: bool) -> usize {
     usize::from(priority)
 }
 
+/// The masters with jobs queued in one ring, in serving order: round robin over admission keys,
+/// and within a key over its masters.
+#[derive(Default)]
+struct Ring {
+    /// Exactly the keys with a master here, the next to serve first.
+    keys: VecDeque<MasterId>,
+    /// By key in `keys`: exactly its masters here, the next to serve first.
+    masters: HashMap<MasterId, VecDeque<MasterId>>,
+}
+
+/// Where a master to serve stands in its [`Ring`]: its key's place, and its own within the key.
+#[derive(Clone, Copy)]
+struct Place {
+    key: usize,
+    master: usize,
+}
+
+impl Ring {
+    /// `master` of `key` has jobs now: served after the others of its key, and a key new here
+    /// after every other key.
+    fn push(&mut self, key: MasterId, master: MasterId) {
+        match self.masters.entry(key) {
+            hash_map::Entry::Occupied(mut masters) => masters.get_mut().push_back(master),
+            hash_map::Entry::Vacant(masters) => {
+                masters.insert(VecDeque::from([master]));
+                self.keys.push_back(key);
+            }
+        }
+    }
+
+    /// The next master to serve: the first that may go (`ready`) of the first key that has one.
+    fn next(&self, ready: impl Fn(MasterId) -> bool) -> Option<(Place, MasterId)> {
+        self.keys.iter().enumerate().find_map(|(key, id)| {
+            let masters = self.masters.get(id)?;
+            let master = masters.iter().position(|&m| ready(m))?;
+            Some((Place { key, master }, masters[master]))
+        })
+    }
+
+    /// The master at `place` was served: its key goes last, and it goes last within its key if
+    /// it has `more` jobs, or leaves the ring.
+    fn served(&mut self, place: Place, more: bool) {
+        let Some(key) = self.keys.remove(place.key) else {
+            return;
+        };
+        let hash_map::Entry::Occupied(mut masters) = self.masters.entry(key) else {
+            return;
+        };
+        let master = masters.get_mut().remove(place.master);
+        if let (true, Some(master)) = (more, master) {
+            masters.get_mut().push_back(master);
+        }
+        if masters.get().is_empty() {
+            masters.remove();
+        } else {
+            self.keys.push_back(key);
+        }
+    }
+
+    /// `master` of `key` has no jobs any more (it left, or its last one was refused).
+    fn remove(&mut self, key: MasterId, master: MasterId) {
+        let hash_map::Entry::Occupied(mut masters) = self.masters.entry(key) else {
+            return;
+        };
+        masters.get_mut().retain(|&m| m != master);
+        if masters.get().is_empty() {
+            masters.remove();
+            self.keys.retain(|&k| k != key);
+        }
+    }
+}
+
+/// A read others may join, as [`Leaders`] knows it: its slave, that slave's write epoch when it
+/// was queued, and its PDU.
+type ReadKey = (u8, u64, Vec<u8>);
+
+/// Per ring, the masters whose head is a read others may join, by that read, so that a read
+/// finds one to join without looking at every master's head.
+#[derive(Default)]
+struct Leaders([HashMap<ReadKey, Vec<MasterId>>; RINGS]);
+
+impl Leaders {
+    fn key(job: &Job) -> ReadKey {
+        (job.slave, job.epoch, job.pdu.clone())
+    }
+
+    /// `head` is at the head of its master's FIFO in ring `r` now.
+    fn add(&mut self, r: usize, head: &Job) {
+        if head.coalesce {
+            self.0[r]
+                .entry(Self::key(head))
+                .or_default()
+                .push(head.master);
+        }
+    }
+
+    /// `head` is at the head of its master's FIFO in ring `r` no more.
+    fn remove(&mut self, r: usize, head: &Job) {
+        if !head.coalesce {
+            return;
+        }
+        if let hash_map::Entry::Occupied(mut masters) = self.0[r].entry(Self::key(head)) {
+            masters.get_mut().retain(|&m| m != head.master);
+            if masters.get().is_empty() {
+                masters.remove();
+            }
+        }
+    }
+
+    /// A master whose head `job` may join: a priority one first, and for a priority job only
+    /// such a one.
+    fn find(&self, job: &Job) -> Option<MasterId> {
+        let rings: &[usize] = if job.priority { &[1] } else { &[1, 0] };
+        let key = Self::key(job);
+        rings
+            .iter()
+            .find_map(|&r| self.0[r].get(&key).and_then(|masters| masters.first()))
+            .copied()
+    }
+}
+
+/// One master's jobs, in its own order, and where it stands in the rotation (from its first).
+struct Fifo {
+    jobs: VecDeque<Job>,
+    ring: usize,
+    key: MasterId,
+}
+
 pub struct FairQueue {
     inner: Mutex<Inner>,
     ready: Notify,
@@ -228,9 +364,12 @@ pub struct FairQueue {
 }
 
 struct Inner {
-    queues: HashMap<MasterId, VecDeque<Job>>,
+    /// Exactly the masters with queued jobs.
+    queues: HashMap<MasterId, Fifo>,
     /// Exactly the masters with queued jobs, in serving order, per ring.
-    turn: [VecDeque<MasterId>; RINGS],
+    turn: [Ring; RINGS],
+    /// Exactly the masters whose head others' reads may join.
+    leaders: Leaders,
     /// Jobs and followers waiting.
     len: usize,
     /// Jobs and followers waiting, by whose share they count against; only keys holding some.
@@ -264,6 +403,7 @@ impl FairQueue {
             inner: Mutex::new(Inner {
                 queues: HashMap::new(),
                 turn: Default::default(),
+                leaders: Leaders::default(),
                 len: 0,
                 held: HashMap::new(),
                 closed: false,
@@ -332,7 +472,7 @@ impl FairQueue {
             let pushed = match inner.join(job) {
                 Ok(()) => Pushed::Joined,
                 Err(job) => {
-                    inner.enqueue(job);
+                    inner.enqueue(job, false);
                     Pushed::Queued
                 }
             };
@@ -345,27 +485,34 @@ impl FairQueue {
     }
 
     /// The next job: from the priority ring first, up to its share of the line while others
-    /// wait, then round robin across masters within a ring. Its followers come with it; from
-    /// now on nothing joins it.
+    /// wait, then round robin across admission keys within a ring, and across a key's masters
+    /// within its turns. Its followers come with it; from now on nothing joins it.
     pub fn try_pop(&self) -> Option<Job> {
         let mut inner = self.lock();
-        let waiting = [0, 1].map(|r| inner.ready_master(r).is_some());
-        let priority = match waiting {
+        let next = [0, 1].map(|r| inner.ready_master(r));
+        let priority = match next.map(|next| next.is_some()) {
             [true, true] => inner.share.priority_next(),
             [false, true] => true,
             [true, false] => false,
             [false, false] => return None,
         };
         inner.share.picked(priority);
-        let at = inner.ready_master(ring(priority))?;
-        let master = inner.turn[ring(priority)].remove(at)?;
+        let r = ring(priority);
+        let (place, master) = next[r]?;
+        let inner = &mut *inner;
         let queue = inner.queues.get_mut(&master)?;
-        let job = queue.pop_front();
-        if queue.is_empty() {
-            inner.queues.remove(&master);
-        } else {
-            inner.turn[ring(priority)].push_back(master);
+        let job = queue.jobs.pop_front();
+        if let Some(job) = &job {
+            inner.leaders.remove(queue.ring, job);
         }
+        if let Some(head) = queue.jobs.front() {
+            inner.leaders.add(queue.ring, head);
+        }
+        let more = !queue.jobs.is_empty();
+        if !more {
+            inner.queues.remove(&master);
+        }
+        inner.turn[r].served(place, more);
         let job = job?;
         inner.release(job.admission, job.priority);
         for follower in &job.followers {
@@ -389,8 +536,9 @@ impl FairQueue {
     /// Take every queued job (with its followers).
     pub fn drain(&self) -> Vec<Job> {
         let mut inner = self.lock();
-        let jobs = inner.queues.drain().flat_map(|(_, q)| q).collect();
+        let jobs = inner.queues.drain().flat_map(|(_, q)| q.jobs).collect();
         inner.turn = Default::default();
+        inner.leaders = Leaders::default();
         inner.following.clear();
         inner.len = 0;
         inner.held.clear();
@@ -418,10 +566,11 @@ impl FairQueue {
         let mut inner = self.lock();
         let mut gone = Vec::new();
         if let Some(queue) = inner.queues.remove(&master) {
-            for turn in &mut inner.turn {
-                turn.retain(|&m| m != master);
+            inner.turn[queue.ring].remove(queue.key, master);
+            if let Some(head) = queue.jobs.front() {
+                inner.leaders.remove(queue.ring, head);
             }
-            for mut job in queue {
+            for mut job in queue.jobs {
                 inner.release(job.admission, job.priority);
                 let followers = std::mem::take(&mut job.followers);
                 inner.promote(&job, followers);
@@ -431,7 +580,7 @@ impl FairQueue {
         if inner.following.remove(&master).is_some() {
             let mut left = Vec::new();
             for queue in inner.queues.values_mut() {
-                for job in queue.iter_mut() {
+                for job in queue.jobs.iter_mut() {
                     let (mine, others) = std::mem::take(&mut job.followers)
                         .into_iter()
                         .partition(|f: &Follower| f.master == master);
@@ -522,32 +671,23 @@ impl Inner {
         if !job.coalesce || master_busy {
             return Err(job);
         }
-        let rings: &[usize] = if job.priority { &[1] } else { &[1, 0] };
-        let leader = rings.iter().find_map(|&r| {
-            self.turn[r].iter().find(|master| {
-                self.queues
-                    .get(master)
-                    .and_then(VecDeque::front)
-                    .is_some_and(|head| {
-                        head.coalesce
-                            && head.slave == job.slave
-                            && head.epoch == job.epoch
-                            && head.pdu == job.pdu
-                    })
-            })
-        });
-        let Some(&leader) = leader else {
+        let head = self
+            .leaders
+            .find(&job)
+            .and_then(|leader| self.queues.get_mut(&leader))
+            .and_then(|queue| queue.jobs.front_mut())
+            .filter(|head| {
+                head.coalesce
+                    && head.slave == job.slave
+                    && head.epoch == job.epoch
+                    && head.pdu == job.pdu
+            });
+        let Some(head) = head else {
             return Err(job);
         };
         *self.following.entry(job.master).or_default() += 1;
-        let head = self.queues.get_mut(&leader).and_then(VecDeque::front_mut);
-        match head {
-            Some(head) => {
-                head.followers.push(job.follower());
-                Ok(())
-            }
-            None => Err(job),
-        }
+        head.followers.push(job.follower());
+        Ok(())
     }
 
     /// One more request waits, counted against `key`.
@@ -595,20 +735,22 @@ impl Inner {
         let busiest = self
             .queues
             .iter()
-            .filter(|(_, queue)| queue.back().is_some_and(|job| job.admission == key))
+            .filter(|(_, queue)| queue.jobs.back().is_some_and(|job| job.admission == key))
             .max_by_key(|&(&master, queue)| {
-                let led = queue.back().is_some_and(|job| !job.followers.is_empty());
-                (!led, queue.len(), Reverse(master))
+                let led = queue
+                    .jobs
+                    .back()
+                    .is_some_and(|job| !job.followers.is_empty());
+                (!led, queue.jobs.len(), Reverse(master))
             })
             .map(|(&master, _)| master);
         if let Some(master) = busiest {
             let queue = self.queues.get_mut(&master)?;
-            let mut job = queue.pop_back()?;
-            if queue.is_empty() {
+            let mut job = queue.jobs.pop_back()?;
+            if queue.jobs.is_empty() {
+                self.leaders.remove(queue.ring, &job);
+                self.turn[queue.ring].remove(queue.key, master);
                 self.queues.remove(&master);
-                for turn in &mut self.turn {
-                    turn.retain(|&m| m != master);
-                }
             }
             self.release(job.admission, job.priority);
             let followers = std::mem::take(&mut job.followers);
@@ -618,7 +760,7 @@ impl Inner {
         let job = self
             .queues
             .values_mut()
-            .flat_map(|queue| queue.iter_mut())
+            .flat_map(|queue| queue.jobs.iter_mut())
             .find_map(|leader| {
                 let at = leader.followers.iter().rposition(|f| f.admission == key)?;
                 Some(leader.followers.remove(at).leading(leader))
@@ -628,22 +770,36 @@ impl Inner {
         Some(job)
     }
 
-    fn enqueue(&mut self, job: Job) {
-        let master = job.master;
-        let priority = job.priority;
-        let queue = self.queues.entry(master).or_default();
-        queue.push_back(job);
-        if queue.len() == 1 {
-            self.turn[ring(priority)].push_back(master);
+    /// Queue `job` last in its master's FIFO, or (`first`) at its head; a master with nothing
+    /// queued so far takes its place in the rotation.
+    fn enqueue(&mut self, job: Job, first: bool) {
+        match self.queues.entry(job.master) {
+            hash_map::Entry::Occupied(queue) if first => {
+                let queue = queue.into_mut();
+                if let Some(head) = queue.jobs.front() {
+                    self.leaders.remove(queue.ring, head);
+                }
+                self.leaders.add(queue.ring, &job);
+                queue.jobs.push_front(job);
+            }
+            hash_map::Entry::Occupied(queue) => queue.into_mut().jobs.push_back(job),
+            hash_map::Entry::Vacant(queue) => {
+                let (r, key) = (ring(job.priority), job.admission);
+                self.turn[r].push(key, job.master);
+                self.leaders.add(r, &job);
+                queue.insert(Fifo {
+                    jobs: VecDeque::from([job]),
+                    ring: r,
+                    key,
+                });
+            }
         }
     }
 
-    /// Where in ring `r` the next master to serve is: the first whose head may go now (one
-    /// with a read following another's waits for it).
-    fn ready_master(&self, r: usize) -> Option<usize> {
-        self.turn[r]
-            .iter()
-            .position(|master| !self.following.contains_key(master))
+    /// Who in ring `r` is the next master to serve: the first whose head may go now (one with a
+    /// read following another's waits for it).
+    fn ready_master(&self, r: usize) -> Option<(Place, MasterId)> {
+        self.turn[r].next(|master| !self.following.contains_key(&master))
     }
 
     fn unfollow(&mut self, master: MasterId) {
@@ -665,12 +821,7 @@ impl Inner {
         self.unfollow(first.master);
         let mut promoted = first.leading(job);
         promoted.followers = followers.collect();
-        let (master, priority) = (promoted.master, promoted.priority);
-        let queue = self.queues.entry(master).or_default();
-        queue.push_front(promoted);
-        if queue.len() == 1 {
-            self.turn[ring(priority)].push_back(master);
-        }
+        self.enqueue(promoted, true);
     }
 }
 
@@ -706,6 +857,60 @@ mod tests {
 
     fn job(master: MasterId, tag: u8) -> (Job, oneshot::Receiver<Outcome>) {
         request(origin(master, false), 1, &[0x03, tag])
+    }
+
+    /// The rotation holds exactly the masters with jobs queued, each once, under the ring and
+    /// key of its jobs; the counts are those of the jobs and followers queued.
+    fn consistent(q: &FairQueue) {
+        let inner = q.lock();
+        let mut placed = std::collections::HashSet::new();
+        for (r, rotation) in inner.turn.iter().enumerate() {
+            let keys: std::collections::HashSet<_> = rotation.keys.iter().collect();
+            assert_eq!(keys.len(), rotation.keys.len(), "a key once");
+            assert_eq!(keys.len(), rotation.masters.len());
+            for (key, masters) in &rotation.masters {
+                assert!(keys.contains(key) && !masters.is_empty());
+                for master in masters {
+                    let queue = &inner.queues[master];
+                    assert_eq!((queue.ring, queue.key), (r, *key));
+                    assert!(queue.jobs.iter().all(|j| {
+                        (ring(j.priority), j.admission, j.master) == (r, *key, *master)
+                    }));
+                    assert!(placed.insert(*master), "master {master} once");
+                }
+            }
+        }
+        assert_eq!(placed.len(), inner.queues.len());
+        // The leaders are exactly the joinable heads, each under its own read and ring.
+        let mut heads: Vec<(usize, ReadKey, MasterId)> = inner
+            .queues
+            .values()
+            .filter_map(|queue| Some((queue.ring, queue.jobs.front()?)))
+            .filter(|(_, head)| head.coalesce)
+            .map(|(r, head)| (r, Leaders::key(head), head.master))
+            .collect();
+        let mut leaders: Vec<(usize, ReadKey, MasterId)> = (0..RINGS)
+            .flat_map(|r| {
+                inner.leaders.0[r].iter().flat_map(move |(key, masters)| {
+                    assert!(!masters.is_empty());
+                    masters.iter().map(move |&m| (r, key.clone(), m))
+                })
+            })
+            .collect();
+        heads.sort_unstable();
+        leaders.sort_unstable();
+        assert_eq!(heads, leaders);
+        let mut held: HashMap<MasterId, usize> = HashMap::new();
+        for job in inner.queues.values().flat_map(|queue| &queue.jobs) {
+            *held.entry(job.admission).or_default() += 1;
+            for follower in &job.followers {
+                *held.entry(follower.admission).or_default() += 1;
+            }
+        }
+        assert_eq!(inner.len, held.values().sum::<usize>());
+        let counted: HashMap<MasterId, usize> =
+            inner.held.iter().map(|(&k, h)| (k, h.requests)).collect();
+        assert_eq!(counted, held);
     }
 
     fn order(q: &FairQueue) -> Vec<(MasterId, u8)> {
@@ -747,6 +952,75 @@ mod tests {
             ..origin(port, false)
         };
         request(origin, 1, &[0x03, tag])
+    }
+
+    #[test]
+    fn forty_ports_of_one_udp_address_take_one_turn_so_another_masters_job_goes_within_two_pops() {
+        let q = FairQueue::new(1024);
+        let mut keep = Vec::new();
+        for _ in 0..4 {
+            for port in 10..50 {
+                // Reads of a register of its own: none joins another.
+                let udp = Origin {
+                    admission: ADDRESS,
+                    protocol: Protocol::Udp,
+                    ..origin(port, false)
+                };
+                let (j, rx) = request(udp, 1, &[0x04, 0x00, port as u8, 0x00, 0x01]);
+                q.push(j, NONE).unwrap();
+                keep.push(rx);
+            }
+        }
+        for tag in 0..4 {
+            let (j, rx) = job(1, tag);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        let served: Vec<MasterId> = std::iter::from_fn(|| q.try_pop())
+            .map(|j| j.master)
+            .collect();
+        let connection: Vec<usize> = (0..served.len()).filter(|&at| served[at] == 1).collect();
+        assert_eq!(connection, [1, 3, 5, 7], "{served:?}");
+        // Within the address's turns its ports go round robin, each in its own order.
+        let ports: Vec<MasterId> = served.iter().copied().filter(|&m| m != 1).collect();
+        assert_eq!(ports.len(), 160);
+        assert!(ports
+            .chunks(40)
+            .all(|round| round.iter().copied().eq(10..50)));
+    }
+
+    #[test]
+    fn the_ports_of_one_udp_address_take_turns_within_its_turn() {
+        let q = FairQueue::new(16);
+        let mut keep = Vec::new();
+        for (port, address, tag) in [(10, ADDRESS, 0), (10, ADDRESS, 1), (11, ADDRESS, 2)] {
+            let (j, rx) = datagram(port, address, tag);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        for (master, tag) in [(1, 3), (1, 4)] {
+            let (j, rx) = job(master, tag);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        let (j, rx) = datagram(20, OTHER_ADDRESS, 5);
+        q.push(j, NONE).unwrap();
+        keep.push(rx);
+        assert_eq!(
+            order(&q),
+            [(10, 0), (1, 3), (20, 5), (11, 2), (1, 4), (10, 1)]
+        );
+        // A port that leaves takes only its own jobs; its address keeps its turn.
+        for (port, tag) in [(10, 6), (11, 7), (10, 8)] {
+            let (j, rx) = datagram(port, ADDRESS, tag);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        let (j, rx) = job(1, 9);
+        q.push(j, NONE).unwrap();
+        keep.push(rx);
+        assert_eq!(q.forget(10).len(), 2);
+        assert_eq!(order(&q), [(11, 7), (1, 9)]);
     }
 
     #[test]
@@ -985,6 +1259,7 @@ mod tests {
                 }
                 _ => q.forget(rng.u64(1..=12)).into_iter().for_each(settle),
             }
+            consistent(&q);
         }
         q.drain().into_iter().for_each(settle);
         for (master, mut rx) in waiting {

@@ -1,8 +1,8 @@
 //! Modbus UDP (`server.listen_udp`): one MBAP request per datagram, its reply sent to the
 //! datagram's source and nowhere else. A master is a source address and port; while it has
 //! requests pending it is one master in the buses' fair queues, like a TCP connection, but all
-//! the ports of one address count as one master for admission to a full queue (ports cost a
-//! sender nothing). Datagrams from outside `server.allow`, malformed ones, and those beyond
+//! the ports of one address share one turn on a line and count as one master for admission to a
+//! full queue (ports cost a sender nothing). Datagrams from outside `server.allow`, malformed ones, and those beyond
 //! `pipeline_depth` pending for one source are dropped and counted, never queued without bound.
 
 use super::mbap;
@@ -51,8 +51,8 @@ struct Sources {
     /// By source: its client state (a master id of its own) and how many of its requests are
     /// pending.
     ports: HashMap<SocketAddr, (Client, usize)>,
-    /// By address: the id all its sources' requests count against in a full bus queue, and how
-    /// many of its sources are in `ports`.
+    /// By address: the id all its sources' requests count against in a full bus queue and take
+    /// their turns on a line under, and how many of its sources are in `ports`.
     addresses: HashMap<IpAddr, (MasterId, usize)>,
 }
 
