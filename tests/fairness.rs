@@ -2,7 +2,9 @@
 //! line shared fairly even when some masters pipeline and others do not, and its queue too: a
 //! master that asks politely gets in however many others flood it.
 
-use crate::support::{addr, assert_fair, polite_reads, start, within, Flood, RawMaster, Rotation};
+use crate::support::{
+    addr, assert_fair, flood_target, polite_reads, start, within, Flood, RawMaster, Rotation,
+};
 use std::net::SocketAddr;
 use std::sync::Arc;
 use tokio::sync::Barrier;
@@ -75,13 +77,7 @@ const POLITE_READS: u16 = 20;
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn forty_connections_pipelining_sixteen_reads_leave_a_polite_master_95_percent_answered() {
     // Room for more requests than there are masters, for far fewer than the attackers send.
-    let gateway = start(
-        "[server]\nlisten = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\
-         queue_depth = 64\nqueue_timeout = \"60s\"\n\
-         [[bus.sim_slave]]\naddress = \"1-2\"\n",
-    )
-    .await;
+    let gateway = start(&flood_target(115200, 64)).await;
     let at = addr(&gateway);
     let flood = Flood::new();
     let attackers: Vec<_> = (0..ATTACKERS)

@@ -2,7 +2,9 @@
 //! came from; the buses, routes and access lists they share with TCP masters; what is dropped;
 //! a flood from many ports of one address.
 
-use crate::support::{frames_from, polite_reads, start, within, Flood, Scrape, PATIENCE};
+use crate::support::{
+    flood_target, frames_from, polite_reads, start, within, Flood, Scrape, PATIENCE,
+};
 use modbus_gateway::sim::Source;
 use modbus_gateway::Gateway;
 use std::net::SocketAddr;
@@ -297,13 +299,7 @@ async fn masters_of_all_three_kinds_polling_one_bus_are_all_answered_and_share_i
 async fn forty_udp_ports_of_one_address_flooding_leave_a_polite_master_95_percent_answered() {
     // Fewer places than ports: were each port a master of its own, they would hold one place
     // each and a newcomer would wait for room.
-    let gateway = start(
-        "[server]\nlisten = \"127.0.0.1:0\"\nlisten_udp = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\
-         queue_depth = 32\nqueue_timeout = \"60s\"\n\
-         [[bus.sim_slave]]\naddress = \"1-2\"\n",
-    )
-    .await;
+    let gateway = start(&flood_target(115200, 32)).await;
     let udp = udp_addr(&gateway);
     let flood = Flood::new();
     let mut ports = Vec::new();
@@ -325,13 +321,7 @@ async fn forty_udp_ports_of_one_address_take_one_turn_so_a_polite_master_waits_a
 ) {
     // Slow enough that the polite master's next read is queued well within one transaction of
     // the flood, so what it waits for is the queue's order, not the scheduler's.
-    let gateway = start(
-        "[server]\nlisten = \"127.0.0.1:0\"\nlisten_udp = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 19200\nparity = \"none\"\n\
-         queue_depth = 64\nqueue_timeout = \"60s\"\n\
-         [[bus.sim_slave]]\naddress = \"1-2\"\n",
-    )
-    .await;
+    let gateway = start(&flood_target(19200, 64)).await;
     let udp = udp_addr(&gateway);
     let flood = Flood::new();
     let ports: Vec<_> = (0..40)

@@ -708,6 +708,17 @@ pub fn silent_socket(addr: SocketAddr, pause: Duration) -> JoinHandle<()> {
     })
 }
 
+/// A gateway configuration for floods: Modbus TCP and UDP listeners, one simulated line at `baud`
+/// with register slaves 1 and 2, `queue_depth` places and a queue timeout no read reaches.
+pub fn flood_target(baud: u32, queue_depth: usize) -> String {
+    format!(
+        "[server]\nlisten = \"127.0.0.1:0\"\nlisten_udp = \"127.0.0.1:0\"\n\
+         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = {baud}\nparity = \"none\"\n\
+         queue_depth = {queue_depth}\nqueue_timeout = \"60s\"\n\
+         [[bus.sim_slave]]\naddress = \"1-2\"\n"
+    )
+}
+
 /// Masters flooding a gateway (an attack): when to stop, and how many of their requests it
 /// refused with 0x06.
 #[derive(Default)]
