@@ -418,22 +418,13 @@ async fn the_shipped_alerts_and_dashboard_use_only_metrics_the_gateway_exports()
 async fn every_scrape_succeeds_while_eight_stalled_trace_readers_and_silent_sockets_hold_the_endpoint(
 ) {
     use crate::support::{
-        fast_sim_config, keep_line_busy, silent_socket, stalled_trace_reader, status_line,
-        try_http_get,
+        fast_sim_config, fill_trace_with_stalled_readers, keep_line_busy, silent_socket,
+        stalled_trace_reader, try_http_get,
     };
     let gateway = start(&fast_sim_config()).await;
     let metrics = gateway.metrics_addr();
     let traffic = keep_line_busy(addr(&gateway));
-    let mut stalled = Vec::new();
-    for _ in 0..modbus_gateway::trace::MAX_READERS {
-        stalled.push(stalled_trace_reader(metrics).await);
-    }
-    within("the stalled readers hold every place of the trace", async {
-        while status_line(metrics, "/trace").await != Some(503) {
-            tokio::time::sleep(Duration::from_millis(50)).await;
-        }
-    })
-    .await;
+    let mut stalled = fill_trace_with_stalled_readers(metrics).await;
     // A stalled reader is dropped after a while: two more a second take the places that free.
     let more_stalled = tokio::spawn(async move {
         loop {

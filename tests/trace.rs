@@ -344,22 +344,13 @@ async fn more_trace_readers_than_eight_are_refused_and_metrics_are_still_served(
 #[tokio::test]
 async fn a_trace_reader_whose_stream_stays_blocked_is_dropped_and_its_place_goes_to_a_new_reader() {
     use crate::support::{
-        fast_sim_config, keep_line_busy, stalled_trace_reader, status_line, PATIENCE,
+        fast_sim_config, fill_trace_with_stalled_readers, keep_line_busy, status_line, PATIENCE,
     };
     use tokio::io::AsyncReadExt;
     let gateway = start(&fast_sim_config()).await;
     let metrics = gateway.metrics_addr();
     let traffic = keep_line_busy(gateway.local_addrs()[0]);
-    let mut stalled = Vec::new();
-    for _ in 0..modbus_gateway::trace::MAX_READERS {
-        stalled.push(stalled_trace_reader(metrics).await);
-    }
-    within("the stalled readers hold every place", async {
-        while status_line(metrics, "/trace").await != Some(503) {
-            tokio::time::sleep(Duration::from_millis(50)).await;
-        }
-    })
-    .await;
+    let stalled = fill_trace_with_stalled_readers(metrics).await;
     // Their streams block within a second or two; ten seconds later they are dropped.
     tokio::time::timeout(2 * PATIENCE, async {
         while status_line(metrics, "/trace").await != Some(200) {

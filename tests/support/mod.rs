@@ -641,6 +641,22 @@ pub async fn stalled_trace_reader(metrics: SocketAddr) -> TcpStream {
     stream
 }
 
+/// As many stalled trace readers as the endpoint takes ([`stalled_trace_reader`]), once a
+/// further reader is refused (503). Keep them to keep them connected.
+pub async fn fill_trace_with_stalled_readers(metrics: SocketAddr) -> Vec<TcpStream> {
+    let mut stalled = Vec::new();
+    for _ in 0..modbus_gateway::trace::MAX_READERS {
+        stalled.push(stalled_trace_reader(metrics).await);
+    }
+    within("the stalled readers hold every place of the trace", async {
+        while status_line(metrics, "/trace").await != Some(503) {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await;
+    stalled
+}
+
 /// The status code of a GET of `path` on a fresh connection, read from the status line alone
 /// (a trace stream's body never ends); `None` if the endpoint closed the connection instead.
 pub async fn status_line(addr: SocketAddr, path: &str) -> Option<u16> {
