@@ -93,9 +93,11 @@ impl Rs485 {
             fail("echo", "a simulated line does not echo");
         }
         let driven = self.mode != Rs485Mode::Off;
+        // A key left at its default changes nothing, so it is accepted in any mode: every
+        // commented default of config/gateway.toml can be uncommented.
         for (key, set) in [
-            ("rts_on_send", self.rts_on_send.is_some()),
-            ("rts_after_send", self.rts_after_send.is_some()),
+            ("rts_on_send", self.rts_on_send == Some(false)),
+            ("rts_after_send", self.rts_after_send == Some(true)),
             ("delay_before_send", !self.delay_before_send.is_zero()),
             ("delay_after_send", !self.delay_after_send.is_zero()),
             ("rx_during_tx", self.rx_during_tx),
@@ -138,8 +140,12 @@ mod tests {
     fn rs485_settings_that_cannot_work_are_refused_naming_the_key() {
         for (keys, expected) in [
             (
-                "rts_on_send = true",
+                "rts_on_send = false",
                 "bus[0].rs485.rts_on_send: only with mode = \"kernel\" or \"rts\"",
+            ),
+            (
+                "rts_after_send = true",
+                "bus[0].rs485.rts_after_send: only with mode = \"kernel\" or \"rts\"",
             ),
             (
                 "delay_after_send = \"1ms\"",
@@ -168,6 +174,15 @@ mod tests {
         }
         let e = errors(&format!("{MINIMAL}\n[bus.rs485]\nmode = \"half\""));
         assert!(e[0].starts_with("bus[0].rs485.mode"), "{e:?}");
+    }
+
+    #[test]
+    fn every_rs485_key_at_its_default_value_is_accepted_with_mode_off() {
+        let defaults = "[bus.rs485]\nmode = \"off\"\nrts_on_send = true\n\
+                        rts_after_send = false\ndelay_before_send = \"0s\"\n\
+                        delay_after_send = \"0s\"\nrx_during_tx = false\necho = false";
+        let c = Config::from_toml_str(&format!("{MINIMAL}\n{defaults}")).unwrap();
+        assert_eq!(c.bus[0].rs485.mode, Rs485Mode::Off);
     }
 
     #[test]
