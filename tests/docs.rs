@@ -204,3 +204,21 @@ fn every_commented_default_of_the_installed_config_can_be_uncommented() {
         panic!("config/gateway.toml, every default uncommented: {errors}\n{text}");
     }
 }
+
+#[test]
+fn the_security_pages_toml_excerpt_is_a_verbatim_part_of_the_tls_demo() {
+    let security = page("docs/security.md");
+    let demo = page("config/demo-tls.toml");
+    let excerpts: Vec<&str> = security
+        .split("```toml\n")
+        .skip(1)
+        .filter_map(|rest| rest.split_once("```").map(|(toml, _)| toml))
+        .collect();
+    assert!(!excerpts.is_empty(), "docs/security.md has no TOML excerpt");
+    for excerpt in excerpts {
+        assert!(
+            demo.contains(excerpt),
+            "docs/security.md shows what config/demo-tls.toml does not have:\n{excerpt}"
+        );
+    }
+}
