@@ -8,6 +8,7 @@
 use clap::{CommandFactory, Parser, Subcommand};
 use modbus_gateway::cli::{self, check_config::check_config, run::run, simulate::simulate, trace};
 use modbus_gateway::config::DEFAULT_PATH;
+use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -108,15 +109,22 @@ fn main() -> ExitCode {
     }
 }
 
+/// The script is made in memory: clap_complete panics on a failed write (a closed pipe).
 fn print_completions(shell: clap_complete::Shell) -> ExitCode {
     let mut command = Cli::command();
-    clap_complete::generate(
-        shell,
-        &mut command,
-        "modbus-gateway",
-        &mut std::io::stdout(),
-    );
-    ExitCode::SUCCESS
+    let mut script = Vec::new();
+    clap_complete::generate(shell, &mut command, "modbus-gateway", &mut script);
+    let written = std::io::stdout()
+        .lock()
+        .write_all(&script)
+        .and_then(|()| std::io::stdout().lock().flush());
+    match written {
+        Err(error) if !cli::reader_gone(&error) => {
+            eprintln!("modbus-gateway: cannot write to stdout: {error}");
+            ExitCode::FAILURE
+        }
+        _ => ExitCode::SUCCESS,
+    }
 }
 
 /// What the manual page says beyond the options: files, environment, exit status, where to read on.
@@ -136,7 +144,8 @@ Overrides a configuration key: MBGW__SERVER__LISTEN, MBGW__BUS__0__BAUD (array e
 RUST_LOG
 Overrides log.level (tracing's filter syntax).
 .SH EXIT STATUS
-0 on a clean stop (SIGTERM, SIGINT) or a valid configuration; 2 when the configuration cannot be
+0 on a clean stop (SIGTERM, SIGINT), a valid configuration, or when the reader of the output
+goes away (a closed pipe); 2 when the configuration cannot be
 used (each problem is written to stderr, naming its key); 1 on any other failure.
 .SH SIGNALS
 SIGHUP reloads the configuration; a configuration that cannot be used is refused and the one in
@@ -169,6 +178,7 @@ fn man_pages(out_dir: Option<&std::path::Path>) -> ExitCode {
     };
     match written {
         Ok(()) => ExitCode::SUCCESS,
+        Err(error) if out_dir.is_none() && cli::reader_gone(&error) => ExitCode::SUCCESS,
         Err(error) => {
             eprintln!("modbus-gateway: cannot write the manual pages: {error}");
             ExitCode::FAILURE
