@@ -57,6 +57,7 @@ impl Config {
     pub fn check(&self, drives: Option<&dyn DriveCheck>) -> Result<(), ConfigErrors> {
         let mut report = Report::default();
         check_server(&self.server, &mut report);
+        check_listen_once(&self.server, self.metrics.listen, &mut report);
         check_log_level(&self.log.level, &mut report);
         if self.bus.is_empty() {
             report.fail("bus", "at least one [[bus]] is needed");
@@ -85,7 +86,6 @@ fn check_server(server: &Server, report: &mut Report) {
     if server.pipeline_depth == 0 {
         report.fail("server.pipeline_depth", "must be at least 1");
     }
-    check_listen_once(server, report);
     if server.frame_timeout.is_zero() {
         report.fail("server.frame_timeout", "must be longer than 0");
     }
@@ -159,24 +159,28 @@ fn check_devices_once(buses: &[Bus], report: &mut Report) {
     }
 }
 
-/// Every address is listened on once per transport: the second listener could not be bound.
-/// Port 0 asks the system for a free port each time, so it may repeat.
-fn check_listen_once(server: &Server, report: &mut Report) {
-    let tcp = [
-        ("listen", &server.listen),
-        ("listen_rtu_over_tcp", &server.listen_rtu_over_tcp),
-        ("listen_tls", &server.listen_tls),
-    ];
-    for lists in [&tcp[..], &[("listen_udp", &server.listen_udp)][..]] {
+/// Every address is listened on once per transport, the metrics endpoint's included: the second
+/// listener could not be bound. Port 0 asks the system for a free port each time, so it may repeat.
+fn check_listen_once(server: &Server, metrics: SocketAddr, report: &mut Report) {
+    let keyed = |key: &str, addrs: &[SocketAddr]| -> Vec<(String, SocketAddr)> {
+        let key = |k| format!("server.{key}[{k}]");
+        addrs
+            .iter()
+            .enumerate()
+            .map(|(k, a)| (key(k), *a))
+            .collect()
+    };
+    let mut tcp = keyed("listen", &server.listen);
+    tcp.extend(keyed("listen_rtu_over_tcp", &server.listen_rtu_over_tcp));
+    tcp.extend(keyed("listen_tls", &server.listen_tls));
+    tcp.push(("metrics.listen".to_owned(), metrics));
+    for transport in [tcp, keyed("listen_udp", &server.listen_udp)] {
         let mut first: BTreeMap<SocketAddr, String> = BTreeMap::new();
-        for (key, addrs) in lists {
-            for (k, addr) in addrs.iter().enumerate().filter(|(_, a)| a.port() != 0) {
-                let here = format!("server.{key}[{k}]");
-                match first.get(addr) {
-                    Some(there) => report.fail(&here, format!("{addr} is already {there}")),
-                    None => {
-                        first.insert(*addr, here);
-                    }
+        for (here, addr) in transport.into_iter().filter(|(_, a)| a.port() != 0) {
+            match first.get(&addr) {
+                Some(there) => report.fail(&here, format!("{addr} is already {there}")),
+                None => {
+                    first.insert(addr, here);
                 }
             }
         }
@@ -523,6 +527,18 @@ mod tests {
                 "server.listen_rtu_over_tcp[0]: 127.0.0.1:5020 is already server.listen[1]",
                 "server.listen_udp[1]: 0.0.0.0:502 is already server.listen_udp[0]",
             ]
+        );
+    }
+
+    #[test]
+    fn a_metrics_listen_address_a_server_listens_on_is_refused_naming_both_keys() {
+        let e = errors(&format!(
+            "[server]\nlisten = [\"0.0.0.0:502\", \"127.0.0.1:5020\"]\n\
+             [metrics]\nlisten = \"127.0.0.1:5020\"\n{MINIMAL}"
+        ));
+        assert_eq!(
+            e,
+            ["metrics.listen: 127.0.0.1:5020 is already server.listen[1]"]
         );
     }
 
