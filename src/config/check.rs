@@ -432,7 +432,15 @@ fn check_routes(routes: &[Route], names: &BTreeMap<String, usize>, report: &mut 
     for (i, route) in routes.iter().enumerate() {
         let key = |field: &str| format!("route[{i}].{field}");
         if !names.contains_key(&route.bus) {
-            report.fail(key("bus"), format!("there is no bus named `{}`", route.bus));
+            let known: Vec<String> = names.keys().map(|n| format!("`{n}`")).collect();
+            let known = match known.len() {
+                0 => "no bus has a valid name".to_owned(),
+                _ => format!("the buses are {}", known.join(", ")),
+            };
+            report.fail(
+                key("bus"),
+                format!("there is no bus named `{}`: {known}", route.bus),
+            );
         }
         if route.address.is_some() && route.offset.is_some() {
             report.fail(key("offset"), "give `address` or `offset`, not both");
@@ -539,6 +547,19 @@ mod tests {
         assert_eq!(
             e,
             ["metrics.listen: 127.0.0.1:5020 is already server.listen[1]"]
+        );
+    }
+
+    #[test]
+    fn a_route_to_a_missing_bus_lists_the_buses_that_exist() {
+        let e = errors(
+            "[[bus]]\nname = \"east\"\ndevice = \"sim\"\n\
+             [[bus]]\nname = \"west\"\ndevice = \"sim2\"\n\
+             [[route]]\nunits = \"1\"\nbus = \"north\"\n",
+        );
+        assert_eq!(
+            e,
+            ["route[0].bus: there is no bus named `north`: the buses are `east`, `west`"]
         );
     }
 

@@ -264,6 +264,23 @@ fn with_suggestion(reason: String) -> String {
     }
 }
 
+/// For a table written `[bus]` where a list of tables is expected (`bus[0].slave` is
+/// `[[bus.slave]]`): how to write it.
+fn list_of_tables(key: &str) -> Option<String> {
+    let field = key.rsplit('.').next()?;
+    let mut table = String::new();
+    let mut in_index = false;
+    for c in key.chars() {
+        match c {
+            '[' => in_index = true,
+            ']' => in_index = false,
+            c if !in_index => table.push(c),
+            _ => {}
+        }
+    }
+    Some(format!("`{field}` is a list of tables: write [[{table}]]"))
+}
+
 /// A deserialization error as the key path it happened at and why.
 fn named(e: serde_path_to_error::Error<config::ConfigError>) -> ConfigError {
     let path = e.path().to_string();
@@ -291,10 +308,12 @@ fn named(e: serde_path_to_error::Error<config::ConfigError>) -> ConfigError {
             } else {
                 path
             };
-            ConfigError {
-                key,
-                reason: with_suggestion(reason),
-            }
+            let reason = if reason == "invalid type: map, expected a sequence" {
+                list_of_tables(&key).unwrap_or(reason)
+            } else {
+                with_suggestion(reason)
+            };
+            ConfigError { key, reason }
         }
     }
 }
@@ -397,6 +416,45 @@ mod tests {
             with_suggestion("invalid type: string".into()),
             "invalid type: string"
         );
+    }
+
+    #[test]
+    fn a_single_table_where_a_list_of_tables_belongs_says_to_write_double_brackets() {
+        for (text, expected) in [
+            (
+                "[bus]\nname = \"a\"\ndevice = \"sim\"\n",
+                "bus: `bus` is a list of tables: write [[bus]]",
+            ),
+            (
+                "[[bus]]\nname = \"a\"\ndevice = \"sim\"\n[bus.slave]\naddress = 1\n",
+                "bus[0].slave: `slave` is a list of tables: write [[bus.slave]]",
+            ),
+            (
+                "[[bus]]\nname = \"a\"\ndevice = \"sim\"\n[bus.sim_slave]\naddress = 1\n",
+                "bus[0].sim_slave: `sim_slave` is a list of tables: write [[bus.sim_slave]]",
+            ),
+            (
+                "[[bus]]\nname = \"a\"\ndevice = \"sim\"\n[route]\nbus = \"a\"\n",
+                "route: `route` is a list of tables: write [[route]]",
+            ),
+        ] {
+            assert_eq!(errors(text), [expected], "{text}");
+        }
+    }
+
+    #[test]
+    fn a_duration_written_as_a_number_or_negative_names_the_key_and_shows_a_valid_one() {
+        for (value, why) in [
+            ("0.5", "a duration needs its unit, as a string"),
+            ("\"-1s\"", "a duration cannot be negative"),
+        ] {
+            let text =
+                format!("[[bus]]\nname = \"a\"\ndevice = \"sim\"\nresponse_timeout = {value}\n");
+            let e = errors(&text);
+            assert_eq!(e.len(), 1, "{e:?}");
+            assert!(e[0].starts_with("bus[0].response_timeout: "), "{e:?}");
+            assert!(e[0].contains("\"500ms\"") && e[0].contains(why), "{e:?}");
+        }
     }
 
     #[test]
