@@ -490,3 +490,22 @@ fn every_subcommand_writing_to_stdout_exits_0_quietly_when_its_reader_is_gone() 
         assert_eq!(out.status.code(), Some(0), "{args:?}: {err}");
     }
 }
+
+#[test]
+fn a_tls_certificate_that_cannot_be_read_is_reported_in_the_same_run_as_the_other_errors() {
+    let path = temp_config(
+        "tls-and-parity.toml",
+        "[server]\nlisten_tls = \"127.0.0.1:0\"\n\
+         [server.tls]\ncertificate = \"/nonexistent/server.pem\"\n\
+         private_key = \"/nonexistent/server.key\"\nclient_ca = \"/nonexistent/ca.pem\"\n\
+         [[bus]]\nname = \"a\"\ndevice = \"sim\"\nparity = \"evn\"\n",
+    );
+    let out = gateway(&["--config", path.to_str().unwrap(), "check-config"], &[]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(err.contains("bus[0].parity: `evn`"), "{err}");
+    assert!(
+        err.contains("server.tls.certificate: cannot read /nonexistent/server.pem"),
+        "{err}"
+    );
+}

@@ -31,6 +31,13 @@ pub trait DriveCheck {
     ) -> Result<(), DriveRefusal>;
 }
 
+/// Reads the files `[server.tls]` names, so that one that cannot be used is reported with every
+/// other problem. Only the TLS code knows how to read them, so it implements this.
+pub trait TlsFilesCheck {
+    /// Every problem with the files `tls` names, each with its key path.
+    fn read_files(&self, tls: &Tls) -> Result<(), ConfigErrors>;
+}
+
 /// A setting a drive refused: the parameter by the manual's name (or `trip`), and why.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct DriveRefusal {

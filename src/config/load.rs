@@ -3,7 +3,7 @@
 //! configuration back. Owns [`ConfigError`] and [`ConfigErrors`]. Knows nothing of what the
 //! values are used for.
 
-use super::{Config, DriveCheck};
+use super::{Config, DriveCheck, TlsFilesCheck};
 use std::fmt;
 use std::path::Path;
 
@@ -76,27 +76,29 @@ impl Config {
         path: &Path,
         env: impl IntoIterator<Item = (String, String)>,
     ) -> Result<Config, ConfigErrors> {
-        Self::finish(Self::read(path, env)?, None)
+        Self::finish(Self::read(path, env)?, None, None)
     }
 
-    /// [`Config::load`], with the simulated drives' parameters checked by `drives`.
+    /// [`Config::load`], with the simulated drives' parameters checked by `drives` and the
+    /// `[server.tls]` files read by `tls`, their problems reported with the others.
     pub fn load_with(
         path: &Path,
         env: impl IntoIterator<Item = (String, String)>,
         drives: &dyn DriveCheck,
+        tls: &dyn TlsFilesCheck,
     ) -> Result<Config, ConfigErrors> {
-        Self::finish(Self::read(path, env)?, Some(drives))
+        Self::finish(Self::read(path, env)?, Some(drives), Some(tls))
     }
 
     /// Parse TOML text with no environment, fill in defaults and validate. The simulated
     /// drives' parameters are not checked: [`Config::from_toml_str_with`] checks them.
     pub fn from_toml_str(text: &str) -> Result<Config, ConfigErrors> {
-        Self::finish(Self::parse(text)?, None)
+        Self::finish(Self::parse(text)?, None, None)
     }
 
     /// [`Config::from_toml_str`], with the simulated drives' parameters checked by `drives`.
     pub fn from_toml_str_with(text: &str, drives: &dyn DriveCheck) -> Result<Config, ConfigErrors> {
-        Self::finish(Self::parse(text)?, Some(drives))
+        Self::finish(Self::parse(text)?, Some(drives), None)
     }
 
     fn read(
@@ -135,6 +137,7 @@ impl Config {
     fn finish(
         raw: config::Config,
         drives: Option<&dyn DriveCheck>,
+        tls: Option<&dyn TlsFilesCheck>,
     ) -> Result<Config, ConfigErrors> {
         let mut root: config::Value = raw
             .try_deserialize()
@@ -146,7 +149,14 @@ impl Config {
                 Ok(mut config) => {
                     // Tables are read in no particular order: report in key order.
                     errors.sort_by(|a: &ConfigError, b| a.key.cmp(&b.key));
-                    let checked = config.check(drives);
+                    let mut checked = config.check(drives);
+                    let files = tls.zip(config.server.tls.as_ref());
+                    if let Some(Err(more)) = files.map(|(tls, settings)| tls.read_files(settings)) {
+                        match &mut checked {
+                            Err(found) => found.0.extend(more.0),
+                            Ok(()) => checked = Err(more),
+                        }
+                    }
                     if errors.is_empty() {
                         checked?;
                         config.resolve();
