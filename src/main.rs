@@ -154,9 +154,15 @@ force stays. SIGTERM and SIGINT stop the gateway after the transactions in fligh
 systemctl(1), journalctl(1), promtool(1)
 "#;
 
+/// The command line as the manual describes it: without clap's `help` subcommand, which would be
+/// listed as a page of its own that `--help` makes needless.
+fn man_command() -> clap::Command {
+    Cli::command().disable_help_subcommand(true)
+}
+
 /// The main page: clap's sections from the command line's definition, then [`MAN_SECTIONS`].
 fn render_main_page(out: &mut dyn std::io::Write) -> std::io::Result<()> {
-    let page = clap_mangen::Man::new(Cli::command());
+    let page = clap_mangen::Man::new(man_command());
     page.render_title(out)?;
     page.render_name_section(out)?;
     page.render_synopsis_section(out)?;
@@ -172,7 +178,7 @@ fn man_pages(out_dir: Option<&std::path::Path>) -> ExitCode {
     let written = match out_dir {
         None => render_main_page(&mut std::io::stdout()),
         Some(dir) => std::fs::create_dir_all(dir)
-            .and_then(|()| clap_mangen::generate_to(Cli::command(), dir))
+            .and_then(|()| clap_mangen::generate_to(man_command(), dir))
             .and_then(|()| std::fs::File::create(dir.join("modbus-gateway.1")))
             .and_then(|mut file| render_main_page(&mut file)),
     };

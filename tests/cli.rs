@@ -509,3 +509,31 @@ fn a_tls_certificate_that_cannot_be_read_is_reported_in_the_same_run_as_the_othe
         "{err}"
     );
 }
+
+#[test]
+fn the_manual_pages_name_no_page_that_is_not_generated() {
+    let dir = temp_config("unused", "").with_file_name("man-pages-named");
+    let out = gateway(&["man", "--out-dir", dir.to_str().unwrap()], &[]);
+    assert!(out.status.success());
+    let mut named = Vec::new();
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let page = std::fs::read_to_string(entry.unwrap().path()).unwrap();
+        let page = page.replace("\\-", "-");
+        for (at, _) in page.match_indices("(1)") {
+            let start = page[..at]
+                .rfind(|c: char| !(c.is_ascii_alphanumeric() || c == '-'))
+                .map_or(0, |i| i + 1);
+            let name = &page[start..at];
+            if name.starts_with("modbus-gateway") {
+                named.push(name.to_owned());
+            }
+        }
+    }
+    assert!(
+        !named.is_empty(),
+        "the main page lists the subcommands' pages"
+    );
+    for name in named {
+        assert!(dir.join(format!("{name}.1")).is_file(), "{name}(1)");
+    }
+}
