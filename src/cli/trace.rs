@@ -176,7 +176,7 @@ impl Events {
                 }),
                 "lost" => {
                     let lost = serde_json::from_str::<Lost>(&data).map_or(0, |l| l.lost);
-                    lines.push(format!("lost {lost} events"));
+                    lines.push(format!("lost {}", of(lost, "event")));
                 }
                 _ => {}
             }
@@ -244,19 +244,24 @@ fn reply_fields(pdu: &[u8]) -> String {
         code::READ_HOLDING_REGISTERS
         | code::READ_INPUT_REGISTERS
         | code::READ_WRITE_MULTIPLE_REGISTERS => {
-            format!("{} registers: {}", counted.len() / 2, registers(counted))
+            let count = counted.len() / 2;
+            format!("{}: {}", of(count, "register"), registers(counted))
         }
         code::READ_COILS | code::READ_DISCRETE_INPUTS => {
-            format!(
-                "{} bytes of bits: {}",
-                counted.len(),
-                crate::trace::hex(counted)
-            )
+            let bytes = of(counted.len(), "byte");
+            format!("{bytes} of bits: {}", crate::trace::hex(counted))
         }
         code::WRITE_SINGLE_COIL | code::WRITE_SINGLE_REGISTER => address_and(pdu, "value"),
         code::WRITE_MULTIPLE_COILS | code::WRITE_MULTIPLE_REGISTERS => address_and(pdu, "count"),
         _ => String::new(),
     }
+}
+
+/// `1 register`, `2 registers`: a count and its noun, singular or plural.
+fn of(count: impl std::fmt::Display, noun: &str) -> String {
+    let count = count.to_string();
+    let plural = if count == "1" { "" } else { "s" };
+    format!("{count} {noun}{plural}")
 }
 
 /// `0x0000 0x0001`: big-endian registers.
@@ -359,6 +364,29 @@ mod tests {
             hex: hex.into(),
             outcome: outcome.into(),
         }
+    }
+
+    #[test]
+    fn a_reply_of_one_register_or_one_byte_of_bits_says_so_in_the_singular() {
+        // Slave 1, function 03, 2 bytes: one register 0x002A; CRC 39 9b.
+        let rx = frame("rx", "01 03 02 00 2a 39 9b", "ok");
+        assert!(
+            rx.describe().contains("0x03 ok  1 register: 0x002a   "),
+            "{}",
+            rx.describe()
+        );
+        // Slave 1, function 01, 1 byte of coils: 0x05; CRC 91 8b.
+        let rx = frame("rx", "01 01 01 05 91 8b", "ok");
+        assert!(
+            rx.describe().contains("0x01 ok  1 byte of bits: 05"),
+            "{}",
+            rx.describe()
+        );
+        let mut events = Events::default();
+        assert_eq!(
+            events.feed("event: lost\ndata: {\"lost\":1}\n\n"),
+            ["lost 1 event"]
+        );
     }
 
     #[test]
