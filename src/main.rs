@@ -114,10 +114,8 @@ fn print_completions(shell: clap_complete::Shell) -> ExitCode {
     let mut command = Cli::command();
     let mut script = Vec::new();
     clap_complete::generate(shell, &mut command, "modbus-gateway", &mut script);
-    let written = std::io::stdout()
-        .lock()
-        .write_all(&script)
-        .and_then(|()| std::io::stdout().lock().flush());
+    let mut out = std::io::stdout().lock();
+    let written = out.write_all(&script).and_then(|()| out.flush());
     match written {
         Err(error) if !cli::reader_gone(&error) => {
             eprintln!("modbus-gateway: cannot write to stdout: {error}");
