@@ -106,11 +106,16 @@ pub fn load_config(
     path: &Path,
     env: impl IntoIterator<Item = (String, String)>,
 ) -> Result<Config, ConfigErrors> {
-    let config = Config::load_with(path, env, &sim::Drives)?;
-    if let Some(tls) = &config.server.tls {
-        TlsServer::load(tls)?;
+    Config::load_with(path, env, &sim::Drives, &TlsFiles)
+}
+
+/// The `[server.tls]` files, read as the TLS listeners will read them.
+struct TlsFiles;
+
+impl config::TlsFilesCheck for TlsFiles {
+    fn read_files(&self, tls: &config::Tls) -> Result<(), ConfigErrors> {
+        TlsServer::load(tls).map(|_| ())
     }
-    Ok(config)
 }
 
 /// [`load_config`] for TOML text, with no environment, and the `[server.tls]` files left for

@@ -8,6 +8,7 @@
 use clap::{CommandFactory, Parser, Subcommand};
 use modbus_gateway::cli::{self, check_config::check_config, run::run, simulate::simulate, trace};
 use modbus_gateway::config::DEFAULT_PATH;
+use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -108,15 +109,20 @@ fn main() -> ExitCode {
     }
 }
 
+/// The script is made in memory: clap_complete panics on a failed write (a closed pipe).
 fn print_completions(shell: clap_complete::Shell) -> ExitCode {
     let mut command = Cli::command();
-    clap_complete::generate(
-        shell,
-        &mut command,
-        "modbus-gateway",
-        &mut std::io::stdout(),
-    );
-    ExitCode::SUCCESS
+    let mut script = Vec::new();
+    clap_complete::generate(shell, &mut command, "modbus-gateway", &mut script);
+    let mut out = std::io::stdout().lock();
+    let written = out.write_all(&script).and_then(|()| out.flush());
+    match written {
+        Err(error) if !cli::reader_gone(&error) => {
+            eprintln!("modbus-gateway: cannot write to stdout: {error}");
+            ExitCode::FAILURE
+        }
+        _ => ExitCode::SUCCESS,
+    }
 }
 
 /// What the manual page says beyond the options: files, environment, exit status, where to read on.
@@ -136,7 +142,8 @@ Overrides a configuration key: MBGW__SERVER__LISTEN, MBGW__BUS__0__BAUD (array e
 RUST_LOG
 Overrides log.level (tracing's filter syntax).
 .SH EXIT STATUS
-0 on a clean stop (SIGTERM, SIGINT) or a valid configuration; 2 when the configuration cannot be
+0 on a clean stop (SIGTERM, SIGINT), a valid configuration, or when the reader of the output
+goes away (a closed pipe); 2 when the configuration cannot be
 used (each problem is written to stderr, naming its key); 1 on any other failure.
 .SH SIGNALS
 SIGHUP reloads the configuration; a configuration that cannot be used is refused and the one in
@@ -145,9 +152,15 @@ force stays. SIGTERM and SIGINT stop the gateway after the transactions in fligh
 systemctl(1), journalctl(1), promtool(1)
 "#;
 
+/// The command line as the manual describes it: without clap's `help` subcommand, which would be
+/// listed as a page of its own that `--help` makes needless.
+fn man_command() -> clap::Command {
+    Cli::command().disable_help_subcommand(true)
+}
+
 /// The main page: clap's sections from the command line's definition, then [`MAN_SECTIONS`].
 fn render_main_page(out: &mut dyn std::io::Write) -> std::io::Result<()> {
-    let page = clap_mangen::Man::new(Cli::command());
+    let page = clap_mangen::Man::new(man_command());
     page.render_title(out)?;
     page.render_name_section(out)?;
     page.render_synopsis_section(out)?;
@@ -163,12 +176,13 @@ fn man_pages(out_dir: Option<&std::path::Path>) -> ExitCode {
     let written = match out_dir {
         None => render_main_page(&mut std::io::stdout()),
         Some(dir) => std::fs::create_dir_all(dir)
-            .and_then(|()| clap_mangen::generate_to(Cli::command(), dir))
+            .and_then(|()| clap_mangen::generate_to(man_command(), dir))
             .and_then(|()| std::fs::File::create(dir.join("modbus-gateway.1")))
             .and_then(|mut file| render_main_page(&mut file)),
     };
     match written {
         Ok(()) => ExitCode::SUCCESS,
+        Err(error) if out_dir.is_none() && cli::reader_gone(&error) => ExitCode::SUCCESS,
         Err(error) => {
             eprintln!("modbus-gateway: cannot write the manual pages: {error}");
             ExitCode::FAILURE

@@ -429,3 +429,111 @@ fn every_test_the_failure_behaviour_section_names_exists() {
     }
     assert!(named > 30, "only {named} tests named");
 }
+
+/// A stand-in for a gateway's /trace: one event, then the stream stays open.
+fn one_event_trace() -> String {
+    use std::io::{Read, Write};
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap();
+    std::thread::spawn(move || {
+        let Ok((mut stream, _)) = listener.accept() else {
+            return;
+        };
+        let mut request = [0; 1024];
+        let _ = stream.read(&mut request);
+        let _ = stream.write_all(
+            b"HTTP/1.1 200 OK\r\ncontent-type: text/event-stream\r\nconnection: close\r\n\r\n\
+              event: lost\ndata: {\"lost\":3}\n\n",
+        );
+        std::thread::sleep(std::time::Duration::from_secs(10));
+    });
+    format!("http://{addr}/trace")
+}
+
+#[test]
+fn every_subcommand_writing_to_stdout_exits_0_quietly_when_its_reader_is_gone() {
+    let trace_url = one_event_trace();
+    let demo = demo_path();
+    let cases: [&[&str]; 5] = [
+        &["completions", "bash"],
+        &["man"],
+        &["--config", demo, "check-config"],
+        &["--config", demo, "simulate", "--device", "pty"],
+        &["trace", "--url", &trace_url],
+    ];
+    for args in cases {
+        // The read end is closed before the command starts, so its first write finds no reader.
+        let (reader, writer) = std::io::pipe().unwrap();
+        drop(reader);
+        let mut child = Command::new(BINARY)
+            .args(args)
+            .env_remove("RUST_LOG")
+            .env("RUST_BACKTRACE", "1")
+            .stdout(writer)
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+        while child.try_wait().unwrap().is_none() {
+            if std::time::Instant::now() > deadline {
+                let _ = child.kill();
+                panic!("{args:?}: still running with no reader of its stdout");
+            }
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        let out = child.wait_with_output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !err.contains("panicked") && !err.contains("Broken pipe"),
+            "{args:?}: {err}"
+        );
+        assert_eq!(out.status.code(), Some(0), "{args:?}: {err}");
+    }
+}
+
+#[test]
+fn a_tls_certificate_that_cannot_be_read_is_reported_in_the_same_run_as_the_other_errors() {
+    let path = temp_config(
+        "tls-and-parity.toml",
+        "[server]\nlisten_tls = \"127.0.0.1:0\"\n\
+         [server.tls]\ncertificate = \"/nonexistent/server.pem\"\n\
+         private_key = \"/nonexistent/server.key\"\nclient_ca = \"/nonexistent/ca.pem\"\n\
+         [[bus]]\nname = \"a\"\ndevice = \"sim\"\nparity = \"evn\"\n",
+    );
+    let out = gateway(&["--config", path.to_str().unwrap(), "check-config"], &[]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(err.contains("bus[0].parity: `evn`"), "{err}");
+    assert!(
+        err.contains("server.tls.certificate: cannot read /nonexistent/server.pem"),
+        "{err}"
+    );
+}
+
+#[test]
+fn the_manual_pages_name_no_page_that_is_not_generated() {
+    let dir = temp_config("unused", "").with_file_name("man-pages-named");
+    let out = gateway(&["man", "--out-dir", dir.to_str().unwrap()], &[]);
+    assert!(out.status.success());
+    let mut named = Vec::new();
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let page = std::fs::read_to_string(entry.unwrap().path()).unwrap();
+        let page = page.replace("\\-", "-");
+        for (at, _) in page.match_indices("(1)") {
+            let start = page[..at]
+                .rfind(|c: char| !(c.is_ascii_alphanumeric() || c == '-'))
+                .map_or(0, |i| i + 1);
+            let name = &page[start..at];
+            if name.starts_with("modbus-gateway") {
+                named.push(name.to_owned());
+            }
+        }
+    }
+    assert!(
+        !named.is_empty(),
+        "the main page lists the subcommands' pages"
+    );
+    for name in named {
+        assert!(dir.join(format!("{name}.1")).is_file(), "{name}(1)");
+    }
+}

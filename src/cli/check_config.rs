@@ -29,7 +29,13 @@ pub fn check_config(path: &Path, config: &Config, quiet: bool) -> ExitCode {
         );
     }
     if !quiet {
-        print!("{}", describe(path, config, tls.as_ref(), now));
+        match super::print_out(&describe(path, config, tls.as_ref(), now)) {
+            Err(e) if !super::reader_gone(&e) => {
+                eprintln!("modbus-gateway: cannot write to stdout: {e}");
+                return ExitCode::FAILURE;
+            }
+            _ => {}
+        }
     }
     ExitCode::SUCCESS
 }

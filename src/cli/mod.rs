@@ -12,12 +12,25 @@ pub mod trace;
 
 use crate::config::{self, Config, ENV_PREFIX};
 use crate::logging;
+use std::io::{self, Write};
 use std::path::Path;
 use std::process::ExitCode;
 use tracing::error;
 
 /// Exit status for a configuration that cannot be used.
 pub const EXIT_CONFIG: u8 = 2;
+
+/// Write `text` to stdout and flush it.
+pub fn print_out(text: &str) -> io::Result<()> {
+    let mut out = io::stdout().lock();
+    out.write_all(text.as_bytes()).and_then(|()| out.flush())
+}
+
+/// Whether a failed write to stdout means its reader went away (`| head`): every subcommand then
+/// stops quietly with status 0, as when the reader had read it all.
+pub fn reader_gone(error: &io::Error) -> bool {
+    error.kind() == io::ErrorKind::BrokenPipe
+}
 
 /// The environment as UTF-8 pairs. A `MBGW__` variable that is not UTF-8 is an error, not skipped.
 fn environment() -> Result<Vec<(String, String)>, String> {

@@ -32,14 +32,17 @@ pub fn simulate(config: Config, bus: Option<&str>, device: &str) -> ExitCode {
                 Framing::Rtu => "",
                 Framing::Ascii => " (Modbus ASCII)",
             };
-            println!(
-                "serving bus {} on {path} at {}{framing}",
+            super::print_out(&format!(
+                "serving bus {} on {path} at {}{framing}\n",
                 bus.name,
                 bus.format()
-            );
+            ))
         };
         tokio::select! {
             error = serve(bus, device, announce) => {
+                if super::reader_gone(&error) {
+                    return ExitCode::SUCCESS;
+                }
                 error!(device, %error, "cannot serve the simulated slaves");
                 ExitCode::FAILURE
             }
@@ -114,7 +117,11 @@ fn open(bus: &Bus, path: &str) -> io::Result<Port> {
 /// Serve `bus`'s slaves on `device` (a path, or [`PTY`]) forever, reopening a lost device.
 /// `ready` gets the path masters should open, once the device is open. Returns only on an error
 /// that reopening cannot cure.
-pub async fn serve(bus: &Bus, device: &str, ready: impl FnOnce(&str)) -> io::Error {
+pub async fn serve(
+    bus: &Bus,
+    device: &str,
+    ready: impl FnOnce(&str) -> io::Result<()>,
+) -> io::Error {
     let mut responder = match responder(bus) {
         Ok(responder) => responder,
         Err(e) => return io::Error::new(io::ErrorKind::InvalidInput, e),
@@ -136,7 +143,9 @@ pub async fn serve(bus: &Bus, device: &str, ready: impl FnOnce(&str)) -> io::Err
             bus = bus.name,
             "serving simulated slaves on a new pty"
         );
-        ready(&path);
+        if let Err(e) = ready(&path) {
+            return e;
+        }
         // The far end stays open here too, so the pty lives while masters come and go.
         let mut port = match Port::serial(master) {
             Ok(port) => port,
@@ -151,8 +160,8 @@ pub async fn serve(bus: &Bus, device: &str, ready: impl FnOnce(&str)) -> io::Err
         match open(bus, device) {
             Ok(mut port) => {
                 info!(device, slaves, bus = bus.name, "serving simulated slaves");
-                if let Some(ready) = ready.take() {
-                    ready(device);
+                if let Some(Err(e)) = ready.take().map(|ready| ready(device)) {
+                    return e;
                 }
                 let error = responder.serve(&mut port).await;
                 let stats = responder.stats();

@@ -78,6 +78,9 @@ pub fn trace(url: &str, bus: Option<&str>, slave: Option<u8>) -> ExitCode {
     runtime.block_on(async {
         tokio::select! {
             error = follow(&uri) => {
+                let Some(error) = error else {
+                    return ExitCode::SUCCESS;
+                };
                 eprintln!("modbus-gateway: trace: {uri}: {error}");
                 ExitCode::FAILURE
             }
@@ -86,12 +89,13 @@ pub fn trace(url: &str, bus: Option<&str>, slave: Option<u8>) -> ExitCode {
     })
 }
 
-/// Read the stream at `uri` and print it; returns why it ended.
-async fn follow(uri: &Uri) -> String {
+/// Read the stream at `uri` and print it; returns why it ended, or `None` if
+/// the reader of stdout went away.
+async fn follow(uri: &Uri) -> Option<String> {
     let authority = uri.authority().map(ToString::to_string).unwrap_or_default();
     let stream = match TcpStream::connect(&authority).await {
         Ok(stream) => stream,
-        Err(e) => return format!("cannot reach the gateway's metrics endpoint: {e}"),
+        Err(e) => return Some(format!("cannot reach the gateway's metrics endpoint: {e}")),
     };
     let (mut sender, connection) = match hyper::client::conn::http1::handshake::<_, Empty<Bytes>>(
         TokioIo::new(stream),
@@ -99,7 +103,7 @@ async fn follow(uri: &Uri) -> String {
     .await
     {
         Ok(handshake) => handshake,
-        Err(e) => return format!("cannot talk HTTP to it: {e}"),
+        Err(e) => return Some(format!("cannot talk HTTP to it: {e}")),
     };
     tokio::spawn(connection);
     let path = uri.path_and_query().map_or("/trace", |p| p.as_str());
@@ -108,34 +112,34 @@ async fn follow(uri: &Uri) -> String {
         .body(Empty::new())
     {
         Ok(request) => request,
-        Err(e) => return e.to_string(),
+        Err(e) => return Some(e.to_string()),
     };
     let mut response = match sender.send_request(request).await {
         Ok(response) => response,
-        Err(e) => return format!("no answer: {e}"),
+        Err(e) => return Some(format!("no answer: {e}")),
     };
     let status = response.status();
     if status != StatusCode::OK {
         let body = response.into_body().collect().await.ok();
         let text = body.map(|b| String::from_utf8_lossy(&b.to_bytes()).trim().to_owned());
-        return format!("refused ({status}): {}", text.unwrap_or_default());
+        return Some(format!("refused ({status}): {}", text.unwrap_or_default()));
     }
     let mut events = Events::default();
     let mut out = std::io::stdout().lock();
     while let Some(frame) = response.body_mut().frame().await {
         let Ok(frame) = frame else {
-            return "the stream broke off".into();
+            return Some("the stream broke off".into());
         };
         let Some(data) = frame.data_ref() else {
             continue;
         };
         for line in events.feed(&String::from_utf8_lossy(data)) {
-            if writeln!(out, "{line}").and_then(|()| out.flush()).is_err() {
-                return "cannot write to stdout".into();
+            if let Err(e) = writeln!(out, "{line}").and_then(|()| out.flush()) {
+                return (!super::reader_gone(&e)).then(|| format!("cannot write to stdout: {e}"));
             }
         }
     }
-    "the gateway ended the trace".into()
+    Some("the gateway ended the trace".into())
 }
 
 /// Server-Sent Events, cut into events as their text comes, each turned into a line to print.
@@ -172,7 +176,7 @@ impl Events {
                 }),
                 "lost" => {
                     let lost = serde_json::from_str::<Lost>(&data).map_or(0, |l| l.lost);
-                    lines.push(format!("lost {lost} events"));
+                    lines.push(format!("lost {}", of(lost, "event")));
                 }
                 _ => {}
             }
@@ -240,19 +244,24 @@ fn reply_fields(pdu: &[u8]) -> String {
         code::READ_HOLDING_REGISTERS
         | code::READ_INPUT_REGISTERS
         | code::READ_WRITE_MULTIPLE_REGISTERS => {
-            format!("{} registers: {}", counted.len() / 2, registers(counted))
+            let count = counted.len() / 2;
+            format!("{}: {}", of(count, "register"), registers(counted))
         }
         code::READ_COILS | code::READ_DISCRETE_INPUTS => {
-            format!(
-                "{} bytes of bits: {}",
-                counted.len(),
-                crate::trace::hex(counted)
-            )
+            let bytes = of(counted.len(), "byte");
+            format!("{bytes} of bits: {}", crate::trace::hex(counted))
         }
         code::WRITE_SINGLE_COIL | code::WRITE_SINGLE_REGISTER => address_and(pdu, "value"),
         code::WRITE_MULTIPLE_COILS | code::WRITE_MULTIPLE_REGISTERS => address_and(pdu, "count"),
         _ => String::new(),
     }
+}
+
+/// `1 register`, `2 registers`: a count and its noun, singular or plural.
+fn of(count: impl std::fmt::Display, noun: &str) -> String {
+    let count = count.to_string();
+    let plural = if count == "1" { "" } else { "s" };
+    format!("{count} {noun}{plural}")
 }
 
 /// `0x0000 0x0001`: big-endian registers.
@@ -355,6 +364,29 @@ mod tests {
             hex: hex.into(),
             outcome: outcome.into(),
         }
+    }
+
+    #[test]
+    fn a_reply_of_one_register_or_one_byte_of_bits_says_so_in_the_singular() {
+        // Slave 1, function 03, 2 bytes: one register 0x002A; CRC 39 9b.
+        let rx = frame("rx", "01 03 02 00 2a 39 9b", "ok");
+        assert!(
+            rx.describe().contains("0x03 ok  1 register: 0x002a   "),
+            "{}",
+            rx.describe()
+        );
+        // Slave 1, function 01, 1 byte of coils: 0x05; CRC 91 8b.
+        let rx = frame("rx", "01 01 01 05 91 8b", "ok");
+        assert!(
+            rx.describe().contains("0x01 ok  1 byte of bits: 05"),
+            "{}",
+            rx.describe()
+        );
+        let mut events = Events::default();
+        assert_eq!(
+            events.feed("event: lost\ndata: {\"lost\":1}\n\n"),
+            ["lost 1 event"]
+        );
     }
 
     #[test]

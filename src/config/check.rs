@@ -31,6 +31,13 @@ pub trait DriveCheck {
     ) -> Result<(), DriveRefusal>;
 }
 
+/// Reads the files `[server.tls]` names, so that one that cannot be used is reported with every
+/// other problem. Only the TLS code knows how to read them, so it implements this.
+pub trait TlsFilesCheck {
+    /// Every problem with the files `tls` names, each with its key path.
+    fn read_files(&self, tls: &Tls) -> Result<(), ConfigErrors>;
+}
+
 /// A setting a drive refused: the parameter by the manual's name (or `trip`), and why.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct DriveRefusal {
@@ -57,6 +64,7 @@ impl Config {
     pub fn check(&self, drives: Option<&dyn DriveCheck>) -> Result<(), ConfigErrors> {
         let mut report = Report::default();
         check_server(&self.server, &mut report);
+        check_listen_once(&self.server, self.metrics.listen, &mut report);
         check_log_level(&self.log.level, &mut report);
         if self.bus.is_empty() {
             report.fail("bus", "at least one [[bus]] is needed");
@@ -85,7 +93,6 @@ fn check_server(server: &Server, report: &mut Report) {
     if server.pipeline_depth == 0 {
         report.fail("server.pipeline_depth", "must be at least 1");
     }
-    check_listen_once(server, report);
     if server.frame_timeout.is_zero() {
         report.fail("server.frame_timeout", "must be longer than 0");
     }
@@ -159,24 +166,28 @@ fn check_devices_once(buses: &[Bus], report: &mut Report) {
     }
 }
 
-/// Every address is listened on once per transport: the second listener could not be bound.
-/// Port 0 asks the system for a free port each time, so it may repeat.
-fn check_listen_once(server: &Server, report: &mut Report) {
-    let tcp = [
-        ("listen", &server.listen),
-        ("listen_rtu_over_tcp", &server.listen_rtu_over_tcp),
-        ("listen_tls", &server.listen_tls),
-    ];
-    for lists in [&tcp[..], &[("listen_udp", &server.listen_udp)][..]] {
+/// Every address is listened on once per transport, the metrics endpoint's included: the second
+/// listener could not be bound. Port 0 asks the system for a free port each time, so it may repeat.
+fn check_listen_once(server: &Server, metrics: SocketAddr, report: &mut Report) {
+    let keyed = |key: &str, addrs: &[SocketAddr]| -> Vec<(String, SocketAddr)> {
+        let key = |k| format!("server.{key}[{k}]");
+        addrs
+            .iter()
+            .enumerate()
+            .map(|(k, a)| (key(k), *a))
+            .collect()
+    };
+    let mut tcp = keyed("listen", &server.listen);
+    tcp.extend(keyed("listen_rtu_over_tcp", &server.listen_rtu_over_tcp));
+    tcp.extend(keyed("listen_tls", &server.listen_tls));
+    tcp.push(("metrics.listen".to_owned(), metrics));
+    for transport in [tcp, keyed("listen_udp", &server.listen_udp)] {
         let mut first: BTreeMap<SocketAddr, String> = BTreeMap::new();
-        for (key, addrs) in lists {
-            for (k, addr) in addrs.iter().enumerate().filter(|(_, a)| a.port() != 0) {
-                let here = format!("server.{key}[{k}]");
-                match first.get(addr) {
-                    Some(there) => report.fail(&here, format!("{addr} is already {there}")),
-                    None => {
-                        first.insert(*addr, here);
-                    }
+        for (here, addr) in transport.into_iter().filter(|(_, a)| a.port() != 0) {
+            match first.get(&addr) {
+                Some(there) => report.fail(&here, format!("{addr} is already {there}")),
+                None => {
+                    first.insert(addr, here);
                 }
             }
         }
@@ -428,7 +439,15 @@ fn check_routes(routes: &[Route], names: &BTreeMap<String, usize>, report: &mut 
     for (i, route) in routes.iter().enumerate() {
         let key = |field: &str| format!("route[{i}].{field}");
         if !names.contains_key(&route.bus) {
-            report.fail(key("bus"), format!("there is no bus named `{}`", route.bus));
+            let known: Vec<String> = names.keys().map(|n| format!("`{n}`")).collect();
+            let known = match known.len() {
+                0 => "no bus has a valid name".to_owned(),
+                _ => format!("the buses are {}", known.join(", ")),
+            };
+            report.fail(
+                key("bus"),
+                format!("there is no bus named `{}`: {known}", route.bus),
+            );
         }
         if route.address.is_some() && route.offset.is_some() {
             report.fail(key("offset"), "give `address` or `offset`, not both");
@@ -523,6 +542,31 @@ mod tests {
                 "server.listen_rtu_over_tcp[0]: 127.0.0.1:5020 is already server.listen[1]",
                 "server.listen_udp[1]: 0.0.0.0:502 is already server.listen_udp[0]",
             ]
+        );
+    }
+
+    #[test]
+    fn a_metrics_listen_address_a_server_listens_on_is_refused_naming_both_keys() {
+        let e = errors(&format!(
+            "[server]\nlisten = [\"0.0.0.0:502\", \"127.0.0.1:5020\"]\n\
+             [metrics]\nlisten = \"127.0.0.1:5020\"\n{MINIMAL}"
+        ));
+        assert_eq!(
+            e,
+            ["metrics.listen: 127.0.0.1:5020 is already server.listen[1]"]
+        );
+    }
+
+    #[test]
+    fn a_route_to_a_missing_bus_lists_the_buses_that_exist() {
+        let e = errors(
+            "[[bus]]\nname = \"east\"\ndevice = \"sim\"\n\
+             [[bus]]\nname = \"west\"\ndevice = \"sim2\"\n\
+             [[route]]\nunits = \"1\"\nbus = \"north\"\n",
+        );
+        assert_eq!(
+            e,
+            ["route[0].bus: there is no bus named `north`: the buses are `east`, `west`"]
         );
     }
 

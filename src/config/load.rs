@@ -3,7 +3,7 @@
 //! configuration back. Owns [`ConfigError`] and [`ConfigErrors`]. Knows nothing of what the
 //! values are used for.
 
-use super::{Config, DriveCheck};
+use super::{Config, DriveCheck, TlsFilesCheck};
 use std::fmt;
 use std::path::Path;
 
@@ -76,27 +76,29 @@ impl Config {
         path: &Path,
         env: impl IntoIterator<Item = (String, String)>,
     ) -> Result<Config, ConfigErrors> {
-        Self::finish(Self::read(path, env)?, None)
+        Self::finish(Self::read(path, env)?, None, None)
     }
 
-    /// [`Config::load`], with the simulated drives' parameters checked by `drives`.
+    /// [`Config::load`], with the simulated drives' parameters checked by `drives` and the
+    /// `[server.tls]` files read by `tls`, their problems reported with the others.
     pub fn load_with(
         path: &Path,
         env: impl IntoIterator<Item = (String, String)>,
         drives: &dyn DriveCheck,
+        tls: &dyn TlsFilesCheck,
     ) -> Result<Config, ConfigErrors> {
-        Self::finish(Self::read(path, env)?, Some(drives))
+        Self::finish(Self::read(path, env)?, Some(drives), Some(tls))
     }
 
     /// Parse TOML text with no environment, fill in defaults and validate. The simulated
     /// drives' parameters are not checked: [`Config::from_toml_str_with`] checks them.
     pub fn from_toml_str(text: &str) -> Result<Config, ConfigErrors> {
-        Self::finish(Self::parse(text)?, None)
+        Self::finish(Self::parse(text)?, None, None)
     }
 
     /// [`Config::from_toml_str`], with the simulated drives' parameters checked by `drives`.
     pub fn from_toml_str_with(text: &str, drives: &dyn DriveCheck) -> Result<Config, ConfigErrors> {
-        Self::finish(Self::parse(text)?, Some(drives))
+        Self::finish(Self::parse(text)?, Some(drives), None)
     }
 
     fn read(
@@ -135,6 +137,7 @@ impl Config {
     fn finish(
         raw: config::Config,
         drives: Option<&dyn DriveCheck>,
+        tls: Option<&dyn TlsFilesCheck>,
     ) -> Result<Config, ConfigErrors> {
         let mut root: config::Value = raw
             .try_deserialize()
@@ -146,7 +149,14 @@ impl Config {
                 Ok(mut config) => {
                     // Tables are read in no particular order: report in key order.
                     errors.sort_by(|a: &ConfigError, b| a.key.cmp(&b.key));
-                    let checked = config.check(drives);
+                    let mut checked = config.check(drives);
+                    let files = tls.zip(config.server.tls.as_ref());
+                    if let Some(Err(more)) = files.map(|(tls, settings)| tls.read_files(settings)) {
+                        match &mut checked {
+                            Err(found) => found.0.extend(more.0),
+                            Ok(()) => checked = Err(more),
+                        }
+                    }
                     if errors.is_empty() {
                         checked?;
                         config.resolve();
@@ -264,6 +274,23 @@ fn with_suggestion(reason: String) -> String {
     }
 }
 
+/// For a table written `[bus]` where a list of tables is expected (`bus[0].slave` is
+/// `[[bus.slave]]`): how to write it.
+fn list_of_tables(key: &str) -> Option<String> {
+    let field = key.rsplit('.').next()?;
+    let mut table = String::new();
+    let mut in_index = false;
+    for c in key.chars() {
+        match c {
+            '[' => in_index = true,
+            ']' => in_index = false,
+            c if !in_index => table.push(c),
+            _ => {}
+        }
+    }
+    Some(format!("`{field}` is a list of tables: write [[{table}]]"))
+}
+
 /// A deserialization error as the key path it happened at and why.
 fn named(e: serde_path_to_error::Error<config::ConfigError>) -> ConfigError {
     let path = e.path().to_string();
@@ -291,10 +318,12 @@ fn named(e: serde_path_to_error::Error<config::ConfigError>) -> ConfigError {
             } else {
                 path
             };
-            ConfigError {
-                key,
-                reason: with_suggestion(reason),
-            }
+            let reason = if reason == "invalid type: map, expected a sequence" {
+                list_of_tables(&key).unwrap_or(reason)
+            } else {
+                with_suggestion(reason)
+            };
+            ConfigError { key, reason }
         }
     }
 }
@@ -397,6 +426,45 @@ mod tests {
             with_suggestion("invalid type: string".into()),
             "invalid type: string"
         );
+    }
+
+    #[test]
+    fn a_single_table_where_a_list_of_tables_belongs_says_to_write_double_brackets() {
+        for (text, expected) in [
+            (
+                "[bus]\nname = \"a\"\ndevice = \"sim\"\n",
+                "bus: `bus` is a list of tables: write [[bus]]",
+            ),
+            (
+                "[[bus]]\nname = \"a\"\ndevice = \"sim\"\n[bus.slave]\naddress = 1\n",
+                "bus[0].slave: `slave` is a list of tables: write [[bus.slave]]",
+            ),
+            (
+                "[[bus]]\nname = \"a\"\ndevice = \"sim\"\n[bus.sim_slave]\naddress = 1\n",
+                "bus[0].sim_slave: `sim_slave` is a list of tables: write [[bus.sim_slave]]",
+            ),
+            (
+                "[[bus]]\nname = \"a\"\ndevice = \"sim\"\n[route]\nbus = \"a\"\n",
+                "route: `route` is a list of tables: write [[route]]",
+            ),
+        ] {
+            assert_eq!(errors(text), [expected], "{text}");
+        }
+    }
+
+    #[test]
+    fn a_duration_written_as_a_number_or_negative_names_the_key_and_shows_a_valid_one() {
+        for (value, why) in [
+            ("0.5", "a duration needs its unit, as a string"),
+            ("\"-1s\"", "a duration cannot be negative"),
+        ] {
+            let text =
+                format!("[[bus]]\nname = \"a\"\ndevice = \"sim\"\nresponse_timeout = {value}\n");
+            let e = errors(&text);
+            assert_eq!(e.len(), 1, "{e:?}");
+            assert!(e[0].starts_with("bus[0].response_timeout: "), "{e:?}");
+            assert!(e[0].contains("\"500ms\"") && e[0].contains(why), "{e:?}");
+        }
     }
 
     #[test]

@@ -21,7 +21,7 @@ mod tls;
 mod unit_set;
 
 pub use bus::{Bus, SimModel, SimSlave, Slave, SIM_DEVICE};
-pub use check::{DriveCheck, DriveRefusal};
+pub use check::{DriveCheck, DriveRefusal, TlsFilesCheck};
 pub use diff::{BusChange, ConfigDiff};
 pub use load::{ConfigError, ConfigErrors, DEFAULT_PATH, ENV_PREFIX};
 pub use log::{Log, LogFormat};

@@ -34,7 +34,17 @@ pub(super) mod duration {
     pub(crate) fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Duration, D::Error> {
         let text = String::deserialize(d)?;
         humantime::parse_duration(&text).map_err(|e| {
-            serde::de::Error::custom(format!("`{text}` is not a duration like \"500ms\": {e}"))
+            // The file's numbers arrive here as text: `0.5` was a number, without its unit.
+            let why = if text.trim_start().starts_with('-') {
+                "a duration cannot be negative".to_owned()
+            } else if text.trim().parse::<f64>().is_ok() {
+                "a duration needs its unit, as a string".to_owned()
+            } else {
+                e.to_string()
+            };
+            serde::de::Error::custom(format!(
+                "`{text}` is not a duration like \"500ms\" or \"2s\": {why}"
+            ))
         })
     }
 }
