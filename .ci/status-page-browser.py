@@ -30,6 +30,21 @@ WAIT = 20.0  # seconds for anything the page should show
 DEMO_BUS = "demo"
 DEMO_DRIVES = {1: "gd20", 2: "gd300", 3: "gd10", 4: "pd-inverter"}
 
+# A laptop's half screen and a phone: the page must fit; only tables may scroll sideways, inside
+# their own box.
+NARROW_WIDTHS = (700, 390)
+
+# How wide the page is laid out against its viewport (scrollbars are hidden, so clientWidth is the
+# viewport's width); wider means the reader scrolls the whole page sideways.
+PAGE_WIDTH = """JSON.stringify({
+  page: document.documentElement.scrollWidth,
+  client: document.documentElement.clientWidth,
+  widest: [...document.body.querySelectorAll('*')]
+    .filter(e => e.getBoundingClientRect().right > document.documentElement.clientWidth + 1)
+    .slice(0, 5).map(e => e.tagName + (e.id ? '#' + e.id : '') + ' ' +
+      Math.round(e.getBoundingClientRect().right) + ' px'),
+})"""
+
 # What the tables, the trace state and the trace rows hold, as text (nothing yet while the page
 # loads).
 SNAPSHOT = """JSON.stringify({
@@ -128,6 +143,19 @@ class Browser:
         self.call("Emulation.setDeviceMetricsOverride",
                   {"width": 1280, "height": 900, "deviceScaleFactor": 1, "mobile": False})
         self.call("Page.navigate", {"url": url})
+
+    def resize(self, width):
+        self.call("Emulation.setDeviceMetricsOverride",
+                  {"width": width, "height": 900, "deviceScaleFactor": 1, "mobile": False})
+
+    def wait_for_layout(self, width):
+        """The page's width and its viewport's once the page is laid out at `width` px."""
+        deadline = time.monotonic() + WAIT
+        while True:
+            widths = json.loads(self.evaluate(PAGE_WIDTH))
+            if widths["client"] == width or time.monotonic() > deadline:
+                return widths
+            time.sleep(0.1)
 
     def evaluate(self, expression):
         result = self.call("Runtime.evaluate", {"expression": expression, "returnByValue": True})
@@ -260,9 +288,17 @@ def main():
         if others:
             fail("frames of other slaves in the trace filtered for slave 2", others)
         master.close()
+        for width in NARROW_WIDTHS:
+            browser.resize(width)
+            scroll = browser.wait_for_layout(width)
+            if scroll["page"] > scroll["client"]:
+                fail(f"the page scrolls sideways at {width} px (tables must scroll in their own box)",
+                     scroll)
+        browser.resize(1280)
         print(f"status page in {CHROMIUM}: bus {DEMO_BUS}, drives {sorted(DEMO_DRIVES)}, "
               f"the frame {request} in the trace panel ({len(frame['frames'])} frames shown), "
-              f"and with the slave filter only slave 2's")
+              f"and with the slave filter only slave 2's; no sideways page scroll at "
+              f"{' and '.join(f'{w} px' for w in NARROW_WIDTHS)}")
         if screenshot:
             stop = threading.Event()
             threads = traffic(modbus_port, stop)
