@@ -54,6 +54,9 @@ SNAPSHOT = """JSON.stringify({
     ({bus: r.dataset.bus, slave: Number(r.dataset.slave), text: r.textContent})),
   masters: document.getElementById('masters')?.textContent ?? '',
   trace: document.getElementById('trace-state')?.textContent ?? '',
+  problem: document.getElementById('problem')?.textContent ?? '',
+  updated: document.getElementById('updated')?.textContent ?? '',
+  'drive 3': document.querySelector('#slaves tr[data-slave="3"] td:nth-child(5)')?.textContent ?? '',
   frames: [...document.querySelectorAll('#trace tr')].map(r =>
     ({direction: r.dataset.direction, slave: Number(r.dataset.slave), bus: r.dataset.bus,
       cells: [...r.cells].map(c => c.textContent)})),
@@ -225,6 +228,21 @@ class Master:
         self.socket.close()
 
 
+def age(text):
+    """Seconds in an age the page shows ("just now", "12 s ago", "1 min 3 s ago"); -1 if not one."""
+    if text == "just now":
+        return 0
+    words = text.split()
+    if not words or words[-1] != "ago":
+        return -1
+    seconds = 0
+    for number, unit in zip(words[0:-1:2], words[1:-1:2]):
+        if not number.isdigit() or unit not in ("s", "min", "h", "d"):
+            return -1
+        seconds += int(number) * {"s": 1, "min": 60, "h": 3600, "d": 86400}[unit]
+    return seconds
+
+
 def shows_demo(snapshot):
     buses = [b for b in snapshot["buses"] if b["bus"] == DEMO_BUS and "open" in b["text"]]
     drives = {s["slave"]: s["text"] for s in snapshot["slaves"] if s["bus"] == DEMO_BUS}
@@ -311,6 +329,15 @@ def main():
                 for thread in threads:
                     thread.join()
             print(f"screenshot: {screenshot}")
+        # Last: the page loses the gateway. It must say so, and its ages must keep counting.
+        browser.call("Network.enable")
+        browser.call("Network.emulateNetworkConditions", {
+            "offline": True, "latency": 0, "downloadThroughput": -1, "uploadThroughput": -1})
+        lost = browser.wait_for(
+            "that it cannot reach the gateway, and ages counting on (3 s or more)",
+            lambda s: "Cannot reach the gateway" in s["problem"] and age(s["updated"]) >= 3
+            and age(s["drive 3"]) >= 3)
+        print(f"offline: \"updated {lost['updated']}\", drive 3's last answer {lost['drive 3']}")
     finally:
         browser.close()
 
