@@ -30,6 +30,21 @@ WAIT = 20.0  # seconds for anything the page should show
 DEMO_BUS = "demo"
 DEMO_DRIVES = {1: "gd20", 2: "gd300", 3: "gd10", 4: "pd-inverter"}
 
+# A laptop's half screen and a phone: the page must fit; only tables may scroll sideways, inside
+# their own box.
+NARROW_WIDTHS = (700, 390)
+
+# How wide the page is laid out against its viewport (scrollbars are hidden, so clientWidth is the
+# viewport's width); wider means the reader scrolls the whole page sideways.
+PAGE_WIDTH = """JSON.stringify({
+  page: document.documentElement.scrollWidth,
+  client: document.documentElement.clientWidth,
+  widest: [...document.body.querySelectorAll('*')]
+    .filter(e => e.getBoundingClientRect().right > document.documentElement.clientWidth + 1)
+    .slice(0, 5).map(e => e.tagName + (e.id ? '#' + e.id : '') + ' ' +
+      Math.round(e.getBoundingClientRect().right) + ' px'),
+})"""
+
 # What the tables, the trace state and the trace rows hold, as text (nothing yet while the page
 # loads).
 SNAPSHOT = """JSON.stringify({
@@ -39,6 +54,9 @@ SNAPSHOT = """JSON.stringify({
     ({bus: r.dataset.bus, slave: Number(r.dataset.slave), text: r.textContent})),
   masters: document.getElementById('masters')?.textContent ?? '',
   trace: document.getElementById('trace-state')?.textContent ?? '',
+  problem: document.getElementById('problem')?.textContent ?? '',
+  updated: document.getElementById('updated')?.textContent ?? '',
+  'drive 3': document.querySelector('#slaves tr[data-slave="3"] td:nth-child(5)')?.textContent ?? '',
   frames: [...document.querySelectorAll('#trace tr')].map(r =>
     ({direction: r.dataset.direction, slave: Number(r.dataset.slave), bus: r.dataset.bus,
       cells: [...r.cells].map(c => c.textContent)})),
@@ -129,6 +147,19 @@ class Browser:
                   {"width": 1280, "height": 900, "deviceScaleFactor": 1, "mobile": False})
         self.call("Page.navigate", {"url": url})
 
+    def resize(self, width):
+        self.call("Emulation.setDeviceMetricsOverride",
+                  {"width": width, "height": 900, "deviceScaleFactor": 1, "mobile": False})
+
+    def wait_for_layout(self, width):
+        """The page's width and its viewport's once the page is laid out at `width` px."""
+        deadline = time.monotonic() + WAIT
+        while True:
+            widths = json.loads(self.evaluate(PAGE_WIDTH))
+            if widths["client"] == width or time.monotonic() > deadline:
+                return widths
+            time.sleep(0.1)
+
     def evaluate(self, expression):
         result = self.call("Runtime.evaluate", {"expression": expression, "returnByValue": True})
         if "exceptionDetails" in result:
@@ -197,6 +228,21 @@ class Master:
         self.socket.close()
 
 
+def age(text):
+    """Seconds in an age the page shows ("just now", "12 s ago", "1 min 3 s ago"); -1 if not one."""
+    if text == "just now":
+        return 0
+    words = text.split()
+    if not words or words[-1] != "ago":
+        return -1
+    seconds = 0
+    for number, unit in zip(words[0:-1:2], words[1:-1:2]):
+        if not number.isdigit() or unit not in ("s", "min", "h", "d"):
+            return -1
+        seconds += int(number) * {"s": 1, "min": 60, "h": 3600, "d": 86400}[unit]
+    return seconds
+
+
 def shows_demo(snapshot):
     buses = [b for b in snapshot["buses"] if b["bus"] == DEMO_BUS and "open" in b["text"]]
     drives = {s["slave"]: s["text"] for s in snapshot["slaves"] if s["bus"] == DEMO_BUS}
@@ -260,9 +306,17 @@ def main():
         if others:
             fail("frames of other slaves in the trace filtered for slave 2", others)
         master.close()
+        for width in NARROW_WIDTHS:
+            browser.resize(width)
+            scroll = browser.wait_for_layout(width)
+            if scroll["page"] > scroll["client"]:
+                fail(f"the page scrolls sideways at {width} px (tables must scroll in their own box)",
+                     scroll)
+        browser.resize(1280)
         print(f"status page in {CHROMIUM}: bus {DEMO_BUS}, drives {sorted(DEMO_DRIVES)}, "
               f"the frame {request} in the trace panel ({len(frame['frames'])} frames shown), "
-              f"and with the slave filter only slave 2's")
+              f"and with the slave filter only slave 2's; no sideways page scroll at "
+              f"{' and '.join(f'{w} px' for w in NARROW_WIDTHS)}")
         if screenshot:
             stop = threading.Event()
             threads = traffic(modbus_port, stop)
@@ -275,6 +329,15 @@ def main():
                 for thread in threads:
                     thread.join()
             print(f"screenshot: {screenshot}")
+        # Last: the page loses the gateway. It must say so, and its ages must keep counting.
+        browser.call("Network.enable")
+        browser.call("Network.emulateNetworkConditions", {
+            "offline": True, "latency": 0, "downloadThroughput": -1, "uploadThroughput": -1})
+        lost = browser.wait_for(
+            "that it cannot reach the gateway, and ages counting on (3 s or more)",
+            lambda s: "Cannot reach the gateway" in s["problem"] and age(s["updated"]) >= 3
+            and age(s["drive 3"]) >= 3)
+        print(f"offline: \"updated {lost['updated']}\", drive 3's last answer {lost['drive 3']}")
     finally:
         browser.close()
 
