@@ -5,38 +5,17 @@
 //! a request are never sent, since a slave framing by length would take them as a request. Either way the session gets a
 //! receiver for its outcome.
 
-use crate::bus::{BusHandle, MasterId, Origin};
+use crate::bus::BusHandle;
 use crate::config::UnitSet;
 use crate::error::{Outcome, RequestError};
 use crate::line::BROADCAST;
-use crate::metrics::{Metrics, Protocol, Refusal};
+use crate::master::{MasterId, Origin, Protocol, Rights};
+use crate::metrics::{Metrics, Refusal};
 use crate::pdu::{self, RequestLen};
 use crate::routing::Router;
 use std::net::SocketAddr;
 use std::sync::{Arc, PoisonError, RwLock};
 use tokio::sync::oneshot;
-
-/// What a master may ask for: from its address (`server.read_only`) and, on a TLS connection,
-/// its certificate's role. Ordered from least to most, so the stricter of two is their `min`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
-pub enum Rights {
-    /// Nothing: every request gets 0x01, unsent (a TLS role with access `"none"`).
-    NoAccess,
-    /// Only requests known to change nothing on a slave; anything else gets 0x01, unsent.
-    ReadOnly,
-    ReadWrite,
-}
-
-impl Rights {
-    /// The `access` field of the logs.
-    pub fn name(self) -> &'static str {
-        match self {
-            Rights::NoAccess => "none",
-            Rights::ReadOnly => "read_only",
-            Rights::ReadWrite => "read_write",
-        }
-    }
-}
 
 /// The master requests come from: one per connection.
 #[derive(Debug)]

@@ -42,6 +42,7 @@ pub mod error;
 pub mod gateway;
 pub mod line;
 mod logging;
+pub mod master;
 pub mod metrics;
 pub mod pdu;
 mod routing;
@@ -58,7 +59,8 @@ pub use gateway::Gateway;
 /// dispatcher and the routing table, which the gateway otherwise wires up itself. Not an API.
 #[doc(hidden)]
 pub mod testing {
-    pub use crate::dispatch::{Client, Dispatcher, Rights};
+    pub use crate::dispatch::{Client, Dispatcher};
+    pub use crate::master::{Protocol, Rights};
     pub use crate::routing::Router;
     pub use crate::tcp::server::{set_keepalive, RECENTLY_ANSWERED};
     pub use crate::tcp::session::{self, Activity, SessionError};

@@ -3,10 +3,11 @@
 //! masters served first up to their share of the line.
 
 use crate::support::{addr, settle, sim_bus_counted, start, within, RawMaster, Scrape};
-use modbus_gateway::bus::{BusHandle, Origin};
+use modbus_gateway::bus::BusHandle;
 use modbus_gateway::config::Config;
 use modbus_gateway::error::Answer;
-use modbus_gateway::metrics::{Metrics, Protocol};
+use modbus_gateway::master::{Origin, Protocol};
+use modbus_gateway::metrics::Metrics;
 use modbus_gateway::sim::{SimLine, Source};
 use std::sync::Arc;
 use std::time::Duration;

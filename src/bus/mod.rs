@@ -18,13 +18,14 @@ mod task;
 mod transaction;
 
 pub use port::{Device, Port, SerialDriver};
-pub use queue::{FairQueue, Follower, Job, MasterId, Origin, Pushed};
+pub use queue::{FairQueue, Follower, Job, Pushed};
 pub use reconfigure::{longest_transaction, BusUpdates, Reconfigure};
 pub use task::BusTask;
 
 use crate::config;
 use crate::error::{duplicate, Answer, Outcome, RequestError};
-use crate::metrics::{BusMetrics, Protocol};
+use crate::master::{MasterId, Origin, Protocol};
+use crate::metrics::BusMetrics;
 use crate::pdu;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};

@@ -34,7 +34,7 @@
 
 use crate::error::{Answer, Outcome};
 use crate::line::BROADCAST;
-use crate::metrics::Protocol;
+use crate::master::{MasterId, Origin, Protocol};
 use crate::pdu;
 use std::cmp::Reverse;
 use std::collections::{hash_map, HashMap, VecDeque};
@@ -43,23 +43,6 @@ use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
 use tokio::sync::{oneshot, Notify};
 use tokio::time::Instant;
-
-/// One master: a connection, or one source port of a Modbus UDP address.
-pub type MasterId = u64;
-
-/// Who a request comes from.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Origin {
-    pub master: MasterId,
-    /// Whose share of a full queue it counts against and whose turn on the line it takes: the
-    /// master's own id for a connection; for Modbus UDP, one id for every port of a source
-    /// address (ports cost a sender nothing).
-    pub admission: MasterId,
-    /// How the master talks to the gateway, for the requests' `protocol` label.
-    pub protocol: Protocol,
-    /// Served before the others (`server.priority`).
-    pub priority: bool,
-}
 
 /// A request waiting for the line.
 #[derive(Debug)]

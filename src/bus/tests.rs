@@ -29,7 +29,7 @@ fn job(slave: u8, pdu: &[u8]) -> (Job, oneshot::Receiver<Outcome>) {
     let origin = super::Origin {
         master: 1,
         admission: 1,
-        protocol: crate::metrics::Protocol::Tcp,
+        protocol: crate::master::Protocol::Tcp,
         priority: false,
     };
     let deadline = Instant::now() + Duration::from_secs(60);

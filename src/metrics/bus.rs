@@ -2,12 +2,13 @@
 //! transaction's round trip and retries, a slave's state as `bus::health` reports it, a port
 //! opened, lost or failing to open, what went over the line.
 
-use super::labels::{decimal, seconds_since_epoch, Fate, Protocol, OTHER};
+use super::labels::{decimal, seconds_since_epoch, Fate, OTHER};
 use super::{Definer, RequestCounters, BUS_EVENTS};
 use crate::bus::latency::LatencyTimer;
 use crate::config;
 use crate::error::{Answer, Outcome, RequestError};
 use crate::line::LineCounters;
+use crate::master::Protocol;
 use prometheus::core::Collector;
 use prometheus::{
     Counter, CounterVec, Gauge, GaugeVec, Histogram, HistogramVec, IntCounter, IntCounterVec,

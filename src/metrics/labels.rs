@@ -147,31 +147,6 @@ impl Fate {
     }
 }
 
-/// How a master talks to the gateway: the `protocol` label of connections and requests.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum Protocol {
-    /// Modbus TCP (`server.listen`).
-    #[default]
-    Tcp,
-    /// RTU frames on TCP (`server.listen_rtu_over_tcp`).
-    RtuOverTcp,
-    /// Modbus UDP (`server.listen_udp`).
-    Udp,
-    /// Modbus/TCP Security: Modbus TCP in TLS (`server.listen_tls`).
-    Tls,
-}
-
-impl Protocol {
-    pub fn label(self) -> &'static str {
-        match self {
-            Protocol::Tcp => "tcp",
-            Protocol::RtuOverTcp => "rtu_over_tcp",
-            Protocol::Udp => "udp",
-            Protocol::Tls => "tls",
-        }
-    }
-}
-
 /// Who made an exception reply: the `source` label.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ExceptionSource {

@@ -18,7 +18,7 @@ mod udp;
 pub use bus::{BusMetrics, SlaveSnapshot};
 
 use bus::BusFamilies;
-pub use labels::{Closing, ExceptionSource, Fate, Protocol, Rejection};
+pub use labels::{Closing, ExceptionSource, Fate, Rejection};
 
 use labels::{hex, OTHER};
 pub use tcp::{Refusal, TcpMetrics};
@@ -27,6 +27,7 @@ pub use udp::{UdpDrop, UdpMetrics};
 
 use crate::config;
 use crate::error::{Answer, Outcome};
+use crate::master::Protocol;
 use prometheus::{
     CounterVec, GaugeVec, HistogramOpts, HistogramVec, IntCounterVec, IntGauge, IntGaugeVec, Opts,
     Registry, TextEncoder,

@@ -2,9 +2,10 @@
 //! refused for what the master may do or for their length. What a master's own doing causes is
 //! logged at warn at most once a minute per source address and kind ([`PeerThrottle`]).
 
-use super::labels::{hex, Closing, Protocol, Rejection};
+use super::labels::{hex, Closing, Rejection};
 use super::throttle::PeerThrottle;
 use super::{Definer, TCP_EVENTS};
+use crate::master::Protocol;
 use prometheus::{IntCounter, IntCounterVec, IntGaugeVec};
 use std::fmt::Display;
 use std::net::SocketAddr;

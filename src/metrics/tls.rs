@@ -3,9 +3,10 @@
 //! `reason="tls_handshake"`). Failed handshakes and unreadable roles are logged at warn at most
 //! once a minute per peer address.
 
-use super::labels::{Protocol, Rejection};
+use super::labels::Rejection;
 use super::throttle::PeerThrottle;
 use super::{Definer, TcpMetrics, TCP_EVENTS};
+use crate::master::Protocol;
 use prometheus::{IntCounterVec, IntGauge};
 use std::fmt::Display;
 use std::net::SocketAddr;

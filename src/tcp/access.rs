@@ -1,7 +1,7 @@
 //! Who may connect (`server.allow`) and who may only read (`server.read_only`), decided from the
 //! peer's address alone. Pure: knows nothing of sockets or sessions.
 
-use crate::dispatch::Rights;
+use crate::master::Rights;
 use ipnet::IpNet;
 use std::net::IpAddr;
 

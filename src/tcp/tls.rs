@@ -6,7 +6,7 @@
 //! key) and inspects certificates; knows nothing of sessions or buses.
 
 use crate::config::{self, ConfigError, ConfigErrors, Role, RoleAccess, UnitSet, OTHER_ROLE};
-use crate::dispatch::Rights;
+use crate::master::Rights;
 use rustls::pki_types::pem::PemObject;
 use rustls::pki_types::{CertificateDer, CertificateRevocationListDer, PrivateKeyDer};
 use rustls::server::danger::ClientCertVerifier;

@@ -7,9 +7,9 @@
 
 use super::mbap;
 use super::server::Shared;
-use crate::bus::MasterId;
 use crate::dispatch::Client;
-use crate::metrics::{Protocol, UdpDrop};
+use crate::master::{MasterId, Protocol};
+use crate::metrics::UdpDrop;
 use bytes::BytesMut;
 use std::collections::{hash_map, HashMap};
 use std::io;
@@ -226,7 +226,7 @@ mod tests {
             *next
         };
         let (_, count) = sources.client(peer, new_id, |master| {
-            Client::new(master, peer, crate::dispatch::Rights::ReadWrite)
+            Client::new(master, peer, crate::master::Rights::ReadWrite)
         });
         *count += 1;
     }

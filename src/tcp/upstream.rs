@@ -6,7 +6,7 @@
 
 use super::mbap::{self, FrameError, Header, Request};
 use crate::line::rtu::{self, FrameLen};
-use crate::metrics::Protocol;
+use crate::master::Protocol;
 use bytes::BytesMut;
 
 /// A listener's framing.
