@@ -7,13 +7,14 @@
 use crate::bus::{BusHandle, BusTask, BusUpdates, Device, Reconfigure, SerialDriver};
 use crate::config::{self, BusChange, Config, ConfigDiff, ConfigErrors};
 use crate::dispatch::Dispatcher;
-use crate::metrics::{self, status, Metrics};
+use crate::metrics::Metrics;
 use crate::routing::Router;
 use crate::shutdown::{self, Stop};
 use crate::sim::{self, SimLine};
 use crate::tcp::server::Shared;
 use crate::tcp::tls::TlsServer;
 use crate::tcp::{self, Policy, Upstream};
+use crate::web;
 use std::io;
 use std::net::SocketAddr;
 use std::path::Path;
@@ -124,97 +125,25 @@ pub fn config_from_toml(text: &str) -> Result<Config, ConfigErrors> {
     Config::from_toml_str_with(text, &sim::Drives)
 }
 
-/// The buses whose port is not open, for `/readyz`.
-fn not_ready(shared: Arc<Shared>) -> metrics::http::Readiness {
-    Arc::new(move || {
-        let buses = shared.dispatcher.buses();
-        let down = buses.iter().filter(|bus| !bus.is_up());
-        down.map(|bus| bus.name().to_owned()).collect()
-    })
+/// What the status page and `/readyz` read of the gateway: the buses the dispatcher routes to,
+/// the configuration in force, the masters the listeners serve.
+struct Inspected {
+    shared: Arc<Shared>,
+    config: Arc<Mutex<Config>>,
 }
 
-/// What the status page shows, read when asked: the buses of `config` as their handles and
-/// metrics have them, and the masters `shared`'s listeners serve.
-fn status_source(shared: Arc<Shared>, config: Arc<Mutex<Config>>) -> metrics::http::StatusSource {
-    let started = (Instant::now(), std::time::SystemTime::now());
-    let utilisation = status::Utilisation::default();
-    Arc::new(move || {
-        let (now, wall) = (Instant::now(), std::time::SystemTime::now());
-        let handles = shared.dispatcher.buses();
-        let config = config.lock().unwrap_or_else(PoisonError::into_inner);
-        let names: Vec<&str> = handles.iter().map(BusHandle::name).collect();
-        utilisation.keep_only(&names);
-        let buses = handles
-            .iter()
-            .filter_map(|handle| {
-                let settings = config.bus.iter().find(|b| b.name == handle.name())?;
-                let metrics = handle.metrics();
-                let busy = utilisation.of(handle.name(), metrics.busy_seconds(), now, started.0);
-                Some(bus_status(handle, settings, busy, wall))
-            })
-            .collect();
-        status::Status {
-            version: env!("CARGO_PKG_VERSION"),
-            time: status::rfc3339(wall),
-            uptime_seconds: status::seconds_between(started.1, wall),
-            buses,
-            masters: shared.masters(wall),
-        }
-    })
-}
+impl web::Inspect for Inspected {
+    fn buses(&self) -> Vec<BusHandle> {
+        self.shared.dispatcher.buses()
+    }
 
-/// One bus on the status page, with its recent `utilisation`, at `now`.
-fn bus_status(
-    handle: &BusHandle,
-    settings: &config::Bus,
-    utilisation: f64,
-    now: std::time::SystemTime,
-) -> status::BusStatus {
-    let metrics = handle.metrics();
-    let model = |address: u8| {
-        let sim = settings.sim_slave.iter();
-        let mut slaves = sim.filter(|s| s.address.iter().any(|a| a == address));
-        slaves.next().map(|s| s.model.name())
-    };
-    let slaves = metrics
-        .slaves()
-        .into_iter()
-        .map(|slave| {
-            let errors = slave
-                .requests
-                .iter()
-                .filter(|(outcome, _)| *outcome != "ok")
-                .map(|(_, count)| count)
-                .sum();
-            status::SlaveStatus {
-                address: slave.address,
-                model: model(slave.address),
-                up: slave.up,
-                last_answer: slave.last_answer.map(status::rfc3339),
-                last_answer_seconds_ago: slave
-                    .last_answer
-                    .map(|at| status::seconds_between(at, now)),
-                round_trip_p50_seconds: slave.round_trip_p50.map(|d| d.as_secs_f64()),
-                requests: slave.requests,
-                errors,
-            }
-        })
-        .collect();
-    status::BusStatus {
-        name: settings.name.clone(),
-        device: if settings.is_sim() {
-            "simulated".to_owned()
-        } else {
-            settings.device.clone()
-        },
-        framing: settings.framing.name(),
-        format: settings.format().to_string(),
-        port_up: handle.is_up(),
-        utilisation,
-        queue_depth: handle.queue_depth(),
-        queue_capacity: settings.queue_depth,
-        transactions: metrics.transactions(),
-        slaves,
+    fn settings(&self, name: &str) -> Option<config::Bus> {
+        let config = self.config.lock().unwrap_or_else(PoisonError::into_inner);
+        config.bus.iter().find(|bus| bus.name == name).cloned()
+    }
+
+    fn masters(&self, now: std::time::SystemTime) -> Vec<web::status::MasterStatus> {
+        self.shared.masters(now)
     }
 }
 
@@ -333,13 +262,15 @@ impl Gateway {
         ));
         let mut tasks = JoinSet::new();
         let config = Arc::new(Mutex::new(config.clone()));
-        let status = status_source(shared.clone(), config.clone());
+        let inspected = Inspected {
+            shared: shared.clone(),
+            config: config.clone(),
+        };
         info!(listen = %metrics_addr, "serving the status page (/), /status, /trace, /metrics, /healthz and /readyz");
-        tasks.spawn(metrics::http::serve(
+        tasks.spawn(web::serve(
             metrics_listener,
             metrics.clone(),
-            not_ready(shared.clone()),
-            status,
+            Arc::new(inspected),
         ));
         let (tls_listeners, plain) = listeners.iter().partition(|l| l.upstream == Upstream::Tls);
         let addrs =

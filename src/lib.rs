@@ -51,6 +51,7 @@ pub mod sim;
 mod tcp;
 pub mod timer;
 pub mod trace;
+mod web;
 
 pub use config::Config;
 pub use gateway::Gateway;
@@ -66,4 +67,28 @@ pub mod testing {
     pub use crate::tcp::session::{self, Activity, SessionError};
     pub use crate::tcp::upstream::Upstream;
     pub use crate::tcp::SessionLimits;
+
+    use crate::metrics::Metrics;
+    use std::sync::Arc;
+
+    /// The operator's HTTP endpoint on `listener`, for a gateway with no bus and no master.
+    pub async fn serve_web(listener: tokio::net::TcpListener, metrics: Arc<Metrics>) {
+        crate::web::serve(listener, metrics, Arc::new(Empty)).await;
+    }
+
+    struct Empty;
+
+    impl crate::web::Inspect for Empty {
+        fn buses(&self) -> Vec<crate::bus::BusHandle> {
+            Vec::new()
+        }
+
+        fn settings(&self, _: &str) -> Option<crate::config::Bus> {
+            None
+        }
+
+        fn masters(&self, _: std::time::SystemTime) -> Vec<crate::web::status::MasterStatus> {
+            Vec::new()
+        }
+    }
 }

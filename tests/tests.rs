@@ -1,6 +1,7 @@
 //! The integration tests, in one crate so they build once. Where a new test goes:
 //! - `docs`: the reference pages (docs/) name every configuration key and every metric, and
 //!   every link between them and the README leads somewhere.
+//! - `layers`: the crate's modules have no cycle, and `metrics` imports no runtime part.
 //! - `cli`: the binary: check-config, config errors, environment, run and stop, logs. (The bench's
 //!   test is in `bench/tests/`.)
 //! - `tcp`: the Modbus TCP side and masters that abuse it: pipelining and floods, MBAP errors and
@@ -57,6 +58,7 @@ mod drives;
 mod fairness;
 mod faults;
 mod hostile;
+mod layers;
 mod line;
 mod metrics;
 mod peers;

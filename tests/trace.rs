@@ -377,12 +377,7 @@ async fn a_trace_stream_outlives_the_endpoints_connection_lifetime_with_keepaliv
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = listener.local_addr().unwrap();
     let metrics = Arc::new(Metrics::new());
-    tokio::spawn(modbus_gateway::metrics::http::serve(
-        listener,
-        metrics,
-        Arc::new(Vec::<String>::new),
-        Arc::new(modbus_gateway::metrics::status::Status::default),
-    ));
+    tokio::spawn(modbus_gateway::testing::serve_web(listener, metrics));
     let mut trace = Trace::open(addr, "").await;
     // Other connections are closed after 120 s; a keepalive comes every 5 s.
     for _ in 0..30 {

@@ -503,7 +503,7 @@ impl BusMetrics {
                     address,
                     up: slave.up.get() == 1,
                     last_answer: (last > 0.0).then(|| UNIX_EPOCH + Duration::from_secs_f64(last)),
-                    round_trip_p50: super::status::median(round_trips.iter().copied()),
+                    round_trip_p50: super::median::median(round_trips.iter().copied()),
                     requests: requests.remove(&address).unwrap_or_default(),
                 })
             })

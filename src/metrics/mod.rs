@@ -1,15 +1,14 @@
 //! What the gateway counts, as `modbus_gateway_*` Prometheus metrics, and the notable events that
 //! both log and count from one call site: a request's outcome, a slave going silent or coming
 //! back, a port lost or reopened, a connection refused or closed. Labels are bounded (bus, slave
-//! address, function code, outcome, exception code, reason), never a peer address. [`http`] serves
-//! the text format, the health endpoints and the status page ([`status`]). Callers say what
-//! happened; this module knows nothing of frames, sockets or timing.
+//! address, function code, outcome, exception code, reason), never a peer address. The operator's
+//! HTTP endpoint (`web`) serves them. Callers say what happened, in plain values; this module
+//! knows nothing of frames, sockets, timing or the runtime's parts (it imports neither `bus` nor
+//! `dispatch` nor `net`).
 
 mod bus;
-pub mod http;
 mod labels;
-mod sse;
-pub mod status;
+mod median;
 mod tcp;
 mod throttle;
 mod tls;

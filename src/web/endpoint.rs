@@ -1,11 +1,11 @@
 //! The HTTP endpoint on `metrics.listen`: `/` (the status page), `/status` (its data, JSON),
 //! `/metrics` (Prometheus text format), `/healthz` (the process answers), `/readyz` (every bus
 //! has its port open, else 503 naming those that have not) and `/trace` (the live trace of the
-//! lines, `metrics::sse`). HTTP/1.1 by hyper.
+//! lines, `sse`). HTTP/1.1 by hyper.
 //!
 //! The endpoint keeps room for Prometheus whatever the other clients do. It holds
 //! [`MAX_CONNECTIONS`] connections; at most [`MAX_READERS`] of them stream the trace (a stream
-//! whose reader stops reading is dropped, `metrics::sse`), so the others are only for requests
+//! whose reader stops reading is dropped, `sse`), so the others are only for requests
 //! that are answered at once. A connection that has not sent a whole request yet (a silent one
 //! is closed after [`FIRST_BYTE_TIMEOUT`], an unfinished request head after [`HEADER_TIMEOUT`]),
 //! or whose answer has been going out for over [`ANSWER_GRACE`], holds its place only until a
@@ -16,9 +16,8 @@
 //! place. Every socket gets TCP keepalive probes, so a peer that vanished is noticed, and a
 //! fixed send buffer ([`SEND_BUFFER`]), so a client that stops reading is soon blocked.
 
-use super::sse;
-use super::status::{self, Status};
-use super::Metrics;
+use super::{sse, status, Inspect, StatusSource};
+use crate::metrics::Metrics;
 use crate::trace::MAX_READERS;
 use base64::prelude::{Engine, BASE64_STANDARD};
 use bytes::Bytes;
@@ -70,15 +69,9 @@ const TEXT: &str = "text/plain; charset=utf-8";
 const HTML: &str = "text/html; charset=utf-8";
 const JSON: &str = "application/json";
 
-/// The buses whose port is not open; empty when the gateway is ready.
-pub type Readiness = Arc<dyn Fn() -> Vec<String> + Send + Sync>;
-
-/// What the status page shows, read when asked.
-pub type StatusSource = Arc<dyn Fn() -> Status + Send + Sync>;
-
 struct State {
     metrics: Arc<Metrics>,
-    not_ready: Readiness,
+    gateway: Arc<dyn Inspect>,
     status: StatusSource,
     connections: Mutex<Connections>,
 }
@@ -182,16 +175,11 @@ impl State {
 }
 
 /// Serve the endpoint on `listener` forever.
-pub async fn serve(
-    listener: TcpListener,
-    metrics: Arc<Metrics>,
-    not_ready: Readiness,
-    status: StatusSource,
-) {
+pub(crate) async fn serve(listener: TcpListener, metrics: Arc<Metrics>, gateway: Arc<dyn Inspect>) {
     let state = Arc::new(State {
         metrics,
-        not_ready,
-        status,
+        gateway,
+        status: StatusSource::new(),
         connections: Mutex::new(Connections::default()),
     });
     loop {
@@ -369,7 +357,7 @@ fn respond(state: &State, request: &Request<Incoming>) -> Response<Full<Bytes>> 
     }
     match request.uri().path() {
         "/" => status_page(),
-        "/status" => match serde_json::to_string(&(state.status)()) {
+        "/status" => match serde_json::to_string(&state.status.read(state.gateway.as_ref())) {
             Ok(json) => response(StatusCode::OK, JSON, json),
             Err(error) => {
                 warn!(%error, "cannot render the status");
@@ -393,7 +381,7 @@ fn respond(state: &State, request: &Request<Incoming>) -> Response<Full<Bytes>> 
         },
         "/healthz" => response(StatusCode::OK, TEXT, "ok\n".into()),
         "/readyz" => {
-            let down = (state.not_ready)();
+            let down = super::not_ready(state.gateway.as_ref());
             if down.is_empty() {
                 response(StatusCode::OK, TEXT, "ready\n".into())
             } else {

@@ -11,7 +11,7 @@ use std::time::{Duration, SystemTime};
 use tokio::time::Instant;
 
 /// The page itself: one self-contained HTML file, its script and style inline.
-pub const PAGE: &str = include_str!("status.html");
+pub(crate) const PAGE: &str = include_str!("status.html");
 
 /// The utilisation shown is the line's busy time over about this much of the recent past.
 const UTILISATION_WINDOW: Duration = Duration::from_secs(60);
@@ -20,7 +20,7 @@ const SAMPLE_SPACING: Duration = Duration::from_secs(1);
 
 /// The whole page's data; its default, a gateway with nothing to show.
 #[derive(Clone, Debug, Default, Serialize)]
-pub struct Status {
+pub(crate) struct Status {
     pub version: &'static str,
     /// When the answer was made (RFC 3339, UTC).
     pub time: String,
@@ -32,7 +32,7 @@ pub struct Status {
 }
 
 #[derive(Clone, Debug, Serialize)]
-pub struct BusStatus {
+pub(crate) struct BusStatus {
     pub name: String,
     /// The serial device's path, or `"simulated"`.
     pub device: String,
@@ -51,7 +51,7 @@ pub struct BusStatus {
 }
 
 #[derive(Clone, Debug, Serialize)]
-pub struct SlaveStatus {
+pub(crate) struct SlaveStatus {
     pub address: u8,
     /// The simulated drive's model, for a slave of a simulated line.
     pub model: Option<&'static str>,
@@ -69,7 +69,7 @@ pub struct SlaveStatus {
 }
 
 #[derive(Clone, Debug, Serialize)]
-pub struct MasterStatus {
+pub(crate) struct MasterStatus {
     /// The peer's `ip:port`.
     pub address: String,
     /// `tcp`, `rtu_over_tcp` or `tls`.
@@ -87,42 +87,27 @@ pub struct MasterStatus {
 }
 
 /// `time` as RFC 3339 in UTC, to the millisecond.
-pub fn rfc3339(time: SystemTime) -> String {
+pub(crate) fn rfc3339(time: SystemTime) -> String {
     humantime::format_rfc3339_millis(time).to_string()
 }
 
 /// Seconds from `then` to `now`, 0 if `then` is later.
-pub fn seconds_between(then: SystemTime, now: SystemTime) -> f64 {
+pub(crate) fn seconds_between(then: SystemTime, now: SystemTime) -> f64 {
     now.duration_since(then).unwrap_or_default().as_secs_f64()
-}
-
-/// The median of `samples`, `None` if there are none.
-pub fn median(samples: impl IntoIterator<Item = Duration>) -> Option<Duration> {
-    let mut samples: Vec<Duration> = samples.into_iter().collect();
-    if samples.is_empty() {
-        return None;
-    }
-    samples.sort_unstable();
-    let middle = samples.len() / 2;
-    Some(if samples.len() % 2 == 1 {
-        samples[middle]
-    } else {
-        (samples[middle - 1] + samples[middle]) / 2
-    })
 }
 
 /// The recent utilisation of each line, from samples of its busy time taken as the status is
 /// asked for: busy seconds over the elapsed time since the oldest sample of the window, or since
 /// the line's first sample if the window holds nothing older than a second yet.
 #[derive(Default)]
-pub struct Utilisation {
+pub(crate) struct Utilisation {
     samples: Mutex<HashMap<String, VecDeque<(Instant, f64)>>>,
 }
 
 impl Utilisation {
     /// The utilisation of bus `name`, whose busy time is `busy` seconds at `now`; `since` is when
     /// it started counting (for an answer before any earlier sample).
-    pub fn of(&self, name: &str, busy: f64, now: Instant, since: Instant) -> f64 {
+    pub(crate) fn of(&self, name: &str, busy: f64, now: Instant, since: Instant) -> f64 {
         let mut all = self.samples.lock().unwrap_or_else(PoisonError::into_inner);
         let samples = all.entry(name.to_owned()).or_default();
         while samples.len() > 1 && samples[1].0 + UTILISATION_WINDOW <= now {
@@ -147,7 +132,7 @@ impl Utilisation {
     }
 
     /// Forget the buses not in `names` (removed by a reload).
-    pub fn keep_only(&self, names: &[&str]) {
+    pub(crate) fn keep_only(&self, names: &[&str]) {
         self.samples
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
@@ -158,14 +143,6 @@ impl Utilisation {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn the_median_of_an_odd_and_an_even_count_and_of_none() {
-        let ms = Duration::from_millis;
-        assert_eq!(median([ms(30), ms(10), ms(20)]), Some(ms(20)));
-        assert_eq!(median([ms(40), ms(10), ms(20), ms(30)]), Some(ms(25)));
-        assert_eq!(median([]), None);
-    }
 
     #[test]
     fn utilisation_is_the_busy_share_of_the_recent_window_not_of_all_time() {

@@ -1,0 +1,133 @@
+//! The operator's HTTP surface on `metrics.listen`: the status page (`/`) and its data
+//! (`/status`, [`status`]), the live trace as server-sent events (`/trace`, `sse`), the
+//! Prometheus text format (`/metrics`) and the health checks (`/healthz`, `/readyz`), served by
+//! [`endpoint`]. It reads the running gateway only through [`Inspect`] and the metrics' registry
+//! and trace hub; it changes nothing, and knows nothing of how listeners, sessions or the line
+//! work.
+
+mod endpoint;
+mod sse;
+pub(crate) mod status;
+
+pub(crate) use endpoint::serve;
+
+use crate::bus::BusHandle;
+use crate::config;
+use status::{BusStatus, MasterStatus, SlaveStatus, Status, Utilisation};
+use std::time::SystemTime;
+use tokio::time::Instant;
+
+/// What the operator's pages read of the running gateway, and nothing more.
+pub(crate) trait Inspect: Send + Sync + 'static {
+    /// The buses in service, in configuration order.
+    fn buses(&self) -> Vec<BusHandle>;
+    /// The settings bus `name` runs with now.
+    fn settings(&self, name: &str) -> Option<config::Bus>;
+    /// The masters connected now.
+    fn masters(&self, now: SystemTime) -> Vec<MasterStatus>;
+}
+
+/// The buses whose port is not open, for `/readyz`.
+fn not_ready(gateway: &dyn Inspect) -> Vec<String> {
+    let buses = gateway.buses();
+    let down = buses.iter().filter(|bus| !bus.is_up());
+    down.map(|bus| bus.name().to_owned()).collect()
+}
+
+/// What the status page shows, read when asked, and the lines' busy time of a moment ago that
+/// their recent utilisation needs.
+pub(crate) struct StatusSource {
+    started: (Instant, SystemTime),
+    utilisation: Utilisation,
+}
+
+impl StatusSource {
+    /// The status of a gateway started now.
+    pub(crate) fn new() -> StatusSource {
+        StatusSource {
+            started: (Instant::now(), SystemTime::now()),
+            utilisation: Utilisation::default(),
+        }
+    }
+
+    /// The buses as their handles and metrics have them, and the masters connected.
+    fn read(&self, gateway: &dyn Inspect) -> Status {
+        let (now, wall) = (Instant::now(), SystemTime::now());
+        let handles = gateway.buses();
+        let names: Vec<&str> = handles.iter().map(BusHandle::name).collect();
+        self.utilisation.keep_only(&names);
+        let buses = handles
+            .iter()
+            .filter_map(|handle| {
+                let settings = gateway.settings(handle.name())?;
+                let metrics = handle.metrics();
+                let busy =
+                    self.utilisation
+                        .of(handle.name(), metrics.busy_seconds(), now, self.started.0);
+                Some(bus_status(handle, &settings, busy, wall))
+            })
+            .collect();
+        Status {
+            version: env!("CARGO_PKG_VERSION"),
+            time: status::rfc3339(wall),
+            uptime_seconds: status::seconds_between(self.started.1, wall),
+            buses,
+            masters: gateway.masters(wall),
+        }
+    }
+}
+
+/// One bus on the status page, with its recent `utilisation`, at `now`.
+fn bus_status(
+    handle: &BusHandle,
+    settings: &config::Bus,
+    utilisation: f64,
+    now: SystemTime,
+) -> BusStatus {
+    let metrics = handle.metrics();
+    let model = |address: u8| {
+        let sim = settings.sim_slave.iter();
+        let mut slaves = sim.filter(|s| s.address.iter().any(|a| a == address));
+        slaves.next().map(|s| s.model.name())
+    };
+    let slaves = metrics
+        .slaves()
+        .into_iter()
+        .map(|slave| {
+            let errors = slave
+                .requests
+                .iter()
+                .filter(|(outcome, _)| *outcome != "ok")
+                .map(|(_, count)| count)
+                .sum();
+            SlaveStatus {
+                address: slave.address,
+                model: model(slave.address),
+                up: slave.up,
+                last_answer: slave.last_answer.map(status::rfc3339),
+                last_answer_seconds_ago: slave
+                    .last_answer
+                    .map(|at| status::seconds_between(at, now)),
+                round_trip_p50_seconds: slave.round_trip_p50.map(|d| d.as_secs_f64()),
+                requests: slave.requests,
+                errors,
+            }
+        })
+        .collect();
+    BusStatus {
+        name: settings.name.clone(),
+        device: if settings.is_sim() {
+            "simulated".to_owned()
+        } else {
+            settings.device.clone()
+        },
+        framing: settings.framing.name(),
+        format: settings.format().to_string(),
+        port_up: handle.is_up(),
+        utilisation,
+        queue_depth: handle.queue_depth(),
+        queue_capacity: settings.queue_depth,
+        transactions: metrics.transactions(),
+        slaves,
+    }
+}
