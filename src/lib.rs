@@ -15,10 +15,14 @@
 //!   ([`line::rtu`] today); the line's timing.
 //! - [`sim`]: the simulated RS-485 line and its slaves (`device = "sim"`): register banks and the
 //!   reference manuals' drives on one drive pipeline ([`sim::drive`]).
-//! - [`metrics`]: what all of the above count and log, and the HTTP endpoint that serves it with
-//!   the health checks and the status page.
+//! - [`metrics`]: what all of the above count and log, from plain values (it imports no runtime
+//!   module).
+//! - `web`: the operator's HTTP surface on `metrics.listen`: the status page and `/status`, the
+//!   live trace (`/trace`), `/metrics` and the health checks; it reads the gateway through one
+//!   narrow trait.
 //!
-//! Shared by all: [`pdu`] (the one table of function codes, and exception codes) and [`error`]
+//! Shared by all, below every other module: [`master`] (who a request comes from: the master's
+//! id, protocol, rights), [`pdu`] (the one table of function codes, and exception codes) and [`error`]
 //! (what fails a request, and the one place that turns it into an exception), [`shutdown`] (the
 //! stop signal), [`timer`] (sleeps precise to well under a millisecond for the line's timing),
 //! [`trace`] (the live trace of the frames on the lines, for `GET /trace`).

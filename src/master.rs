@@ -3,7 +3,7 @@
 //! nothing from the crate, so every module may use it.
 
 /// One master: a connection, or one source port of a Modbus UDP address.
-pub type MasterId = u64;
+pub(crate) type MasterId = u64;
 
 /// Who a request comes from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -4,17 +4,17 @@
 //! Knows nothing of MBAP, RTU framing, sockets or serial ports.
 
 /// Largest PDU a Modbus ADU can carry (256-byte RTU frame minus address and CRC).
-pub const MAX_PDU_LEN: usize = 253;
+pub(crate) const MAX_PDU_LEN: usize = 253;
 
 /// Set in the function code of a reply that is an exception.
-pub const EXCEPTION_BIT: u8 = 0x80;
+pub(crate) const EXCEPTION_BIT: u8 = 0x80;
 
 use code::*;
 use Access::{Read, ReadIf, Write};
 use Broadcast::{EchoFirst, EchoRequest, Refused};
 
 /// Exception replies: function | 0x80, exception code.
-pub const EXCEPTION_PDU_LEN: usize = 2;
+pub(crate) const EXCEPTION_PDU_LEN: usize = 2;
 /// Exception codes the gateway itself sends. Slave exceptions pass through as raw bytes and are
 /// never converted to this type, so vendor codes (05-09 on the reference drives) survive.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -32,7 +32,7 @@ pub enum ExceptionCode {
 
 /// The name the Modbus Application Protocol V1.1b3 gives exception code `code`, if it names it.
 /// Codes it does not name are the vendor's (the reference drives use 05-09 in their own senses).
-pub fn exception_name(code: u8) -> Option<&'static str> {
+pub(crate) fn exception_name(code: u8) -> Option<&'static str> {
     Some(match code {
         0x01 => "illegal function",
         0x02 => "illegal data address",
@@ -49,34 +49,34 @@ pub fn exception_name(code: u8) -> Option<&'static str> {
 
 /// The public function codes of the Modbus Application Protocol V1.1b3, by the spec's names.
 pub mod code {
-    pub const READ_COILS: u8 = 0x01;
-    pub const READ_DISCRETE_INPUTS: u8 = 0x02;
-    pub const READ_HOLDING_REGISTERS: u8 = 0x03;
-    pub const READ_INPUT_REGISTERS: u8 = 0x04;
-    pub const WRITE_SINGLE_COIL: u8 = 0x05;
-    pub const WRITE_SINGLE_REGISTER: u8 = 0x06;
-    pub const READ_EXCEPTION_STATUS: u8 = 0x07;
-    pub const DIAGNOSTICS: u8 = 0x08;
-    pub const GET_COMM_EVENT_COUNTER: u8 = 0x0B;
-    pub const GET_COMM_EVENT_LOG: u8 = 0x0C;
-    pub const WRITE_MULTIPLE_COILS: u8 = 0x0F;
-    pub const WRITE_MULTIPLE_REGISTERS: u8 = 0x10;
-    pub const REPORT_SERVER_ID: u8 = 0x11;
-    pub const READ_FILE_RECORD: u8 = 0x14;
-    pub const WRITE_FILE_RECORD: u8 = 0x15;
-    pub const MASK_WRITE_REGISTER: u8 = 0x16;
-    pub const READ_WRITE_MULTIPLE_REGISTERS: u8 = 0x17;
-    pub const READ_FIFO_QUEUE: u8 = 0x18;
-    pub const ENCAPSULATED_INTERFACE: u8 = 0x2B;
+    pub(crate) const READ_COILS: u8 = 0x01;
+    pub(crate) const READ_DISCRETE_INPUTS: u8 = 0x02;
+    pub(crate) const READ_HOLDING_REGISTERS: u8 = 0x03;
+    pub(crate) const READ_INPUT_REGISTERS: u8 = 0x04;
+    pub(crate) const WRITE_SINGLE_COIL: u8 = 0x05;
+    pub(crate) const WRITE_SINGLE_REGISTER: u8 = 0x06;
+    pub(crate) const READ_EXCEPTION_STATUS: u8 = 0x07;
+    pub(crate) const DIAGNOSTICS: u8 = 0x08;
+    pub(crate) const GET_COMM_EVENT_COUNTER: u8 = 0x0B;
+    pub(crate) const GET_COMM_EVENT_LOG: u8 = 0x0C;
+    pub(crate) const WRITE_MULTIPLE_COILS: u8 = 0x0F;
+    pub(crate) const WRITE_MULTIPLE_REGISTERS: u8 = 0x10;
+    pub(crate) const REPORT_SERVER_ID: u8 = 0x11;
+    pub(crate) const READ_FILE_RECORD: u8 = 0x14;
+    pub(crate) const WRITE_FILE_RECORD: u8 = 0x15;
+    pub(crate) const MASK_WRITE_REGISTER: u8 = 0x16;
+    pub(crate) const READ_WRITE_MULTIPLE_REGISTERS: u8 = 0x17;
+    pub(crate) const READ_FIFO_QUEUE: u8 = 0x18;
+    pub(crate) const ENCAPSULATED_INTERFACE: u8 = 0x2B;
 }
 
 /// The two-byte exception PDU for a request with function code `function`.
-pub fn exception_pdu(function: u8, code: ExceptionCode) -> [u8; 2] {
+pub(crate) fn exception_pdu(function: u8, code: ExceptionCode) -> [u8; 2] {
     [function | EXCEPTION_BIT, code as u8]
 }
 
 /// A function code a master may send: 1..=127. Codes with the high bit set only exist in replies.
-pub fn is_valid_request_function(function: u8) -> bool {
+pub(crate) fn is_valid_request_function(function: u8) -> bool {
     function != 0 && function & EXCEPTION_BIT == 0
 }
 
@@ -95,7 +95,7 @@ pub struct Function {
     /// What a broadcast of it is answered with, by the gateway since no slave answers.
     pub broadcast: Broadcast,
     /// What a normal reply must look like to answer the request.
-    pub reply_shape: Shape,
+    pub(crate) reply_shape: Shape,
 }
 
 /// How the length of a PDU follows from its first bytes (offsets within the PDU).
@@ -154,7 +154,7 @@ pub enum Broadcast {
 
 /// What a normal reply must hold to answer its request.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Shape {
+pub(crate) enum Shape {
     /// Byte 1 counts the bytes of the quantity the request asks for at bytes `quantity_at..+2`.
     ByteCount { quantity_at: usize, unit: Unit },
     /// Bytes `from..to` are those of the request.
@@ -276,7 +276,7 @@ const ECHO_MEI_TYPE: Shape = Shape::Echo { from: 1, to: 2 };
 /// Every function code the gateway knows, in code order. Diagnostics replies echo their request,
 /// so only the request tells their length.
 #[rustfmt::skip]
-pub const FUNCTIONS: &[Function] = &[
+pub(crate) const FUNCTIONS: &[Function] = &[
     // code, name,
     //     request, reply, access, broadcast answer, reply shape
     row(READ_COILS, "Read Coils",
@@ -448,7 +448,7 @@ pub fn request_len(pdu: &[u8]) -> RequestLen {
 
 /// Requests that change nothing on the slave, so repeating them after a lost reply is harmless.
 /// Anything not known to be a read (user-defined codes included) counts as a write.
-pub fn is_read_only(pdu: &[u8]) -> bool {
+pub(crate) fn is_read_only(pdu: &[u8]) -> bool {
     let Some(row) = pdu.first().and_then(|&code| function(code)) else {
         return false;
     };
@@ -461,7 +461,7 @@ pub fn is_read_only(pdu: &[u8]) -> bool {
 
 /// The normal response to a broadcast write, which the gateway makes itself because no slave
 /// answers a broadcast. `None` for requests that cannot be broadcast or are too short to answer.
-pub fn broadcast_response(pdu: &[u8]) -> Option<Vec<u8>> {
+pub(crate) fn broadcast_response(pdu: &[u8]) -> Option<Vec<u8>> {
     match function(*pdu.first()?)?.broadcast {
         Broadcast::EchoRequest => Some(pdu.to_vec()),
         Broadcast::EchoFirst(n) => pdu.get(..n).map(<[u8]>::to_vec),

@@ -8,7 +8,7 @@ use crate::config::{Config, MAX_SLAVE_ADDRESS};
 
 /// Where a unit's requests go.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Target {
+pub(crate) struct Target {
     /// Index into the configured buses.
     pub bus: usize,
     /// Slave address on that bus; 0 is broadcast.
@@ -40,7 +40,7 @@ impl Router {
         Router { table }
     }
 
-    pub fn resolve(&self, unit: u8) -> Option<Target> {
+    pub(crate) fn resolve(&self, unit: u8) -> Option<Target> {
         self.table[usize::from(unit)]
     }
 }

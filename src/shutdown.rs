@@ -38,7 +38,7 @@ impl Stopping {
 
     /// Wait until a stop is asked for, and return its deadline. Cancel-safe; returns at once if
     /// the stop came earlier, and never if it cannot come any more.
-    pub async fn requested(&mut self) -> Instant {
+    pub(crate) async fn requested(&mut self) -> Instant {
         let asked = self
             .0
             .wait_for(Option::is_some)

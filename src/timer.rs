@@ -49,7 +49,7 @@ pub async fn sleep_until(deadline: tokio::time::Instant) {
 /// per transaction than the rest of the transaction's syscalls together. Without a timerfd (not
 /// Linux, no descriptor left, no reactor) the sleeps fall back to [`sleep_until`].
 #[derive(Default)]
-pub struct LineTimer {
+pub(crate) struct LineTimer {
     #[cfg(target_os = "linux")]
     fd: FdState,
 }
@@ -65,13 +65,13 @@ enum FdState {
 }
 
 impl LineTimer {
-    pub fn new() -> Self {
+    pub(crate) fn new() -> Self {
         Self::default()
     }
 
     /// Sleep until `deadline`, like [`sleep_until`]. Cancel-safe: a cancelled sleep leaves the
     /// timerfd armed, and the next sleep re-arms it.
-    pub async fn sleep_until(&mut self, deadline: tokio::time::Instant) {
+    pub(crate) async fn sleep_until(&mut self, deadline: tokio::time::Instant) {
         if !PRECISE.load(Ordering::Relaxed) {
             return tokio::time::sleep_until(deadline).await;
         }
@@ -194,7 +194,7 @@ mod timerfd {
 }
 
 /// Sleep until `deadline` on the timer thread alone.
-pub fn precise_sleep_until(deadline: Instant) -> PreciseSleep {
+pub(crate) fn precise_sleep_until(deadline: Instant) -> PreciseSleep {
     PreciseSleep {
         deadline,
         slot: None,
@@ -307,7 +307,7 @@ impl TimerThread {
 }
 
 /// A sleep kept by the timer thread.
-pub struct PreciseSleep {
+pub(crate) struct PreciseSleep {
     deadline: Instant,
     slot: Option<Arc<Slot>>,
 }

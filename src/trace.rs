@@ -30,7 +30,7 @@ pub enum Direction {
 
 /// The `outcome` of a frame that answered no request of the gateway's: another slave's reply, a
 /// late reply to an earlier try.
-pub const FOREIGN: &str = "foreign";
+pub(crate) const FOREIGN: &str = "foreign";
 
 /// One frame on one line.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -77,7 +77,7 @@ pub fn hex(bytes: &[u8]) -> String {
 impl TraceEvent {
     /// The event in Server-Sent Events form: `event: frame`, one `data` line of JSON, a blank
     /// line.
-    pub fn to_sse(&self) -> String {
+    pub(crate) fn to_sse(&self) -> String {
         let wire = Wire {
             time: humantime::format_rfc3339_micros(self.time).to_string(),
             bus: &self.bus,
@@ -94,7 +94,7 @@ impl TraceEvent {
 }
 
 /// The SSE event that tells a reader it missed `lost` events.
-pub fn lost_sse(lost: u64) -> String {
+pub(crate) fn lost_sse(lost: u64) -> String {
     format!("event: lost\ndata: {{\"lost\":{lost}}}\n\n")
 }
 
@@ -126,12 +126,12 @@ impl TraceHub {
 
     /// Whether anyone is watching: the one check a bus task makes per transaction.
     #[inline]
-    pub fn active(&self) -> bool {
+    pub(crate) fn active(&self) -> bool {
         self.readers.load(Ordering::Relaxed) != 0
     }
 
     /// Hand `event` to the readers, if there are any.
-    pub fn publish(&self, event: TraceEvent) {
+    pub(crate) fn publish(&self, event: TraceEvent) {
         if !self.active() {
             return;
         }

@@ -18,10 +18,10 @@ use std::process::ExitCode;
 use tracing::error;
 
 /// Exit status for a configuration that cannot be used.
-pub const EXIT_CONFIG: u8 = 2;
+pub(crate) const EXIT_CONFIG: u8 = 2;
 
 /// Write `text` to stdout and flush it.
-pub fn print_out(text: &str) -> io::Result<()> {
+pub(crate) fn print_out(text: &str) -> io::Result<()> {
     let mut out = io::stdout().lock();
     out.write_all(text.as_bytes()).and_then(|()| out.flush())
 }

@@ -52,10 +52,10 @@ pub fn simulate(config: Config, bus: Option<&str>, device: &str) -> ExitCode {
 }
 
 /// `--device pty`: open a new pty pair and serve on it.
-pub const PTY: &str = "pty";
+pub(crate) const PTY: &str = "pty";
 
 /// The bus whose `[[bus.sim_slave]]` entries to serve: the one named, or the only one with any.
-pub fn choose_bus<'a>(config: &'a Config, name: Option<&str>) -> Result<&'a Bus, String> {
+pub(crate) fn choose_bus<'a>(config: &'a Config, name: Option<&str>) -> Result<&'a Bus, String> {
     if let Some(name) = name {
         let bus = config
             .bus

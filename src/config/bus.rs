@@ -13,7 +13,7 @@ use std::collections::BTreeMap;
 use std::time::Duration;
 
 /// `device` value that selects the built-in simulated line.
-pub const SIM_DEVICE: &str = "sim";
+pub(crate) const SIM_DEVICE: &str = "sim";
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -47,7 +47,7 @@ pub struct Bus {
         with = "opt_duration",
         skip_serializing_if = "Option::is_none"
     )]
-    pub inter_frame_delay: Option<Duration>,
+    pub(crate) inter_frame_delay: Option<Duration>,
     /// RTU: silence that ends a reply of unknown length, if longer than t3.5 (USB adapters).
     /// ASCII: the inter-character timeout that fails a frame stopping mid-way (default 1 s).
     #[serde(
@@ -70,13 +70,13 @@ pub struct Bus {
     #[serde(default = "defaults::reopen_delay", with = "duration")]
     pub reopen_delay: Duration,
     #[serde(default = "defaults::reopen_delay_max", with = "duration")]
-    pub reopen_delay_max: Duration,
+    pub(crate) reopen_delay_max: Duration,
     /// After this many requests in a row timed out, a slave is down: its requests get 0x0B at
     /// once, without using the line, but for one probe per `slave_probe_interval` (0: never down).
     #[serde(default = "defaults::slave_down_after")]
     pub slave_down_after: u32,
     #[serde(default = "defaults::slave_probe_interval", with = "duration")]
-    pub slave_probe_interval: Duration,
+    pub(crate) slave_probe_interval: Duration,
     /// Identical reads from several masters waiting together are answered by one transaction.
     #[serde(default = "defaults::coalesce_reads")]
     pub coalesce_reads: bool,
@@ -138,7 +138,7 @@ pub enum SimModel {
 }
 
 impl SimModel {
-    pub fn is_drive(self) -> bool {
+    pub(crate) fn is_drive(self) -> bool {
         self != SimModel::Registers
     }
 
@@ -212,11 +212,11 @@ pub struct SimSlave {
     pub reply_gap: Option<Duration>,
     /// Fault knob: bytes of every reply sent before its `reply_gap`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub reply_gap_after: Option<usize>,
+    pub(crate) reply_gap_after: Option<usize>,
 }
 
 impl Bus {
-    pub fn is_sim(&self) -> bool {
+    pub(crate) fn is_sim(&self) -> bool {
         self.device == SIM_DEVICE
     }
 
@@ -229,7 +229,7 @@ impl Bus {
     /// ASCII has no t3.5: `inter_frame_delay` before a frame (default 1.5 characters of quiet, so
     /// the master never talks over a slave still sending), and `byte_timeout` (default 1 s)
     /// between the characters of a reply.
-    pub fn master_timing(&self) -> MasterTiming {
+    pub(crate) fn master_timing(&self) -> MasterTiming {
         let line = self.line_timing();
         match self.framing {
             Framing::Rtu => MasterTiming::new(

@@ -33,7 +33,7 @@ pub trait DriveCheck {
 
 /// Reads the files `[server.tls]` names, so that one that cannot be used is reported with every
 /// other problem. Only the TLS code knows how to read them, so it implements this.
-pub trait TlsFilesCheck {
+pub(crate) trait TlsFilesCheck {
     /// Every problem with the files `tls` names, each with its key path.
     fn read_files(&self, tls: &Tls) -> Result<(), ConfigErrors>;
 }

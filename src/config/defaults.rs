@@ -8,27 +8,27 @@ use std::time::Duration;
 pub fn listen() -> Vec<SocketAddr> {
     vec![SocketAddr::from(([0, 0, 0, 0], 502))]
 }
-pub const MAX_CONNECTIONS: usize = 1024;
+pub(crate) const MAX_CONNECTIONS: usize = 1024;
 /// Slots one address leaves to the others by default (half of them, with fewer than twice as
 /// many in all).
-pub const SLOTS_FOR_OTHER_ADDRESSES: usize = 8;
+pub(crate) const SLOTS_FOR_OTHER_ADDRESSES: usize = 8;
 /// All but [`SLOTS_FOR_OTHER_ADDRESSES`]: one host never takes every slot, the PLCs, HMIs and
 /// SCADA on other hosts always find room, and a host with many masters still gets nearly all.
 pub fn max_connections_per_address(max_connections: usize) -> usize {
     max_connections - SLOTS_FOR_OTHER_ADDRESSES.min(max_connections / 2)
 }
-pub const IDLE_TIMEOUT: Duration = Duration::from_secs(600);
+pub(crate) const IDLE_TIMEOUT: Duration = Duration::from_secs(600);
 pub const PIPELINE_DEPTH: usize = 16;
-pub const SHUTDOWN_TIMEOUT: Duration = Duration::from_secs(10);
+pub(crate) const SHUTDOWN_TIMEOUT: Duration = Duration::from_secs(10);
 pub const FRAME_TIMEOUT: Duration = Duration::from_secs(5);
-pub const KEEPALIVE: Duration = Duration::from_secs(60);
-pub fn tls_handshake_timeout() -> Duration {
+pub(crate) const KEEPALIVE: Duration = Duration::from_secs(60);
+pub(crate) fn tls_handshake_timeout() -> Duration {
     Duration::from_secs(10)
 }
 pub fn metrics_listen() -> SocketAddr {
     SocketAddr::from(([127, 0, 0, 1], 9502))
 }
-pub const LOG_LEVEL: &str = "info";
+pub(crate) const LOG_LEVEL: &str = "info";
 
 pub fn baud() -> u32 {
     19_200
@@ -43,11 +43,11 @@ pub fn data_bits(framing: Framing) -> u8 {
 }
 /// Quiet before an ASCII frame: the spec asks for none, but a master that waits a character and a
 /// half after the last one it heard never talks over a slave that is still sending.
-pub fn ascii_gap(line: &LineTiming) -> Duration {
+pub(crate) fn ascii_gap(line: &LineTiming) -> Duration {
     line.char_time * 3 / 2
 }
 /// The inter-character timeout of an ASCII line: the spec's figure.
-pub fn ascii_byte_timeout() -> Duration {
+pub(crate) fn ascii_byte_timeout() -> Duration {
     Duration::from_secs(1)
 }
 pub fn parity() -> Parity {
@@ -71,7 +71,7 @@ pub fn queue_timeout() -> Duration {
 pub fn reopen_delay() -> Duration {
     Duration::from_millis(250)
 }
-pub fn reopen_delay_max() -> Duration {
+pub(crate) fn reopen_delay_max() -> Duration {
     Duration::from_secs(5)
 }
 pub fn slave_down_after() -> u32 {
@@ -80,7 +80,7 @@ pub fn slave_down_after() -> u32 {
 pub fn coalesce_reads() -> bool {
     true
 }
-pub const PRIORITY_SHARE: f64 = 0.9;
-pub fn slave_probe_interval() -> Duration {
+pub(crate) const PRIORITY_SHARE: f64 = 0.9;
+pub(crate) fn slave_probe_interval() -> Duration {
     Duration::from_secs(5)
 }

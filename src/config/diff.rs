@@ -7,7 +7,7 @@ use std::time::Duration;
 
 /// What happens to a bus of the new configuration.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum BusChange {
+pub(crate) enum BusChange {
     /// No bus of that name ran before.
     Added,
     /// Its settings differ from the running bus of that name.
@@ -18,7 +18,7 @@ pub enum BusChange {
 
 /// The difference between the configuration in force and a new one.
 #[derive(Clone, Debug, PartialEq, Eq)]
-pub struct ConfigDiff {
+pub(crate) struct ConfigDiff {
     /// Each bus of the new configuration, in its order, by name.
     pub buses: Vec<(String, BusChange)>,
     /// Buses of the old configuration that the new one does not have, in the order a reload has
@@ -29,17 +29,17 @@ pub struct ConfigDiff {
     pub routes: bool,
     /// Something in `[server]` that new connections follow changed: everything but the listen
     /// addresses and `shutdown_timeout`.
-    pub connection_policy: bool,
+    pub(crate) connection_policy: bool,
     pub shutdown_timeout: bool,
     /// The logger applies it, not the gateway.
-    pub log_level: bool,
+    pub(crate) log_level: bool,
     /// Keys that changed but only take effect after a restart, in a fixed order.
     pub need_restart: Vec<&'static str>,
 }
 
 impl ConfigDiff {
     /// What it takes to go from `old` to `new`.
-    pub fn new(old: &Config, new: &Config) -> ConfigDiff {
+    pub(crate) fn new(old: &Config, new: &Config) -> ConfigDiff {
         let mut left: Vec<&str> = old.bus.iter().map(|b| b.name.as_str()).collect();
         let buses = new
             .bus

@@ -11,7 +11,7 @@ use std::path::Path;
 pub const DEFAULT_PATH: &str = "/etc/modbus-gateway/gateway.toml";
 /// Environment variables starting with this override file keys: `MBGW__SERVER__LISTEN`,
 /// `MBGW__BUS__0__BAUD` (array entries by index).
-pub const ENV_PREFIX: &str = "MBGW__";
+pub(crate) const ENV_PREFIX: &str = "MBGW__";
 const ENV_SEPARATOR: &str = "__";
 
 /// One thing wrong with the configuration: the key path and why.
@@ -81,7 +81,7 @@ impl Config {
 
     /// [`Config::load`], with the simulated drives' parameters checked by `drives` and the
     /// `[server.tls]` files read by `tls`, their problems reported with the others.
-    pub fn load_with(
+    pub(crate) fn load_with(
         path: &Path,
         env: impl IntoIterator<Item = (String, String)>,
         drives: &dyn DriveCheck,
@@ -97,7 +97,10 @@ impl Config {
     }
 
     /// [`Config::from_toml_str`], with the simulated drives' parameters checked by `drives`.
-    pub fn from_toml_str_with(text: &str, drives: &dyn DriveCheck) -> Result<Config, ConfigErrors> {
+    pub(crate) fn from_toml_str_with(
+        text: &str,
+        drives: &dyn DriveCheck,
+    ) -> Result<Config, ConfigErrors> {
         Self::finish(Self::parse(text)?, Some(drives), None)
     }
 

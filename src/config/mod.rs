@@ -20,22 +20,37 @@ mod server;
 mod tls;
 mod unit_set;
 
-pub use bus::{Bus, SimModel, SimSlave, Slave, SIM_DEVICE};
-pub use check::{DriveCheck, DriveRefusal, TlsFilesCheck};
-pub use diff::{BusChange, ConfigDiff};
-pub use load::{ConfigError, ConfigErrors, DEFAULT_PATH, ENV_PREFIX};
-pub use log::{Log, LogFormat};
+pub use bus::{Bus, Slave};
+
+pub(crate) use bus::SIM_DEVICE;
+
+pub use bus::SimSlave;
+
+pub use bus::SimModel;
+pub use check::DriveCheck;
+pub use check::DriveRefusal;
+pub(crate) use check::TlsFilesCheck;
+pub(crate) use diff::{BusChange, ConfigDiff};
+pub use load::ConfigError;
+pub use load::ConfigErrors;
+pub use load::DEFAULT_PATH;
+pub(crate) use load::ENV_PREFIX;
+pub use log::Log;
+pub use log::LogFormat;
 pub use metrics::Metrics;
 pub use route::Route;
 pub use rs485::{Rs485, Rs485Mode};
-pub use server::{Server, WhenFull};
-pub use tls::{Role, RoleAccess, Tls, OTHER_ROLE};
+pub use server::Server;
+pub(crate) use server::WhenFull;
+pub use tls::RoleAccess;
+pub(crate) use tls::OTHER_ROLE;
+pub use tls::{Role, Tls};
 pub use unit_set::UnitSet;
 
 use serde::{Deserialize, Serialize};
 
 /// Highest unicast slave address on a serial line.
-pub const MAX_SLAVE_ADDRESS: u8 = 247;
+pub(crate) const MAX_SLAVE_ADDRESS: u8 = 247;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

@@ -3,12 +3,12 @@
 //! connections one address may hold follow `max_connections`. The printed configuration shows
 //! them, so what `check-config` prints is what runs. Knows nothing of how the values are used.
 
-use super::{defaults, Config, ConfigErrors};
+use super::{defaults, Config};
 use crate::line::SerialFormat;
 
 impl Config {
     /// Fill in what the file may leave to other keys.
-    pub fn resolve(&mut self) {
+    pub(crate) fn resolve(&mut self) {
         let server = &mut self.server;
         if server.max_connections_per_address.is_none() {
             server.max_connections_per_address = Some(defaults::max_connections_per_address(
@@ -26,8 +26,9 @@ impl Config {
     }
 
     /// [`Config::check`] without the drives, then [`Config::resolve`]: what
-    /// [`Config::from_toml_str`] does after parsing.
-    pub fn validate(&mut self) -> Result<(), ConfigErrors> {
+    /// [`Config::from_toml_str`] does after parsing (for the loader's property tests).
+    #[cfg(test)]
+    pub(crate) fn validate(&mut self) -> Result<(), super::ConfigErrors> {
         self.check(None)?;
         self.resolve();
         Ok(())

@@ -56,17 +56,17 @@ pub struct Rs485 {
 }
 
 impl Rs485 {
-    pub fn is_default(&self) -> bool {
+    pub(crate) fn is_default(&self) -> bool {
         *self == Rs485::default()
     }
 
     /// RTS level while sending.
-    pub fn rts_level_on_send(&self) -> bool {
+    pub(crate) fn rts_level_on_send(&self) -> bool {
         self.rts_on_send.unwrap_or(true)
     }
 
     /// RTS level between frames.
-    pub fn rts_level_after_send(&self) -> bool {
+    pub(crate) fn rts_level_after_send(&self) -> bool {
         self.rts_after_send.unwrap_or(false)
     }
 }

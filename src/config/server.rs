@@ -41,7 +41,7 @@ pub struct Server {
     #[serde(with = "duration")]
     pub shutdown_timeout: Duration,
     /// What a new connection does at `max_connections`.
-    pub when_full: WhenFull,
+    pub(crate) when_full: WhenFull,
     /// A request's bytes must all be in this long after its first byte, or the connection closes.
     #[serde(with = "duration")]
     pub frame_timeout: Duration,
@@ -58,7 +58,7 @@ pub struct Server {
     #[serde(with = "text_list", skip_serializing_if = "Vec::is_empty")]
     pub priority: Vec<IpNet>,
     /// Most share of the line's transactions priority masters take while others wait.
-    pub priority_share: f64,
+    pub(crate) priority_share: f64,
     /// The certificates and roles of the `listen_tls` listeners.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub tls: Option<Tls>,
@@ -67,7 +67,7 @@ pub struct Server {
 impl Server {
     /// Connections one address may hold, once resolved; `None`: no limit but `max_connections`
     /// (one that allows every slot is none: at `max_connections`, `when_full` decides).
-    pub fn connections_per_address(&self) -> Option<usize> {
+    pub(crate) fn connections_per_address(&self) -> Option<usize> {
         let limit = self
             .max_connections_per_address
             .unwrap_or_else(|| defaults::max_connections_per_address(self.max_connections));
@@ -78,7 +78,7 @@ impl Server {
 /// What a connection beyond `server.max_connections` does.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
-pub enum WhenFull {
+pub(crate) enum WhenFull {
     /// Close a connection that is not working, then accept: one whose master does not read its
     /// replies, else one that never completed a request, else the one idle longest among those
     /// that completed none recently; refuse if every connection is working (a request in

@@ -128,7 +128,7 @@ impl RoleAccess {
 }
 
 /// The `role` label of connections whose certificate has no role, or one not in `roles`.
-pub const OTHER_ROLE: &str = "other";
+pub(crate) const OTHER_ROLE: &str = "other";
 
 #[cfg(test)]
 mod tests {

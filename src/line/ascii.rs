@@ -5,16 +5,16 @@
 //! over bytes; knows nothing of ports or time.
 
 /// Starts every frame.
-pub const START: u8 = b':';
+pub(crate) const START: u8 = b':';
 /// Ends every frame.
-pub const END: [u8; 2] = *b"\r\n";
+pub(crate) const END: [u8; 2] = *b"\r\n";
 /// `:`, 2 x (address + 253 PDU bytes + LRC) characters, CR LF.
-pub const MAX_FRAME_LEN: usize = 1 + 2 * (1 + 253 + 1) + 2;
+pub(crate) const MAX_FRAME_LEN: usize = 1 + 2 * (1 + 253 + 1) + 2;
 
 const HEX: &[u8; 16] = b"0123456789ABCDEF";
 
 /// The LRC of `bytes`: the two's complement of their sum, modulo 256.
-pub fn lrc(bytes: impl IntoIterator<Item = u8>) -> u8 {
+pub(crate) fn lrc(bytes: impl IntoIterator<Item = u8>) -> u8 {
     bytes
         .into_iter()
         .fold(0u8, |sum, b| sum.wrapping_add(b))
@@ -27,7 +27,7 @@ fn push_hex(out: &mut Vec<u8>, byte: u8) {
 }
 
 /// Build the frame for `pdu` to `address` into `out` (cleared first).
-pub fn encode_into(out: &mut Vec<u8>, address: u8, pdu: &[u8]) {
+pub(crate) fn encode_into(out: &mut Vec<u8>, address: u8, pdu: &[u8]) {
     out.clear();
     out.push(START);
     push_hex(out, address);
@@ -48,7 +48,7 @@ pub fn encode(address: u8, pdu: &[u8]) -> Vec<u8> {
 }
 
 /// Where the first whole frame in `received` ends (just past its CR LF), if one has.
-pub fn frame_end(received: &[u8]) -> Option<usize> {
+pub(crate) fn frame_end(received: &[u8]) -> Option<usize> {
     received
         .windows(END.len())
         .position(|pair| pair == END)
@@ -68,7 +68,7 @@ fn nibble(c: u8) -> Option<u8> {
 /// `pdu`; `None` when it is no frame: no `:`, a character that is not hex, an odd count, too
 /// short, or an LRC that does not check. The frame starts at its last `:`: whatever came before
 /// (noise, a frame cut short by a new `:`) is not part of it.
-pub fn decode_into(whole: &[u8], pdu: &mut Vec<u8>) -> Option<u8> {
+pub(crate) fn decode_into(whole: &[u8], pdu: &mut Vec<u8>) -> Option<u8> {
     let body = whole.strip_suffix(&END)?;
     let start = body.iter().rposition(|&c| c == START)?;
     let hex = &body[start + 1..];

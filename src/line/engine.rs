@@ -25,7 +25,7 @@ use tokio::time::Instant;
 
 /// The times the master keeps on its line.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct MasterTiming {
+pub(crate) struct MasterTiming {
     pub line: LineTiming,
     /// Silence before every frame: t3.5, or more if configured.
     pub gap: Duration,
@@ -36,7 +36,7 @@ pub struct MasterTiming {
 
 impl MasterTiming {
     /// The spec's timing for `line`, raised by the configured floors where they are longer.
-    pub fn new(line: LineTiming, gap_floor: Duration, silence_floor: Duration) -> Self {
+    pub(crate) fn new(line: LineTiming, gap_floor: Duration, silence_floor: Duration) -> Self {
         MasterTiming {
             line,
             gap: line.t35.max(gap_floor),
@@ -75,7 +75,7 @@ pub enum TxError {
 
 impl TxError {
     /// The same failure again (an I/O error is remade from its kind and message).
-    pub fn duplicate(&self) -> TxError {
+    pub(crate) fn duplicate(&self) -> TxError {
         match self {
             TxError::Timeout => TxError::Timeout,
             TxError::Check => TxError::Check,
@@ -92,13 +92,13 @@ impl TxError {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct LineCounters {
     /// Bytes of every frame the master sent.
-    pub sent_bytes: u64,
+    pub(crate) sent_bytes: u64,
     /// Every byte read from the line: replies, other frames, noise.
-    pub received_bytes: u64,
+    pub(crate) received_bytes: u64,
     /// Intact frames that answered nothing: other slaves' replies, late replies.
-    pub foreign_frames: u64,
+    pub(crate) foreign_frames: u64,
     /// Bytes received while no reply was awaited.
-    pub stray_bytes: u64,
+    pub(crate) stray_bytes: u64,
 }
 
 impl LineCounters {
@@ -115,7 +115,7 @@ impl LineCounters {
 
 /// What a frame recorded for the trace was to the master.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Seen {
+pub(crate) enum Seen {
     /// A request (or broadcast) the master sent.
     Sent,
     /// The frame that ended a try: its answer, a malformed reply, a frame that failed its check
@@ -127,7 +127,7 @@ pub enum Seen {
 
 /// A frame on the wire, as recorded while [`LineMaster::record_frames`] is on.
 #[derive(Clone, Debug, PartialEq, Eq)]
-pub struct RecordedFrame {
+pub(crate) struct RecordedFrame {
     /// When it was handed to the port, or was complete.
     pub at: SystemTime,
     pub seen: Seen,
@@ -150,7 +150,7 @@ impl RecordedFrame {
     }
 }
 
-pub struct LineMaster<T> {
+pub(crate) struct LineMaster<T> {
     port: T,
     framing: Framing,
     timing: MasterTiming,
@@ -195,7 +195,7 @@ fn port_lost(result: io::Result<usize>) -> Result<usize, TxError> {
 impl<T: Transport> LineMaster<T> {
     /// A master on a freshly opened port whose line is framed by `framing`. What the line was
     /// doing before is unknown, so the first frame waits a full gap.
-    pub fn new(port: T, framing: Framing, timing: MasterTiming) -> Self {
+    pub(crate) fn new(port: T, framing: Framing, timing: MasterTiming) -> Self {
         LineMaster {
             port,
             framing,
@@ -216,43 +216,43 @@ impl<T: Transport> LineMaster<T> {
     }
 
     /// Keep to `timing` from the next frame on (a reconfigured line in the same format).
-    pub fn set_timing(&mut self, timing: MasterTiming) {
+    pub(crate) fn set_timing(&mut self, timing: MasterTiming) {
         self.timing = timing;
     }
 
     /// Whether the line echoes every frame sent: then each frame is read back, and must come
     /// back as sent, before its reply.
-    pub fn set_echo(&mut self, echo: bool) {
+    pub(crate) fn set_echo(&mut self, echo: bool) {
         self.echo = echo;
     }
 
     /// Expect replies from `slave` in `form`; its answers are still returned in standard form.
-    pub fn set_reply_form(&mut self, slave: u8, form: ReplyForm) {
+    pub(crate) fn set_reply_form(&mut self, slave: u8, form: ReplyForm) {
         self.forms[usize::from(slave)] = form;
     }
 
     /// Record the frames on the wire from now on (for the trace), or stop.
-    pub fn record_frames(&mut self, on: bool) {
+    pub(crate) fn record_frames(&mut self, on: bool) {
         self.recording = on;
     }
 
     /// The frames recorded since the last call, oldest first.
-    pub fn recorded(&mut self) -> std::vec::Drain<'_, RecordedFrame> {
+    pub(crate) fn recorded(&mut self) -> std::vec::Drain<'_, RecordedFrame> {
         self.recorded.drain(..)
     }
 
-    pub fn counters(&self) -> LineCounters {
+    pub(crate) fn counters(&self) -> LineCounters {
         self.counters
     }
 
     /// When the last frame was handed to the port: the start of its transaction on the wire.
     /// The earliest the next frame may start, as far as is known now (stray bytes may push it
     /// back).
-    pub fn quiet_until(&self) -> Instant {
+    pub(crate) fn quiet_until(&self) -> Instant {
         self.quiet_until
     }
 
-    pub fn sent_at(&self) -> Instant {
+    pub(crate) fn sent_at(&self) -> Instant {
         self.sent_at
     }
 
@@ -264,7 +264,7 @@ impl<T: Transport> LineMaster<T> {
 
     /// Watch the line while no transaction runs: stray bytes push the next frame back by a gap.
     /// Returns how many arrived, or the error when the port is lost. Cancel-safe.
-    pub async fn watch_idle(&mut self) -> io::Result<usize> {
+    pub(crate) async fn watch_idle(&mut self) -> io::Result<usize> {
         self.rx.clear();
         match self.port.recv(&mut self.rx).await {
             Ok(0) => Err(device_gone()),
@@ -286,7 +286,7 @@ impl<T: Transport> LineMaster<T> {
     /// reply or the slave's exception, byte for byte. Does not wait for the slave's late-reply
     /// window: a retry of the same request may take the late reply to its first try, which has
     /// the same form and the right data.
-    pub async fn transact(
+    pub(crate) async fn transact(
         &mut self,
         slave: u8,
         request: &[u8],
@@ -319,7 +319,7 @@ impl<T: Transport> LineMaster<T> {
 
     /// Send `request` to every slave and return once its last byte has left the wire. Nobody
     /// answers; the line stays silent for `turnaround` after the frame so slaves can carry it out.
-    pub async fn broadcast(
+    pub(crate) async fn broadcast(
         &mut self,
         request: &[u8],
         turnaround: Duration,
@@ -475,7 +475,7 @@ impl<T> LineMaster<T> {
     /// Until when a reply to an earlier try to `slave` may still come, if that is later than now.
     /// A new request to `slave` should not go out before then: the late reply could pass for its
     /// answer.
-    pub fn late_reply_window(&self, slave: u8) -> Option<Instant> {
+    pub(crate) fn late_reply_window(&self, slave: u8) -> Option<Instant> {
         self.late_until[usize::from(slave)].filter(|&until| until > Instant::now())
     }
 

@@ -11,7 +11,11 @@ pub mod reply;
 pub mod rtu;
 pub mod timing;
 
-pub use engine::{LineCounters, LineMaster, MasterTiming, RecordedFrame, Reply, Seen, TxError};
+pub use engine::{Reply, TxError};
+
+pub use engine::LineCounters;
+
+pub(crate) use engine::{LineMaster, MasterTiming, Seen};
 pub use framing::Framing;
 pub use reply::{ReplyForm, Verdict};
 pub use timing::{LineTiming, Parity, SerialFormat};

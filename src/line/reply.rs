@@ -110,7 +110,7 @@ pub fn judge(address: u8, pdu: &[u8], slave: u8, request: &[u8], form: ReplyForm
 
 /// A reply PDU that [`judge`] found to be the answer, in standard form: a wide read count loses
 /// its high byte, so the master on TCP gets what the standard says.
-pub fn answer_pdu(pdu: &[u8], form: ReplyForm) -> Vec<u8> {
+pub(crate) fn answer_pdu(pdu: &[u8], form: ReplyForm) -> Vec<u8> {
     match pdu {
         [pdu::code::READ_HOLDING_REGISTERS, 0x00, count, data @ ..]
             if form == ReplyForm::WideReadCount =>

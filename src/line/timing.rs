@@ -60,7 +60,7 @@ impl std::fmt::Display for SerialFormat {
 impl SerialFormat {
     /// The spec's default when stop bits are not given: 1 with parity, 2 without, so that every
     /// character is 11 bits long.
-    pub fn default_stop_bits(parity: Parity) -> u8 {
+    pub(crate) fn default_stop_bits(parity: Parity) -> u8 {
         if parity == Parity::None {
             2
         } else {
@@ -69,7 +69,7 @@ impl SerialFormat {
     }
 
     /// Start bit, data bits, parity bit if any, stop bits.
-    pub fn bits_per_char(&self) -> u32 {
+    pub(crate) fn bits_per_char(&self) -> u32 {
         1 + u32::from(self.data_bits)
             + u32::from(self.parity != Parity::None)
             + u32::from(self.stop_bits)

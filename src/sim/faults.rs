@@ -83,7 +83,7 @@ impl<S: Slave> Faulty<S> {
     }
 
     /// `inner` with `faults` on a line of `framing`.
-    pub fn framed(inner: S, faults: Faults, address: u8, framing: Framing) -> Self {
+    pub(crate) fn framed(inner: S, faults: Faults, address: u8, framing: Framing) -> Self {
         Faulty {
             inner,
             faults,

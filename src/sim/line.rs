@@ -51,7 +51,7 @@ pub struct LineStats {
     /// Master frames sent while a slave was still transmitting.
     pub collisions: u64,
     /// Master frames no slave could read: merged with the previous frame, collided, or bad CRC.
-    pub unread_frames: u64,
+    pub(crate) unread_frames: u64,
     /// Shortest silence seen before a master frame.
     pub min_gap: Option<Duration>,
     /// Total time frames occupied the wire.
@@ -100,7 +100,7 @@ impl SimLine {
     }
 
     /// A line at `timing` whose slaves hear and answer frames of `framing`.
-    pub fn with_framing(timing: LineTiming, framing: Framing) -> Self {
+    pub(crate) fn with_framing(timing: LineTiming, framing: Framing) -> Self {
         SimLine {
             shared: Arc::new(Shared {
                 state: Mutex::new(LineState {

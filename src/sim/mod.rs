@@ -14,10 +14,12 @@ pub mod responder;
 pub mod scripted;
 pub mod slaves;
 
-pub use line::{LineStats, SimLine, SimPort, Source, WireFrame};
+pub use line::{SimLine, Source};
+
+pub use line::{LineStats, SimPort, WireFrame};
 pub use registers::RegisterBank;
 pub use scripted::Scripted;
-pub use slaves::{Heard, Slaves};
+pub use slaves::Slaves;
 
 use crate::config::{self, SimModel};
 use crate::line::rtu;
@@ -78,7 +80,7 @@ pub fn build(
 }
 
 /// The configuration's check asks the simulator whether each drive accepts its parameters.
-pub struct Drives;
+pub(crate) struct Drives;
 
 impl config::DriveCheck for Drives {
     fn power_on(

@@ -22,7 +22,7 @@ pub struct ResponderStats {
     pub requests: u64,
     pub replies: u64,
     /// Frames with a bad CRC, cut short, or too long, dropped unanswered.
-    pub bad_frames: u64,
+    pub(crate) bad_frames: u64,
     /// Intact frames for addresses nobody simulates here.
     pub others: u64,
 }
@@ -45,7 +45,7 @@ impl Responder {
     /// Slaves on a line of `framing` at `timing`. RTU: a request whose length its bytes cannot
     /// tell ends after `silence`. ASCII: `silence` between characters (the inter-character
     /// timeout) drops a request cut short.
-    pub fn framed(timing: LineTiming, framing: Framing, silence: Duration) -> Self {
+    pub(crate) fn framed(timing: LineTiming, framing: Framing, silence: Duration) -> Self {
         Responder {
             slaves: Slaves::new(framing),
             timing,

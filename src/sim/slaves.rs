@@ -12,7 +12,7 @@ use tokio::time::Instant;
 
 /// What became of a request frame.
 #[derive(Debug, PartialEq, Eq)]
-pub enum Heard {
+pub(crate) enum Heard {
     /// The CRC fails (or it is too short to be a frame): nobody acts on it.
     Corrupt,
     /// Every slave carried it out; nobody answers.
@@ -57,7 +57,7 @@ impl Slaves {
     }
 
     /// Hand `frame`, a whole request frame that ended on the wire at `at`, to the slaves.
-    pub fn hear(&mut self, frame: &[u8], at: Instant) -> Heard {
+    pub(crate) fn hear(&mut self, frame: &[u8], at: Instant) -> Heard {
         let Some(address) = self.framing.decode_into(frame, &mut self.pdu) else {
             return Heard::Corrupt;
         };

@@ -80,8 +80,8 @@ pub(crate) struct MasterStatus {
     pub role: Option<String>,
     pub priority: bool,
     /// RFC 3339, UTC.
-    pub connected_since: String,
-    pub connected_seconds: f64,
+    pub(crate) connected_since: String,
+    pub(crate) connected_seconds: f64,
     /// Requests it has sent on this connection.
     pub requests: u64,
 }

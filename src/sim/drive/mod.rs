@@ -13,9 +13,9 @@ pub mod params;
 pub mod pd_inverter;
 pub mod ramp;
 
-pub use motor::Motor;
-pub use params::{Limit, Modify, ParamSpec, Params, Refusal};
-pub use ramp::{Ramp, Rates};
+pub(crate) use motor::Motor;
+pub(crate) use params::{Limit, Modify, ParamSpec, Params, Refusal};
+pub(crate) use ramp::{Ramp, Rates};
 
 use super::{Slave, Transmission};
 use crate::line::{Parity, SerialFormat};
@@ -87,10 +87,10 @@ impl From<ExceptionCode> for Exception {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Protocol {
     /// Most words one read, or one write of several, may carry.
-    pub max_words: u16,
+    pub(crate) max_words: u16,
     /// Whether the drive serves FC 08 (return query data only) and FC 10 besides FC 03 and 06.
     pub diagnostics: bool,
-    pub write_multiple: bool,
+    pub(crate) write_multiple: bool,
     /// The answer to a PDU whose length does not fit its function code.
     pub malformed: Exception,
 }
@@ -98,23 +98,23 @@ pub struct Protocol {
 /// A manual's indices for the baud rate and the data format (always 8 data bits), and the
 /// factory index a drive reports for a line with none.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct LineIndices {
-    pub bauds: &'static [u32],
-    pub factory_baud: u16,
+pub(crate) struct LineIndices {
+    pub(crate) bauds: &'static [u32],
+    pub(crate) factory_baud: u16,
     /// (parity, stop bits).
-    pub formats: &'static [(Parity, u8)],
-    pub factory_format: u16,
+    pub(crate) formats: &'static [(Parity, u8)],
+    pub(crate) factory_format: u16,
 }
 
 impl LineIndices {
-    pub fn baud(&self, baud: u32) -> u16 {
+    pub(crate) fn baud(&self, baud: u32) -> u16 {
         index_or(
             self.bauds.iter().position(|&b| b == baud),
             self.factory_baud,
         )
     }
 
-    pub fn format(&self, format: &SerialFormat) -> u16 {
+    pub(crate) fn format(&self, format: &SerialFormat) -> u16 {
         if format.data_bits != 8 {
             return self.factory_format;
         }
@@ -135,24 +135,24 @@ fn index_or(position: Option<usize>, factory: u16) -> u16 {
 /// The parameters in which a drive reports the line it hangs on. The line's configuration owns
 /// them: a write may only repeat the value they hold, and a configured value must agree.
 #[derive(Clone, Copy, Debug)]
-pub struct LineParams {
+pub(crate) struct LineParams {
     pub address: u16,
     pub baud: u16,
     pub format: u16,
-    pub indices: LineIndices,
+    pub(crate) indices: LineIndices,
     /// The setup error for a configured value that is not the line's (`value`, `configured`).
-    pub differs: fn(u16, u16) -> String,
+    pub(crate) differs: fn(u16, u16) -> String,
     /// The setup error for a line value the parameter's range cannot hold.
     pub outside: fn(u16) -> String,
 }
 
 impl LineParams {
-    pub fn holds(&self, address: u16) -> bool {
+    pub(crate) fn holds(&self, address: u16) -> bool {
         [self.address, self.baud, self.format].contains(&address)
     }
 
     /// Set them from the line, after the configured values have been applied.
-    pub fn power_on(
+    pub(crate) fn power_on(
         &self,
         params: &mut Params,
         settings: &DriveSettings,
@@ -182,7 +182,10 @@ impl LineParams {
 }
 
 /// The fault a drive is configured to have tripped with, if it is one of its `1..=last` codes.
-pub fn power_on_trip(settings: &DriveSettings, last: u16) -> Result<Option<u16>, SetupError> {
+pub(crate) fn power_on_trip(
+    settings: &DriveSettings,
+    last: u16,
+) -> Result<Option<u16>, SetupError> {
     match settings.trip {
         Some(code) if !(1..=last).contains(&code) => Err(SetupError {
             param: "trip".into(),

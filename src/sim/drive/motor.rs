@@ -4,18 +4,18 @@
 /// The motor on a simulated drive, driving a pump-like load: torque grows with the square of the
 /// speed. Gives every actual value the drive reports a consistent figure for one output frequency.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Motor {
+pub(crate) struct Motor {
     /// Rated voltage, V.
     pub voltage: u16,
     /// Rated current, 0.01 A.
-    pub current: u32,
+    pub(crate) current: u32,
     /// Rated frequency, 0.01 Hz.
     pub frequency: u32,
     /// Rated speed, rpm (below synchronous speed by the rated slip).
     pub speed: u32,
-    pub poles: u32,
+    pub(crate) poles: u32,
     /// DC bus voltage of the drive, 0.1 V.
-    pub bus_voltage: u16,
+    pub(crate) bus_voltage: u16,
 }
 
 impl Motor {
@@ -30,12 +30,12 @@ impl Motor {
     }
 
     /// Output voltage, V: V/f linear up to the rated frequency.
-    pub fn output_voltage(&self, frequency: i32) -> u16 {
+    pub(crate) fn output_voltage(&self, frequency: i32) -> u16 {
         rounded_u16(f64::from(self.voltage) * self.fraction(frequency).min(1.0))
     }
 
     /// Output current, 0.01 A: magnetising current plus the load's share; 0 with no output.
-    pub fn output_current(&self, frequency: i32, energised: bool) -> u32 {
+    pub(crate) fn output_current(&self, frequency: i32, energised: bool) -> u32 {
         if !energised {
             return 0;
         }
@@ -44,7 +44,7 @@ impl Motor {
     }
 
     /// Shaft speed, rpm: synchronous speed less the slip the load causes.
-    pub fn speed(&self, frequency: i32) -> u32 {
+    pub(crate) fn speed(&self, frequency: i32) -> u32 {
         let synchronous = f64::from(frequency.unsigned_abs()) * 1.2 / f64::from(self.poles);
         let rated_synchronous = f64::from(self.frequency) * 1.2 / f64::from(self.poles);
         let rated_slip = (rated_synchronous - f64::from(self.speed)) / rated_synchronous;
@@ -53,7 +53,7 @@ impl Motor {
     }
 
     /// Output torque, 0.1 % of rated; 0 with no output.
-    pub fn torque(&self, frequency: i32, energised: bool) -> u16 {
+    pub(crate) fn torque(&self, frequency: i32, energised: bool) -> u16 {
         if !energised || frequency == 0 {
             return 0;
         }
@@ -61,7 +61,7 @@ impl Motor {
     }
 
     /// Output power, 0.1 % of rated.
-    pub fn power(&self, frequency: i32, energised: bool) -> u16 {
+    pub(crate) fn power(&self, frequency: i32, energised: bool) -> u16 {
         let torque = f64::from(self.torque(frequency, energised));
         rounded_u16(torque * self.fraction(frequency))
     }

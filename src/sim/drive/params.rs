@@ -7,7 +7,7 @@ use std::collections::BTreeMap;
 
 /// When a parameter may be written, in the manuals' marks.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Modify {
+pub(crate) enum Modify {
     /// ○: at any time.
     Always,
     /// ◎: only while the drive is stopped.
@@ -18,25 +18,25 @@ pub enum Modify {
 
 /// A bound of a parameter's range: a number, or the current value of another parameter.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Limit {
+pub(crate) enum Limit {
     Value(u16),
     Param(u16),
 }
 
 /// One function-code parameter: register address, name, factory default, range and modify rule.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct ParamSpec {
+pub(crate) struct ParamSpec {
     pub address: u16,
     pub name: &'static str,
     pub default: u16,
     pub min: Limit,
     pub max: Limit,
-    pub modify: Modify,
+    pub(crate) modify: Modify,
 }
 
 /// Why a parameter write is refused; each model maps these to its manual's exception codes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Refusal {
+pub(crate) enum Refusal {
     /// No parameter at this address.
     NoSuchAddress,
     /// The parameter can never be written.
@@ -49,14 +49,14 @@ pub enum Refusal {
 
 /// A drive's parameter values, checked against its table.
 #[derive(Clone, Debug)]
-pub struct Params {
+pub(crate) struct Params {
     table: &'static [ParamSpec],
     values: BTreeMap<u16, u16>,
 }
 
 impl Params {
     /// Every parameter of `table` at its factory default.
-    pub fn new(table: &'static [ParamSpec]) -> Self {
+    pub(crate) fn new(table: &'static [ParamSpec]) -> Self {
         let mut params = Params {
             table,
             values: BTreeMap::new(),
@@ -65,25 +65,25 @@ impl Params {
         params
     }
 
-    pub fn restore_defaults(&mut self) {
+    pub(crate) fn restore_defaults(&mut self) {
         self.values = self.table.iter().map(|p| (p.address, p.default)).collect();
     }
 
-    pub fn spec(&self, address: u16) -> Option<&'static ParamSpec> {
+    pub(crate) fn spec(&self, address: u16) -> Option<&'static ParamSpec> {
         self.table.iter().find(|p| p.address == address)
     }
 
-    pub fn by_name(&self, name: &str) -> Option<&'static ParamSpec> {
+    pub(crate) fn by_name(&self, name: &str) -> Option<&'static ParamSpec> {
         self.table.iter().find(|p| p.name == name)
     }
 
     /// The value of the parameter at `address`, if there is one.
-    pub fn get(&self, address: u16) -> Option<u16> {
+    pub(crate) fn get(&self, address: u16) -> Option<u16> {
         self.values.get(&address).copied()
     }
 
     /// The value of a parameter the model knows is in its table.
-    pub fn value(&self, address: u16) -> u16 {
+    pub(crate) fn value(&self, address: u16) -> u16 {
         self.get(address).unwrap_or(0)
     }
 
@@ -95,12 +95,12 @@ impl Params {
     }
 
     /// The range `address` accepts now (bounds that name other parameters use their values).
-    pub fn range(&self, spec: &ParamSpec) -> (u16, u16) {
+    pub(crate) fn range(&self, spec: &ParamSpec) -> (u16, u16) {
         (self.limit(spec.min), self.limit(spec.max))
     }
 
     /// Whether writing `value` to `address` is allowed, without writing it.
-    pub fn check(&self, address: u16, value: u16, running: bool) -> Result<(), Refusal> {
+    pub(crate) fn check(&self, address: u16, value: u16, running: bool) -> Result<(), Refusal> {
         let spec = self.spec(address).ok_or(Refusal::NoSuchAddress)?;
         match spec.modify {
             Modify::Never => return Err(Refusal::ReadOnly),
@@ -115,7 +115,7 @@ impl Params {
     }
 
     /// Check and write.
-    pub fn write(&mut self, address: u16, value: u16, running: bool) -> Result<(), Refusal> {
+    pub(crate) fn write(&mut self, address: u16, value: u16, running: bool) -> Result<(), Refusal> {
         self.check(address, value, running)?;
         self.values.insert(address, value);
         Ok(())
@@ -123,7 +123,7 @@ impl Params {
 
     /// Set a value with no modify rule applied (power-on settings, records the drive keeps
     /// itself). Only the range is checked.
-    pub fn force(&mut self, address: u16, value: u16) -> Result<(), Refusal> {
+    pub(crate) fn force(&mut self, address: u16, value: u16) -> Result<(), Refusal> {
         let spec = self.spec(address).ok_or(Refusal::NoSuchAddress)?;
         let (min, max) = self.range(spec);
         if value < min || value > max {
@@ -136,7 +136,7 @@ impl Params {
     /// Apply the configured power-on values by name. Each is range-checked against the table
     /// as it stands once all are applied, so `P00.03 = 10000` and `P00.04 = 9000` work in any
     /// order.
-    pub fn apply(&mut self, settings: &BTreeMap<String, u16>) -> Result<(), SetupError> {
+    pub(crate) fn apply(&mut self, settings: &BTreeMap<String, u16>) -> Result<(), SetupError> {
         let mut resolved = Vec::with_capacity(settings.len());
         for (name, &value) in settings {
             let spec = self.by_name(name).ok_or_else(|| SetupError {

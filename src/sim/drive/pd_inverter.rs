@@ -343,7 +343,7 @@ impl Command {
 
 /// The drive's state.
 #[derive(Clone, Debug)]
-pub struct PdInverter {
+pub(crate) struct PdInverter {
     params: Params,
     ramp: Ramp,
     /// None once stopped, though the output may still be ramping down.
@@ -363,7 +363,10 @@ pub struct PdInverter {
 
 impl PdInverter {
     /// Power on at `now` with `settings` (params applied with Params::apply, then trip).
-    pub fn new(settings: &DriveSettings, now: Instant) -> Result<Drive<PdInverter>, SetupError> {
+    pub(crate) fn new(
+        settings: &DriveSettings,
+        now: Instant,
+    ) -> Result<Drive<PdInverter>, SetupError> {
         let mut params = Params::new(TABLE);
         params.apply(&settings.params)?;
         LINE.power_on(&mut params, settings)?;

@@ -7,10 +7,10 @@ use tokio::time::Instant;
 /// How fast the output frequency may change: full scale (the maximum frequency, in 0.01 Hz) in
 /// the acceleration or deceleration time.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Rates {
-    pub full_scale: u32,
+pub(crate) struct Rates {
+    pub(crate) full_scale: u32,
     pub accel: Duration,
-    pub decel: Duration,
+    pub(crate) decel: Duration,
 }
 
 impl Rates {
@@ -28,7 +28,7 @@ impl Rates {
 /// magnitude grows and at the deceleration rate while it shrinks; a change of direction passes
 /// through 0 Hz. Signed, in 0.01 Hz: positive is forward. Lazy: it is worked out when asked.
 #[derive(Clone, Debug)]
-pub struct Ramp {
+pub(crate) struct Ramp {
     frequency: f64,
     target: f64,
     at: Instant,
@@ -36,7 +36,7 @@ pub struct Ramp {
 
 impl Ramp {
     /// Standing still at `now`.
-    pub fn new(now: Instant) -> Self {
+    pub(crate) fn new(now: Instant) -> Self {
         Ramp {
             frequency: 0.0,
             target: 0.0,
@@ -46,7 +46,7 @@ impl Ramp {
 
     /// Move the ramp on to `now` with `rates`, which must be the rates in force since the last
     /// call: call this before changing a ramp time or the maximum frequency.
-    pub fn advance(&mut self, now: Instant, rates: Rates) {
+    pub(crate) fn advance(&mut self, now: Instant, rates: Rates) {
         let mut remaining = now.saturating_duration_since(self.at).as_secs_f64();
         self.at = self.at.max(now);
         while remaining > 0.0 && self.frequency != self.target {
@@ -68,29 +68,26 @@ impl Ramp {
     }
 
     /// Head for `target` (signed 0.01 Hz) from `now`.
-    pub fn set_target(&mut self, now: Instant, target: i32, rates: Rates) {
+    pub(crate) fn set_target(&mut self, now: Instant, target: i32, rates: Rates) {
         self.advance(now, rates);
         self.target = f64::from(target);
     }
 
     /// Drop the output at `now` (coast to stop, a trip).
-    pub fn coast(&mut self, now: Instant) {
+    pub(crate) fn coast(&mut self, now: Instant) {
         self.at = self.at.max(now);
         self.frequency = 0.0;
         self.target = 0.0;
     }
 
     /// Signed output frequency in 0.01 Hz as of the last [`Ramp::advance`].
-    pub fn frequency(&self) -> i32 {
+    pub(crate) fn frequency(&self) -> i32 {
         rounded(self.frequency)
     }
 
-    pub fn target(&self) -> i32 {
-        rounded(self.target)
-    }
-
     /// True once the output has reached its target.
-    pub fn settled(&self) -> bool {
+    #[cfg(test)]
+    fn settled(&self) -> bool {
         self.frequency == self.target
     }
 }
