@@ -422,7 +422,7 @@ impl Gateway {
             let handle = bus.handle.clone();
             let task = bus.task;
             retired.push(tokio::spawn(async move {
-                let _ = task.await;
+                shutdown::log_end("retired bus", task.await);
                 metrics.forget_bus(handle.metrics());
             }));
         }
@@ -516,7 +516,7 @@ impl Gateway {
         let aborts: Vec<_> = tasks.iter().map(JoinHandle::abort_handle).collect();
         let drained = async {
             for task in tasks {
-                let _ = task.await;
+                shutdown::log_end("bus", task.await);
             }
             shared.sessions_ended().await;
         };
@@ -535,7 +535,10 @@ impl Gateway {
         for abort in aborts {
             abort.abort();
         }
-        self.tasks.shutdown().await;
+        self.tasks.abort_all();
+        while let Some(ended) = self.tasks.join_next().await {
+            shutdown::log_end("metrics endpoint", ended);
+        }
     }
 }
 

@@ -61,8 +61,9 @@ pub use config::Config;
 pub use gateway::Gateway;
 
 /// What the integration tests drive directly beyond the public modules: the TCP session, the
-/// dispatcher and the routing table, which the gateway otherwise wires up itself. Not an API.
-#[doc(hidden)]
+/// dispatcher and the routing table, which the gateway otherwise wires up itself. Only with the
+/// `test-util` feature, which the tests turn on and the shipped daemon does not.
+#[cfg(feature = "test-util")]
 pub mod testing {
     pub use crate::dispatch::{Client, Dispatcher};
     pub use crate::master::{Protocol, Rights};

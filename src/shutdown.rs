@@ -1,9 +1,10 @@
 //! The stop signal a graceful shutdown sends to the bus tasks and the sessions: once given, it
 //! carries the deadline by which queued requests must have been served. Buses then serve what is
 //! queued until the deadline and answer the rest 0x0A; sessions stop reading and close once their
-//! requests are answered.
+//! requests are answered. Also how a stopped task's end is logged ([`log_end`]).
 
 use tokio::sync::watch;
+use tokio::task::JoinError;
 use tokio::time::Instant;
 
 /// The sending side, held by whoever decides to stop.
@@ -48,6 +49,16 @@ impl Stopping {
             Ok(Some(deadline)) => deadline,
             _ => std::future::pending().await,
         }
+    }
+}
+
+/// How `task` ended, in the log: a panic is an error an operator must see (the task's work has
+/// stopped); a task cancelled on purpose (the gateway stopping it) is noted at debug.
+pub(crate) fn log_end(task: &str, ended: Result<(), JoinError>) {
+    match ended {
+        Ok(()) => {}
+        Err(error) if error.is_panic() => tracing::error!(task, %error, "task panicked"),
+        Err(error) => tracing::debug!(task, %error, "task cancelled"),
     }
 }
 

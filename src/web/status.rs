@@ -21,69 +21,69 @@ const SAMPLE_SPACING: Duration = Duration::from_secs(1);
 /// The whole page's data; its default, a gateway with nothing to show.
 #[derive(Clone, Debug, Default, Serialize)]
 pub(crate) struct Status {
-    pub version: &'static str,
+    pub(crate) version: &'static str,
     /// When the answer was made (RFC 3339, UTC).
-    pub time: String,
-    pub uptime_seconds: f64,
-    pub buses: Vec<BusStatus>,
+    pub(crate) time: String,
+    pub(crate) uptime_seconds: f64,
+    pub(crate) buses: Vec<BusStatus>,
     /// The masters connected now over TCP (Modbus TCP, RTU over TCP, TLS); UDP masters have no
     /// connection and are not listed.
-    pub masters: Vec<MasterStatus>,
+    pub(crate) masters: Vec<MasterStatus>,
 }
 
 #[derive(Clone, Debug, Serialize)]
 pub(crate) struct BusStatus {
-    pub name: String,
+    pub(crate) name: String,
     /// The serial device's path, or `"simulated"`.
-    pub device: String,
+    pub(crate) device: String,
     /// `rtu` or `ascii`.
-    pub framing: &'static str,
+    pub(crate) framing: &'static str,
     /// The serial format, e.g. `9600 8E1`.
-    pub format: String,
-    pub port_up: bool,
+    pub(crate) format: String,
+    pub(crate) port_up: bool,
     /// Share of the recent past (about a minute) the line carried characters, 0 to 1.
-    pub utilisation: f64,
-    pub queue_depth: usize,
-    pub queue_capacity: usize,
+    pub(crate) utilisation: f64,
+    pub(crate) queue_depth: usize,
+    pub(crate) queue_capacity: usize,
     /// Transactions on the line since the bus started, retries included in each.
-    pub transactions: u64,
-    pub slaves: Vec<SlaveStatus>,
+    pub(crate) transactions: u64,
+    pub(crate) slaves: Vec<SlaveStatus>,
 }
 
 #[derive(Clone, Debug, Serialize)]
 pub(crate) struct SlaveStatus {
-    pub address: u8,
+    pub(crate) address: u8,
     /// The simulated drive's model, for a slave of a simulated line.
-    pub model: Option<&'static str>,
+    pub(crate) model: Option<&'static str>,
     /// Whether its last transaction that tells got a valid answer (`modbus_gateway_slave_up`).
-    pub up: bool,
+    pub(crate) up: bool,
     /// Its last answer, normal or exception (RFC 3339, UTC), or `null` if none yet.
-    pub last_answer: Option<String>,
-    pub last_answer_seconds_ago: Option<f64>,
+    pub(crate) last_answer: Option<String>,
+    pub(crate) last_answer_seconds_ago: Option<f64>,
     /// The median of its recent round trips (the last 32 transactions), or `null` if none.
-    pub round_trip_p50_seconds: Option<f64>,
+    pub(crate) round_trip_p50_seconds: Option<f64>,
     /// Its requests by outcome (the `outcome` label of `modbus_gateway_requests_total`).
-    pub requests: BTreeMap<String, u64>,
+    pub(crate) requests: BTreeMap<String, u64>,
     /// Its requests that did not end `ok`.
-    pub errors: u64,
+    pub(crate) errors: u64,
 }
 
 #[derive(Clone, Debug, Serialize)]
 pub(crate) struct MasterStatus {
     /// The peer's `ip:port`.
-    pub address: String,
+    pub(crate) address: String,
     /// `tcp`, `rtu_over_tcp` or `tls`.
-    pub protocol: &'static str,
+    pub(crate) protocol: &'static str,
     /// `read_write`, `read_only` or `none`.
-    pub rights: &'static str,
+    pub(crate) rights: &'static str,
     /// The role of its certificate, on a TLS connection that has one.
-    pub role: Option<String>,
-    pub priority: bool,
+    pub(crate) role: Option<String>,
+    pub(crate) priority: bool,
     /// RFC 3339, UTC.
     pub(crate) connected_since: String,
     pub(crate) connected_seconds: f64,
     /// Requests it has sent on this connection.
-    pub requests: u64,
+    pub(crate) requests: u64,
 }
 
 /// `time` as RFC 3339 in UTC, to the millisecond.
