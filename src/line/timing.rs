@@ -114,7 +114,7 @@ impl LineTiming {
         self.char_time * u32::try_from(bytes).unwrap_or(u32::MAX)
     }
 
-    /// The physical minimum of one transaction (DESIGN.md, "Performance model"): request and
+    /// The physical minimum of one transaction (docs/performance.md, the yardstick): request and
     /// reply on the wire, the slave's turnaround, and the t3.5 before the next request.
     pub fn transaction_minimum(
         &self,
