@@ -164,9 +164,11 @@ impl BusTask {
         let device = &self.current.device;
         if let (Some(path), Some(driver)) = (device.path(), device.driver()) {
             let timer = latency::adjust(Path::new(SYSFS), Path::new(path), driver.latency_timer);
+            let found = timer.as_ref().map(|t| (t.value, t.file.as_path()));
+            let refused = timer.as_ref().and_then(|t| t.refused.as_ref());
             self.handle
                 .metrics
-                .latency_timer(path, &driver.key, timer.as_ref());
+                .latency_timer(path, &driver.key, found, refused);
         }
     }
 
