@@ -2,8 +2,8 @@
 //! answer 0x0A while it is down and reopen it with backoff, and once stopped answer whatever is
 //! still queued.
 
+use super::device::serial::latency::{self, SYSFS};
 use super::health::Health;
-use super::latency::{self, SYSFS};
 use super::reconfigure::{Current, Updates};
 use super::{BusHandle, BusUpdates, Device, FairQueue, Heartbeat, Intake, Reconfigure, HEARTBEAT};
 use crate::config;
