@@ -107,7 +107,7 @@ impl BusTask {
         // Since when the port is down, and how many opens have failed since.
         let mut down_since: Option<(Instant, u32)> = None;
         loop {
-            let opened = self.current.device.open();
+            let opened = self.current.device.open_for(self.current.derived.framing);
             self.set_up(opened.is_ok());
             self.handle.attempted.notify_one();
             let device = &self.current.settings.device;

@@ -2,19 +2,21 @@
 //! format with its driver settings, or the simulated line); opened, it is a [`Port`], which the
 //! line's master drives through [`Transport`]. This file only dispatches: each transport lives in
 //! its own file ([`serial`]: tokio-serial, RS-485 direction control, a USB adapter's latency
-//! timer; `sim`: the simulated line's glue). Knows nothing of queues, transactions or what the
-//! bytes mean.
+//! timer; `sim`: the simulated line's glue). Which framing may run over which transport is not
+//! decided here but in one table of the line's, [`Framing::runs_over`], which
+//! [`Device::open_for`] consults. Knows nothing of queues, transactions or what the bytes mean.
 //!
 //! To add a transport: a variant in [`Device`] and in [`Port`] with its own file here (what it
-//! opens, and the [`Transport`] of the opened thing); the compiler then names every `match`
-//! below that needs an arm for it.
+//! opens, and the [`Transport`] of the opened thing), a [`TransportKind`] with its rows in the
+//! framing table; the compiler then names every `match` below that needs an arm for it.
 
 pub mod serial;
 mod sim;
 
 pub use serial::{SerialDriver, SerialFd};
 
-use crate::line::{SerialFormat, Transport};
+use crate::line::framing::TransportKind;
+use crate::line::{Framing, SerialFormat, Transport};
 use crate::sim::{SimLine, SimPort};
 use std::io;
 use std::time::Duration;
@@ -61,6 +63,14 @@ impl Device {
         }
     }
 
+    /// Which kind of transport this is, for the framing table.
+    pub fn kind(&self) -> TransportKind {
+        match self {
+            Device::Serial { .. } => TransportKind::Serial,
+            Device::Sim(_) => TransportKind::Sim,
+        }
+    }
+
     /// Open the transport. Serial ports are opened exclusively, so two gateways cannot share
     /// one; a device that refuses the RS-485 mode asked for fails the open, naming the key.
     pub fn open(&self) -> io::Result<Port> {
@@ -72,6 +82,23 @@ impl Device {
             } => serial::open(path, format, driver).map(Port::Serial),
             Device::Sim(line) => sim::open(line),
         }
+    }
+
+    /// Open the transport for a line framed by `framing`: refused (`Unsupported`, which
+    /// retrying does not cure) if the framing table does not let `framing` run over it.
+    pub fn open_for(&self, framing: Framing) -> io::Result<Port> {
+        let kind = self.kind();
+        if !framing.runs_over(kind) {
+            return Err(io::Error::new(
+                io::ErrorKind::Unsupported,
+                format!(
+                    "framing = \"{}\" cannot run over {}",
+                    framing.name(),
+                    kind.name()
+                ),
+            ));
+        }
+        self.open()
     }
 
     /// The path of a serial device.
@@ -141,6 +168,17 @@ mod tests {
             stop_bits: 1,
         };
         Device::Sim(SimLine::new(LineTiming::new(&format)))
+    }
+
+    #[test]
+    fn the_simulated_line_opens_for_every_framing_the_table_lets_run_over_it() {
+        let device = sim();
+        for framing in [Framing::Rtu, Framing::Ascii] {
+            assert_eq!(
+                framing.runs_over(device.kind()),
+                device.open_for(framing).is_ok()
+            );
+        }
     }
 
     #[test]
