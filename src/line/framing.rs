@@ -146,7 +146,7 @@ impl Framing {
         }
     }
 
-    /// The physical minimum of one transaction of these PDUs (DESIGN.md, "Performance model"),
+    /// The physical minimum of one transaction of these PDUs (docs/performance.md, its opening),
     /// for a slave that answers as soon as it may: RTU, request and reply on the wire, the
     /// slave's t3.5 before it answers and the master's before the next request; ASCII, the
     /// characters alone, since a frame ends at its LF and the spec owes no silence (the
