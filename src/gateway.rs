@@ -193,8 +193,9 @@ fn take(buses: &mut Vec<Running>, name: &str) -> Option<Running> {
     Some(buses.swap_remove(at))
 }
 
-/// The device `bus[index]`'s settings name; a simulated line is kept when its format and slaves
-/// are unchanged (`current`), so its slaves keep their state.
+/// The device `bus[index]`'s settings name (the one place a `device` key becomes a transport); a
+/// simulated line is kept when its format and slaves are unchanged (`current`), so its slaves
+/// keep their state.
 fn device_for(
     index: usize,
     settings: &config::Bus,

@@ -1,23 +1,23 @@
 //! One task per RS-485 line, the only owner of its port. Others hold its [`BusHandle`]: they
 //! submit requests to its fair queue ([`queue`]) and read whether it is up. The task (`task`)
-//! opens the port, answers 0x0A at once while it is down and reopens it with backoff; while it
-//! is open it serves the queue (`serve`), skipping requests whose master has gone or whose
-//! deadline passed, and runs each as one transaction (`transaction`) with the slave's timeout,
-//! the retry policy and broadcast rules. A slave that keeps timing out is left alone but for
-//! probes ([`health`], the one place that decides whether a slave is alive). New settings reach
-//! it between transactions (`reconfigure`). Knows nothing of TCP.
+//! opens the port ([`device`]: what a line is carried by, a serial port with its RS-485 and USB
+//! adapter settings or the simulated line), answers 0x0A at once while it is down and reopens it
+//! with backoff; while it is open it serves the queue (`serve`), skipping requests whose master
+//! has gone or whose deadline passed, and runs each as one transaction (`transaction`) with the
+//! slave's timeout, the retry policy and broadcast rules. A slave that keeps timing out is left
+//! alone but for probes ([`health`], the one place that decides whether a slave is alive). New
+//! settings reach it between transactions (`reconfigure`). Knows nothing of TCP, nor of which
+//! transport carries a line.
 
+pub mod device;
 pub mod health;
-pub mod latency;
-pub mod port;
 pub mod queue;
 mod reconfigure;
-pub mod rs485;
 mod serve;
 mod task;
 mod transaction;
 
-pub use port::{Device, Port, SerialDriver};
+pub use device::{Device, Port, SerialDriver};
 pub use queue::{FairQueue, Follower, Job, Pushed};
 pub use reconfigure::{longest_transaction, BusUpdates, Reconfigure};
 pub use task::BusTask;

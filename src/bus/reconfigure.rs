@@ -3,7 +3,7 @@
 //! the device or its serial format changed. Also what the task derives from its settings, the
 //! longest one transaction can take among them.
 
-use super::port::{Device, Port};
+use super::device::{Device, Port};
 use super::{BusHandle, Intake, HEARTBEAT, STALL_MARGIN};
 use crate::config;
 use crate::line::{Framing, ReplyForm};

@@ -2,8 +2,8 @@
 //! answer 0x0A while it is down and reopen it with backoff, and once stopped answer whatever is
 //! still queued.
 
+use super::device::serial::latency::{self, SYSFS};
 use super::health::Health;
-use super::latency::{self, SYSFS};
 use super::reconfigure::{Current, Updates};
 use super::{BusHandle, BusUpdates, Device, FairQueue, Heartbeat, Intake, Reconfigure, HEARTBEAT};
 use crate::config;
@@ -107,7 +107,7 @@ impl BusTask {
         // Since when the port is down, and how many opens have failed since.
         let mut down_since: Option<(Instant, u32)> = None;
         loop {
-            let opened = self.current.device.open();
+            let opened = self.current.device.open_for(self.current.derived.framing);
             self.set_up(opened.is_ok());
             self.handle.attempted.notify_one();
             let device = &self.current.settings.device;
@@ -164,9 +164,11 @@ impl BusTask {
         let device = &self.current.device;
         if let (Some(path), Some(driver)) = (device.path(), device.driver()) {
             let timer = latency::adjust(Path::new(SYSFS), Path::new(path), driver.latency_timer);
+            let found = timer.as_ref().map(|t| (t.value, t.file.as_path()));
+            let refused = timer.as_ref().and_then(|t| t.refused.as_ref());
             self.handle
                 .metrics
-                .latency_timer(path, &driver.key, timer.as_ref());
+                .latency_timer(path, &driver.key, found, refused);
         }
     }
 

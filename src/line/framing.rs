@@ -1,7 +1,8 @@
 //! How frames look on the wire of one line, for the [`engine`](super::engine): encoding a PDU to
 //! an address, telling when a received frame is complete, and checking and unwrapping it: Modbus
 //! RTU ([`rtu`]) or Modbus ASCII ([`ascii`]). Pure functions over
-//! bytes; knows nothing of ports, time or what a reply means.
+//! bytes; knows nothing of ports, time or what a reply means. Also the one table of which
+//! framing may run over which kind of transport ([`Framing::runs_over`]).
 //!
 //! An enum rather than a trait: the spec defines exactly two serial framings, a line's framing is
 //! chosen by its configuration at run time, and the master stays one type (`LineMaster<Port>`)
@@ -172,9 +173,58 @@ impl Framing {
     }
 }
 
+/// What carries a line's bytes, as far as its framing cares: the kinds of
+/// [`Transport`](super::Transport) a line may have.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TransportKind {
+    /// A serial port of the gateway's own.
+    Serial,
+    /// The built-in simulated line.
+    Sim,
+}
+
+impl TransportKind {
+    /// As a message names it.
+    pub fn name(self) -> &'static str {
+        match self {
+            TransportKind::Serial => "a serial port",
+            TransportKind::Sim => "the simulated line",
+        }
+    }
+}
+
+/// Which framing may run over which transport: the one place that decides, for every line. Both
+/// serial framings need a byte stream that keeps the line's timing, which every transport so far
+/// is. A framing or transport that comes adds its rows here, and nowhere else.
+const LINES: &[(TransportKind, Framing)] = &[
+    (TransportKind::Serial, Framing::Rtu),
+    (TransportKind::Serial, Framing::Ascii),
+    (TransportKind::Sim, Framing::Rtu),
+    (TransportKind::Sim, Framing::Ascii),
+];
+
+impl Framing {
+    /// Whether a line may frame its bytes this way over `transport` (the table `LINES`).
+    pub fn runs_over(self, transport: TransportKind) -> bool {
+        LINES.contains(&(transport, self))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn every_framing_runs_over_every_transport_today() {
+        for transport in [TransportKind::Serial, TransportKind::Sim] {
+            for framing in [Framing::Rtu, Framing::Ascii] {
+                assert!(
+                    framing.runs_over(transport),
+                    "{framing:?} over {transport:?}"
+                );
+            }
+        }
+    }
 
     /// Goodrive300 manual 10.4.1: slave 01H's reply with 0004H = 1388H, 0005H = 0000H.
     const READ_REPLY: [u8; 9] = [

@@ -28,7 +28,9 @@ use tokio::time::Instant;
 /// The slave address that every slave obeys and none answers, in every serial framing.
 pub const BROADCAST: u8 = 0;
 
-/// A byte pipe onto an RS-485 line as a UART driver presents it.
+/// A byte pipe onto a line as a UART driver presents it, whatever carries it: a serial port or
+/// the simulated line today. Which [`Framing`] may run over which kind of transport is the one
+/// table behind [`Framing::runs_over`].
 pub trait Transport: Send {
     /// Hand a whole frame to the driver. Returns when the driver holds it, which is before the
     /// last byte has left the wire, unless the transport says otherwise in

@@ -4,7 +4,6 @@
 
 use super::labels::{decimal, seconds_since_epoch, Fate, OTHER};
 use super::{Definer, RequestCounters, BUS_EVENTS};
-use crate::bus::latency::LatencyTimer;
 use crate::config;
 use crate::error::{Answer, Outcome, RequestError};
 use crate::line::LineCounters;
@@ -578,17 +577,24 @@ impl BusMetrics {
         warn!(target: BUS_EVENTS, bus = &*self.name, device, %error, "serial port lost; answering 0x0A and reopening");
     }
 
-    /// The USB adapter's latency timer as the port's open found (and maybe set) it, or `None` if
-    /// the device has none. `key` is the bus's (`bus[0]`).
-    pub fn latency_timer(&self, device: &str, key: &str, timer: Option<&LatencyTimer>) {
+    /// The USB adapter's latency timer as the port's open found (and maybe set) it, with the
+    /// sysfs file it is read from, or `None` if the device has none; `refused` is why setting
+    /// the configured value failed. `key` is the bus's (`bus[0]`).
+    pub fn latency_timer(
+        &self,
+        device: &str,
+        key: &str,
+        timer: Option<(Duration, &std::path::Path)>,
+        refused: Option<&io::Error>,
+    ) {
         let bus = &*self.name;
-        let Some(timer) = timer else {
+        let Some((value, file)) = timer else {
             let _ = self.latency_timer.remove_label_values(&[bus]);
             return;
         };
-        let latency_timer_ms = timer.value.as_millis();
-        let file = timer.file.display().to_string();
-        match &timer.refused {
+        let latency_timer_ms = value.as_millis();
+        let file = file.display().to_string();
+        match refused {
             None => {
                 info!(target: BUS_EVENTS, bus, device, latency_timer_ms, file, "USB adapter latency timer");
             }
@@ -598,7 +604,7 @@ impl BusMetrics {
         }
         self.latency_timer
             .with_label_values(&[bus])
-            .set(timer.value.as_secs_f64());
+            .set(value.as_secs_f64());
     }
 
     /// An open failed; only the first failure of an outage is logged above debug level, at
@@ -619,8 +625,8 @@ impl BusMetrics {
 
 #[cfg(test)]
 mod latency_tests {
-    use crate::bus::latency::LatencyTimer;
     use crate::metrics::Metrics;
+    use std::path::Path;
     use std::time::Duration;
 
     const SERIES: &str = "modbus_gateway_serial_latency_timer_seconds{bus=\"line1\"}";
@@ -642,14 +648,11 @@ mod latency_tests {
                 .remove(0);
         let bus = metrics.bus(&settings);
         assert_eq!(sample(&metrics), None, "unknown until the port opens");
-        let timer = LatencyTimer {
-            file: "/sys/bus/usb-serial/devices/ttyUSB0/latency_timer".into(),
-            value: Duration::from_millis(16),
-            refused: None,
-        };
-        bus.latency_timer("/dev/ttyUSB0", "bus[0]", Some(&timer));
+        let file = Path::new("/sys/bus/usb-serial/devices/ttyUSB0/latency_timer");
+        let timer = (Duration::from_millis(16), file);
+        bus.latency_timer("/dev/ttyUSB0", "bus[0]", Some(timer), None);
         assert_eq!(sample(&metrics), Some(0.016));
-        bus.latency_timer("/dev/ttyUSB0", "bus[0]", None);
+        bus.latency_timer("/dev/ttyUSB0", "bus[0]", None, None);
         assert_eq!(sample(&metrics), None);
     }
 }

@@ -1,14 +1,15 @@
 //! Driving an RS-485 transceiver's driver enable on a serial port: the kernel's RS-485 mode
 //! (`struct serial_rs485` through `TIOCSRS485`), or RTS switched by the gateway around each frame
 //! (`TIOCMBIS`/`TIOCMBIC`, which never block). What the settings mean is the configuration's;
-//! when a frame has left the wire is the port's.
+//! when a frame has left the wire is the serial port's ([`super::SerialFd`]). Knows nothing of
+//! frames or time.
 
 use crate::config::{Rs485, Rs485Mode};
 use std::io;
-use std::os::fd::RawFd;
+use std::os::fd::{AsRawFd, BorrowedFd};
 use std::time::Duration;
 
-/// `linux/serial.h`: RS-485 mode on.
+/// The kernel's RS-485 flags (Linux's serial RS-485 interface): RS-485 mode on.
 pub const SER_RS485_ENABLED: u32 = 1 << 0;
 /// RTS level while sending.
 pub const SER_RS485_RTS_ON_SEND: u32 = 1 << 1;
@@ -17,9 +18,9 @@ pub const SER_RS485_RTS_AFTER_SEND: u32 = 1 << 2;
 /// The receiver stays on while sending.
 pub const SER_RS485_RX_DURING_TX: u32 = 1 << 4;
 
-/// `struct serial_rs485` of `linux/serial.h`, 32 bytes: the flags, the delays in milliseconds,
-/// and five words the kernel reserves (or uses for addressing, which the gateway leaves off).
-/// libc has the ioctl numbers but not this struct.
+/// The kernel's `struct serial_rs485`, 32 bytes: the flags, the delays in milliseconds, and five
+/// words the kernel reserves (or uses for addressing, which the gateway leaves off). libc has the
+/// ioctl numbers but not this struct.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct SerialRs485 {
@@ -69,14 +70,17 @@ pub fn refused(key: &str, mode: Rs485Mode, what: &str, error: &io::Error) -> io:
 
 /// Put the port in the kernel's RS-485 mode; returns the settings as the driver took them (it
 /// clears what it does not support).
-pub fn enable_kernel_mode(fd: RawFd, wanted: &SerialRs485) -> io::Result<SerialRs485> {
+pub fn enable_kernel_mode(fd: BorrowedFd<'_>, wanted: &SerialRs485) -> io::Result<SerialRs485> {
+    let fd = fd.as_raw_fd();
     let mut set = *wanted;
-    // SAFETY: TIOCSRS485 reads and writes one `struct serial_rs485`, which `set` is.
+    // SAFETY: `fd` is open (borrowed); TIOCSRS485 reads and writes one `struct serial_rs485`,
+    // which `set` is.
     if unsafe { libc::ioctl(fd, libc::TIOCSRS485, &raw mut set) } < 0 {
         return Err(io::Error::last_os_error());
     }
     let mut got = SerialRs485::default();
-    // SAFETY: TIOCGRS485 writes one `struct serial_rs485`, which `got` is.
+    // SAFETY: `fd` is open (borrowed); TIOCGRS485 writes one `struct serial_rs485`, which `got`
+    // is.
     if unsafe { libc::ioctl(fd, libc::TIOCGRS485, &raw mut got) } < 0 {
         return Err(io::Error::last_os_error());
     }
@@ -84,15 +88,15 @@ pub fn enable_kernel_mode(fd: RawFd, wanted: &SerialRs485) -> io::Result<SerialR
 }
 
 /// Raise (`true`) or drop RTS. Does not wait for the line.
-pub fn set_rts(fd: RawFd, level: bool) -> io::Result<()> {
+pub fn set_rts(fd: BorrowedFd<'_>, level: bool) -> io::Result<()> {
     let request = if level {
         libc::TIOCMBIS
     } else {
         libc::TIOCMBIC
     };
     let bits: libc::c_int = libc::TIOCM_RTS;
-    // SAFETY: TIOCMBIS and TIOCMBIC read one int, which `bits` is.
-    if unsafe { libc::ioctl(fd, request, &raw const bits) } < 0 {
+    // SAFETY: `fd` is open (borrowed); TIOCMBIS and TIOCMBIC read one int, which `bits` is.
+    if unsafe { libc::ioctl(fd.as_raw_fd(), request, &raw const bits) } < 0 {
         return Err(io::Error::last_os_error());
     }
     Ok(())

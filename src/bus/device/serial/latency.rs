@@ -1,7 +1,8 @@
 //! A USB serial adapter's latency timer (FTDI and kin): how long the adapter holds received
-//! bytes before it hands them over, 16 ms by default. Read, and set when configured, through
-//! `/sys/bus/usb-serial/devices/<tty>/latency_timer`; the root of sysfs is a parameter so tests
-//! can stand a directory in for it. Knows nothing of ports or metrics.
+//! bytes before it hands them over, 16 ms by default. Read, and set when configured, through the
+//! `latency_timer` attribute sysfs gives the adapter's tty on the usb-serial bus; the root of
+//! sysfs is a parameter so tests can stand a directory in for it. Knows nothing of ports or
+//! metrics.
 
 use std::io;
 use std::path::{Path, PathBuf};
@@ -21,7 +22,7 @@ pub struct LatencyTimer {
 }
 
 /// The latency timer file of `device` under `sysfs`, if the device is a USB serial adapter that
-/// has one. Symlinks (`/dev/serial/by-id/...`) are followed to the tty they name.
+/// has one. Symlinks (the `by-id` names udev makes) are followed to the tty they name.
 fn timer_file(sysfs: &Path, device: &Path) -> Option<PathBuf> {
     let tty = std::fs::canonicalize(device).ok()?;
     let file = sysfs

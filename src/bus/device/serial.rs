@@ -1,17 +1,20 @@
-//! What a bus opens: a serial device through tokio-serial, or the simulated line. Both become a
-//! [`Port`] the RTU master drives through [`Transport`]. A serial port may drive its RS-485
-//! transceiver itself ([`rs485`]): in `rts` mode it raises RTS before a frame and
-//! drops it once the frame's last character has left the wire, by the clock, never by tcdrain.
+//! A serial port as a bus's transport: opening the device exclusively in its format through
+//! tokio-serial, the RS-485 transceiver's direction control ([`rs485`]: the kernel's mode, or RTS
+//! raised before a frame and dropped once its last character has left the wire, by the clock,
+//! never by tcdrain), and a USB adapter's latency timer ([`latency`]). Knows nothing of framing,
+//! transactions or the other transports.
 
-use super::rs485::{self, SerialRs485};
+pub mod latency;
+pub mod rs485;
+
 use crate::config::{Rs485, Rs485Mode};
 use crate::line::{LineTiming, Parity, SerialFormat, Transport};
-use crate::sim::{SimLine, SimPort};
 use crate::timer::LineTimer;
 use mio_serial::SerialStream;
+use rs485::SerialRs485;
 use std::future::Future;
 use std::io::{self, Read, Write};
-use std::os::fd::{AsRawFd, FromRawFd, OwnedFd, RawFd};
+use std::os::fd::{AsFd, BorrowedFd};
 use std::pin::pin;
 use std::task::{Context, Waker};
 use std::time::Duration;
@@ -22,17 +25,6 @@ use tokio_serial::{ClearBuffer, DataBits, FlowControl, SerialPort, StopBits};
 
 /// Largest read from a serial port in one call.
 const READ_CHUNK: usize = 256;
-
-/// How to open a bus's line.
-#[derive(Clone)]
-pub enum Device {
-    Serial {
-        path: String,
-        format: SerialFormat,
-        driver: SerialDriver,
-    },
-    Sim(SimLine),
-}
 
 /// What a bus asks of a serial port's driver beyond the format.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -54,15 +46,95 @@ impl SerialDriver {
         }
     }
 
-    /// Whether a port opened for `self` serves `other` too.
-    fn same_as(&self, other: &SerialDriver) -> bool {
+    /// Whether a port opened for `self` serves `other` too (the key it is named by may differ).
+    pub(super) fn same_as(&self, other: &SerialDriver) -> bool {
         self.rs485 == other.rs485 && self.latency_timer == other.latency_timer
     }
 }
 
-pub enum Port {
-    Serial(SerialFd),
-    Sim(SimPort),
+/// Open the device at `path` exclusively, so two gateways cannot share one, in `format`, and
+/// drive its transceiver as `driver` says. A device that refuses the RS-485 mode asked for fails
+/// the open, naming the key.
+pub(super) fn open(
+    path: &str,
+    format: &SerialFormat,
+    driver: &SerialDriver,
+) -> io::Result<SerialFd> {
+    let port = SerialFd::new(open_serial(path, format)?)?;
+    drive_transceiver(port, path, format, driver)
+}
+
+/// Put the open `port` in the RS-485 mode `driver` asks for.
+fn drive_transceiver(
+    mut port: SerialFd,
+    path: &str,
+    format: &SerialFormat,
+    driver: &SerialDriver,
+) -> io::Result<SerialFd> {
+    let settings = &driver.rs485;
+    let key = format!("{}.rs485.mode", driver.key);
+    let refused = |what: &str, e: &io::Error| rs485::refused(&key, settings.mode, what, e);
+    match settings.mode {
+        Rs485Mode::Off => Ok(port),
+        Rs485Mode::Kernel => {
+            let wanted = SerialRs485::of(settings);
+            let got = rs485::enable_kernel_mode(port.fd.as_fd(), &wanted)
+                .map_err(|e| refused("the kernel's RS-485 mode (TIOCSRS485)", &e))?;
+            tracing::info!(
+                device = path,
+                flags = format!("{:#x}", got.flags),
+                delay_rts_before_send_ms = got.delay_rts_before_send,
+                delay_rts_after_send_ms = got.delay_rts_after_send,
+                asked_flags = format!("{:#x}", wanted.flags),
+                "kernel RS-485 mode on"
+            );
+            let delays = got.delay_rts_before_send + got.delay_rts_after_send;
+            port.kernel_delays = Duration::from_millis(u64::from(delays));
+            Ok(port)
+        }
+        Rs485Mode::Rts => {
+            let idle = settings.rts_level_after_send();
+            rs485::set_rts(port.fd.as_fd(), idle)
+                .map_err(|e| refused("RTS control (TIOCMBIC/TIOCMBIS)", &e))?;
+            let rts = RtsSwitch {
+                on_send: settings.rts_level_on_send(),
+                after_send: idle,
+                before: settings.delay_before_send,
+                after: settings.delay_after_send,
+                line: LineTiming::new(format),
+                timer: LineTimer::new(),
+                set_rts: rs485::set_rts,
+            };
+            Ok(port.with_rts(rts))
+        }
+    }
+}
+
+/// The gateway's [`Parity`] as tokio-serial spells it: the one place the two meet.
+fn tokio_parity(parity: Parity) -> tokio_serial::Parity {
+    match parity {
+        Parity::None => tokio_serial::Parity::None,
+        Parity::Even => tokio_serial::Parity::Even,
+        Parity::Odd => tokio_serial::Parity::Odd,
+    }
+}
+
+/// Open `path` in `format`, without flow control.
+fn open_serial(path: &str, format: &SerialFormat) -> io::Result<SerialStream> {
+    let data_bits = match format.data_bits {
+        7 => DataBits::Seven,
+        _ => DataBits::Eight,
+    };
+    let stop_bits = match format.stop_bits {
+        2 => StopBits::Two,
+        _ => StopBits::One,
+    };
+    let builder = tokio_serial::new(path, format.baud)
+        .data_bits(data_bits)
+        .parity(tokio_parity(format.parity))
+        .stop_bits(stop_bits)
+        .flow_control(FlowControl::None);
+    Ok(SerialStream::open(&builder)?)
 }
 
 /// A serial port in the runtime's reactor for reading only. Registered for writing too (as
@@ -87,177 +159,35 @@ struct RtsSwitch {
     line: LineTiming,
     timer: LineTimer,
     /// Sets RTS: [`rs485::set_rts`] (a test records instead).
-    set_rts: fn(RawFd, bool) -> io::Result<()>,
+    set_rts: fn(BorrowedFd<'_>, bool) -> io::Result<()>,
 }
 
-impl Port {
+impl SerialFd {
     /// A serial port (or pty) opened in non-blocking mode.
-    pub fn serial(stream: SerialStream) -> io::Result<Port> {
+    pub fn new(stream: SerialStream) -> io::Result<SerialFd> {
         // SAFETY: the AsyncFd owns the stream, so its descriptor stays open and the same.
         let fd = unsafe { AsyncFd::register_with_interest(stream, Interest::READABLE) }?;
-        Ok(Port::Serial(SerialFd {
+        Ok(SerialFd {
             fd,
             rts: None,
             kernel_delays: Duration::ZERO,
-        }))
+        })
     }
 
     /// The port, switching RTS around each frame.
-    fn with_rts(mut self, rts: RtsSwitch) -> Port {
-        if let Port::Serial(serial) = &mut self {
-            serial.rts = Some(rts);
-        }
+    fn with_rts(mut self, rts: RtsSwitch) -> SerialFd {
+        self.rts = Some(rts);
         self
     }
 }
 
-/// Wait until `fd` can take more bytes.
-async fn writable(fd: &impl AsRawFd) -> io::Result<()> {
-    // SAFETY: dup takes a descriptor and returns a new one or -1.
-    let raw = unsafe { libc::dup(fd.as_raw_fd()) };
-    if raw < 0 {
-        return Err(io::Error::last_os_error());
-    }
-    // SAFETY: `raw` was just opened and is owned by nobody else.
-    let dup = unsafe { OwnedFd::from_raw_fd(raw) };
+/// Wait until `fd` can take more bytes, on a registration of a duplicate of it.
+async fn writable(fd: BorrowedFd<'_>) -> io::Result<()> {
+    let dup = fd.try_clone_to_owned()?;
     // SAFETY: the AsyncFd owns `dup`, so it stays open and the same.
     let registered = unsafe { AsyncFd::register_with_interest(dup, Interest::WRITABLE) }?;
     let _ = registered.writable().await?;
     Ok(())
-}
-
-impl Device {
-    /// Whether `other` opens the same line the same way: the same serial device in the same
-    /// format with the same RS-485 settings and latency timer, or the same simulated line.
-    pub fn same_as(&self, other: &Device) -> bool {
-        match (self, other) {
-            (
-                Device::Serial {
-                    path,
-                    format,
-                    driver,
-                },
-                Device::Serial {
-                    path: p,
-                    format: f,
-                    driver: d,
-                },
-            ) => path == p && format == f && driver.same_as(d),
-            (Device::Sim(line), Device::Sim(other)) => line.same_line(other),
-            _ => false,
-        }
-    }
-
-    /// Open the line. Serial ports are opened exclusively, so two gateways cannot share one.
-    /// A device that refuses the RS-485 mode asked for fails the open, naming the key.
-    pub fn open(&self) -> io::Result<Port> {
-        match self {
-            Device::Serial {
-                path,
-                format,
-                driver,
-            } => {
-                let stream = open_serial(path, format)?;
-                drive_transceiver(stream, path, format, driver)
-            }
-            Device::Sim(line) => line.open().map(Port::Sim),
-        }
-    }
-
-    /// The path of a serial device.
-    pub fn path(&self) -> Option<&str> {
-        match self {
-            Device::Serial { path, .. } => Some(path),
-            Device::Sim(_) => None,
-        }
-    }
-
-    /// What the bus asks of its serial driver; `None` on the simulated line.
-    pub fn driver(&self) -> Option<&SerialDriver> {
-        match self {
-            Device::Serial { driver, .. } => Some(driver),
-            Device::Sim(_) => None,
-        }
-    }
-}
-
-/// Put the open `stream` in the RS-485 mode `driver` asks for.
-fn drive_transceiver(
-    stream: SerialStream,
-    path: &str,
-    format: &SerialFormat,
-    driver: &SerialDriver,
-) -> io::Result<Port> {
-    let settings = &driver.rs485;
-    let key = format!("{}.rs485.mode", driver.key);
-    let fd = stream.as_raw_fd();
-    match settings.mode {
-        Rs485Mode::Off => Port::serial(stream),
-        Rs485Mode::Kernel => {
-            let wanted = SerialRs485::of(settings);
-            let got = rs485::enable_kernel_mode(fd, &wanted).map_err(|e| {
-                rs485::refused(
-                    &key,
-                    settings.mode,
-                    "the kernel's RS-485 mode (TIOCSRS485)",
-                    &e,
-                )
-            })?;
-            tracing::info!(
-                device = path,
-                flags = format!("{:#x}", got.flags),
-                delay_rts_before_send_ms = got.delay_rts_before_send,
-                delay_rts_after_send_ms = got.delay_rts_after_send,
-                asked_flags = format!("{:#x}", wanted.flags),
-                "kernel RS-485 mode on"
-            );
-            let delays = got.delay_rts_before_send + got.delay_rts_after_send;
-            let mut port = Port::serial(stream)?;
-            if let Port::Serial(serial) = &mut port {
-                serial.kernel_delays = Duration::from_millis(u64::from(delays));
-            }
-            Ok(port)
-        }
-        Rs485Mode::Rts => {
-            let idle = settings.rts_level_after_send();
-            rs485::set_rts(fd, idle).map_err(|e| {
-                rs485::refused(&key, settings.mode, "RTS control (TIOCMBIC/TIOCMBIS)", &e)
-            })?;
-            let rts = RtsSwitch {
-                on_send: settings.rts_level_on_send(),
-                after_send: idle,
-                before: settings.delay_before_send,
-                after: settings.delay_after_send,
-                line: LineTiming::new(format),
-                timer: LineTimer::new(),
-                set_rts: rs485::set_rts,
-            };
-            Ok(Port::serial(stream)?.with_rts(rts))
-        }
-    }
-}
-
-/// Open `path` in `format`, without flow control.
-fn open_serial(path: &str, format: &SerialFormat) -> io::Result<SerialStream> {
-    let data_bits = match format.data_bits {
-        7 => DataBits::Seven,
-        _ => DataBits::Eight,
-    };
-    let parity = match format.parity {
-        Parity::None => tokio_serial::Parity::None,
-        Parity::Even => tokio_serial::Parity::Even,
-        Parity::Odd => tokio_serial::Parity::Odd,
-    };
-    let stop_bits = match format.stop_bits {
-        2 => StopBits::Two,
-        _ => StopBits::One,
-    };
-    let builder = tokio_serial::new(path, format.baud)
-        .data_bits(data_bits)
-        .parity(parity)
-        .stop_bits(stop_bits)
-        .flow_control(FlowControl::None);
-    Ok(SerialStream::open(&builder)?)
 }
 
 /// Hand all of `frame` to the driver. Returns once the kernel holds the bytes. Never flush: on a
@@ -268,37 +198,12 @@ async fn write_all(fd: &AsyncFd<SerialStream>, frame: &[u8]) -> io::Result<()> {
         match fd.get_ref().write(rest) {
             Ok(0) => return Err(io::ErrorKind::WriteZero.into()),
             Ok(n) => rest = &rest[n..],
-            Err(e) if e.kind() == io::ErrorKind::WouldBlock => writable(fd).await?,
+            Err(e) if e.kind() == io::ErrorKind::WouldBlock => writable(fd.as_fd()).await?,
             Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
             Err(e) => return Err(e),
         }
     }
     Ok(())
-}
-
-impl SerialFd {
-    /// Send `frame`; with RTS switching, raise RTS first and drop it once the frame's last
-    /// character has left the wire (its length at the line's speed from when the write started,
-    /// the line being idle then) plus `delay_after_send`, waited for on a timer.
-    async fn send(&mut self, frame: &[u8]) -> io::Result<()> {
-        let Some(rts) = &mut self.rts else {
-            return write_all(&self.fd, frame).await;
-        };
-        let raw = self.fd.as_raw_fd();
-        (rts.set_rts)(raw, rts.on_send)?;
-        if !rts.before.is_zero() {
-            rts.timer.sleep_until(Instant::now() + rts.before).await;
-        }
-        let started = Instant::now();
-        let written = write_all(&self.fd, frame).await;
-        if written.is_ok() {
-            let out = started + rts.line.frame_time(frame.len()) + rts.after;
-            rts.timer.sleep_until(out).await;
-        }
-        // Dropped even after a failed write, so the line is never left driven.
-        let dropped = (rts.set_rts)(raw, rts.after_send);
-        written.and(dropped)
-    }
 }
 
 /// Whether input may have arrived since the port was last read dry: the reactor has seen it
@@ -315,76 +220,84 @@ fn may_hold_input(fd: &AsyncFd<SerialStream>) -> bool {
         .is_ready()
 }
 
-impl Transport for Port {
+impl Transport for SerialFd {
+    /// Send `frame`; with RTS switching, raise RTS first and drop it once the frame's last
+    /// character has left the wire (its length at the line's speed from when the write started,
+    /// the line being idle then) plus `delay_after_send`, waited for on a timer.
     async fn send(&mut self, frame: &[u8]) -> io::Result<()> {
-        match self {
-            Port::Serial(serial) => serial.send(frame).await,
-            Port::Sim(port) => port.send(frame).await,
+        let Some(rts) = &mut self.rts else {
+            return write_all(&self.fd, frame).await;
+        };
+        (rts.set_rts)(self.fd.as_fd(), rts.on_send)?;
+        if !rts.before.is_zero() {
+            rts.timer.sleep_until(Instant::now() + rts.before).await;
         }
+        let started = Instant::now();
+        let written = write_all(&self.fd, frame).await;
+        if written.is_ok() {
+            let out = started + rts.line.frame_time(frame.len()) + rts.after;
+            rts.timer.sleep_until(out).await;
+        }
+        // Dropped even after a failed write, so the line is never left driven.
+        let dropped = (rts.set_rts)(self.fd.as_fd(), rts.after_send);
+        written.and(dropped)
     }
 
+    /// With RTS switching, `send` returns once the frame is out; in the kernel's RS-485 mode the
+    /// driver's delays come on top of the frame.
     fn end_of_transmission(&self, returned: Instant, frame_time: Duration) -> Instant {
-        match self {
-            Port::Serial(SerialFd { rts: Some(_), .. }) => returned,
-            Port::Serial(SerialFd { kernel_delays, .. }) => returned + *kernel_delays + frame_time,
-            Port::Sim(_) => returned + frame_time,
+        match self.rts {
+            Some(_) => returned,
+            None => returned + self.kernel_delays + frame_time,
         }
     }
 
     async fn recv(&mut self, buf: &mut Vec<u8>) -> io::Result<usize> {
-        match self {
-            Port::Serial(SerialFd { fd, .. }) => {
-                let mut chunk = [0u8; READ_CHUNK];
-                let n = loop {
-                    let mut ready = fd.readable().await?;
-                    match ready.try_io(|fd| fd.get_ref().read(&mut chunk)) {
-                        Ok(read) => {
-                            let n = read?;
-                            // A short read emptied the driver's buffer (as tokio assumes for
-                            // sockets): the next read waits for the reactor instead of
-                            // spending a syscall to hear "would block".
-                            if n > 0 && n < chunk.len() {
-                                ready.clear_ready();
-                            }
-                            break n;
-                        }
-                        Err(_would_block) => continue,
+        let mut chunk = [0u8; READ_CHUNK];
+        let n = loop {
+            let mut ready = self.fd.readable().await?;
+            match ready.try_io(|fd| fd.get_ref().read(&mut chunk)) {
+                Ok(read) => {
+                    let n = read?;
+                    // A short read emptied the driver's buffer (as tokio assumes for sockets):
+                    // the next read waits for the reactor instead of spending a syscall to hear
+                    // "would block".
+                    if n > 0 && n < chunk.len() {
+                        ready.clear_ready();
                     }
-                };
-                buf.extend_from_slice(&chunk[..n]);
-                Ok(n)
+                    break n;
+                }
+                Err(_would_block) => continue,
             }
-            Port::Sim(port) => port.recv(buf).await,
-        }
+        };
+        buf.extend_from_slice(&chunk[..n]);
+        Ok(n)
     }
 
     fn clear_input(&mut self) -> io::Result<()> {
-        match self {
-            Port::Serial(SerialFd { fd, .. }) => {
-                if !may_hold_input(fd) {
-                    return Ok(());
-                }
-                fd.get_ref()
-                    .clear(ClearBuffer::Input)
-                    .map_err(io::Error::from)
-            }
-            Port::Sim(port) => port.clear_input(),
+        if !may_hold_input(&self.fd) {
+            return Ok(());
         }
+        self.fd
+            .get_ref()
+            .clear(ClearBuffer::Input)
+            .map_err(io::Error::from)
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::bus::Device;
     use tokio::time::timeout;
 
     /// Both ends of a pty, each as a port.
-    fn pty() -> (Port, Port) {
+    fn pty() -> (SerialFd, SerialFd) {
         let (far, near) = SerialStream::pair().unwrap();
-        (Port::serial(far).unwrap(), Port::serial(near).unwrap())
+        (SerialFd::new(far).unwrap(), SerialFd::new(near).unwrap())
     }
 
-    async fn recv_exactly(port: &mut Port, len: usize) -> Vec<u8> {
+    async fn recv_exactly(port: &mut SerialFd, len: usize) -> Vec<u8> {
         let mut buf = Vec::new();
         while buf.len() < len {
             let n = timeout(Duration::from_secs(5), port.recv(&mut buf))
@@ -432,7 +345,7 @@ mod tests {
     /// RTS levels set, and when.
     static RTS: std::sync::Mutex<Vec<(Instant, bool)>> = std::sync::Mutex::new(Vec::new());
 
-    fn record_rts(_: RawFd, level: bool) -> io::Result<()> {
+    fn record_rts(_: BorrowedFd<'_>, level: bool) -> io::Result<()> {
         RTS.lock().unwrap().push((Instant::now(), level));
         Ok(())
     }
@@ -448,7 +361,7 @@ mod tests {
         };
         let line = LineTiming::new(&format);
         let (before, after) = (Duration::from_millis(1), Duration::from_millis(2));
-        let mut port = Port::serial(near).unwrap().with_rts(RtsSwitch {
+        let mut port = SerialFd::new(near).unwrap().with_rts(RtsSwitch {
             on_send: true,
             after_send: false,
             before,

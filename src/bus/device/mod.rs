@@ -1,0 +1,202 @@
+//! What a bus opens: its line's transport. A [`Device`] says what to open (a serial device in its
+//! format with its driver settings, or the simulated line); opened, it is a [`Port`], which the
+//! line's master drives through [`Transport`]. This file only dispatches: each transport lives in
+//! its own file ([`serial`]: tokio-serial, RS-485 direction control, a USB adapter's latency
+//! timer; `sim`: the simulated line's glue). Which framing may run over which transport is not
+//! decided here but in one table of the line's, [`Framing::runs_over`], which
+//! [`Device::open_for`] consults. Knows nothing of queues, transactions or what the bytes mean.
+//!
+//! To add a transport: a variant in [`Device`] and in [`Port`] with its own file here (what it
+//! opens, and the [`Transport`] of the opened thing), a [`TransportKind`] with its rows in the
+//! framing table; the compiler then names every `match` below that needs an arm for it.
+
+pub mod serial;
+mod sim;
+
+pub use serial::{SerialDriver, SerialFd};
+
+use crate::line::framing::TransportKind;
+use crate::line::{Framing, SerialFormat, Transport};
+use crate::sim::{SimLine, SimPort};
+use std::io;
+use std::time::Duration;
+use tokio::time::Instant;
+
+/// What a bus opens.
+#[derive(Clone)]
+pub enum Device {
+    /// A serial device: its path, the line's format, and what its driver must do.
+    Serial {
+        path: String,
+        format: SerialFormat,
+        driver: SerialDriver,
+    },
+    Sim(SimLine),
+}
+
+/// An opened [`Device`].
+pub enum Port {
+    Serial(SerialFd),
+    Sim(SimPort),
+}
+
+impl Device {
+    /// Whether `other` opens the same line the same way: the same serial device in the same
+    /// format with the same RS-485 settings and latency timer, or the same simulated line.
+    pub fn same_as(&self, other: &Device) -> bool {
+        match (self, other) {
+            (
+                Device::Serial {
+                    path,
+                    format,
+                    driver,
+                },
+                Device::Serial {
+                    path: p,
+                    format: f,
+                    driver: d,
+                },
+            ) => path == p && format == f && driver.same_as(d),
+            (Device::Sim(line), Device::Sim(other)) => sim::same_as(line, other),
+            // Two kinds of transport are never one line.
+            _ => false,
+        }
+    }
+
+    /// Which kind of transport this is, for the framing table.
+    pub fn kind(&self) -> TransportKind {
+        match self {
+            Device::Serial { .. } => TransportKind::Serial,
+            Device::Sim(_) => TransportKind::Sim,
+        }
+    }
+
+    /// Open the transport. Serial ports are opened exclusively, so two gateways cannot share
+    /// one; a device that refuses the RS-485 mode asked for fails the open, naming the key.
+    pub fn open(&self) -> io::Result<Port> {
+        match self {
+            Device::Serial {
+                path,
+                format,
+                driver,
+            } => serial::open(path, format, driver).map(Port::Serial),
+            Device::Sim(line) => sim::open(line),
+        }
+    }
+
+    /// Open the transport for a line framed by `framing`: refused (`Unsupported`, which
+    /// retrying does not cure) if the framing table does not let `framing` run over it.
+    pub fn open_for(&self, framing: Framing) -> io::Result<Port> {
+        let kind = self.kind();
+        if !framing.runs_over(kind) {
+            return Err(io::Error::new(
+                io::ErrorKind::Unsupported,
+                format!(
+                    "framing = \"{}\" cannot run over {}",
+                    framing.name(),
+                    kind.name()
+                ),
+            ));
+        }
+        self.open()
+    }
+
+    /// The path of a serial device.
+    pub fn path(&self) -> Option<&str> {
+        match self {
+            Device::Serial { path, .. } => Some(path),
+            Device::Sim(_) => None,
+        }
+    }
+
+    /// What the bus asks of its serial driver; `None` on the simulated line.
+    pub fn driver(&self) -> Option<&SerialDriver> {
+        match self {
+            Device::Serial { driver, .. } => Some(driver),
+            Device::Sim(_) => None,
+        }
+    }
+}
+
+impl Port {
+    /// A serial port (or pty) opened in non-blocking mode.
+    pub fn serial(stream: mio_serial::SerialStream) -> io::Result<Port> {
+        SerialFd::new(stream).map(Port::Serial)
+    }
+}
+
+impl Transport for Port {
+    async fn send(&mut self, frame: &[u8]) -> io::Result<()> {
+        match self {
+            Port::Serial(port) => port.send(frame).await,
+            Port::Sim(port) => port.send(frame).await,
+        }
+    }
+
+    fn end_of_transmission(&self, returned: Instant, frame_time: Duration) -> Instant {
+        match self {
+            Port::Serial(port) => port.end_of_transmission(returned, frame_time),
+            Port::Sim(port) => port.end_of_transmission(returned, frame_time),
+        }
+    }
+
+    async fn recv(&mut self, buf: &mut Vec<u8>) -> io::Result<usize> {
+        match self {
+            Port::Serial(port) => port.recv(buf).await,
+            Port::Sim(port) => port.recv(buf).await,
+        }
+    }
+
+    fn clear_input(&mut self) -> io::Result<()> {
+        match self {
+            Port::Serial(port) => port.clear_input(),
+            Port::Sim(port) => port.clear_input(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::line::{LineTiming, Parity};
+
+    fn sim() -> Device {
+        let format = SerialFormat {
+            baud: 19_200,
+            data_bits: 8,
+            parity: Parity::Even,
+            stop_bits: 1,
+        };
+        Device::Sim(SimLine::new(LineTiming::new(&format)))
+    }
+
+    #[test]
+    fn the_simulated_line_opens_for_every_framing_the_table_lets_run_over_it() {
+        let device = sim();
+        for framing in [Framing::Rtu, Framing::Ascii] {
+            assert_eq!(
+                framing.runs_over(device.kind()),
+                device.open_for(framing).is_ok()
+            );
+        }
+    }
+
+    #[test]
+    fn a_serial_device_and_the_simulated_line_are_never_the_same_line() {
+        let serial = Device::Serial {
+            path: "/dev/ttyS1".into(),
+            format: SerialFormat {
+                baud: 19_200,
+                data_bits: 8,
+                parity: Parity::Even,
+                stop_bits: 1,
+            },
+            driver: SerialDriver::default(),
+        };
+        let line = sim();
+        assert!(line.same_as(&line.clone()));
+        assert!(!line.same_as(&sim()));
+        assert!(!serial.same_as(&line));
+        assert!(!line.same_as(&serial));
+    }
+}
