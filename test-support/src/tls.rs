@@ -1,7 +1,8 @@
 //! A private PKI made at test time (rcgen): a CA, server certificates for 127.0.0.1, master
 //! certificates with or without the Modbus RoleOID, and a TLS master (rustls) that presents one.
 
-use super::{within, RawMaster};
+use crate::master::{connect_from, RawMaster};
+use crate::wait::within;
 use rcgen::{
     BasicConstraints, CertificateParams, CertificateRevocationListParams, CertifiedIssuer,
     CustomExtension, DnType, ExtendedKeyUsagePurpose, IsCa, KeyIdMethod, KeyPair, KeyUsagePurpose,
@@ -235,7 +236,7 @@ pub async fn tls_connect_from(
     addr: SocketAddr,
     connector: &TlsConnector,
 ) -> std::io::Result<TlsStream<TcpStream>> {
-    tls_handshake(super::connect_from(source, addr).await, addr, connector).await
+    tls_handshake(connect_from(source, addr).await, addr, connector).await
 }
 
 async fn tls_handshake(
