@@ -60,7 +60,7 @@ macro_rules! number_values {
         }
     )*};
 }
-number_values!(u8, u16, u32, u64, usize, i64);
+number_values!(u8, u16, u32, u64, usize, i32, i64);
 
 /// `text` as a TOML basic string.
 fn quoted(text: &str) -> String {
@@ -83,6 +83,16 @@ fn quoted(text: &str) -> String {
 struct Keys(Vec<(String, String)>);
 
 impl Keys {
+    /// `first`, then `more`.
+    fn with(first: (&str, Value), more: &[(&str, Value)]) -> Keys {
+        let mut keys = Keys::default();
+        keys.set(first.0, first.1);
+        for (key, value) in more {
+            keys.set(key, Value(value.0.clone()));
+        }
+        keys
+    }
+
     fn set(&mut self, key: &str, value: Value) {
         match self.0.iter_mut().find(|(k, _)| k == key) {
             Some(entry) => entry.1 = value.0,
@@ -180,14 +190,18 @@ impl GatewayConfig {
         self
     }
 
-    /// One more `[[route]]`: `units` (a single id, list or range) to slave `address` of `bus`.
-    pub fn route(mut self, units: &str, bus: &str, address: u8) -> Self {
+    /// One more `[[route]]`: `units` (a single id, list or range) to `bus`, to slave `address`
+    /// there or (`None`) to the slave of the unit's own id.
+    pub fn route(mut self, units: &str, bus: &str, address: impl Into<Option<u8>>) -> Self {
         let _ = write!(
             self.tail,
-            "[[route]]\nunits = {}\nbus = {}\naddress = {address}\n",
+            "[[route]]\nunits = {}\nbus = {}\n",
             quoted(units),
             quoted(bus)
         );
+        if let Some(address) = address.into() {
+            let _ = writeln!(self.tail, "address = {address}");
+        }
         self
     }
 
@@ -227,6 +241,7 @@ impl GatewayConfig {
 pub struct Bus {
     keys: Keys,
     tables: String,
+    slaves: Vec<Keys>,
     sim_slaves: Vec<Keys>,
 }
 
@@ -239,6 +254,7 @@ impl Bus {
         Bus {
             keys,
             tables: String::new(),
+            slaves: Vec::new(),
             sim_slaves: Vec::new(),
         }
     }
@@ -284,6 +300,13 @@ impl Bus {
         self
     }
 
+    /// A `[[bus.slave]]`: per-slave settings for slave `address` (`response_timeout`...).
+    pub fn slave(mut self, address: u8, keys: &[(&str, Value)]) -> Self {
+        self.slaves
+            .push(Keys::with(("address", address.into()), keys));
+        self
+    }
+
     /// Register-bank simulated slaves at `addresses` (a single address, list or range).
     pub fn sim_slaves(self, addresses: &str) -> Self {
         self.sim_slave(addresses, &[])
@@ -291,12 +314,8 @@ impl Bus {
 
     /// Simulated slaves at `addresses` with more keys (`processing_delay`, fault knobs...).
     pub fn sim_slave(mut self, addresses: &str, keys: &[(&str, Value)]) -> Self {
-        let mut slave = Keys::default();
-        slave.set("address", addresses.into());
-        for (key, value) in keys {
-            slave.set(key, Value(value.0.clone()));
-        }
-        self.sim_slaves.push(slave);
+        self.sim_slaves
+            .push(Keys::with(("address", addresses.into()), keys));
         self
     }
 
@@ -304,6 +323,10 @@ impl Bus {
         out.push_str("[[bus]]\n");
         self.keys.write(out);
         out.push_str(&self.tables);
+        for slave in &self.slaves {
+            out.push_str("[[bus.slave]]\n");
+            slave.write(out);
+        }
         for slave in &self.sim_slaves {
             out.push_str("[[bus.sim_slave]]\n");
             slave.write(out);
