@@ -114,6 +114,7 @@ pub struct GatewayConfig {
     server: Keys,
     server_tables: String,
     metrics: Keys,
+    tables: Vec<(String, Keys)>,
     buses: Vec<Bus>,
     tail: String,
 }
@@ -133,6 +134,7 @@ impl GatewayConfig {
             server,
             server_tables: String::new(),
             metrics: Keys::default(),
+            tables: Vec::new(),
             buses: Vec::new(),
             tail: String::new(),
         }
@@ -184,6 +186,17 @@ impl GatewayConfig {
         self
     }
 
+    /// Another top-level table (`[log]`...), written after `[metrics]`.
+    pub fn table(mut self, name: &str, keys: &[(&str, Value)]) -> Self {
+        let keys = Keys(
+            keys.iter()
+                .map(|(key, value)| ((*key).to_owned(), value.0.clone()))
+                .collect(),
+        );
+        self.tables.push((name.to_owned(), keys));
+        self
+    }
+
     /// One more `[[bus]]`.
     pub fn bus(mut self, bus: Bus) -> Self {
         self.buses.push(bus);
@@ -213,6 +226,10 @@ impl GatewayConfig {
         if !self.metrics.0.is_empty() {
             out.push_str("[metrics]\n");
             self.metrics.write(&mut out);
+        }
+        for (name, keys) in &self.tables {
+            let _ = writeln!(out, "[{name}]");
+            keys.write(&mut out);
         }
         for bus in &self.buses {
             bus.write(&mut out);

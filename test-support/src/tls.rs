@@ -79,13 +79,19 @@ fn params(name: &str, days: (i64, i64)) -> CertificateParams {
 }
 
 impl Pki {
-    /// A new CA named `name`, its certificate in `ca.crt` of a fresh directory.
+    /// A new CA named `name`, its certificate in `{name}.crt` of a fresh temporary directory.
     pub fn new(name: &str) -> Pki {
         let dir = std::env::temp_dir().join(format!(
             "mbgw-tls-{}-{}",
             std::process::id(),
             DIRS.fetch_add(1, Ordering::Relaxed)
         ));
+        Pki::in_dir(dir, name)
+    }
+
+    /// A new CA named `name`, its certificate in `{name}.crt` of `dir`, which is created now and
+    /// removed with everything in it when the PKI is dropped.
+    pub fn in_dir(dir: PathBuf, name: &str) -> Pki {
         std::fs::create_dir_all(&dir).expect("temp dir");
         let mut params = params(name, (-1, 3650));
         params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
