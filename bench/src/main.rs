@@ -8,8 +8,8 @@
 //! A workspace member of its own: `cargo install` and the Debian package carry only the daemon.
 //!
 //! The modules, in the order a run goes through them: `scenarios` (what to measure), `gateway`
-//! (the process under test), `masters` (the load), `watch` (its HTTP endpoint: metrics and
-//! trace), `run` (one scenario's warm-up and window), `report` (the figures and their tables).
+//! (the process under test), `masters` (the load), `watch` (its HTTP endpoint: metrics, trace,
+//! scraper), `run` (one scenario's warm-up and window), `report` (the figures and their tables).
 
 mod gateway;
 mod masters;
@@ -49,6 +49,10 @@ struct Cli {
     /// every event, or one that never reads (and loses events).
     #[arg(long, value_enum)]
     trace: Option<TraceReader>,
+    /// A scraper fetching `/metrics` back to back from before the warm-up to the end; the
+    /// scrapes in the window are reported (compare the efficiency with a run without it).
+    #[arg(long)]
+    scrape: bool,
 }
 
 #[tokio::main]
@@ -100,6 +104,7 @@ async fn main() -> ExitCode {
     }
     report::print_line_table(&reports);
     report::print_priority_table(&reports);
+    report::print_scrape_table(&reports);
     if failed {
         ExitCode::FAILURE
     } else {

@@ -1,5 +1,5 @@
 //! The figures of a run and how they are shown: a JSON object per scenario, or the table (and,
-//! for the scenarios that have them, the line and priority tables).
+//! for the scenarios that have them, the line, priority and scrape tables).
 
 use crate::run::{Minimum, Window};
 use crate::scenarios::{Line, Load, Scenario};
@@ -58,6 +58,18 @@ pub(crate) struct Report {
     /// count), in t_min.
     queue_wait_priority_tmin: Option<f64>,
     queue_wait_normal_tmin: Option<f64>,
+    /// With `--scrape` only: the scraper's scrapes in the window, their time (median, 99th
+    /// percentile, slowest) and the size of the last page.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    scrapes: Option<u64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    scrape_p50_ms: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    scrape_p99_ms: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    scrape_max_ms: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    scrape_bytes: Option<u64>,
 }
 
 /// The `p` quantile of `sorted`, in milliseconds (nearest rank).
@@ -152,6 +164,9 @@ impl Report {
                 self.added_p99_ms = self.p99_ms.map(|p| p - floor);
             }
         }
+        if let Some(scrapes) = &w.scrapes {
+            self.scrapes(scrapes);
+        }
     }
 
     /// The priority master's figures from its latencies in the window, in `t_min` units.
@@ -190,6 +205,17 @@ impl Report {
         };
         self.queue_wait_normal_tmin = mean_wait(0);
         self.queue_wait_priority_tmin = mean_wait(1);
+    }
+
+    /// The `--scrape` scraper's figures.
+    fn scrapes(&mut self, scrapes: &[crate::watch::Scraped]) {
+        let mut times: Vec<Duration> = scrapes.iter().map(|(_, took, _)| *took).collect();
+        times.sort();
+        self.scrapes = Some(times.len() as u64);
+        self.scrape_p50_ms = percentile(&times, 0.5);
+        self.scrape_p99_ms = percentile(&times, 0.99);
+        self.scrape_max_ms = times.last().map(|d| d.as_secs_f64() * 1e3);
+        self.scrape_bytes = scrapes.last().map(|(_, _, bytes)| *bytes as u64);
     }
 }
 
@@ -308,6 +334,30 @@ pub(crate) fn print_priority_table(reports: &[Report]) {
             cell(r.queue_wait_priority_tmin, 2),
             cell(r.queue_wait_normal_tmin, 1),
             cell(r.others_share, 3),
+        );
+    }
+}
+
+/// With `--scrape`: the scraper's columns, beside the line's efficiency they may have cost.
+pub(crate) fn print_scrape_table(reports: &[Report]) {
+    let rows: Vec<_> = reports.iter().filter(|r| r.scrapes.is_some()).collect();
+    if rows.is_empty() {
+        return;
+    }
+    println!(
+        "\n{:<30} {:>6} {:>8} {:>8} {:>8} {:>8} {:>8}",
+        "scenario (scraped)", "eff", "scrapes", "p50 ms", "p99 ms", "max ms", "bytes"
+    );
+    for r in rows {
+        println!(
+            "{:<30} {:>6} {:>8} {:>8} {:>8} {:>8} {:>8}",
+            r.scenario,
+            cell(r.efficiency, 3),
+            r.scrapes.unwrap_or_default(),
+            cell(r.scrape_p50_ms, 2),
+            cell(r.scrape_p99_ms, 2),
+            cell(r.scrape_max_ms, 1),
+            r.scrape_bytes.map_or("-".into(), |b| b.to_string()),
         );
     }
 }

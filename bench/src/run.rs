@@ -6,7 +6,7 @@ use crate::gateway::{cpu_time, rss_mb, Gateway};
 use crate::masters::{connect_all, master, priority_connect, untimed_slave, Done};
 use crate::report::Report;
 use crate::scenarios::{Line, Load, Scenario, READ_10, WRITE_1};
-use crate::watch::{scrape, watch_trace};
+use crate::watch::{scrape, watch_trace, Scraped, Scraper};
 use crate::Cli;
 use modbus_gateway::line::LineTiming;
 use std::path::Path;
@@ -32,6 +32,8 @@ pub(crate) struct Window {
     pub(crate) masters: Vec<Vec<Done>>,
     /// The metrics page at the window's start and end (simulated line only).
     pub(crate) metrics: Option<(String, String)>,
+    /// The `--scrape` scraper's scrapes within the window.
+    pub(crate) scrapes: Option<Vec<Scraped>>,
 }
 
 /// Run scenario `s` on the gateway binary at `binary`.
@@ -107,6 +109,7 @@ async fn measure(
         Some(how) => Some(watch_trace(gateway.metrics, how).await?),
         None => None,
     };
+    let scraper = cli.scrape.then(|| Scraper::start(gateway.metrics));
     let stop = Arc::new(AtomicBool::new(false));
     let tasks: Vec<_> = streams
         .into_iter()
@@ -137,6 +140,7 @@ async fn measure(
     };
     let rss_mb = rss_mb(pid);
     stop.store(true, Ordering::Relaxed);
+    let scrapes = scraper.map(|scraper| scraper.within(start, end));
     let mut masters = Vec::with_capacity(tasks.len());
     for task in tasks {
         masters.push(
@@ -152,5 +156,6 @@ async fn measure(
         rss_mb,
         masters,
         metrics: before.zip(after),
+        scrapes,
     })
 }

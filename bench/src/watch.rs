@@ -1,8 +1,10 @@
-//! The gateway's HTTP endpoint as the bench uses it: its metrics scraped at the window's ends, and
-//! a reader on `GET /trace`.
+//! The gateway's HTTP endpoint as the bench uses it: its metrics scraped at the window's ends, a
+//! reader on `GET /trace`, and a scraper fetching `/metrics` back to back (`--scrape`).
 
 use clap::ValueEnum;
 use std::net::SocketAddr;
+use std::sync::{Arc, Mutex, PoisonError};
+use std::time::{Duration, Instant};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 
@@ -96,5 +98,51 @@ impl Counters {
             coalesced: sample(page, "modbus_gateway_coalesced_requests_total", &[]),
             wait: [wait("normal"), wait("priority")],
         }
+    }
+}
+
+/// One scrape by the `--scrape` scraper: when it ended, how long it took, how many bytes.
+pub(crate) type Scraped = (Instant, Duration, usize);
+
+/// A scraper fetching `/metrics` back to back, as often as the gateway answers, until dropped:
+/// does scraping slow the line?
+pub(crate) struct Scraper {
+    task: tokio::task::JoinHandle<()>,
+    scrapes: Arc<Mutex<Vec<Scraped>>>,
+}
+
+impl Scraper {
+    pub(crate) fn start(addr: SocketAddr) -> Scraper {
+        let scrapes = Arc::new(Mutex::new(Vec::new()));
+        let record = scrapes.clone();
+        let task = tokio::spawn(async move {
+            loop {
+                let began = Instant::now();
+                let Ok(page) = scrape(addr).await else {
+                    tokio::time::sleep(Duration::from_millis(10)).await;
+                    continue;
+                };
+                let now = Instant::now();
+                let mut record = record.lock().unwrap_or_else(PoisonError::into_inner);
+                record.push((now, now - began, page.len()));
+            }
+        });
+        Scraper { task, scrapes }
+    }
+
+    /// The scrapes that ended in `from..=to`.
+    pub(crate) fn within(&self, from: Instant, to: Instant) -> Vec<Scraped> {
+        let scrapes = self.scrapes.lock().unwrap_or_else(PoisonError::into_inner);
+        scrapes
+            .iter()
+            .filter(|(at, _, _)| *at >= from && *at <= to)
+            .copied()
+            .collect()
+    }
+}
+
+impl Drop for Scraper {
+    fn drop(&mut self) {
+        self.task.abort();
     }
 }
