@@ -2,18 +2,24 @@
 //! line (9600 7E1), the wire's frames as the drive manuals print them, every function code the
 //! same as on RTU, the fault knobs in ASCII, metrics and reload.
 
-use crate::support::{addr, start, RawMaster, Scrape};
+use crate::support::{addr, start, Bus, GatewayConfig, RawMaster, Scrape};
 use modbus_gateway::gateway::load_config;
 use modbus_gateway::Gateway;
 use std::path::Path;
 
+/// The simulated 9600 line `sim` framed `framing`, register slaves at 1-4, and `extra` keys on
+/// the bus.
+fn sim_line(framing: &str, extra: &str) -> Bus {
+    Bus::sim("sim")
+        .framing(framing)
+        .baud(9600)
+        .text(extra)
+        .sim_slaves("1-4")
+}
+
 /// An ASCII bus `sim` with register slaves at 1-4, and `extra` keys on the bus.
 fn ascii_config(extra: &str) -> String {
-    format!(
-        "[server]\nlisten = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nframing = \"ascii\"\nbaud = 9600\n{extra}\n\
-         [[bus.sim_slave]]\naddress = \"1-4\"\n"
-    )
+    GatewayConfig::new().bus(sim_line("ascii", extra)).to_toml()
 }
 
 /// The frames the simulated line carried, as text.
@@ -71,7 +77,7 @@ const REQUESTS: &[&[u8]] = &[
 
 #[tokio::test]
 async fn every_function_code_gets_the_same_answer_on_an_ascii_line_as_on_an_rtu_line() {
-    let rtu = start(&ascii_config("").replace("framing = \"ascii\"\n", "")).await;
+    let rtu = GatewayConfig::new().bus(sim_line("rtu", "")).start().await;
     let ascii = start(&ascii_config("response_timeout = \"300ms\"")).await;
     let mut on_rtu = RawMaster::connect(addr(&rtu)).await;
     let mut on_ascii = RawMaster::connect(addr(&ascii)).await;
@@ -191,17 +197,22 @@ async fn the_bus_info_metric_names_the_framing_and_bytes_count_characters_on_the
 async fn a_reload_that_changes_a_bus_framing_reopens_that_bus_and_it_speaks_the_new_framing() {
     // A second bus on a serial device that is not there: the same device and format in both
     // configurations, so only the framing can make it reopen.
-    let serial = "[[bus]]\nname = \"serial\"\ndevice = \"/dev/mbgw-test-no-such-tty\"\n\
-                  data_bits = 8\n[[route]]\nunits = \"200\"\nbus = \"serial\"\naddress = 1\n\
-                  [[route]]\nunits = \"1\"\nbus = \"sim\"\n";
-    let rtu_text = ascii_config("").replace("framing = \"ascii\"\n", "") + serial;
-    let gateway = start(&rtu_text).await;
+    let config = |framing: &str| {
+        GatewayConfig::new()
+            .bus(sim_line(framing, ""))
+            .bus(
+                Bus::on("serial", "/dev/mbgw-test-no-such-tty")
+                    .key("data_bits", 8)
+                    .framing(framing),
+            )
+            .route("200", "serial", 1)
+            .route("1", "sim", None)
+    };
+    let gateway = config("rtu").start().await;
     let mut master = RawMaster::connect(addr(&gateway)).await;
     let read = [0x03, 0x00, 0x00, 0x00, 0x01];
     assert_eq!(master.call(1, 1, &read).await, [0x03, 0x02, 0x00, 0x00]);
-    let ascii_text = ascii_config("")
-        + &serial.replace("data_bits = 8\n", "data_bits = 8\nframing = \"ascii\"\n");
-    let mut ascii = modbus_gateway::gateway::config_from_toml(&ascii_text).unwrap();
+    let mut ascii = config("ascii").load();
     ascii.metrics.listen = ([127, 0, 0, 1], 0).into();
     let done = gateway.reload(&ascii).unwrap();
     assert_eq!(done.applied, ["bus sim: reopened", "bus serial: reopened"]);

@@ -8,8 +8,8 @@
 use crate::simulate::Simulator;
 use crate::support::tls::{tls_master, Pki, Role};
 use crate::support::{
-    frames_from, free_addr, http_get, pty_config, sim_config_with_server, start, within, RawMaster,
-    Scrape,
+    frames_from, free_addr, http_get, pty_config, pty_line, sim_config_with_server, start, within,
+    GatewayConfig, RawMaster, Scrape,
 };
 use modbus_gateway::line::rtu;
 use modbus_gateway::sim::Source;
@@ -238,11 +238,11 @@ async fn simulate_on_a_pty() -> Simulator {
 
 /// A gateway on the serial device `path`, every master on loopback read-only.
 async fn read_only_gateway_on(path: &str, bus: &str) -> modbus_gateway::Gateway {
-    let toml = pty_config(path, bus).replace(
-        "listen = \"127.0.0.1:0\"\n",
-        "listen = \"127.0.0.1:0\"\nread_only = [\"127.0.0.0/8\"]\n",
-    );
-    start(&toml).await
+    GatewayConfig::new()
+        .read_only(&["127.0.0.0/8"])
+        .bus(pty_line(path).text(bus))
+        .start()
+        .await
 }
 
 #[tokio::test]

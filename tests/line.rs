@@ -1,15 +1,13 @@
 //! The serial line discipline, driven at the bus (no TCP) on tokio's paused clock, against the
 //! simulated line's own record of what went on the wire and when.
 
-use modbus_gateway::bus::{BusHandle, BusTask, Device};
+use modbus_gateway::bus::BusHandle;
 use modbus_gateway::error::{Answer, Outcome, RequestError};
-use modbus_gateway::gateway::config_from_toml;
 use modbus_gateway::line::TxError;
 use modbus_gateway::metrics::Metrics;
-use modbus_gateway::shutdown::Stopping;
 use modbus_gateway::sim::{RegisterBank, Scripted, SimLine, Slave, Source, Transmission};
 
-use crate::support::{bus_call as call, settle};
+use crate::support::{bus_call as call, settle, sim_bus_filled, sim_bus_settings};
 use std::time::Duration;
 use tokio::time::Instant;
 
@@ -19,14 +17,7 @@ const READ_10: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x0A];
 
 /// A sim bus from `[[bus]]` keys, its line populated by `fill`, its task running.
 fn sim_bus(keys: &str, fill: impl FnOnce(&SimLine)) -> (SimLine, BusHandle) {
-    let text = format!("[[bus]]\nname = \"line\"\ndevice = \"sim\"\n{keys}\n");
-    let settings = config_from_toml(&text).expect("test config").bus.remove(0);
-    let line = SimLine::new(settings.line_timing());
-    fill(&line);
-    let bus = BusTask::new(settings, Device::Sim(line.clone()), &Metrics::new());
-    let handle = bus.handle();
-    tokio::spawn(bus.run(Stopping::never()));
-    (line, handle)
+    sim_bus_filled(sim_bus_settings(keys), &Metrics::new(), fill)
 }
 
 fn exception(outcome: &Outcome) -> Option<u8> {

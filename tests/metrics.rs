@@ -3,7 +3,7 @@
 //! shipped alert rules and dashboard naming only metrics the gateway exports; and scrapes that
 //! succeed while stalled trace readers and silent sockets hold the endpoint.
 
-use crate::support::{addr, http_get, start, within, RawMaster, Scrape};
+use crate::support::{addr, http_get, sim_line, start, within, GatewayConfig, RawMaster, Scrape};
 use modbus_gateway::sim::Source;
 use modbus_gateway::Gateway;
 use std::collections::BTreeSet;
@@ -16,11 +16,16 @@ const READ_126: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x7E];
 
 /// One 9600 8E1 line "sim" with register slaves 1-4, and slave 5 configured but absent (silent),
 /// with a short timeout and one retry for reads.
-const LINE: &str = "[server]\nlisten = \"127.0.0.1:0\"\n\
-    [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 9600\nparity = \"even\"\nretries = 1\n\
-    reopen_delay = \"10ms\"\nreopen_delay_max = \"20ms\"\n\
-    [[bus.slave]]\naddress = 5\nresponse_timeout = \"50ms\"\n\
-    [[bus.sim_slave]]\naddress = \"1-4\"\n";
+fn line() -> GatewayConfig {
+    GatewayConfig::new().bus(
+        sim_line()
+            .key("retries", 1)
+            .key("reopen_delay", "10ms")
+            .key("reopen_delay_max", "20ms")
+            .slave(5, &[("response_timeout", "50ms".into())])
+            .sim_slaves("1-4"),
+    )
+}
 
 /// `name{labels}` as the gateway writes a series: labels sorted by name.
 fn series(name: &str, labels: &[(&str, &str)]) -> String {
@@ -69,7 +74,7 @@ fn sum(scrape: &Scrape, name: &str) -> f64 {
 
 #[tokio::test]
 async fn known_traffic_moves_each_counter_and_histogram_by_exactly_what_it_caused() {
-    let gateway = start(LINE).await;
+    let gateway = line().start().await;
     let mut master = RawMaster::connect(addr(&gateway)).await;
     // Wait for the port, and a first answer, so the start-up itself is not in the figures.
     assert_eq!(master.call(0, 1, &READ_2).await, [0x03, 0x04, 0, 0, 0, 0]);
@@ -167,7 +172,7 @@ async fn known_traffic_moves_each_counter_and_histogram_by_exactly_what_it_cause
 
 #[tokio::test]
 async fn readyz_turns_503_while_a_port_is_lost_and_200_when_it_is_back() {
-    let gateway = start(LINE).await;
+    let gateway = line().start().await;
     let metrics = gateway.metrics_addr();
     let ready = || async move { http_get(metrics, "/readyz").await };
     let wait_for = |status: u16| async move {
@@ -260,11 +265,11 @@ async fn requests_of_a_master_that_left_are_counted_dropped_and_never_sent() {
 
 #[tokio::test]
 async fn refused_and_broken_connections_are_counted_by_reason() {
-    let gateway = start(&LINE.replace(
-        "listen = \"127.0.0.1:0\"\n",
-        "listen = \"127.0.0.1:0\"\nmax_connections = 1\nwhen_full = \"refuse\"\n",
-    ))
-    .await;
+    let gateway = line()
+        .max_connections(1)
+        .server("when_full", "refuse")
+        .start()
+        .await;
     let mut first = RawMaster::connect(addr(&gateway)).await;
     assert_eq!(first.call(1, 1, &READ_2).await.len(), 6);
     let mut second = RawMaster::connect(addr(&gateway)).await;
@@ -318,7 +323,7 @@ async fn every_one_of_247_known_slaves_has_its_series_from_the_start() {
 
 /// A gateway that has seen every kind of outcome and event the metrics describe.
 async fn gateway_after_mixed_traffic() -> Gateway {
-    let gateway = start(LINE).await;
+    let gateway = line().start().await;
     let mut master = RawMaster::connect(addr(&gateway)).await;
     assert_eq!(master.call(1, 1, &READ_2).await.len(), 6);
     assert_eq!(master.call(2, 2, &READ_126).await, [0x83, 0x03]);
@@ -459,7 +464,7 @@ async fn every_scrape_succeeds_while_eight_stalled_trace_readers_and_silent_sock
 #[tokio::test]
 async fn a_connection_to_the_endpoint_that_sends_nothing_is_closed_within_seconds() {
     use tokio::io::AsyncReadExt;
-    let gateway = start(LINE).await;
+    let gateway = line().start().await;
     let mut silent = within(
         "connect",
         tokio::net::TcpStream::connect(gateway.metrics_addr()),
@@ -481,7 +486,7 @@ async fn the_endpoints_connections_get_tcp_keepalive_probes() {
     let Some(ss) = crate::support::tool("ss") else {
         return;
     };
-    let gateway = start(LINE).await;
+    let gateway = line().start().await;
     let metrics = gateway.metrics_addr();
     // A trace stream: a connection that stays.
     let _reader = crate::support::stalled_trace_reader(metrics).await;

@@ -13,7 +13,7 @@
 
 mod tls_walkthrough;
 
-use crate::support::{addr, pty_config, start, within, RawMaster, Scrape};
+use crate::support::{addr, pty_config, pty_line, start, within, GatewayConfig, RawMaster, Scrape};
 use modbus_gateway::line::rtu;
 use std::ffi::OsString;
 use std::io::{BufRead, BufReader, Read};
@@ -708,12 +708,12 @@ async fn pymodbus_rtu_over_tcp_and_udp_masters_reach_pymodbus_rtu_slave_on_a_pty
     let Some(slave) = Pymodbus::start("rtu").await else {
         return;
     };
-    let config = pty_config(&slave.path, RESPONSE_TIMEOUT).replace(
-        "listen = \"127.0.0.1:0\"\n",
-        "listen = \"127.0.0.1:0\"\nlisten_rtu_over_tcp = \"127.0.0.1:0\"\n\
-         listen_udp = \"127.0.0.1:0\"\n",
-    );
-    let gateway = start(&config).await;
+    let gateway = GatewayConfig::new()
+        .listen_rtu_over_tcp("127.0.0.1:0")
+        .listen_udp("127.0.0.1:0")
+        .bus(pty_line(&slave.path).text(RESPONSE_TIMEOUT))
+        .start()
+        .await;
     // The script's registers 0-9 hold 1000-1009; each master writes register 5 and reads it
     // back with register 6, then reads 0-2.
     for (kind, addr) in [

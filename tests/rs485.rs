@@ -3,8 +3,8 @@
 //! request before the slave answers still gives the master the slave's answer.
 
 use crate::support::{
-    addr, exit_status, free_addr, http_get, pty_config, signal, start, within, PtySlave, RawMaster,
-    Scrape,
+    addr, exit_status, free_addr, http_get, pty_config, pty_line, signal, start, within,
+    GatewayConfig, PtySlave, RawMaster, Scrape,
 };
 use modbus_gateway::bus::{Device, SerialDriver};
 use modbus_gateway::config::{Rs485, Rs485Mode};
@@ -145,12 +145,16 @@ async fn the_daemon_logs_once_that_the_device_refuses_rs485_mode_naming_the_key(
     std::fs::create_dir_all(&dir).unwrap();
     let config = dir.join("gateway.toml");
     let metrics = free_addr();
-    let text = pty_config(
-        &slave.path,
-        "reopen_delay = \"10ms\"\nreopen_delay_max = \"20ms\"\n[bus.rs485]\nmode = \"kernel\"",
-    )
-    .replace("127.0.0.1:0", &free_addr().to_string())
-        + &format!("[metrics]\nlisten = \"{metrics}\"\n");
+    let text = GatewayConfig::new()
+        .listen(free_addr())
+        .metrics_listen(metrics)
+        .bus(
+            pty_line(&slave.path)
+                .key("reopen_delay", "10ms")
+                .key("reopen_delay_max", "20ms")
+                .text("[bus.rs485]\nmode = \"kernel\""),
+        )
+        .to_toml();
     std::fs::write(&config, text).unwrap();
     let log_path = dir.join("stderr");
     let child = Command::new(BINARY)

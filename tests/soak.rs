@@ -15,16 +15,12 @@
 //! acknowledged write and no newer than its last one sent. Reads of the late-replying slave ask
 //! for `4 + m` registers, so a late reply to one master's read never fits another master's.
 
-// Test code may be long and cast freely; the lint table in Cargo.toml is for the product.
+// Test code may be long and cast freely; the workspace lint table is for the product.
 #![allow(
     unreachable_pub,
     clippy::too_many_lines,
     clippy::cast_possible_truncation
 )]
-
-#[allow(dead_code)]
-#[path = "support/mod.rs"]
-mod support;
 
 use modbus_gateway::sim::{SimLine, Source};
 use modbus_gateway::Gateway;
@@ -33,7 +29,7 @@ use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, Once, PoisonError};
 use std::time::Duration;
-use support::{start, wait_for_bus, Scrape};
+use test_support::{start, wait_for_bus, Scrape};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 use tokio::time::{timeout, Instant};
@@ -926,7 +922,7 @@ async fn a_hundred_masters_on_faulty_slaves_and_a_vanishing_port_get_one_answer_
     // As the daemon does: the line keeps its timing to well under a millisecond.
     modbus_gateway::timer::use_precise_timer();
     let gateway = start(&config()).await;
-    let at = support::addr(&gateway);
+    let at = test_support::addr(&gateway);
     let line = gateway.sim_line("soak").expect("a simulated line");
     let wire = Arc::new(Mutex::new(WireWrites::new()));
     let watcher = watch_wire(line.clone(), wire.clone());

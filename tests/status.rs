@@ -2,7 +2,7 @@
 //! line, and `/` (the page), read over a real HTTP connection. `.ci/status-page-check` loads the
 //! page in a real browser.
 
-use crate::support::{addr, http_get, start, within, RawMaster};
+use crate::support::{addr, http_get, sim_line, within, GatewayConfig, RawMaster};
 use serde_json::Value;
 use std::net::SocketAddr;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -15,10 +15,13 @@ const READ_126: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x7E];
 
 /// One 9600 8E1 line "sim" with register slaves 1-4, and slave 5 configured but absent (silent)
 /// with a short timeout.
-const LINE: &str = "[server]\nlisten = \"127.0.0.1:0\"\n\
-    [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 9600\nparity = \"even\"\n\
-    [[bus.slave]]\naddress = 5\nresponse_timeout = \"50ms\"\n\
-    [[bus.sim_slave]]\naddress = \"1-4\"\nmodel = \"registers\"\n";
+fn line() -> GatewayConfig {
+    GatewayConfig::new().bus(
+        sim_line()
+            .slave(5, &[("response_timeout", "50ms".into())])
+            .sim_slave("1-4", &[("model", "registers".into())]),
+    )
+}
 
 async fn get_status(metrics: SocketAddr) -> Value {
     let (code, body) = http_get(metrics, "/status").await;
@@ -50,7 +53,7 @@ async fn request(addr: SocketAddr, method: &str, path: &str) -> (String, String)
 
 #[tokio::test]
 async fn status_shows_the_bus_each_slave_s_answers_and_errors_and_the_connected_master() {
-    let gateway = start(LINE).await;
+    let gateway = line().start().await;
     let mut master = RawMaster::connect(addr(&gateway)).await;
     assert_eq!(master.call(1, 1, &READ_2).await[0], 0x03);
     assert_eq!(master.call(2, 2, &READ_126).await, [0x83, 0x03]);
@@ -123,11 +126,7 @@ async fn status_shows_the_bus_each_slave_s_answers_and_errors_and_the_connected_
 
 #[tokio::test]
 async fn a_read_only_master_is_listed_with_its_rights() {
-    let gateway = start(&LINE.replace(
-        "listen = \"127.0.0.1:0\"\n",
-        "listen = \"127.0.0.1:0\"\nread_only = [\"127.0.0.0/8\"]\n",
-    ))
-    .await;
+    let gateway = line().read_only(&["127.0.0.0/8"]).start().await;
     let mut master = RawMaster::connect(addr(&gateway)).await;
     master.call(1, 1, &READ_2).await;
     let status = get_status(gateway.metrics_addr()).await;
@@ -137,7 +136,7 @@ async fn a_read_only_master_is_listed_with_its_rights() {
 
 #[tokio::test]
 async fn the_status_page_is_one_html_page_that_loads_nothing_from_elsewhere() {
-    let gateway = start(LINE).await;
+    let gateway = line().start().await;
     let (head, page) = request(gateway.metrics_addr(), "GET", "/").await;
     assert!(head.starts_with("http/1.1 200"), "{head}");
     assert!(

@@ -4,14 +4,13 @@
 //! replies, the idle timeout, keepalive.
 
 use crate::support::{
-    addr, panics_on_this_thread, sim_config_with_server, start, start_sim, tool, within, RawMaster,
-    Scrape,
+    addr, panics_on_this_thread, sim_bus_filled, sim_config_with_server, start, start_sim, tool,
+    within, RawMaster, Scrape,
 };
-use modbus_gateway::bus::{BusTask, Device};
 use modbus_gateway::gateway::config_from_toml;
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::shutdown::Stopping;
-use modbus_gateway::sim::{RegisterBank, SimLine};
+use modbus_gateway::sim::RegisterBank;
 use modbus_gateway::testing::session::{self, Activity, SessionError};
 use modbus_gateway::testing::{Client, Dispatcher, Rights};
 use modbus_gateway::testing::{Router, RECENTLY_ANSWERED};
@@ -168,12 +167,11 @@ async fn session_on_pipe(
 ) {
     let config =
         config_from_toml("[[bus]]\nname = \"line\"\ndevice = \"sim\"\nbaud = 9600\n").unwrap();
-    let line = SimLine::new(config.bus[0].line_timing());
-    line.add_slave(1, RegisterBank::new(slave_delay));
     let metrics = Arc::new(Metrics::new());
-    let bus = BusTask::new(config.bus[0].clone(), Device::Sim(line), &metrics);
-    let dispatcher = Dispatcher::new(Router::new(&config), vec![bus.handle()], metrics);
-    tokio::spawn(bus.run(Stopping::never()));
+    let (_, bus) = sim_bus_filled(config.bus[0].clone(), &metrics, |line| {
+        line.add_slave(1, RegisterBank::new(slave_delay));
+    });
+    let dispatcher = Dispatcher::new(Router::new(&config), vec![bus], metrics);
     let (client, server) = tokio::io::duplex(4096);
     let limits = SessionLimits {
         pipeline_depth: 4,

@@ -35,12 +35,13 @@
 //! - `status`: the status page `/` and its data `/status` after known traffic.
 //! - `trace`: `GET /trace` and the `trace` subcommand: frames, filters, slow readers, limits.
 //!
-//! `support` has the shared pieces: gateway start-up, a raw master, a pty slave.
+//! `support` has the shared pieces: the workspace's `test-support` crate (gateway start-up, typed
+//! configurations, a bus on the simulated line, a raw master, a pty slave, the test PKI).
 //!
 //! `tests/soak.rs` is a crate of its own (it counts the whole process's heap with its own
 //! allocator), ignored by plain `cargo test`; `.ci/run` runs it in release.
 
-// Test code may be long and cast freely; the lint table in Cargo.toml is for the product.
+// Test code may be long and cast freely; the workspace lint table is for the product.
 #![allow(
     unreachable_pub,
     clippy::too_many_lines,

@@ -3,7 +3,7 @@
 //! stalled reader dropped), a reader that stops reading on the paused clock, the trace's gate
 //! with no reader, and the `trace` subcommand run as the real binary.
 
-use crate::support::{http_get, sim_bus_counted, start, start_sim, within, RawMaster};
+use crate::support::{http_get, rtu, sim_bus_counted, start, start_sim, within, RawMaster};
 use bytes::Bytes;
 use http_body_util::{BodyExt, Empty};
 use hyper::body::Incoming;
@@ -262,25 +262,6 @@ async fn a_trace_filtered_by_bus_and_slave_gets_only_their_frames() {
     let (status, _) = http_get(metrics, "/trace?slave=248").await;
     assert_eq!(status, 400);
     gateway.shutdown().await;
-}
-
-/// An RTU frame, CRC computed here bit by bit.
-fn rtu(address: u8, pdu: &[u8]) -> Vec<u8> {
-    let mut frame = vec![address];
-    frame.extend_from_slice(pdu);
-    let mut crc: u16 = 0xFFFF;
-    for byte in &frame {
-        crc ^= u16::from(*byte);
-        for _ in 0..8 {
-            crc = if crc & 1 == 1 {
-                (crc >> 1) ^ 0xA001
-            } else {
-                crc >> 1
-            };
-        }
-    }
-    frame.extend(crc.to_le_bytes());
-    frame
 }
 
 #[tokio::test]

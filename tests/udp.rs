@@ -3,7 +3,7 @@
 //! a flood from many ports of one address.
 
 use crate::support::{
-    flood_target, frames_from, polite_reads, start, within, Flood, Scrape, PATIENCE,
+    flood_target, frames_from, mbap, polite_reads, start, within, Flood, Scrape, PATIENCE,
 };
 use modbus_gateway::sim::Source;
 use modbus_gateway::Gateway;
@@ -23,19 +23,6 @@ async fn gateway(extra_server: &str) -> Gateway {
 
 fn udp_addr(gateway: &Gateway) -> SocketAddr {
     gateway.udp_addrs()[0]
-}
-
-/// An MBAP request datagram.
-fn adu(transaction: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {
-    let length = u16::try_from(pdu.len() + 1).unwrap();
-    [
-        &transaction.to_be_bytes()[..],
-        &[0, 0],
-        &length.to_be_bytes(),
-        &[unit],
-        pdu,
-    ]
-    .concat()
 }
 
 async fn master() -> UdpSocket {
@@ -59,29 +46,32 @@ async fn a_udp_master_writes_and_reads_the_line_and_its_replies_come_to_its_own_
     let socket = master().await;
     let write = [0x06, 0x00, 0x02, 0x12, 0x34];
     socket
-        .send_to(&adu(7, 1, &write), udp_addr(&gateway))
+        .send_to(&mbap(7, 1, &write), udp_addr(&gateway))
         .await
         .unwrap();
-    assert_eq!(receive(&socket, PATIENCE).await.unwrap(), adu(7, 1, &write));
+    assert_eq!(
+        receive(&socket, PATIENCE).await.unwrap(),
+        mbap(7, 1, &write)
+    );
     socket
         .send_to(
-            &adu(8, 1, &[0x03, 0x00, 0x02, 0x00, 0x01]),
+            &mbap(8, 1, &[0x03, 0x00, 0x02, 0x00, 0x01]),
             udp_addr(&gateway),
         )
         .await
         .unwrap();
     assert_eq!(
         receive(&socket, PATIENCE).await.unwrap(),
-        adu(8, 1, &[0x03, 0x02, 0x12, 0x34])
+        mbap(8, 1, &[0x03, 0x02, 0x12, 0x34])
     );
     // The gateway's own answers too: no route for unit 250.
     socket
-        .send_to(&adu(9, 250, &[0x03, 0, 0, 0, 1]), udp_addr(&gateway))
+        .send_to(&mbap(9, 250, &[0x03, 0, 0, 0, 1]), udp_addr(&gateway))
         .await
         .unwrap();
     assert_eq!(
         receive(&socket, PATIENCE).await.unwrap(),
-        adu(9, 250, &[0x83, 0x0A])
+        mbap(9, 250, &[0x83, 0x0A])
     );
 }
 
@@ -91,10 +81,13 @@ async fn a_write_by_udp_is_read_back_by_a_modbus_tcp_master() {
     let socket = master().await;
     let write = [0x06, 0x00, 0x05, 0x00, 0x2A];
     socket
-        .send_to(&adu(1, 2, &write), udp_addr(&gateway))
+        .send_to(&mbap(1, 2, &write), udp_addr(&gateway))
         .await
         .unwrap();
-    assert_eq!(receive(&socket, PATIENCE).await.unwrap(), adu(1, 2, &write));
+    assert_eq!(
+        receive(&socket, PATIENCE).await.unwrap(),
+        mbap(1, 2, &write)
+    );
     let mut tcp = crate::support::RawMaster::connect(gateway.local_addrs()[0]).await;
     assert_eq!(
         tcp.call(1, 2, &[0x03, 0x00, 0x05, 0x00, 0x01]).await,
@@ -107,7 +100,7 @@ async fn a_datagram_from_a_source_outside_allow_is_dropped_and_never_reaches_the
     let gateway = gateway("allow = \"10.0.0.0/8\"").await;
     let socket = master().await;
     socket
-        .send_to(&adu(1, 1, &[0x03, 0, 0, 0, 1]), udp_addr(&gateway))
+        .send_to(&mbap(1, 1, &[0x03, 0, 0, 0, 1]), udp_addr(&gateway))
         .await
         .unwrap();
     assert_eq!(receive(&socket, Duration::from_millis(300)).await, None);
@@ -123,7 +116,7 @@ async fn a_datagram_from_a_source_outside_allow_is_dropped_and_never_reaches_the
 async fn a_malformed_datagram_is_dropped_and_counted_and_the_next_one_is_answered() {
     let gateway = gateway("").await;
     let socket = master().await;
-    let read = adu(3, 1, &[0x03, 0, 0, 0, 1]);
+    let read = mbap(3, 1, &[0x03, 0, 0, 0, 1]);
     // Cut short, two requests in one datagram, a wrong protocol id.
     let two = [read.clone(), read.clone()].concat();
     let mut wrong_protocol = read.clone();
@@ -134,7 +127,7 @@ async fn a_malformed_datagram_is_dropped_and_counted_and_the_next_one_is_answere
     socket.send_to(&read, udp_addr(&gateway)).await.unwrap();
     assert_eq!(
         receive(&socket, PATIENCE).await.unwrap(),
-        adu(3, 1, &[0x03, 0x02, 0, 0])
+        mbap(3, 1, &[0x03, 0x02, 0, 0])
     );
     assert_eq!(receive(&socket, Duration::from_millis(200)).await, None);
     let scrape = Scrape::of(&gateway).await;
@@ -150,18 +143,18 @@ async fn a_flood_from_one_source_is_cut_at_pipeline_depth_and_another_source_is_
     let flooder = master().await;
     for id in 0..200u16 {
         flooder
-            .send_to(&adu(id, 1, &[0x03, 0, 0, 0, 10]), udp_addr(&gateway))
+            .send_to(&mbap(id, 1, &[0x03, 0, 0, 0, 10]), udp_addr(&gateway))
             .await
             .unwrap();
     }
     let polite = master().await;
     polite
-        .send_to(&adu(1, 2, &[0x03, 0, 0, 0, 1]), udp_addr(&gateway))
+        .send_to(&mbap(1, 2, &[0x03, 0, 0, 0, 1]), udp_addr(&gateway))
         .await
         .unwrap();
     assert_eq!(
         receive(&polite, PATIENCE).await.unwrap(),
-        adu(1, 2, &[0x03, 0x02, 0, 0])
+        mbap(1, 2, &[0x03, 0x02, 0, 0])
     );
     let mut answered = 0;
     while receive(&flooder, Duration::from_millis(300))
@@ -193,14 +186,14 @@ async fn two_thousand_random_datagrams_leave_the_gateway_serving_and_the_line_un
     tokio::time::sleep(Duration::from_millis(200)).await;
     assert_eq!(gateway.sim_line("sim").unwrap().stats().master_frames, 0);
     socket
-        .send_to(&adu(1, 1, &[0x03, 0, 0, 0, 1]), udp_addr(&gateway))
+        .send_to(&mbap(1, 1, &[0x03, 0, 0, 0, 1]), udp_addr(&gateway))
         .await
         .unwrap();
     let mut reply = None;
     // Replies to random datagrams that happened to be requests may come first.
     for _ in 0..10 {
         match receive(&socket, PATIENCE).await {
-            Some(r) if r == adu(1, 1, &[0x03, 0x02, 0, 0]) => {
+            Some(r) if r == mbap(1, 1, &[0x03, 0x02, 0, 0]) => {
                 reply = Some(r);
                 break;
             }
@@ -259,7 +252,7 @@ async fn masters_of_all_three_kinds_polling_one_bus_are_all_answered_and_share_i
         let (mut done, start) = (0u32, tokio::time::Instant::now());
         while start.elapsed() < run_for {
             let id = u16::try_from(done % 60_000).unwrap();
-            socket.send_to(&adu(id, 3, &read), udp).await.unwrap();
+            socket.send_to(&mbap(id, 3, &read), udp).await.unwrap();
             let reply = receive(&socket, PATIENCE).await.expect("a reply");
             assert_eq!(&reply[..2], &id.to_be_bytes());
             assert_eq!(reply.len(), 7 + answer_len);
@@ -365,7 +358,7 @@ async fn flood_from_port(udp: SocketAddr, index: u16, flood: Arc<Flood>) {
     let mut transaction = 0u16;
     for _ in 0..16 {
         socket
-            .send_to(&adu(transaction, 1, &request), udp)
+            .send_to(&mbap(transaction, 1, &request), udp)
             .await
             .unwrap();
         transaction += 1;
@@ -384,7 +377,7 @@ async fn flood_from_port(udp: SocketAddr, index: u16, flood: Arc<Flood>) {
             );
         }
         socket
-            .send_to(&adu(transaction, 1, &request), udp)
+            .send_to(&mbap(transaction, 1, &request), udp)
             .await
             .unwrap();
         transaction = transaction.wrapping_add(1);

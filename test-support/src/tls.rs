@@ -1,7 +1,8 @@
 //! A private PKI made at test time (rcgen): a CA, server certificates for 127.0.0.1, master
 //! certificates with or without the Modbus RoleOID, and a TLS master (rustls) that presents one.
 
-use super::{within, RawMaster};
+use crate::master::{connect_from, RawMaster};
+use crate::wait::within;
 use rcgen::{
     BasicConstraints, CertificateParams, CertificateRevocationListParams, CertifiedIssuer,
     CustomExtension, DnType, ExtendedKeyUsagePurpose, IsCa, KeyIdMethod, KeyPair, KeyUsagePurpose,
@@ -78,13 +79,19 @@ fn params(name: &str, days: (i64, i64)) -> CertificateParams {
 }
 
 impl Pki {
-    /// A new CA named `name`, its certificate in `ca.crt` of a fresh directory.
+    /// A new CA named `name`, its certificate in `{name}.crt` of a fresh temporary directory.
     pub fn new(name: &str) -> Pki {
         let dir = std::env::temp_dir().join(format!(
             "mbgw-tls-{}-{}",
             std::process::id(),
             DIRS.fetch_add(1, Ordering::Relaxed)
         ));
+        Pki::in_dir(dir, name)
+    }
+
+    /// A new CA named `name`, its certificate in `{name}.crt` of `dir`, which is created now and
+    /// removed with everything in it when the PKI is dropped.
+    pub fn in_dir(dir: PathBuf, name: &str) -> Pki {
         std::fs::create_dir_all(&dir).expect("temp dir");
         let mut params = params(name, (-1, 3650));
         params.is_ca = IsCa::Ca(BasicConstraints::Unconstrained);
@@ -235,7 +242,7 @@ pub async fn tls_connect_from(
     addr: SocketAddr,
     connector: &TlsConnector,
 ) -> std::io::Result<TlsStream<TcpStream>> {
-    tls_handshake(super::connect_from(source, addr).await, addr, connector).await
+    tls_handshake(connect_from(source, addr).await, addr, connector).await
 }
 
 async fn tls_handshake(

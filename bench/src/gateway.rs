@@ -1,0 +1,228 @@
+//! The gateway under test as a process: its configuration written for the scenario, the binary
+//! started on it and stopped when dropped, and what /proc says of its CPU time and memory.
+
+use crate::scenarios::{Kind, Line, Scenario, PRIORITY_IP, SLAVES};
+use modbus_gateway::line::Parity;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+use test_support::tls::{Pki, Role};
+use test_support::{Bus, GatewayConfig};
+use tokio::net::TcpStream;
+use tokio_rustls::client::TlsStream;
+use tokio_rustls::rustls::pki_types::ServerName;
+use tokio_rustls::TlsConnector;
+
+/// The role of the bench's master certificate, given read-only access in `[server.tls]`.
+const ROLE: &str = "bench";
+/// How long the gateway may take to listen.
+const START_LIMIT: Duration = Duration::from_secs(10);
+
+/// The TLS listener of a TLS scenario, and the masters' way in: a connector that trusts the
+/// scenario's CA and presents the master certificate.
+pub(crate) struct Tls {
+    pub(crate) listen: SocketAddr,
+    pub(crate) connector: TlsConnector,
+    /// The certificates' files, removed when dropped.
+    _pki: Pki,
+}
+
+/// The gateway process, stopped when dropped.
+pub(crate) struct Gateway {
+    child: Child,
+    pub(crate) listen: SocketAddr,
+    pub(crate) listen_rtu_over_tcp: SocketAddr,
+    pub(crate) listen_udp: SocketAddr,
+    pub(crate) metrics: SocketAddr,
+    /// The TLS listener and the certificates (TLS scenarios only).
+    pub(crate) tls: Option<Tls>,
+    _config: TempPath,
+}
+
+impl Drop for Gateway {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A file removed when dropped.
+struct TempPath(PathBuf);
+
+impl Drop for TempPath {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.0);
+    }
+}
+
+fn free_addr() -> std::io::Result<SocketAddr> {
+    std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()
+}
+
+/// A private PKI for `scenario` (ECDSA P-256, rcgen's default key): a CA, the gateway's
+/// certificate for 127.0.0.1, and one master certificate with the read-only role, in a
+/// directory named after the scenario.
+fn tls_for(scenario: &str, listen: SocketAddr) -> (String, Tls) {
+    let dir =
+        std::env::temp_dir().join(format!("mbgw-bench-tls-{}-{scenario}", std::process::id()));
+    let pki = Pki::in_dir(dir, "modbus-gateway-bench CA");
+    let server = pki.server("server", "modbus-gateway", 3650);
+    let master = pki.master("bench-master", Role::Named(ROLE));
+    let table = pki.tls_table(&server, &format!("roles = {{ {ROLE} = \"read_only\" }}"));
+    let connector = pki.connector(Some(&master));
+    let tls = Tls {
+        listen,
+        connector,
+        _pki: pki,
+    };
+    (table, tls)
+}
+
+/// The bench's bus on `device`: the scenario's line, a queue for every master twice over.
+fn bus(scenario: &Scenario, device: &str, masters: usize) -> Bus {
+    let f = &scenario.format;
+    let parity = match f.parity {
+        Parity::None => "none",
+        Parity::Even => "even",
+        Parity::Odd => "odd",
+    };
+    let mut bus = Bus::on("bench", device)
+        .framing(scenario.framing.name())
+        .baud(f.baud)
+        .key("data_bits", f.data_bits)
+        .parity(parity)
+        .key("stop_bits", f.stop_bits)
+        .key("queue_depth", masters * 2 + 16)
+        .key("queue_timeout", "1h");
+    if !scenario.coalesce {
+        bus = bus.key("coalesce_reads", false);
+    }
+    if scenario.line == Line::Sim {
+        bus = bus.sim_slaves(&format!("1-{SLAVES}"));
+    }
+    bus
+}
+
+impl Gateway {
+    /// The gateway binary at `binary`, started on a configuration for `scenario` with its bus on
+    /// `device`, once it listens.
+    pub(crate) async fn start(
+        binary: &Path,
+        scenario: &Scenario,
+        device: &str,
+    ) -> Result<Gateway, String> {
+        let listen = free_addr().map_err(|e| e.to_string())?;
+        let listen_rtu_over_tcp = free_addr().map_err(|e| e.to_string())?;
+        let listen_udp = std::net::UdpSocket::bind("127.0.0.1:0")
+            .and_then(|s| s.local_addr())
+            .map_err(|e| e.to_string())?;
+        let metrics = free_addr().map_err(|e| e.to_string())?;
+        let masters = scenario.masters.max(1) + usize::from(scenario.priority.is_some());
+        let mut config = GatewayConfig::new()
+            .listen(listen)
+            .listen_rtu_over_tcp(listen_rtu_over_tcp)
+            .listen_udp(listen_udp)
+            .max_connections(masters + 16);
+        if scenario.priority.is_some() {
+            config = config.server("priority", [PRIORITY_IP.to_string().as_str()]);
+        }
+        let tls = if scenario.kind == Kind::Tls {
+            let listen_tls = free_addr().map_err(|e| e.to_string())?;
+            let (table, tls) = tls_for(&scenario.name, listen_tls);
+            config = config
+                .server("listen_tls", [listen_tls.to_string().as_str()])
+                .server_table(&table);
+            Some(tls)
+        } else {
+            None
+        };
+        let config = config
+            .metrics_listen(metrics)
+            .table("log", &[("level", "warn".into())])
+            .bus(bus(scenario, device, masters));
+        let path = std::env::temp_dir().join(format!(
+            "mbgw-bench-{}-{}.toml",
+            std::process::id(),
+            scenario.name
+        ));
+        std::fs::write(&path, config.to_toml()).map_err(|e| e.to_string())?;
+        let child = Command::new(binary)
+            .args(["--config", &path.to_string_lossy(), "run"])
+            .env_remove("RUST_LOG")
+            .stdout(Stdio::null())
+            .spawn()
+            .map_err(|e| format!("{}: {e}", binary.display()))?;
+        let gateway = Gateway {
+            child,
+            listen,
+            listen_rtu_over_tcp,
+            listen_udp,
+            metrics,
+            tls,
+            _config: TempPath(path),
+        };
+        gateway.until_listening().await?;
+        Ok(gateway)
+    }
+
+    /// Wait (at most [`START_LIMIT`]) until the gateway accepts Modbus TCP and, in a TLS
+    /// scenario, completes a TLS handshake.
+    async fn until_listening(&self) -> Result<(), String> {
+        let started = Instant::now();
+        while TcpStream::connect(self.listen).await.is_err() {
+            if started.elapsed() > START_LIMIT {
+                return Err("the gateway did not start listening within 10 s".into());
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        // The TLS listener may come up later: a whole handshake, as a bare connection closed
+        // at once would be logged as a failed one.
+        if let Some(tls) = &self.tls {
+            while tls_connect(tls).await.is_err() {
+                if started.elapsed() > START_LIMIT {
+                    return Err("the gateway did not start its TLS listener within 10 s".into());
+                }
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        }
+        Ok(())
+    }
+
+    pub(crate) fn pid(&self) -> u32 {
+        self.child.id()
+    }
+}
+
+/// A TLS session with the gateway's TLS listener, presenting the master certificate.
+pub(crate) async fn tls_connect(tls: &Tls) -> std::io::Result<TlsStream<TcpStream>> {
+    let stream = TcpStream::connect(tls.listen).await?;
+    stream.set_nodelay(true)?;
+    let name = ServerName::IpAddress(tls.listen.ip().into());
+    tls.connector.connect(name, stream).await
+}
+
+/// CPU time of process `pid` so far, all its threads: the first field of each thread's
+/// schedstat, in nanoseconds (the tick counts of /proc/PID/stat are only 10 ms fine).
+pub(crate) fn cpu_time(pid: u32) -> Duration {
+    let Ok(threads) = std::fs::read_dir(format!("/proc/{pid}/task")) else {
+        return Duration::ZERO;
+    };
+    let nanos: u64 = threads
+        .filter_map(|t| {
+            let stat = std::fs::read_to_string(t.ok()?.path().join("schedstat")).ok()?;
+            stat.split_whitespace().next()?.parse::<u64>().ok()
+        })
+        .sum();
+    Duration::from_nanos(nanos)
+}
+
+/// Resident memory of process `pid` now, in MB.
+pub(crate) fn rss_mb(pid: u32) -> f64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
+        .map_or(0.0, |kb| kb / 1024.0)
+}

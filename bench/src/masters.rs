@@ -1,0 +1,224 @@
+//! The load: the bench's masters, each on a connection of its own kind, requesting back to back
+//! (or at a period) until told to stop; and the untimed RTU slaves of the pty scenarios.
+
+use crate::gateway::{tls_connect, Gateway};
+use crate::scenarios::{Kind, Load, PRIORITY_IP, READ_10, SLAVES, WRITE_1};
+use mio_serial::SerialPort;
+use modbus_gateway::bus::Port;
+use modbus_gateway::line::{rtu, LineTiming, SerialFormat};
+use modbus_gateway::sim::responder::Responder;
+use modbus_gateway::sim::RegisterBank;
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use test_support::mbap;
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::net::{TcpSocket, TcpStream, UdpSocket};
+use tokio_rustls::client::TlsStream;
+
+/// One completed request: when its reply came, how long it took, whether it was a write.
+pub(crate) type Done = (Instant, Duration, bool);
+
+/// A line that takes no time: no character time, and no t3.5 before a reply.
+const UNTIMED: LineTiming = LineTiming {
+    char_time: Duration::ZERO,
+    t15: Duration::ZERO,
+    t35: Duration::ZERO,
+};
+
+/// RTU slaves on the far end of a pty that answer every request at once: the library's
+/// responder (as `simulate` serves) with a register slave at every address, on an untimed line.
+/// A frame cut short still ends after the real line's t3.5 of silence.
+pub(crate) fn untimed_slave(
+    format: &SerialFormat,
+) -> Result<(String, tokio::task::JoinHandle<()>), String> {
+    let (far, tty) = mio_serial::SerialStream::pair().map_err(|e| e.to_string())?;
+    let path = tty.name().ok_or("the pty has no path")?;
+    let mut port = Port::serial(far).map_err(|e| e.to_string())?;
+    let mut responder = Responder::new(UNTIMED, LineTiming::new(format).t35);
+    for address in 1..=SLAVES {
+        responder.add_slave(address, Box::new(RegisterBank::new(Duration::ZERO)));
+    }
+    let task = tokio::spawn(async move {
+        let _tty = tty;
+        responder.serve(&mut port).await;
+    });
+    Ok((path, task))
+}
+
+/// One master's way to the gateway.
+pub(crate) enum Conn {
+    Tcp(TcpStream),
+    RtuOverTcp(TcpStream),
+    Udp(UdpSocket),
+    Tls(Box<TlsStream<TcpStream>>),
+}
+
+/// One Modbus TCP transaction on `stream`: the MBAP request, then the reply by its own length.
+async fn mbap_exchange<S: AsyncRead + AsyncWrite + Unpin>(
+    stream: &mut S,
+    tid: u16,
+    slave: u8,
+    pdu: &[u8],
+    reply: &mut [u8],
+) -> std::io::Result<bool> {
+    stream.write_all(&mbap(tid, slave, pdu)).await?;
+    stream.read_exact(&mut reply[..7]).await?;
+    let len = usize::from(u16::from_be_bytes([reply[4], reply[5]]));
+    stream.read_exact(&mut reply[7..6 + len]).await?;
+    Ok(reply[..2] == tid.to_be_bytes() && reply[7] & 0x80 == 0)
+}
+
+impl Conn {
+    /// Send `pdu` to `slave` and wait for its answer; true if it is a normal reply.
+    async fn exchange(
+        &mut self,
+        tid: u16,
+        slave: u8,
+        pdu: &[u8],
+        reply: &mut [u8],
+    ) -> std::io::Result<bool> {
+        match self {
+            Conn::Tcp(stream) => mbap_exchange(stream, tid, slave, pdu, reply).await,
+            Conn::Tls(stream) => mbap_exchange(stream.as_mut(), tid, slave, pdu, reply).await,
+            Conn::RtuOverTcp(stream) => {
+                stream.write_all(&rtu::encode(slave, pdu)).await?;
+                // Address and function, then the rest by the reply's own length.
+                stream.read_exact(&mut reply[..3]).await?;
+                let len = match rtu::reply_len(&reply[..3], slave, pdu) {
+                    rtu::FrameLen::Exact(n) => n,
+                    _ => return Ok(false),
+                };
+                stream.read_exact(&mut reply[3..len]).await?;
+                Ok(rtu::crc_ok(&reply[..len]) && reply[1] & 0x80 == 0)
+            }
+            Conn::Udp(socket) => {
+                socket.send(&mbap(tid, slave, pdu)).await?;
+                let len = socket.recv(reply).await?;
+                Ok(len > 7 && reply[..2] == tid.to_be_bytes() && reply[7] & 0x80 == 0)
+            }
+        }
+    }
+}
+
+/// One master's loop: request, reply, again (after `period` from the last request, if not
+/// zero), until `stop`. Returns (completed at, latency).
+pub(crate) async fn master(
+    mut conn: Conn,
+    index: usize,
+    load: Load,
+    period: Duration,
+    stop: Arc<AtomicBool>,
+) -> std::io::Result<Vec<Done>> {
+    let mut done = Vec::new();
+    let mut slave = match load {
+        Load::Same | Load::Own => 1,
+        _ => u8::try_from(index % usize::from(SLAVES)).unwrap_or(0) + 1,
+    };
+    // Its own block, 10 registers from 10 x index, so that no two masters' reads are identical
+    // and none is coalesced (but in `Same`): the same length as READ_10, the same time on the
+    // line.
+    let [hi, lo] = u16::try_from(index * 10).unwrap_or(0).to_be_bytes();
+    let own = [0x03, hi, lo, 0x00, 0x0A];
+    let mut tid: u16 = 0;
+    let mut reply = vec![0u8; 512];
+    let mut next = tokio::time::Instant::now();
+    while !stop.load(Ordering::Relaxed) {
+        if !period.is_zero() {
+            tokio::time::sleep_until(next).await;
+            next += period;
+        }
+        tid = tid.wrapping_add(1);
+        let write = load == Load::Mix && tid.is_multiple_of(4);
+        let pdu: &[u8] = if write {
+            &WRITE_1
+        } else if load == Load::Same {
+            &READ_10
+        } else {
+            &own
+        };
+        let sent = Instant::now();
+        if !conn.exchange(tid, slave, pdu, &mut reply).await? {
+            return Err(std::io::Error::other(format!(
+                "master {index}: unexpected reply {:02X?}",
+                &reply[..16]
+            )));
+        }
+        let now = Instant::now();
+        done.push((now, now - sent, write));
+        if !matches!(load, Load::Same | Load::Own) {
+            slave = slave % SLAVES + 1;
+        }
+    }
+    Ok(done)
+}
+
+/// One master of `kind` (not `Mixed`), master `i` of the run.
+async fn connect(gateway: &Gateway, kind: Kind, i: usize) -> Result<Conn, String> {
+    let failed = |e: std::io::Error| format!("connect: {e} (raise `ulimit -n` for many masters)");
+    Ok(match kind {
+        Kind::Udp => {
+            let socket = UdpSocket::bind("127.0.0.1:0").await.map_err(failed)?;
+            socket.connect(gateway.listen_udp).await.map_err(failed)?;
+            Conn::Udp(socket)
+        }
+        Kind::RtuOverTcp => {
+            let stream = TcpStream::connect(gateway.listen_rtu_over_tcp)
+                .await
+                .map_err(failed)?;
+            stream.set_nodelay(true).map_err(|e| e.to_string())?;
+            Conn::RtuOverTcp(stream)
+        }
+        Kind::Tcp | Kind::Mixed => {
+            let stream = TcpStream::connect(gateway.listen).await.map_err(failed)?;
+            stream.set_nodelay(true).map_err(|e| e.to_string())?;
+            Conn::Tcp(stream)
+        }
+        Kind::Tls => {
+            let tls = gateway.tls.as_ref().ok_or("no TLS listener")?;
+            let stream = tls_connect(tls)
+                .await
+                .map_err(|e| format!("master {i}: TLS: {e}"))?;
+            Conn::Tls(Box::new(stream))
+        }
+    })
+}
+
+/// `n` masters of `kind` (the three kinds in turn for `Kind::Mixed`), connected one after
+/// another, and how long each connection took to set up (TCP connect to connected, or to the TLS
+/// handshake complete; none for UDP).
+pub(crate) async fn connect_all(
+    gateway: &Gateway,
+    kind: Kind,
+    n: usize,
+) -> Result<(Vec<Conn>, Vec<Duration>), String> {
+    let kinds = [Kind::Tcp, Kind::RtuOverTcp, Kind::Udp];
+    let mut conns = Vec::with_capacity(n);
+    let mut setup = Vec::with_capacity(n);
+    for i in 0..n {
+        let kind = if kind == Kind::Mixed {
+            kinds[i % 3]
+        } else {
+            kind
+        };
+        let began = Instant::now();
+        conns.push(connect(gateway, kind, i).await?);
+        if kind != Kind::Udp {
+            setup.push(began.elapsed());
+        }
+    }
+    Ok((conns, setup))
+}
+
+/// The priority master: a Modbus TCP connection from 127.0.0.2, which `server.priority` names.
+pub(crate) async fn priority_connect(gateway: &Gateway) -> Result<Conn, String> {
+    let failed = |e: std::io::Error| format!("priority master: {e}");
+    let socket = TcpSocket::new_v4().map_err(failed)?;
+    socket
+        .bind(SocketAddr::new(PRIORITY_IP.into(), 0))
+        .map_err(failed)?;
+    let stream = socket.connect(gateway.listen).await.map_err(failed)?;
+    stream.set_nodelay(true).map_err(failed)?;
+    Ok(Conn::Tcp(stream))
+}

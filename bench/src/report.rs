@@ -1,0 +1,363 @@
+//! The figures of a run and how they are shown: a JSON object per scenario, or the table (and,
+//! for the scenarios that have them, the line, priority and scrape tables).
+
+use crate::run::{Minimum, Window};
+use crate::scenarios::{Line, Load, Scenario};
+use crate::watch::Counters;
+use serde::Serialize;
+use std::time::Duration;
+
+#[derive(Serialize, Default)]
+pub(crate) struct Report {
+    pub(crate) scenario: String,
+    baud: u32,
+    masters: usize,
+    transactions: u64,
+    tx_per_s: f64,
+    /// Sum of the physical minimum of the completed transactions over the wall time (sim only).
+    efficiency: Option<f64>,
+    p50_ms: Option<f64>,
+    p99_ms: Option<f64>,
+    max_ms: Option<f64>,
+    /// Latency above the physical minimum at the median, for one master on the sim line.
+    added_p50_ms: Option<f64>,
+    added_p99_ms: Option<f64>,
+    fairness: Option<f64>,
+    pub(crate) rss_mb: f64,
+    cpu_us_per_tx: Option<f64>,
+    seconds: f64,
+    /// Connection set-up, one master after another: TCP connect to connected (plain TCP, RTU
+    /// over TCP) or to the TLS handshake complete (TLS), median and slowest over the masters.
+    connect_p50_ms: Option<f64>,
+    connect_max_ms: Option<f64>,
+    /// The gateway's CPU time across the connect phase, per master.
+    connect_cpu_us: Option<f64>,
+    /// From the gateway's metrics, scraped at the window's ends (sim only): transactions on the
+    /// line (`modbus_gateway_round_trip_seconds_count`), per second, per answered request, and
+    /// requests answered by another's (`modbus_gateway_coalesced_requests_total`).
+    line_tx: Option<u64>,
+    line_tx_per_s: Option<f64>,
+    line_tx_per_answer: Option<f64>,
+    coalesced: Option<u64>,
+    /// The physical rate of the read, 1 / t_min, in transactions per second.
+    physical_tx_per_s: Option<f64>,
+    /// Masters reading the same block: answered reads per second over (masters x
+    /// physical_tx_per_s).
+    answered_vs_physical: Option<f64>,
+    /// The priority master (priority scenarios): its answered reads, its latency and its wait
+    /// (latency less one t_min) in transaction times (t_min), and the other masters' share of
+    /// the answered reads (here, of the line's transactions). `fairness` is then over the others.
+    priority_tx: Option<u64>,
+    priority_p50_tmin: Option<f64>,
+    priority_p99_tmin: Option<f64>,
+    priority_max_tmin: Option<f64>,
+    priority_wait_p50_tmin: Option<f64>,
+    priority_wait_p99_tmin: Option<f64>,
+    others_share: Option<f64>,
+    /// The gateway's mean queue wait by class (`modbus_gateway_queue_wait_seconds` sum over
+    /// count), in t_min.
+    queue_wait_priority_tmin: Option<f64>,
+    queue_wait_normal_tmin: Option<f64>,
+    /// With `--scrape` only: the scraper's scrapes in the window, their time (median, 99th
+    /// percentile, slowest) and the size of the last page.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    scrapes: Option<u64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    scrape_p50_ms: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    scrape_p99_ms: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    scrape_max_ms: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    scrape_bytes: Option<u64>,
+}
+
+/// The `p` quantile of `sorted`, in milliseconds (nearest rank).
+fn percentile(sorted: &[Duration], p: f64) -> Option<f64> {
+    let last = sorted.len().checked_sub(1)?;
+    #[allow(
+        clippy::cast_possible_truncation,
+        reason = "p is within 0..=1, so the rank is within 0..=last"
+    )]
+    let rank = (last as f64 * p).round() as usize;
+    Some(sorted[rank].as_secs_f64() * 1e3)
+}
+
+/// A counter's growth as a count: a whole number, far below 2^53.
+#[allow(
+    clippy::cast_possible_truncation,
+    reason = "the difference of two counters of whole events"
+)]
+fn count(delta: f64) -> u64 {
+    delta as u64
+}
+
+impl Report {
+    /// The report of scenario `s` before its window: how its masters connected (`setup`
+    /// sorted) and the gateway's CPU time for it.
+    pub(crate) fn new(s: &Scenario, setup: &[Duration], connect_cpu: Duration) -> Report {
+        Report {
+            scenario: s.name.clone(),
+            baud: s.format.baud,
+            masters: s.masters,
+            connect_p50_ms: percentile(setup, 0.5),
+            connect_max_ms: setup.last().map(|d| d.as_secs_f64() * 1e3),
+            connect_cpu_us: (!setup.is_empty())
+                .then(|| connect_cpu.as_secs_f64() * 1e6 / setup.len() as f64),
+            ..Report::default()
+        }
+    }
+
+    /// The figures of the window `w` of scenario `s`, whose transactions take at least `min`.
+    pub(crate) fn measured(&mut self, s: &Scenario, w: &Window, min: &Minimum) {
+        self.rss_mb = w.rss_mb;
+        let mut latencies = Vec::new();
+        let mut per_master = Vec::with_capacity(s.masters);
+        let mut physical = Duration::ZERO;
+        let mut priority = Vec::new();
+        for (i, done) in w.masters.iter().enumerate() {
+            let within: Vec<_> = done
+                .iter()
+                .filter(|(at, _, _)| *at >= w.start && *at <= w.end)
+                .collect();
+            if i == s.masters {
+                priority = within.iter().map(|(_, latency, _)| *latency).collect();
+            } else {
+                per_master.push(within.len() as f64);
+            }
+            for (_, latency, write) in within {
+                latencies.push(*latency);
+                physical += if *write { min.write } else { min.read };
+            }
+        }
+        let wall = (w.end - w.start).as_secs_f64();
+        let transactions = latencies.len() as u64;
+        latencies.sort();
+        let sum: f64 = per_master.iter().sum();
+        let squares: f64 = per_master.iter().map(|x| x * x).sum();
+        self.transactions = transactions;
+        self.tx_per_s = transactions as f64 / wall;
+        self.seconds = wall;
+        self.p50_ms = percentile(&latencies, 0.5);
+        self.p99_ms = percentile(&latencies, 0.99);
+        self.max_ms = latencies.last().map(|d| d.as_secs_f64() * 1e3);
+        self.fairness = (s.masters > 1 && squares > 0.0)
+            .then(|| sum * sum / (per_master.len() as f64 * squares));
+        let t_min = min.read.as_secs_f64();
+        if s.priority.is_some() {
+            self.priority(&mut priority, t_min);
+        }
+        if let Some((before, after)) = &w.metrics {
+            self.counters(s, &Counters::of(before), &Counters::of(after), t_min);
+        }
+        self.cpu_us_per_tx =
+            (transactions > 0).then(|| w.cpu.as_secs_f64() * 1e6 / transactions as f64);
+        if s.line == Line::Sim {
+            self.efficiency = Some(physical.as_secs_f64() / wall);
+            // Coalesced reads took no time of the line: count its transactions instead.
+            if s.load == Load::Same {
+                self.efficiency = self.line_tx.map(|tx| tx as f64 * t_min / wall);
+            }
+            if s.masters == 1 && s.load == Load::Read {
+                let floor = min.read.as_secs_f64() * 1e3;
+                self.added_p50_ms = self.p50_ms.map(|p| p - floor);
+                self.added_p99_ms = self.p99_ms.map(|p| p - floor);
+            }
+        }
+        if let Some(scrapes) = &w.scrapes {
+            self.scrapes(scrapes);
+        }
+    }
+
+    /// The priority master's figures from its latencies in the window, in `t_min` units.
+    fn priority(&mut self, priority: &mut [Duration], t_min: f64) {
+        let transactions = self.transactions;
+        priority.sort();
+        let in_tmin = |p| percentile(priority, p).map(|ms| ms / 1e3 / t_min);
+        self.priority_tx = Some(priority.len() as u64);
+        self.priority_p50_tmin = in_tmin(0.5);
+        self.priority_p99_tmin = in_tmin(0.99);
+        self.priority_max_tmin = in_tmin(1.0);
+        self.priority_wait_p50_tmin = in_tmin(0.5).map(|t| t - 1.0);
+        self.priority_wait_p99_tmin = in_tmin(0.99).map(|t| t - 1.0);
+        self.others_share = (transactions > 0)
+            .then(|| (transactions - priority.len() as u64) as f64 / transactions as f64);
+    }
+
+    /// The figures from the gateway's metrics at the window's ends.
+    fn counters(&mut self, s: &Scenario, before: &Counters, after: &Counters, t_min: f64) {
+        let (transactions, wall) = (self.transactions, self.seconds);
+        let line_tx = after.line_tx - before.line_tx;
+        self.line_tx = Some(count(line_tx));
+        self.line_tx_per_s = Some(line_tx / wall);
+        self.line_tx_per_answer = (transactions > 0).then(|| line_tx / transactions as f64);
+        self.coalesced = Some(count(after.coalesced - before.coalesced));
+        self.physical_tx_per_s = Some(1.0 / t_min);
+        if s.load == Load::Same {
+            self.answered_vs_physical = Some(self.tx_per_s * t_min / s.masters as f64);
+        }
+        let mean_wait = |class: usize| {
+            let (sum, count) = (
+                after.wait[class].0 - before.wait[class].0,
+                after.wait[class].1 - before.wait[class].1,
+            );
+            (count > 0.0).then(|| sum / count / t_min)
+        };
+        self.queue_wait_normal_tmin = mean_wait(0);
+        self.queue_wait_priority_tmin = mean_wait(1);
+    }
+
+    /// The `--scrape` scraper's figures.
+    fn scrapes(&mut self, scrapes: &[crate::watch::Scraped]) {
+        let mut times: Vec<Duration> = scrapes.iter().map(|(_, took, _)| *took).collect();
+        times.sort();
+        self.scrapes = Some(times.len() as u64);
+        self.scrape_p50_ms = percentile(&times, 0.5);
+        self.scrape_p99_ms = percentile(&times, 0.99);
+        self.scrape_max_ms = times.last().map(|d| d.as_secs_f64() * 1e3);
+        self.scrape_bytes = scrapes.last().map(|(_, _, bytes)| *bytes as u64);
+    }
+}
+
+fn cell(value: Option<f64>, precision: usize) -> String {
+    value.map_or("-".into(), |v| format!("{v:.precision$}"))
+}
+
+/// The table's header.
+pub(crate) fn print_header() {
+    println!(
+        "{:<30} {:>7} {:>9} {:>6} {:>6} {:>8} {:>8} {:>8} {:>8} {:>6} {:>7} {:>8} {:>8} {:>8} {:>8}",
+        "scenario",
+        "masters",
+        "tx",
+        "tx/s",
+        "eff",
+        "p50 ms",
+        "p99 ms",
+        "max ms",
+        "+p50 ms",
+        "jain",
+        "rss MB",
+        "cpu us/tx",
+        "conn p50",
+        "conn max",
+        "cpu us/conn"
+    );
+}
+
+/// The table's row for `r`.
+pub(crate) fn print_row(r: &Report) {
+    println!(
+        "{:<30} {:>7} {:>9} {:>6.1} {:>6} {:>8} {:>8} {:>8} {:>8} {:>6} {:>7.1} {:>8} {:>8} {:>8} {:>8}",
+        r.scenario,
+        r.masters,
+        r.transactions,
+        r.tx_per_s,
+        cell(r.efficiency, 3),
+        cell(r.p50_ms, 2),
+        cell(r.p99_ms, 2),
+        cell(r.max_ms, 1),
+        cell(r.added_p50_ms, 2),
+        cell(r.fairness, 3),
+        r.rss_mb,
+        cell(r.cpu_us_per_tx, 1),
+        cell(r.connect_p50_ms, 2),
+        cell(r.connect_max_ms, 2),
+        cell(r.connect_cpu_us, 0),
+    );
+}
+
+/// The many-masters scenarios' own columns: answered reads against the line's transactions.
+pub(crate) fn print_line_table(reports: &[Report]) {
+    let rows: Vec<_> = reports
+        .iter()
+        .filter(|r| r.scenario.starts_with("many-") && r.line_tx.is_some())
+        .collect();
+    if rows.is_empty() {
+        return;
+    }
+    println!(
+        "\n{:<30} {:>7} {:>10} {:>10} {:>8} {:>10} {:>9} {:>9}",
+        "scenario",
+        "masters",
+        "answered/s",
+        "line tx/s",
+        "phys/s",
+        "ans/(K*phys)",
+        "tx/answer",
+        "coalesced"
+    );
+    for r in rows {
+        println!(
+            "{:<30} {:>7} {:>10.1} {:>10} {:>8.2} {:>12} {:>9} {:>9}",
+            r.scenario,
+            r.masters,
+            r.tx_per_s,
+            cell(r.line_tx_per_s, 2),
+            r.physical_tx_per_s.unwrap_or_default(),
+            cell(r.answered_vs_physical, 3),
+            cell(r.line_tx_per_answer, 4),
+            r.coalesced.map_or("-".into(), |c| c.to_string()),
+        );
+    }
+}
+
+/// The priority scenarios' own columns, in transaction times (t_min).
+pub(crate) fn print_priority_table(reports: &[Report]) {
+    let rows: Vec<_> = reports.iter().filter(|r| r.priority_tx.is_some()).collect();
+    if rows.is_empty() {
+        return;
+    }
+    println!(
+        "\n{:<30} {:>7} {:>8} {:>8} {:>8} {:>9} {:>9} {:>10} {:>10} {:>8}",
+        "scenario (t_min units)",
+        "prio tx",
+        "lat p50",
+        "lat p99",
+        "lat max",
+        "wait p50",
+        "wait p99",
+        "gw wait P",
+        "gw wait N",
+        "others"
+    );
+    for r in rows {
+        println!(
+            "{:<30} {:>7} {:>8} {:>8} {:>8} {:>9} {:>9} {:>10} {:>10} {:>8}",
+            r.scenario,
+            r.priority_tx.unwrap_or_default(),
+            cell(r.priority_p50_tmin, 2),
+            cell(r.priority_p99_tmin, 2),
+            cell(r.priority_max_tmin, 2),
+            cell(r.priority_wait_p50_tmin, 2),
+            cell(r.priority_wait_p99_tmin, 2),
+            cell(r.queue_wait_priority_tmin, 2),
+            cell(r.queue_wait_normal_tmin, 1),
+            cell(r.others_share, 3),
+        );
+    }
+}
+
+/// With `--scrape`: the scraper's columns, beside the line's efficiency they may have cost.
+pub(crate) fn print_scrape_table(reports: &[Report]) {
+    let rows: Vec<_> = reports.iter().filter(|r| r.scrapes.is_some()).collect();
+    if rows.is_empty() {
+        return;
+    }
+    println!(
+        "\n{:<30} {:>6} {:>8} {:>8} {:>8} {:>8} {:>8}",
+        "scenario (scraped)", "eff", "scrapes", "p50 ms", "p99 ms", "max ms", "bytes"
+    );
+    for r in rows {
+        println!(
+            "{:<30} {:>6} {:>8} {:>8} {:>8} {:>8} {:>8}",
+            r.scenario,
+            cell(r.efficiency, 3),
+            r.scrapes.unwrap_or_default(),
+            cell(r.scrape_p50_ms, 2),
+            cell(r.scrape_p99_ms, 2),
+            cell(r.scrape_max_ms, 1),
+            r.scrape_bytes.map_or("-".into(), |b| b.to_string()),
+        );
+    }
+}

@@ -1,0 +1,161 @@
+//! One scenario's run: the gateway started, the masters connected, a warm-up, then a window in
+//! which the masters' completions, the gateway's CPU time and (on the simulated line) its
+//! metrics are taken. The figures are `report`'s.
+
+use crate::gateway::{cpu_time, rss_mb, Gateway};
+use crate::masters::{connect_all, master, priority_connect, untimed_slave, Done};
+use crate::report::Report;
+use crate::scenarios::{Line, Load, Scenario, READ_10, WRITE_1};
+use crate::watch::{scrape, watch_trace, Scraped, Scraper};
+use crate::Cli;
+use modbus_gateway::line::LineTiming;
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// The physical minimum of one transaction of the scenario's load, by the line's timing.
+pub(crate) struct Minimum {
+    pub(crate) read: Duration,
+    pub(crate) write: Duration,
+}
+
+/// What the window saw.
+pub(crate) struct Window {
+    pub(crate) start: Instant,
+    pub(crate) end: Instant,
+    /// The gateway's CPU time across the window.
+    pub(crate) cpu: Duration,
+    pub(crate) rss_mb: f64,
+    /// Every master's completions, in the order the masters were connected (the priority
+    /// master last); `start..=end` is the window's share.
+    pub(crate) masters: Vec<Vec<Done>>,
+    /// The metrics page at the window's start and end (simulated line only).
+    pub(crate) metrics: Option<(String, String)>,
+    /// The `--scrape` scraper's scrapes within the window.
+    pub(crate) scrapes: Option<Vec<Scraped>>,
+}
+
+/// Run scenario `s` on the gateway binary at `binary`.
+pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report, String> {
+    let timing = LineTiming::new(&s.format);
+    let (device, slave) = match s.line {
+        Line::Sim => ("sim".to_owned(), None),
+        Line::Pty => {
+            let (path, task) = untimed_slave(&s.format)?;
+            (path, Some(task))
+        }
+    };
+    let gateway = Gateway::start(binary, s, &device).await?;
+    let pid = gateway.pid();
+    let cpu_before = cpu_time(pid);
+    let (mut streams, mut setup) = connect_all(&gateway, s.kind, s.masters).await?;
+    if s.priority.is_some() {
+        streams.push(priority_connect(&gateway).await?);
+    }
+    // The gateway's side of the last handshake (a TLS 1.3 server checks the master's
+    // certificate after the master is done) and of the last accept.
+    tokio::time::sleep(Duration::from_millis(50)).await;
+    let connect_cpu = cpu_time(pid) - cpu_before;
+    setup.sort();
+    let mut report = Report::new(s, &setup, connect_cpu);
+    if s.load == Load::Idle {
+        tokio::time::sleep(Duration::from_secs(2)).await;
+        report.rss_mb = rss_mb(pid);
+        drop(streams);
+        if let Some(slave) = slave {
+            slave.abort();
+        }
+        return Ok(report);
+    }
+    let minimum = Minimum {
+        read: s
+            .framing
+            .transaction_minimum(&timing, READ_10.len(), 2 + 20),
+        write: s
+            .framing
+            .transaction_minimum(&timing, WRITE_1.len(), WRITE_1.len()),
+    };
+    // Long enough for every master to complete `rounds` requests at the line's pace.
+    let pace = if s.line == Line::Sim {
+        minimum.read
+    } else {
+        timing.t35
+    };
+    let window = measure(cli, &gateway, s, streams, pace).await?;
+    if let Some(slave) = slave {
+        slave.abort();
+    }
+    report.measured(s, &window, &minimum);
+    Ok(report)
+}
+
+/// Start the masters on `streams`, warm up, and take the window.
+async fn measure(
+    cli: &Cli,
+    gateway: &Gateway,
+    s: &Scenario,
+    streams: Vec<crate::masters::Conn>,
+    pace: Duration,
+) -> Result<Window, String> {
+    let pid = gateway.pid();
+    // Masters reading the same block are answered together.
+    let turns = if s.load == Load::Same { 1 } else { s.masters };
+    let needed = pace * (cli.rounds * u32::try_from(turns).unwrap_or(u32::MAX));
+    let length = Duration::from_secs_f64(cli.seconds).max(needed);
+    let warm_up = Duration::from_secs(1).max(pace * u32::try_from(s.masters).unwrap_or(1));
+
+    let _trace = match cli.trace {
+        Some(how) => Some(watch_trace(gateway.metrics, how).await?),
+        None => None,
+    };
+    let scraper = cli.scrape.then(|| Scraper::start(gateway.metrics));
+    let stop = Arc::new(AtomicBool::new(false));
+    let tasks: Vec<_> = streams
+        .into_iter()
+        .enumerate()
+        .map(|(i, stream)| {
+            let period = if i == s.masters {
+                s.priority.unwrap_or_default()
+            } else {
+                Duration::ZERO
+            };
+            tokio::spawn(master(stream, i, s.load, period, stop.clone()))
+        })
+        .collect();
+    tokio::time::sleep(warm_up).await;
+    let sim = s.line == Line::Sim;
+    let before = if sim {
+        Some(scrape(gateway.metrics).await?)
+    } else {
+        None
+    };
+    let (start, cpu_start) = (Instant::now(), cpu_time(pid));
+    tokio::time::sleep(length).await;
+    let (end, cpu_end) = (Instant::now(), cpu_time(pid));
+    let after = if sim {
+        Some(scrape(gateway.metrics).await?)
+    } else {
+        None
+    };
+    let rss_mb = rss_mb(pid);
+    stop.store(true, Ordering::Relaxed);
+    let scrapes = scraper.map(|scraper| scraper.within(start, end));
+    let mut masters = Vec::with_capacity(tasks.len());
+    for task in tasks {
+        masters.push(
+            task.await
+                .map_err(|e| e.to_string())?
+                .map_err(|e| e.to_string())?,
+        );
+    }
+    Ok(Window {
+        start,
+        end,
+        cpu: cpu_end - cpu_start,
+        rss_mb,
+        masters,
+        metrics: before.zip(after),
+        scrapes,
+    })
+}

@@ -1,0 +1,227 @@
+//! The scenarios: which line, which masters, which load, by name. Data only; `run` acts on them.
+
+use modbus_gateway::line::{Framing, Parity, SerialFormat};
+use std::net::Ipv4Addr;
+use std::time::Duration;
+
+/// Read 10 holding registers from 0000H: 8 bytes on the wire, 25 back. Each master reads a block
+/// of its own of the same size (from 10 x its index) but in the `Same` load.
+pub(crate) const READ_10: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x0A];
+/// Write holding register 0001H: 8 bytes each way.
+pub(crate) const WRITE_1: [u8; 5] = [0x06, 0x00, 0x01, 0x12, 0x34];
+/// Slaves on the simulated line; masters spread their requests over them.
+pub(crate) const SLAVES: u8 = 247;
+/// The local address the priority master connects from, and `server.priority`.
+pub(crate) const PRIORITY_IP: Ipv4Addr = Ipv4Addr::new(127, 0, 0, 2);
+
+#[derive(Clone, Copy, PartialEq)]
+pub(crate) enum Line {
+    /// The built-in simulated line, timed at its baud rate.
+    Sim,
+    /// A pty pair with an RTU slave in this process that answers at once: no line timing.
+    Pty,
+}
+
+#[derive(Clone, Copy, PartialEq)]
+pub(crate) enum Load {
+    /// Read 10 holding registers (a block of its own), back to back, from each slave in turn.
+    Read,
+    /// Every fourth request a write of one register, the rest reads of 10.
+    Mix,
+    /// Connected, sending nothing.
+    Idle,
+    /// Every master reads the same 10 holding registers of slave 1, back to back: coalescing.
+    Same,
+    /// Every master reads its own 10 holding registers of slave 1, back to back: nothing to
+    /// coalesce.
+    Own,
+}
+
+/// How the bench's masters talk to the gateway.
+#[derive(Clone, Copy, PartialEq)]
+pub(crate) enum Kind {
+    /// Modbus TCP.
+    Tcp,
+    /// RTU frames on a TCP connection.
+    RtuOverTcp,
+    /// Modbus UDP.
+    Udp,
+    /// Modbus/TCP Security: Modbus TCP inside TLS, with a client certificate.
+    Tls,
+    /// The three kinds in turn, master by master.
+    Mixed,
+}
+
+pub(crate) struct Scenario {
+    pub(crate) name: String,
+    pub(crate) line: Line,
+    pub(crate) kind: Kind,
+    pub(crate) framing: Framing,
+    pub(crate) format: SerialFormat,
+    pub(crate) masters: usize,
+    pub(crate) load: Load,
+    /// `[[bus]] coalesce_reads` (the gateway's default: on).
+    pub(crate) coalesce: bool,
+    /// One more master, connecting from 127.0.0.2 (in `server.priority`), reading a block of its
+    /// own: back to back (`Some(ZERO)`) or one read per period.
+    pub(crate) priority: Option<Duration>,
+}
+
+impl Scenario {
+    /// Modbus TCP masters on the simulated RTU line, reads coalescing, no priority master.
+    fn sim(name: String, format: SerialFormat, masters: usize, load: Load) -> Scenario {
+        Scenario {
+            name,
+            line: Line::Sim,
+            kind: Kind::Tcp,
+            framing: Framing::Rtu,
+            format,
+            masters,
+            load,
+            coalesce: true,
+            priority: None,
+        }
+    }
+}
+
+/// 8 data bits, one stop bit.
+fn format(baud: u32, parity: Parity) -> SerialFormat {
+    SerialFormat {
+        baud,
+        data_bits: 8,
+        parity,
+        stop_bits: 1,
+    }
+}
+
+/// The two simulated lines most scenarios run on, with their labels.
+const LINES: [(u32, Parity, &str); 2] =
+    [(9600, Parity::Even, "8E1"), (115_200, Parity::None, "8N1")];
+
+/// Every scenario, in the order `--list` shows and a full run measures them.
+pub(crate) fn scenarios() -> Vec<Scenario> {
+    let mut all = Vec::new();
+    line_scenarios(&mut all);
+    kind_scenarios(&mut all);
+    many_scenarios(&mut all);
+    for masters in [0, 1000] {
+        all.push(Scenario::sim(
+            format!("idle-{masters}"),
+            format(9600, Parity::Even),
+            masters,
+            Load::Idle,
+        ));
+    }
+    all
+}
+
+/// Modbus TCP masters reading (and writing) on the simulated RTU and ASCII lines.
+fn line_scenarios(all: &mut Vec<Scenario>) {
+    for (baud, parity, label) in LINES {
+        for masters in [1, 10, 100, 1000] {
+            let name = format!("sim-{baud}-{label}-read-{masters}");
+            all.push(Scenario::sim(
+                name,
+                format(baud, parity),
+                masters,
+                Load::Read,
+            ));
+        }
+        let name = format!("sim-{baud}-{label}-mix-100");
+        all.push(Scenario::sim(name, format(baud, parity), 100, Load::Mix));
+    }
+    let ascii_7e1 = SerialFormat {
+        data_bits: 7,
+        ..format(9600, Parity::Even)
+    };
+    for masters in [1, 100] {
+        all.push(Scenario {
+            framing: Framing::Ascii,
+            ..Scenario::sim(
+                format!("ascii-9600-7E1-read-{masters}"),
+                ascii_7e1,
+                masters,
+                Load::Read,
+            )
+        });
+    }
+}
+
+/// Masters of the other kinds on the 115200 line, and one master on the untimed pty.
+fn kind_scenarios(all: &mut Vec<Scenario>) {
+    let sim_115200 = format(115_200, Parity::None);
+    for (kind, label) in [
+        (Kind::RtuOverTcp, "rtu-over-tcp"),
+        (Kind::Udp, "udp"),
+        (Kind::Tls, "tls"),
+        (Kind::Mixed, "mixed-kinds"),
+    ] {
+        // A mix of one master is one Modbus TCP master: the mix has 99, 33 of each kind.
+        let counts: &[usize] = if kind == Kind::Mixed { &[99] } else { &[1, 99] };
+        for &masters in counts {
+            let name = format!("sim-115200-8N1-{label}-read-{masters}");
+            all.push(Scenario {
+                kind,
+                ..Scenario::sim(name, sim_115200, masters, Load::Read)
+            });
+        }
+    }
+    // Over TLS too: with no line timing to hide it, what a TLS record costs shows.
+    for (kind, name) in [(Kind::Tcp, "read"), (Kind::Tls, "tls-read")] {
+        let name = format!("pty-115200-untimed-{name}-1");
+        all.push(Scenario {
+            line: Line::Pty,
+            kind,
+            ..Scenario::sim(name, sim_115200, 1, Load::Read)
+        });
+    }
+}
+
+/// Many masters, one read: coalescing, what it costs when there is nothing to coalesce, and a
+/// priority master among them.
+fn many_scenarios(all: &mut Vec<Scenario>) {
+    let sim_9600 = format(9600, Parity::Even);
+    for (baud, parity, label) in LINES {
+        for masters in [1, 10, 100] {
+            let name = format!("many-{baud}-{label}-same-{masters}");
+            all.push(Scenario::sim(
+                name,
+                format(baud, parity),
+                masters,
+                Load::Same,
+            ));
+        }
+    }
+    for (coalesce, suffix) in [(true, ""), (false, "-uncoalesced")] {
+        let name = format!("many-9600-8E1-own-100{suffix}");
+        all.push(Scenario {
+            coalesce,
+            ..Scenario::sim(name, sim_9600, 100, Load::Own)
+        });
+    }
+    // A priority master among 100 that saturate the line: polling back to back (the share
+    // limit decides), then every 200 ms (a fifth of the line).
+    for (period, label) in [(Duration::ZERO, ""), (Duration::from_millis(200), "-200ms")] {
+        let name = format!("many-9600-8E1-priority{label}-100");
+        all.push(Scenario {
+            priority: Some(period),
+            ..Scenario::sim(name, sim_9600, 100, Load::Own)
+        });
+    }
+}
+
+/// The scenarios `chosen` names select: a whole name, or its leading part up to a `-`; all if
+/// none.
+pub(crate) fn select<'a>(all: &'a [Scenario], chosen: &[String]) -> Vec<&'a Scenario> {
+    all.iter()
+        .filter(|s| {
+            chosen.is_empty()
+                || chosen.iter().any(|c| {
+                    s.name == *c
+                        || s.name
+                            .strip_prefix(c.as_str())
+                            .is_some_and(|r| r.starts_with('-'))
+                })
+        })
+        .collect()
+}

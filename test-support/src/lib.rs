@@ -1,0 +1,42 @@
+//! What the integration tests and the bench of modbus-gateway share, one of each:
+//! - `config`: a gateway configuration from typed calls, written as TOML; `configs`: the ones many
+//!   tests start from.
+//! - `gateway`: a gateway started in the test's process; `sim`: a bus on the simulated line
+//!   started by hand, with no gateway around it.
+//! - `frames`: a Modbus TCP ADU (MBAP) and an RTU frame; `master`: a raw Modbus TCP master.
+//! - `pty`: an RTU slave on a pty pair (the real serial path).
+//! - `tls`: a test PKI (CA, server and master certificates with the Modbus/TCP Security RoleOID)
+//!   and TLS masters.
+//! - `http`: the metrics endpoint: GETs, `/metrics` parsed, `/trace` readers.
+//! - `process`: the gateway as a process: tools, free ports, logs, signals.
+//! - `load`: many masters: rotation and fairness, floods.
+//! - `wait`: every wait bounded; panics counted.
+//!
+//! Everything but `tls` is also at the crate's root. It uses the library's `testing`-grade
+//! items (`bus::BusTask`, `gateway::power_on_line`, `sim::*`...), so it is a dev-dependency:
+//! unit tests inside `src/` cannot use it (they would see two copies of the library's types).
+
+pub mod config;
+pub mod configs;
+pub mod frames;
+pub mod gateway;
+pub mod http;
+pub mod load;
+pub mod master;
+pub mod process;
+pub mod pty;
+pub mod sim;
+pub mod tls;
+pub mod wait;
+
+pub use config::{Bus, GatewayConfig, Value};
+pub use configs::*;
+pub use frames::{mbap, rtu};
+pub use gateway::*;
+pub use http::*;
+pub use load::*;
+pub use master::*;
+pub use process::*;
+pub use pty::*;
+pub use sim::*;
+pub use wait::*;
