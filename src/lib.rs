@@ -41,6 +41,9 @@
 pub mod bus;
 pub mod cli;
 pub mod config;
+// What `testing` re-exports is `pub` for the tests' build (feature `test-util`) and unreachable
+// in the daemon's: the lint is for the build that has the hooks (clippy --all-targets).
+#[cfg_attr(not(feature = "test-util"), allow(unreachable_pub))]
 mod dispatch;
 pub mod error;
 pub mod gateway;
@@ -49,9 +52,15 @@ mod logging;
 pub mod master;
 pub mod metrics;
 pub mod pdu;
+// What `testing` re-exports is `pub` for the tests' build (feature `test-util`) and unreachable
+// in the daemon's: the lint is for the build that has the hooks (clippy --all-targets).
+#[cfg_attr(not(feature = "test-util"), allow(unreachable_pub))]
 mod routing;
 pub mod shutdown;
 pub mod sim;
+// What `testing` re-exports is `pub` for the tests' build (feature `test-util`) and unreachable
+// in the daemon's: the lint is for the build that has the hooks (clippy --all-targets).
+#[cfg_attr(not(feature = "test-util"), allow(unreachable_pub))]
 mod tcp;
 pub mod timer;
 pub mod trace;
