@@ -8,12 +8,12 @@ use crate::bus::{BusHandle, BusTask, BusUpdates, Device, Reconfigure, SerialDriv
 use crate::config::{self, BusChange, Config, ConfigDiff, ConfigErrors};
 use crate::dispatch::Dispatcher;
 use crate::metrics::{self, status, Metrics};
+use crate::net::server::Shared;
+use crate::net::tls::TlsServer;
+use crate::net::{self, Policy, Upstream};
 use crate::routing::Router;
 use crate::shutdown::{self, Stop};
 use crate::sim::{self, SimLine};
-use crate::tcp::server::Shared;
-use crate::tcp::tls::TlsServer;
-use crate::tcp::{self, Policy, Upstream};
 use std::io;
 use std::net::SocketAddr;
 use std::path::Path;
@@ -219,14 +219,14 @@ fn bus_status(
 }
 
 /// Every TCP listener of `server`: Modbus TCP, RTU over TCP, then TLS.
-async fn bind_tcp(server: &config::Server) -> Result<Vec<tcp::server::Listener>, StartError> {
+async fn bind_tcp(server: &config::Server) -> Result<Vec<net::server::Listener>, StartError> {
     let mut listeners = Vec::new();
     for (addrs, upstream) in [
         (&server.listen, Upstream::Mbap),
         (&server.listen_rtu_over_tcp, Upstream::RtuOverTcp),
         (&server.listen_tls, Upstream::Tls),
     ] {
-        let bound = tcp::bind(addrs, upstream)
+        let bound = net::bind(addrs, upstream)
             .await
             .map_err(|(addr, source)| StartError::Listen { addr, source })?;
         listeners.extend(bound);
@@ -297,7 +297,7 @@ impl Gateway {
         let metrics = Arc::new(Metrics::new());
         let tls = load_tls(&config.server, &metrics)?;
         let listeners = bind_tcp(&config.server).await?;
-        let udp_listeners = tcp::udp::bind(&config.server.listen_udp)
+        let udp_listeners = net::udp::bind(&config.server.listen_udp)
             .await
             .map_err(|(addr, source)| StartError::Listen { addr, source })?;
         let metrics_listen = config.metrics.listen;
@@ -343,17 +343,17 @@ impl Gateway {
         ));
         let (tls_listeners, plain) = listeners.iter().partition(|l| l.upstream == Upstream::Tls);
         let addrs =
-            |listeners: Vec<&tcp::server::Listener>| listeners.iter().map(|l| l.addr).collect();
+            |listeners: Vec<&net::server::Listener>| listeners.iter().map(|l| l.addr).collect();
         let (tls_addrs, local_addrs) = (addrs(tls_listeners), addrs(plain));
         let mut listener_tasks = JoinSet::new();
         let udp_addrs = udp_listeners.iter().map(|l| l.addr).collect();
         for listener in udp_listeners {
             info!(listen = %listener.addr, protocol = "Modbus UDP", "accepting masters");
-            listener_tasks.spawn(tcp::udp::serve(listener, shared.clone()));
+            listener_tasks.spawn(net::udp::serve(listener, shared.clone()));
         }
         for listener in listeners {
             info!(listen = %listener.addr, protocol = listener.upstream.name(), "accepting masters");
-            listener_tasks.spawn(tcp::serve(listener, shared.clone()));
+            listener_tasks.spawn(net::serve(listener, shared.clone()));
         }
         Ok(Gateway {
             local_addrs,

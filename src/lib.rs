@@ -3,7 +3,7 @@
 //! Modules in the order a request flows through them:
 //! - [`config`]: the TOML file and `MBGW__` environment: loaded, checked per section, resolved
 //!   (derived values); diffed on reload. Imports no runtime module.
-//! - `tcp`: listeners (Modbus TCP, RTU over TCP, Modbus/TCP Security's TLS with certificate
+//! - `net`: listeners (Modbus TCP, RTU over TCP, Modbus/TCP Security's TLS with certificate
 //!   roles, UDP), MBAP framing, one session task per master.
 //! - `dispatch`: the gateway's immediate answers, or the bus a request goes to.
 //! - `routing`: unit id to (bus, slave address), a pure table.
@@ -28,7 +28,7 @@
 //!
 //! `pub` is the library's API (the lint table in Cargo.toml denies unreachable `pub`): the
 //! daemon's command line, the configuration, the gateway, the line and its simulator, which the
-//! bench uses too. `tcp`, `dispatch`, `routing` and `logging` are internal; what the integration
+//! bench uses too. `net`, `dispatch`, `routing` and `logging` are internal; what the integration
 //! tests drive of them directly is re-exported in [`testing`].
 
 // Unit tests may be long and cast freely; the product code may not (Cargo.toml's lint table).
@@ -44,11 +44,11 @@ pub mod line;
 mod logging;
 pub mod master;
 pub mod metrics;
+mod net;
 pub mod pdu;
 mod routing;
 pub mod shutdown;
 pub mod sim;
-mod tcp;
 pub mod timer;
 pub mod trace;
 
@@ -61,9 +61,9 @@ pub use gateway::Gateway;
 pub mod testing {
     pub use crate::dispatch::{Client, Dispatcher};
     pub use crate::master::{Protocol, Rights};
+    pub use crate::net::server::{set_keepalive, RECENTLY_ANSWERED};
+    pub use crate::net::session::{self, Activity, SessionError};
+    pub use crate::net::upstream::Upstream;
+    pub use crate::net::SessionLimits;
     pub use crate::routing::Router;
-    pub use crate::tcp::server::{set_keepalive, RECENTLY_ANSWERED};
-    pub use crate::tcp::session::{self, Activity, SessionError};
-    pub use crate::tcp::upstream::Upstream;
-    pub use crate::tcp::SessionLimits;
 }
