@@ -3,8 +3,9 @@
 //! Modules in the order a request flows through them:
 //! - [`config`]: the TOML file and `MBGW__` environment: loaded, checked per section, resolved
 //!   (derived values); diffed on reload. Imports no runtime module.
-//! - `net`: listeners (Modbus TCP, RTU over TCP, Modbus/TCP Security's TLS with certificate
-//!   roles, UDP), MBAP framing, one session task per master.
+//! - `net`: the listeners, each a transport (TCP, TLS with Modbus/TCP Security's certificate
+//!   roles, UDP) and a framing (MBAP, RTU): binding and admission shared by all, one session
+//!   task per connection, Modbus UDP's datagrams.
 //! - `dispatch`: the gateway's immediate answers, or the bus a request goes to.
 //! - `routing`: unit id to (bus, slave address), a pure table.
 //! - [`bus`]: one task per line, the only owner of its port: fair queue, reopen, one transaction
@@ -60,10 +61,10 @@ pub use gateway::Gateway;
 #[doc(hidden)]
 pub mod testing {
     pub use crate::dispatch::{Client, Dispatcher};
+    pub use crate::master::Framing;
     pub use crate::master::{Protocol, Rights};
     pub use crate::net::server::{set_keepalive, RECENTLY_ANSWERED};
     pub use crate::net::session::{self, Activity, SessionError};
-    pub use crate::net::upstream::Upstream;
     pub use crate::net::SessionLimits;
     pub use crate::routing::Router;
 }
