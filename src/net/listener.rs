@@ -2,8 +2,8 @@
 //! (a TCP socket for a stream transport, a UDP one for datagrams), the [`Policy`] connections
 //! and datagrams are admitted under, and the door itself ([`admit`]): `server.allow`, then the
 //! rights (`server.read_only`) and priority (`server.priority`) the master's address gives. What
-//! comes after the door is the transport's: [`server`](super::server) for streams,
-//! [`udp`](super::udp) for datagrams.
+//! comes after the door is the transport's: [`server`] for streams, [`udp`] for datagrams.
+//! Knows nothing of framing or sessions.
 
 use super::access::Access;
 use super::server::{self, Shared};

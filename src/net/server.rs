@@ -343,11 +343,10 @@ pub(crate) async fn serve(
         };
         let shared = shared.clone();
         tokio::spawn(async move {
-            match protocol.transport() {
-                Transport::Tls => accept_tls(stream, master, &policy, &shared).await,
-                Transport::Tcp | Transport::Udp => {
-                    admit(stream, master, None, &policy, &shared).await;
-                }
+            if protocol.transport() == Transport::Tls {
+                accept_tls(stream, master, &policy, &shared).await;
+            } else {
+                admit(stream, master, None, &policy, &shared).await;
             }
         });
     }

@@ -207,7 +207,7 @@ async fn send<S: AsyncWrite + Unpin>(
 
 /// Serve one master on `stream` (a connection) until it leaves or breaks the protocol, or
 /// until a stop: then read no more and answer what was read. Closing the stream (after a TLS
-/// close_notify, [`close_notify_due`]) is the caller's.
+/// close_notify, when `close_notify_due`) is the caller's.
 pub async fn run<S: AsyncRead + AsyncWrite + Unpin>(
     mut stream: S,
     framing: Framing,
