@@ -7,13 +7,14 @@
 use crate::bus::{BusHandle, BusTask, BusUpdates, Device, Reconfigure, SerialDriver};
 use crate::config::{self, BusChange, Config, ConfigDiff, ConfigErrors};
 use crate::dispatch::Dispatcher;
+use crate::master::Protocol;
 use crate::metrics::Metrics;
+use crate::net::server::Shared;
+use crate::net::tls::TlsServer;
+use crate::net::{self, ListenAddrs, Policy};
 use crate::routing::Router;
 use crate::shutdown::{self, Stop};
 use crate::sim::{self, SimLine};
-use crate::tcp::server::Shared;
-use crate::tcp::tls::TlsServer;
-use crate::tcp::{self, Policy, Upstream};
 use crate::web;
 use std::io;
 use std::net::SocketAddr;
@@ -53,9 +54,7 @@ struct Running {
 }
 
 pub struct Gateway {
-    local_addrs: Vec<SocketAddr>,
-    tls_addrs: Vec<SocketAddr>,
-    udp_addrs: Vec<SocketAddr>,
+    listen_addrs: ListenAddrs,
     metrics_addr: SocketAddr,
     metrics: Arc<Metrics>,
     /// The configuration in force: the one started with, or the last reloaded. Shared with the
@@ -142,25 +141,9 @@ impl web::Inspect for Inspected {
         config.bus.iter().find(|bus| bus.name == name).cloned()
     }
 
-    fn masters(&self, now: std::time::SystemTime) -> Vec<web::status::MasterStatus> {
-        self.shared.masters(now)
+    fn masters(&self) -> Vec<net::server::Connected> {
+        self.shared.masters()
     }
-}
-
-/// Every TCP listener of `server`: Modbus TCP, RTU over TCP, then TLS.
-async fn bind_tcp(server: &config::Server) -> Result<Vec<tcp::server::Listener>, StartError> {
-    let mut listeners = Vec::new();
-    for (addrs, upstream) in [
-        (&server.listen, Upstream::Mbap),
-        (&server.listen_rtu_over_tcp, Upstream::RtuOverTcp),
-        (&server.listen_tls, Upstream::Tls),
-    ] {
-        let bound = tcp::bind(addrs, upstream)
-            .await
-            .map_err(|(addr, source)| StartError::Listen { addr, source })?;
-        listeners.extend(bound);
-    }
-    Ok(listeners)
 }
 
 /// The TLS server of `[server.tls]`, read from its files now, with its certificate's expiry
@@ -226,8 +209,7 @@ impl Gateway {
     pub async fn start(config: &Config) -> Result<Gateway, StartError> {
         let metrics = Arc::new(Metrics::new());
         let tls = load_tls(&config.server, &metrics)?;
-        let listeners = bind_tcp(&config.server).await?;
-        let udp_listeners = tcp::udp::bind(&config.server.listen_udp)
+        let listeners = net::bind_all(&config.server)
             .await
             .map_err(|(addr, source)| StartError::Listen { addr, source })?;
         let metrics_listen = config.metrics.listen;
@@ -273,24 +255,14 @@ impl Gateway {
             metrics.clone(),
             Arc::new(inspected),
         ));
-        let (tls_listeners, plain) = listeners.iter().partition(|l| l.upstream == Upstream::Tls);
-        let addrs =
-            |listeners: Vec<&tcp::server::Listener>| listeners.iter().map(|l| l.addr).collect();
-        let (tls_addrs, local_addrs) = (addrs(tls_listeners), addrs(plain));
+        let listen_addrs = ListenAddrs::of(&listeners);
         let mut listener_tasks = JoinSet::new();
-        let udp_addrs = udp_listeners.iter().map(|l| l.addr).collect();
-        for listener in udp_listeners {
-            info!(listen = %listener.addr, protocol = "Modbus UDP", "accepting masters");
-            listener_tasks.spawn(tcp::udp::serve(listener, shared.clone()));
-        }
         for listener in listeners {
-            info!(listen = %listener.addr, protocol = listener.upstream.name(), "accepting masters");
-            listener_tasks.spawn(tcp::serve(listener, shared.clone()));
+            info!(listen = %listener.addr, protocol = listener.protocol.name(), "accepting masters");
+            listener_tasks.spawn(net::serve(listener, shared.clone()));
         }
         Ok(Gateway {
-            local_addrs,
-            tls_addrs,
-            udp_addrs,
+            listen_addrs,
             metrics_addr,
             metrics,
             config,
@@ -429,20 +401,36 @@ impl Gateway {
         }
     }
 
-    /// The bound listen addresses (port 0 in the configuration becomes the real port here):
-    /// `server.listen`'s, then `server.listen_rtu_over_tcp`'s.
-    pub fn local_addrs(&self) -> &[SocketAddr] {
-        &self.local_addrs
+    /// The bound addresses of the `protocol` masters' listeners, in configuration order (port 0
+    /// in the configuration becomes the real port here).
+    pub fn addrs(&self, protocol: Protocol) -> &[SocketAddr] {
+        self.listen_addrs.of_protocol(protocol)
+    }
+
+    /// The bound `server.listen` addresses (Modbus TCP).
+    pub fn tcp_addrs(&self) -> &[SocketAddr] {
+        self.addrs(Protocol::Tcp)
+    }
+
+    /// The bound `server.listen_rtu_over_tcp` addresses.
+    pub fn rtu_over_tcp_addrs(&self) -> &[SocketAddr] {
+        self.addrs(Protocol::RtuOverTcp)
     }
 
     /// The bound `server.listen_tls` addresses.
     pub fn tls_addrs(&self) -> &[SocketAddr] {
-        &self.tls_addrs
+        self.addrs(Protocol::Tls)
     }
 
     /// The bound `server.listen_udp` addresses.
     pub fn udp_addrs(&self) -> &[SocketAddr] {
-        &self.udp_addrs
+        self.addrs(Protocol::Udp)
+    }
+
+    /// `server.listen`'s bound addresses, then `server.listen_rtu_over_tcp`'s; superseded by
+    /// [`Gateway::tcp_addrs`] and [`Gateway::rtu_over_tcp_addrs`].
+    pub fn local_addrs(&self) -> &[SocketAddr] {
+        self.listen_addrs.tcp_then_rtu()
     }
 
     /// The bound address of the metrics endpoint.
@@ -494,7 +482,7 @@ impl Gateway {
     /// queued requests until `shutdown_timeout` and answer the rest 0x0A; let every session
     /// write its answers and close; then stop every task.
     pub async fn shutdown(mut self) {
-        self.listeners.shutdown().await;
+        shutdown::abort_all(&mut self.listeners, "listener").await;
         let config = self
             .config
             .lock()
@@ -536,10 +524,7 @@ impl Gateway {
         for abort in aborts {
             abort.abort();
         }
-        self.tasks.abort_all();
-        while let Some(ended) = self.tasks.join_next().await {
-            shutdown::log_end("metrics endpoint", ended);
-        }
+        shutdown::abort_all(&mut self.tasks, "metrics endpoint").await;
     }
 }
 

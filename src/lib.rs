@@ -3,8 +3,9 @@
 //! Modules in the order a request flows through them:
 //! - [`config`]: the TOML file and `MBGW__` environment: loaded, checked per section, resolved
 //!   (derived values); diffed on reload. Imports no runtime module.
-//! - `tcp`: listeners (Modbus TCP, RTU over TCP, Modbus/TCP Security's TLS with certificate
-//!   roles, UDP), MBAP framing, one session task per master.
+//! - `net`: the listeners, each a transport (TCP, TLS with Modbus/TCP Security's certificate
+//!   roles, UDP) and a framing (MBAP, RTU): binding and admission shared by all, one session
+//!   task per connection, Modbus UDP's datagrams.
 //! - `dispatch`: the gateway's immediate answers, or the bus a request goes to.
 //! - `routing`: unit id to (bus, slave address), a pure table.
 //! - [`bus`]: one task per line, the only owner of its port: fair queue, reopen, one transaction
@@ -32,7 +33,7 @@
 //!
 //! `pub` is the library's API (the lint table in Cargo.toml denies unreachable `pub`): the
 //! daemon's command line, the configuration, the gateway, the line and its simulator, which the
-//! bench uses too. `tcp`, `dispatch`, `routing` and `logging` are internal; what the integration
+//! bench uses too. `net`, `dispatch`, `routing` and `logging` are internal; what the integration
 //! tests drive of them directly is re-exported in [`testing`].
 
 // Unit tests may be long and cast freely; the product code may not (Cargo.toml's lint table).
@@ -51,6 +52,10 @@ pub mod line;
 mod logging;
 pub mod master;
 pub mod metrics;
+// What `testing` re-exports is `pub` for the tests' build (feature `test-util`) and unreachable
+// in the daemon's: the lint is for the build that has the hooks (clippy --all-targets).
+#[cfg_attr(not(feature = "test-util"), allow(unreachable_pub))]
+mod net;
 pub mod pdu;
 // What `testing` re-exports is `pub` for the tests' build (feature `test-util`) and unreachable
 // in the daemon's: the lint is for the build that has the hooks (clippy --all-targets).
@@ -58,10 +63,6 @@ pub mod pdu;
 mod routing;
 pub mod shutdown;
 pub mod sim;
-// What `testing` re-exports is `pub` for the tests' build (feature `test-util`) and unreachable
-// in the daemon's: the lint is for the build that has the hooks (clippy --all-targets).
-#[cfg_attr(not(feature = "test-util"), allow(unreachable_pub))]
-mod tcp;
 pub mod timer;
 pub mod trace;
 mod web;
@@ -75,12 +76,12 @@ pub use gateway::Gateway;
 #[cfg(feature = "test-util")]
 pub mod testing {
     pub use crate::dispatch::{Client, Dispatcher};
+    pub use crate::master::Framing;
     pub use crate::master::{Protocol, Rights};
+    pub use crate::net::server::{set_keepalive, RECENTLY_ANSWERED};
+    pub use crate::net::session::SessionLimits;
+    pub use crate::net::session::{self, Activity, SessionError};
     pub use crate::routing::Router;
-    pub use crate::tcp::server::{set_keepalive, RECENTLY_ANSWERED};
-    pub use crate::tcp::session::{self, Activity, SessionError};
-    pub use crate::tcp::upstream::Upstream;
-    pub use crate::tcp::SessionLimits;
 
     use crate::metrics::Metrics;
     use std::sync::Arc;
@@ -101,7 +102,7 @@ pub mod testing {
             None
         }
 
-        fn masters(&self, _: std::time::SystemTime) -> Vec<crate::web::status::MasterStatus> {
+        fn masters(&self) -> Vec<crate::net::server::Connected> {
             Vec::new()
         }
     }

@@ -19,8 +19,11 @@ pub struct Origin {
     pub priority: bool,
 }
 
-/// How a master talks to the gateway: the `protocol` label of connections and requests.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+/// How a master talks to the gateway: a transport and a framing, as the gateway offers them
+/// (RTU frames go on a plain TCP stream only), and the `protocol` label of connections and
+/// requests. [`Protocol::spec`] is the one table of what each is; a pair it does not hold
+/// ([`Protocol::of`] says `None`) is no listener the gateway has.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub enum Protocol {
     /// Modbus TCP (`server.listen`).
     #[default]
@@ -33,14 +36,90 @@ pub enum Protocol {
     Tls,
 }
 
+/// How a master's bytes travel: on a stream, plain or in TLS, or in datagrams.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Transport {
+    /// A TCP connection.
+    Tcp,
+    /// A TLS session on a TCP connection, the master authenticated by its certificate.
+    Tls,
+    /// UDP datagrams, one request each.
+    Udp,
+}
+
+impl Transport {
+    /// A connection (TCP or TLS) rather than datagrams.
+    pub fn is_stream(self) -> bool {
+        self != Transport::Udp
+    }
+}
+
+/// How a master delimits and addresses its requests (the codec is the network side's).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Framing {
+    /// An MBAP header (transaction id, protocol id, length, unit id) before each PDU.
+    Mbap,
+    /// As on a serial line: address, PDU, CRC-16, no header; replies the same way.
+    Rtu,
+}
+
+/// What a protocol is, in one row.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Spec {
+    pub transport: Transport,
+    pub framing: Framing,
+    /// What the logs and `accepting ... masters` call it.
+    pub name: &'static str,
+    /// The `protocol` label.
+    pub label: &'static str,
+}
+
 impl Protocol {
-    pub fn label(self) -> &'static str {
-        match self {
-            Protocol::Tcp => "tcp",
-            Protocol::RtuOverTcp => "rtu_over_tcp",
-            Protocol::Udp => "udp",
-            Protocol::Tls => "tls",
+    pub const ALL: [Protocol; 4] = [
+        Protocol::Tcp,
+        Protocol::RtuOverTcp,
+        Protocol::Udp,
+        Protocol::Tls,
+    ];
+
+    /// The one table of the protocols: their transport, framing, name and label.
+    pub const fn spec(self) -> Spec {
+        let (transport, framing, name, label) = match self {
+            Protocol::Tcp => (Transport::Tcp, Framing::Mbap, "Modbus TCP", "tcp"),
+            Protocol::RtuOverTcp => (Transport::Tcp, Framing::Rtu, "RTU over TCP", "rtu_over_tcp"),
+            Protocol::Udp => (Transport::Udp, Framing::Mbap, "Modbus UDP", "udp"),
+            Protocol::Tls => (Transport::Tls, Framing::Mbap, "Modbus/TCP Security", "tls"),
+        };
+        Spec {
+            transport,
+            framing,
+            name,
+            label,
         }
+    }
+
+    /// The protocol of `framing` over `transport`; `None` for a pair the gateway does not offer
+    /// (RTU in TLS or in UDP datagrams).
+    pub fn of(transport: Transport, framing: Framing) -> Option<Protocol> {
+        let offered = |p: &Protocol| (p.transport(), p.framing()) == (transport, framing);
+        Protocol::ALL.into_iter().find(offered)
+    }
+
+    pub fn transport(self) -> Transport {
+        self.spec().transport
+    }
+
+    pub fn framing(self) -> Framing {
+        self.spec().framing
+    }
+
+    /// What the logs and `accepting ... masters` call it.
+    pub fn name(self) -> &'static str {
+        self.spec().name
+    }
+
+    pub fn label(self) -> &'static str {
+        self.spec().label
     }
 }
 
@@ -63,5 +142,32 @@ impl Rights {
             Rights::ReadOnly => "read_only",
             Rights::ReadWrite => "read_write",
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_offered_pair_of_transport_and_framing_is_one_protocol_and_rtu_goes_on_plain_tcp_only() {
+        for protocol in Protocol::ALL {
+            assert_eq!(
+                Protocol::of(protocol.transport(), protocol.framing()),
+                Some(protocol)
+            );
+        }
+        assert_eq!(Protocol::of(Transport::Tls, Framing::Rtu), None);
+        assert_eq!(Protocol::of(Transport::Udp, Framing::Rtu), None);
+        let names: Vec<&str> = Protocol::ALL.iter().map(|p| p.name()).collect();
+        assert_eq!(
+            names,
+            [
+                "Modbus TCP",
+                "RTU over TCP",
+                "Modbus UDP",
+                "Modbus/TCP Security"
+            ]
+        );
     }
 }

@@ -52,6 +52,14 @@ impl Stopping {
     }
 }
 
+/// Abort every task of `tasks` and log how each ended ([`log_end`]), naming them `what`.
+pub(crate) async fn abort_all(tasks: &mut tokio::task::JoinSet<()>, what: &str) {
+    tasks.abort_all();
+    while let Some(ended) = tasks.join_next().await {
+        log_end(what, ended);
+    }
+}
+
 /// How `task` ended, in the log: a panic is an error an operator must see (the task's work has
 /// stopped); a task cancelled on purpose (the gateway stopping it) is noted at debug.
 pub(crate) fn log_end(task: &str, ended: Result<(), JoinError>) {

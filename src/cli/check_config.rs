@@ -3,7 +3,7 @@
 
 use crate::config::{Bus, Config, Rs485Mode};
 use crate::line::Framing;
-use crate::tcp::tls::TlsServer;
+use crate::net::tls::TlsServer;
 use std::path::Path;
 use std::process::ExitCode;
 use std::time::SystemTime;

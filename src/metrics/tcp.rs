@@ -73,6 +73,10 @@ impl Refusal {
 const NOT_ALLOWED_LOG_INTERVAL: Duration = Duration::from_secs(10);
 
 impl TcpMetrics {
+    /// The log target of the events of masters on TCP (and TLS), here and where the network
+    /// side logs them itself.
+    pub(crate) const EVENTS: &'static str = TCP_EVENTS;
+
     pub(super) fn new(define: &Definer) -> Self {
         let open = define.int_gauge(
             "modbus_gateway_tcp_connections",

@@ -1,6 +1,7 @@
 //! Modbus UDP's metrics and events: datagrams dropped, by reason.
 
-use super::{Definer, TCP_EVENTS};
+use super::Definer;
+use crate::master::Protocol;
 use prometheus::IntCounterVec;
 use std::fmt::Display;
 use tracing::debug;
@@ -33,7 +34,13 @@ pub struct UdpMetrics {
     dropped: IntCounterVec,
 }
 
+/// The log target of Modbus UDP's events, apart from those of connections (`modbus_gateway::tcp`).
+const UDP_EVENTS: &str = "modbus_gateway::udp";
+
 impl UdpMetrics {
+    /// The log target of Modbus UDP's events, here and where the network side logs them itself.
+    pub(crate) const EVENTS: &'static str = UDP_EVENTS;
+
     pub(super) fn new(define: &Definer) -> Self {
         let dropped = define.int_counter(
             "modbus_gateway_udp_dropped_total",
@@ -51,6 +58,7 @@ impl UdpMetrics {
     pub fn dropped(&self, reason: UdpDrop, peer: &dyn Display) {
         let reason = reason.label();
         self.dropped.with_label_values(&[reason]).inc();
-        debug!(target: TCP_EVENTS, protocol = "Modbus UDP", %peer, reason, "datagram dropped");
+        let protocol = Protocol::Udp.name();
+        debug!(target: UDP_EVENTS, protocol, %peer, reason, "datagram dropped");
     }
 }

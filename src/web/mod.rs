@@ -13,6 +13,7 @@ pub(crate) use endpoint::serve;
 
 use crate::bus::BusHandle;
 use crate::config;
+use crate::net::server::Connected;
 use status::{BusStatus, MasterStatus, SlaveStatus, Status, Utilisation};
 use std::time::SystemTime;
 use tokio::time::Instant;
@@ -23,8 +24,8 @@ pub(crate) trait Inspect: Send + Sync + 'static {
     fn buses(&self) -> Vec<BusHandle>;
     /// The settings bus `name` runs with now.
     fn settings(&self, name: &str) -> Option<config::Bus>;
-    /// The masters connected now.
-    fn masters(&self, now: SystemTime) -> Vec<MasterStatus>;
+    /// The masters connected now, longest connected first.
+    fn masters(&self) -> Vec<Connected>;
 }
 
 /// The buses whose port is not open, for `/readyz`.
@@ -72,8 +73,26 @@ impl StatusSource {
             time: status::rfc3339(wall),
             uptime_seconds: status::seconds_between(self.started.1, wall),
             buses,
-            masters: gateway.masters(wall),
+            masters: gateway
+                .masters()
+                .iter()
+                .map(|m| master_status(m, wall))
+                .collect(),
         }
+    }
+}
+
+/// One master on the status page, at `now`.
+fn master_status(master: &Connected, now: SystemTime) -> MasterStatus {
+    MasterStatus {
+        address: master.peer.to_string(),
+        protocol: master.protocol.label(),
+        rights: master.rights.name(),
+        role: master.role.clone(),
+        priority: master.priority,
+        connected_since: status::rfc3339(master.since),
+        connected_seconds: status::seconds_between(master.since, now),
+        requests: master.requests,
     }
 }
 

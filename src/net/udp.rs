@@ -2,17 +2,18 @@
 //! datagram's source and nowhere else. A master is a source address and port; while it has
 //! requests pending it is one master in the buses' fair queues, like a TCP connection, but all
 //! the ports of one address share one turn on a line and count as one master for admission to a
-//! full queue (ports cost a sender nothing). Datagrams from outside `server.allow`, malformed ones, and those beyond
+//! full queue (ports cost a sender nothing). Datagrams from outside `server.allow` (the door
+//! every listener shares, [`listener::admit`]), malformed ones, and those beyond
 //! `pipeline_depth` pending for one source are dropped and counted, never queued without bound.
 
+use super::listener;
 use super::mbap;
 use super::server::Shared;
 use crate::dispatch::Client;
 use crate::master::{MasterId, Protocol};
-use crate::metrics::UdpDrop;
+use crate::metrics::{UdpDrop, UdpMetrics};
 use bytes::BytesMut;
 use std::collections::{hash_map, HashMap};
-use std::io;
 use std::net::{IpAddr, SocketAddr};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
@@ -23,27 +24,6 @@ use tracing::warn;
 const MAX_DATAGRAM: usize = mbap::HEADER_LEN + crate::pdu::MAX_PDU_LEN;
 /// Pause after a receive error, so the loop does not spin.
 const RECV_ERROR_PAUSE: Duration = Duration::from_millis(100);
-
-pub(crate) struct UdpListener {
-    pub addr: SocketAddr,
-    socket: Arc<UdpSocket>,
-}
-
-/// Bind every address, or fail naming the one that could not be bound.
-pub(crate) async fn bind(
-    addrs: &[SocketAddr],
-) -> Result<Vec<UdpListener>, (SocketAddr, io::Error)> {
-    let mut listeners = Vec::with_capacity(addrs.len());
-    for &addr in addrs {
-        let socket = UdpSocket::bind(addr).await.map_err(|e| (addr, e))?;
-        let addr = socket.local_addr().map_err(|e| (addr, e))?;
-        listeners.push(UdpListener {
-            addr,
-            socket: Arc::new(socket),
-        });
-    }
-    Ok(listeners)
-}
 
 /// The sources with requests pending, and their addresses.
 #[derive(Default)]
@@ -108,23 +88,24 @@ fn address_of(peer: SocketAddr) -> IpAddr {
     peer.ip().to_canonical()
 }
 
-/// Serve datagrams on `listener` forever.
-pub(crate) async fn serve(listener: UdpListener, shared: Arc<Shared>) {
+/// Serve datagrams on `socket`, bound at `addr`, forever.
+pub(crate) async fn serve(socket: UdpSocket, addr: SocketAddr, shared: Arc<Shared>) {
+    let socket = Arc::new(socket);
     let pending: Arc<Pending> = Arc::default();
     let mut buf = vec![0u8; MAX_DATAGRAM + 1];
     loop {
-        let (len, peer) = match listener.socket.recv_from(&mut buf).await {
+        let (len, peer) = match socket.recv_from(&mut buf).await {
             Ok(received) => received,
             Err(error) => {
-                warn!(listen = %listener.addr, %error, "UDP receive failed");
+                warn!(target: UdpMetrics::EVENTS, listen = %addr, %error, "UDP receive failed");
                 tokio::time::sleep(RECV_ERROR_PAUSE).await;
                 continue;
             }
         };
         let udp = &shared.metrics.udp;
         let policy = shared.policy();
-        let Some(rights) = policy.access.admit(peer.ip()) else {
-            udp.dropped(UdpDrop::NotAllowed, &peer);
+        let Some(admission) = listener::admit(&policy, &shared.metrics, Protocol::Udp, addr, peer)
+        else {
             continue;
         };
         let Some(request) = request_of(&buf[..len]) else {
@@ -132,16 +113,11 @@ pub(crate) async fn serve(listener: UdpListener, shared: Arc<Shared>) {
             continue;
         };
         let depth = policy.limits.pipeline_depth;
-        let priority = policy.access.is_priority(peer.ip());
         let (header, function) = (request.header, request.pdu[0]);
         let outcome = {
             let mut sources = pending.lock().unwrap_or_else(PoisonError::into_inner);
             let new_id = || shared.new_master();
-            let (client, count) = sources.client(peer, new_id, |master| {
-                Client::new(master, peer, rights)
-                    .speaking(Protocol::Udp)
-                    .prioritised(priority)
-            });
+            let (client, count) = sources.client(peer, new_id, |master| admission.client(master));
             if *count >= depth {
                 None
             } else {
@@ -153,7 +129,7 @@ pub(crate) async fn serve(listener: UdpListener, shared: Arc<Shared>) {
             udp.dropped(UdpDrop::Overloaded, &peer);
             continue;
         };
-        let socket = listener.socket.clone();
+        let socket = socket.clone();
         let pending = pending.clone();
         tokio::spawn(async move {
             let outcome = outcome

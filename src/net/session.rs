@@ -5,8 +5,8 @@
 //! as long, a connection idle for `idle_timeout`, or the listener making room for a new master.
 //! When the master goes, its queued requests go too.
 
+use super::framing::{Decoded, Framing};
 use super::mbap::{self, FrameError, Header};
-use super::upstream::{Decoded, Upstream};
 use crate::dispatch::{Client, Dispatcher};
 use crate::error::{Outcome, RequestError};
 use crate::metrics::Closing;
@@ -205,11 +205,12 @@ async fn send<S: AsyncWrite + Unpin>(
     }
 }
 
-/// Serve one master on `stream` (a TCP connection) until it leaves or breaks the protocol, or
-/// until a stop: then read no more, answer what was read, and close.
+/// Serve one master on `stream` (a connection) until it leaves or breaks the protocol, or
+/// until a stop: then read no more and answer what was read. Closing the stream (after a TLS
+/// close_notify, when `close_notify_due`) is the caller's.
 pub async fn run<S: AsyncRead + AsyncWrite + Unpin>(
     mut stream: S,
-    upstream: Upstream,
+    framing: Framing,
     mut client: Client,
     activity: &Activity,
     dispatcher: &Dispatcher,
@@ -218,7 +219,7 @@ pub async fn run<S: AsyncRead + AsyncWrite + Unpin>(
 ) -> SessionError {
     let error = serve(
         &mut stream,
-        upstream,
+        framing,
         &mut client,
         activity,
         dispatcher,
@@ -227,23 +228,29 @@ pub async fn run<S: AsyncRead + AsyncWrite + Unpin>(
     )
     .await;
     dispatcher.forget(client.master);
-    // A TLS session ends with close_notify, so the master can tell a close from a cut; a
-    // master that stopped reading does not hold it up.
+    error
+}
+
+/// Whether a TLS session that ended with `error` gets its close_notify, so the master can tell
+/// a close from a cut: not when the master left or broke the connection, nor when it stopped
+/// reading (it would hold the close up).
+pub(crate) fn close_notify_due(error: &SessionError, activity: &Activity) -> bool {
     let unread = activity.seen().blocked.is_some();
-    let closable = !unread
+    !unread
         && !matches!(
             error,
             SessionError::Closed | SessionError::Io(_) | SessionError::WriteTimeout(_)
-        );
-    if upstream == Upstream::Tls && closable {
-        let _ = tokio::time::timeout(CLOSE_NOTIFY_WAIT, stream.shutdown()).await;
-    }
-    error
+        )
+}
+
+/// Send a TLS session's close_notify, within [`CLOSE_NOTIFY_WAIT`].
+pub(crate) async fn close_notify<S: AsyncWrite + Unpin>(stream: &mut S) {
+    let _ = tokio::time::timeout(CLOSE_NOTIFY_WAIT, stream.shutdown()).await;
 }
 
 async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
     stream: &mut S,
-    upstream: Upstream,
+    framing: Framing,
     client: &mut Client,
     activity: &Activity,
     dispatcher: &Dispatcher,
@@ -259,7 +266,7 @@ async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
     let mut stopped = stopping.deadline().is_some();
     loop {
         while in_flight.len() < limits.pipeline_depth {
-            match upstream.decode(&mut inbound) {
+            match framing.decode(&mut inbound) {
                 Ok(Some(Decoded::BadCrc)) => {
                     partial_since = None;
                     dispatcher.bad_frame(client);
@@ -299,7 +306,7 @@ async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
             outcome = next_outcome(&mut in_flight) => {
                 let Some(done) = in_flight.pop_front() else { continue };
                 if let Some(pdu) = reply_pdu(done.function, outcome) {
-                    upstream.encode(done.header, &pdu, &mut outbound);
+                    framing.encode(done.header, &pdu, &mut outbound);
                     if let Err(error) = send(stream, &outbound, activity, limits.frame_timeout).await {
                         return error;
                     }

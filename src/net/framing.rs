@@ -1,24 +1,13 @@
-//! How a master frames its requests on its connection: MBAP (Modbus TCP, `server.listen`; the
-//! same inside TLS, `server.listen_tls`) or plain RTU frames on the stream (RTU over TCP,
-//! `server.listen_rtu_over_tcp`, as serial device servers and mbpoll's `-m enc` send them). The
-//! session is the same for all; only the framing of requests and replies differs. Pure
-//! functions over buffers.
+//! The codec of a listener's [`Framing`]: MBAP (Modbus TCP, `server.listen`; the same inside
+//! TLS, `server.listen_tls`, and in datagrams, `server.listen_udp`) or plain RTU frames on the
+//! stream (RTU over TCP, `server.listen_rtu_over_tcp`, as serial device servers and mbpoll's
+//! `-m enc` send them). The session is the same for all; only the framing of requests and
+//! replies differs. Pure functions over buffers; knows nothing of the transport.
 
 use super::mbap::{self, FrameError, Header, Request};
 use crate::line::rtu::{self, FrameLen};
-use crate::master::Protocol;
+pub(crate) use crate::master::Framing;
 use bytes::BytesMut;
-
-/// A listener's framing.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Upstream {
-    /// Modbus TCP: an MBAP header before each PDU.
-    Mbap,
-    /// RTU over TCP: address, PDU, CRC-16, no header; replies the same way.
-    RtuOverTcp,
-    /// Modbus/TCP Security: MBAP, as Modbus TCP, inside a TLS session.
-    Tls,
-}
 
 /// What the front of a connection's buffer holds.
 #[derive(Debug, PartialEq, Eq)]
@@ -28,31 +17,13 @@ pub(crate) enum Decoded {
     BadCrc,
 }
 
-impl Upstream {
-    /// What the logs and `accepting ... masters` call it.
-    pub fn name(self) -> &'static str {
-        match self {
-            Upstream::Mbap => "Modbus TCP",
-            Upstream::RtuOverTcp => "RTU over TCP",
-            Upstream::Tls => "Modbus/TCP Security",
-        }
-    }
-
-    /// The `protocol` label of its masters' connections and requests.
-    pub fn protocol(self) -> Protocol {
-        match self {
-            Upstream::Mbap => Protocol::Tcp,
-            Upstream::RtuOverTcp => Protocol::RtuOverTcp,
-            Upstream::Tls => Protocol::Tls,
-        }
-    }
-
+impl Framing {
     /// Take one request (or one bad frame) off the front of `buf`: `Ok(None)` until a whole one
     /// is in. An error closes the connection.
     pub(crate) fn decode(self, buf: &mut BytesMut) -> Result<Option<Decoded>, FrameError> {
         match self {
-            Upstream::Mbap | Upstream::Tls => Ok(mbap::decode(buf)?.map(Decoded::Request)),
-            Upstream::RtuOverTcp => decode_rtu(buf),
+            Framing::Mbap => Ok(mbap::decode(buf)?.map(Decoded::Request)),
+            Framing::Rtu => decode_rtu(buf),
         }
     }
 
@@ -60,8 +31,8 @@ impl Upstream {
     pub(crate) fn encode(self, header: Header, pdu: &[u8], out: &mut Vec<u8>) {
         out.clear();
         match self {
-            Upstream::Mbap | Upstream::Tls => mbap::encode(header, pdu, out),
-            Upstream::RtuOverTcp => rtu::encode_into(out, header.unit, pdu),
+            Framing::Mbap => mbap::encode(header, pdu, out),
+            Framing::Rtu => rtu::encode_into(out, header.unit, pdu),
         }
     }
 }
@@ -101,7 +72,7 @@ mod tests {
     const READ: [u8; 8] = [0x01, 0x03, 0x00, 0x04, 0x00, 0x02, 0x85, 0xCA];
 
     fn rtu(bytes: &[u8]) -> Result<Option<Decoded>, FrameError> {
-        Upstream::RtuOverTcp.decode(&mut BytesMut::from(bytes))
+        Framing::Rtu.decode(&mut BytesMut::from(bytes))
     }
 
     fn request(unit: u8, pdu: &[u8]) -> Option<Decoded> {
@@ -125,10 +96,10 @@ mod tests {
     #[test]
     fn two_rtu_requests_in_one_buffer_come_out_one_after_the_other() {
         let mut buf = BytesMut::from(&[READ, READ][..].concat()[..]);
-        let upstream = Upstream::RtuOverTcp;
-        assert_eq!(upstream.decode(&mut buf), Ok(request(1, &READ[1..6])));
-        assert_eq!(upstream.decode(&mut buf), Ok(request(1, &READ[1..6])));
-        assert_eq!(upstream.decode(&mut buf), Ok(None));
+        let framing = Framing::Rtu;
+        assert_eq!(framing.decode(&mut buf), Ok(request(1, &READ[1..6])));
+        assert_eq!(framing.decode(&mut buf), Ok(request(1, &READ[1..6])));
+        assert_eq!(framing.decode(&mut buf), Ok(None));
     }
 
     #[test]
@@ -136,9 +107,9 @@ mod tests {
         let mut bad = READ;
         bad[7] ^= 0x01;
         let mut buf = BytesMut::from(&[bad, READ][..].concat()[..]);
-        let upstream = Upstream::RtuOverTcp;
-        assert_eq!(upstream.decode(&mut buf), Ok(Some(Decoded::BadCrc)));
-        assert_eq!(upstream.decode(&mut buf), Ok(request(1, &READ[1..6])));
+        let framing = Framing::Rtu;
+        assert_eq!(framing.decode(&mut buf), Ok(Some(Decoded::BadCrc)));
+        assert_eq!(framing.decode(&mut buf), Ok(request(1, &READ[1..6])));
     }
 
     #[test]
@@ -167,9 +138,9 @@ mod tests {
             unit: 1,
         };
         let mut out = vec![0xAA];
-        Upstream::RtuOverTcp.encode(header, &[0x83, 0x0A], &mut out);
+        Framing::Rtu.encode(header, &[0x83, 0x0A], &mut out);
         assert_eq!(out, rtu::encode(1, &[0x83, 0x0A]));
-        Upstream::Mbap.encode(header, &[0x83, 0x0A], &mut out);
+        Framing::Mbap.encode(header, &[0x83, 0x0A], &mut out);
         assert_eq!(out, [0, 7, 0, 0, 0, 3, 1, 0x83, 0x0A]);
     }
 }

@@ -1,23 +1,22 @@
-//! The listeners: accept masters on every `server.listen*` address; refuse those outside
-//! `server.allow` and those beyond `max_connections_per_address` from one address; at
-//! `max_connections`, make room by closing a connection that is not working (or refuse, with
-//! `when_full = "refuse"`, or when every connection is working). Refused masters are accepted
+//! The stream listeners' accept loop (TCP, and TLS on TCP): accept masters; refuse those the
+//! door every listener shares refuses ([`listener::admit`]: outside `server.allow`) and those
+//! beyond `max_connections_per_address` from one address; at `max_connections`, make room by
+//! closing a connection that is not working (or refuse, with `when_full = "refuse"`, or when
+//! every connection is working). Refused masters are accepted
 //! and closed at once, so they see the refusal instead of hanging in the backlog. Each accepted
 //! connection gets TCP_NODELAY, keepalive probes, and one session task. On a TLS listener the
 //! handshake comes first (after `allow`, before a connection slot: a peer that has not proved
 //! who it is never closes an authenticated master's connection), and the certificate's role
 //! narrows the rights.
 
-use super::access::Access;
-use super::session::{self, Activity, Seen, SessionLimits};
-use super::tls::{Identity, TlsServer};
-use super::upstream::Upstream;
-use crate::config::{self, WhenFull};
-use crate::dispatch::{Client, Dispatcher};
-use crate::master::{MasterId, Protocol, Rights};
-use crate::metrics::{Metrics, Rejection, TlsMaster};
+use super::listener::{self, Admission, Policy};
+use super::session::{self, Activity, Seen};
+use super::tls::Identity;
+use crate::config::WhenFull;
+use crate::dispatch::Dispatcher;
+use crate::master::{MasterId, Protocol, Rights, Transport};
+use crate::metrics::{Metrics, Rejection, TcpMetrics, TlsMaster};
 use crate::shutdown::Stopping;
-use crate::web::status::{self, MasterStatus};
 use socket2::{SockRef, TcpKeepalive};
 use std::collections::HashMap;
 use std::io;
@@ -53,65 +52,6 @@ const FIRST_BYTES_WAIT: Duration = Duration::from_secs(3);
 /// SCADA uses; a master quiet this long may be closed for a newcomer.
 pub const RECENTLY_ANSWERED: Duration = Duration::from_secs(60);
 
-pub(crate) struct Listener {
-    pub addr: SocketAddr,
-    pub upstream: Upstream,
-    listener: TcpListener,
-}
-
-/// Bind every address, for masters that frame their requests as `upstream` says, or fail naming
-/// the one that could not be bound.
-pub(crate) async fn bind(
-    addrs: &[SocketAddr],
-    upstream: Upstream,
-) -> Result<Vec<Listener>, (SocketAddr, io::Error)> {
-    let mut listeners = Vec::with_capacity(addrs.len());
-    for &addr in addrs {
-        let listener = TcpListener::bind(addr).await.map_err(|e| (addr, e))?;
-        let addr = listener.local_addr().map_err(|e| (addr, e))?;
-        listeners.push(Listener {
-            addr,
-            upstream,
-            listener,
-        });
-    }
-    Ok(listeners)
-}
-
-/// How connections are admitted and served: `[server]` minus the listen addresses, and the TLS
-/// server that the `[server.tls]` files made.
-#[derive(Clone, Debug)]
-pub(crate) struct Policy {
-    pub limits: SessionLimits,
-    pub access: Access,
-    pub when_full: WhenFull,
-    /// Connections one address may hold; `None`: no limit.
-    pub per_address: Option<usize>,
-    /// `None`: no keepalive probes.
-    pub keepalive: Option<Duration>,
-    /// For the TLS listeners.
-    pub tls: Option<Arc<TlsServer>>,
-}
-
-impl Policy {
-    /// The policy of `server`, with `tls` for its TLS listeners.
-    pub(crate) fn of(server: &config::Server, tls: Option<Arc<TlsServer>>) -> Policy {
-        Policy {
-            limits: SessionLimits {
-                pipeline_depth: server.pipeline_depth,
-                idle_timeout: Some(server.idle_timeout).filter(|t| !t.is_zero()),
-                frame_timeout: server.frame_timeout,
-            },
-            access: Access::new(server.allow.clone(), server.read_only.clone())
-                .with_priority(server.priority.clone()),
-            when_full: server.when_full,
-            per_address: server.connections_per_address(),
-            keepalive: Some(server.keepalive).filter(|t| !t.is_zero()),
-            tls,
-        }
-    }
-}
-
 /// What every accept loop shares.
 pub(crate) struct Shared {
     pub dispatcher: Dispatcher,
@@ -137,6 +77,20 @@ struct Session {
     role: Option<String>,
     priority: bool,
     since: SystemTime,
+}
+
+/// A master connected now, as the operator's pages list it.
+#[derive(Clone, Debug)]
+pub(crate) struct Connected {
+    pub(crate) peer: SocketAddr,
+    pub(crate) protocol: Protocol,
+    pub(crate) rights: Rights,
+    /// The role of its certificate, on a TLS connection that has one.
+    pub(crate) role: Option<String>,
+    pub(crate) priority: bool,
+    pub(crate) since: SystemTime,
+    /// Requests it has sent on this connection.
+    pub(crate) requests: u64,
 }
 
 impl Shared {
@@ -217,20 +171,19 @@ impl Shared {
     }
 
     /// The masters connected now, longest connected first.
-    pub(crate) fn masters(&self, now: SystemTime) -> Vec<MasterStatus> {
+    pub(crate) fn masters(&self) -> Vec<Connected> {
         let sessions = self.sessions();
         let mut masters: Vec<(&MasterId, &Session)> = sessions.iter().collect();
         masters.sort_unstable_by_key(|(id, _)| **id);
         masters
             .into_iter()
-            .map(|(_, session)| MasterStatus {
-                address: session.peer.to_string(),
-                protocol: session.protocol.label(),
-                rights: session.rights.name(),
+            .map(|(_, session)| Connected {
+                peer: session.peer,
+                protocol: session.protocol,
+                rights: session.rights,
                 role: session.role.clone(),
                 priority: session.priority,
-                connected_since: status::rfc3339(session.since),
-                connected_seconds: status::seconds_between(session.since, now),
+                since: session.since,
                 requests: session.activity.requests(),
             })
             .collect()
@@ -366,41 +319,43 @@ pub fn set_keepalive(stream: &TcpStream, idle: Duration) -> io::Result<()> {
     socket.set_tcp_user_timeout(Some(idle + interval * KEEPALIVE_PROBES))
 }
 
-/// Accept masters on `listener` forever.
-pub(crate) async fn serve(listener: Listener, shared: Arc<Shared>) {
+/// Accept masters of `protocol` (on a stream transport) on `listener`, bound at `addr`,
+/// forever.
+pub(crate) async fn serve(
+    listener: TcpListener,
+    addr: SocketAddr,
+    protocol: Protocol,
+    shared: Arc<Shared>,
+) {
     loop {
-        let (stream, peer) = match listener.listener.accept().await {
+        let (stream, peer) = match listener.accept().await {
             Ok(accepted) => accepted,
             Err(error) => {
-                warn!(listen = %listener.addr, %error, "accept failed");
+                warn!(target: TcpMetrics::EVENTS, listen = %addr, %error, "accept failed");
                 tokio::time::sleep(ACCEPT_ERROR_PAUSE).await;
                 continue;
             }
         };
         let policy = shared.policy();
-        let tcp = &shared.metrics.tcp;
-        let protocol = listener.upstream.protocol();
-        let Some(rights) = policy.access.admit(peer.ip()) else {
-            tcp.rejected(Rejection::NotAllowed, protocol, &listener.addr, &peer);
+        let Some(admission) = listener::admit(&policy, &shared.metrics, protocol, addr, peer)
+        else {
             continue;
         };
         let Some(ticket) = shared.addresses.claim(peer.ip(), policy.per_address) else {
             let reason = Rejection::MaxConnectionsPerAddress;
-            tcp.rejected(reason, protocol, &listener.addr, &peer);
+            shared.metrics.tcp.rejected(reason, protocol, &addr, &peer);
             continue;
         };
         prepare(&stream, &policy, peer);
         // A handshake, or making room, may wait: not in the accept loop.
         let master = Master {
-            listen: listener.addr,
-            upstream: listener.upstream,
-            peer,
-            rights,
+            listen: addr,
+            admission,
             ticket,
         };
         let shared = shared.clone();
         tokio::spawn(async move {
-            if master.upstream == Upstream::Tls {
+            if protocol.transport() == Transport::Tls {
                 accept_tls(stream, master, &policy, &shared).await;
             } else {
                 admit(stream, master, None, &policy, &shared).await;
@@ -412,21 +367,18 @@ pub(crate) async fn serve(listener: Listener, shared: Arc<Shared>) {
 /// A connection accepted on a listener, not yet served.
 struct Master {
     listen: SocketAddr,
-    upstream: Upstream,
-    peer: SocketAddr,
-    /// What its address allows.
-    rights: Rights,
+    admission: Admission,
     /// Its place in its address's count, held until the connection ends.
     ticket: Ticket,
 }
 
 fn prepare(stream: &TcpStream, policy: &Policy, peer: SocketAddr) {
     if let Err(error) = stream.set_nodelay(true) {
-        debug!(%peer, %error, "cannot set TCP_NODELAY");
+        debug!(target: TcpMetrics::EVENTS, %peer, %error, "cannot set TCP_NODELAY");
     }
     if let Some(idle) = policy.keepalive {
         if let Err(error) = set_keepalive(stream, idle) {
-            debug!(%peer, %error, "cannot set TCP keepalive");
+            debug!(target: TcpMetrics::EVENTS, %peer, %error, "cannot set TCP keepalive");
         }
     }
 }
@@ -437,7 +389,7 @@ fn prepare(stream: &TcpStream, policy: &Policy, peer: SocketAddr) {
 /// [`FIRST_BYTES_WAIT`].
 async fn accept_tls(stream: TcpStream, mut master: Master, policy: &Policy, shared: &Shared) {
     let Some(tls) = policy.tls.clone() else {
-        error!(listen = %master.listen, "a TLS listener without [server.tls]; connection closed");
+        error!(target: TcpMetrics::EVENTS, listen = %master.listen, "a TLS listener without [server.tls]; connection closed");
         return;
     };
     let turns = master.ticket.turns.clone();
@@ -451,7 +403,7 @@ async fn accept_tls(stream: TcpStream, mut master: Master, policy: &Policy, shar
         let metrics = &shared.metrics;
         metrics
             .tls
-            .handshake_failed(&metrics.tcp, &master.listen, master.peer, error);
+            .handshake_failed(&metrics.tcp, &master.listen, master.admission.peer, error);
     };
     let stream = match tokio::time::timeout(tls.handshake_timeout, handshake).await {
         Ok(Ok(stream)) => stream,
@@ -462,7 +414,7 @@ async fn accept_tls(stream: TcpStream, mut master: Master, policy: &Policy, shar
         }
     };
     let identity = tls.identify(stream.get_ref().1.peer_certificates());
-    master.rights = master.rights.min(identity.rights);
+    master.admission.rights = master.admission.rights.min(identity.rights);
     admit(stream, master, Some(identity), policy, shared).await;
 }
 
@@ -495,12 +447,11 @@ async fn admit<S: AsyncRead + AsyncWrite + Unpin>(
     shared: &Shared,
 ) {
     let Some(permit) = shared.slot(policy.when_full).await else {
-        shared.metrics.tcp.rejected(
-            Rejection::MaxConnections,
-            master.upstream.protocol(),
-            &master.listen,
-            &master.peer,
-        );
+        let Admission { protocol, peer, .. } = master.admission;
+        shared
+            .metrics
+            .tcp
+            .rejected(Rejection::MaxConnections, protocol, &master.listen, &peer);
         return;
     };
     run_session(stream, master, identity, policy, shared).await;
@@ -508,22 +459,25 @@ async fn admit<S: AsyncRead + AsyncWrite + Unpin>(
 }
 
 async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
-    stream: S,
+    mut stream: S,
     master: Master,
     identity: Option<Identity>,
     policy: &Policy,
     shared: &Shared,
 ) {
     let Master {
-        upstream,
-        peer,
-        rights,
+        admission,
         ticket: _ticket,
         ..
     } = master;
+    let Admission {
+        protocol,
+        peer,
+        rights,
+        priority,
+    } = admission;
     let id = shared.new_master();
     let tcp = &shared.metrics.tcp;
-    let protocol = upstream.protocol();
     tcp.accepted(protocol, id, &peer, rights == Rights::ReadOnly);
     if let Some(identity) = &identity {
         shared.metrics.tls.accepted(&TlsMaster {
@@ -537,7 +491,6 @@ async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
         });
     }
     let activity = Arc::new(Activity::default());
-    let priority = policy.access.is_priority(peer.ip());
     shared.sessions().insert(
         id,
         Session {
@@ -551,13 +504,10 @@ async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
         },
     );
     let units = identity.as_ref().and_then(|identity| identity.units);
-    let client = Client::new(id, peer, rights)
-        .speaking(protocol)
-        .addressing(units)
-        .prioritised(priority);
+    let client = admission.client(id).addressing(units);
     let error = session::run(
-        stream,
-        upstream,
+        &mut stream,
+        protocol.framing(),
         client,
         &activity,
         &shared.dispatcher,
@@ -565,6 +515,11 @@ async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
         shared.stopping.clone(),
     )
     .await;
+    let tls = protocol.transport() == Transport::Tls;
+    if tls && session::close_notify_due(&error, &activity) {
+        session::close_notify(&mut stream).await;
+    }
+    drop(stream);
     shared.sessions().remove(&id);
     tcp.closed(protocol, error.closing(), id, &peer, &error);
 }
