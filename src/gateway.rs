@@ -403,7 +403,7 @@ impl Gateway {
 
     /// The bound addresses of the `protocol` masters' listeners, in configuration order (port 0
     /// in the configuration becomes the real port here).
-    pub fn addrs(&self, protocol: Protocol) -> &[SocketAddr] {
+    fn addrs(&self, protocol: Protocol) -> &[SocketAddr] {
         self.listen_addrs.of_protocol(protocol)
     }
 
@@ -425,12 +425,6 @@ impl Gateway {
     /// The bound `server.listen_udp` addresses.
     pub fn udp_addrs(&self) -> &[SocketAddr] {
         self.addrs(Protocol::Udp)
-    }
-
-    /// `server.listen`'s bound addresses, then `server.listen_rtu_over_tcp`'s; superseded by
-    /// [`Gateway::tcp_addrs`] and [`Gateway::rtu_over_tcp_addrs`].
-    pub fn local_addrs(&self) -> &[SocketAddr] {
-        self.listen_addrs.tcp_then_rtu()
     }
 
     /// The bound address of the metrics endpoint.

@@ -49,7 +49,7 @@ pub enum Transport {
 
 impl Transport {
     /// A connection (TCP or TLS) rather than datagrams.
-    pub fn is_stream(self) -> bool {
+    pub(crate) fn is_stream(self) -> bool {
         self != Transport::Udp
     }
 }
@@ -75,7 +75,7 @@ pub struct Spec {
 }
 
 impl Protocol {
-    pub const ALL: [Protocol; 4] = [
+    pub(crate) const ALL: [Protocol; 4] = [
         Protocol::Tcp,
         Protocol::RtuOverTcp,
         Protocol::Udp,

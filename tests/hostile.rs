@@ -75,7 +75,7 @@ async fn a_read_only_master_cannot_hide_a_write_after_a_read_over_tcp_udp_or_tls
         smuggle(1, &READ_0, &rtu::encode(1, &WRITE_5)),
         smuggle(1, &READ_0, &rtu::encode(0, &WRITE_5)),
     ];
-    let mut tcp = RawMaster::connect(gateway.local_addrs()[0]).await;
+    let mut tcp = RawMaster::connect(gateway.tcp_addrs()[0]).await;
     let viewer = pki.master("viewer", Role::Named("viewer"));
     let mut tls = tls_master(gateway.tls_addrs()[0], &pki.connector(Some(&viewer))).await;
     for attack in &attacks {
@@ -250,7 +250,7 @@ async fn no_hidden_frame_reaches_a_slave_that_frames_by_length() {
     // `simulate`: slave 1, register 5 at 0 until written.
     let simulator = simulate_on_a_pty().await;
     let gateway = read_only_gateway_on(&simulator.path, "").await;
-    let mut master = RawMaster::connect(gateway.local_addrs()[0]).await;
+    let mut master = RawMaster::connect(gateway.tcp_addrs()[0]).await;
     for hidden_to in [1, 0] {
         let attack = smuggle(1, &READ_0, &rtu::encode(hidden_to, &WRITE_5));
         assert_eq!(master.call(1, 1, &attack).await, BAD_LENGTH);
@@ -264,7 +264,7 @@ async fn no_hidden_frame_reaches_a_slave_that_frames_by_length() {
         return;
     };
     let gateway = read_only_gateway_on(&slave.path, "").await;
-    let mut master = RawMaster::connect(gateway.local_addrs()[0]).await;
+    let mut master = RawMaster::connect(gateway.tcp_addrs()[0]).await;
     let unit = LIBMODBUS_UNIT;
     for hidden_to in [unit, 0] {
         let attack = smuggle(unit, &READ_0, &rtu::encode(hidden_to, &WRITE_5));
@@ -285,7 +285,7 @@ async fn no_hidden_frame_reaches_a_slave_that_frames_by_length() {
 /// register 0, again and again, while another reads register 2 and must get exactly that.
 async fn no_crossed_replies_with(path: &str, unit: u8) {
     let gateway = start(&pty_config(path, "response_timeout = \"200ms\"")).await;
-    let addr = gateway.local_addrs()[0];
+    let addr = gateway.tcp_addrs()[0];
     let mut polite = RawMaster::connect(addr).await;
     // Registers 2 and 9 hold 1002 and 1009 (libmodbus's from the start).
     for write in [
@@ -345,8 +345,8 @@ async fn stays_up_with(path: &str, unit: u8, register_5: [u8; 4]) {
         "response_timeout = \"100ms\"\nslave_down_after = 3\nslave_probe_interval = \"10s\"",
     )
     .await;
-    let mut attacker = RawMaster::connect(gateway.local_addrs()[0]).await;
-    let mut polite = RawMaster::connect(gateway.local_addrs()[0]).await;
+    let mut attacker = RawMaster::connect(gateway.tcp_addrs()[0]).await;
+    let mut polite = RawMaster::connect(gateway.tcp_addrs()[0]).await;
     assert_eq!(polite.call(1, unit, &READ_5).await, register_5);
     let over_long = [0x03, 0x00, 0x00, 0x00, 0x01, 0xAA, 0xBB, 0xCC];
     for round in 0..3u16 {

@@ -679,7 +679,7 @@ async fn pymodbus_rtu_over_tcp_and_udp_masters_write_and_read_the_sim_line_throu
          [[bus.sim_slave]]\naddress = \"1-2\"\n",
     )
     .await;
-    let rtu_over_tcp = gateway.local_addrs()[1];
+    let rtu_over_tcp = gateway.rtu_over_tcp_addrs()[0];
     let udp = gateway.udp_addrs()[0];
     for (kind, addr, unit) in [("rtu-over-tcp", rtu_over_tcp, 1), ("udp", udp, 2)] {
         assert_eq!(
@@ -689,7 +689,7 @@ async fn pymodbus_rtu_over_tcp_and_udp_masters_write_and_read_the_sim_line_throu
         );
     }
     // Each wrote its own slave; a Modbus TCP master reads both writes back.
-    let mut tcp = crate::support::RawMaster::connect(gateway.local_addrs()[0]).await;
+    let mut tcp = crate::support::RawMaster::connect(gateway.tcp_addrs()[0]).await;
     for unit in [1, 2] {
         assert_eq!(
             tcp.call(u16::from(unit), unit, &[0x03, 0x00, 0x05, 0x00, 0x01])
@@ -717,7 +717,7 @@ async fn pymodbus_rtu_over_tcp_and_udp_masters_reach_pymodbus_rtu_slave_on_a_pty
     // The script's registers 0-9 hold 1000-1009; each master writes register 5 and reads it
     // back with register 6, then reads 0-2.
     for (kind, addr) in [
-        ("rtu-over-tcp", gateway.local_addrs()[1]),
+        ("rtu-over-tcp", gateway.rtu_over_tcp_addrs()[0]),
         ("udp", gateway.udp_addrs()[0]),
     ] {
         assert_eq!(
@@ -772,7 +772,7 @@ async fn mbpoll_writes_and_reads_the_sim_line_over_modbus_tcp_beside_the_other_k
          [[bus.sim_slave]]\naddress = \"1-2\"\n",
     )
     .await;
-    let port = gateway.local_addrs()[0].port().to_string();
+    let port = gateway.tcp_addrs()[0].port().to_string();
     let common = |extra: &[&str]| -> Vec<String> {
         let mut args: Vec<String> = ["-m", "tcp", "-p", &port, "-a", "2", "-0", "-1"]
             .iter()

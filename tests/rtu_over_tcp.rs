@@ -25,7 +25,7 @@ async fn gateway(extra_server: &str) -> Gateway {
 
 /// The RTU over TCP listener's address: it comes after the Modbus TCP one.
 fn rtu_addr(gateway: &Gateway) -> SocketAddr {
-    gateway.local_addrs()[1]
+    gateway.rtu_over_tcp_addrs()[0]
 }
 
 /// Send `request` (whole RTU frames) and read exactly `len` bytes back.
@@ -71,7 +71,7 @@ async fn tokio_modbus_rtu_client_on_a_tcp_stream_reads_what_a_modbus_tcp_master_
     // a write from one kind is read back by the other.
     let stream = TcpStream::connect(rtu_addr(&gateway)).await.unwrap();
     let mut rtu_master = rtu_client::attach_slave(stream, Slave(3));
-    let mut tcp_master = crate::support::RawMaster::connect(gateway.local_addrs()[0]).await;
+    let mut tcp_master = crate::support::RawMaster::connect(gateway.tcp_addrs()[0]).await;
     assert_eq!(
         tcp_master
             .call(

@@ -155,7 +155,7 @@ async fn after_three_requests_a_trace_reader_receives_six_frames_with_their_hex_
 ) {
     let gateway = start_sim("").await;
     let mut trace = Trace::open(gateway.metrics_addr(), "").await;
-    let mut master = RawMaster::connect(gateway.local_addrs()[0]).await;
+    let mut master = RawMaster::connect(gateway.tcp_addrs()[0]).await;
     // Slave 1: two holding registers from 0000H; slave 2: two input registers from 0001H (a
     // register slave's input register n holds n); slave 3: 126 registers, one too many.
     master.call(1, 1, &[0x03, 0x00, 0x00, 0x00, 0x02]).await;
@@ -203,7 +203,7 @@ async fn on_an_ascii_line_the_trace_shows_the_ascii_frames_characters() {
     )
     .await;
     let mut trace = Trace::open(gateway.metrics_addr(), "").await;
-    let mut master = RawMaster::connect(gateway.local_addrs()[0]).await;
+    let mut master = RawMaster::connect(gateway.tcp_addrs()[0]).await;
     master.call(1, 1, &[0x03, 0x00, 0x00, 0x00, 0x02]).await;
     let got = trace.fields_of_next(2).await;
     // `:`, address 01, the PDU and the LRC (the two's complement of the bytes' sum) as hex
@@ -232,7 +232,7 @@ async fn a_trace_filtered_by_bus_and_slave_gets_only_their_frames() {
     let gateway = start(TWO_BUSES).await;
     let metrics = gateway.metrics_addr();
     let mut trace = Trace::open(metrics, "?bus=b&slave=2").await;
-    let mut master = RawMaster::connect(gateway.local_addrs()[0]).await;
+    let mut master = RawMaster::connect(gateway.tcp_addrs()[0]).await;
     let read = [0x03, 0x00, 0x00, 0x00, 0x01];
     for (transaction, unit) in [(1, 1), (2, 2), (3, 11), (4, 12)] {
         master.call(transaction, unit, &read).await;
@@ -268,7 +268,7 @@ async fn a_trace_filtered_by_bus_and_slave_gets_only_their_frames() {
 async fn a_request_that_gets_no_reply_is_one_tx_frame_with_outcome_timeout() {
     let gateway = start_sim("[[bus.slave]]\naddress = 5\nresponse_timeout = \"50ms\"\n").await;
     let mut trace = Trace::open(gateway.metrics_addr(), "").await;
-    let mut master = RawMaster::connect(gateway.local_addrs()[0]).await;
+    let mut master = RawMaster::connect(gateway.tcp_addrs()[0]).await;
     let read = [0x03, 0x00, 0x00, 0x00, 0x01];
     master.call(1, 5, &read).await;
     master.call(2, 1, &read).await;
@@ -298,7 +298,7 @@ async fn more_trace_readers_than_eight_are_refused_and_metrics_are_still_served(
     // A reader that leaves frees its place, once a write to it fails: at the next frames or
     // keepalive.
     drop(readers.pop());
-    let mut master = RawMaster::connect(gateway.local_addrs()[0]).await;
+    let mut master = RawMaster::connect(gateway.tcp_addrs()[0]).await;
     within("a place frees", async {
         loop {
             master.call(1, 1, &[0x03, 0x00, 0x00, 0x00, 0x01]).await;
@@ -330,7 +330,7 @@ async fn a_trace_reader_whose_stream_stays_blocked_is_dropped_and_its_place_goes
     use tokio::io::AsyncReadExt;
     let gateway = start(&fast_sim_config()).await;
     let metrics = gateway.metrics_addr();
-    let traffic = keep_line_busy(gateway.local_addrs()[0]);
+    let traffic = keep_line_busy(gateway.tcp_addrs()[0]);
     let stalled = fill_trace_with_stalled_readers(metrics).await;
     // Their streams block within a second or two; ten seconds later they are dropped.
     tokio::time::timeout(2 * PATIENCE, async {
@@ -449,7 +449,7 @@ async fn the_trace_subcommand_prints_each_frame_decoded() {
             }
         }
     });
-    let mut master = RawMaster::connect(gateway.local_addrs()[0]).await;
+    let mut master = RawMaster::connect(gateway.tcp_addrs()[0]).await;
     let read = [0x04, 0x00, 0x01, 0x00, 0x02];
     // The trace is connected once a read shows.
     let first = within("the trace prints", async {

@@ -88,7 +88,7 @@ async fn a_write_by_udp_is_read_back_by_a_modbus_tcp_master() {
         receive(&socket, PATIENCE).await.unwrap(),
         mbap(1, 2, &write)
     );
-    let mut tcp = crate::support::RawMaster::connect(gateway.local_addrs()[0]).await;
+    let mut tcp = crate::support::RawMaster::connect(gateway.tcp_addrs()[0]).await;
     assert_eq!(
         tcp.call(1, 2, &[0x03, 0x00, 0x05, 0x00, 0x01]).await,
         [0x03, 0x02, 0x00, 0x2A]
@@ -218,8 +218,8 @@ async fn masters_of_all_three_kinds_polling_one_bus_are_all_answered_and_share_i
     let run_for = Duration::from_secs(2);
     let read = [0x03, 0x00, 0x00, 0x00, 0x0A];
     let answer_len = 2 + 20;
-    let tcp_addr = gateway.local_addrs()[0];
-    let rtu_addr = gateway.local_addrs()[1];
+    let tcp_addr = gateway.tcp_addrs()[0];
+    let rtu_addr = gateway.rtu_over_tcp_addrs()[0];
     let udp = udp_addr(&gateway);
     let tcp = tokio::spawn(async move {
         let mut master = crate::support::RawMaster::connect(tcp_addr).await;
@@ -300,7 +300,7 @@ async fn forty_udp_ports_of_one_address_flooding_leave_a_polite_master_95_percen
         ports.push(tokio::spawn(flood_from_port(udp, port, flood.clone())));
     }
     flood.until_refused(40).await;
-    let answered = polite_reads(gateway.local_addrs()[0], 2, 20).await;
+    let answered = polite_reads(gateway.tcp_addrs()[0], 2, 20).await;
     flood.stop();
     for port in ports {
         within("a port stops", port).await.expect("port task");
@@ -323,7 +323,7 @@ async fn forty_udp_ports_of_one_address_take_one_turn_so_a_polite_master_waits_a
     flood.until_refused(40).await;
     // The flood reads slave 1, the polite master slave 2.
     const READS: u16 = 10;
-    let answered = polite_reads(gateway.local_addrs()[0], 2, READS).await;
+    let answered = polite_reads(gateway.tcp_addrs()[0], 2, READS).await;
     let line = gateway.sim_line("sim").expect("a simulated line");
     let frames = frames_from(&line, Source::Master);
     flood.stop();

@@ -30,7 +30,7 @@ pub enum Framing {
 
 /// How far the bytes received so far make a frame.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Completion {
+pub(crate) enum Completion {
     /// The first this many bytes are a whole frame (more may follow: the next frame's).
     Whole(usize),
     /// Not whole yet; the frame is at least this many bytes long, so its wait is bounded by the
@@ -44,7 +44,7 @@ pub enum Completion {
 
 /// What silence on the line means for a frame the bytes cannot tell the end of.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Silence {
+pub(crate) enum Silence {
     /// The frame is what came before it (RTU: t3.5).
     EndsFrame,
     /// The frame is cut short (ASCII: the inter-character timeout before CR LF).
@@ -53,7 +53,7 @@ pub enum Silence {
 
 impl Framing {
     /// The longest frame on the wire, in characters.
-    pub fn max_frame_len(self) -> usize {
+    pub(crate) fn max_frame_len(self) -> usize {
         match self {
             Framing::Rtu => rtu::MAX_FRAME_LEN,
             Framing::Ascii => ascii::MAX_FRAME_LEN,
@@ -61,7 +61,7 @@ impl Framing {
     }
 
     /// Build the frame for `pdu` to `address` into `out` (cleared first).
-    pub fn encode_into(self, out: &mut Vec<u8>, address: u8, pdu: &[u8]) {
+    pub(crate) fn encode_into(self, out: &mut Vec<u8>, address: u8, pdu: &[u8]) {
         match self {
             Framing::Rtu => rtu::encode_into(out, address, pdu),
             Framing::Ascii => ascii::encode_into(out, address, pdu),
@@ -70,7 +70,7 @@ impl Framing {
 
     /// How far `received` makes a reply frame, when `request` (a PDU) went to `slave`, whose
     /// replies take `form`.
-    pub fn reply_completion(
+    pub(crate) fn reply_completion(
         self,
         received: &[u8],
         slave: u8,
@@ -90,7 +90,7 @@ impl Framing {
     }
 
     /// How far `received` makes a request frame, as a slave sees it.
-    pub fn request_completion(self, received: &[u8]) -> Completion {
+    pub(crate) fn request_completion(self, received: &[u8]) -> Completion {
         match self {
             Framing::Rtu => match rtu::request_len(received) {
                 FrameLen::Exact(n) if received.len() >= n => Completion::Whole(n),
@@ -111,7 +111,7 @@ impl Framing {
 
     /// The address of a whole frame, with its PDU decoded into `pdu`; `None` when its check
     /// (CRC, LRC) fails or it is no frame.
-    pub fn decode_into(self, whole: &[u8], pdu: &mut Vec<u8>) -> Option<u8> {
+    pub(crate) fn decode_into(self, whole: &[u8], pdu: &mut Vec<u8>) -> Option<u8> {
         match self {
             Framing::Rtu => rtu::crc_ok(whole).then(|| {
                 pdu.clear();
@@ -139,7 +139,7 @@ impl Framing {
 
     /// Characters on the wire of a frame carrying a PDU of `pdu_len` bytes: RTU adds the
     /// address and the CRC; ASCII writes address, PDU and LRC as hex pairs between `:` and CR LF.
-    pub fn frame_len(self, pdu_len: usize) -> usize {
+    pub(crate) fn frame_len(self, pdu_len: usize) -> usize {
         match self {
             Framing::Rtu => pdu_len + 3,
             Framing::Ascii => 2 * (pdu_len + 2) + 3,
@@ -205,7 +205,7 @@ const LINES: &[(TransportKind, Framing)] = &[
 
 impl Framing {
     /// Whether a line may frame its bytes this way over `transport` (the table `LINES`).
-    pub fn runs_over(self, transport: TransportKind) -> bool {
+    pub(crate) fn runs_over(self, transport: TransportKind) -> bool {
         LINES.contains(&(transport, self))
     }
 }

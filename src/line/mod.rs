@@ -26,7 +26,7 @@ use std::time::Duration;
 use tokio::time::Instant;
 
 /// The slave address that every slave obeys and none answers, in every serial framing.
-pub const BROADCAST: u8 = 0;
+pub(crate) const BROADCAST: u8 = 0;
 
 /// A byte pipe onto a line as a UART driver presents it, whatever carries it: a serial port or
 /// the simulated line today. Which [`Framing`] may run over which kind of transport is the one

@@ -20,9 +20,12 @@ use bus::BusFamilies;
 pub use labels::{Closing, ExceptionSource, Fate, Rejection};
 
 use labels::{hex, OTHER};
-pub use tcp::{Refusal, TcpMetrics};
-pub use tls::{TlsMaster, TlsMetrics};
-pub use udp::{UdpDrop, UdpMetrics};
+pub(crate) use tcp::Refusal;
+pub use tcp::TcpMetrics;
+pub use tls::TlsMaster;
+pub use tls::TlsMetrics;
+pub use udp::UdpDrop;
+pub use udp::UdpMetrics;
 
 use crate::config;
 use crate::error::{Answer, Outcome};

@@ -38,7 +38,7 @@ pub struct TcpMetrics {
 /// Why a request was refused for what its master may do (the request is counted `read_only` or
 /// `no_access`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Refusal {
+pub(crate) enum Refusal {
     /// A request that may change the slave, from a read-only master.
     ReadOnly,
     /// Any request, from a master whose TLS role allows none.
@@ -196,7 +196,7 @@ impl TcpMetrics {
 
     /// A master whose role names the units it may address asked for another (counted with the
     /// request, as `no_access`). Logged at warn at most once a minute per source address.
-    pub fn unit_refused(&self, master: u64, peer: &SocketAddr, unit: u8) {
+    pub(crate) fn unit_refused(&self, master: u64, peer: &SocketAddr, unit: u8) {
         match self.refusals.due(peer.ip()) {
             Some(held_back) => {
                 warn!(target: TCP_EVENTS, master, %peer, unit, held_back, "refusing a unit the master's role may not address (0x01)");
@@ -208,7 +208,13 @@ impl TcpMetrics {
     /// A master asked for something it may not (counted with the request, as `read_only` or
     /// `no_access`). Logged at warn at most once a minute per source address, with how many
     /// were held back since the last.
-    pub fn request_refused(&self, master: u64, peer: &SocketAddr, function: u8, refusal: Refusal) {
+    pub(crate) fn request_refused(
+        &self,
+        master: u64,
+        peer: &SocketAddr,
+        function: u8,
+        refusal: Refusal,
+    ) {
         let function = hex(function);
         let access = refusal.access();
         match self.refusals.due(peer.ip()) {

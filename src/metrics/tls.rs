@@ -27,14 +27,14 @@ pub struct TlsMaster<'a> {
     pub master: u64,
     pub peer: SocketAddr,
     /// The `role` label: a role of `server.tls.roles`, or `other`.
-    pub role_label: &'a str,
+    pub(crate) role_label: &'a str,
     /// The role its certificate carries, as written, if any.
     pub role: Option<&'a str>,
     /// What it may do: `read_write`, `read_only` or `none`.
     pub access: &'static str,
     /// Why its certificate's RoleOID extension was not read as a role, if it has one.
-    pub role_problem: Option<&'static str>,
-    pub subject: &'a str,
+    pub(crate) role_problem: Option<&'static str>,
+    pub(crate) subject: &'a str,
 }
 
 impl TlsMetrics {
@@ -62,7 +62,7 @@ impl TlsMetrics {
     }
 
     /// The server certificate in force expires at `expires`.
-    pub fn certificate_expires(&self, expires: SystemTime) {
+    pub(crate) fn certificate_expires(&self, expires: SystemTime) {
         let seconds = match expires.duration_since(UNIX_EPOCH) {
             Ok(after) => i64::try_from(after.as_secs()).unwrap_or(i64::MAX),
             Err(_) => 0,
@@ -105,7 +105,7 @@ impl TlsMetrics {
 
     /// A TLS handshake from `peer` failed (or timed out): counted with the refused connections,
     /// logged at warn at most once a minute per peer address.
-    pub fn handshake_failed(
+    pub(crate) fn handshake_failed(
         &self,
         tcp: &TcpMetrics,
         listen: &dyn Display,

@@ -18,7 +18,8 @@ pub enum UdpDrop {
 }
 
 impl UdpDrop {
-    pub const ALL: [UdpDrop; 3] = [UdpDrop::NotAllowed, UdpDrop::Malformed, UdpDrop::Overloaded];
+    pub(crate) const ALL: [UdpDrop; 3] =
+        [UdpDrop::NotAllowed, UdpDrop::Malformed, UdpDrop::Overloaded];
 
     pub fn label(self) -> &'static str {
         match self {

@@ -94,8 +94,6 @@ pub(crate) async fn serve(listener: Listener, shared: Arc<Shared>) {
 #[derive(Clone, Debug, Default)]
 pub(crate) struct ListenAddrs {
     by_protocol: HashMap<Protocol, Vec<SocketAddr>>,
-    /// `server.listen`'s, then `server.listen_rtu_over_tcp`'s, for `Gateway::local_addrs`.
-    tcp_then_rtu: Vec<SocketAddr>,
 }
 
 impl ListenAddrs {
@@ -105,19 +103,11 @@ impl ListenAddrs {
             let of_protocol = addrs.by_protocol.entry(listener.protocol).or_default();
             of_protocol.push(listener.addr);
         }
-        addrs.tcp_then_rtu = [Protocol::Tcp, Protocol::RtuOverTcp]
-            .iter()
-            .flat_map(|&protocol| addrs.of_protocol(protocol).to_vec())
-            .collect();
         addrs
     }
 
     pub(crate) fn of_protocol(&self, protocol: Protocol) -> &[SocketAddr] {
         self.by_protocol.get(&protocol).map_or(&[], Vec::as_slice)
-    }
-
-    pub(crate) fn tcp_then_rtu(&self) -> &[SocketAddr] {
-        &self.tcp_then_rtu
     }
 }
 

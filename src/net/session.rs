@@ -116,7 +116,7 @@ impl Activity {
 
     /// Ask the session to close: at once if it waits for its master to read a reply, else as
     /// soon as nothing is in flight.
-    pub fn evict(&self) {
+    pub(crate) fn evict(&self) {
         self.close.notify_one();
     }
 }

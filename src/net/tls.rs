@@ -29,7 +29,7 @@ pub(crate) const EXPIRY_WARNING_DAYS: u64 = 30;
 /// The server side of the TLS listeners, as one reading of `[server.tls]` made it: new
 /// connections take the one in force when they are accepted, and keep it.
 pub(crate) struct TlsServer {
-    pub acceptor: TlsAcceptor,
+    pub(crate) acceptor: TlsAcceptor,
     roles: BTreeMap<String, Role>,
     default_access: RoleAccess,
     pub handshake_timeout: Duration,
@@ -41,11 +41,11 @@ pub(crate) struct TlsServer {
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub(crate) struct CertificateInfo {
     /// The subject of the server's own certificate, as `CN=gateway, O=Plant`.
-    pub subject: String,
+    pub(crate) subject: String,
     /// When the first certificate of the chain to expire does.
     pub expires: SystemTime,
     /// How many CA certificates `client_ca` holds.
-    pub client_cas: usize,
+    pub(crate) client_cas: usize,
 }
 
 impl std::fmt::Debug for TlsServer {
@@ -96,15 +96,15 @@ impl CertificateInfo {
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub(crate) struct Identity {
     /// The `role` label: the role when `server.tls.roles` names it, else `other`.
-    pub role_label: String,
+    pub(crate) role_label: String,
     /// The role the certificate carries, if any, as written.
     pub role: Option<String>,
     /// Why a RoleOID extension the certificate has was not read as a role.
-    pub role_problem: Option<&'static str>,
+    pub(crate) role_problem: Option<&'static str>,
     pub rights: Rights,
     /// The unit ids its role may address; `None`: any.
     pub units: Option<UnitSet>,
-    pub subject: String,
+    pub(crate) subject: String,
 }
 
 /// The problems found so far, each with its key.

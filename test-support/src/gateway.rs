@@ -15,7 +15,7 @@ pub async fn start(toml: &str) -> Gateway {
 }
 
 pub fn addr(gateway: &Gateway) -> SocketAddr {
-    gateway.local_addrs()[0]
+    gateway.tcp_addrs()[0]
 }
 
 /// Wait until bus `name` has (`up`) or has lost (`!up`) its port.

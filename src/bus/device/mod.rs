@@ -13,7 +13,9 @@
 pub mod serial;
 mod sim;
 
-pub use serial::{SerialDriver, SerialFd};
+pub use serial::SerialDriver;
+
+pub use serial::SerialFd;
 
 use crate::line::framing::TransportKind;
 use crate::line::{Framing, SerialFormat, Transport};
@@ -43,7 +45,7 @@ pub enum Port {
 impl Device {
     /// Whether `other` opens the same line the same way: the same serial device in the same
     /// format with the same RS-485 settings and latency timer, or the same simulated line.
-    pub fn same_as(&self, other: &Device) -> bool {
+    pub(crate) fn same_as(&self, other: &Device) -> bool {
         match (self, other) {
             (
                 Device::Serial {
@@ -86,7 +88,7 @@ impl Device {
 
     /// Open the transport for a line framed by `framing`: refused (`Unsupported`, which
     /// retrying does not cure) if the framing table does not let `framing` run over it.
-    pub fn open_for(&self, framing: Framing) -> io::Result<Port> {
+    pub(crate) fn open_for(&self, framing: Framing) -> io::Result<Port> {
         let kind = self.kind();
         if !framing.runs_over(kind) {
             return Err(io::Error::new(

@@ -9,11 +9,11 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 /// Where sysfs is mounted.
-pub const SYSFS: &str = "/sys";
+pub(crate) const SYSFS: &str = "/sys";
 
 /// The adapter's latency timer as found at open.
 #[derive(Debug)]
-pub struct LatencyTimer {
+pub(crate) struct LatencyTimer {
     pub file: PathBuf,
     /// The timer after the open (set, or as it was).
     pub value: Duration,
@@ -39,7 +39,11 @@ fn read_ms(file: &Path) -> Option<Duration> {
 
 /// Read `device`'s latency timer and, if `wanted` differs, set it. `None` if the device has no
 /// latency timer (not a USB serial adapter, a pty, the simulated line).
-pub fn adjust(sysfs: &Path, device: &Path, wanted: Option<Duration>) -> Option<LatencyTimer> {
+pub(crate) fn adjust(
+    sysfs: &Path,
+    device: &Path,
+    wanted: Option<Duration>,
+) -> Option<LatencyTimer> {
     let file = timer_file(sysfs, device)?;
     let mut value = read_ms(&file)?;
     let mut refused = None;

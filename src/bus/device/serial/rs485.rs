@@ -10,29 +10,29 @@ use std::os::fd::{AsRawFd, BorrowedFd};
 use std::time::Duration;
 
 /// The kernel's RS-485 flags (Linux's serial RS-485 interface): RS-485 mode on.
-pub const SER_RS485_ENABLED: u32 = 1 << 0;
+pub(crate) const SER_RS485_ENABLED: u32 = 1 << 0;
 /// RTS level while sending.
-pub const SER_RS485_RTS_ON_SEND: u32 = 1 << 1;
+pub(crate) const SER_RS485_RTS_ON_SEND: u32 = 1 << 1;
 /// RTS level after sending.
-pub const SER_RS485_RTS_AFTER_SEND: u32 = 1 << 2;
+pub(crate) const SER_RS485_RTS_AFTER_SEND: u32 = 1 << 2;
 /// The receiver stays on while sending.
-pub const SER_RS485_RX_DURING_TX: u32 = 1 << 4;
+pub(crate) const SER_RS485_RX_DURING_TX: u32 = 1 << 4;
 
 /// The kernel's `struct serial_rs485`, 32 bytes: the flags, the delays in milliseconds, and five
 /// words the kernel reserves (or uses for addressing, which the gateway leaves off). libc has the
 /// ioctl numbers but not this struct.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct SerialRs485 {
-    pub flags: u32,
-    pub delay_rts_before_send: u32,
-    pub delay_rts_after_send: u32,
-    pub padding: [u32; 5],
+pub(crate) struct SerialRs485 {
+    pub(crate) flags: u32,
+    pub(crate) delay_rts_before_send: u32,
+    pub(crate) delay_rts_after_send: u32,
+    pub(crate) padding: [u32; 5],
 }
 
 impl SerialRs485 {
     /// What `TIOCSRS485` is given for `settings` (in `kernel` mode).
-    pub fn of(settings: &Rs485) -> SerialRs485 {
+    pub(crate) fn of(settings: &Rs485) -> SerialRs485 {
         let mut flags = SER_RS485_ENABLED;
         for (set, flag) in [
             (settings.rts_level_on_send(), SER_RS485_RTS_ON_SEND),
@@ -70,7 +70,10 @@ pub fn refused(key: &str, mode: Rs485Mode, what: &str, error: &io::Error) -> io:
 
 /// Put the port in the kernel's RS-485 mode; returns the settings as the driver took them (it
 /// clears what it does not support).
-pub fn enable_kernel_mode(fd: BorrowedFd<'_>, wanted: &SerialRs485) -> io::Result<SerialRs485> {
+pub(crate) fn enable_kernel_mode(
+    fd: BorrowedFd<'_>,
+    wanted: &SerialRs485,
+) -> io::Result<SerialRs485> {
     let fd = fd.as_raw_fd();
     let mut set = *wanted;
     // SAFETY: `fd` is open (borrowed); TIOCSRS485 reads and writes one `struct serial_rs485`,
@@ -88,7 +91,7 @@ pub fn enable_kernel_mode(fd: BorrowedFd<'_>, wanted: &SerialRs485) -> io::Resul
 }
 
 /// Raise (`true`) or drop RTS. Does not wait for the line.
-pub fn set_rts(fd: BorrowedFd<'_>, level: bool) -> io::Result<()> {
+pub(crate) fn set_rts(fd: BorrowedFd<'_>, level: bool) -> io::Result<()> {
     let request = if level {
         libc::TIOCMBIS
     } else {
