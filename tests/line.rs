@@ -2,9 +2,9 @@
 //! simulated line's own record of what went on the wire and when.
 
 use modbus_gateway::bus::{BusHandle, BusTask, Device};
+use modbus_gateway::error::NoReply;
 use modbus_gateway::error::{Answer, Outcome, RequestError};
 use modbus_gateway::gateway::config_from_toml;
-use modbus_gateway::line::TxError;
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::shutdown::Stopping;
 use modbus_gateway::sim::{RegisterBank, Scripted, SimLine, Slave, Source, Transmission};
@@ -116,7 +116,7 @@ async fn a_late_reply_never_answers_a_later_request() {
     assert!(matches!(
         first,
         Err(RequestError::NoResponse {
-            last: TxError::Timeout,
+            last: NoReply::Timeout,
             ..
         })
     ));
@@ -495,7 +495,7 @@ async fn requests_a_slave_ignores_do_not_change_what_another_master_gets_from_it
             matches!(
                 outcome,
                 Err(RequestError::NoResponse {
-                    last: TxError::Timeout,
+                    last: NoReply::Timeout,
                     ..
                 })
             ),

@@ -32,136 +32,96 @@
 //! the ports of one Modbus UDP source address. A follower counts against its own master; a
 //! refused leader's followers stay queued, the first of them leading in its place.
 
-use crate::error::{Answer, Outcome};
+use super::Waiter;
 use crate::line::BROADCAST;
-use crate::master::{MasterId, Origin, Protocol};
+use crate::master::MasterId;
 use crate::pdu;
 use std::cmp::Reverse;
 use std::collections::{hash_map, HashMap, VecDeque};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
-use tokio::sync::{oneshot, Notify};
+use tokio::sync::Notify;
 use tokio::time::Instant;
 
-/// A request waiting for the line.
+/// A request waiting for the line: its own master's, and the identical reads that joined it.
 #[derive(Debug)]
 pub struct Job {
-    pub master: MasterId,
-    pub admission: MasterId,
-    /// How the master talks to the gateway, for the requests' `protocol` label.
-    pub protocol: Protocol,
-    /// From a master in `server.priority`.
-    pub priority: bool,
+    /// Its own master.
+    pub waiter: Waiter,
     pub slave: u8,
     pub pdu: Vec<u8>,
-    /// When it was queued.
-    pub queued_at: Instant,
-    /// If the line has not started it by then, the master has been answered 0x06 instead.
-    pub deadline: Instant,
-    pub reply: oneshot::Sender<Outcome>,
     /// Identical reads may join it (a read, with `coalesce_reads` on for its slave).
     pub coalesce: bool,
     /// Identical reads of other masters that joined it while it waited, in arrival order.
-    pub followers: Vec<Follower>,
+    pub followers: Vec<Waiter>,
     /// Its slave's write epoch when it was queued: a cached answer is kept only if no write
     /// came since.
-    pub epoch: u64,
-    /// Its own master has been answered already (it expired or left); its followers have not.
-    pub answered: bool,
+    pub epoch: Epoch,
 }
 
-/// A read answered by another master's identical one.
-#[derive(Debug)]
-pub struct Follower {
-    pub master: MasterId,
-    pub admission: MasterId,
-    pub protocol: Protocol,
-    pub priority: bool,
-    pub queued_at: Instant,
-    pub deadline: Instant,
-    pub reply: oneshot::Sender<Outcome>,
-}
+/// A slave's count of writes queued to it. It wraps: two epochs are compared only within the
+/// wait of one request, and a `u32` keeps a [`Job`] small enough to move by value.
+pub type Epoch = u32;
 
 impl Job {
-    /// A request of `origin` for `slave`, queued now, given up at `deadline`.
-    pub fn new(
-        origin: Origin,
-        slave: u8,
-        pdu: Vec<u8>,
-        deadline: Instant,
-        reply: oneshot::Sender<Outcome>,
-    ) -> Job {
+    /// `waiter`'s request of `pdu` for `slave`.
+    pub fn new(waiter: Waiter, slave: u8, pdu: Vec<u8>) -> Job {
         Job {
-            master: origin.master,
-            admission: origin.admission,
-            protocol: origin.protocol,
-            priority: origin.priority,
+            waiter,
             slave,
             pdu,
-            queued_at: Instant::now(),
-            deadline,
-            reply,
             coalesce: false,
             followers: Vec::new(),
             epoch: 0,
-            answered: false,
         }
+    }
+
+    pub fn master(&self) -> MasterId {
+        self.waiter.origin.master
+    }
+
+    /// Whose share and turn it takes ([`Origin::admission`]).
+    pub fn admission(&self) -> MasterId {
+        self.waiter.origin.admission
+    }
+
+    /// From a master in `server.priority`.
+    pub fn priority(&self) -> bool {
+        self.waiter.origin.priority
     }
 
     /// Nobody waits for its answer any more: its master and every follower left.
     pub fn abandoned(&self) -> bool {
-        (self.answered || self.reply.is_closed())
-            && self.followers.iter().all(|f| f.reply.is_closed())
+        self.waiter.is_gone() && self.followers.iter().all(Waiter::is_gone)
     }
 
     pub fn function(&self) -> u8 {
         self.pdu.first().copied().unwrap_or(0)
     }
 
-    fn follower(self) -> Follower {
-        Follower {
-            master: self.master,
-            admission: self.admission,
-            protocol: self.protocol,
-            priority: self.priority,
-            queued_at: self.queued_at,
-            deadline: self.deadline,
-            reply: self.reply,
-        }
-    }
-}
-
-impl Follower {
-    /// The follower's own request, as a job like `leader`.
-    fn leading(self, leader: &Job) -> Job {
+    /// The same request for `waiter`, one of its followers, to lead in its place.
+    pub fn led_by(&self, waiter: Waiter) -> Job {
         Job {
-            master: self.master,
-            admission: self.admission,
-            protocol: self.protocol,
-            priority: self.priority,
-            slave: leader.slave,
-            pdu: leader.pdu.clone(),
-            queued_at: self.queued_at,
-            deadline: self.deadline,
-            reply: self.reply,
-            coalesce: leader.coalesce,
+            waiter,
+            slave: self.slave,
+            pdu: self.pdu.clone(),
+            coalesce: self.coalesce,
             followers: Vec::new(),
-            epoch: leader.epoch,
-            answered: false,
+            epoch: self.epoch,
         }
     }
 }
 
 /// What became of a pushed job.
-#[derive(Debug, PartialEq, Eq)]
+#[derive(Debug)]
 pub enum Pushed {
     /// In its master's FIFO.
     Queued,
     /// Joined an identical read of another master.
     Joined,
-    /// Answered from the cache, with this.
-    Cached(Vec<u8>),
+    /// Not queued: the cache holds its answer, this. The job comes back to be answered.
+    Cached(Job, Vec<u8>),
 }
 
 /// A cached answer to one read.
@@ -286,7 +246,7 @@ impl Ring {
 
 /// A read others may join, as [`Leaders`] knows it: its slave, that slave's write epoch when it
 /// was queued, and its PDU.
-type ReadKey = (u8, u64, Vec<u8>);
+type ReadKey = (u8, Epoch, Vec<u8>);
 
 /// Per ring, the masters whose head is a read others may join, by that read, so that a read
 /// finds one to join without looking at every master's head.
@@ -304,7 +264,7 @@ impl Leaders {
             self.0[r]
                 .entry(Self::key(head))
                 .or_default()
-                .push(head.master);
+                .push(head.master());
         }
     }
 
@@ -314,7 +274,7 @@ impl Leaders {
             return;
         }
         if let hash_map::Entry::Occupied(mut masters) = self.0[r].entry(Self::key(head)) {
-            masters.get_mut().retain(|&m| m != head.master);
+            masters.get_mut().retain(|&m| m != head.master());
             if masters.get().is_empty() {
                 masters.remove();
             }
@@ -324,7 +284,7 @@ impl Leaders {
     /// A master whose head `job` may join: a priority one first, and for a priority job only
     /// such a one.
     fn find(&self, job: &Job) -> Option<MasterId> {
-        let rings: &[usize] = if job.priority { &[1] } else { &[1, 0] };
+        let rings: &[usize] = if job.priority() { &[1] } else { &[1, 0] };
         let key = Self::key(job);
         rings
             .iter()
@@ -360,7 +320,7 @@ struct Inner {
     /// Closed for good: pushes are refused.
     closed: bool,
     /// Per slave: bumped by every write queued to it (all of them by a broadcast).
-    epochs: Box<[u64; 256]>,
+    epochs: Box<[Epoch; 256]>,
     /// Masters with a read following another's: their next jobs wait until it is taken, so
     /// that a master's requests reach the line in its own order.
     following: HashMap<MasterId, usize>,
@@ -425,7 +385,7 @@ impl FairQueue {
             }
             let capacity = self.capacity.load(Ordering::Relaxed);
             let victim = if inner.len >= capacity {
-                match inner.victim(job.admission, capacity) {
+                match inner.victim(job.admission(), capacity) {
                     Some(victim) => Some(victim),
                     None => return Err(job),
                 }
@@ -436,8 +396,7 @@ impl FairQueue {
             if read {
                 job.epoch = inner.epochs[usize::from(job.slave)];
                 if let Some(answer) = inner.cached(&job, cache) {
-                    let _ = job.reply.send(Ok(Answer::Reply(answer.clone())));
-                    return Ok((Pushed::Cached(answer), None));
+                    return Ok((Pushed::Cached(job, answer), None));
                 }
             }
             let evicted = match victim {
@@ -451,7 +410,7 @@ impl FairQueue {
                 inner.new_epoch(job.slave);
                 job.epoch = inner.epochs[usize::from(job.slave)];
             }
-            inner.hold(job.admission, job.priority);
+            inner.hold(job.admission(), job.priority());
             let pushed = match inner.join(job) {
                 Ok(()) => Pushed::Joined,
                 Err(job) => {
@@ -461,7 +420,7 @@ impl FairQueue {
             };
             (pushed, evicted)
         };
-        if pushed == Pushed::Queued {
+        if matches!(pushed, Pushed::Queued) {
             self.ready.notify_one();
         }
         Ok((pushed, evicted))
@@ -497,10 +456,10 @@ impl FairQueue {
         }
         inner.turn[r].served(place, more);
         let job = job?;
-        inner.release(job.admission, job.priority);
+        inner.release(job.admission(), job.priority());
         for follower in &job.followers {
-            inner.release(follower.admission, follower.priority);
-            inner.unfollow(follower.master);
+            inner.release(follower.origin.admission, follower.origin.priority);
+            inner.unfollow(follower.origin.master);
         }
         Some(job)
     }
@@ -554,7 +513,7 @@ impl FairQueue {
                 inner.leaders.remove(queue.ring, head);
             }
             for mut job in queue.jobs {
-                inner.release(job.admission, job.priority);
+                inner.release(job.admission(), job.priority());
                 let followers = std::mem::take(&mut job.followers);
                 inner.promote(&job, followers);
                 gone.push(job);
@@ -566,13 +525,13 @@ impl FairQueue {
                 for job in queue.jobs.iter_mut() {
                     let (mine, others) = std::mem::take(&mut job.followers)
                         .into_iter()
-                        .partition(|f: &Follower| f.master == master);
+                        .partition(|f: &Waiter| f.origin.master == master);
                     job.followers = others;
-                    left.extend(mine.into_iter().map(|f| f.leading(job)));
+                    left.extend(mine.into_iter().map(|f| job.led_by(f)));
                 }
             }
             for job in &left {
-                inner.release(job.admission, job.priority);
+                inner.release(job.admission(), job.priority());
             }
             gone.extend(left);
         }
@@ -589,11 +548,6 @@ impl FairQueue {
 
     pub fn is_empty(&self) -> bool {
         self.len() == 0
-    }
-
-    /// The write epoch of `slave` now.
-    pub fn epoch(&self, slave: u8) -> u64 {
-        self.lock().epochs[usize::from(slave)]
     }
 
     /// Keep `answer` to `job`'s read for `cache`-configured slaves, unless a write to its slave
@@ -628,10 +582,13 @@ impl Inner {
     /// answers are gone.
     fn new_epoch(&mut self, slave: u8) {
         if slave == BROADCAST {
-            self.epochs.iter_mut().for_each(|epoch| *epoch += 1);
+            self.epochs
+                .iter_mut()
+                .for_each(|epoch| *epoch = epoch.wrapping_add(1));
             self.cache.clear();
         } else {
-            self.epochs[usize::from(slave)] += 1;
+            let epoch = &mut self.epochs[usize::from(slave)];
+            *epoch = epoch.wrapping_add(1);
             self.cache.retain(|(cached, _), _| *cached != slave);
         }
     }
@@ -650,7 +607,7 @@ impl Inner {
     /// epoch, and (for a priority master) a priority leader.
     fn join(&mut self, job: Job) -> Result<(), Job> {
         let master_busy =
-            self.queues.contains_key(&job.master) || self.following.contains_key(&job.master);
+            self.queues.contains_key(&job.master()) || self.following.contains_key(&job.master());
         if !job.coalesce || master_busy {
             return Err(job);
         }
@@ -668,8 +625,8 @@ impl Inner {
         let Some(head) = head else {
             return Err(job);
         };
-        *self.following.entry(job.master).or_default() += 1;
-        head.followers.push(job.follower());
+        *self.following.entry(job.master()).or_default() += 1;
+        head.followers.push(job.waiter);
         Ok(())
     }
 
@@ -718,7 +675,7 @@ impl Inner {
         let busiest = self
             .queues
             .iter()
-            .filter(|(_, queue)| queue.jobs.back().is_some_and(|job| job.admission == key))
+            .filter(|(_, queue)| queue.jobs.back().is_some_and(|job| job.admission() == key))
             .max_by_key(|&(&master, queue)| {
                 let led = queue
                     .jobs
@@ -735,7 +692,7 @@ impl Inner {
                 self.turn[queue.ring].remove(queue.key, master);
                 self.queues.remove(&master);
             }
-            self.release(job.admission, job.priority);
+            self.release(job.admission(), job.priority());
             let followers = std::mem::take(&mut job.followers);
             self.promote(&job, followers);
             return Some(job);
@@ -745,18 +702,22 @@ impl Inner {
             .values_mut()
             .flat_map(|queue| queue.jobs.iter_mut())
             .find_map(|leader| {
-                let at = leader.followers.iter().rposition(|f| f.admission == key)?;
-                Some(leader.followers.remove(at).leading(leader))
+                let at = leader
+                    .followers
+                    .iter()
+                    .rposition(|f| f.origin.admission == key)?;
+                let follower = leader.followers.remove(at);
+                Some(leader.led_by(follower))
             })?;
-        self.unfollow(job.master);
-        self.release(job.admission, job.priority);
+        self.unfollow(job.master());
+        self.release(job.admission(), job.priority());
         Some(job)
     }
 
     /// Queue `job` last in its master's FIFO, or (`first`) at its head; a master with nothing
     /// queued so far takes its place in the rotation.
     fn enqueue(&mut self, job: Job, first: bool) {
-        match self.queues.entry(job.master) {
+        match self.queues.entry(job.master()) {
             hash_map::Entry::Occupied(queue) if first => {
                 let queue = queue.into_mut();
                 if let Some(head) = queue.jobs.front() {
@@ -767,8 +728,8 @@ impl Inner {
             }
             hash_map::Entry::Occupied(queue) => queue.into_mut().jobs.push_back(job),
             hash_map::Entry::Vacant(queue) => {
-                let (r, key) = (ring(job.priority), job.admission);
-                self.turn[r].push(key, job.master);
+                let (r, key) = (ring(job.priority()), job.admission());
+                self.turn[r].push(key, job.master());
                 self.leaders.add(r, &job);
                 queue.insert(Fifo {
                     jobs: VecDeque::from([job]),
@@ -796,13 +757,13 @@ impl Inner {
 
     /// The leader `job` is gone unsent: its first follower takes its place at the head of its
     /// own master's FIFO, with the others following it. They all still wait, as they did.
-    fn promote(&mut self, job: &Job, followers: Vec<Follower>) {
+    fn promote(&mut self, job: &Job, followers: Vec<Waiter>) {
         let mut followers = followers.into_iter();
         let Some(first) = followers.next() else {
             return;
         };
-        self.unfollow(first.master);
-        let mut promoted = first.leading(job);
+        self.unfollow(first.origin.master);
+        let mut promoted = job.led_by(first);
         promoted.followers = followers.collect();
         self.enqueue(promoted, true);
     }
@@ -811,6 +772,9 @@ impl Inner {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::error::{Answer, Outcome};
+    use crate::master::{Origin, Protocol};
+    use tokio::sync::oneshot;
 
     const READ: [u8; 5] = [0x03, 0x00, 0x10, 0x00, 0x02];
     const WRITE: [u8; 5] = [0x06, 0x00, 0x10, 0x12, 0x34];
@@ -825,15 +789,26 @@ mod tests {
         }
     }
 
-    /// What became of a pushed job, whatever it displaced.
-    fn pushed(result: Result<(Pushed, Option<Job>), Job>) -> Option<Pushed> {
-        result.ok().map(|(pushed, _)| pushed)
+    /// What became of a pushed job, whatever it displaced: [`Pushed`] without the job.
+    #[derive(Debug, PartialEq, Eq)]
+    enum Went {
+        Queued,
+        Joined,
+        Cached(Vec<u8>),
+    }
+
+    fn pushed(result: Result<(Pushed, Option<Job>), Job>) -> Option<Went> {
+        result.ok().map(|(pushed, _)| match pushed {
+            Pushed::Queued => Went::Queued,
+            Pushed::Joined => Went::Joined,
+            Pushed::Cached(_, answer) => Went::Cached(answer),
+        })
     }
 
     fn request(origin: Origin, slave: u8, pdu: &[u8]) -> (Job, oneshot::Receiver<Outcome>) {
-        let (reply, rx) = oneshot::channel();
         let far = Instant::now() + Duration::from_secs(60);
-        let mut job = Job::new(origin, slave, pdu.to_vec(), far, reply);
+        let (waiter, rx) = Waiter::new(origin, far);
+        let mut job = Job::new(waiter, slave, pdu.to_vec());
         job.coalesce = pdu::is_read_only(pdu);
         (job, rx)
     }
@@ -857,7 +832,7 @@ mod tests {
                     let queue = &inner.queues[master];
                     assert_eq!((queue.ring, queue.key), (r, *key));
                     assert!(queue.jobs.iter().all(|j| {
-                        (ring(j.priority), j.admission, j.master) == (r, *key, *master)
+                        (ring(j.priority()), j.admission(), j.master()) == (r, *key, *master)
                     }));
                     assert!(placed.insert(*master), "master {master} once");
                 }
@@ -870,7 +845,7 @@ mod tests {
             .values()
             .filter_map(|queue| Some((queue.ring, queue.jobs.front()?)))
             .filter(|(_, head)| head.coalesce)
-            .map(|(r, head)| (r, Leaders::key(head), head.master))
+            .map(|(r, head)| (r, Leaders::key(head), head.master()))
             .collect();
         let mut leaders: Vec<(usize, ReadKey, MasterId)> = (0..RINGS)
             .flat_map(|r| {
@@ -885,9 +860,9 @@ mod tests {
         assert_eq!(heads, leaders);
         let mut held: HashMap<MasterId, usize> = HashMap::new();
         for job in inner.queues.values().flat_map(|queue| &queue.jobs) {
-            *held.entry(job.admission).or_default() += 1;
+            *held.entry(job.admission()).or_default() += 1;
             for follower in &job.followers {
-                *held.entry(follower.admission).or_default() += 1;
+                *held.entry(follower.origin.admission).or_default() += 1;
             }
         }
         assert_eq!(inner.len, held.values().sum::<usize>());
@@ -898,7 +873,7 @@ mod tests {
 
     fn order(q: &FairQueue) -> Vec<(MasterId, u8)> {
         std::iter::from_fn(|| q.try_pop())
-            .map(|j| (j.master, j.pdu[1]))
+            .map(|j| (j.master(), j.pdu[1]))
             .collect()
     }
 
@@ -960,7 +935,7 @@ mod tests {
             keep.push(rx);
         }
         let served: Vec<MasterId> = std::iter::from_fn(|| q.try_pop())
-            .map(|j| j.master)
+            .map(|j| j.master())
             .collect();
         let connection: Vec<usize> = (0..served.len()).filter(|&at| served[at] == 1).collect();
         assert_eq!(connection, [1, 3, 5, 7], "{served:?}");
@@ -1018,17 +993,17 @@ mod tests {
         // Three masters: a share of two each. Master 1 holds four.
         let (newcomer, _r) = job(3, 6);
         let (pushed, evicted) = q.push(newcomer, NONE).expect("admitted");
-        assert_eq!(pushed, Pushed::Queued);
+        assert!(matches!(pushed, Pushed::Queued));
         let evicted = evicted.expect("a job refused for it");
         assert_eq!(
-            (evicted.master, evicted.pdu[1]),
+            (evicted.master(), evicted.pdu[1]),
             (1, 3),
             "master 1's newest"
         );
         assert_eq!(q.len(), 6, "queue_depth stays the total");
         // Master 1, still above its share, cannot win the place back.
         let (again, _r) = job(1, 7);
-        assert_eq!(q.push(again, NONE).unwrap_err().master, 1);
+        assert_eq!(q.push(again, NONE).unwrap_err().master(), 1);
         assert_eq!(order(&q), [(1, 0), (2, 4), (3, 6), (1, 1), (2, 5), (1, 2)]);
     }
 
@@ -1043,7 +1018,7 @@ mod tests {
         }
         // Two masters, two each: at their share.
         let (more, _r) = job(2, 4);
-        assert_eq!(q.push(more, NONE).unwrap_err().master, 2);
+        assert_eq!(q.push(more, NONE).unwrap_err().master(), 2);
         // More masters than places: one each, and a newcomer waits for room.
         let q = FairQueue::new(2);
         for master in [1, 2] {
@@ -1052,7 +1027,7 @@ mod tests {
             keep.push(rx);
         }
         let (newcomer, _r) = job(3, 0);
-        assert_eq!(q.push(newcomer, NONE).unwrap_err().master, 3);
+        assert_eq!(q.push(newcomer, NONE).unwrap_err().master(), 3);
         assert_eq!(q.len(), 2);
     }
 
@@ -1071,10 +1046,10 @@ mod tests {
         // Another address and a connection are: the address keeps two.
         let (other, _r) = datagram(20, OTHER_ADDRESS, 1);
         let (_, evicted) = q.push(other, NONE).expect("another address");
-        assert!((10..14).contains(&evicted.expect("a port's job").master));
+        assert!((10..14).contains(&evicted.expect("a port's job").master()));
         let (connection, _r) = job(1, 2);
         let (_, evicted) = q.push(connection, NONE).expect("a connection");
-        assert!((10..14).contains(&evicted.expect("a port's job").master));
+        assert!((10..14).contains(&evicted.expect("a port's job").master()));
         let masters: Vec<MasterId> = order(&q).iter().map(|&(m, _)| m).collect();
         assert_eq!(
             masters.iter().filter(|&&m| (10..14).contains(&m)).count(),
@@ -1092,25 +1067,25 @@ mod tests {
         let (lead, _r3) = request(origin(3, false), 6, &other);
         q.push(lead, NONE).unwrap();
         let (follows, _r1a) = request(origin(1, false), 6, &other);
-        assert_eq!(pushed(q.push(follows, NONE)), Some(Pushed::Joined));
+        assert_eq!(pushed(q.push(follows, NONE)), Some(Went::Joined));
         let (leads, _r1b) = request(origin(1, false), 5, &READ);
-        assert_eq!(pushed(q.push(leads, NONE)), Some(Pushed::Queued));
+        assert_eq!(pushed(q.push(leads, NONE)), Some(Went::Queued));
         let (joins, _r2) = request(origin(2, false), 5, &READ);
-        assert_eq!(pushed(q.push(joins, NONE)), Some(Pushed::Joined));
+        assert_eq!(pushed(q.push(joins, NONE)), Some(Went::Joined));
         // Four masters, a share of one each.
         let (newcomer, _r4) = request(origin(4, false), 7, &READ);
         let (_, evicted) = q.push(newcomer, NONE).expect("admitted");
         let evicted = evicted.expect("master 1's read refused");
-        assert_eq!((evicted.master, evicted.slave), (1, 5));
+        assert_eq!((evicted.master(), evicted.slave), (1, 5));
         assert!(evicted.followers.is_empty(), "its follower stays");
         assert_eq!(q.len(), 4);
         // Each request once: master 3's read with master 1 following, master 2's in its place.
         let mut served: Vec<(MasterId, u8, Vec<MasterId>)> = std::iter::from_fn(|| q.try_pop())
             .map(|j| {
                 (
-                    j.master,
+                    j.master(),
                     j.slave,
-                    j.followers.iter().map(|f| f.master).collect(),
+                    j.followers.iter().map(|f| f.origin.master).collect(),
                 )
             })
             .collect();
@@ -1131,19 +1106,19 @@ mod tests {
                 ..origin(port, false)
             };
             let (follows, rx) = request(udp, 5, &READ);
-            assert_eq!(pushed(q.push(follows, NONE)), Some(Pushed::Joined));
+            assert_eq!(pushed(q.push(follows, NONE)), Some(Went::Joined));
             keep.push(rx);
         }
         let (newcomer, _r2) = job(2, 0);
         let (_, evicted) = q.push(newcomer, NONE).expect("admitted");
         let evicted = evicted.expect("a follower refused");
-        assert!([10, 11].contains(&evicted.master));
+        assert!([10, 11].contains(&evicted.master()));
         assert_eq!((evicted.slave, &evicted.pdu[..]), (5, &READ[..]));
         let leader = q.try_pop().unwrap();
-        assert_eq!(leader.master, 1);
+        assert_eq!(leader.master(), 1);
         assert_eq!(leader.followers.len(), 1);
-        assert_ne!(leader.followers[0].master, evicted.master);
-        assert_eq!(q.try_pop().unwrap().master, 2);
+        assert_ne!(leader.followers[0].origin.master, evicted.master());
+        assert_eq!(q.try_pop().unwrap().master(), 2);
         assert!(q.is_empty() && q.try_pop().is_none());
     }
 
@@ -1163,7 +1138,7 @@ mod tests {
         for newcomer in [3, 4, 5] {
             let (j, _r) = job(newcomer, 9);
             let (_, evicted) = q.push(j, NONE).expect("admitted");
-            refused.push(evicted.expect("one refused").master);
+            refused.push(evicted.expect("one refused").master());
         }
         assert_eq!(refused, [2, 2, 1]);
         assert_eq!(q.len(), 7);
@@ -1182,14 +1157,13 @@ mod tests {
             },
             ..origin(master, master == 1)
         };
-        let answer = |reply: oneshot::Sender<Outcome>, master: MasterId| {
-            let _ = reply.send(Ok(Answer::Reply(vec![master as u8])));
+        let answer = |waiter: Waiter| {
+            let master = waiter.origin.master;
+            waiter.reply(Ok(Answer::Reply(vec![master as u8])));
         };
         let settle = |job: Job| {
-            for follower in job.followers {
-                answer(follower.reply, follower.master);
-            }
-            answer(job.reply, job.master);
+            job.followers.into_iter().for_each(answer);
+            answer(job.waiter);
         };
         let mut waiting: Vec<(MasterId, oneshot::Receiver<Outcome>)> = Vec::new();
         for _ in 0..5000 {
@@ -1209,7 +1183,7 @@ mod tests {
                     let pdu = [0x03, 0x00, rng.u8(0..3), 0x00, 0x01];
                     let pdu = if rng.u8(0..8) == 0 { WRITE } else { pdu };
                     let (j, rx) = request(origin_of(master), rng.u8(1..=2), &pdu);
-                    let key = j.admission;
+                    let key = j.admission();
                     let mut held: HashMap<MasterId, usize> = HashMap::new();
                     for (m, _) in &waiting {
                         *held.entry(origin_of(*m).admission).or_default() += 1;
@@ -1223,8 +1197,8 @@ mod tests {
                         Ok((_, evicted)) => {
                             assert!(room, "admitted without room");
                             if let Some(evicted) = evicted {
-                                assert!(held[&evicted.admission] > share);
-                                assert_ne!(evicted.admission, key);
+                                assert!(held[&evicted.admission()] > share);
+                                assert_ne!(evicted.admission(), key);
                                 settle(evicted);
                             }
                         }
@@ -1259,7 +1233,7 @@ mod tests {
         q.push(a, NONE).unwrap();
         q.push(b, NONE).unwrap();
         let refused = q.push(c, NONE).unwrap_err();
-        assert_eq!(refused.master, 3);
+        assert_eq!(refused.master(), 3);
         assert_eq!(q.len(), 2);
     }
 
@@ -1294,7 +1268,7 @@ mod tests {
         let q = std::sync::Arc::new(FairQueue::new(4));
         let waiter = tokio::spawn({
             let q = q.clone();
-            async move { q.pop().await.master }
+            async move { q.pop().await.master() }
         });
         tokio::task::yield_now().await;
         let (j, _rx) = job(7, 0);
@@ -1306,23 +1280,23 @@ mod tests {
     fn identical_reads_of_other_masters_join_the_one_waiting_and_leave_with_it() {
         let q = FairQueue::new(16);
         let (leader, _r1) = request(origin(1, false), 5, &READ);
-        assert_eq!(pushed(q.push(leader, NONE)), Some(Pushed::Queued));
+        assert_eq!(pushed(q.push(leader, NONE)), Some(Went::Queued));
         let (same, _r2) = request(origin(2, false), 5, &READ);
-        assert_eq!(pushed(q.push(same, NONE)), Some(Pushed::Joined));
+        assert_eq!(pushed(q.push(same, NONE)), Some(Went::Joined));
         // Another slave, another register: a request of its own.
         let (other_slave, _r3) = request(origin(3, false), 6, &READ);
-        assert_eq!(pushed(q.push(other_slave, NONE)), Some(Pushed::Queued));
+        assert_eq!(pushed(q.push(other_slave, NONE)), Some(Went::Queued));
         let (other_block, _r4) = request(origin(4, false), 5, &[0x03, 0x00, 0x11, 0x00, 0x02]);
-        assert_eq!(pushed(q.push(other_block, NONE)), Some(Pushed::Queued));
+        assert_eq!(pushed(q.push(other_block, NONE)), Some(Went::Queued));
         assert_eq!(q.len(), 4, "a follower waits too");
         let first = q.try_pop().unwrap();
-        assert_eq!(first.master, 1);
-        let followers: Vec<MasterId> = first.followers.iter().map(|f| f.master).collect();
+        assert_eq!(first.master(), 1);
+        let followers: Vec<MasterId> = first.followers.iter().map(|f| f.origin.master).collect();
         assert_eq!(followers, [2]);
         assert_eq!(q.len(), 2);
         // Taken: a read arriving now starts a transaction of its own.
         let (late, _r5) = request(origin(5, false), 5, &READ);
-        assert_eq!(pushed(q.push(late, NONE)), Some(Pushed::Queued));
+        assert_eq!(pushed(q.push(late, NONE)), Some(Went::Queued));
     }
 
     #[test]
@@ -1333,19 +1307,19 @@ mod tests {
         let (elsewhere, _r2) = request(origin(2, false), 6, &WRITE);
         q.push(elsewhere, NONE).unwrap();
         let (joins, _r3) = request(origin(3, false), 5, &READ);
-        assert_eq!(pushed(q.push(joins, NONE)), Some(Pushed::Joined));
+        assert_eq!(pushed(q.push(joins, NONE)), Some(Went::Joined));
         let (write, _r4) = request(origin(4, false), 5, &WRITE);
         q.push(write, NONE).unwrap();
         let (after_write, _r5) = request(origin(5, false), 5, &READ);
         assert_eq!(
             pushed(q.push(after_write, NONE)),
-            Some(Pushed::Queued),
+            Some(Went::Queued),
             "after the write"
         );
         let (broadcast, _r6) = request(origin(6, false), 0, &WRITE);
         q.push(broadcast, NONE).unwrap();
         let (after_broadcast, _r7) = request(origin(7, false), 5, &READ);
-        assert_eq!(pushed(q.push(after_broadcast, NONE)), Some(Pushed::Queued));
+        assert_eq!(pushed(q.push(after_broadcast, NONE)), Some(Went::Queued));
     }
 
     #[test]
@@ -1357,7 +1331,7 @@ mod tests {
         let (write, _r2) = request(origin(2, false), 6, &WRITE);
         q.push(write, NONE).unwrap();
         let (read, _r3) = request(origin(2, false), 5, &READ);
-        assert_eq!(pushed(q.push(read, NONE)), Some(Pushed::Queued));
+        assert_eq!(pushed(q.push(read, NONE)), Some(Went::Queued));
     }
 
     #[test]
@@ -1368,11 +1342,11 @@ mod tests {
         let (leader, _r2) = request(origin(2, false), 5, &READ);
         q.push(leader, NONE).unwrap();
         let (follows, _r3) = request(origin(3, false), 5, &READ);
-        assert_eq!(pushed(q.push(follows, NONE)), Some(Pushed::Joined));
+        assert_eq!(pushed(q.push(follows, NONE)), Some(Went::Joined));
         let (next, _r4) = request(origin(3, false), 5, &WRITE);
         q.push(next, NONE).unwrap();
         let masters: Vec<(MasterId, usize)> = std::iter::from_fn(|| q.try_pop())
-            .map(|j| (j.master, j.followers.len()))
+            .map(|j| (j.master(), j.followers.len()))
             .collect();
         assert_eq!(
             masters,
@@ -1397,10 +1371,10 @@ mod tests {
         assert!(gone[0].followers.is_empty());
         assert_eq!(q.len(), 2);
         let next = q.try_pop().unwrap();
-        assert_eq!(next.master, 2);
+        assert_eq!(next.master(), 2);
         assert_eq!(next.pdu, READ);
         assert_eq!(next.followers.len(), 1);
-        assert_eq!(next.followers[0].master, 3);
+        assert_eq!(next.followers[0].origin.master, 3);
         assert!(q.is_empty());
         // A follower that leaves goes alone.
         let (leader, _r4) = request(origin(4, false), 5, &READ);
@@ -1423,7 +1397,7 @@ mod tests {
                 keep.push(rx);
             }
         }
-        let first: Vec<MasterId> = (0..100).map(|_| q.try_pop().unwrap().master).collect();
+        let first: Vec<MasterId> = (0..100).map(|_| q.try_pop().unwrap().master()).collect();
         let priority = first.iter().filter(|&&m| m == 1).count();
         assert_eq!(priority, 75, "{first:?}");
         assert_eq!(&first[..5], [1, 2, 1, 1, 2]);
@@ -1432,7 +1406,7 @@ mod tests {
         q.set_priority_share(0.5);
         let (j, _r) = request(origin(1, false), 1, &[0x41, 0]);
         q.push(j, NONE).unwrap();
-        assert_eq!(q.try_pop().unwrap().master, 1);
+        assert_eq!(q.try_pop().unwrap().master(), 1);
     }
 
     #[test]
@@ -1441,10 +1415,10 @@ mod tests {
         let (normal, _r1) = request(origin(1, false), 5, &READ);
         q.push(normal, NONE).unwrap();
         let (urgent, _r2) = request(origin(2, true), 5, &READ);
-        assert_eq!(pushed(q.push(urgent, NONE)), Some(Pushed::Queued));
+        assert_eq!(pushed(q.push(urgent, NONE)), Some(Went::Queued));
         let (normal_too, _r3) = request(origin(3, false), 5, &READ);
-        assert_eq!(pushed(q.push(normal_too, NONE)), Some(Pushed::Joined));
-        assert_eq!(q.try_pop().unwrap().master, 2, "the priority read first");
+        assert_eq!(pushed(q.push(normal_too, NONE)), Some(Went::Joined));
+        assert_eq!(q.try_pop().unwrap().master(), 2, "the priority read first");
         // Master 3's read followed the priority one, the first identical read waiting.
         assert_eq!(q.try_pop().unwrap().followers.len(), 0);
     }
@@ -1457,18 +1431,18 @@ mod tests {
         q.push(read, age).unwrap();
         let read = q.try_pop().unwrap();
         q.remember(&read, &[0x03, 0x04, 0, 1, 0, 2]);
-        let (again, mut answer) = request(origin(2, false), 5, &READ);
-        assert_eq!(
-            pushed(q.push(again, age)),
-            Some(Pushed::Cached(vec![0x03, 0x04, 0, 1, 0, 2]))
-        );
-        assert_eq!(
-            answer.try_recv().unwrap().unwrap(),
-            Answer::Reply(vec![0x03, 0x04, 0, 1, 0, 2])
-        );
+        let (again, _r2) = request(origin(2, false), 5, &READ);
+        match q.push(again, age) {
+            Ok((Pushed::Cached(job, answer), None)) => {
+                assert_eq!(answer, [0x03, 0x04, 0, 1, 0, 2]);
+                assert_eq!(job.master(), 2, "back to be answered by the bus");
+            }
+            _ => panic!("not answered from the cache"),
+        }
+        assert!(q.is_empty());
         tokio::time::advance(age).await;
         let (stale, _r3) = request(origin(3, false), 5, &READ);
-        assert_eq!(pushed(q.push(stale, age)), Some(Pushed::Queued), "too old");
+        assert_eq!(pushed(q.push(stale, age)), Some(Went::Queued), "too old");
         let stale = q.try_pop().unwrap();
         q.remember(&stale, &[0x03, 0x04, 0, 1, 0, 2]);
         let (write, _r4) = request(origin(4, false), 5, &WRITE);
@@ -1476,7 +1450,7 @@ mod tests {
         let (after, _r5) = request(origin(5, false), 5, &READ);
         assert_eq!(
             pushed(q.push(after, age)),
-            Some(Pushed::Queued),
+            Some(Went::Queued),
             "the write dropped it"
         );
         // An answer to a read queued before that write is not kept.
@@ -1484,7 +1458,7 @@ mod tests {
         let (later, _r6) = request(origin(6, false), 5, &READ);
         assert_eq!(
             pushed(q.push(later, age)),
-            Some(Pushed::Joined),
+            Some(Went::Joined),
             "it joins the read waiting; the answer from before the write is not there"
         );
     }
