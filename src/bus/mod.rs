@@ -231,4 +231,6 @@ impl BusHandle {
 }
 
 #[cfg(test)]
+mod exits_tests;
+#[cfg(test)]
 mod tests;
