@@ -205,6 +205,8 @@ impl BusHandle {
     /// Drop the queued requests of a master that has gone; they are never sent.
     pub fn forget(&self, master: MasterId) {
         for job in self.queue.forget(master) {
+            // Reads that followed it stay queued, the first leading in its place.
+            debug_assert!(job.followers.is_empty());
             let function = job.function();
             job.waiter.left(self.tally(), job.slave, function);
         }

@@ -169,13 +169,10 @@ impl BusTask {
     fn settle_waiters(&self, mut job: Job) -> Option<Job> {
         let now = Instant::now();
         let (slave, function) = (job.slave, job.function());
-        let mut waiting = Vec::with_capacity(job.followers.len());
-        for follower in job.followers.drain(..) {
-            if let Some(follower) = self.settle(follower, now, slave, function) {
-                waiting.push(follower);
-            }
-        }
-        job.followers = waiting;
+        job.followers = std::mem::take(&mut job.followers)
+            .into_iter()
+            .filter_map(|follower| self.settle(follower, now, slave, function))
+            .collect();
         match self.settle(job.waiter, now, slave, function) {
             Some(waiter) => Some(Job { waiter, ..job }),
             None if job.followers.is_empty() => None,
