@@ -5,17 +5,18 @@
 //! a request are never sent, since a slave framing by length would take them as a request. Either way the session gets a
 //! receiver for its outcome.
 
-use crate::bus::BusHandle;
+use crate::bus::{BusHandle, Tally, Waiter};
 use crate::config::UnitSet;
 use crate::error::{Outcome, RequestError};
 use crate::line::BROADCAST;
 use crate::master::{MasterId, Origin, Protocol, Rights};
 use crate::metrics::{Metrics, Refusal};
 use crate::pdu::{self, RequestLen};
-use crate::routing::Router;
+use crate::routing::{Router, Target};
 use std::net::SocketAddr;
 use std::sync::{Arc, PoisonError, RwLock};
 use tokio::sync::oneshot;
+use tokio::time::Instant;
 
 /// The master requests come from: one per connection.
 #[derive(Debug)]
@@ -108,74 +109,52 @@ impl Dispatcher {
         unit: u8,
         pdu: Vec<u8>,
     ) -> oneshot::Receiver<Outcome> {
-        let function = pdu.first().copied().unwrap_or(0);
         let table = self.table();
         let target = table.router.resolve(unit);
-        let length = pdu::request_len(&pdu);
-        let refusal = match target {
-            _ if !pdu::is_valid_request_function(function) => {
-                RequestError::InvalidFunction(function)
-            }
-            _ if matches!(length, RequestLen::Wrong { .. }) => {
-                let len = pdu.len();
-                self.metrics
-                    .tcp
-                    .bad_length(client.master, &client.peer, function, len);
-                RequestError::BadLength { function, len }
-            }
-            // Any bytes the gateway cannot measure could hold a frame to another unit.
-            _ if client.units.is_some() && length == RequestLen::Unchecked => {
-                let tcp = &self.metrics.tcp;
-                tcp.request_refused(client.master, &client.peer, function, Refusal::Unverifiable);
-                RequestError::Unverifiable(function)
-            }
-            _ if client.units.is_some_and(|units| !units.contains(unit)) => {
-                let tcp = &self.metrics.tcp;
-                tcp.unit_refused(client.master, &client.peer, unit);
-                RequestError::UnitNotPermitted(unit)
-            }
-            _ if client.rights == Rights::NoAccess
-                || client.rights == Rights::ReadOnly && !pdu::is_read_only(&pdu) =>
-            {
-                let (refusal, error) = match client.rights {
-                    Rights::NoAccess => (Refusal::NoAccess, RequestError::NoAccess(function)),
-                    _ => (Refusal::ReadOnly, RequestError::ReadOnly(function)),
-                };
-                let tcp = &self.metrics.tcp;
-                tcp.request_refused(client.master, &client.peer, function, refusal);
-                error
-            }
-            None => RequestError::NoRoute(unit),
-            Some(target)
-                if target.address == BROADCAST && pdu::broadcast_response(&pdu).is_none() =>
-            {
-                RequestError::NotBroadcastable(function)
-            }
-            Some(target) => {
-                let origin = Origin {
-                    master: client.master,
-                    admission: client.admission,
-                    protocol: client.protocol,
-                    priority: client.priority,
-                };
-                return table.buses[target.bus].submit_from(origin, target.address, pdu);
-            }
+        let origin = Origin {
+            master: client.master,
+            admission: client.admission,
+            protocol: client.protocol,
+            priority: client.priority,
         };
+        let refusal = match admit(client, unit, &pdu, target) {
+            Ok(target) => return table.buses[target.bus].submit_from(origin, target.address, pdu),
+            Err(refusal) => refusal,
+        };
+        self.note_refusal(client, refusal);
+        let function = pdu.first().copied().unwrap_or(0);
         // Counted against the bus and slave the unit routes to, if any; without a route, with
         // no bus and no slave (the unit id is the master's to choose).
-        let outcome = Err(refusal);
-        match target {
-            Some(target) => table.buses[target.bus].metrics().request(
-                target.address,
-                function,
-                client.protocol,
-                Some(&outcome),
-            ),
-            None => self.metrics.unrouted(function, client.protocol, &outcome),
-        }
-        let (reply, receiver) = oneshot::channel();
-        let _ = reply.send(outcome);
+        let (tally, slave) = match target {
+            Some(target) => (table.buses[target.bus].tally(), target.address),
+            None => (Tally::Unrouted(&self.metrics), unit),
+        };
+        let (waiter, receiver) = Waiter::new(origin, Instant::now());
+        waiter.answer(tally, slave, function, Err(refusal));
         receiver
+    }
+
+    /// The connection's own account of a refusal, for the refusals its metrics and logs
+    /// track.
+    fn note_refusal(&self, client: &Client, refusal: RequestError) {
+        let tcp = &self.metrics.tcp;
+        let (master, peer) = (client.master, &client.peer);
+        match refusal {
+            RequestError::BadLength { function, len } => {
+                tcp.bad_length(master, peer, function, len);
+            }
+            RequestError::Unverifiable(function) => {
+                tcp.request_refused(master, peer, function, Refusal::Unverifiable);
+            }
+            RequestError::UnitNotPermitted(unit) => tcp.unit_refused(master, peer, unit),
+            RequestError::NoAccess(function) => {
+                tcp.request_refused(master, peer, function, Refusal::NoAccess);
+            }
+            RequestError::ReadOnly(function) => {
+                tcp.request_refused(master, peer, function, Refusal::ReadOnly);
+            }
+            _ => {}
+        }
     }
 
     /// `client` sent an RTU over TCP request whose CRC failed: counted, never answered.
@@ -189,4 +168,44 @@ impl Dispatcher {
             bus.forget(master);
         }
     }
+}
+
+/// Where `pdu` from `client` to `unit` (routed to `target`) goes, or why the gateway refuses it
+/// unsent: the first reason in this order.
+fn admit(
+    client: &Client,
+    unit: u8,
+    pdu: &[u8],
+    target: Option<Target>,
+) -> Result<Target, RequestError> {
+    let function = pdu.first().copied().unwrap_or(0);
+    let length = pdu::request_len(pdu);
+    let refusal = if !pdu::is_valid_request_function(function) {
+        RequestError::InvalidFunction(function)
+    } else if matches!(length, RequestLen::Wrong { .. }) {
+        RequestError::BadLength {
+            function,
+            len: pdu.len(),
+        }
+    } else if client.units.is_some() && length == RequestLen::Unchecked {
+        // Any bytes the gateway cannot measure could hold a frame to another unit.
+        RequestError::Unverifiable(function)
+    } else if client.units.is_some_and(|units| !units.contains(unit)) {
+        RequestError::UnitNotPermitted(unit)
+    } else if client.rights == Rights::NoAccess {
+        RequestError::NoAccess(function)
+    } else if client.rights == Rights::ReadOnly && !pdu::is_read_only(pdu) {
+        RequestError::ReadOnly(function)
+    } else {
+        match target {
+            None => RequestError::NoRoute(unit),
+            Some(target)
+                if target.address == BROADCAST && pdu::broadcast_response(pdu).is_none() =>
+            {
+                RequestError::NotBroadcastable(function)
+            }
+            Some(target) => return Ok(target),
+        }
+    };
+    Err(refusal)
 }

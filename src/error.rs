@@ -39,7 +39,9 @@ impl From<Reply> for Answer {
     }
 }
 
-#[derive(Debug, thiserror::Error)]
+/// What failed one request: a value to copy to every master that shared its transaction. A lost
+/// port is no request's failure: its `io::Error` stays with the bus that lost it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum RequestError {
     #[error("function code {0:#04x} is not valid in a request")]
     InvalidFunction(u8),
@@ -70,46 +72,42 @@ pub enum RequestError {
     #[error("slave is down (timed out {timeouts} times in a row); not sent")]
     SlaveDown { timeouts: u32 },
     #[error("no valid reply after {attempts} attempt(s): {last}")]
-    NoResponse { attempts: u32, last: TxError },
+    NoResponse { attempts: u32, last: NoReply },
 }
 
-/// The same outcome again, for every read that shared one transaction.
-pub fn duplicate(outcome: &Outcome) -> Outcome {
-    match outcome {
-        Ok(answer) => Ok(answer.clone()),
-        Err(error) => Err(error.duplicate()),
+/// Why the last try of a request got no valid reply: a [`TxError`] but a lost port, whose
+/// messages it keeps.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum NoReply {
+    #[error("no reply to this request within the response timeout")]
+    Timeout,
+    #[error("reply failed its check (CRC-16 on RTU, LRC on ASCII)")]
+    Check,
+    #[error("reply incomplete, or longer than a frame")]
+    Frame,
+    #[error("line never fell silent for the gap before the frame")]
+    LineBusy,
+    #[error("the line did not echo the frame as sent (a collision, or no echo)")]
+    Echo,
+}
+
+/// A failed try's [`NoReply`], or the `io::Error` of a lost port.
+impl TryFrom<TxError> for NoReply {
+    type Error = std::io::Error;
+
+    fn try_from(error: TxError) -> Result<NoReply, std::io::Error> {
+        match error {
+            TxError::Timeout => Ok(NoReply::Timeout),
+            TxError::Check => Ok(NoReply::Check),
+            TxError::Frame => Ok(NoReply::Frame),
+            TxError::LineBusy => Ok(NoReply::LineBusy),
+            TxError::Echo => Ok(NoReply::Echo),
+            TxError::PortLost(lost) => Err(lost),
+        }
     }
 }
 
 impl RequestError {
-    /// The same failure again (an I/O error is remade from its kind and message).
-    pub fn duplicate(&self) -> RequestError {
-        match self {
-            RequestError::InvalidFunction(f) => RequestError::InvalidFunction(*f),
-            RequestError::BadLength { function, len } => RequestError::BadLength {
-                function: *function,
-                len: *len,
-            },
-            RequestError::Unverifiable(f) => RequestError::Unverifiable(*f),
-            RequestError::ReadOnly(f) => RequestError::ReadOnly(*f),
-            RequestError::NoAccess(f) => RequestError::NoAccess(*f),
-            RequestError::UnitNotPermitted(u) => RequestError::UnitNotPermitted(*u),
-            RequestError::NoRoute(u) => RequestError::NoRoute(*u),
-            RequestError::NotBroadcastable(f) => RequestError::NotBroadcastable(*f),
-            RequestError::PortDown => RequestError::PortDown,
-            RequestError::QueueFull => RequestError::QueueFull,
-            RequestError::Expired => RequestError::Expired,
-            RequestError::ShuttingDown => RequestError::ShuttingDown,
-            RequestError::SlaveDown { timeouts } => RequestError::SlaveDown {
-                timeouts: *timeouts,
-            },
-            RequestError::NoResponse { attempts, last } => RequestError::NoResponse {
-                attempts: *attempts,
-                last: last.duplicate(),
-            },
-        }
-    }
-
     /// The exception the gateway answers with. Everything the gateway refuses on its own goes
     /// through here.
     pub fn exception_code(&self) -> ExceptionCode {
@@ -129,5 +127,33 @@ impl RequestError {
                 ExceptionCode::GatewayTargetFailedToRespond
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_failed_try_keeps_its_message_and_a_lost_port_its_io_error() {
+        let tries = [
+            TxError::Timeout,
+            TxError::Check,
+            TxError::Frame,
+            TxError::LineBusy,
+            TxError::Echo,
+        ];
+        for error in tries {
+            let message = error.to_string();
+            assert_eq!(
+                NoReply::try_from(error).expect("no reply").to_string(),
+                message
+            );
+        }
+        let lost = TxError::PortLost(std::io::Error::other("unplugged"));
+        assert_eq!(
+            NoReply::try_from(lost).expect_err("port lost").to_string(),
+            "unplugged"
+        );
     }
 }

@@ -2,8 +2,7 @@
 //! simulated line's own record of what went on the wire and when.
 
 use modbus_gateway::bus::BusHandle;
-use modbus_gateway::error::{Answer, Outcome, RequestError};
-use modbus_gateway::line::TxError;
+use modbus_gateway::error::{Answer, NoReply, Outcome, RequestError};
 use modbus_gateway::metrics::Metrics;
 use modbus_gateway::sim::{RegisterBank, Scripted, SimLine, Slave, Source, Transmission};
 
@@ -107,7 +106,7 @@ async fn a_late_reply_never_answers_a_later_request() {
     assert!(matches!(
         first,
         Err(RequestError::NoResponse {
-            last: TxError::Timeout,
+            last: NoReply::Timeout,
             ..
         })
     ));
@@ -486,7 +485,7 @@ async fn requests_a_slave_ignores_do_not_change_what_another_master_gets_from_it
             matches!(
                 outcome,
                 Err(RequestError::NoResponse {
-                    last: TxError::Timeout,
+                    last: NoReply::Timeout,
                     ..
                 })
             ),

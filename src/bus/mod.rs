@@ -16,14 +16,16 @@ mod reconfigure;
 mod serve;
 mod task;
 mod transaction;
+mod waiter;
 
 pub use device::{Device, Port, SerialDriver};
-pub use queue::{FairQueue, Follower, Job, Pushed};
+pub use queue::{FairQueue, Job, Pushed};
 pub use reconfigure::{longest_transaction, BusUpdates, Reconfigure};
 pub use task::BusTask;
+pub use waiter::{Tally, Waiter};
 
 use crate::config;
-use crate::error::{duplicate, Answer, Outcome, RequestError};
+use crate::error::{Answer, Outcome, RequestError};
 use crate::master::{MasterId, Origin, Protocol};
 use crate::metrics::BusMetrics;
 use crate::pdu;
@@ -158,7 +160,6 @@ impl BusHandle {
         slave: u8,
         pdu: Vec<u8>,
     ) -> oneshot::Receiver<Outcome> {
-        let (reply, outcome) = oneshot::channel();
         let (deadline, coalesce, cache) = {
             let intake = self.intake.lock().unwrap_or_else(PoisonError::into_inner);
             let at = usize::from(slave);
@@ -168,13 +169,13 @@ impl BusHandle {
                 intake.cache[at],
             )
         };
-        let mut job = Job::new(origin, slave, pdu, deadline, reply);
+        let (waiter, outcome) = Waiter::new(origin, deadline);
+        let mut job = Job::new(waiter, slave, pdu);
         job.coalesce = coalesce;
         if !self.is_up() {
             self.answer(job, Err(RequestError::PortDown));
             return outcome;
         }
-        let (function, protocol) = (job.function(), job.protocol);
         match self.queue.push(job, cache) {
             Ok((pushed, evicted)) => {
                 if let Some(evicted) = evicted {
@@ -183,11 +184,9 @@ impl BusHandle {
                 match pushed {
                     Pushed::Queued => {}
                     Pushed::Joined => self.metrics.coalesced(slave),
-                    Pushed::Cached(answer) => {
+                    Pushed::Cached(job, answer) => {
                         self.metrics.cache_hit(slave);
-                        let answered = Ok(Answer::Reply(answer));
-                        self.metrics
-                            .request(slave, function, protocol, Some(&answered));
+                        self.answer(job, Ok(Answer::Reply(answer)));
                     }
                 }
             }
@@ -206,31 +205,34 @@ impl BusHandle {
     /// Drop the queued requests of a master that has gone; they are never sent.
     pub fn forget(&self, master: MasterId) {
         for job in self.queue.forget(master) {
-            self.metrics
-                .request(job.slave, job.function(), job.protocol, None);
+            // Reads that followed it stay queued, the first leading in its place.
+            debug_assert!(job.followers.is_empty());
+            let function = job.function();
+            job.waiter.left(self.tally(), job.slave, function);
         }
     }
 
-    /// Every request ends here, or in [`BusHandle::forget`]: counted by outcome, then answered;
-    /// the reads that followed `job` get the same outcome. A leader answered already (it
-    /// expired, its master left) is not answered again.
-    fn answer(&self, mut job: Job, outcome: Outcome) {
-        let function = job.function();
-        for follower in job.followers.drain(..) {
-            let outcome = duplicate(&outcome);
-            let counted = (!follower.reply.is_closed()).then_some(&outcome);
-            self.metrics
-                .request(job.slave, function, follower.protocol, counted);
-            let _ = follower.reply.send(outcome);
+    /// Where this bus counts how its requests end.
+    pub(crate) fn tally(&self) -> Tally<'_> {
+        Tally::Bus(&self.metrics)
+    }
+
+    /// `job` ends in `outcome`: its master is answered, and the reads that followed it get the
+    /// same outcome (a follower whose master left is counted as dropped).
+    fn answer(&self, job: Job, outcome: Outcome) {
+        let (slave, function, tally) = (job.slave, job.function(), self.tally());
+        for follower in job.followers {
+            if follower.is_gone() {
+                follower.left(tally, slave, function);
+            } else {
+                follower.answer(tally, slave, function, outcome.clone());
+            }
         }
-        if job.answered {
-            return;
-        }
-        self.metrics
-            .request(job.slave, function, job.protocol, Some(&outcome));
-        let _ = job.reply.send(outcome);
+        job.waiter.answer(tally, slave, function, outcome);
     }
 }
 
+#[cfg(test)]
+mod exits_tests;
 #[cfg(test)]
 mod tests;

@@ -5,7 +5,7 @@
 use super::health::Admission;
 use super::task::{BusTask, Served};
 use super::transaction::Ran;
-use super::{Job, Port, HEARTBEAT};
+use super::{Job, Port, Waiter, HEARTBEAT};
 use crate::error::RequestError;
 use crate::line::BROADCAST;
 use crate::line::{LineCounters, LineMaster};
@@ -127,10 +127,8 @@ impl BusTask {
 
     /// Answer `job`: from the line, or at once if nobody waits for it, it expired or its slave
     /// is down. Returns why serving ends, if it does.
-    async fn run_job(&mut self, serving: &mut Serving<'_>, mut job: Job) -> Option<Served> {
-        if !self.settle_waiters(&mut job) {
-            return None;
-        }
+    async fn run_job(&mut self, serving: &mut Serving<'_>, job: Job) -> Option<Served> {
+        let job = self.settle_waiters(job)?;
         let admission = match job.slave {
             BROADCAST => Admission::Send,
             slave => self
@@ -166,41 +164,43 @@ impl BusTask {
     }
 
     /// Answer at once who no longer waits for `job`, or waited too long: its own master and
-    /// each follower. Whether anyone is left for the line to answer.
-    fn settle_waiters(&self, job: &mut Job) -> bool {
-        let metrics = &self.handle.metrics;
+    /// each follower. The job, if anyone is left for the line to answer: led by the first
+    /// follower still waiting if its own master is settled.
+    fn settle_waiters(&self, mut job: Job) -> Option<Job> {
         let now = Instant::now();
         let (slave, function) = (job.slave, job.function());
-        let mut waiting = Vec::with_capacity(job.followers.len());
-        for follower in job.followers.drain(..) {
-            if follower.reply.is_closed() {
-                metrics.request(slave, function, follower.protocol, None);
-                continue;
-            }
-            metrics.dequeued(follower.queued_at.elapsed(), follower.priority);
-            if now > follower.deadline {
-                let expired = Err(RequestError::Expired);
-                metrics.request(slave, function, follower.protocol, Some(&expired));
-                let _ = follower.reply.send(expired);
-            } else {
-                waiting.push(follower);
-            }
-        }
-        job.followers = waiting;
-        if job.reply.is_closed() {
-            metrics.request(slave, function, job.protocol, None);
-            job.answered = true;
-        } else {
-            metrics.dequeued(job.queued_at.elapsed(), job.priority);
-            if now > job.deadline {
-                let expired = Err(RequestError::Expired);
-                metrics.request(slave, function, job.protocol, Some(&expired));
-                let (gone, _) = tokio::sync::oneshot::channel();
-                let _ = std::mem::replace(&mut job.reply, gone).send(expired);
-                job.answered = true;
+        job.followers = std::mem::take(&mut job.followers)
+            .into_iter()
+            .filter_map(|follower| self.settle(follower, now, slave, function))
+            .collect();
+        match self.settle(job.waiter, now, slave, function) {
+            Some(waiter) => Some(Job { waiter, ..job }),
+            None if job.followers.is_empty() => None,
+            None => {
+                let first = job.followers.remove(0);
+                Some(Job {
+                    waiter: first,
+                    ..job
+                })
             }
         }
-        !job.answered || !job.followers.is_empty()
+    }
+
+    /// `waiter`, if it still waits for the line: answered at once if its master left or its
+    /// deadline passed before `now`.
+    fn settle(&self, waiter: Waiter, now: Instant, slave: u8, function: u8) -> Option<Waiter> {
+        let tally = self.handle.tally();
+        if waiter.is_gone() {
+            waiter.left(tally, slave, function);
+            return None;
+        }
+        let metrics = &self.handle.metrics;
+        metrics.dequeued(waiter.queued_at.elapsed(), waiter.origin.priority);
+        if now > waiter.deadline {
+            waiter.answer(tally, slave, function, Err(RequestError::Expired));
+            return None;
+        }
+        Some(waiter)
     }
 
     /// Keep a slave's normal reply to a read for its `cache`, if it has one.

@@ -2,10 +2,11 @@
 //! reopen backoff, reconfiguration between transactions, and the slave-state changes it renders.
 
 use super::transaction::Ran;
-use super::{BusHandle, BusTask, Device, Job, Reconfigure};
+use super::{BusHandle, BusTask, Device, Job, Reconfigure, Waiter};
 use crate::config::{self, Config};
+use crate::error::NoReply;
 use crate::error::{Answer, Outcome, RequestError};
-use crate::line::{Framing, LineMaster, TxError};
+use crate::line::{Framing, LineMaster};
 use crate::metrics::Metrics;
 use crate::shutdown::Stopping;
 use crate::sim::{RegisterBank, Scripted, SimLine, Transmission};
@@ -25,7 +26,6 @@ fn settings(keys: &str) -> config::Bus {
 }
 
 fn job(slave: u8, pdu: &[u8]) -> (Job, oneshot::Receiver<Outcome>) {
-    let (reply, outcome) = oneshot::channel();
     let origin = super::Origin {
         master: 1,
         admission: 1,
@@ -33,10 +33,8 @@ fn job(slave: u8, pdu: &[u8]) -> (Job, oneshot::Receiver<Outcome>) {
         priority: false,
     };
     let deadline = Instant::now() + Duration::from_secs(60);
-    (
-        Job::new(origin, slave, pdu.to_vec(), deadline, reply),
-        outcome,
-    )
+    let (waiter, outcome) = Waiter::new(origin, deadline);
+    (Job::new(waiter, slave, pdu.to_vec()), outcome)
 }
 
 /// A task on `line`, and a master on a port of it, for driving one transaction by hand.
@@ -238,7 +236,7 @@ async fn health_through_failing_down_and_back(framing: Framing) {
         matches!(
             o,
             Err(RequestError::NoResponse {
-                last: TxError::Timeout,
+                last: NoReply::Timeout,
                 ..
             })
         )

@@ -6,9 +6,9 @@
 use super::health::{Change, Response};
 use super::task::BusTask;
 use super::{Job, Port};
-use crate::error::{Answer, Outcome, RequestError};
+use crate::error::{Answer, NoReply, Outcome, RequestError};
 use crate::line::BROADCAST;
-use crate::line::{LineMaster, Seen, TxError};
+use crate::line::{LineMaster, Seen};
 use crate::metrics::Fate;
 use crate::pdu;
 use crate::trace::{Direction, TraceEvent, FOREIGN};
@@ -30,11 +30,11 @@ impl Response {
         match outcome {
             Ok(_) => Response::Answered,
             Err(RequestError::NoResponse {
-                last: TxError::Timeout,
+                last: NoReply::Timeout,
                 ..
             }) => Response::TimedOut,
             Err(RequestError::NoResponse {
-                last: TxError::LineBusy,
+                last: NoReply::LineBusy,
                 ..
             }) => Response::Unsent,
             Err(_) => Response::Garbled,
@@ -80,17 +80,20 @@ impl BusTask {
             if master.sent_at() != previous {
                 first_sent_at.get_or_insert(master.sent_at());
             }
-            match result {
+            let failed = match result {
                 Ok(reply) => break Ok(Answer::from(reply)),
-                Err(TxError::PortLost(error)) => return Ran::PortLost(error),
-                Err(last)
+                Err(error) => NoReply::try_from(error),
+            };
+            match failed {
+                Err(lost) => return Ran::PortLost(lost),
+                Ok(last)
                     if attempts > retries
                         || job.abandoned()
                         || stop_at.is_some_and(|at| Instant::now() >= at) =>
                 {
                     break Err(RequestError::NoResponse { attempts, last });
                 }
-                Err(error) => {
+                Ok(error) => {
                     debug!(bus = &*self.handle.name, slave = job.slave, attempts, %error, "retrying");
                 }
             }
@@ -120,14 +123,14 @@ impl BusTask {
                 .map_or_else(Fate::of_failed_try, |()| Fate::Ok);
             self.trace_try(master, fate);
         }
-        Ran::Done(match sent {
+        Ran::Done(match sent.map_err(NoReply::try_from) {
             Ok(()) => Ok(settings
                 .broadcast_reply
                 .then(|| pdu::broadcast_response(&job.pdu))
                 .flatten()
                 .map_or(Answer::Nothing, Answer::Reply)),
-            Err(TxError::PortLost(error)) => return Ran::PortLost(error),
-            Err(last) => Err(RequestError::NoResponse { attempts: 1, last }),
+            Err(Err(lost)) => return Ran::PortLost(lost),
+            Err(Ok(last)) => Err(RequestError::NoResponse { attempts: 1, last }),
         })
     }
 

@@ -73,20 +73,6 @@ pub enum TxError {
     PortLost(io::Error),
 }
 
-impl TxError {
-    /// The same failure again (an I/O error is remade from its kind and message).
-    pub(crate) fn duplicate(&self) -> TxError {
-        match self {
-            TxError::Timeout => TxError::Timeout,
-            TxError::Check => TxError::Check,
-            TxError::Frame => TxError::Frame,
-            TxError::LineBusy => TxError::LineBusy,
-            TxError::Echo => TxError::Echo,
-            TxError::PortLost(e) => TxError::PortLost(io::Error::new(e.kind(), e.to_string())),
-        }
-    }
-}
-
 /// What went over the line, and what the master saw there that was not an answer; cumulative,
 /// for metrics.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]

@@ -2,7 +2,7 @@
 //! an exception (`source`), why a connection was refused or ended (`reason`), and the addresses
 //! and codes as strings made once. Bounded sets, all of them; nothing here counts.
 
-use crate::error::{Answer, Outcome, RequestError};
+use crate::error::{Answer, NoReply, Outcome, RequestError};
 use crate::line::{Reply, TxError};
 use std::sync::OnceLock;
 use std::time::{SystemTime, UNIX_EPOCH};
@@ -107,7 +107,7 @@ impl Fate {
                     RequestError::QueueFull => Fate::QueueFull,
                     RequestError::Expired => Fate::Expired,
                     RequestError::ShuttingDown => Fate::Shutdown,
-                    RequestError::NoResponse { last, .. } => Fate::of_failed_try(last),
+                    RequestError::NoResponse { last, .. } => Fate::of_no_reply(*last),
                 };
                 (
                     fate,
@@ -132,6 +132,16 @@ impl Fate {
             Ok(Reply::Fits(_)) => Fate::Ok,
             Ok(Reply::Malformed(_)) => Fate::MalformedReply,
             Err(error) => Fate::of_failed_try(error),
+        }
+    }
+
+    /// The fate of a request whose last try got no valid reply.
+    pub fn of_no_reply(last: NoReply) -> Fate {
+        match last {
+            NoReply::Timeout => Fate::Timeout,
+            NoReply::Check => Fate::CrcError,
+            NoReply::Frame | NoReply::Echo => Fate::FrameError,
+            NoReply::LineBusy => Fate::LineBusy,
         }
     }
 

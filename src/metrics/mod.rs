@@ -213,9 +213,8 @@ impl Metrics {
     /// Count a request the gateway answered without a bus: its unit id has no route. Counted
     /// with no bus and `slave="other"`: the unit id is the master's to choose, and a label it
     /// chooses would let it make series without end.
-    pub fn unrouted(&self, function: u8, protocol: Protocol, outcome: &Outcome) {
-        self.counters
-            .count("", OTHER, function, protocol, Some(outcome));
+    pub fn unrouted(&self, function: u8, protocol: Protocol, outcome: Option<&Outcome>) {
+        self.counters.count("", OTHER, function, protocol, outcome);
     }
 
     /// Every metric in the Prometheus text format.
@@ -235,8 +234,9 @@ impl Metrics {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::error::NoReply;
     use crate::error::RequestError;
-    use crate::line::{LineCounters, TxError};
+    use crate::line::LineCounters;
     use std::sync::atomic::Ordering;
     use std::time::Duration;
 
@@ -315,7 +315,7 @@ mod tests {
         assert_eq!(Fate::of(&Ok(Answer::Nothing)), (Fate::Ok, None));
         let timeout: Outcome = Err(RequestError::NoResponse {
             attempts: 2,
-            last: TxError::Timeout,
+            last: NoReply::Timeout,
         });
         assert_eq!(
             Fate::of(&timeout),
@@ -323,7 +323,7 @@ mod tests {
         );
         let crc: Outcome = Err(RequestError::NoResponse {
             attempts: 1,
-            last: TxError::Check,
+            last: NoReply::Check,
         });
         assert_eq!(Fate::of(&crc).0, Fate::CrcError);
         assert_eq!(
@@ -351,7 +351,7 @@ mod tests {
         line1.request(7, 0x03, tcp, Some(&exception));
         line1.request(7, 0x03, tcp, Some(&exception));
         line1.request(7, 0x10, tcp, None);
-        metrics.unrouted(0x03, tcp, &Err(RequestError::NoRoute(250)));
+        metrics.unrouted(0x03, tcp, Some(&Err(RequestError::NoRoute(250))));
         let text = metrics.render().unwrap();
         let series = [
             ("modbus_gateway_requests_total{bus=\"line1\",function=\"0x03\",outcome=\"exception\",protocol=\"tcp\",slave=\"7\"}", 2.0),
@@ -376,14 +376,18 @@ mod tests {
         let before = metrics.render().unwrap().lines().count();
         let timeout: Outcome = Err(RequestError::NoResponse {
             attempts: 1,
-            last: TxError::Timeout,
+            last: NoReply::Timeout,
         });
         for unit in 1..=u8::MAX {
             for function in 1..=u8::MAX {
                 line1.transaction(unit, 1, Some(Duration::from_millis(5)), &timeout);
                 line1.slave_failing(unit, &timeout);
                 line1.request(unit, function, Protocol::Udp, Some(&timeout));
-                metrics.unrouted(function, Protocol::Tcp, &Err(RequestError::NoRoute(unit)));
+                metrics.unrouted(
+                    function,
+                    Protocol::Tcp,
+                    Some(&Err(RequestError::NoRoute(unit))),
+                );
             }
         }
         let text = metrics.render().unwrap();
@@ -455,7 +459,7 @@ mod tests {
         assert!(since > 1.7e9, "{since}");
         let failed = Err(RequestError::NoResponse {
             attempts: 3,
-            last: TxError::Timeout,
+            last: NoReply::Timeout,
         });
         line1.transaction(5, 3, Some(Duration::from_secs(3)), &failed);
         // A transaction alone says nothing of the slave: `bus::health` does.

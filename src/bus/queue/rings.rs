@@ -1,0 +1,477 @@
+//! Whose turn it is, and who gets in. The turns go round robin over [`Origin::admission`]
+//! keys, and within a key over its masters: a connection is a key of its own, while all the
+//! ports of one Modbus UDP source address share one turn (ports cost a sender nothing). So 40
+//! ports of one host flooding the line take one transaction in two while a connection waits,
+//! not 40 in 41; each port still has its own FIFO, order and replies, and its turns come in
+//! rotation among its address's ports. Masters in `server.priority` have a ring of their own,
+//! served first up to `priority_share` of the line.
+//!
+//! Admission is fair as well. `queue_depth` bounds the requests waiting for the line (followers
+//! included) over all masters, and while there is room every request goes in. Once the queue is
+//! full, a request still goes in if its master holds less than its *share* while another holds
+//! more than its own: the share is `queue_depth` divided among the masters with requests
+//! waiting, the newcomer included, rounded down and at least one. The newest request of the
+//! master holding the most is refused (0x06) to make room; a master in `server.priority` loses
+//! one only when no other master holds more than its share. So a master with nothing waiting
+//! gets in whenever another holds more than its share, a master within its share is never
+//! refused for another, and none can win a place back from the one that took it. When more
+//! masters wait than the queue holds, each holds at most one and a newcomer waits for room.
+//! What counts as one master here is a request's [`Origin::admission`]: a connection, or all
+//! the ports of one Modbus UDP source address. A follower counts against its own master; a
+//! refused leader's followers stay queued, the first of them leading in its place.
+//!
+//! [`Origin::admission`]: crate::master::Origin::admission
+
+use super::{Inner, Job};
+use crate::master::MasterId;
+use std::cmp::Reverse;
+use std::collections::{hash_map, HashMap, VecDeque};
+
+/// How the line is shared between the two rings: counts of the recent transactions of each
+/// (halved now and then, so that the recent past decides). When both rings wait, the priority
+/// ring goes unless it has had `priority` of them already: a priority master that uses little
+/// of the line always goes first, and saturating ones leave the others the rest.
+#[derive(Default)]
+pub(super) struct Share {
+    /// Most share of contested picks the priority ring gets; 1.0 serves it always first.
+    pub(super) priority: f64,
+    priority_picks: u32,
+    other_picks: u32,
+}
+
+impl Share {
+    const MEMORY: u32 = 1000;
+
+    /// No history yet, and `priority` of contested picks for the priority ring.
+    pub(super) fn new(priority: f64) -> Share {
+        Share {
+            priority,
+            ..Share::default()
+        }
+    }
+
+    /// Whether the priority ring goes next when both rings wait.
+    pub(super) fn priority_next(&self) -> bool {
+        // Only if its share stays within `priority` with this pick, so the others' floor
+        // holds; with no history, the priority ring.
+        let total = f64::from(self.priority_picks + self.other_picks + 1);
+        total == 1.0 || f64::from(self.priority_picks + 1) <= self.priority * total
+    }
+
+    pub(super) fn picked(&mut self, priority: bool) {
+        if priority {
+            self.priority_picks += 1;
+        } else {
+            self.other_picks += 1;
+        }
+        if self.priority_picks + self.other_picks > Self::MEMORY {
+            self.priority_picks /= 2;
+            self.other_picks /= 2;
+        }
+    }
+}
+
+/// The normal ring, then the priority ring.
+pub(super) const RINGS: usize = 2;
+pub(super) fn ring(priority: bool) -> usize {
+    usize::from(priority)
+}
+
+/// The masters with jobs queued in one ring, in serving order: round robin over admission keys,
+/// and within a key over its masters.
+#[derive(Default)]
+pub(super) struct Ring {
+    /// Exactly the keys with a master here, the next to serve first.
+    pub(super) keys: VecDeque<MasterId>,
+    /// By key in `keys`: exactly its masters here, the next to serve first.
+    pub(super) masters: HashMap<MasterId, VecDeque<MasterId>>,
+}
+
+/// Where a master to serve stands in its [`Ring`]: its key's place, and its own within the key.
+#[derive(Clone, Copy)]
+pub(super) struct Place {
+    key: usize,
+    master: usize,
+}
+
+impl Ring {
+    /// `master` of `key` has jobs now: served after the others of its key, and a key new here
+    /// after every other key.
+    pub(super) fn push(&mut self, key: MasterId, master: MasterId) {
+        match self.masters.entry(key) {
+            hash_map::Entry::Occupied(mut masters) => masters.get_mut().push_back(master),
+            hash_map::Entry::Vacant(masters) => {
+                masters.insert(VecDeque::from([master]));
+                self.keys.push_back(key);
+            }
+        }
+    }
+
+    /// The next master to serve: the first that may go (`ready`) of the first key that has one.
+    pub(super) fn next(&self, ready: impl Fn(MasterId) -> bool) -> Option<(Place, MasterId)> {
+        self.keys.iter().enumerate().find_map(|(key, id)| {
+            let masters = self.masters.get(id)?;
+            let master = masters.iter().position(|&m| ready(m))?;
+            Some((Place { key, master }, masters[master]))
+        })
+    }
+
+    /// The master at `place` was served: its key goes last, and it goes last within its key if
+    /// it has `more` jobs, or leaves the ring.
+    pub(super) fn served(&mut self, place: Place, more: bool) {
+        let Some(key) = self.keys.remove(place.key) else {
+            return;
+        };
+        let hash_map::Entry::Occupied(mut masters) = self.masters.entry(key) else {
+            return;
+        };
+        let master = masters.get_mut().remove(place.master);
+        if let (true, Some(master)) = (more, master) {
+            masters.get_mut().push_back(master);
+        }
+        if masters.get().is_empty() {
+            masters.remove();
+        } else {
+            self.keys.push_back(key);
+        }
+    }
+
+    /// `master` of `key` has no jobs any more (it left, or its last one was refused).
+    pub(super) fn remove(&mut self, key: MasterId, master: MasterId) {
+        let hash_map::Entry::Occupied(mut masters) = self.masters.entry(key) else {
+            return;
+        };
+        masters.get_mut().retain(|&m| m != master);
+        if masters.get().is_empty() {
+            masters.remove();
+            self.keys.retain(|&k| k != key);
+        }
+    }
+}
+
+/// What one admission key has waiting.
+#[derive(Clone, Copy, Default)]
+pub(super) struct Held {
+    pub(super) requests: usize,
+    /// Of those, from masters in `server.priority`.
+    priority: usize,
+}
+
+impl Inner {
+    /// One more request waits, counted against `key`.
+    pub(super) fn hold(&mut self, key: MasterId, priority: bool) {
+        self.len += 1;
+        let held = self.held.entry(key).or_default();
+        held.requests += 1;
+        held.priority += usize::from(priority);
+    }
+
+    /// A request counted against `key` waits no more.
+    pub(super) fn release(&mut self, key: MasterId, priority: bool) {
+        self.len = self.len.saturating_sub(1);
+        if let hash_map::Entry::Occupied(mut entry) = self.held.entry(key) {
+            let held = entry.get_mut();
+            held.requests = held.requests.saturating_sub(1);
+            held.priority = held.priority.saturating_sub(usize::from(priority));
+            if held.requests == 0 {
+                entry.remove();
+            }
+        }
+    }
+
+    /// The key whose newest request a full queue of `capacity` refuses to admit one of
+    /// `newcomer`, if any: `newcomer` holds less than its share and the key more than its own;
+    /// the one holding the most, a priority master's only if no other qualifies.
+    pub(super) fn victim(&self, newcomer: MasterId, capacity: usize) -> Option<MasterId> {
+        let holding = self.held.get(&newcomer).map_or(0, |held| held.requests);
+        let sharing = self.held.len() + usize::from(holding == 0);
+        let share = (capacity / sharing.max(1)).max(1);
+        if holding >= share {
+            return None;
+        }
+        self.held
+            .iter()
+            .filter(|(_, held)| held.requests > share)
+            .min_by_key(|&(&key, held)| (held.priority > 0, Reverse(held.requests), key))
+            .map(|(&key, _)| key)
+    }
+
+    /// Take out the newest request counted against `key`, to be refused: the last job of its
+    /// master with the most queued (one that no read follows, if there is such a master), or
+    /// else a read of it that follows another's. A refused leader's followers stay queued.
+    pub(super) fn evict(&mut self, key: MasterId) -> Option<Job> {
+        let busiest = self
+            .queues
+            .iter()
+            .filter(|(_, queue)| queue.jobs.back().is_some_and(|job| job.admission() == key))
+            .max_by_key(|&(&master, queue)| {
+                let led = queue
+                    .jobs
+                    .back()
+                    .is_some_and(|job| !job.followers.is_empty());
+                (!led, queue.jobs.len(), Reverse(master))
+            })
+            .map(|(&master, _)| master);
+        if let Some(master) = busiest {
+            let queue = self.queues.get_mut(&master)?;
+            let mut job = queue.jobs.pop_back()?;
+            if queue.jobs.is_empty() {
+                self.leaders.remove(queue.ring, &job);
+                self.turn[queue.ring].remove(queue.key, master);
+                self.queues.remove(&master);
+            }
+            self.release(job.admission(), job.priority());
+            let followers = std::mem::take(&mut job.followers);
+            self.promote(&job, followers);
+            return Some(job);
+        }
+        let job = self
+            .queues
+            .values_mut()
+            .flat_map(|queue| queue.jobs.iter_mut())
+            .find_map(|leader| {
+                let at = leader
+                    .followers
+                    .iter()
+                    .rposition(|f| f.origin.admission == key)?;
+                let follower = leader.followers.remove(at);
+                Some(leader.led_by(follower))
+            })?;
+        self.unfollow(job.master());
+        self.release(job.admission(), job.priority());
+        Some(job)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::testing::*;
+    use super::super::*;
+    use crate::master::{Origin, Protocol};
+
+    #[test]
+    fn masters_are_served_in_turn_whatever_they_queued() {
+        let q = FairQueue::new(16);
+        let mut keep = Vec::new();
+        for tag in 0..4 {
+            let (j, rx) = job(1, tag);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        for master in [2, 3] {
+            let (j, rx) = job(master, 0x10 + master as u8);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        assert_eq!(
+            order(&q),
+            [(1, 0), (2, 0x12), (3, 0x13), (1, 1), (1, 2), (1, 3)]
+        );
+        assert!(q.is_empty());
+    }
+
+    #[test]
+    fn forty_ports_of_one_udp_address_take_one_turn_so_another_masters_job_goes_within_two_pops() {
+        let q = FairQueue::new(1024);
+        let mut keep = Vec::new();
+        for _ in 0..4 {
+            for port in 10..50 {
+                // Reads of a register of its own: none joins another.
+                let udp = Origin {
+                    admission: ADDRESS,
+                    protocol: Protocol::Udp,
+                    ..origin(port, false)
+                };
+                let (j, rx) = request(udp, 1, &[0x04, 0x00, port as u8, 0x00, 0x01]);
+                q.push(j, NONE).unwrap();
+                keep.push(rx);
+            }
+        }
+        for tag in 0..4 {
+            let (j, rx) = job(1, tag);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        let served: Vec<MasterId> = std::iter::from_fn(|| q.try_pop())
+            .map(|j| j.master())
+            .collect();
+        let connection: Vec<usize> = (0..served.len()).filter(|&at| served[at] == 1).collect();
+        assert_eq!(connection, [1, 3, 5, 7], "{served:?}");
+        // Within the address's turns its ports go round robin, each in its own order.
+        let ports: Vec<MasterId> = served.iter().copied().filter(|&m| m != 1).collect();
+        assert_eq!(ports.len(), 160);
+        assert!(ports
+            .chunks(40)
+            .all(|round| round.iter().copied().eq(10..50)));
+    }
+
+    #[test]
+    fn the_ports_of_one_udp_address_take_turns_within_its_turn() {
+        let q = FairQueue::new(16);
+        let mut keep = Vec::new();
+        for (port, address, tag) in [(10, ADDRESS, 0), (10, ADDRESS, 1), (11, ADDRESS, 2)] {
+            let (j, rx) = datagram(port, address, tag);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        for (master, tag) in [(1, 3), (1, 4)] {
+            let (j, rx) = job(master, tag);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        let (j, rx) = datagram(20, OTHER_ADDRESS, 5);
+        q.push(j, NONE).unwrap();
+        keep.push(rx);
+        assert_eq!(
+            order(&q),
+            [(10, 0), (1, 3), (20, 5), (11, 2), (1, 4), (10, 1)]
+        );
+        // A port that leaves takes only its own jobs; its address keeps its turn.
+        for (port, tag) in [(10, 6), (11, 7), (10, 8)] {
+            let (j, rx) = datagram(port, ADDRESS, tag);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        let (j, rx) = job(1, 9);
+        q.push(j, NONE).unwrap();
+        keep.push(rx);
+        assert_eq!(q.forget(10).len(), 2);
+        assert_eq!(order(&q), [(11, 7), (1, 9)]);
+    }
+
+    #[test]
+    fn a_full_queue_admits_a_newcomer_in_place_of_the_newest_job_of_the_master_holding_most() {
+        let q = FairQueue::new(6);
+        let mut keep = Vec::new();
+        for (master, tag) in [(1, 0), (1, 1), (1, 2), (1, 3), (2, 4), (2, 5)] {
+            let (j, rx) = job(master, tag);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        // Three masters: a share of two each. Master 1 holds four.
+        let (newcomer, _r) = job(3, 6);
+        let (pushed, evicted) = q.push(newcomer, NONE).expect("admitted");
+        assert!(matches!(pushed, Pushed::Queued));
+        let evicted = evicted.expect("a job refused for it");
+        assert_eq!(
+            (evicted.master(), evicted.pdu[1]),
+            (1, 3),
+            "master 1's newest"
+        );
+        assert_eq!(q.len(), 6, "queue_depth stays the total");
+        // Master 1, still above its share, cannot win the place back.
+        let (again, _r) = job(1, 7);
+        assert_eq!(q.push(again, NONE).unwrap_err().master(), 1);
+        assert_eq!(order(&q), [(1, 0), (2, 4), (3, 6), (1, 1), (2, 5), (1, 2)]);
+    }
+
+    #[test]
+    fn a_full_queue_refuses_a_master_at_its_share_and_one_when_nobody_holds_more_than_theirs() {
+        let q = FairQueue::new(4);
+        let mut keep = Vec::new();
+        for (master, tag) in [(1, 0), (1, 1), (2, 2), (2, 3)] {
+            let (j, rx) = job(master, tag);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        // Two masters, two each: at their share.
+        let (more, _r) = job(2, 4);
+        assert_eq!(q.push(more, NONE).unwrap_err().master(), 2);
+        // More masters than places: one each, and a newcomer waits for room.
+        let q = FairQueue::new(2);
+        for master in [1, 2] {
+            let (j, rx) = job(master, 0);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        let (newcomer, _r) = job(3, 0);
+        assert_eq!(q.push(newcomer, NONE).unwrap_err().master(), 3);
+        assert_eq!(q.len(), 2);
+    }
+
+    #[test]
+    fn the_ports_of_one_udp_address_share_one_share_of_a_full_queue() {
+        let q = FairQueue::new(4);
+        let mut keep = Vec::new();
+        for port in 10..14 {
+            let (j, rx) = datagram(port, ADDRESS, port as u8);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        // A fifth port is no newcomer: its address holds the whole queue already.
+        let (port, _r) = datagram(14, ADDRESS, 0);
+        assert!(q.push(port, NONE).is_err());
+        // Another address and a connection are: the address keeps two.
+        let (other, _r) = datagram(20, OTHER_ADDRESS, 1);
+        let (_, evicted) = q.push(other, NONE).expect("another address");
+        assert!((10..14).contains(&evicted.expect("a port's job").master()));
+        let (connection, _r) = job(1, 2);
+        let (_, evicted) = q.push(connection, NONE).expect("a connection");
+        assert!((10..14).contains(&evicted.expect("a port's job").master()));
+        let masters: Vec<MasterId> = order(&q).iter().map(|&(m, _)| m).collect();
+        assert_eq!(
+            masters.iter().filter(|&&m| (10..14).contains(&m)).count(),
+            2
+        );
+        assert!(masters.contains(&20) && masters.contains(&1));
+    }
+
+    #[test]
+    fn a_priority_master_loses_a_place_only_when_no_other_master_holds_more_than_its_share() {
+        let q = FairQueue::new(7);
+        let mut keep = Vec::new();
+        for (master, priority, n) in [(1, true, 4), (2, false, 3)] {
+            for tag in 0..n {
+                let (j, rx) = request(origin(master, priority), 1, &[0x03, tag]);
+                q.push(j, NONE).unwrap();
+                keep.push(rx);
+            }
+        }
+        // Shares of two, then of one: master 2 gives way first though master 1 holds more.
+        let mut refused = Vec::new();
+        for newcomer in [3, 4, 5] {
+            let (j, _r) = job(newcomer, 9);
+            let (_, evicted) = q.push(j, NONE).expect("admitted");
+            refused.push(evicted.expect("one refused").master());
+        }
+        assert_eq!(refused, [2, 2, 1]);
+        assert_eq!(q.len(), 7);
+    }
+
+    #[test]
+    fn a_full_queue_hands_the_job_back() {
+        let q = FairQueue::new(2);
+        let (a, _ra) = job(1, 0);
+        let (b, _rb) = job(2, 1);
+        let (c, _rc) = job(3, 2);
+        q.push(a, NONE).unwrap();
+        q.push(b, NONE).unwrap();
+        let refused = q.push(c, NONE).unwrap_err();
+        assert_eq!(refused.master(), 3);
+        assert_eq!(q.len(), 2);
+    }
+
+    #[test]
+    fn priority_masters_go_first_up_to_their_share_and_the_others_still_get_the_rest() {
+        let q = FairQueue::new(4096);
+        q.set_priority_share(0.75);
+        let mut keep = Vec::new();
+        for n in 0..200u8 {
+            for (master, priority) in [(1, true), (2, false)] {
+                let (j, rx) = request(origin(master, priority), 1, &[0x41, n]);
+                q.push(j, NONE).unwrap();
+                keep.push(rx);
+            }
+        }
+        let first: Vec<MasterId> = (0..100).map(|_| q.try_pop().unwrap().master()).collect();
+        let priority = first.iter().filter(|&&m| m == 1).count();
+        assert_eq!(priority, 75, "{first:?}");
+        assert_eq!(&first[..5], [1, 2, 1, 1, 2]);
+        // Alone, the priority ring takes the whole line, and so do the others.
+        let q = FairQueue::new(16);
+        q.set_priority_share(0.5);
+        let (j, _r) = request(origin(1, false), 1, &[0x41, 0]);
+        q.push(j, NONE).unwrap();
+        assert_eq!(q.try_pop().unwrap().master(), 1);
+    }
+}

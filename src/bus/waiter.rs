@@ -1,0 +1,82 @@
+//! The end of a request: who waits for it, and the one place it is counted and answered. Every
+//! way a request ends (the line's answer, a read that followed another, the cache, expiry, a
+//! refusal by the bus or the dispatcher, a master gone, shutdown) is a [`Waiter`] ended here,
+//! so each request gets exactly one answer and one count. Knows nothing of queues or lines.
+
+use crate::error::Outcome;
+use crate::master::Origin;
+use crate::metrics::{BusMetrics, Metrics};
+use tokio::sync::oneshot;
+use tokio::time::Instant;
+
+/// Where a request's end is counted: the bus and slave its unit routes to, or, for a unit with
+/// no route, no bus and no slave (the unit id is the master's to choose).
+#[derive(Clone, Copy)]
+pub enum Tally<'a> {
+    Bus(&'a BusMetrics),
+    Unrouted(&'a Metrics),
+}
+
+impl Tally<'_> {
+    fn count(self, slave: u8, function: u8, origin: &Origin, outcome: Option<&Outcome>) {
+        match self {
+            Tally::Bus(metrics) => metrics.request(slave, function, origin.protocol, outcome),
+            Tally::Unrouted(metrics) => metrics.unrouted(function, origin.protocol, outcome),
+        }
+    }
+}
+
+/// One master waiting for one request's outcome. Moved, never copied: ending it consumes it.
+#[derive(Debug)]
+pub struct Waiter {
+    pub origin: Origin,
+    /// When the request arrived.
+    pub queued_at: Instant,
+    /// If the line has not started it by then, it is answered 0x06 instead.
+    pub deadline: Instant,
+    reply: oneshot::Sender<Outcome>,
+}
+
+impl Waiter {
+    /// A master of `origin` waiting from now until `deadline`, and where its outcome comes.
+    pub fn new(origin: Origin, deadline: Instant) -> (Waiter, oneshot::Receiver<Outcome>) {
+        let (reply, outcome) = oneshot::channel();
+        let waiter = Waiter {
+            origin,
+            queued_at: Instant::now(),
+            deadline,
+            reply,
+        };
+        (waiter, outcome)
+    }
+
+    /// Its master has stopped waiting (the connection closed).
+    pub fn is_gone(&self) -> bool {
+        self.reply.is_closed()
+    }
+
+    /// The request (`function` to `slave`) ended in `outcome`: counted in `tally`, and sent to
+    /// the master.
+    pub fn answer(self, tally: Tally<'_>, slave: u8, function: u8, outcome: Outcome) {
+        self.end(tally, slave, function, Some(outcome));
+    }
+
+    /// The request ended unsent because its master left: counted as such, answered to nobody.
+    pub fn left(self, tally: Tally<'_>, slave: u8, function: u8) {
+        self.end(tally, slave, function, None);
+    }
+
+    /// Sent, uncounted: for tests of the queue alone, which has no metrics.
+    #[cfg(test)]
+    pub(super) fn reply(self, outcome: Outcome) {
+        let _ = self.reply.send(outcome);
+    }
+
+    /// Every end goes through here: counted once, then sent once.
+    fn end(self, tally: Tally<'_>, slave: u8, function: u8, outcome: Option<Outcome>) {
+        tally.count(slave, function, &self.origin, outcome.as_ref());
+        if let Some(outcome) = outcome {
+            let _ = self.reply.send(outcome);
+        }
+    }
+}
