@@ -55,12 +55,12 @@ impl Client {
     }
 
     /// The same master, served before the others if `priority`.
-    pub fn prioritised(self, priority: bool) -> Self {
+    pub(crate) fn prioritised(self, priority: bool) -> Self {
         Client { priority, ..self }
     }
 
     /// The same master, allowed to address `units` only (`None`: any).
-    pub fn addressing(self, units: Option<UnitSet>) -> Self {
+    pub(crate) fn addressing(self, units: Option<UnitSet>) -> Self {
         Client { units, ..self }
     }
 }
@@ -158,12 +158,12 @@ impl Dispatcher {
     }
 
     /// `client` sent an RTU over TCP request whose CRC failed: counted, never answered.
-    pub fn bad_frame(&self, client: &Client) {
+    pub(crate) fn bad_frame(&self, client: &Client) {
         self.metrics.tcp.bad_crc(client.master, &client.peer);
     }
 
     /// A master has gone: drop whatever it still has queued.
-    pub fn forget(&self, master: MasterId) {
+    pub(crate) fn forget(&self, master: MasterId) {
         for bus in &self.table().buses {
             bus.forget(master);
         }

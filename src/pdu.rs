@@ -48,7 +48,7 @@ pub(crate) fn exception_name(code: u8) -> Option<&'static str> {
 }
 
 /// The public function codes of the Modbus Application Protocol V1.1b3, by the spec's names.
-pub mod code {
+pub(crate) mod code {
     pub(crate) const READ_COILS: u8 = 0x01;
     pub(crate) const READ_DISCRETE_INPUTS: u8 = 0x02;
     pub(crate) const READ_HOLDING_REGISTERS: u8 = 0x03;

@@ -21,15 +21,15 @@ use tokio::time::Instant;
 
 /// `slave_down_after` and `slave_probe_interval`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct DownPolicy {
+pub(crate) struct DownPolicy {
     /// 0: a slave is never down.
     pub after: u32,
-    pub probe_interval: Duration,
+    pub(crate) probe_interval: Duration,
 }
 
 /// What to do with the next request to a slave.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Admission {
+pub(crate) enum Admission {
     Send,
     /// The slave is down and its probe is due: one attempt, no retries.
     Probe,
@@ -41,7 +41,7 @@ pub enum Admission {
 
 /// How a transaction with a slave ended, as far as its health goes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Response {
+pub(crate) enum Response {
     /// A reply, normal or exception.
     Answered,
     /// Nothing came, retries included.
@@ -55,7 +55,7 @@ pub enum Response {
 /// A change worth telling the operator: each is one log line (but the first answer) and one
 /// move of `slave_up`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Change {
+pub(crate) enum Change {
     None,
     /// Answered for the first time.
     Answering,
@@ -107,7 +107,7 @@ struct Slave {
     liveness: Liveness,
 }
 
-pub struct Health {
+pub(crate) struct Health {
     slaves: Box<[Slave; 256]>,
 }
 
@@ -124,7 +124,7 @@ impl Health {
         policy.after > 0 && slave.timeouts >= policy.after
     }
 
-    pub fn admit(&self, address: u8, now: Instant, policy: DownPolicy) -> Admission {
+    pub(crate) fn admit(&self, address: u8, now: Instant, policy: DownPolicy) -> Admission {
         let slave = &self.slaves[usize::from(address)];
         if !Self::is_down(slave, policy) {
             return Admission::Send;
@@ -140,14 +140,14 @@ impl Health {
     /// Whether a timeout of a request for `function` says that `address` is gone: it has
     /// answered that function code before, or nothing at all yet. Otherwise the slave may just
     /// ignore that kind of request.
-    pub fn timeout_counts(&self, address: u8, function: u8) -> bool {
+    pub(crate) fn timeout_counts(&self, address: u8, function: u8) -> bool {
         let answered = &self.slaves[usize::from(address)].answered;
         answered.is_empty() || answered.contains(function)
     }
 
     /// Record how a transaction for `function` with `address` ended at `now`, and say what
     /// changed.
-    pub fn record(
+    pub(crate) fn record(
         &mut self,
         address: u8,
         function: u8,

@@ -9,9 +9,9 @@
 //! settings reach it between transactions (`reconfigure`). Knows nothing of TCP, nor of which
 //! transport carries a line.
 
-pub mod device;
-pub mod health;
-pub mod queue;
+pub(crate) mod device;
+pub(crate) mod health;
+pub(crate) mod queue;
 mod reconfigure;
 mod serve;
 mod task;
@@ -20,9 +20,10 @@ mod waiter;
 
 pub use device::{Device, Port, SerialDriver};
 pub use queue::{FairQueue, Job, Pushed};
-pub use reconfigure::{longest_transaction, BusUpdates, Reconfigure};
+pub(crate) use reconfigure::{longest_transaction, BusUpdates, Reconfigure};
 pub use task::BusTask;
-pub use waiter::{Tally, Waiter};
+pub use waiter::Tally;
+pub use waiter::Waiter;
 
 use crate::config;
 use crate::error::{Answer, Outcome, RequestError};
@@ -105,7 +106,7 @@ impl BusHandle {
 
     /// How long the bus task has gone without a heartbeat, if longer than any transaction or
     /// idle wait can take: the task is stuck (blocked thread, a driver that never returns).
-    pub fn stalled_for(&self) -> Option<Duration> {
+    pub(crate) fn stalled_for(&self) -> Option<Duration> {
         let last = *self
             .heartbeat
             .last
@@ -122,7 +123,7 @@ impl BusHandle {
 
     /// Wait until the bus task has tried once to open its port (successfully or not). Meant for
     /// one waiter, once.
-    pub async fn first_open_attempt(&self) {
+    pub(crate) async fn first_open_attempt(&self) {
         self.attempted.notified().await;
     }
 
@@ -203,7 +204,7 @@ impl BusHandle {
     }
 
     /// Drop the queued requests of a master that has gone; they are never sent.
-    pub fn forget(&self, master: MasterId) {
+    pub(crate) fn forget(&self, master: MasterId) {
         for job in self.queue.forget(master) {
             // Reads that followed it stay queued, the first leading in its place.
             debug_assert!(job.followers.is_empty());

@@ -15,18 +15,18 @@ use tracing::info;
 
 /// A running bus's new configuration: its settings and the device they name.
 #[derive(Clone)]
-pub struct Reconfigure {
+pub(crate) struct Reconfigure {
     pub settings: config::Bus,
     pub device: Device,
 }
 
 /// The gateway's side of a running bus: where new configurations go.
-pub struct BusUpdates(watch::Sender<Option<Reconfigure>>);
+pub(crate) struct BusUpdates(watch::Sender<Option<Reconfigure>>);
 
 impl BusUpdates {
     /// Apply `update` between transactions. Returns whether the port will be reopened (its
     /// device or serial format changed); otherwise the new settings apply on the open port.
-    pub fn send(&self, update: Reconfigure) -> bool {
+    pub(crate) fn send(&self, update: Reconfigure) -> bool {
         let reopen = self
             .0
             .borrow()
@@ -48,7 +48,7 @@ fn needs_reopen(device: &Device, settings: &config::Bus, update: &Reconfigure) -
 /// timeout, two longest frames, the RS-485 delays around the request, the silence that ends a
 /// reply and a broadcast's turnaround.
 /// Whoever waits for a transaction to end adds its own margin to this.
-pub fn longest_transaction(settings: &config::Bus) -> Duration {
+pub(crate) fn longest_transaction(settings: &config::Bus) -> Duration {
     Derived::of(settings).longest_transaction(settings.turnaround_delay)
 }
 

@@ -81,7 +81,7 @@ impl BusTask {
     }
 
     /// Where new configurations for this bus go; take it before running the bus.
-    pub fn updates(&mut self) -> BusUpdates {
+    pub(crate) fn updates(&mut self) -> BusUpdates {
         self.updates.sender()
     }
 

@@ -31,7 +31,7 @@ impl Tally<'_> {
 pub struct Waiter {
     pub origin: Origin,
     /// When the request arrived.
-    pub queued_at: Instant,
+    pub(crate) queued_at: Instant,
     /// If the line has not started it by then, it is answered 0x06 instead.
     pub deadline: Instant,
     reply: oneshot::Sender<Outcome>,
@@ -51,7 +51,7 @@ impl Waiter {
     }
 
     /// Its master has stopped waiting (the connection closed).
-    pub fn is_gone(&self) -> bool {
+    pub(crate) fn is_gone(&self) -> bool {
         self.reply.is_closed()
     }
 

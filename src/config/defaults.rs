@@ -5,7 +5,7 @@ use crate::line::{Framing, LineTiming, Parity};
 use std::net::SocketAddr;
 use std::time::Duration;
 
-pub fn listen() -> Vec<SocketAddr> {
+pub(crate) fn listen() -> Vec<SocketAddr> {
     vec![SocketAddr::from(([0, 0, 0, 0], 502))]
 }
 pub(crate) const MAX_CONNECTIONS: usize = 1024;
@@ -14,28 +14,28 @@ pub(crate) const MAX_CONNECTIONS: usize = 1024;
 pub(crate) const SLOTS_FOR_OTHER_ADDRESSES: usize = 8;
 /// All but [`SLOTS_FOR_OTHER_ADDRESSES`]: one host never takes every slot, the PLCs, HMIs and
 /// SCADA on other hosts always find room, and a host with many masters still gets nearly all.
-pub fn max_connections_per_address(max_connections: usize) -> usize {
+pub(crate) fn max_connections_per_address(max_connections: usize) -> usize {
     max_connections - SLOTS_FOR_OTHER_ADDRESSES.min(max_connections / 2)
 }
 pub(crate) const IDLE_TIMEOUT: Duration = Duration::from_secs(600);
-pub const PIPELINE_DEPTH: usize = 16;
+pub(crate) const PIPELINE_DEPTH: usize = 16;
 pub(crate) const SHUTDOWN_TIMEOUT: Duration = Duration::from_secs(10);
-pub const FRAME_TIMEOUT: Duration = Duration::from_secs(5);
+pub(crate) const FRAME_TIMEOUT: Duration = Duration::from_secs(5);
 pub(crate) const KEEPALIVE: Duration = Duration::from_secs(60);
 pub(crate) fn tls_handshake_timeout() -> Duration {
     Duration::from_secs(10)
 }
-pub fn metrics_listen() -> SocketAddr {
+pub(crate) fn metrics_listen() -> SocketAddr {
     SocketAddr::from(([127, 0, 0, 1], 9502))
 }
 pub(crate) const LOG_LEVEL: &str = "info";
 
-pub fn baud() -> u32 {
+pub(crate) fn baud() -> u32 {
     19_200
 }
 /// 8 for RTU, which needs them; 7 for ASCII, whose characters fit (7E1, Modbus over Serial Line
 /// V1.02, 2.5.2).
-pub fn data_bits(framing: Framing) -> u8 {
+pub(crate) fn data_bits(framing: Framing) -> u8 {
     match framing {
         Framing::Rtu => 8,
         Framing::Ascii => 7,
@@ -50,34 +50,34 @@ pub(crate) fn ascii_gap(line: &LineTiming) -> Duration {
 pub(crate) fn ascii_byte_timeout() -> Duration {
     Duration::from_secs(1)
 }
-pub fn parity() -> Parity {
+pub(crate) fn parity() -> Parity {
     Parity::Even
 }
-pub fn response_timeout() -> Duration {
+pub(crate) fn response_timeout() -> Duration {
     Duration::from_secs(1)
 }
-pub fn turnaround_delay() -> Duration {
+pub(crate) fn turnaround_delay() -> Duration {
     Duration::from_millis(100)
 }
-pub fn broadcast_reply() -> bool {
+pub(crate) fn broadcast_reply() -> bool {
     true
 }
-pub fn queue_depth() -> usize {
+pub(crate) fn queue_depth() -> usize {
     256
 }
-pub fn queue_timeout() -> Duration {
+pub(crate) fn queue_timeout() -> Duration {
     Duration::from_secs(1)
 }
-pub fn reopen_delay() -> Duration {
+pub(crate) fn reopen_delay() -> Duration {
     Duration::from_millis(250)
 }
 pub(crate) fn reopen_delay_max() -> Duration {
     Duration::from_secs(5)
 }
-pub fn slave_down_after() -> u32 {
+pub(crate) fn slave_down_after() -> u32 {
     3
 }
-pub fn coalesce_reads() -> bool {
+pub(crate) fn coalesce_reads() -> bool {
     true
 }
 pub(crate) const PRIORITY_SHARE: f64 = 0.9;

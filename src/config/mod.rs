@@ -7,8 +7,8 @@
 
 mod bus;
 mod check;
-pub mod defaults;
-pub mod diff;
+pub(crate) mod defaults;
+pub(crate) mod diff;
 mod load;
 mod log;
 mod metrics;

@@ -41,7 +41,9 @@ pub(crate) fn encode_into(out: &mut Vec<u8>, address: u8, pdu: &[u8]) {
     out.extend_from_slice(&END);
 }
 
-pub fn encode(address: u8, pdu: &[u8]) -> Vec<u8> {
+/// A whole frame of its own (for tests; the engine encodes into its buffer).
+#[cfg(test)]
+pub(crate) fn encode(address: u8, pdu: &[u8]) -> Vec<u8> {
     let mut out = Vec::with_capacity(2 * pdu.len() + 7);
     encode_into(&mut out, address, pdu);
     out

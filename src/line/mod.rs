@@ -4,12 +4,12 @@
 //! of replies ([`reply`]). Knows nothing of TCP, masters, queues or routing; what a frame looks
 //! like on the wire belongs to the framing alone.
 
-pub mod ascii;
-pub mod engine;
-pub mod framing;
-pub mod reply;
+pub(crate) mod ascii;
+pub(crate) mod engine;
+pub(crate) mod framing;
+pub(crate) mod reply;
 pub mod rtu;
-pub mod timing;
+pub(crate) mod timing;
 
 pub use engine::{Reply, TxError};
 

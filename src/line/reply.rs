@@ -35,7 +35,7 @@ pub enum Verdict {
 /// Length of the reply PDU whose first bytes are `pdu`, as far as they tell. `request` is the
 /// request PDU when the reply claims to answer it (the slave asked, its function code), `None`
 /// otherwise: only then do the lengths that only the request knows, and `form`, apply.
-pub fn reply_len(pdu: &[u8], request: Option<&[u8]>, form: ReplyForm) -> PduLen {
+pub(crate) fn reply_len(pdu: &[u8], request: Option<&[u8]>, form: ReplyForm) -> PduLen {
     let Some(&function) = pdu.first() else {
         return PduLen::Need(1);
     };
@@ -85,7 +85,13 @@ fn fits_request(reply: &[u8], request: &[u8]) -> bool {
 
 /// Judge the intact frame from `address` carrying `pdu`, received after sending `request` (a PDU)
 /// to `slave`.
-pub fn judge(address: u8, pdu: &[u8], slave: u8, request: &[u8], form: ReplyForm) -> Verdict {
+pub(crate) fn judge(
+    address: u8,
+    pdu: &[u8],
+    slave: u8,
+    request: &[u8],
+    form: ReplyForm,
+) -> Verdict {
     // A function code with the exception bit is no request: nothing answers it.
     let Some(&request_function) = request.first().filter(|&&f| f & EXCEPTION_BIT == 0) else {
         return Verdict::Foreign;

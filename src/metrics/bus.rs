@@ -248,7 +248,7 @@ pub struct SlaveSnapshot {
     pub up: bool,
     /// Its last answer, normal or exception.
     pub last_answer: Option<SystemTime>,
-    pub round_trip_p50: Option<Duration>,
+    pub(crate) round_trip_p50: Option<Duration>,
     /// Its requests by outcome label.
     pub requests: BTreeMap<String, u64>,
 }
@@ -379,7 +379,7 @@ impl BusMetrics {
 
     /// The line took a request after it waited `wait` in the queue; `priority` if it came from
     /// a master in `server.priority`.
-    pub fn dequeued(&self, wait: Duration, priority: bool) {
+    pub(crate) fn dequeued(&self, wait: Duration, priority: bool) {
         self.queue_wait[usize::from(priority)].observe(wait.as_secs_f64());
     }
 
@@ -391,7 +391,7 @@ impl BusMetrics {
     }
 
     /// A read to `slave` was answered from its cache.
-    pub fn cache_hit(&self, slave: u8) {
+    pub(crate) fn cache_hit(&self, slave: u8) {
         if let Some(slave) = self.known(slave) {
             slave.cache_hits.inc();
         }
@@ -439,7 +439,7 @@ impl BusMetrics {
 
     /// `slave` answered validly, for the first time or `again` after failing or being down
     /// (`bus::health` decides).
-    pub fn slave_answering(&self, slave: u8, again: bool) {
+    pub(crate) fn slave_answering(&self, slave: u8, again: bool) {
         self.slave(slave).up.set(1);
         if again {
             info!(target: BUS_EVENTS, bus = &*self.name, slave, "slave answering again");
@@ -449,7 +449,7 @@ impl BusMetrics {
     /// `slave` stopped giving valid replies with the transaction that ended in `outcome`.
     /// Logged at warn for a known slave; an address nobody has answered at is only a master's
     /// guess, logged at debug.
-    pub fn slave_failing(&self, slave: u8, outcome: &Outcome) {
+    pub(crate) fn slave_failing(&self, slave: u8, outcome: &Outcome) {
         let bus = &*self.name;
         let label = Fate::of(outcome).0.label();
         let Some(metrics) = self.known(slave) else {
@@ -465,7 +465,7 @@ impl BusMetrics {
     /// `slave` timed out `timeouts` times in a row: its requests are answered 0x0B unsent (and
     /// counted `slave_down`) but for one probe per `probe_interval`. Logged at warn for a known
     /// slave, at debug for an address nobody has answered at.
-    pub fn slave_down(&self, slave: u8, timeouts: u32, probe_interval: Duration) {
+    pub(crate) fn slave_down(&self, slave: u8, timeouts: u32, probe_interval: Duration) {
         let bus = &*self.name;
         let probe_interval = humantime::format_duration(probe_interval).to_string();
         let Some(metrics) = self.known(slave) else {
@@ -477,7 +477,7 @@ impl BusMetrics {
     }
 
     /// Seconds characters were on the line since the bus started.
-    pub fn busy_seconds(&self) -> f64 {
+    pub(crate) fn busy_seconds(&self) -> f64 {
         self.busy.get()
     }
 
@@ -554,7 +554,7 @@ impl BusMetrics {
 
     /// The port is open: for the first time (`down` is `None`), or again after `down` (how long,
     /// and how many opens failed meanwhile).
-    pub fn port_opened(&self, device: &str, down: Option<(Duration, u32)>) {
+    pub(crate) fn port_opened(&self, device: &str, down: Option<(Duration, u32)>) {
         let bus = &*self.name;
         match down {
             None => info!(target: BUS_EVENTS, bus, device, "serial port open"),
@@ -572,7 +572,7 @@ impl BusMetrics {
         self.port_up.set(1);
     }
 
-    pub fn port_lost(&self, device: &str, error: &dyn Display) {
+    pub(crate) fn port_lost(&self, device: &str, error: &dyn Display) {
         self.port_up.set(0);
         warn!(target: BUS_EVENTS, bus = &*self.name, device, %error, "serial port lost; answering 0x0A and reopening");
     }
@@ -610,7 +610,7 @@ impl BusMetrics {
     /// An open failed; only the first failure of an outage is logged above debug level, at
     /// error if the device refuses what the configuration asks of it (retrying will not cure
     /// that), else at warn.
-    pub fn open_failed(&self, device: &str, error: &io::Error, first: bool) {
+    pub(crate) fn open_failed(&self, device: &str, error: &io::Error, first: bool) {
         self.port_open_errors.inc();
         let bus = &*self.name;
         if first && error.kind() == io::ErrorKind::Unsupported {

@@ -9,7 +9,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 /// What became of one request: the `outcome` label.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Fate {
+pub(crate) enum Fate {
     /// The slave's normal reply (or, for a broadcast, the frame went out).
     Ok,
     /// The slave's own exception reply.
@@ -53,7 +53,7 @@ pub enum Fate {
 }
 
 impl Fate {
-    pub fn label(self) -> &'static str {
+    pub(crate) fn label(self) -> &'static str {
         match self {
             Fate::Ok => "ok",
             Fate::Exception => "exception",
@@ -77,7 +77,7 @@ impl Fate {
     }
 
     /// The fate of an answered request, with the exception code in its answer and who made it.
-    pub fn of(outcome: &Outcome) -> (Fate, Option<(ExceptionSource, u8)>) {
+    pub(crate) fn of(outcome: &Outcome) -> (Fate, Option<(ExceptionSource, u8)>) {
         match outcome {
             Ok(Answer::Reply(pdu))
                 if pdu
@@ -120,7 +120,7 @@ impl Fate {
 
 impl Fate {
     /// The fate of one try on the line (a request may take several), as the trace shows it.
-    pub fn of_try(result: &Result<Reply, TxError>) -> Fate {
+    pub(crate) fn of_try(result: &Result<Reply, TxError>) -> Fate {
         match result {
             Ok(Reply::Fits(pdu))
                 if pdu
@@ -136,7 +136,7 @@ impl Fate {
     }
 
     /// The fate of a request whose last try got no valid reply.
-    pub fn of_no_reply(last: NoReply) -> Fate {
+    pub(crate) fn of_no_reply(last: NoReply) -> Fate {
         match last {
             NoReply::Timeout => Fate::Timeout,
             NoReply::Check => Fate::CrcError,
@@ -146,7 +146,7 @@ impl Fate {
     }
 
     /// The fate of a try that got no answer.
-    pub fn of_failed_try(error: &TxError) -> Fate {
+    pub(crate) fn of_failed_try(error: &TxError) -> Fate {
         match error {
             TxError::Timeout => Fate::Timeout,
             TxError::Check => Fate::CrcError,
@@ -159,13 +159,13 @@ impl Fate {
 
 /// Who made an exception reply: the `source` label.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum ExceptionSource {
+pub(crate) enum ExceptionSource {
     Slave,
     Gateway,
 }
 
 impl ExceptionSource {
-    pub fn label(self) -> &'static str {
+    pub(crate) fn label(self) -> &'static str {
         match self {
             ExceptionSource::Slave => "slave",
             ExceptionSource::Gateway => "gateway",
@@ -188,7 +188,7 @@ pub enum Rejection {
 
 impl Rejection {
     /// The refusals every TCP listener may make (a TLS handshake only fails on a TLS one).
-    pub const ALL: [Rejection; 3] = [
+    pub(crate) const ALL: [Rejection; 3] = [
         Rejection::MaxConnections,
         Rejection::MaxConnectionsPerAddress,
         Rejection::NotAllowed,
@@ -226,7 +226,7 @@ pub enum Closing {
 }
 
 impl Closing {
-    pub const ALL: [Closing; 8] = [
+    pub(crate) const ALL: [Closing; 8] = [
         Closing::ByMaster,
         Closing::ProtocolError,
         Closing::Idle,

@@ -14,10 +14,14 @@ mod throttle;
 mod tls;
 mod udp;
 
-pub use bus::{BusMetrics, SlaveSnapshot};
+pub use bus::BusMetrics;
+
+pub use bus::SlaveSnapshot;
 
 use bus::BusFamilies;
-pub use labels::{Closing, ExceptionSource, Fate, Rejection};
+pub use labels::Closing;
+pub(crate) use labels::Fate;
+pub use labels::Rejection;
 
 use labels::{hex, OTHER};
 pub(crate) use tcp::Refusal;
@@ -193,7 +197,7 @@ impl Metrics {
 
     /// Remove the series of a bus that is gone, so that none of them (its port down, say)
     /// outlives it. Request and exception counters of past traffic stay.
-    pub fn forget_bus(&self, bus: &BusMetrics) {
+    pub(crate) fn forget_bus(&self, bus: &BusMetrics) {
         self.buses.forget(bus);
     }
 
@@ -203,7 +207,7 @@ impl Metrics {
     }
 
     /// Run `hook` before every scrape, to read a gauge from its source.
-    pub fn on_scrape(&self, hook: impl Fn() + Send + Sync + 'static) {
+    pub(crate) fn on_scrape(&self, hook: impl Fn() + Send + Sync + 'static) {
         self.scrape_hooks
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
@@ -213,7 +217,7 @@ impl Metrics {
     /// Count a request the gateway answered without a bus: its unit id has no route. Counted
     /// with no bus and `slave="other"`: the unit id is the master's to choose, and a label it
     /// chooses would let it make series without end.
-    pub fn unrouted(&self, function: u8, protocol: Protocol, outcome: Option<&Outcome>) {
+    pub(crate) fn unrouted(&self, function: u8, protocol: Protocol, outcome: Option<&Outcome>) {
         self.counters.count("", OTHER, function, protocol, outcome);
     }
 
@@ -233,6 +237,7 @@ impl Metrics {
 
 #[cfg(test)]
 mod tests {
+    use super::labels::ExceptionSource;
     use super::*;
     use crate::error::NoReply;
     use crate::error::RequestError;

@@ -6,13 +6,13 @@
 //! (`modbus-gateway simulate`). Knows nothing of TCP or the bus queue; the bus opens the line like
 //! any port.
 
-pub mod drive;
+pub(crate) mod drive;
 pub mod faults;
-pub mod line;
-pub mod registers;
+pub(crate) mod line;
+pub(crate) mod registers;
 pub mod responder;
-pub mod scripted;
-pub mod slaves;
+pub(crate) mod scripted;
+pub(crate) mod slaves;
 
 pub use line::{SimLine, Source};
 

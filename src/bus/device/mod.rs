@@ -10,12 +10,12 @@
 //! opens, and the [`Transport`] of the opened thing), a [`TransportKind`] with its rows in the
 //! framing table; the compiler then names every `match` below that needs an arm for it.
 
-pub mod serial;
+pub(crate) mod serial;
 mod sim;
 
 pub use serial::SerialDriver;
 
-pub use serial::SerialFd;
+pub(crate) use serial::SerialFd;
 
 use crate::line::framing::TransportKind;
 use crate::line::{Framing, SerialFormat, Transport};

@@ -4,8 +4,8 @@
 //! never by tcdrain), and a USB adapter's latency timer ([`latency`]). Knows nothing of framing,
 //! transactions or the other transports.
 
-pub mod latency;
-pub mod rs485;
+pub(crate) mod latency;
+pub(crate) mod rs485;
 
 use crate::config::{Rs485, Rs485Mode};
 use crate::line::{LineTiming, Parity, SerialFormat, Transport};

@@ -10,7 +10,7 @@ use tokio::time::Instant;
 
 /// A slave's count of writes queued to it. It wraps: two epochs are compared only within the
 /// wait of one request, and a `u32` keeps a [`Job`] small enough to move by value.
-pub type Epoch = u32;
+pub(crate) type Epoch = u32;
 
 /// A cached answer to one read.
 pub(super) struct Cached {
@@ -24,7 +24,7 @@ const CACHE_ENTRIES: usize = 1024;
 impl FairQueue {
     /// Keep `answer` to `job`'s read for `cache`-configured slaves, unless a write to its slave
     /// was queued since the job was.
-    pub fn remember(&self, job: &Job, answer: &[u8]) {
+    pub(crate) fn remember(&self, job: &Job, answer: &[u8]) {
         let mut inner = self.lock();
         if inner.epochs[usize::from(job.slave)] != job.epoch {
             return;

@@ -15,7 +15,7 @@ mod rings;
 #[cfg(test)]
 mod testing;
 
-pub use cache::Epoch;
+pub(crate) use cache::Epoch;
 
 use super::Waiter;
 use crate::master::MasterId;

@@ -7,11 +7,11 @@
 //! [`pd_inverter`] are the models, each with its own tables, register map and quirks. Knows nothing
 //! of the line's timing, the bus queue or TCP.
 
-pub mod goodrive;
-pub mod motor;
-pub mod params;
-pub mod pd_inverter;
-pub mod ramp;
+pub(crate) mod goodrive;
+pub(crate) mod motor;
+pub(crate) mod params;
+pub(crate) mod pd_inverter;
+pub(crate) mod ramp;
 
 pub(crate) use motor::Motor;
 pub(crate) use params::{Limit, Modify, ParamSpec, Params, Refusal};
@@ -26,7 +26,7 @@ use tokio::time::Instant;
 
 /// What the configuration tells a simulated drive at power-on.
 #[derive(Clone, Debug, PartialEq)]
-pub struct DriveSettings {
+pub(crate) struct DriveSettings {
     /// The drive's own slave address on the line.
     pub address: u8,
     /// The line's format, which the drive's communication parameters report.
@@ -42,7 +42,10 @@ pub struct DriveSettings {
 }
 
 impl DriveSettings {
-    pub fn new(address: u8, format: SerialFormat) -> Self {
+    /// Settings with no parameters, delay or trip (for tests; the loader builds them from
+    /// the configuration).
+    #[cfg(test)]
+    pub(crate) fn new(address: u8, format: SerialFormat) -> Self {
         DriveSettings {
             address,
             format,
@@ -64,10 +67,10 @@ pub struct SetupError {
 /// An exception code a drive answers with: a standard one, or one its manual gives a meaning of
 /// its own (05-09 mean other things on the reference drives, so they are not [`ExceptionCode`]s).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Exception(pub u8);
+pub(crate) struct Exception(pub u8);
 
 impl Exception {
-    pub const fn standard(code: ExceptionCode) -> Self {
+    pub(crate) const fn standard(code: ExceptionCode) -> Self {
         Exception(code as u8)
     }
 
@@ -85,7 +88,7 @@ impl From<ExceptionCode> for Exception {
 
 /// What a model's manual says about requests as such, whatever their registers.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Protocol {
+pub(crate) struct Protocol {
     /// Most words one read, or one write of several, may carry.
     pub(crate) max_words: u16,
     /// Whether the drive serves FC 08 (return query data only) and FC 10 besides FC 03 and 06.
@@ -196,7 +199,7 @@ pub(crate) fn power_on_trip(
 }
 
 /// What a drive model decides; [`Drive`] does the rest.
-pub trait Model: Clone + Send {
+pub(crate) trait Model: Clone + Send {
     const PROTOCOL: Protocol;
 
     /// The word at `address`, or why it cannot be read.
@@ -237,7 +240,7 @@ type Reply = Result<Vec<u8>, Exception>;
 
 /// A simulated drive on the line: a [`Model`] behind the pipeline all the drives share.
 #[derive(Clone, Debug)]
-pub struct Drive<M> {
+pub(crate) struct Drive<M> {
     model: M,
     address: u8,
     processing_delay: Duration,
@@ -246,7 +249,7 @@ pub struct Drive<M> {
 
 impl<M: Model> Drive<M> {
     /// `model`, powered on with `settings`.
-    pub fn new(model: M, settings: &DriveSettings) -> Self {
+    pub(crate) fn new(model: M, settings: &DriveSettings) -> Self {
         Drive {
             model,
             address: settings.address,
@@ -386,6 +389,6 @@ impl<M: Model> Slave for Drive<M> {
 }
 
 /// The big-endian word at `at` in a PDU.
-pub fn word(pdu: &[u8], at: usize) -> Option<u16> {
+pub(crate) fn word(pdu: &[u8], at: usize) -> Option<u16> {
     Some(u16::from_be_bytes([*pdu.get(at)?, *pdu.get(at + 1)?]))
 }

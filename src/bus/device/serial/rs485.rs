@@ -58,7 +58,7 @@ fn millis(delay: Duration) -> u32 {
 
 /// The error a port's open fails with when its device refuses what `key` asks for: of kind
 /// `Unsupported`, whatever the device answered, which the message carries.
-pub fn refused(key: &str, mode: Rs485Mode, what: &str, error: &io::Error) -> io::Error {
+pub(crate) fn refused(key: &str, mode: Rs485Mode, what: &str, error: &io::Error) -> io::Error {
     io::Error::new(
         io::ErrorKind::Unsupported,
         format!(

@@ -57,7 +57,7 @@ const REQUESTS: Protocol = Protocol {
 mod tables;
 
 // The manuals' tables, by the manuals' names.
-pub use tables::Variant;
+pub(crate) use tables::Variant;
 use tables::*;
 
 /// A run or jog command in force, as given (before P00.13 is applied).
@@ -69,7 +69,7 @@ struct Command {
 
 /// A simulated Goodrive drive's state.
 #[derive(Clone, Debug)]
-pub struct Goodrive {
+pub(crate) struct Goodrive {
     variant: Variant,
     motor: Motor,
     params: Params,
@@ -107,7 +107,7 @@ fn setup_error(param: &str, reason: String) -> SetupError {
 
 impl Goodrive {
     /// Power on at `now` with `settings` (params applied via Params::apply, then trip).
-    pub fn new(
+    pub(crate) fn new(
         variant: Variant,
         settings: &DriveSettings,
         now: Instant,

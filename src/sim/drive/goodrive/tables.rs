@@ -288,7 +288,7 @@ pub(super) static GD10_TABLE: [ParamSpec; TABLE_LEN] = table(40000, 50);
 /// Which Goodrive: they share the protocol and differ in identifying code, motor, factory ramp
 /// times and which control registers exist and can be read back.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Variant {
+pub(crate) enum Variant {
     Gd20,
     Gd300,
     Gd10,
