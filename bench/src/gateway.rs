@@ -2,7 +2,6 @@
 //! started on it and stopped when dropped, and what /proc says of its CPU time and memory.
 
 use crate::scenarios::{Kind, Line, Scenario, PRIORITY_IP, SLAVES};
-use modbus_gateway::line::Parity;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -82,16 +81,11 @@ fn tls_for(scenario: &str, listen: SocketAddr) -> (String, Tls) {
 /// The bench's bus on `device`: the scenario's line, a queue for every master twice over.
 fn bus(scenario: &Scenario, device: &str, masters: usize) -> Bus {
     let f = &scenario.format;
-    let parity = match f.parity {
-        Parity::None => "none",
-        Parity::Even => "even",
-        Parity::Odd => "odd",
-    };
     let mut bus = Bus::on("bench", device)
         .framing(scenario.framing.name())
         .baud(f.baud)
         .key("data_bits", f.data_bits)
-        .parity(parity)
+        .parity(f.parity.name())
         .key("stop_bits", f.stop_bits)
         .key("queue_depth", masters * 2 + 16)
         .key("queue_timeout", "1h");

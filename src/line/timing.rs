@@ -10,25 +10,50 @@ const FIXED_T15: Duration = Duration::from_micros(750);
 const FIXED_T35: Duration = Duration::from_micros(1_750);
 const NANOS_PER_SEC: u64 = 1_000_000_000;
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "lowercase")]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Parity {
     None,
     Even,
     Odd,
 }
 
+impl Parity {
+    /// Each parity, its word in the configuration and its letter in `8E1`: the one place they
+    /// are spelled.
+    const SPELLINGS: [(Parity, &'static str, char); 3] = [
+        (Parity::None, "none", 'N'),
+        (Parity::Even, "even", 'E'),
+        (Parity::Odd, "odd", 'O'),
+    ];
+
+    fn spelling(self) -> (&'static str, char) {
+        let row = Self::SPELLINGS.iter().find(|(parity, ..)| *parity == self);
+        row.map_or(("none", 'N'), |&(_, name, letter)| (name, letter))
+    }
+
+    /// As the configuration writes it: `none`, `even` or `odd`.
+    pub fn name(self) -> &'static str {
+        self.spelling().0
+    }
+
+    /// As a serial format writes it: `N`, `E` or `O`.
+    pub fn letter(self) -> char {
+        self.spelling().1
+    }
+}
+
+impl Serialize for Parity {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.name())
+    }
+}
+
 impl<'de> Deserialize<'de> for Parity {
     fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
         let text = String::deserialize(d)?;
-        match text.as_str() {
-            "none" => Ok(Parity::None),
-            "even" => Ok(Parity::Even),
-            "odd" => Ok(Parity::Odd),
-            _ => Err(serde::de::Error::custom(format!(
-                "`{text}` is not none, even or odd"
-            ))),
-        }
+        let row = Parity::SPELLINGS.iter().find(|(_, name, _)| *name == text);
+        row.map(|&(parity, ..)| parity)
+            .ok_or_else(|| serde::de::Error::custom(format!("`{text}` is not none, even or odd")))
     }
 }
 
@@ -44,15 +69,13 @@ pub struct SerialFormat {
 /// As the manuals write it: `9600 baud 8E1`.
 impl std::fmt::Display for SerialFormat {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        let parity = match self.parity {
-            Parity::None => 'N',
-            Parity::Even => 'E',
-            Parity::Odd => 'O',
-        };
         write!(
             f,
-            "{} baud {}{parity}{}",
-            self.baud, self.data_bits, self.stop_bits
+            "{} baud {}{}{}",
+            self.baud,
+            self.data_bits,
+            self.parity.letter(),
+            self.stop_bits
         )
     }
 }
@@ -129,6 +152,34 @@ impl LineTiming {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn each_parity_reads_back_from_its_word_and_shows_its_letter_in_the_format() {
+        for (parity, word, letter) in [
+            (Parity::None, "none", "8N2"),
+            (Parity::Even, "even", "8E1"),
+            (Parity::Odd, "odd", "8O1"),
+        ] {
+            let text = toml::to_string(
+                &[("parity", parity)]
+                    .into_iter()
+                    .collect::<std::collections::BTreeMap<_, _>>(),
+            )
+            .unwrap();
+            assert_eq!(text.trim(), format!("parity = \"{word}\""));
+            let back: std::collections::BTreeMap<String, Parity> = toml::from_str(&text).unwrap();
+            assert_eq!(back["parity"], parity);
+            let stop_bits = if parity == Parity::None { 2 } else { 1 };
+            let shown = format(9600, parity, stop_bits).to_string();
+            assert_eq!(shown, format!("9600 baud {letter}"));
+        }
+        let refused =
+            toml::from_str::<std::collections::BTreeMap<String, Parity>>("parity = \"mark\"");
+        assert!(refused
+            .unwrap_err()
+            .to_string()
+            .contains("`mark` is not none, even or odd"));
+    }
 
     fn format(baud: u32, parity: Parity, stop_bits: u8) -> SerialFormat {
         SerialFormat {
