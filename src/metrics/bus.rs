@@ -22,63 +22,58 @@ use tracing::{debug, error, info, warn};
 
 /// The families of every bus's series, registry-wide; each bus takes its label values.
 pub(super) struct BusFamilies {
+    line: LineFamilies,
+    pub(super) queue: QueueFamilies,
+    port: PortFamilies,
+    slave: SlaveFamilies,
+}
+
+/// What went over the line: its round trips, busy time and bytes.
+pub(super) struct LineFamilies {
     round_trip: HistogramVec,
-    queue_wait: HistogramVec,
-    pub(super) queue_depth: IntGaugeVec,
-    info: IntGaugeVec,
-    queue_capacity: IntGaugeVec,
     busy: CounterVec,
     sent: IntCounterVec,
     received: IntCounterVec,
     discarded_frames: IntCounterVec,
     stray_bytes: IntCounterVec,
-    retries: IntCounterVec,
-    coalesced: IntCounterVec,
-    cache_hits: IntCounterVec,
-    slave_up: IntGaugeVec,
-    slave_last_success: GaugeVec,
+}
+
+/// The queue in front of the line, and the line's settings.
+pub(super) struct QueueFamilies {
+    queue_wait: HistogramVec,
+    pub(super) queue_depth: IntGaugeVec,
+    info: IntGaugeVec,
+    queue_capacity: IntGaugeVec,
+}
+
+/// The serial port: open or not, reopens, its adapter's latency timer.
+pub(super) struct PortFamilies {
     port_up: IntGaugeVec,
     port_reopens: IntCounterVec,
     port_open_errors: IntCounterVec,
     latency_timer: GaugeVec,
 }
 
+/// Each known slave's series.
+pub(super) struct SlaveFamilies {
+    retries: IntCounterVec,
+    coalesced: IntCounterVec,
+    cache_hits: IntCounterVec,
+    slave_up: IntGaugeVec,
+    slave_last_success: GaugeVec,
+}
+
 /// The `class` label of the queue wait: the others, then the priority masters.
 const CLASSES: [&str; 2] = ["normal", "priority"];
 
-impl BusFamilies {
-    // A table of definitions, one metric each: longer than a function should be, and clearer
-    // whole.
-    #[allow(clippy::too_many_lines)]
-    pub(super) fn new(define: &Definer) -> Self {
+impl LineFamilies {
+    fn new(define: &Definer) -> Self {
         let bus = &["bus"];
-        let bus_slave = &["bus", "slave"];
-        BusFamilies {
+        LineFamilies {
             round_trip: define.histogram(
                 "modbus_gateway_round_trip_seconds",
                 "From a request's first frame on the line to its answer or last timeout, retries \
                  included.",
-                bus,
-            ),
-            queue_wait: define.histogram(
-                "modbus_gateway_queue_wait_seconds",
-                "Time requests spent in the bus queue before the line took them, by class \
-                 (priority masters or the others).",
-                &["bus", "class"],
-            ),
-            queue_depth: define.int_gauge(
-                "modbus_gateway_queue_depth",
-                "Requests waiting in the bus queue.",
-                bus,
-            ),
-            info: define.int_gauge(
-                "modbus_gateway_bus_info",
-                "The bus's line: its framing (rtu, ascii) and serial format; always 1.",
-                &["bus", "framing", "format"],
-            ),
-            queue_capacity: define.int_gauge(
-                "modbus_gateway_queue_capacity",
-                "Requests the bus queue holds before it answers 0x06 (queue_depth).",
                 bus,
             ),
             busy: define.counter(
@@ -108,6 +103,72 @@ impl BusFamilies {
                 "Bytes received while no reply was awaited, discarded.",
                 bus,
             ),
+        }
+    }
+}
+
+impl QueueFamilies {
+    fn new(define: &Definer) -> Self {
+        let bus = &["bus"];
+        QueueFamilies {
+            queue_wait: define.histogram(
+                "modbus_gateway_queue_wait_seconds",
+                "Time requests spent in the bus queue before the line took them, by class \
+                 (priority masters or the others).",
+                &["bus", "class"],
+            ),
+            queue_depth: define.int_gauge(
+                "modbus_gateway_queue_depth",
+                "Requests waiting in the bus queue.",
+                bus,
+            ),
+            info: define.int_gauge(
+                "modbus_gateway_bus_info",
+                "The bus's line: its framing (rtu, ascii) and serial format; always 1.",
+                &["bus", "framing", "format"],
+            ),
+            queue_capacity: define.int_gauge(
+                "modbus_gateway_queue_capacity",
+                "Requests the bus queue holds before it answers 0x06 (queue_depth).",
+                bus,
+            ),
+        }
+    }
+}
+
+impl PortFamilies {
+    fn new(define: &Definer) -> Self {
+        let bus = &["bus"];
+        PortFamilies {
+            port_up: define.int_gauge(
+                "modbus_gateway_port_up",
+                "1 while the bus has its serial port open, else 0.",
+                bus,
+            ),
+            port_reopens: define.int_counter(
+                "modbus_gateway_port_reopens_total",
+                "Times the serial port was opened again after being lost or failing to open.",
+                bus,
+            ),
+            port_open_errors: define.int_counter(
+                "modbus_gateway_port_open_errors_total",
+                "Attempts to open the serial port that failed.",
+                bus,
+            ),
+            latency_timer: define.gauge(
+                "modbus_gateway_serial_latency_timer_seconds",
+                "The USB serial adapter's latency timer, read when the port was opened; no series \
+                 if the device has none.",
+                bus,
+            ),
+        }
+    }
+}
+
+impl SlaveFamilies {
+    fn new(define: &Definer) -> Self {
+        let bus_slave = &["bus", "slave"];
+        SlaveFamilies {
             retries: define.int_counter(
                 "modbus_gateway_retries_total",
                 "Requests sent again after a failed attempt.",
@@ -135,27 +196,17 @@ impl BusFamilies {
                 "Unix time of the slave's last answer (normal or exception); 0 if none yet.",
                 bus_slave,
             ),
-            port_up: define.int_gauge(
-                "modbus_gateway_port_up",
-                "1 while the bus has its serial port open, else 0.",
-                bus,
-            ),
-            port_reopens: define.int_counter(
-                "modbus_gateway_port_reopens_total",
-                "Times the serial port was opened again after being lost or failing to open.",
-                bus,
-            ),
-            port_open_errors: define.int_counter(
-                "modbus_gateway_port_open_errors_total",
-                "Attempts to open the serial port that failed.",
-                bus,
-            ),
-            latency_timer: define.gauge(
-                "modbus_gateway_serial_latency_timer_seconds",
-                "The USB serial adapter's latency timer, read when the port was opened; no series \
-                 if the device has none.",
-                bus,
-            ),
+        }
+    }
+}
+
+impl BusFamilies {
+    pub(super) fn new(define: &Definer) -> Self {
+        BusFamilies {
+            line: LineFamilies::new(define),
+            queue: QueueFamilies::new(define),
+            port: PortFamilies::new(define),
+            slave: SlaveFamilies::new(define),
         }
     }
 
@@ -164,31 +215,31 @@ impl BusFamilies {
     pub(super) fn of(&self, settings: &config::Bus, counters: RequestCounters) -> BusMetrics {
         let name = settings.name.as_str();
         let labels = &[name];
-        self.queue_depth.with_label_values(labels).set(0);
+        self.queue.queue_depth.with_label_values(labels).set(0);
         let metrics = BusMetrics {
             name: name.into(),
-            info: self.info.clone(),
+            info: self.queue.info.clone(),
             info_labels: Mutex::new(None),
-            queue_capacity: self.queue_capacity.with_label_values(labels),
+            queue_capacity: self.queue.queue_capacity.with_label_values(labels),
             char_time: settings.line_timing().char_time.as_secs_f64(),
             counters,
-            round_trip: self.round_trip.with_label_values(labels),
+            round_trip: self.line.round_trip.with_label_values(labels),
             queue_wait: [CLASSES[0], CLASSES[1]]
-                .map(|class| self.queue_wait.with_label_values(&[name, class])),
-            busy: self.busy.with_label_values(labels),
-            sent: self.sent.with_label_values(labels),
-            received: self.received.with_label_values(labels),
-            discarded_frames: self.discarded_frames.with_label_values(labels),
-            stray_bytes: self.stray_bytes.with_label_values(labels),
-            port_up: self.port_up.with_label_values(labels),
-            port_reopens: self.port_reopens.with_label_values(labels),
-            port_open_errors: self.port_open_errors.with_label_values(labels),
-            latency_timer: self.latency_timer.clone(),
-            retries: self.retries.clone(),
-            coalesced: self.coalesced.clone(),
-            cache_hits: self.cache_hits.clone(),
-            slave_up: self.slave_up.clone(),
-            slave_last_success: self.slave_last_success.clone(),
+                .map(|class| self.queue.queue_wait.with_label_values(&[name, class])),
+            busy: self.line.busy.with_label_values(labels),
+            sent: self.line.sent.with_label_values(labels),
+            received: self.line.received.with_label_values(labels),
+            discarded_frames: self.line.discarded_frames.with_label_values(labels),
+            stray_bytes: self.line.stray_bytes.with_label_values(labels),
+            port_up: self.port.port_up.with_label_values(labels),
+            port_reopens: self.port.port_reopens.with_label_values(labels),
+            port_open_errors: self.port.port_open_errors.with_label_values(labels),
+            latency_timer: self.port.latency_timer.clone(),
+            retries: self.slave.retries.clone(),
+            coalesced: self.slave.coalesced.clone(),
+            cache_hits: self.slave.cache_hits.clone(),
+            slave_up: self.slave.slave_up.clone(),
+            slave_last_success: self.slave.slave_last_success.clone(),
             slaves: BusMetrics::no_slaves(),
         };
         metrics.reconfigured(settings);
@@ -199,30 +250,41 @@ impl BusFamilies {
     pub(super) fn forget(&self, bus: &BusMetrics) {
         let labels = &[&*bus.name];
         bus.set_info(None);
-        for vec in [&self.queue_depth, &self.queue_capacity, &self.port_up] {
-            let _ = vec.remove_label_values(labels);
-        }
         for vec in [
-            &self.sent,
-            &self.received,
-            &self.discarded_frames,
-            &self.stray_bytes,
-            &self.port_reopens,
-            &self.port_open_errors,
+            &self.queue.queue_depth,
+            &self.queue.queue_capacity,
+            &self.port.port_up,
         ] {
             let _ = vec.remove_label_values(labels);
         }
-        let _ = self.busy.remove_label_values(labels);
-        let _ = self.latency_timer.remove_label_values(labels);
-        let _ = self.round_trip.remove_label_values(labels);
+        for vec in [
+            &self.line.sent,
+            &self.line.received,
+            &self.line.discarded_frames,
+            &self.line.stray_bytes,
+            &self.port.port_reopens,
+            &self.port.port_open_errors,
+        ] {
+            let _ = vec.remove_label_values(labels);
+        }
+        let _ = self.line.busy.remove_label_values(labels);
+        let _ = self.port.latency_timer.remove_label_values(labels);
+        let _ = self.line.round_trip.remove_label_values(labels);
         for class in CLASSES {
-            let _ = self.queue_wait.remove_label_values(&[&*bus.name, class]);
+            let _ = self
+                .queue
+                .queue_wait
+                .remove_label_values(&[&*bus.name, class]);
         }
         for address in bus.known_slaves() {
             let labels = &[&*bus.name, decimal(address)];
-            let _ = self.slave_up.remove_label_values(labels);
-            let _ = self.slave_last_success.remove_label_values(labels);
-            for vec in [&self.retries, &self.coalesced, &self.cache_hits] {
+            let _ = self.slave.slave_up.remove_label_values(labels);
+            let _ = self.slave.slave_last_success.remove_label_values(labels);
+            for vec in [
+                &self.slave.retries,
+                &self.slave.coalesced,
+                &self.slave.cache_hits,
+            ] {
                 let _ = vec.remove_label_values(labels);
             }
         }

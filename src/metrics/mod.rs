@@ -203,7 +203,7 @@ impl Metrics {
 
     /// The gauge of bus `name`'s queue depth, to be set by `hook` at every scrape.
     pub fn queue_depth(&self, name: &str) -> IntGauge {
-        self.buses.queue_depth.with_label_values(&[name])
+        self.buses.queue.queue_depth.with_label_values(&[name])
     }
 
     /// Run `hook` before every scrape, to read a gauge from its source.

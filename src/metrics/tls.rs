@@ -116,9 +116,9 @@ impl TlsMetrics {
         let due = self.handshakes_failed.due(peer.ip());
         let reason = Rejection::TlsHandshake.label();
         if let Some(held_back) = due {
-            warn!(target: TCP_EVENTS, protocol = "tls", %listen, %peer, reason, %error, held_back, "TLS handshake failed; connection closed");
+            warn!(target: TCP_EVENTS, protocol = Protocol::Tls.label(), %listen, %peer, reason, %error, held_back, "TLS handshake failed; connection closed");
         } else {
-            debug!(target: TCP_EVENTS, protocol = "tls", %listen, %peer, reason, %error, "TLS handshake failed");
+            debug!(target: TCP_EVENTS, protocol = Protocol::Tls.label(), %listen, %peer, reason, %error, "TLS handshake failed");
         }
     }
 }
