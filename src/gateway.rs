@@ -1,6 +1,6 @@
 //! Wires a validated configuration into running parts: the metrics, the simulated lines, one task
 //! per bus, the dispatcher, the Modbus TCP listeners and the metrics endpoint; applies the
-//! [`ConfigDiff`] of a reloaded configuration to them without closing connections; stops them
+//! `ConfigDiff` of a reloaded configuration to them without closing connections; stops them
 //! gracefully. Owns their tasks: dropping the gateway stops them. Also where a configuration is
 //! loaded with its simulated drives checked ([`load_config`]): the one place that knows both.
 

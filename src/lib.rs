@@ -8,33 +8,38 @@
 //!   task per connection, Modbus UDP's datagrams.
 //! - `dispatch`: the gateway's immediate answers, or the bus a request goes to.
 //! - `routing`: unit id to (bus, slave address), a pure table.
-//! - [`bus`]: one task per line, the only owner of its port: fair queue, reopen, one transaction
-//!   at a time with retries and broadcast rules, reconfiguration between transactions, and
-//!   ([`bus::health`]) the one state machine that says whether a slave is alive.
+//! - [`bus`]: one task per line, the only owner of its port: the fair queue (rings and shares,
+//!   coalescing, the cache), reopen, one transaction at a time with retries and broadcast rules,
+//!   reconfiguration between transactions, the one state machine that says whether a slave is
+//!   alive, the [`Waiter`](bus::Waiter) through which every request is counted and answered
+//!   exactly once, and the seam a line's transport plugs into (`bus::device`: a serial port or
+//!   the simulated line today).
 //! - [`line`](mod@line): the master side of a serial line: the transaction engine (gap, deadlines,
-//!   validation, late replies, broadcast turnaround) on a port, given the line's framing
-//!   ([`line::rtu`] today); the line's timing.
+//!   validation, late replies, broadcast turnaround) on a transport, given the line's framing
+//!   (RTU, [`line::rtu`], or ASCII), and which framing runs over which transport; the line's
+//!   timing.
 //! - [`sim`]: the simulated RS-485 line and its slaves (`device = "sim"`): register banks and the
-//!   reference manuals' drives on one drive pipeline ([`sim::drive`]).
+//!   reference manuals' drives on one drive pipeline.
 //! - [`metrics`]: what all of the above count and log, from plain values (it imports no runtime
 //!   module).
 //! - `web`: the operator's HTTP surface on `metrics.listen`: the status page and `/status`, the
 //!   live trace (`/trace`), `/metrics` and the health checks; it reads the gateway through one
 //!   narrow trait.
 //!
-//! Shared by all, below every other module: [`master`] (who a request comes from: the master's
-//! id, protocol, rights), [`pdu`] (the one table of function codes, and exception codes) and [`error`]
-//! (what fails a request, and the one place that turns it into an exception), [`shutdown`] (the
-//! stop signal), [`timer`] (sleeps precise to well under a millisecond for the line's timing),
-//! [`trace`] (the live trace of the frames on the lines, for `GET /trace`).
-//! [`gateway`] wires the parts together; [`cli`] is the command's subcommands (run the gateway,
-//! check the configuration, `simulate`: serve the simulated slaves on a real serial port
-//! instead); `logging` sets up the daemon's log output.
+//! Below every other module, shared by all: [`master`] (who a request comes from: the master's
+//! id, its protocol as a transport and framing, its rights), [`pdu`] (the one table of function
+//! codes, and exception codes) and [`error`] (what fails a request, and the one place that turns
+//! it into an exception), [`shutdown`] (the stop signal, and how a stopped task's end is logged),
+//! [`timer`] (sleeps precise to well under a millisecond for the line's timing), [`trace`] (the
+//! live trace of the frames on the lines). [`gateway`] wires the parts together; [`cli`] is the
+//! command's subcommands (run the gateway, check the configuration, `simulate`: serve the
+//! simulated slaves on a real serial port instead); `logging` sets up the daemon's log output.
+//! The modules form layers: `tests/layers.rs` fails on any cycle among them.
 //!
-//! `pub` is the library's API (the lint table in Cargo.toml denies unreachable `pub`): the
-//! daemon's command line, the configuration, the gateway, the line and its simulator, which the
-//! bench uses too. `net`, `dispatch`, `routing` and `logging` are internal; what the integration
-//! tests drive of them directly is re-exported in [`testing`].
+//! `pub` is what the daemon's `main`, the bench and the tests use, nothing more (the workspace
+//! lints deny unreachable `pub`). What the integration tests drive beyond it (the session, the
+//! dispatcher, the routing table, the operator's endpoint on its own) is in `testing`, compiled
+//! only with the `test-util` feature, which the tests turn on and the shipped daemon does not.
 
 // Unit tests may be long and cast freely; the product code may not (Cargo.toml's lint table).
 #![cfg_attr(test, allow(clippy::too_many_lines, clippy::cast_possible_truncation))]

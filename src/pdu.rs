@@ -89,7 +89,7 @@ pub struct Function {
     pub name: &'static str,
     /// How long a request PDU is.
     pub request: Len,
-    /// How long a normal reply PDU is (an exception is always [`EXCEPTION_PDU_LEN`]).
+    /// How long a normal reply PDU is (an exception is always `EXCEPTION_PDU_LEN`).
     pub reply: Len,
     pub access: Access,
     /// What a broadcast of it is answered with, by the gateway since no slave answers.
@@ -128,7 +128,7 @@ pub enum PduLen {
     Exact(usize),
     /// The bytes cannot tell.
     Unknown,
-    /// The header announces more than [`MAX_PDU_LEN`]: these bytes are not a PDU.
+    /// The header announces more than `MAX_PDU_LEN`: these bytes are not a PDU.
     Invalid,
 }
 

@@ -1,7 +1,7 @@
 //! The stop signal a graceful shutdown sends to the bus tasks and the sessions: once given, it
 //! carries the deadline by which queued requests must have been served. Buses then serve what is
 //! queued until the deadline and answer the rest 0x0A; sessions stop reading and close once their
-//! requests are answered. Also how a stopped task's end is logged ([`log_end`]).
+//! requests are answered. Also how a stopped task's end is logged (`log_end`).
 
 use tokio::sync::watch;
 use tokio::task::JoinError;

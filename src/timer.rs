@@ -4,7 +4,7 @@
 //! it off and get tokio's sleeps), the last few milliseconds before a deadline are kept by one
 //! timer thread waiting on a condition variable, which wakes the task tens of microseconds late
 //! instead. A task that sleeps again and again (the RTU master, once per frame) keeps a
-//! [`LineTimer`] instead: on Linux its own timerfd in the runtime's epoll set, which wakes the
+//! `LineTimer` instead: on Linux its own timerfd in the runtime's epoll set, which wakes the
 //! runtime thread directly, with no other thread to wake and switch to. Knows nothing of what it
 //! times.
 

@@ -46,7 +46,7 @@ pub struct TraceEvent {
     /// The whole frame as on the wire: address, PDU and CRC (RTU), or the ASCII frame's bytes.
     pub bytes: Vec<u8>,
     /// What became of the try the frame belongs to, as the metrics' `outcome` label says it;
-    /// [`FOREIGN`] for a frame that answered nothing.
+    /// `FOREIGN` for a frame that answered nothing.
     pub outcome: &'static str,
 }
 

@@ -1,11 +1,11 @@
 //! One task per RS-485 line, the only owner of its port. Others hold its [`BusHandle`]: they
-//! submit requests to its fair queue ([`queue`]) and read whether it is up. The task (`task`)
-//! opens the port ([`device`]: what a line is carried by, a serial port with its RS-485 and USB
+//! submit requests to its fair queue (`queue`) and read whether it is up. The task (`task`)
+//! opens the port (`device`: what a line is carried by, a serial port with its RS-485 and USB
 //! adapter settings or the simulated line), answers 0x0A at once while it is down and reopens it
 //! with backoff; while it is open it serves the queue (`serve`), skipping requests whose master
 //! has gone or whose deadline passed, and runs each as one transaction (`transaction`) with the
 //! slave's timeout, the retry policy and broadcast rules. A slave that keeps timing out is left
-//! alone but for probes ([`health`], the one place that decides whether a slave is alive). New
+//! alone but for probes (`health`, the one place that decides whether a slave is alive). New
 //! settings reach it between transactions (`reconfigure`). Knows nothing of TCP, nor of which
 //! transport carries a line.
 

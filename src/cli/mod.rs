@@ -58,7 +58,7 @@ pub(crate) fn read_config(path: &Path) -> Result<Config, Vec<String>> {
 }
 
 /// The configuration at `path` with the environment's overrides; on errors, each is written to
-/// stderr and the exit code is [`EXIT_CONFIG`].
+/// stderr and the exit code is `EXIT_CONFIG`.
 pub fn load(path: &Path) -> Result<Config, ExitCode> {
     // Logging is configured by the file, so its errors are written before logging starts: in
     // the journal, at error priority.

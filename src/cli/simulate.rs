@@ -114,7 +114,7 @@ fn open(bus: &Bus, path: &str) -> io::Result<Port> {
     }
 }
 
-/// Serve `bus`'s slaves on `device` (a path, or [`PTY`]) forever, reopening a lost device.
+/// Serve `bus`'s slaves on `device` (a path, or `PTY`) forever, reopening a lost device.
 /// `ready` gets the path masters should open, once the device is open. Returns only on an error
 /// that reopening cannot cure.
 pub async fn serve(

@@ -71,7 +71,7 @@ fn env_key_path(rest: &str) -> String {
 
 impl Config {
     /// Read `path`, apply the `MBGW__` variables among `env`, fill in defaults and validate. The
-    /// simulated drives' parameters are not checked: [`Config::load_with`] checks them.
+    /// simulated drives' parameters are not checked: `Config::load_with` checks them.
     pub fn load(
         path: &Path,
         env: impl IntoIterator<Item = (String, String)>,
@@ -91,7 +91,7 @@ impl Config {
     }
 
     /// Parse TOML text with no environment, fill in defaults and validate. The simulated
-    /// drives' parameters are not checked: [`Config::from_toml_str_with`] checks them.
+    /// drives' parameters are not checked: `Config::from_toml_str_with` checks them.
     pub fn from_toml_str(text: &str) -> Result<Config, ConfigErrors> {
         Self::finish(Self::parse(text)?, None, None)
     }

@@ -1,7 +1,7 @@
 //! The configuration: the TOML file and the `MBGW__` environment ([`Config::load`]), every
-//! default defined once ([`defaults`]), a check whose errors name the key and the reason
-//! ([`Config::check`]), the values derived after it ([`Config::resolve`]), and what changed
-//! between two of them ([`ConfigDiff`]). Produces plain values; knows nothing of sockets, ports,
+//! default defined once (`defaults`), a check whose errors name the key and the reason
+//! ([`Config::check`]), the values derived after it (`Config::resolve`), and what changed
+//! between two of them (`ConfigDiff`). Produces plain values; knows nothing of sockets, ports,
 //! tasks or the simulator (a simulated drive's parameters are checked through the
 //! [`DriveCheck`] the caller passes).
 

@@ -28,7 +28,7 @@ pub struct Server {
     pub max_connections: usize,
     /// TCP connections one source address may hold at once; more are refused at accept. Left
     /// out: all but 8 of `max_connections` (filled in by
-    /// [`Config::resolve`](super::Config::resolve)); 0, or `max_connections` or more: no limit of
+    /// `Config::resolve`); 0, or `max_connections` or more: no limit of
     /// its own per address.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub max_connections_per_address: Option<usize>,

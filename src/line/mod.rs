@@ -1,7 +1,7 @@
-//! The master side of a serial line: one transaction at a time ([`engine`]) on whatever carries
+//! The master side of a serial line: one transaction at a time (`engine`) on whatever carries
 //! the bytes (a serial port or the simulated line, both behind [`Transport`]), framed as the line
-//! is ([`framing`]: [`rtu`] today), with the spec's timing ([`timing`]) and the PDU-level judgement
-//! of replies ([`reply`]). Knows nothing of TCP, masters, queues or routing; what a frame looks
+//! is (`framing`: [`rtu`] today), with the spec's timing (`timing`) and the PDU-level judgement
+//! of replies (`reply`). Knows nothing of TCP, masters, queues or routing; what a frame looks
 //! like on the wire belongs to the framing alone.
 
 pub(crate) mod ascii;
@@ -30,7 +30,7 @@ pub(crate) const BROADCAST: u8 = 0;
 
 /// A byte pipe onto a line as a UART driver presents it, whatever carries it: a serial port or
 /// the simulated line today. Which [`Framing`] may run over which kind of transport is the one
-/// table behind [`Framing::runs_over`].
+/// table behind `Framing::runs_over`.
 pub trait Transport: Send {
     /// Hand a whole frame to the driver. Returns when the driver holds it, which is before the
     /// last byte has left the wire, unless the transport says otherwise in

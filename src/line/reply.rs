@@ -28,7 +28,7 @@ pub enum Verdict {
     /// Never delivered to anyone.
     Foreign,
     /// The frame's check (CRC, LRC) fails: noise, a collision, or a frame cut short. Only the
-    /// framing can tell; [`judge`] never says it.
+    /// framing can tell; `judge` never says it.
     Corrupt,
 }
 

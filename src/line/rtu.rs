@@ -1,6 +1,6 @@
 //! RTU frames as bytes: CRC-16, encoding, how long a frame is from its first bytes (the PDU
 //! lengths of [`crate::pdu`] plus the address and CRC), and whether a received frame answers a
-//! given request (the CRC, then [`crate::line::reply`]). Pure functions; knows nothing of ports
+//! given request (the CRC, then `crate::line::reply`). Pure functions; knows nothing of ports
 //! or time.
 
 #[cfg(test)]

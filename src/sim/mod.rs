@@ -1,8 +1,8 @@
 //! The simulated RS-485 line (`device = "sim"`) and the slaves on it, so the whole gateway runs and
-//! is tested with no hardware: [`line`](mod@line) times every frame at the configured baud and
-//! checks the gaps; [`registers`] holds plain register-bank slaves; [`drive`] models the drives of
+//! is tested with no hardware: `line` times every frame at the configured baud and
+//! checks the gaps; `registers` holds plain register-bank slaves; `drive` models the drives of
 //! the reference manuals on one shared request pipeline; [`faults`] bends any slave's replies;
-//! [`scripted`] plays a script for tests; [`responder`] serves the slaves on a real serial port
+//! `scripted` plays a script for tests; [`responder`] serves the slaves on a real serial port
 //! (`modbus-gateway simulate`). Knows nothing of TCP or the bus queue; the bus opens the line like
 //! any port.
 
