@@ -1,7 +1,8 @@
 //! What fails one request (session-level failures live in `tcp`), and the one place such a
 //! failure becomes the exception code the master sees.
 
-use crate::line::{Reply, TxError};
+pub use crate::line::NoReply;
+use crate::line::Reply;
 use crate::pdu::ExceptionCode;
 
 /// What a request gets: an [`Answer`] to send back, or a failure the gateway answers itself.
@@ -75,38 +76,6 @@ pub enum RequestError {
     NoResponse { attempts: u32, last: NoReply },
 }
 
-/// Why the last try of a request got no valid reply: a [`TxError`] but a lost port, whose
-/// messages it keeps.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
-pub enum NoReply {
-    #[error("no reply to this request within the response timeout")]
-    Timeout,
-    #[error("reply failed its check (CRC-16 on RTU, LRC on ASCII)")]
-    Check,
-    #[error("reply incomplete, or longer than a frame")]
-    Frame,
-    #[error("line never fell silent for the gap before the frame")]
-    LineBusy,
-    #[error("the line did not echo the frame as sent (a collision, or no echo)")]
-    Echo,
-}
-
-/// A failed try's [`NoReply`], or the `io::Error` of a lost port.
-impl TryFrom<TxError> for NoReply {
-    type Error = std::io::Error;
-
-    fn try_from(error: TxError) -> Result<NoReply, std::io::Error> {
-        match error {
-            TxError::Timeout => Ok(NoReply::Timeout),
-            TxError::Check => Ok(NoReply::Check),
-            TxError::Frame => Ok(NoReply::Frame),
-            TxError::LineBusy => Ok(NoReply::LineBusy),
-            TxError::Echo => Ok(NoReply::Echo),
-            TxError::PortLost(lost) => Err(lost),
-        }
-    }
-}
-
 impl RequestError {
     /// The exception the gateway answers with. Everything the gateway refuses on its own goes
     /// through here.
@@ -133,6 +102,7 @@ impl RequestError {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::line::TxError;
 
     #[test]
     fn a_failed_try_keeps_its_message_and_a_lost_port_its_io_error() {

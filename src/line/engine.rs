@@ -55,8 +55,10 @@ pub enum Reply {
     Malformed(Vec<u8>),
 }
 
-#[derive(Debug, thiserror::Error)]
-pub enum TxError {
+/// Why a try got no valid reply, when it was not the port's loss: what a request's error keeps
+/// of a [`TxError`] (a `Copy` value). The one place these messages are written.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum NoReply {
     #[error("no reply to this request within the response timeout")]
     Timeout,
     /// The frame's check failed (the name and message predate framings other than RTU).
@@ -69,8 +71,39 @@ pub enum TxError {
     /// On a line that echoes (`rs485.echo`): the frame did not come back as sent, in time.
     #[error("the line did not echo the frame as sent (a collision, or no echo)")]
     Echo,
+}
+
+/// How one try failed: as [`NoReply`] says, or the port was lost.
+#[derive(Debug, thiserror::Error)]
+pub enum TxError {
+    #[error("{}", NoReply::Timeout)]
+    Timeout,
+    #[error("{}", NoReply::Check)]
+    Check,
+    #[error("{}", NoReply::Frame)]
+    Frame,
+    #[error("{}", NoReply::LineBusy)]
+    LineBusy,
+    #[error("{}", NoReply::Echo)]
+    Echo,
     #[error("serial port lost: {0}")]
     PortLost(io::Error),
+}
+
+/// A failed try's [`NoReply`], or the `io::Error` of a lost port.
+impl TryFrom<TxError> for NoReply {
+    type Error = io::Error;
+
+    fn try_from(error: TxError) -> Result<NoReply, io::Error> {
+        match error {
+            TxError::Timeout => Ok(NoReply::Timeout),
+            TxError::Check => Ok(NoReply::Check),
+            TxError::Frame => Ok(NoReply::Frame),
+            TxError::LineBusy => Ok(NoReply::LineBusy),
+            TxError::Echo => Ok(NoReply::Echo),
+            TxError::PortLost(lost) => Err(lost),
+        }
+    }
 }
 
 /// What went over the line, and what the master saw there that was not an answer; cumulative,

@@ -11,7 +11,7 @@ pub(crate) mod reply;
 pub mod rtu;
 pub(crate) mod timing;
 
-pub use engine::{Reply, TxError};
+pub use engine::{NoReply, Reply, TxError};
 
 pub use engine::LineCounters;
 
