@@ -37,10 +37,7 @@ fn config(keys: &str, slave_keys: &str) -> Config {
 async fn bus(settings: &config::Bus, metrics: &Metrics, stopping: Stopping) -> BusHandle {
     let line = SimLine::new(settings.line_timing());
     line.add_slave(1, RegisterBank::new(SLOW));
-    let task = BusTask::new(settings.clone(), Device::Sim(line), metrics);
-    let bus = task.handle();
-    tokio::spawn(task.run(stopping));
-    sleep(Duration::from_millis(10)).await;
+    let bus = super::tests::running(settings.clone(), &line, metrics, stopping).await;
     assert!(bus.is_up());
     bus
 }

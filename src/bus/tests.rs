@@ -122,12 +122,24 @@ async fn a_broadcast_is_answered_by_the_gateway_and_a_slave_reply_is_passed_on()
     }
 }
 
+/// The task of `settings` on `line`, counting into `metrics`, running until `stopping`: its
+/// handle, 10 ms after it started (its first open has been tried).
+pub(super) async fn running(
+    settings: config::Bus,
+    line: &SimLine,
+    metrics: &Metrics,
+    stopping: Stopping,
+) -> BusHandle {
+    let task = BusTask::new(settings, Device::Sim(line.clone()), metrics);
+    let bus = task.handle();
+    tokio::spawn(task.run(stopping));
+    sleep(Duration::from_millis(10)).await;
+    bus
+}
+
 /// The value of `series` in what `metrics` exports.
 fn metric(metrics: &Metrics, series: &str) -> Option<f64> {
-    let text = metrics.render().expect("metrics render");
-    text.lines()
-        .find_map(|l| l.strip_prefix(series)?.strip_prefix(' '))
-        .and_then(|v| v.parse().ok())
+    crate::metrics::sample(&metrics.render().expect("metrics render"), series)
 }
 
 const OPEN_ERRORS: &str = "modbus_gateway_port_open_errors_total{bus=\"line\"}";
@@ -138,10 +150,7 @@ async fn a_lost_port_is_reopened_with_a_backoff_that_doubles_up_to_its_maximum()
     let line = SimLine::new(settings("").line_timing());
     let metrics = Metrics::new();
     let keys = "reopen_delay = \"100ms\"\nreopen_delay_max = \"400ms\"";
-    let task = BusTask::new(settings(keys), Device::Sim(line.clone()), &metrics);
-    let bus = task.handle();
-    tokio::spawn(task.run(Stopping::never()));
-    sleep(Duration::from_millis(10)).await;
+    let bus = running(settings(keys), &line, &metrics, Stopping::never()).await;
     assert!(bus.is_up());
     line.unplug();
     // Lost at 10 ms; opens fail at 110, 310, 710, 1110, 1510 ms.
@@ -226,10 +235,7 @@ async fn health_through_failing_down_and_back(framing: Framing) {
     };
     line.add_slave(1, Scripted::new([reply(), None, None, reply()]));
     let metrics = Metrics::new();
-    let task = BusTask::new(settings(&keys), Device::Sim(line.clone()), &metrics);
-    let bus = task.handle();
-    tokio::spawn(task.run(Stopping::never()));
-    sleep(Duration::from_millis(10)).await;
+    let bus = running(settings(&keys), &line, &metrics, Stopping::never()).await;
     assert!(call(&bus, 1, &READ).await.is_ok());
     assert_eq!(metric(&metrics, SLAVE_1_UP), Some(1.0));
     let timed_out = |o: &Outcome| {

@@ -694,10 +694,7 @@ mod latency_tests {
     const SERIES: &str = "modbus_gateway_serial_latency_timer_seconds{bus=\"line1\"}";
 
     fn sample(metrics: &Metrics) -> Option<f64> {
-        let text = metrics.render().unwrap();
-        text.lines()
-            .find_map(|line| line.strip_prefix(SERIES)?.strip_prefix(' '))
-            .map(|v| v.parse().unwrap())
+        crate::metrics::sample(&metrics.render().unwrap(), SERIES)
     }
 
     #[test]

@@ -235,6 +235,15 @@ impl Metrics {
     }
 }
 
+/// The value of the series `name{labels}` in the text format `text`, if present: what the
+/// unit tests read of the metrics.
+#[cfg(test)]
+pub(crate) fn sample(text: &str, series: &str) -> Option<f64> {
+    text.lines()
+        .find_map(|line| line.strip_prefix(series)?.strip_prefix(' '))
+        .map(|v| v.parse().expect("a sample's value is a number"))
+}
+
 #[cfg(test)]
 mod tests {
     use super::labels::ExceptionSource;
@@ -250,23 +259,16 @@ mod tests {
         crate::Config::from_toml_str(&text).unwrap().bus.remove(0)
     }
 
-    /// The value of the series `name{labels}` in `text`, if present.
-    fn value(text: &str, series: &str) -> Option<f64> {
-        text.lines()
-            .find_map(|line| line.strip_prefix(series)?.strip_prefix(' '))
-            .map(|v| v.parse().unwrap())
-    }
-
     #[test]
     fn every_definition_registers_and_renders() {
         let metrics = Metrics::new();
         let text = metrics.render().unwrap();
         assert_eq!(
-            value(&text, "modbus_gateway_build_info{version=\"0.1.0\"}"),
+            sample(&text, "modbus_gateway_build_info{version=\"0.1.0\"}"),
             Some(1.0)
         );
         assert_eq!(
-            value(&text, "modbus_gateway_tcp_connections{protocol=\"tcp\"}"),
+            sample(&text, "modbus_gateway_tcp_connections{protocol=\"tcp\"}"),
             Some(0.0)
         );
     }
@@ -294,14 +296,14 @@ mod tests {
             "modbus_gateway_coalesced_requests_total{bus=\"line1\",slave=\"9\"}",
             "modbus_gateway_cache_hits_total{bus=\"line1\",slave=\"9\"}",
         ] {
-            assert_eq!(value(&text, series), Some(0.0), "{series}");
+            assert_eq!(sample(&text, series), Some(0.0), "{series}");
         }
         assert_eq!(
-            value(&text, "modbus_gateway_queue_capacity{bus=\"line1\"}"),
+            sample(&text, "modbus_gateway_queue_capacity{bus=\"line1\"}"),
             Some(64.0)
         );
         assert_eq!(
-            value(&text, "modbus_gateway_slave_up{bus=\"line1\",slave=\"3\"}"),
+            sample(&text, "modbus_gateway_slave_up{bus=\"line1\",slave=\"3\"}"),
             None
         );
     }
@@ -367,7 +369,7 @@ mod tests {
             ("modbus_gateway_exceptions_total{bus=\"\",code=\"0x0A\",slave=\"other\",source=\"gateway\"}", 1.0),
         ];
         for (series, expected) in series {
-            assert_eq!(value(&text, series), Some(expected), "{series}\n{text}");
+            assert_eq!(sample(&text, series), Some(expected), "{series}\n{text}");
         }
         assert_eq!(text.matches("modbus_gateway_exceptions_total{").count(), 2);
     }
@@ -426,18 +428,18 @@ mod tests {
         });
         let text = metrics.render().unwrap();
         // 9600 8E1: 11 bits a character (a whole number of nanoseconds).
-        let busy = value(
+        let busy = sample(
             &text,
             "modbus_gateway_line_busy_seconds_total{bus=\"line1\"}",
         )
         .unwrap();
         assert!((busy - 17.0 * 11.0 / 9600.0).abs() < 17e-9, "{busy}");
         assert_eq!(
-            value(&text, "modbus_gateway_line_sent_bytes_total{bus=\"line1\"}"),
+            sample(&text, "modbus_gateway_line_sent_bytes_total{bus=\"line1\"}"),
             Some(8.0)
         );
         assert_eq!(
-            value(
+            sample(
                 &text,
                 "modbus_gateway_discarded_frames_total{bus=\"line1\"}"
             ),
@@ -455,8 +457,8 @@ mod tests {
         line1.transaction(5, 1, Some(Duration::from_millis(40)), &answered);
         line1.slave_answering(5, false);
         let text = metrics.render().unwrap();
-        assert_eq!(value(&text, up), Some(1.0));
-        let since = value(
+        assert_eq!(sample(&text, up), Some(1.0));
+        let since = sample(
             &text,
             "modbus_gateway_slave_last_success_timestamp_seconds{bus=\"line1\",slave=\"5\"}",
         )
@@ -468,24 +470,24 @@ mod tests {
         });
         line1.transaction(5, 3, Some(Duration::from_secs(3)), &failed);
         // A transaction alone says nothing of the slave: `bus::health` does.
-        assert_eq!(value(&metrics.render().unwrap(), up), Some(1.0));
+        assert_eq!(sample(&metrics.render().unwrap(), up), Some(1.0));
         line1.slave_failing(5, &failed);
         let text = metrics.render().unwrap();
-        assert_eq!(value(&text, up), Some(0.0));
+        assert_eq!(sample(&text, up), Some(0.0));
         line1.slave_answering(5, true);
-        assert_eq!(value(&metrics.render().unwrap(), up), Some(1.0));
+        assert_eq!(sample(&metrics.render().unwrap(), up), Some(1.0));
         line1.slave_down(5, 3, Duration::from_secs(5));
         let text = metrics.render().unwrap();
-        assert_eq!(value(&text, up), Some(0.0));
+        assert_eq!(sample(&text, up), Some(0.0));
         assert_eq!(
-            value(
+            sample(
                 &text,
                 "modbus_gateway_retries_total{bus=\"line1\",slave=\"5\"}"
             ),
             Some(2.0)
         );
         assert_eq!(
-            value(
+            sample(
                 &text,
                 "modbus_gateway_round_trip_seconds_count{bus=\"line1\"}"
             ),
@@ -504,7 +506,7 @@ mod tests {
         depth.store(17, Ordering::Relaxed);
         let text = metrics.render().unwrap();
         assert_eq!(
-            value(&text, "modbus_gateway_queue_depth{bus=\"line1\"}"),
+            sample(&text, "modbus_gateway_queue_depth{bus=\"line1\"}"),
             Some(17.0)
         );
     }
