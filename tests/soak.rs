@@ -105,8 +105,13 @@ const PATIENCE: Duration = Duration::from_secs(20);
 /// Wire frames are collected this often; the line remembers its last 4096, over 10 s of traffic.
 const WIRE_POLL: Duration = Duration::from_millis(100);
 /// The heap may end this far above its warm level, plus [`HEAP_PER_SERIES`] for each metric
-/// series first made during the soak. See `heap_is_back_at_its_warm_level`.
-const HEAP_SLACK: usize = 16 * 1024;
+/// series first made during the soak. See `heap_is_back_at_its_warm_level`. Measured in release
+/// on 2 cores (issue 27), before and after that issue's changes alike: after 100 s the heap had
+/// grown 21-51 kB (seven runs, 24-33 new series each), after 200 s 36 kB: the growth does not
+/// scale with the soak's length, so it is pools sized by the peak number of connections and
+/// requests at once (the runtime's slab pages, hash tables), which never shrink and which a
+/// longer soak reaches more often than the warm-up; 16 KiB of slack failed one run in three.
+const HEAP_SLACK: usize = 64 * 1024;
 /// A new metric series costs about 600 bytes (measured: 30 new series, 18 kB).
 const HEAP_PER_SERIES: usize = 1024;
 const PIPELINE_DEPTH: usize = 4;
@@ -1117,8 +1122,8 @@ async fn a_hundred_masters_on_faulty_slaves_and_a_vanishing_port_get_one_answer_
 /// What the gateway may rightly make during the soak and keep: the metric series of (slave,
 /// function, outcome) combinations the warm-up happened not to produce (rare ones such as a CRC
 /// error on a healthy slave, when a late reply collides with its answer), bounded by the labels'
-/// cardinality; and slack for a hash table that grows past a power of two. A leak of a few bytes
-/// per request (tens of thousands) or of anything per connection (hundreds) is well beyond it.
+/// cardinality; and slack for pools that grow with the peak load ([`HEAP_SLACK`]). A leak of 3
+/// bytes per request (tens of thousands) or of 300 per connection (hundreds) is beyond it.
 fn heap_is_back_at_its_warm_level(warm: usize, end: usize, new_series: usize) {
     let allowed = HEAP_SLACK + new_series * HEAP_PER_SERIES;
     assert!(
