@@ -1122,8 +1122,8 @@ async fn a_hundred_masters_on_faulty_slaves_and_a_vanishing_port_get_one_answer_
 /// What the gateway may rightly make during the soak and keep: the metric series of (slave,
 /// function, outcome) combinations the warm-up happened not to produce (rare ones such as a CRC
 /// error on a healthy slave, when a late reply collides with its answer), bounded by the labels'
-/// cardinality; and slack for pools that grow with the peak load ([`HEAP_SLACK`]). A leak of 3
-/// bytes per request (tens of thousands) or of 300 per connection (hundreds) is beyond it.
+/// cardinality; and slack for pools that grow with the peak load ([`HEAP_SLACK`]). A leak of 4
+/// bytes per request (tens of thousands) or of 450 per connection (hundreds) is beyond it.
 fn heap_is_back_at_its_warm_level(warm: usize, end: usize, new_series: usize) {
     let allowed = HEAP_SLACK + new_series * HEAP_PER_SERIES;
     assert!(
