@@ -3,7 +3,8 @@
 //! a flood from many ports of one address.
 
 use crate::support::{
-    flood_target, frames_from, mbap, polite_reads, start, within, Flood, Scrape, PATIENCE,
+    flood_target, frames_from, mbap, polite_reads, start, within, Bus, Flood, GatewayConfig,
+    Scrape, Value, PATIENCE,
 };
 use modbus_gateway::sim::Source;
 use modbus_gateway::Gateway;
@@ -12,13 +13,18 @@ use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::UdpSocket;
 
-async fn gateway(extra_server: &str) -> Gateway {
-    start(&format!(
-        "[server]\nlisten = \"127.0.0.1:0\"\nlisten_udp = \"127.0.0.1:0\"\n{extra_server}\n\
-         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nresponse_timeout = \"200ms\"\n\
-         [[bus.sim_slave]]\naddress = \"1-4\"\n"
-    ))
-    .await
+/// A gateway with Modbus TCP and UDP listeners, `server` keys besides, and a simulated line at
+/// 115200 with slaves 1-4.
+async fn gateway(server: Vec<(&str, Value)>) -> Gateway {
+    let sim = Bus::sim("sim")
+        .baud(115_200)
+        .response_timeout("200ms")
+        .sim_slaves("1-4");
+    let config = GatewayConfig::new().listen_udp("127.0.0.1:0").bus(sim);
+    let config = server
+        .into_iter()
+        .fold(config, |config, (key, value)| config.server(key, value));
+    config.start().await
 }
 
 fn udp_addr(gateway: &Gateway) -> SocketAddr {
@@ -42,7 +48,7 @@ async fn receive(socket: &UdpSocket, wait: Duration) -> Option<Vec<u8>> {
 
 #[tokio::test]
 async fn a_udp_master_writes_and_reads_the_line_and_its_replies_come_to_its_own_address() {
-    let gateway = gateway("").await;
+    let gateway = gateway(vec![]).await;
     let socket = master().await;
     let write = [0x06, 0x00, 0x02, 0x12, 0x34];
     socket
@@ -77,7 +83,7 @@ async fn a_udp_master_writes_and_reads_the_line_and_its_replies_come_to_its_own_
 
 #[tokio::test]
 async fn a_write_by_udp_is_read_back_by_a_modbus_tcp_master() {
-    let gateway = gateway("").await;
+    let gateway = gateway(vec![]).await;
     let socket = master().await;
     let write = [0x06, 0x00, 0x05, 0x00, 0x2A];
     socket
@@ -97,7 +103,7 @@ async fn a_write_by_udp_is_read_back_by_a_modbus_tcp_master() {
 
 #[tokio::test]
 async fn a_datagram_from_a_source_outside_allow_is_dropped_and_never_reaches_the_line() {
-    let gateway = gateway("allow = \"10.0.0.0/8\"").await;
+    let gateway = gateway(vec![("allow", ["10.0.0.0/8"].into())]).await;
     let socket = master().await;
     socket
         .send_to(&mbap(1, 1, &[0x03, 0, 0, 0, 1]), udp_addr(&gateway))
@@ -114,7 +120,7 @@ async fn a_datagram_from_a_source_outside_allow_is_dropped_and_never_reaches_the
 
 #[tokio::test]
 async fn a_malformed_datagram_is_dropped_and_counted_and_the_next_one_is_answered() {
-    let gateway = gateway("").await;
+    let gateway = gateway(vec![]).await;
     let socket = master().await;
     let read = mbap(3, 1, &[0x03, 0, 0, 0, 1]);
     // Cut short, two requests in one datagram, a wrong protocol id.
@@ -139,7 +145,7 @@ async fn a_malformed_datagram_is_dropped_and_counted_and_the_next_one_is_answere
 
 #[tokio::test]
 async fn a_flood_from_one_source_is_cut_at_pipeline_depth_and_another_source_is_still_served() {
-    let gateway = gateway("pipeline_depth = 4").await;
+    let gateway = gateway(vec![("pipeline_depth", 4.into())]).await;
     let flooder = master().await;
     for id in 0..200u16 {
         flooder
@@ -175,7 +181,7 @@ async fn a_flood_from_one_source_is_cut_at_pipeline_depth_and_another_source_is_
 
 #[tokio::test]
 async fn two_thousand_random_datagrams_leave_the_gateway_serving_and_the_line_untouched() {
-    let gateway = gateway("").await;
+    let gateway = gateway(vec![]).await;
     let socket = master().await;
     let mut rng = fastrand::Rng::with_seed(16);
     for _ in 0..2000 {
