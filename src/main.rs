@@ -6,7 +6,13 @@
 //! [`modbus_gateway::cli`].
 
 use clap::{CommandFactory, Parser, Subcommand};
-use modbus_gateway::cli::{self, check_config::check_config, run::run, simulate::simulate, trace};
+use modbus_gateway::cli::{
+    self,
+    check_config::check_config,
+    run::run,
+    simulate::{simulate, Serve},
+    trace,
+};
 use modbus_gateway::config::DEFAULT_PATH;
 use std::io::Write;
 use std::path::PathBuf;
@@ -40,11 +46,17 @@ enum Command {
         #[arg(long)]
         quiet: bool,
     },
-    /// Serve a bus's simulated slaves as RTU slaves on a serial device, at its baud and format.
+    /// Serve a bus's simulated slaves as RTU slaves on a serial device, at its baud and format,
+    /// or its simulated line on a TCP socket as a serial device server in transparent mode.
+    #[command(group(clap::ArgGroup::new("on").required(true).args(["device", "listen"])))]
     Simulate {
         /// The serial device to answer on, or `pty` for a new pty pair (its path is printed).
         #[arg(long)]
-        device: String,
+        device: Option<String>,
+        /// Serve the line on this TCP address instead, one client at a time, in raw
+        /// (transparent) mode; port 0 picks a free port (the address is printed).
+        #[arg(long, value_name = "HOST:PORT")]
+        listen: Option<String>,
         /// The bus whose [[bus.sim_slave]] entries to serve (default: the only one with any).
         #[arg(long)]
         bus: Option<String>,
@@ -100,7 +112,18 @@ fn main() -> ExitCode {
     match cli.command.unwrap_or(Command::Run) {
         Command::CheckConfig { quiet } => check_config(&cli.config, &config, quiet),
         Command::Run => run(&cli.config, config),
-        Command::Simulate { device, bus } => simulate(config, bus.as_deref(), &device),
+        Command::Simulate {
+            device,
+            listen,
+            bus,
+        } => {
+            let on = match (device, listen) {
+                (Some(device), _) => Serve::Device(device),
+                (None, Some(listen)) => Serve::Listen(listen),
+                (None, None) => unreachable!("clap requires --device or --listen"),
+            };
+            simulate(config, bus.as_deref(), &on)
+        }
         Command::Trace { bus, slave, .. } => {
             let url = trace::url_of(config.metrics.listen);
             trace::trace(&url, bus.as_deref(), slave)

@@ -1,6 +1,9 @@
 //! The `simulate` subcommand: the simulated slaves of one bus, served as RTU slaves on a real
 //! serial device or on a fresh pty, at the bus's baud and format, until stopped. Picks the bus,
 //! powers the slaves on and reopens a lost device; the serving itself is [`crate::sim::responder`].
+//! With `--listen`, the simulated line on a TCP socket instead ([`listen`]).
+
+mod listen;
 
 use super::{start_runtime, stop_signal, EXIT_CONFIG};
 use crate::bus::{Device, Port, SerialDriver};
@@ -13,8 +16,17 @@ use tokio::time::sleep;
 use tokio_serial::SerialPort;
 use tracing::{error, info, warn};
 
-/// Serve the slaves of `bus` (or the only bus with any) on `device` until stopped.
-pub fn simulate(config: Config, bus: Option<&str>, device: &str) -> ExitCode {
+/// Where `simulate` serves the slaves.
+pub enum Serve {
+    /// As RTU (or ASCII) slaves on a serial device, or on a new pty ([`PTY`]).
+    Device(String),
+    /// The simulated line on a TCP socket at this `HOST:PORT`, as a serial device server in
+    /// transparent mode.
+    Listen(String),
+}
+
+/// Serve the slaves of `bus` (or the only bus with any) on `on` until stopped.
+pub fn simulate(config: Config, bus: Option<&str>, on: &Serve) -> ExitCode {
     let bus = match choose_bus(&config, bus) {
         Ok(bus) => bus,
         Err(e) => {
@@ -38,17 +50,27 @@ pub fn simulate(config: Config, bus: Option<&str>, device: &str) -> ExitCode {
                 bus.format()
             ))
         };
-        tokio::select! {
-            error = serve(bus, device, announce) => {
-                if super::reader_gone(&error) {
-                    return ExitCode::SUCCESS;
-                }
-                error!(device, %error, "cannot serve the simulated slaves");
-                ExitCode::FAILURE
-            }
-            () = stop_signal() => ExitCode::SUCCESS,
+        let error = tokio::select! {
+            error = serve(bus, on, announce) => error,
+            () = stop_signal() => return ExitCode::SUCCESS,
+        };
+        if super::reader_gone(&error) {
+            return ExitCode::SUCCESS;
         }
+        match on {
+            Serve::Device(device) => error!(device, %error, "cannot serve the simulated slaves"),
+            Serve::Listen(listen) => error!(listen, %error, "cannot serve the simulated line"),
+        }
+        ExitCode::FAILURE
     })
+}
+
+/// Serve on the device or the socket `on` says; returns why it stopped.
+async fn serve(bus: &Bus, on: &Serve, ready: impl FnOnce(&str) -> io::Result<()>) -> io::Error {
+    match on {
+        Serve::Device(device) => serve_device(bus, device, ready).await,
+        Serve::Listen(listen) => listen::serve(bus, listen, ready).await,
+    }
 }
 
 /// `--device pty`: open a new pty pair and serve on it.
@@ -117,7 +139,7 @@ fn open(bus: &Bus, path: &str) -> io::Result<Port> {
 /// Serve `bus`'s slaves on `device` (a path, or `PTY`) forever, reopening a lost device.
 /// `ready` gets the path masters should open, once the device is open. Returns only on an error
 /// that reopening cannot cure.
-pub async fn serve(
+pub async fn serve_device(
     bus: &Bus,
     device: &str,
     ready: impl FnOnce(&str) -> io::Result<()>,

@@ -175,6 +175,17 @@ impl SimLine {
     pub fn frames(&self) -> Vec<WireFrame> {
         self.shared.lock().log.iter().cloned().collect()
     }
+
+    /// When the wire falls silent after every frame sent or scheduled so far (`None` before the
+    /// first): a master that keeps the gap starts t3.5 after it.
+    pub(crate) fn quiet_at(&self) -> Option<Instant> {
+        let state = self.shared.lock();
+        let slave_end = state.slave_tx.iter().map(|&(_, end)| end).max();
+        [state.last_wire_end, state.master_busy_until, slave_end]
+            .into_iter()
+            .flatten()
+            .max()
+    }
 }
 
 impl LineState {
@@ -347,6 +358,18 @@ impl LineState {
 pub struct SimPort {
     shared: Arc<Shared>,
     generation: u64,
+}
+
+impl SimPort {
+    /// When the next byte on its way to this port will have arrived, if any is.
+    pub(crate) fn next_arrival(&self) -> Option<Instant> {
+        let state = self.shared.lock();
+        state
+            .inbound
+            .front()
+            .filter(|_| state.is_live(self.generation))
+            .map(|&(at, _)| at)
+    }
 }
 
 impl Transport for SimPort {

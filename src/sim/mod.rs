@@ -3,9 +3,11 @@
 //! checks the gaps; `registers` holds plain register-bank slaves; `drive` models the drives of
 //! the reference manuals on one shared request pipeline; [`faults`] bends any slave's replies;
 //! `scripted` plays a script for tests; [`responder`] serves the slaves on a real serial port
-//! (`modbus-gateway simulate`). Knows nothing of TCP or the bus queue; the bus opens the line like
+//! (`modbus-gateway simulate`) and `device_server` the line on a byte stream, as a serial device
+//! server does (`simulate --listen`). Knows nothing of TCP or the bus queue; the bus opens the line like
 //! any port.
 
+pub(crate) mod device_server;
 pub(crate) mod drive;
 pub mod faults;
 pub(crate) mod line;
