@@ -733,6 +733,27 @@ async fn pymodbus_rtu_over_tcp_and_udp_masters_reach_pymodbus_rtu_slave_on_a_pty
 }
 
 /// Run `program` with `args` to its end (bounded by the patience); its output.
+#[tokio::test]
+async fn pymodbus_rtu_over_tcp_master_writes_and_reads_simulate_listen_directly() {
+    let Some(python) = python_with_pymodbus() else {
+        return;
+    };
+    // simulate serves a file: the register-bank slaves 1-4 of the "sim" line, at 9600 8E1.
+    let config = std::env::temp_dir().join(format!("mbgw-listen-{}.toml", std::process::id()));
+    std::fs::write(&config, crate::support::sim_config("")).unwrap();
+    let simulator =
+        crate::simulate::Simulator::listen_with(config.to_str().unwrap(), "127.0.0.1:0", "8E1")
+            .await;
+    let _ = std::fs::remove_file(&config);
+    let addr: std::net::SocketAddr = simulator.path.trim_start_matches("tcp://").parse().unwrap();
+    // pymodbus sends each request as soon as the last reply is in: the server keeps the gap.
+    assert_eq!(
+        net_master(&python, "rtu-over-tcp", addr, 3).await,
+        ["result 6 ok", "result 3 4242 0", "result 3 0 0 0"]
+    );
+    simulator.stop().await;
+}
+
 async fn run_to_end(program: std::path::PathBuf, args: Vec<String>) -> std::process::Output {
     let mut command = Command::new(program);
     command.args(args);

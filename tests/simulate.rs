@@ -1,10 +1,13 @@
 //! The `simulate` subcommand as a user runs it: the demo's drives answering RTU masters on the far
-//! end of a pty, a real serial path.
+//! end of a pty, a real serial path, and the demo's line on a TCP socket as a serial device server
+//! in transparent mode (`--listen`), to raw bytes and to pymodbus's RTU-over-TCP master.
 
-use crate::support::{demo_path, exit_status, within};
+use crate::support::{demo_path, exit_status, rtu, within};
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use std::time::{Duration, Instant};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::net::TcpStream;
 use tokio_modbus::client::{rtu, Reader, Writer};
 use tokio_modbus::prelude::SlaveContext;
 use tokio_modbus::Slave;
@@ -25,8 +28,23 @@ impl Simulator {
 
     /// `simulate` on `config`'s simulated bus, which must announce `format`.
     pub async fn start_with(config: &str, device: &str, format: &str) -> Simulator {
+        Self::start_on(config, &["--device", device], format).await
+    }
+
+    /// `simulate --listen listen` on the demo's drives; `path` is `tcp://ADDR`.
+    pub async fn listen(listen: &str) -> Simulator {
+        Self::listen_with(demo_path(), listen, "9600 baud 8E1").await
+    }
+
+    /// `simulate --listen listen` on `config`'s simulated bus, which must announce `format`.
+    pub async fn listen_with(config: &str, listen: &str, format: &str) -> Simulator {
+        Self::start_on(config, &["--listen", listen], format).await
+    }
+
+    async fn start_on(config: &str, on: &[&str], format: &str) -> Simulator {
         let mut child = Command::new(BINARY)
-            .args(["--config", config, "simulate", "--device", device])
+            .args(["--config", config, "simulate"])
+            .args(on)
             .env("MBGW__LOG__LEVEL", "warn")
             .env_remove("RUST_LOG")
             .stdout(Stdio::piped())
@@ -119,7 +137,10 @@ async fn simulate_on_a_new_pty_answers_the_tokio_modbus_rtu_client() {
 }
 
 /// Send one frame, read `reply.len()` bytes.
-async fn exchange(port: &mut SerialStream, request: &[u8], reply_len: usize) -> Vec<u8> {
+async fn exchange<S>(port: &mut S, request: &[u8], reply_len: usize) -> Vec<u8>
+where
+    S: AsyncRead + AsyncWrite + Unpin,
+{
     port.write_all(request).await.unwrap();
     let mut reply = vec![0u8; reply_len];
     within("the reply", port.read_exact(&mut reply))
@@ -202,4 +223,96 @@ async fn simulate_on_an_ascii_bus_answers_the_manuals_ascii_frames_byte_for_byte
     );
     drop(tty);
     simulator.stop().await;
+}
+
+/// A client of `simulate --listen` at its announced `tcp://ADDR`.
+async fn connect(simulator: &Simulator) -> TcpStream {
+    let addr = simulator
+        .path
+        .strip_prefix("tcp://")
+        .unwrap_or_else(|| panic!("not a tcp:// address: {}", simulator.path));
+    let stream = within("connecting", TcpStream::connect(addr))
+        .await
+        .expect("the announced address takes connections");
+    stream.set_nodelay(true).unwrap();
+    stream
+}
+
+/// Goodrive manuals: read P00.04 and P00.05 of slave 1 (50.00 Hz and 0.00 Hz by default).
+const READ_P00_04: [u8; 8] = [0x01, 0x03, 0x00, 0x04, 0x00, 0x02, 0x85, 0xCA];
+const P00_04_REPLY: [u8; 9] = [0x01, 0x03, 0x04, 0x13, 0x88, 0x00, 0x00, 0x7E, 0x9D];
+
+#[tokio::test]
+async fn simulate_listen_serves_the_line_raw_on_tcp_one_client_at_a_time_with_state_kept() {
+    let simulator = Simulator::listen("127.0.0.1:0").await;
+    let mut client = connect(&simulator).await;
+    let sent = Instant::now();
+    assert_eq!(exchange(&mut client, &READ_P00_04, 9).await, P00_04_REPLY);
+    // The request and the reply crossed a 9600 baud 8E1 wire: 17 characters of 11 bits.
+    assert!(sent.elapsed() >= Duration::from_micros(17 * 11 * 1_000_000 / 9600));
+    // Split mid-frame into two TCP segments, it is still one request and one reply.
+    client.write_all(&READ_P00_04[..3]).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(20)).await;
+    assert_eq!(
+        exchange(&mut client, &READ_P00_04[3..], 9).await,
+        P00_04_REPLY
+    );
+    // Slave 2's frequency reference (2001H) = 25.00 Hz, echoed.
+    let write = rtu(2, &[0x06, 0x20, 0x01, 0x09, 0xC4]);
+    assert_eq!(exchange(&mut client, &write, write.len()).await, write);
+    // A second master while this one is served is refused: closed without a byte.
+    let mut second = connect(&simulator).await;
+    let mut rest = Vec::new();
+    let refused = within("the refusal", second.read_to_end(&mut rest)).await;
+    assert!(
+        rest.is_empty() && refused.is_ok_or_reset(),
+        "{refused:?} {rest:?}"
+    );
+    drop(client);
+    // The next client is served, by the same slaves: 3001H follows 2001H.
+    let mut client = connect(&simulator).await;
+    assert_eq!(
+        exchange(&mut client, &rtu(2, &[0x03, 0x30, 0x01, 0x00, 0x01]), 7).await,
+        rtu(2, &[0x03, 0x02, 0x09, 0xC4])
+    );
+    drop(client);
+    simulator.stop().await;
+}
+
+/// What reading a refused connection may give: its end, or a reset if our bytes were unread.
+trait Refusal {
+    fn is_ok_or_reset(&self) -> bool;
+}
+
+impl Refusal for std::io::Result<usize> {
+    fn is_ok_or_reset(&self) -> bool {
+        match self {
+            Ok(n) => *n == 0,
+            Err(e) => e.kind() == std::io::ErrorKind::ConnectionReset,
+        }
+    }
+}
+
+#[tokio::test]
+async fn simulate_listen_on_an_address_in_use_exits_1_naming_it() {
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = taken.local_addr().unwrap().to_string();
+    let output = within(
+        "simulate gives up",
+        tokio::task::spawn_blocking({
+            let addr = addr.clone();
+            move || {
+                Command::new(BINARY)
+                    .args(["--config", demo_path(), "simulate", "--listen", &addr])
+                    .env_remove("RUST_LOG")
+                    .output()
+            }
+        }),
+    )
+    .await
+    .unwrap()
+    .unwrap();
+    assert_eq!(output.status.code(), Some(1));
+    let log = String::from_utf8_lossy(&output.stdout) + String::from_utf8_lossy(&output.stderr);
+    assert!(log.contains(&format!("cannot listen on {addr}")), "{log}");
 }
