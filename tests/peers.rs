@@ -2,7 +2,8 @@
 //! `tests/peers/pymodbus_slave.py`, RTU or ASCII) as the slave behind the gateway, on a pty cable,
 //! and pymodbus's ASCII client (`tests/peers/pymodbus_ascii_master.py`) as the master of the
 //! `simulate` subcommand's drives; its RTU-over-TCP, UDP and TLS clients as masters of the
-//! gateway (the TLS ones in `tls_walkthrough`, with the walkthrough's certificates). The scripts log
+//! gateway (the TLS ones in `tls_walkthrough`, with the walkthrough's certificates) and of
+//! `simulate --listen` directly. The scripts log
 //! every byte either way, so these tests check the line as well as the masters; ASCII frames are
 //! read by a decoder of this file's own, not the gateway's codec, so the check is independent of
 //! the code under test.
