@@ -282,6 +282,37 @@ mod tests {
     }
 
     #[tokio::test(start_paused = true)]
+    async fn a_reply_with_a_pause_in_it_reaches_the_stream_as_two_writes_the_pause_apart() {
+        let (line, server) = server();
+        let gap = Duration::from_millis(30);
+        let faults = crate::sim::faults::Faults {
+            reply_gap: Some(crate::sim::Pause { after: 3, gap }),
+            ..Default::default()
+        };
+        line.add_slave(
+            2,
+            crate::sim::faults::Faulty::new(RegisterBank::new(Duration::ZERO), faults, 2),
+        );
+        let (mut client, _served) = connect(server);
+        client
+            .write_all(&rtu::encode(2, &[0x03, 0x00, 0x00, 0x00, 0x01]))
+            .await
+            .unwrap();
+        let mut first = [0u8; 3];
+        client.read_exact(&mut first).await.unwrap();
+        let first_at = Instant::now();
+        let mut rest = [0u8; 4];
+        client.read_exact(&mut rest).await.unwrap();
+        // The rest leaves the wire after the pause and its four characters, and not before.
+        let timing = line.timing();
+        assert!(Instant::now() - first_at >= gap + timing.frame_time(4));
+        assert_eq!(
+            [&first[..], &rest[..]].concat(),
+            rtu::encode(2, &[0x03, 0x02, 0x00, 0x00])
+        );
+    }
+
+    #[tokio::test(start_paused = true)]
     async fn the_slaves_keep_their_registers_from_one_client_to_the_next() {
         let (line, server) = server();
         let server = std::sync::Arc::new(server);
