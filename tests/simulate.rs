@@ -316,3 +316,17 @@ async fn simulate_listen_on_an_address_in_use_exits_1_naming_it() {
     let log = String::from_utf8_lossy(&output.stdout) + String::from_utf8_lossy(&output.stderr);
     assert!(log.contains(&format!("cannot listen on {addr}")), "{log}");
 }
+
+#[tokio::test]
+async fn simulate_listen_on_an_ascii_bus_carries_ascii_frames_split_across_segments() {
+    let config = concat!(env!("CARGO_MANIFEST_DIR"), "/config/demo-ascii.toml");
+    let simulator = Simulator::listen_with(config, "127.0.0.1:0", "7E1 (Modbus ASCII)").await;
+    let mut client = connect(&simulator).await;
+    // Goodrive manuals, ASCII mode: read 0004H-0005H of slave 01H, its LF in the second segment.
+    client.write_all(b":010300040002").await.unwrap();
+    tokio::time::sleep(Duration::from_millis(20)).await;
+    let reply = b":010304138800005D\r\n";
+    assert_eq!(exchange(&mut client, b"F6\r\n", reply.len()).await, reply);
+    drop(client);
+    simulator.stop().await;
+}
