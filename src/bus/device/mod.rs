@@ -183,9 +183,9 @@ mod tests {
         }
     }
 
-    #[test]
-    fn a_serial_device_and_the_simulated_line_are_never_the_same_line() {
-        let serial = Device::Serial {
+    /// `/dev/ttyS1` at 19200 8E1 with `driver`.
+    pub(super) fn ttys1(driver: SerialDriver) -> Device {
+        Device::Serial {
             path: "/dev/ttyS1".into(),
             format: SerialFormat {
                 baud: 19_200,
@@ -193,8 +193,13 @@ mod tests {
                 parity: Parity::Even,
                 stop_bits: 1,
             },
-            driver: SerialDriver::default(),
-        };
+            driver,
+        }
+    }
+
+    #[test]
+    fn a_serial_device_and_the_simulated_line_are_never_the_same_line() {
+        let serial = ttys1(SerialDriver::default());
         let line = sim();
         assert!(line.same_as(&line.clone()));
         assert!(!line.same_as(&sim()));

@@ -288,7 +288,6 @@ impl Transport for SerialFd {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::bus::Device;
     use tokio::time::timeout;
 
     /// Both ends of a pty, each as a port.
@@ -311,16 +310,7 @@ mod tests {
 
     #[test]
     fn a_change_of_rs485_settings_or_latency_timer_reopens_the_port_but_a_new_index_does_not() {
-        let device = |driver: SerialDriver| Device::Serial {
-            path: "/dev/ttyS1".into(),
-            format: SerialFormat {
-                baud: 19_200,
-                data_bits: 8,
-                parity: Parity::Even,
-                stop_bits: 1,
-            },
-            driver,
-        };
+        let device = super::super::tests::ttys1;
         let first = device(SerialDriver::default());
         let moved = device(SerialDriver {
             key: "bus[3]".into(),
