@@ -32,6 +32,9 @@ pub(crate) struct MasterTiming {
     /// Silence that ends a reply whose length the bytes cannot tell: t3.5, or more if configured
     /// (USB adapters deliver bytes in bursts). The allowance for bursts past a known length too.
     pub silence: Duration,
+    /// Behind a serial device server: how long its packing timer may hold a reply's bytes back
+    /// (`packing_delay`). Added to every reply's deadline; [`MasterTiming::silence`] includes it.
+    pub packing: Duration,
 }
 
 impl MasterTiming {
@@ -41,6 +44,17 @@ impl MasterTiming {
             line,
             gap: line.t35.max(gap_floor),
             silence: line.t35.max(silence_floor),
+            packing: Duration::ZERO,
+        }
+    }
+
+    /// This timing on a line whose device server may hold a reply's bytes back for `packing`:
+    /// a reply may fall silent that much longer mid-way, and may start that much later.
+    pub(crate) fn with_packing(self, packing: Duration) -> Self {
+        MasterTiming {
+            silence: self.silence - self.packing + packing,
+            packing,
+            ..self
         }
     }
 }
@@ -441,7 +455,7 @@ impl<T: Transport> LineMaster<T> {
         let form = self.forms[usize::from(slave)];
         // The reply must start within the response timeout; once it has, it gets the time its
         // length needs on the wire, plus the silence allowance for bursty adapters.
-        let first_byte_by = end_of_tx + response_timeout;
+        let first_byte_by = end_of_tx + response_timeout + self.timing.packing;
         let mut last_byte_at = end_of_tx;
         loop {
             let completion = self
