@@ -11,7 +11,7 @@ use crate::line::BROADCAST;
 use crate::line::{LineMaster, Seen};
 use crate::metrics::Fate;
 use crate::pdu;
-use crate::trace::{Direction, TraceEvent, FOREIGN};
+use crate::trace::{Direction, TraceEvent, FOREIGN, STALE};
 use std::io;
 use tokio::time::Instant;
 use tracing::debug;
@@ -143,13 +143,14 @@ impl BusTask {
                 bus: self.trace.bus().clone(),
                 direction: match frame.seen {
                     Seen::Sent => Direction::Tx,
-                    Seen::Reply | Seen::Foreign => Direction::Rx,
+                    Seen::Reply | Seen::Foreign | Seen::Stale => Direction::Rx,
                 },
                 slave: frame.address,
                 function: frame.function,
                 bytes: frame.bytes,
                 outcome: match frame.seen {
                     Seen::Foreign => FOREIGN,
+                    Seen::Stale => STALE,
                     Seen::Sent | Seen::Reply => fate.label(),
                 },
             });

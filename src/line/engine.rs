@@ -156,6 +156,9 @@ pub(crate) enum Seen {
     Reply,
     /// A whole frame that answered nothing: another slave's, a late reply to an earlier try.
     Foreign,
+    /// Bytes that came while no reply was awaited (between transactions, in the gap before a
+    /// frame, or left in a socket), discarded as they came.
+    Stale,
 }
 
 /// A frame on the wire, as recorded while [`LineMaster::record_frames`] is on.
@@ -278,6 +281,11 @@ impl<T: Transport> LineMaster<T> {
         self.counters
     }
 
+    /// The transport the master drives.
+    pub(crate) fn port(&self) -> &T {
+        &self.port
+    }
+
     /// When the last frame was handed to the port: the start of its transaction on the wire.
     /// The earliest the next frame may start, as far as is known now (stray bytes may push it
     /// back).
@@ -309,10 +317,19 @@ impl<T: Transport> LineMaster<T> {
         }
     }
 
+    /// The last `n` bytes in `rx` came while no reply was awaited: counted, shown in the trace,
+    /// and the gap starts again.
     fn saw_stray_bytes(&mut self, n: usize) {
         self.counters.stray_bytes += n as u64;
         self.counters.received_bytes += n as u64;
         self.quiet_until = Instant::now() + self.timing.gap;
+        if self.recording {
+            let bytes = &self.rx[self.rx.len() - n..];
+            let (address, function) = self.framing.header(bytes);
+            let (address, function) = (address.unwrap_or(0), function.unwrap_or(0));
+            let frame = RecordedFrame::new(Seen::Stale, address, function, bytes);
+            self.recorded.push(frame);
+        }
     }
 
     /// Send `request` (a PDU) to `slave` and return the PDU of the frame that answers it, a normal
@@ -403,7 +420,6 @@ impl<T: Transport> LineMaster<T> {
         busy_limit: Duration,
     ) -> Result<Instant, TxError> {
         self.wait_for_gap(busy_limit).await?;
-        self.port.clear_input().map_err(TxError::PortLost)?;
         self.framing.encode_into(&mut self.tx, address, pdu);
         self.port.send(&self.tx).await.map_err(TxError::PortLost)?;
         let returned = Instant::now();
@@ -421,8 +437,10 @@ impl<T: Transport> LineMaster<T> {
     }
 
     /// Wait until the line has been silent for the gap, reading (and discarding) whatever
-    /// arrives meanwhile, since every byte restarts the gap. Gives up if stray bytes keep the line
-    /// busy for `busy_limit` past the moment it should have been quiet.
+    /// arrives meanwhile, since every byte restarts the gap, then clear the input. Bytes the
+    /// clearing finds (a socket can tell) were on the line too: counted, and the gap starts
+    /// again. Gives up if stray bytes keep the line busy for `busy_limit` past the moment it
+    /// should have been quiet.
     async fn wait_for_gap(&mut self, busy_limit: Duration) -> Result<(), TxError> {
         let give_up_at = self.quiet_until.max(Instant::now()) + busy_limit;
         loop {
@@ -430,17 +448,27 @@ impl<T: Transport> LineMaster<T> {
             // Bytes already in were on the line, even when the gap looks over by the clock: a
             // port (or a USB adapter) may hand them over late. They restart the gap.
             let over = Instant::now() >= self.quiet_until;
-            tokio::select! {
+            let quiet = tokio::select! {
                 biased;
                 received = self.port.recv(&mut self.rx) => {
                     let n = port_lost(received)?;
                     self.saw_stray_bytes(n);
-                    if self.quiet_until > give_up_at {
-                        return Err(TxError::LineBusy);
-                    }
+                    false
                 }
-                () = self.timer.sleep_until(self.quiet_until), if !over => return Ok(()),
-                () = std::future::ready(()), if over => return Ok(()),
+                () = self.timer.sleep_until(self.quiet_until), if !over => true,
+                () = std::future::ready(()), if over => true,
+            };
+            if quiet {
+                self.port
+                    .clear_input(&mut self.rx)
+                    .map_err(TxError::PortLost)?;
+                if self.rx.is_empty() {
+                    return Ok(());
+                }
+                self.saw_stray_bytes(self.rx.len());
+            }
+            if self.quiet_until > give_up_at {
+                return Err(TxError::LineBusy);
             }
         }
     }
