@@ -149,7 +149,9 @@ impl Reported {
     }
 
     /// The first setting the server reported differently from `format`, as a message such as
-    /// "the device server set 9600 baud, not 19200"; None when all match.
+    /// "the device server set 9600 baud, not 19200"; None when all match. Only as good as the
+    /// server's report: ser2net 4.3 echoes what was asked once the device accepted the call, even
+    /// where the device quietly kept another setting (a pty stays 8N whatever is asked).
     pub(crate) fn mismatch(&self, format: &SerialFormat) -> Option<String> {
         let differs = if let Some(baud) = self.baud.filter(|&b| b != format.baud) {
             format!("{baud} baud, not {}", format.baud)
@@ -621,6 +623,35 @@ mod tests {
         );
         let (_, answer) = decode(&mut telnet, &agreeing_server());
         assert!(answer.is_empty(), "repeated agreement answered: {answer:?}");
+    }
+
+    #[test]
+    fn ser2net_4_3_acknowledging_19200_8n2_as_captured_is_decoded_with_only_echo_refused() {
+        #[rustfmt::skip]
+        let captured = [
+            IAC, WILL, 3, IAC, DO, 3, // SUPPRESS-GO-AHEAD, offered unprompted
+            IAC, WILL, 1, IAC, DONT, 1, // WILL ECHO, and DONT ECHO for the client's side
+            IAC, DO, 0, IAC, WILL, 0, // TRANSMIT-BINARY both ways
+            IAC, DO, 44, // COM-PORT-OPTION, also sent to a client that asked nothing
+            IAC, DO, 3, // SUPPRESS-GO-AHEAD again
+            IAC, SB, 44, 107, 0, IAC, SE, // NOTIFY-MODEMSTATE: no modem lines
+            IAC, SB, 44, 101, 0x00, 0x00, 0x4B, 0x00, IAC, SE, // baud 19200
+            IAC, SB, 44, 102, 8, IAC, SE, // 8 data bits
+            IAC, SB, 44, 103, 1, IAC, SE, // parity none
+            IAC, SB, 44, 104, 2, IAC, SE, // 2 stop bits
+            IAC, SB, 44, 105, 1, IAC, SE, // no flow control
+        ];
+        let format = SerialFormat {
+            parity: Parity::None,
+            stop_bits: 2,
+            ..E1_19200
+        };
+        let mut telnet = Telnet::new();
+        let (data, answer) = decode(&mut telnet, &captured);
+        assert!(data.is_empty());
+        assert_eq!(answer, [IAC, DONT, 1]);
+        assert!(telnet.reported().complete());
+        assert_eq!(telnet.reported().mismatch(&format), None);
     }
 
     #[test]
