@@ -13,10 +13,8 @@
 
 pub(crate) mod net;
 pub(crate) mod serial;
-mod sim;
-// Its caller, the rfc2217:// transport, comes in another branch.
-#[allow(dead_code)]
 mod rfc2217;
+mod sim;
 
 pub use serial::SerialDriver;
 

@@ -1,8 +1,10 @@
 //! A serial device server's socket as a bus's transport: the line's bytes carried over TCP to a
-//! converter's UART (raw, "transparent" mode). Connecting (bounded in time, keepalive on, Nagle
-//! off so a frame leaves at once), the link's round trip budgeted on top of every frame's time on
-//! the wire, and bytes already in the socket before a frame drained and handed back to be counted.
-//! Knows nothing of framing, transactions or what the bytes mean.
+//! converter's UART, as they are (`tcp://`, raw or "transparent" mode) or inside Telnet with the
+//! far port's format set at every connect (`rfc2217://`, [`rfc2217`](super::rfc2217)).
+//! Connecting (bounded in time, keepalive on, Nagle off so a frame leaves at once), the link's
+//! round trip budgeted on top of every frame's time on the wire, and bytes already in the socket
+//! before a frame drained and handed back to be counted. Knows nothing of framing, transactions
+//! or what the bytes mean.
 //!
 //! The timing rule (docs/device-servers.md): the gateway cannot see the far wire, so a frame
 //! "has left the wire" when it can have crossed the link and left the converter's UART: the
@@ -13,6 +15,7 @@
 //! frame counts from the last byte received, as on a local line: the request then reaches the
 //! far wire at least the gap after the reply left it.
 
+use super::rfc2217::{self, Telnet};
 use crate::config::{ServerAddr, ServerMode};
 use crate::line::{SerialFormat, Transport};
 use std::io;
@@ -30,6 +33,8 @@ pub(crate) const MIN_LINK_BUDGET: Duration = Duration::from_millis(1);
 pub(crate) const MAX_LINK_BUDGET: Duration = Duration::from_secs(1);
 /// How long a connect (name lookup included) may take before it counts as failed.
 pub(crate) const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
+/// How long an RFC 2217 server may take to acknowledge the line's settings after connecting.
+pub(crate) const NEGOTIATION_TIMEOUT: Duration = Duration::from_secs(5);
 /// A converter that is silent this long is probed (TCP keepalive); it is given up once three
 /// probes, or data sent to it, go unanswered for as long again.
 pub(crate) const KEEPALIVE_IDLE: Duration = Duration::from_secs(10);
@@ -68,18 +73,29 @@ pub struct NetPort<S = TcpStream> {
     measured: Option<(Duration, Duration)>,
     measured_at: Instant,
     chunk: Box<[u8; READ_CHUNK]>,
+    /// On an `rfc2217://` line: the Telnet state, what it owes the server (sent before the next
+    /// frame), and the escaped frame.
+    telnet: Option<Box<Telnet>>,
+    owed: Vec<u8>,
+    out: Vec<u8>,
 }
 
 /// Connect to the device server at `addr`, whose line runs in `format`.
+/// On `rfc2217://`, the server must acknowledge `format` within [`NEGOTIATION_TIMEOUT`]; a
+/// server that refuses COM-PORT-OPTION fails the open as `Unsupported` (retrying will not cure
+/// it).
 pub(super) async fn open(addr: &ServerAddr, format: &SerialFormat) -> io::Result<NetPort> {
-    let port = connect(&addr.host, addr.port).await?;
-    match addr.mode {
-        ServerMode::Raw => Ok(port),
-        ServerMode::Rfc2217 => Err(io::Error::new(
-            io::ErrorKind::Unsupported,
-            format!("RFC 2217 to set {format} is not built yet"),
-        )),
+    let mut port = connect(&addr.host, addr.port).await?;
+    if addr.mode == ServerMode::Rfc2217 {
+        let mut telnet = Box::new(Telnet::new());
+        let deadline = Instant::now() + NEGOTIATION_TIMEOUT;
+        let stale = rfc2217::negotiate(&mut port.stream, &mut telnet, format, deadline).await?;
+        if stale > 0 {
+            tracing::debug!(device = %addr, stale, "bytes from the line during RFC 2217 negotiation, dropped");
+        }
+        port.telnet = Some(telnet);
     }
+    Ok(port)
 }
 
 /// Connect to `host`:`port` (a name is looked up each time, as a converter's address may
@@ -112,6 +128,9 @@ impl<S: Link> NetPort<S> {
             measured,
             measured_at: Instant::now(),
             chunk: Box::new([0; READ_CHUNK]),
+            telnet: None,
+            owed: Vec::new(),
+            out: Vec::new(),
         }
     }
 
@@ -155,7 +174,14 @@ fn drain_now<S: AsyncRead + Unpin>(stream: &mut S, out: &mut Vec<u8>) -> io::Res
 impl<S: Link> Transport for NetPort<S> {
     async fn send(&mut self, frame: &[u8]) -> io::Result<()> {
         self.remeasure();
-        self.stream.write_all(frame).await
+        if self.telnet.is_none() {
+            return self.stream.write_all(frame).await;
+        }
+        // What the protocol owes the server goes first; the frame's 0xFF bytes are doubled.
+        self.out.clear();
+        self.out.append(&mut self.owed);
+        Telnet::escape_into(frame, &mut self.out);
+        self.stream.write_all(&self.out).await
     }
 
     /// The frame has crossed the link and left the converter's UART: its time on the wire plus
@@ -164,15 +190,36 @@ impl<S: Link> Transport for NetPort<S> {
         returned + self.budget + frame_time
     }
 
+    /// Cancel-safe: a read that completes has its bytes taken in the same poll. Telnet commands
+    /// alone are not data: the wait goes on.
     async fn recv(&mut self, buf: &mut Vec<u8>) -> io::Result<usize> {
-        // Cancel-safe: a read that completes has its bytes appended in the same poll.
-        let n = self.stream.read(&mut self.chunk[..]).await?;
-        buf.extend_from_slice(&self.chunk[..n]);
-        Ok(n)
+        loop {
+            let n = self.stream.read(&mut self.chunk[..]).await?;
+            let Some(telnet) = &mut self.telnet else {
+                buf.extend_from_slice(&self.chunk[..n]);
+                return Ok(n);
+            };
+            if n == 0 {
+                return Ok(0);
+            }
+            let data = telnet.receive(&self.chunk[..n], buf, &mut self.owed);
+            if data > 0 {
+                return Ok(data);
+            }
+        }
     }
 
     fn clear_input(&mut self, stale: &mut Vec<u8>) -> io::Result<()> {
-        if drain_now(&mut self.stream, stale)? {
+        let open = match &mut self.telnet {
+            None => drain_now(&mut self.stream, stale)?,
+            Some(telnet) => {
+                let mut raw = Vec::new();
+                let open = drain_now(&mut self.stream, &mut raw)?;
+                telnet.receive(&raw, stale, &mut self.owed);
+                open
+            }
+        };
+        if open {
             Ok(())
         } else {
             Err(io::Error::new(

@@ -96,3 +96,26 @@ async fn a_device_server_that_closed_the_connection_is_a_lost_port() {
     assert_eq!(error.kind(), io::ErrorKind::UnexpectedEof);
     assert_eq!(port.recv(&mut Vec::new()).await.unwrap(), 0);
 }
+
+#[tokio::test]
+async fn on_an_rfc2217_line_a_data_byte_0xff_crosses_escaped_and_commands_are_not_data() {
+    let (mut port, mut far) = port(None);
+    port.telnet = Some(Box::new(Telnet::new()));
+    port.send(&[0x01, 0xFF, 0x02]).await.unwrap();
+    let mut sent = [0u8; 4];
+    far.read_exact(&mut sent).await.unwrap();
+    assert_eq!(sent, [0x01, 0xFF, 0xFF, 0x02]);
+    // A Telnet NOP alone is no data: the receive waits on for the reply's bytes.
+    far.write_all(&[0xFF, 0xF1]).await.unwrap();
+    far.write_all(&[0x03, 0xFF, 0xFF, 0x04]).await.unwrap();
+    let mut got = Vec::new();
+    while got.len() < 3 {
+        assert!(port.recv(&mut got).await.unwrap() > 0);
+    }
+    assert_eq!(got, [0x03, 0xFF, 0x04]);
+    // Stale bytes are decoded too.
+    far.write_all(&[0xFF, 0xFF, 0xFF, 0xF1]).await.unwrap();
+    let mut stale = Vec::new();
+    port.clear_input(&mut stale).unwrap();
+    assert_eq!(stale, [0xFF]);
+}
