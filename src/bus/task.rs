@@ -56,6 +56,8 @@ pub struct BusTask {
     pub(super) health: Health,
     /// Where the line's frames go while someone watches.
     pub(super) trace: BusTap,
+    /// The device's Modbus TCP answers have been logged on this connection.
+    pub(super) told_wrong_mode: bool,
 }
 
 impl BusTask {
@@ -89,6 +91,7 @@ impl BusTask {
             updates: Updates::new(Reconfigure { settings, device }),
             health: Health::default(),
             trace,
+            told_wrong_mode: false,
         }
     }
 
@@ -133,7 +136,9 @@ impl BusTask {
                         .take()
                         .map(|(since, failed_opens)| (since.elapsed(), failed_opens));
                     metrics.port_opened(device, down);
+                    metrics.link(port.link());
                     self.adjust_latency_timer();
+                    self.told_wrong_mode = false;
                     delay = self.current.settings.reopen_delay;
                     let mut master = LineMaster::new(
                         port,

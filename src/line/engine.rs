@@ -85,6 +85,12 @@ pub enum NoReply {
     /// On a line that echoes (`rs485.echo`): the frame did not come back as sent, in time.
     #[error("the line did not echo the frame as sent (a collision, or no echo)")]
     Echo,
+    /// The bytes back are a Modbus TCP (MBAP) answer to the frame: a device server running its
+    /// own Modbus TCP gateway rather than carrying the line's bytes.
+    #[error(
+        "the reply is a Modbus TCP (MBAP) frame: the device server is not in raw (transparent) mode"
+    )]
+    ModbusTcp,
 }
 
 /// How one try failed: as [`NoReply`] says, or the port was lost.
@@ -100,6 +106,8 @@ pub enum TxError {
     LineBusy,
     #[error("{}", NoReply::Echo)]
     Echo,
+    #[error("{}", NoReply::ModbusTcp)]
+    ModbusTcp,
     #[error("serial port lost: {0}")]
     PortLost(io::Error),
 }
@@ -115,6 +123,7 @@ impl TryFrom<TxError> for NoReply {
             TxError::Frame => Ok(NoReply::Frame),
             TxError::LineBusy => Ok(NoReply::LineBusy),
             TxError::Echo => Ok(NoReply::Echo),
+            TxError::ModbusTcp => Ok(NoReply::ModbusTcp),
             TxError::PortLost(lost) => Err(lost),
         }
     }
@@ -350,6 +359,12 @@ impl<T: Transport> LineMaster<T> {
                     .await
             }
             Err(error) => Err(error),
+        };
+        let result = match result {
+            Err(TxError::Check | TxError::Frame) if reply::is_mbap_reply(&self.rx, &self.tx) => {
+                Err(TxError::ModbusTcp)
+            }
+            result => result,
         };
         match &result {
             // Silence, or only other frames: the slave may still answer. So may it when the

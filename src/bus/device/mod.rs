@@ -12,8 +12,8 @@
 //! framing table; the compiler then names every `match` below that needs an arm for it.
 
 pub(crate) mod net;
-pub(crate) mod serial;
 mod rfc2217;
+pub(crate) mod serial;
 mod sim;
 
 pub use serial::SerialDriver;

@@ -171,6 +171,14 @@ fn drain_now<S: AsyncRead + Unpin>(stream: &mut S, out: &mut Vec<u8>) -> io::Res
     }
 }
 
+/// The peer closed the connection: the port is lost.
+fn closed() -> io::Error {
+    io::Error::new(
+        io::ErrorKind::UnexpectedEof,
+        "the device server closed the connection",
+    )
+}
+
 impl<S: Link> Transport for NetPort<S> {
     async fn send(&mut self, frame: &[u8]) -> io::Result<()> {
         self.remeasure();
@@ -195,13 +203,13 @@ impl<S: Link> Transport for NetPort<S> {
     async fn recv(&mut self, buf: &mut Vec<u8>) -> io::Result<usize> {
         loop {
             let n = self.stream.read(&mut self.chunk[..]).await?;
+            if n == 0 {
+                return Err(closed());
+            }
             let Some(telnet) = &mut self.telnet else {
                 buf.extend_from_slice(&self.chunk[..n]);
                 return Ok(n);
             };
-            if n == 0 {
-                return Ok(0);
-            }
             let data = telnet.receive(&self.chunk[..n], buf, &mut self.owed);
             if data > 0 {
                 return Ok(data);
@@ -222,13 +230,12 @@ impl<S: Link> Transport for NetPort<S> {
         if open {
             Ok(())
         } else {
-            Err(io::Error::new(
-                io::ErrorKind::UnexpectedEof,
-                "the device server closed the connection",
-            ))
+            Err(closed())
         }
     }
 }
 
+#[cfg(test)]
+mod link_tests;
 #[cfg(test)]
 mod tests;

@@ -2,9 +2,9 @@ use super::*;
 use tokio::io::DuplexStream;
 
 /// One end of an in-memory link whose kernel would report `round_trip`.
-struct Measured {
-    stream: DuplexStream,
-    round_trip: Option<(Duration, Duration)>,
+pub(super) struct Measured {
+    pub(super) stream: DuplexStream,
+    pub(super) round_trip: Option<(Duration, Duration)>,
 }
 
 impl AsyncRead for Measured {
@@ -94,7 +94,8 @@ async fn a_device_server_that_closed_the_connection_is_a_lost_port() {
     drop(far);
     let error = port.clear_input(&mut Vec::new()).unwrap_err();
     assert_eq!(error.kind(), io::ErrorKind::UnexpectedEof);
-    assert_eq!(port.recv(&mut Vec::new()).await.unwrap(), 0);
+    let error = port.recv(&mut Vec::new()).await.unwrap_err();
+    assert_eq!(error.kind(), io::ErrorKind::UnexpectedEof);
 }
 
 #[tokio::test]
