@@ -1,4 +1,7 @@
 //! The integration tests, in one crate so they build once. Where a new test goes:
+//! - `device_link`: a bus behind a serial device server (`tcp://`), against device servers that
+//!   misbehave as converters do: stale bytes, a late reply, a restart, a Modbus TCP server where a
+//!   raw converter should be (pymodbus).
 //! - `docs`: the reference pages (docs/) name every configuration key and every metric, and
 //!   every link between them and the README leads somewhere.
 //! - `layers`: the crate's modules have no cycle, and `metrics` imports no runtime part.
@@ -54,6 +57,7 @@ mod access;
 mod answers;
 mod ascii;
 mod cli;
+mod device_link;
 mod docs;
 mod drives;
 mod fairness;
