@@ -256,3 +256,65 @@ async fn a_modbus_tcp_server_where_the_converter_should_be_gets_one_error_naming
     let _ = std::fs::remove_file(path);
     let _ = std::fs::remove_file(log);
 }
+
+/// Answer slave 1's reads on every connection `server` accepts; counts the connections.
+fn serve_reads(server: TcpListener) -> std::sync::Arc<std::sync::atomic::AtomicUsize> {
+    let accepted = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+    let count = accepted.clone();
+    tokio::spawn(async move {
+        while let Ok((mut socket, _)) = server.accept().await {
+            count.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+            tokio::spawn(async move {
+                while let Some(register) = next_request(&mut socket).await {
+                    socket.write_all(&rtu(1, &answer(register))).await.unwrap();
+                }
+            });
+        }
+    });
+    accepted
+}
+
+#[tokio::test]
+async fn a_reload_reconnects_only_for_another_device_server_and_other_keys_apply_in_place() {
+    let first = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let second = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let ports = [
+        first.local_addr().unwrap().port(),
+        second.local_addr().unwrap().port(),
+    ];
+    let (to_first, to_second) = (serve_reads(first), serve_reads(second));
+    let config = |port: u16, packing: &str| {
+        let mut config = GatewayConfig::new()
+            .listen("127.0.0.1:0")
+            .bus(
+                Bus::on("remote", &format!("tcp://127.0.0.1:{port}"))
+                    .baud(115_200)
+                    .parity("none")
+                    .key("packing_delay", packing),
+            )
+            .load();
+        config.metrics.listen = ([127, 0, 0, 1], 0).into();
+        config
+    };
+    let gateway = modbus_gateway::Gateway::start(&config(ports[0], "0ms"))
+        .await
+        .unwrap();
+    let mut master = RawMaster::connect(crate::support::addr(&gateway)).await;
+    assert_eq!(master.call(1, 1, &read(1)).await, answer(1));
+    let done = gateway.reload(&config(ports[0], "40ms")).unwrap();
+    assert_eq!(done.applied, ["bus remote: reconfigured"]);
+    assert_eq!(master.call(2, 1, &read(2)).await, answer(2));
+    let done = gateway.reload(&config(ports[1], "40ms")).unwrap();
+    assert_eq!(done.applied, ["bus remote: reopened"]);
+    let connections =
+        |count: &std::sync::atomic::AtomicUsize| count.load(std::sync::atomic::Ordering::SeqCst);
+    // Requests meanwhile get 0x0A, as while any port reopens; then the new server answers.
+    within("the bus connects to the new device server", async {
+        while connections(&to_second) == 0 || gateway.bus_up("remote") != Some(true) {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    })
+    .await;
+    assert_eq!(master.call(3, 1, &read(3)).await, answer(3));
+    assert_eq!((connections(&to_first), connections(&to_second)), (1, 1));
+}
