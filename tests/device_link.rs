@@ -69,6 +69,8 @@ async fn the_gateway_connects_to_the_device_server_at_start_before_any_request()
         ),
         1.0
     );
+    // The link's series pass Prometheus's own lint.
+    crate::metrics::assert_promtool_finds_nothing_to_lint(&scrape.text).await;
 }
 
 #[tokio::test]
