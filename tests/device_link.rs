@@ -320,3 +320,44 @@ async fn a_reload_reconnects_only_for_another_device_server_and_other_keys_apply
     assert_eq!(master.call(3, 1, &read(3)).await, answer(3));
     assert_eq!((connections(&to_first), connections(&to_second)), (1, 1));
 }
+
+#[tokio::test]
+async fn a_device_server_is_reached_by_host_name_or_ipv6_address_and_its_echo_is_taken_off() {
+    // A converter whose transceiver hands back every frame sent, before the slave's reply.
+    let echoing = |server: TcpListener| {
+        tokio::spawn(async move {
+            let (mut socket, _) = server.accept().await.unwrap();
+            while let Some(register) = next_request(&mut socket).await {
+                let [hi, lo] = register.to_be_bytes();
+                let mut bytes = rtu(1, &[0x03, hi, lo, 0x00, 0x01]);
+                bytes.extend(rtu(1, &answer(register)));
+                socket.write_all(&bytes).await.unwrap();
+            }
+        })
+    };
+    let v6 = TcpListener::bind("[::1]:0").await.unwrap();
+    let v4 = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let devices = [
+        format!("tcp://[::1]:{}", v6.local_addr().unwrap().port()),
+        format!("tcp://localhost:{}", v4.local_addr().unwrap().port()),
+    ];
+    let servers = [echoing(v6), echoing(v4)];
+    let mut config = GatewayConfig::new().listen("127.0.0.1:0");
+    for (i, device) in devices.iter().enumerate() {
+        let bus = Bus::on(&format!("remote{i}"), device)
+            .baud(115_200)
+            .parity("none")
+            .text("[bus.rs485]\necho = true\n");
+        config = config
+            .bus(bus)
+            .route(&format!("{}", i + 1), &format!("remote{i}"), 1);
+    }
+    let gateway = config.start().await;
+    let mut master = RawMaster::connect(crate::support::addr(&gateway)).await;
+    for unit in [1, 2] {
+        assert_eq!(master.call(unit.into(), unit, &read(9)).await, answer(9));
+    }
+    for server in servers {
+        server.abort();
+    }
+}
