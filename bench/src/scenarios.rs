@@ -20,6 +20,17 @@ pub(crate) enum Line {
     Sim,
     /// A pty pair with an RTU slave in this process that answers at once: no line timing.
     Pty,
+    /// The same simulated line, timed at its baud rate, served by `simulate --listen` in a
+    /// process of its own; the gateway's bus reaches it as a serial device server (`tcp://`).
+    DeviceServer,
+}
+
+impl Line {
+    /// Whether the line keeps the physical timing of its baud rate, so that its efficiency and
+    /// the gateway's line metrics mean something.
+    pub(crate) fn timed(self) -> bool {
+        matches!(self, Line::Sim | Line::DeviceServer)
+    }
 }
 
 #[derive(Clone, Copy, PartialEq)]
@@ -102,6 +113,7 @@ const LINES: [(u32, Parity, &str); 2] =
 pub(crate) fn scenarios() -> Vec<Scenario> {
     let mut all = Vec::new();
     line_scenarios(&mut all);
+    device_server_scenarios(&mut all);
     kind_scenarios(&mut all);
     many_scenarios(&mut all);
     for masters in [0, 1000] {
@@ -144,6 +156,20 @@ fn line_scenarios(all: &mut Vec<Scenario>) {
                 Load::Read,
             )
         });
+    }
+}
+
+/// The `sim-...-read-N` loads again, with the simulated line behind a device server: what the
+/// network hop costs, scenario for scenario.
+fn device_server_scenarios(all: &mut Vec<Scenario>) {
+    for (baud, parity, label) in LINES {
+        for masters in [1, 100] {
+            let name = format!("device-server-{baud}-{label}-read-{masters}");
+            all.push(Scenario {
+                line: Line::DeviceServer,
+                ..Scenario::sim(name, format(baud, parity), masters, Load::Read)
+            });
+        }
     }
 }
 
