@@ -113,7 +113,6 @@ const LINES: [(u32, Parity, &str); 2] =
 pub(crate) fn scenarios() -> Vec<Scenario> {
     let mut all = Vec::new();
     line_scenarios(&mut all);
-    device_server_scenarios(&mut all);
     kind_scenarios(&mut all);
     many_scenarios(&mut all);
     for masters in [0, 1000] {
@@ -127,17 +126,25 @@ pub(crate) fn scenarios() -> Vec<Scenario> {
     all
 }
 
-/// Modbus TCP masters reading (and writing) on the simulated RTU and ASCII lines.
+/// Modbus TCP masters reading (and writing) on the simulated RTU and ASCII lines; for 1 and 100
+/// masters reading, right after, the same with the simulated line behind a device server, so
+/// that a run of both interleaves them.
 fn line_scenarios(all: &mut Vec<Scenario>) {
     for (baud, parity, label) in LINES {
         for masters in [1, 10, 100, 1000] {
             let name = format!("sim-{baud}-{label}-read-{masters}");
-            all.push(Scenario::sim(
-                name,
-                format(baud, parity),
-                masters,
-                Load::Read,
-            ));
+            let sim = Scenario::sim(name, format(baud, parity), masters, Load::Read);
+            if masters == 1 || masters == 100 {
+                let name = format!("device-server-{baud}-{label}-read-{masters}");
+                let twin = Scenario {
+                    name,
+                    line: Line::DeviceServer,
+                    ..Scenario::sim(String::new(), sim.format, masters, Load::Read)
+                };
+                all.extend([sim, twin]);
+            } else {
+                all.push(sim);
+            }
         }
         let name = format!("sim-{baud}-{label}-mix-100");
         all.push(Scenario::sim(name, format(baud, parity), 100, Load::Mix));
@@ -156,20 +163,6 @@ fn line_scenarios(all: &mut Vec<Scenario>) {
                 Load::Read,
             )
         });
-    }
-}
-
-/// The `sim-...-read-N` loads again, with the simulated line behind a device server: what the
-/// network hop costs, scenario for scenario.
-fn device_server_scenarios(all: &mut Vec<Scenario>) {
-    for (baud, parity, label) in LINES {
-        for masters in [1, 100] {
-            let name = format!("device-server-{baud}-{label}-read-{masters}");
-            all.push(Scenario {
-                line: Line::DeviceServer,
-                ..Scenario::sim(name, format(baud, parity), masters, Load::Read)
-            });
-        }
     }
 }
 
