@@ -135,8 +135,8 @@ async fn measure(
         })
         .collect();
     tokio::time::sleep(warm_up).await;
-    let sim = s.line.timed();
-    let before = if sim {
+    let timed = s.line.timed();
+    let before = if timed {
         Some(scrape(gateway.metrics).await?)
     } else {
         None
@@ -146,7 +146,7 @@ async fn measure(
     tokio::time::sleep(length).await;
     let (end, cpu_end) = (Instant::now(), cpu_time(pid));
     let far_cpu = far.map(cpu_time).zip(far_start).map(|(e, s)| e - s);
-    let after = if sim {
+    let after = if timed {
         Some(scrape(gateway.metrics).await?)
     } else {
         None
