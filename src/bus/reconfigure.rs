@@ -113,8 +113,13 @@ impl Derived {
         derived
     }
 
+    /// The longest response timeout of any slave on the line.
+    pub(super) fn longest_timeout(&self) -> Duration {
+        self.timeouts.iter().copied().max().unwrap_or_default()
+    }
+
     fn longest_transaction(&self, turnaround: Duration) -> Duration {
-        let longest_timeout = self.timeouts.iter().copied().max().unwrap_or_default();
+        let longest_timeout = self.longest_timeout();
         let longest_frame = self.timing.line.frame_time(self.framing.max_frame_len());
         longest_timeout * 2
             + longest_frame * 2

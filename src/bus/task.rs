@@ -146,6 +146,13 @@ impl BusTask {
                         self.current.derived.timing,
                     );
                     self.current.configure(&mut master);
+                    if self.current.device.kind().is_network() {
+                        // A reply to a request of before the outage may still be on its way,
+                        // or held by the converter until someone connects: let it come and go
+                        // before the first request.
+                        let settle = self.current.derived.longest_timeout();
+                        master.keep_quiet_until(Instant::now() + settle);
+                    }
                     let end = self.serve(master, &mut stopping).await;
                     self.set_up(false);
                     match end {

@@ -306,6 +306,12 @@ impl<T: Transport> LineMaster<T> {
         self.sent_at
     }
 
+    /// Keep the line quiet until at least `until` before the next frame, reading (and counting)
+    /// whatever arrives meanwhile, as after any stray bytes.
+    pub(crate) fn keep_quiet_until(&mut self, until: Instant) {
+        self.quiet_until = self.quiet_until.max(until);
+    }
+
     /// A reply from `slave` may still come until `until`.
     fn expect_late_reply(&mut self, slave: u8, until: Instant) {
         let window = &mut self.late_until[usize::from(slave)];
