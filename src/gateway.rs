@@ -5,7 +5,7 @@
 //! loaded with its simulated drives checked ([`load_config`]): the one place that knows both.
 
 use crate::bus::{BusHandle, BusTask, BusUpdates, Device, Reconfigure, SerialDriver};
-use crate::config::{self, BusChange, Config, ConfigDiff, ConfigErrors};
+use crate::config::{self, BusChange, Config, ConfigDiff, ConfigErrors, DeviceName};
 use crate::dispatch::Dispatcher;
 use crate::master::Protocol;
 use crate::metrics::Metrics;
@@ -184,12 +184,21 @@ fn device_for(
     settings: &config::Bus,
     current: Option<(&config::Bus, &Device)>,
 ) -> Result<Device, StartError> {
-    if !settings.is_sim() {
-        return Ok(Device::Serial {
-            path: settings.device.clone(),
-            format: settings.format(),
-            driver: SerialDriver::of(index, settings),
-        });
+    match settings.device_name() {
+        DeviceName::Serial(path) => {
+            return Ok(Device::Serial {
+                path,
+                format: settings.format(),
+                driver: SerialDriver::of(index, settings),
+            })
+        }
+        DeviceName::Server(addr) => {
+            return Ok(Device::Server {
+                addr,
+                format: settings.format(),
+            })
+        }
+        DeviceName::Sim => {}
     }
     if let Some((old, device @ Device::Sim(_))) = current {
         if old.is_sim()
@@ -437,7 +446,7 @@ impl Gateway {
         let buses = self.buses.lock().unwrap_or_else(PoisonError::into_inner);
         match &buses.iter().find(|b| b.settings.name == name)?.device {
             Device::Sim(line) => Some(line.clone()),
-            Device::Serial { .. } => None,
+            Device::Serial { .. } | Device::Server { .. } => None,
         }
     }
 

@@ -30,7 +30,8 @@
 //! id, its protocol as a transport and framing, its rights), [`pdu`] (the one table of function
 //! codes, and exception codes) and [`error`] (what fails a request, and the one place that turns
 //! it into an exception), [`shutdown`] (the stop signal, and how a stopped task's end is logged),
-//! [`timer`] (sleeps precise to well under a millisecond for the line's timing), [`trace`] (the
+//! [`timer`] (sleeps precise to well under a millisecond for the line's timing), `socket` (TCP
+//! keepalive and the kernel's round trip, for masters' and device servers' sockets), [`trace`] (the
 //! live trace of the frames on the lines). [`gateway`] wires the parts together; [`cli`] is the
 //! command's subcommands (run the gateway, check the configuration, `simulate`: serve the
 //! simulated slaves on a real serial port instead); `logging` sets up the daemon's log output.
@@ -68,6 +69,10 @@ pub mod pdu;
 mod routing;
 pub mod shutdown;
 pub mod sim;
+// What `testing` re-exports is `pub` for the tests' build (feature `test-util`) and unreachable
+// in the daemon's: the lint is for the build that has the hooks (clippy --all-targets).
+#[cfg_attr(not(feature = "test-util"), allow(unreachable_pub))]
+mod socket;
 pub mod timer;
 pub mod trace;
 mod web;
@@ -83,10 +88,11 @@ pub mod testing {
     pub use crate::dispatch::{Client, Dispatcher};
     pub use crate::master::Framing;
     pub use crate::master::{Protocol, Rights};
-    pub use crate::net::server::{set_keepalive, RECENTLY_ANSWERED};
+    pub use crate::net::server::RECENTLY_ANSWERED;
     pub use crate::net::session::SessionLimits;
     pub use crate::net::session::{self, Activity, SessionError};
     pub use crate::routing::Router;
+    pub use crate::socket::set_keepalive;
 
     use crate::metrics::Metrics;
     use std::sync::Arc;

@@ -32,6 +32,10 @@ pub enum Direction {
 /// late reply to an earlier try.
 pub(crate) const FOREIGN: &str = "foreign";
 
+/// The `outcome` of bytes that came while no reply was awaited (between transactions, in the gap
+/// before a frame, or left in a device server's socket): discarded.
+pub(crate) const STALE: &str = "stale";
+
 /// One frame on one line.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct TraceEvent {
@@ -46,7 +50,7 @@ pub struct TraceEvent {
     /// The whole frame as on the wire: address, PDU and CRC (RTU), or the ASCII frame's bytes.
     pub bytes: Vec<u8>,
     /// What became of the try the frame belongs to, as the metrics' `outcome` label says it;
-    /// `FOREIGN` for a frame that answered nothing.
+    /// `FOREIGN` for a frame that answered nothing, `STALE` for bytes no reply was awaited for.
     pub outcome: &'static str,
 }
 

@@ -47,7 +47,7 @@ async fn a_pty_refuses_kernel_and_rts_mode_with_an_error_naming_the_key_and_its_
                 key: "bus[2]".into(),
             },
         };
-        let Err(error) = device.open() else {
+        let Err(error) = device.open().await else {
             panic!("a pty took rs485.mode = {mode:?}");
         };
         let text = error.to_string();

@@ -119,10 +119,14 @@ impl BusTask {
     }
 
     /// Pass what went over the line since the last look to the metrics.
+    /// A device server's link as now measured goes with it.
     fn count_traffic(&self, serving: &mut Serving<'_>) {
         let traffic = serving.master.counters();
         self.handle.metrics.line(&traffic.since(&serving.counted));
         serving.counted = traffic;
+        if let Some(link) = serving.master.port().link() {
+            self.handle.metrics.link(Some(link));
+        }
     }
 
     /// Answer `job`: from the line, or at once if nobody waits for it, it expired or its slave

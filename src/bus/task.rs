@@ -5,7 +5,9 @@
 use super::device::serial::latency::{self, SYSFS};
 use super::health::Health;
 use super::reconfigure::{Current, Updates};
-use super::{BusHandle, BusUpdates, Device, FairQueue, Heartbeat, Intake, Reconfigure, HEARTBEAT};
+use super::{
+    BusHandle, BusUpdates, Device, FairQueue, Heartbeat, Intake, Port, Reconfigure, HEARTBEAT,
+};
 use crate::config;
 use crate::error::RequestError;
 use crate::line::LineMaster;
@@ -14,6 +16,7 @@ use crate::shutdown::Stopping;
 use crate::trace::BusTap;
 use std::io;
 use std::path::Path;
+use std::pin::pin;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 use tokio::time::{sleep, sleep_until, Instant};
@@ -24,6 +27,15 @@ pub(super) enum Served {
     Lost(io::Error),
     Stopped,
     /// The configuration names another device or format: open again.
+    Reopen,
+}
+
+/// How an attempt to open the port ended. One per open, moved once: its size costs nothing.
+#[allow(clippy::large_enum_variant)]
+enum Opening {
+    Done(io::Result<Port>),
+    Stopped,
+    /// A new configuration named another device: open that instead.
     Reopen,
 }
 
@@ -44,6 +56,8 @@ pub struct BusTask {
     pub(super) health: Health,
     /// Where the line's frames go while someone watches.
     pub(super) trace: BusTap,
+    /// The device's Modbus TCP answers have been logged on this connection.
+    pub(super) told_wrong_mode: bool,
 }
 
 impl BusTask {
@@ -77,6 +91,7 @@ impl BusTask {
             updates: Updates::new(Reconfigure { settings, device }),
             health: Health::default(),
             trace,
+            told_wrong_mode: false,
         }
     }
 
@@ -107,7 +122,11 @@ impl BusTask {
         // Since when the port is down, and how many opens have failed since.
         let mut down_since: Option<(Instant, u32)> = None;
         loop {
-            let opened = self.current.device.open_for(self.current.derived.framing);
+            let opened = match self.open(&mut stopping).await {
+                Opening::Done(opened) => opened,
+                Opening::Stopped => break,
+                Opening::Reopen => continue,
+            };
             self.set_up(opened.is_ok());
             self.handle.attempted.notify_one();
             let device = &self.current.settings.device;
@@ -117,7 +136,9 @@ impl BusTask {
                         .take()
                         .map(|(since, failed_opens)| (since.elapsed(), failed_opens));
                     metrics.port_opened(device, down);
+                    metrics.link(port.link());
                     self.adjust_latency_timer();
+                    self.told_wrong_mode = false;
                     delay = self.current.settings.reopen_delay;
                     let mut master = LineMaster::new(
                         port,
@@ -157,6 +178,31 @@ impl BusTask {
             delay = (delay * 2).min(self.current.settings.reopen_delay_max);
         }
         self.finish();
+    }
+
+    /// Open the configured device, showing a heartbeat meanwhile (a connect to a device server
+    /// takes a while): ends early on a stop, or on a new configuration that names another device.
+    async fn open(&mut self, stopping: &mut Stopping) -> Opening {
+        let device = self.current.device.clone();
+        let opening = device.open_for(self.current.derived.framing);
+        let mut opening = pin!(opening);
+        loop {
+            self.handle.beat();
+            tokio::select! {
+                biased;
+                _ = stopping.requested() => {
+                    self.handle.attempted.notify_one();
+                    return Opening::Stopped;
+                }
+                () = self.updates.changed() => {
+                    if self.take_update() == Some(true) {
+                        return Opening::Reopen;
+                    }
+                }
+                opened = &mut opening => return Opening::Done(opened),
+                () = sleep(HEARTBEAT) => {}
+            }
+        }
     }
 
     /// Read the USB adapter's latency timer, set it if configured, and report it.

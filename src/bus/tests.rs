@@ -40,7 +40,7 @@ fn job(slave: u8, pdu: &[u8]) -> (Job, oneshot::Receiver<Outcome>) {
 /// A task on `line`, and a master on a port of it, for driving one transaction by hand.
 fn task_on(line: &SimLine, keys: &str) -> (BusTask, LineMaster<super::Port>) {
     let task = BusTask::new(settings(keys), Device::Sim(line.clone()), &Metrics::new());
-    let port = Device::Sim(line.clone()).open().expect("sim port");
+    let port = super::Port::Sim(line.open().expect("sim port"));
     let mut master = LineMaster::new(
         port,
         task.current.derived.framing,

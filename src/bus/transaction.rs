@@ -11,10 +11,10 @@ use crate::line::BROADCAST;
 use crate::line::{LineMaster, Seen};
 use crate::metrics::Fate;
 use crate::pdu;
-use crate::trace::{Direction, TraceEvent, FOREIGN};
+use crate::trace::{Direction, TraceEvent, FOREIGN, STALE};
 use std::io;
 use tokio::time::Instant;
-use tracing::debug;
+use tracing::{debug, error};
 
 /// How one request on the line ended.
 pub(super) enum Ran {
@@ -86,6 +86,13 @@ impl BusTask {
             };
             match failed {
                 Err(lost) => return Ran::PortLost(lost),
+                Ok(NoReply::ModbusTcp) => {
+                    self.wrong_mode();
+                    break Err(RequestError::NoResponse {
+                        attempts,
+                        last: NoReply::ModbusTcp,
+                    });
+                }
                 Ok(last)
                     if attempts > retries
                         || job.abandoned()
@@ -105,6 +112,21 @@ impl BusTask {
             .transaction(job.slave, attempts, round_trip, &outcome);
         self.record(job, &outcome);
         Ran::Done(outcome)
+    }
+
+    /// The device answered in Modbus TCP: said once per connection, at error level, with the fix
+    /// (retrying cannot cure it, so the request is not retried).
+    fn wrong_mode(&mut self) {
+        if std::mem::replace(&mut self.told_wrong_mode, true) {
+            return;
+        }
+        error!(
+            bus = &*self.handle.name,
+            device = self.current.settings.device,
+            "the device answers in Modbus TCP (MBAP), not with the line's frames: set the device \
+             server to raw (transparent) TCP mode, its Modbus TCP gateway mode off; a Modbus TCP \
+             device is not a serial line's device. Its requests get exception 0x0B"
+        );
     }
 
     /// Send a broadcast; its answer, if the configuration wants one, is the gateway's own.
@@ -143,13 +165,14 @@ impl BusTask {
                 bus: self.trace.bus().clone(),
                 direction: match frame.seen {
                     Seen::Sent => Direction::Tx,
-                    Seen::Reply | Seen::Foreign => Direction::Rx,
+                    Seen::Reply | Seen::Foreign | Seen::Stale => Direction::Rx,
                 },
                 slave: frame.address,
                 function: frame.function,
                 bytes: frame.bytes,
                 outcome: match frame.seen {
                     Seen::Foreign => FOREIGN,
+                    Seen::Stale => STALE,
                     Seen::Sent | Seen::Reply => fate.label(),
                 },
             });

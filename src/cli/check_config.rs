@@ -1,12 +1,13 @@
 //! `check-config`: the resolved configuration, preceded by what it means on each line (timing
 //! worked out from the baud and format). Knows nothing of serving.
 
-use crate::config::{Bus, Config, Rs485Mode};
+use crate::bus::device::net::{MAX_LINK_BUDGET, MIN_LINK_BUDGET};
+use crate::config::{Bus, Config, DeviceName, Rs485Mode, ServerAddr, ServerMode};
 use crate::line::Framing;
 use crate::net::tls::TlsServer;
 use std::path::Path;
 use std::process::ExitCode;
-use std::time::SystemTime;
+use std::time::{Duration, SystemTime};
 
 /// Print the description of the valid configuration `config` read from `path`, unless `quiet`;
 /// warn on standard error of a TLS server certificate that expires within 30 days.
@@ -95,6 +96,31 @@ fn describe_driver(bus: &Bus) -> String {
     )
 }
 
+/// What a line behind a device server adds to its timing (docs/device-servers.md). Not measured
+/// here: connecting to check would take the converter's one connection from a running gateway.
+fn describe_link(name: &str, addr: &ServerAddr, packing: Duration) -> String {
+    let how = match addr.mode {
+        ServerMode::Raw => "raw TCP",
+        ServerMode::Rfc2217 => "RFC 2217, which sets the format above on the far port at connect",
+    };
+    let packing = if packing.is_zero() {
+        String::new()
+    } else {
+        format!(
+            " plus packing_delay {} (also silence a reply may hold mid-way)",
+            ms(packing)
+        )
+    };
+    format!(
+        "# bus {name}: behind the device server at {addr} ({how}), connected at start; a reply's \
+         deadline counts from the frame's time on the wire plus the link budget (the kernel's \
+         smoothed round trip plus four deviations, {} to {}; live on the status page and as \
+         modbus_gateway_link_budget_seconds){packing}.\n",
+        ms(MIN_LINK_BUDGET),
+        ms(MAX_LINK_BUDGET),
+    )
+}
+
 /// The resolved configuration, preceded by what it means on each line and for TLS masters.
 fn describe(path: &Path, config: &Config, tls: Option<&TlsServer>, now: SystemTime) -> String {
     let mut out = format!("# {} is valid.\n", path.display());
@@ -121,8 +147,10 @@ fn describe(path: &Path, config: &Config, tls: Option<&TlsServer>, now: SystemTi
                 ms(master.silence),
             ),
         };
-        if !bus.is_sim() {
-            out += &describe_driver(bus);
+        match bus.device_name() {
+            DeviceName::Sim => {}
+            DeviceName::Serial(_) => out += &describe_driver(bus),
+            DeviceName::Server(addr) => out += &describe_link(&bus.name, &addr, master.packing),
         }
     }
     if let Some(tls) = tls {

@@ -115,20 +115,21 @@ pub fn responder(bus: &Bus) -> Result<Responder, String> {
 
 /// Open `path` at the bus's format. A pty refuses even parity and drops odd, so if the format is
 /// refused with parity, the device is opened without it (and the user told).
-fn open(bus: &Bus, path: &str) -> io::Result<Port> {
+async fn open(bus: &Bus, path: &str) -> io::Result<Port> {
     let format = bus.format();
     let device = |format| Device::Serial {
         path: path.to_owned(),
         format,
         driver: SerialDriver::default(),
     };
-    match device(format).open() {
+    match device(format).open().await {
         Err(e) if format.parity != Parity::None && e.kind() == io::ErrorKind::InvalidInput => {
             let port = device(crate::line::SerialFormat {
                 parity: Parity::None,
                 ..format
             })
-            .open()?;
+            .open()
+            .await?;
             warn!(device = path, error = %e, "the device refuses parity (a pty?); serving without it");
             Ok(port)
         }
@@ -179,7 +180,7 @@ pub async fn serve_device(
     }
     let mut ready = Some(ready);
     loop {
-        match open(bus, device) {
+        match open(bus, device).await {
             Ok(mut port) => {
                 info!(device, slaves, bus = bus.name, "serving simulated slaves");
                 if let Some(Err(e)) = ready.take().map(|ready| ready(device)) {

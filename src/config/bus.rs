@@ -3,10 +3,12 @@
 //! nothing of ports, tasks or how a simulated slave is built.
 
 use super::defaults;
+use super::device::DeviceName;
 use super::serde_adapters::{
     duration, is_false, is_zero, is_zero_f64, is_zero_usize, opt_duration,
 };
 use super::{Rs485, UnitSet};
+use crate::line::framing::TransportKind;
 use crate::line::{Framing, LineTiming, MasterTiming, Parity, SerialFormat};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -19,7 +21,8 @@ pub(crate) const SIM_DEVICE: &str = "sim";
 #[serde(deny_unknown_fields)]
 pub struct Bus {
     pub name: String,
-    /// A serial device path, or "sim".
+    /// A serial device path, "sim", or a serial device server: `tcp://HOST:PORT` (raw) or
+    /// `rfc2217://HOST:PORT` ([`DeviceName`]).
     pub device: String,
     #[serde(default = "defaults::baud")]
     pub baud: u32,
@@ -56,6 +59,10 @@ pub struct Bus {
         skip_serializing_if = "Option::is_none"
     )]
     pub byte_timeout: Option<Duration>,
+    /// A line behind a serial device server: the silence inside a reply its packing timer may
+    /// add, tolerated and added to every reply's deadline.
+    #[serde(default, with = "duration", skip_serializing_if = "is_zero")]
+    pub packing_delay: Duration,
     /// Silence after a broadcast, so slaves can carry it out.
     #[serde(default = "defaults::turnaround_delay", with = "duration")]
     pub turnaround_delay: Duration,
@@ -220,22 +227,39 @@ impl Bus {
         self.device == SIM_DEVICE
     }
 
+    /// What `device` names; an unreadable one is a serial path here (the check refuses it).
+    pub fn device_name(&self) -> DeviceName {
+        DeviceName::parse(&self.device).unwrap_or_else(|_| DeviceName::Serial(self.device.clone()))
+    }
+
+    /// The kind of transport `device` names.
+    pub fn transport(&self) -> TransportKind {
+        self.device_name().kind()
+    }
+
     /// Character time and the spec's gaps at this bus's format.
     pub fn line_timing(&self) -> LineTiming {
         LineTiming::new(&self.format())
     }
 
-    /// The gaps the master keeps. RTU: t3.5, raised by `inter_frame_delay` and `byte_timeout`.
-    /// ASCII has no t3.5: `inter_frame_delay` before a frame (default 1.5 characters of quiet, so
-    /// the master never talks over a slave still sending), and `byte_timeout` (default 1 s)
-    /// between the characters of a reply.
+    /// The gaps the master keeps. RTU: t3.5, raised by `inter_frame_delay` and `byte_timeout`
+    /// (whose default behind a device server allows for the link's jitter). ASCII has no t3.5:
+    /// `inter_frame_delay` before a frame (default 1.5 characters of quiet, so the master never
+    /// talks over a slave still sending), and `byte_timeout` (default 1 s) between the characters
+    /// of a reply. A device server's `packing_delay` is silence a reply may hold on top, and
+    /// comes on top of every reply's deadline.
     pub(crate) fn master_timing(&self) -> MasterTiming {
         let line = self.line_timing();
-        match self.framing {
+        let network = self.transport().is_network();
+        let timing = match self.framing {
             Framing::Rtu => MasterTiming::new(
                 line,
                 self.inter_frame_delay.unwrap_or_default(),
-                self.byte_timeout.unwrap_or_default(),
+                self.byte_timeout.unwrap_or(if network {
+                    defaults::NETWORK_BYTE_TIMEOUT
+                } else {
+                    Duration::ZERO
+                }),
             ),
             Framing::Ascii => MasterTiming {
                 line,
@@ -245,8 +269,10 @@ impl Bus {
                 silence: self
                     .byte_timeout
                     .unwrap_or_else(defaults::ascii_byte_timeout),
+                packing: Duration::ZERO,
             },
-        }
+        };
+        timing.with_packing(self.packing_delay)
     }
 
     pub fn format(&self) -> SerialFormat {

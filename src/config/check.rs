@@ -4,9 +4,11 @@
 //! the order of the file, each with its key path. Knows nothing of how a drive is simulated.
 
 use super::rs485::LATENCY_TIMER_MS;
+use super::DeviceName;
 use super::OTHER_ROLE;
 use super::{Bus, Config, ConfigError, ConfigErrors, Route, Server, SimSlave, Tls, UnitSet};
 use super::{MAX_SLAVE_ADDRESS, SIM_DEVICE};
+use crate::line::framing::TransportKind;
 use crate::line::{Framing, SerialFormat};
 use crate::pdu::EXCEPTION_BIT;
 use std::collections::BTreeMap;
@@ -146,22 +148,31 @@ fn check_tls(tls: &Tls, report: &mut Report) {
     }
 }
 
-/// Every serial device is one bus's: two buses on one port would fight over it at run time.
+/// Every serial device, and every device server's port, is one bus's: two buses on one port would
+/// fight over it at run time (a device server takes one connection to its port, or mixes two
+/// masters' frames on one line).
 fn check_devices_once(buses: &[Bus], report: &mut Report) {
-    let mut owners: BTreeMap<&str, usize> = BTreeMap::new();
+    let mut owners: BTreeMap<String, usize> = BTreeMap::new();
     for (i, bus) in buses.iter().enumerate() {
-        if bus.is_sim() || bus.device.is_empty() {
-            continue;
-        }
-        if let Some(first) = owners.insert(&bus.device, i) {
-            owners.insert(&bus.device, first);
+        let (owned, what) = match DeviceName::parse(&bus.device) {
+            Ok(DeviceName::Serial(path)) => (path, "a serial port"),
+            // rfc2217:// and tcp:// to one host and port are one port of the server.
+            Ok(DeviceName::Server(addr)) => (
+                format!("{}:{}", addr.host.to_ascii_lowercase(), addr.port),
+                "a device server's port",
+            ),
+            Ok(DeviceName::Sim) | Err(_) => continue,
+        };
+        if let Some(&first) = owners.get(&owned) {
             report.fail(
                 format!("bus[{i}].device"),
                 format!(
-                    "`{}` is already bus[{first}].device: two buses cannot share a serial port",
+                    "`{}` is already bus[{first}].device: two buses cannot share {what}",
                     bus.device
                 ),
             );
+        } else {
+            owners.insert(owned, i);
         }
     }
 }
@@ -225,9 +236,7 @@ fn check_bus(
             format!("`{}` is already the name of bus[{first}]", bus.name),
         );
     }
-    if bus.device.is_empty() {
-        report.fail(key("device"), "needs a serial device path or \"sim\"");
-    }
+    check_device(bus, &key, report);
     check_line(bus, &key, report);
     check_serial_driver(bus, &key, report);
     check_slaves(i, bus, report);
@@ -292,14 +301,40 @@ fn check_line(bus: &Bus, key: &dyn Fn(&str) -> String, report: &mut Report) {
     }
 }
 
+/// `device`: a name the gateway can open, carrying the bus's framing (the framing table), and
+/// `packing_delay` only where a device server's packing timer can delay replies.
+fn check_device(bus: &Bus, key: &dyn Fn(&str) -> String, report: &mut Report) {
+    let kind = match DeviceName::parse(&bus.device) {
+        Ok(name) => name.kind(),
+        Err(why) => return report.fail(key("device"), why),
+    };
+    if !bus.framing.runs_over(kind) {
+        report.fail(
+            key("framing"),
+            format!("\"{}\" cannot run over {}", bus.framing.name(), kind.name()),
+        );
+    }
+    if !bus.packing_delay.is_zero() && !kind.is_network() {
+        report.fail(
+            key("packing_delay"),
+            "only a line behind a serial device server (tcp:// or rfc2217://) has a packing timer",
+        );
+    }
+}
+
 /// `[bus.rs485]` and `latency_timer`: what the gateway asks of the serial driver.
 fn check_serial_driver(bus: &Bus, key: &dyn Fn(&str) -> String, report: &mut Report) {
-    for (field, reason) in bus.rs485.problems(bus.is_sim()) {
+    let kind = bus.transport();
+    for (field, reason) in bus.rs485.problems(kind) {
         report.fail(key(&format!("rs485.{field}")), reason);
     }
     if let Some(timer) = bus.latency_timer {
-        if bus.is_sim() {
-            report.fail(key("latency_timer"), "a simulated line has no USB adapter");
+        if kind != TransportKind::Serial {
+            let why = match kind {
+                TransportKind::Sim => "a simulated line has no USB adapter",
+                _ => "a line behind a serial device server has no USB adapter of the gateway's",
+            };
+            report.fail(key("latency_timer"), why);
         } else if !LATENCY_TIMER_MS.contains(&timer.as_millis())
             || timer.subsec_nanos() % 1_000_000 != 0
         {
@@ -510,6 +545,65 @@ mod tests {
         }
         let c = Config::from_toml_str(&format!("[server]\nkeepalive = \"0s\"\n{MINIMAL}"));
         assert!(c.is_ok(), "0s turns keepalive off");
+    }
+
+    #[test]
+    fn a_line_behind_a_device_server_takes_its_framing_and_packing_delay_but_no_local_driver() {
+        let ok = Config::from_toml_str(
+            "[[bus]]\nname = \"a\"\ndevice = \"tcp://nport:4001\"\nframing = \"ascii\"\n\
+             packing_delay = \"40ms\"\n[bus.rs485]\necho = true\n\
+             [[bus]]\nname = \"b\"\ndevice = \"rfc2217://[::1]:2217\"\n",
+        )
+        .expect("both lines are good");
+        assert_eq!(ok.bus[0].packing_delay, Duration::from_millis(40));
+        for (keys, key, reason) in [
+            (
+                "device = \"ser2net://box:2000\"",
+                "bus[0].device",
+                "`ser2net://` is not a kind of device",
+            ),
+            (
+                "device = \"tcp://box\"",
+                "bus[0].device",
+                "`tcp://box`: needs HOST:PORT",
+            ),
+            (
+                "device = \"/dev/ttyS0\"\npacking_delay = \"10ms\"",
+                "bus[0].packing_delay",
+                "only a line behind a serial device server",
+            ),
+            (
+                "device = \"tcp://box:4001\"\nlatency_timer = \"1ms\"",
+                "bus[0].latency_timer",
+                "no USB adapter",
+            ),
+            (
+                "device = \"tcp://box:4001\"\n[bus.rs485]\nmode = \"rts\"",
+                "bus[0].rs485.mode",
+                "the device server's to drive",
+            ),
+        ] {
+            let e = errors(&format!("[[bus]]\nname = \"a\"\n{keys}\n"));
+            assert_eq!(e.len(), 1, "{keys}: {e:?}");
+            assert!(e[0].starts_with(key), "{keys}: {e:?}");
+            assert!(e[0].contains(reason), "{keys}: {e:?}");
+        }
+    }
+
+    #[test]
+    fn two_buses_on_one_device_server_port_are_refused_whichever_scheme_names_it() {
+        let e = errors(
+            "[[bus]]\nname = \"a\"\ndevice = \"tcp://NPort:4001\"\n\
+             [[bus]]\nname = \"b\"\ndevice = \"tcp://nport:4002\"\n\
+             [[bus]]\nname = \"c\"\ndevice = \"rfc2217://nport:4001\"\n",
+        );
+        assert_eq!(
+            e,
+            [
+                "bus[2].device: `rfc2217://nport:4001` is already bus[0].device: two buses cannot \
+              share a device server's port"
+            ]
+        );
     }
 
     #[test]

@@ -50,6 +50,9 @@ pub(crate) fn ascii_gap(line: &LineTiming) -> Duration {
 pub(crate) fn ascii_byte_timeout() -> Duration {
     Duration::from_secs(1)
 }
+/// The silence that ends an RTU reply of unknown length behind a serial device server: t3.5 is
+/// below a network's jitter (a segment may come a few milliseconds after the one before it).
+pub(crate) const NETWORK_BYTE_TIMEOUT: Duration = Duration::from_millis(20);
 pub(crate) fn parity() -> Parity {
     Parity::Even
 }

@@ -8,6 +8,7 @@
 mod bus;
 mod check;
 pub(crate) mod defaults;
+mod device;
 pub(crate) mod diff;
 mod load;
 mod log;
@@ -21,6 +22,7 @@ mod tls;
 mod unit_set;
 
 pub use bus::{Bus, Slave};
+pub use device::{DeviceName, ServerAddr, ServerMode};
 
 pub(crate) use bus::SIM_DEVICE;
 

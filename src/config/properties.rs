@@ -269,7 +269,11 @@ fn bus() -> impl Strategy<Value = Bus> {
     let parities = [Parity::None, Parity::Even, Parity::Odd];
     let line = (
         "[a-zA-Z0-9_.-]{0,8}",
-        prop_oneof![Just(SIM_DEVICE.to_owned()), "/dev/tty(USB|S|AMA)[0-9]"],
+        prop_oneof![
+            Just(SIM_DEVICE.to_owned()),
+            "/dev/tty(USB|S|AMA)[0-9]",
+            "(tcp|rfc2217)://(nport[0-9]|10\\.0\\.0\\.[0-9]|\\[::1\\]):[1-9][0-9]{0,3}",
+        ],
         prop::sample::select(bauds.to_vec()),
         // RTU needs 8 data bits; ASCII takes 7 or 8; either may leave them to its default.
         prop_oneof![
@@ -291,7 +295,7 @@ fn bus() -> impl Strategy<Value = Bus> {
         any::<bool>(),
     );
     let queue = (1usize..=4096, duration(), duration(), duration());
-    let down = (0u32..=10, duration(), any::<bool>());
+    let down = (0u32..=10, duration(), any::<bool>(), duration());
     (line, timing, queue, down, slaves(), sim_slaves()).prop_map(
         |(line, timing, queue, down, slave, sim_slave)| {
             let (name, device, baud, (framing, data_bits), parity, stop_bits) = line;
@@ -303,7 +307,7 @@ fn bus() -> impl Strategy<Value = Bus> {
             } else {
                 Vec::new()
             };
-            Bus {
+            let mut bus = Bus {
                 name,
                 device,
                 baud,
@@ -329,7 +333,12 @@ fn bus() -> impl Strategy<Value = Bus> {
                 latency_timer: None,
                 slave,
                 sim_slave,
+                packing_delay: Duration::ZERO,
+            };
+            if bus.transport().is_network() {
+                bus.packing_delay = down.3;
             }
+            bus
         },
     )
 }
@@ -374,12 +383,24 @@ fn config() -> impl Strategy<Value = Config> {
             (Just((server, metrics, log, buses)), routes(n))
         })
         .prop_map(|((server, metrics, log, mut bus), wanted)| {
-            // Unique names: the generated prefix plus the position; a serial device once.
+            // Unique names: the generated prefix plus the position; a serial device, or a device
+            // server's port, once.
             let mut devices = std::collections::BTreeSet::new();
             for (i, b) in bus.iter_mut().enumerate() {
                 b.name = format!("{}{i}", b.name);
-                if !b.is_sim() && !devices.insert(b.device.clone()) {
-                    b.device = format!("{}-{i}", b.device);
+                let owned = match b.device_name() {
+                    crate::config::DeviceName::Server(addr) => {
+                        format!("{}:{}", addr.host, addr.port)
+                    }
+                    _ => b.device.clone(),
+                };
+                if !b.is_sim() && !devices.insert(owned) {
+                    b.device = match b.device_name() {
+                        crate::config::DeviceName::Server(addr) => {
+                            format!("{}://uniq{i}:{}", addr.mode.scheme(), addr.port)
+                        }
+                        _ => format!("{}-{i}", b.device),
+                    };
                     devices.insert(b.device.clone());
                 }
             }

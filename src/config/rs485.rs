@@ -3,6 +3,7 @@
 //! every byte sent. Plain values with their effective defaults; knows nothing of ioctls or ports.
 
 use super::serde_adapters::{duration, is_false, is_zero};
+use crate::line::framing::TransportKind;
 use serde::{Deserialize, Serialize};
 use std::time::Duration;
 
@@ -80,16 +81,20 @@ pub(super) const LATENCY_TIMER_MS: std::ops::RangeInclusive<u128> = 1..=255;
 impl Rs485 {
     /// What is wrong with these settings on a line that is (`sim`) or is not simulated, as
     /// (key under `rs485`, reason) pairs.
-    pub(super) fn problems(&self, sim: bool) -> Vec<(&'static str, String)> {
+    pub(super) fn problems(&self, transport: TransportKind) -> Vec<(&'static str, String)> {
         let mut problems = Vec::new();
         let mut fail = |key, reason: &str| problems.push((key, reason.to_owned()));
-        if sim && self.mode != Rs485Mode::Off {
-            fail(
-                "mode",
-                "a simulated line has no transceiver to drive: only \"off\"",
-            );
+        if transport != TransportKind::Serial && self.mode != Rs485Mode::Off {
+            let why = match transport {
+                TransportKind::Sim => "a simulated line has no transceiver to drive".to_owned(),
+                _ => format!(
+                    "the transceiver behind {} is the device server's to drive",
+                    transport.name()
+                ),
+            };
+            fail("mode", &format!("{why}: only \"off\""));
         }
-        if sim && self.echo {
+        if transport == TransportKind::Sim && self.echo {
             fail("echo", "a simulated line does not echo");
         }
         let driven = self.mode != Rs485Mode::Off;

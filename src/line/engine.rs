@@ -32,6 +32,9 @@ pub(crate) struct MasterTiming {
     /// Silence that ends a reply whose length the bytes cannot tell: t3.5, or more if configured
     /// (USB adapters deliver bytes in bursts). The allowance for bursts past a known length too.
     pub silence: Duration,
+    /// Behind a serial device server: how long its packing timer may hold a reply's bytes back
+    /// (`packing_delay`). Added to every reply's deadline; [`MasterTiming::silence`] includes it.
+    pub packing: Duration,
 }
 
 impl MasterTiming {
@@ -41,6 +44,17 @@ impl MasterTiming {
             line,
             gap: line.t35.max(gap_floor),
             silence: line.t35.max(silence_floor),
+            packing: Duration::ZERO,
+        }
+    }
+
+    /// This timing on a line whose device server may hold a reply's bytes back for `packing`:
+    /// a reply may fall silent that much longer mid-way, and may start that much later.
+    pub(crate) fn with_packing(self, packing: Duration) -> Self {
+        MasterTiming {
+            silence: self.silence - self.packing + packing,
+            packing,
+            ..self
         }
     }
 }
@@ -71,6 +85,12 @@ pub enum NoReply {
     /// On a line that echoes (`rs485.echo`): the frame did not come back as sent, in time.
     #[error("the line did not echo the frame as sent (a collision, or no echo)")]
     Echo,
+    /// The bytes back are a Modbus TCP (MBAP) answer to the frame: a device server running its
+    /// own Modbus TCP gateway rather than carrying the line's bytes.
+    #[error(
+        "the reply is a Modbus TCP (MBAP) frame: the device server is not in raw (transparent) mode"
+    )]
+    ModbusTcp,
 }
 
 /// How one try failed: as [`NoReply`] says, or the port was lost.
@@ -86,6 +106,8 @@ pub enum TxError {
     LineBusy,
     #[error("{}", NoReply::Echo)]
     Echo,
+    #[error("{}", NoReply::ModbusTcp)]
+    ModbusTcp,
     #[error("serial port lost: {0}")]
     PortLost(io::Error),
 }
@@ -101,6 +123,7 @@ impl TryFrom<TxError> for NoReply {
             TxError::Frame => Ok(NoReply::Frame),
             TxError::LineBusy => Ok(NoReply::LineBusy),
             TxError::Echo => Ok(NoReply::Echo),
+            TxError::ModbusTcp => Ok(NoReply::ModbusTcp),
             TxError::PortLost(lost) => Err(lost),
         }
     }
@@ -142,6 +165,9 @@ pub(crate) enum Seen {
     Reply,
     /// A whole frame that answered nothing: another slave's, a late reply to an earlier try.
     Foreign,
+    /// Bytes that came while no reply was awaited (between transactions, in the gap before a
+    /// frame, or left in a socket), discarded as they came.
+    Stale,
 }
 
 /// A frame on the wire, as recorded while [`LineMaster::record_frames`] is on.
@@ -264,6 +290,11 @@ impl<T: Transport> LineMaster<T> {
         self.counters
     }
 
+    /// The transport the master drives.
+    pub(crate) fn port(&self) -> &T {
+        &self.port
+    }
+
     /// When the last frame was handed to the port: the start of its transaction on the wire.
     /// The earliest the next frame may start, as far as is known now (stray bytes may push it
     /// back).
@@ -295,10 +326,19 @@ impl<T: Transport> LineMaster<T> {
         }
     }
 
+    /// The last `n` bytes in `rx` came while no reply was awaited: counted, shown in the trace,
+    /// and the gap starts again.
     fn saw_stray_bytes(&mut self, n: usize) {
         self.counters.stray_bytes += n as u64;
         self.counters.received_bytes += n as u64;
         self.quiet_until = Instant::now() + self.timing.gap;
+        if self.recording {
+            let bytes = &self.rx[self.rx.len() - n..];
+            let (address, function) = self.framing.header(bytes);
+            let (address, function) = (address.unwrap_or(0), function.unwrap_or(0));
+            let frame = RecordedFrame::new(Seen::Stale, address, function, bytes);
+            self.recorded.push(frame);
+        }
     }
 
     /// Send `request` (a PDU) to `slave` and return the PDU of the frame that answers it, a normal
@@ -319,6 +359,12 @@ impl<T: Transport> LineMaster<T> {
                     .await
             }
             Err(error) => Err(error),
+        };
+        let result = match result {
+            Err(TxError::Check | TxError::Frame) if reply::is_mbap_reply(&self.rx, &self.tx) => {
+                Err(TxError::ModbusTcp)
+            }
+            result => result,
         };
         match &result {
             // Silence, or only other frames: the slave may still answer. So may it when the
@@ -389,7 +435,6 @@ impl<T: Transport> LineMaster<T> {
         busy_limit: Duration,
     ) -> Result<Instant, TxError> {
         self.wait_for_gap(busy_limit).await?;
-        self.port.clear_input().map_err(TxError::PortLost)?;
         self.framing.encode_into(&mut self.tx, address, pdu);
         self.port.send(&self.tx).await.map_err(TxError::PortLost)?;
         let returned = Instant::now();
@@ -407,8 +452,10 @@ impl<T: Transport> LineMaster<T> {
     }
 
     /// Wait until the line has been silent for the gap, reading (and discarding) whatever
-    /// arrives meanwhile, since every byte restarts the gap. Gives up if stray bytes keep the line
-    /// busy for `busy_limit` past the moment it should have been quiet.
+    /// arrives meanwhile, since every byte restarts the gap, then clear the input. Bytes the
+    /// clearing finds (a socket can tell) were on the line too: counted, and the gap starts
+    /// again. Gives up if stray bytes keep the line busy for `busy_limit` past the moment it
+    /// should have been quiet.
     async fn wait_for_gap(&mut self, busy_limit: Duration) -> Result<(), TxError> {
         let give_up_at = self.quiet_until.max(Instant::now()) + busy_limit;
         loop {
@@ -416,17 +463,27 @@ impl<T: Transport> LineMaster<T> {
             // Bytes already in were on the line, even when the gap looks over by the clock: a
             // port (or a USB adapter) may hand them over late. They restart the gap.
             let over = Instant::now() >= self.quiet_until;
-            tokio::select! {
+            let quiet = tokio::select! {
                 biased;
                 received = self.port.recv(&mut self.rx) => {
                     let n = port_lost(received)?;
                     self.saw_stray_bytes(n);
-                    if self.quiet_until > give_up_at {
-                        return Err(TxError::LineBusy);
-                    }
+                    false
                 }
-                () = self.timer.sleep_until(self.quiet_until), if !over => return Ok(()),
-                () = std::future::ready(()), if over => return Ok(()),
+                () = self.timer.sleep_until(self.quiet_until), if !over => true,
+                () = std::future::ready(()), if over => true,
+            };
+            if quiet {
+                self.port
+                    .clear_input(&mut self.rx)
+                    .map_err(TxError::PortLost)?;
+                if self.rx.is_empty() {
+                    return Ok(());
+                }
+                self.saw_stray_bytes(self.rx.len());
+            }
+            if self.quiet_until > give_up_at {
+                return Err(TxError::LineBusy);
             }
         }
     }
@@ -441,7 +498,7 @@ impl<T: Transport> LineMaster<T> {
         let form = self.forms[usize::from(slave)];
         // The reply must start within the response timeout; once it has, it gets the time its
         // length needs on the wire, plus the silence allowance for bursty adapters.
-        let first_byte_by = end_of_tx + response_timeout;
+        let first_byte_by = end_of_tx + response_timeout + self.timing.packing;
         let mut last_byte_at = end_of_tx;
         loop {
             let completion = self

@@ -181,6 +181,10 @@ pub enum TransportKind {
     Serial,
     /// The built-in simulated line.
     Sim,
+    /// A serial device server's socket in raw (transparent) mode.
+    Tcp,
+    /// A serial device server's socket speaking Telnet COM-PORT-OPTION (RFC 2217).
+    Rfc2217,
 }
 
 impl TransportKind {
@@ -189,18 +193,41 @@ impl TransportKind {
         match self {
             TransportKind::Serial => "a serial port",
             TransportKind::Sim => "the simulated line",
+            TransportKind::Tcp => "a serial device server's raw TCP socket",
+            TransportKind::Rfc2217 => "a serial device server's RFC 2217 socket",
         }
+    }
+
+    /// The `transport` label of `modbus_gateway_bus_info`.
+    pub fn label(self) -> &'static str {
+        match self {
+            TransportKind::Serial => "serial",
+            TransportKind::Sim => "sim",
+            TransportKind::Tcp => "tcp",
+            TransportKind::Rfc2217 => "rfc2217",
+        }
+    }
+
+    /// Whether the line's bytes cross a network to a serial device server: its timing then
+    /// budgets the link (docs/device-servers.md).
+    pub fn is_network(self) -> bool {
+        matches!(self, TransportKind::Tcp | TransportKind::Rfc2217)
     }
 }
 
 /// Which framing may run over which transport: the one place that decides, for every line. Both
-/// serial framings need a byte stream that keeps the line's timing, which every transport so far
-/// is. A framing or transport that comes adds its rows here, and nowhere else.
+/// serial framings need a byte stream onto a line that keeps the timing; a device server's socket
+/// is one (its UART keeps the wire's timing, the link's delay is budgeted). A framing or
+/// transport that comes adds its rows here, and nowhere else.
 const LINES: &[(TransportKind, Framing)] = &[
     (TransportKind::Serial, Framing::Rtu),
     (TransportKind::Serial, Framing::Ascii),
     (TransportKind::Sim, Framing::Rtu),
     (TransportKind::Sim, Framing::Ascii),
+    (TransportKind::Tcp, Framing::Rtu),
+    (TransportKind::Tcp, Framing::Ascii),
+    (TransportKind::Rfc2217, Framing::Rtu),
+    (TransportKind::Rfc2217, Framing::Ascii),
 ];
 
 impl Framing {
@@ -216,7 +243,12 @@ mod tests {
 
     #[test]
     fn every_framing_runs_over_every_transport_today() {
-        for transport in [TransportKind::Serial, TransportKind::Sim] {
+        for transport in [
+            TransportKind::Serial,
+            TransportKind::Sim,
+            TransportKind::Tcp,
+            TransportKind::Rfc2217,
+        ] {
             for framing in [Framing::Rtu, Framing::Ascii] {
                 assert!(
                     framing.runs_over(transport),

@@ -28,8 +28,8 @@ use tokio::time::Instant;
 /// The slave address that every slave obeys and none answers, in every serial framing.
 pub(crate) const BROADCAST: u8 = 0;
 
-/// A byte pipe onto a line as a UART driver presents it, whatever carries it: a serial port or
-/// the simulated line today. Which [`Framing`] may run over which kind of transport is the one
+/// A byte pipe onto a line as a UART driver presents it, whatever carries it: a serial port, a
+/// serial device server's socket or the simulated line. Which [`Framing`] may run over which kind of transport is the one
 /// table behind `Framing::runs_over`.
 pub trait Transport: Send {
     /// Hand a whole frame to the driver. Returns when the driver holds it, which is before the
@@ -50,6 +50,7 @@ pub trait Transport: Send {
     /// before it completes loses no bytes.
     fn recv(&mut self, buf: &mut Vec<u8>) -> impl Future<Output = io::Result<usize>> + Send;
 
-    /// Drop what the driver has received and not yet handed over.
-    fn clear_input(&mut self) -> io::Result<()>;
+    /// Drop what the driver has received and not yet handed over, appending to `stale` what
+    /// was dropped where the transport can know it (a socket; a serial port's flush cannot).
+    fn clear_input(&mut self, stale: &mut Vec<u8>) -> io::Result<()>;
 }

@@ -130,6 +130,23 @@ pub(crate) fn answer_pdu(pdu: &[u8], form: ReplyForm) -> Vec<u8> {
     }
 }
 
+/// Whether `received` is a Modbus TCP (MBAP) answer to the serial `frame` sent: a server that read
+/// the frame's first bytes as an MBAP header answers with its transaction id (the frame's address
+/// and function code), its protocol id (0, or the frame's next two bytes echoed), and a length
+/// the bytes after it fill.
+pub(crate) fn is_mbap_reply(received: &[u8], frame: &[u8]) -> bool {
+    const HEADER: usize = 6;
+    if received.len() < HEADER + 2 || frame.len() < 4 {
+        return false;
+    }
+    let length = usize::from(u16::from_be_bytes([received[4], received[5]]));
+    let protocol = &received[2..4];
+    received[..2] == frame[..2]
+        && (protocol == [0, 0] || protocol == &frame[2..4])
+        && length >= 2
+        && received.len() == HEADER + length
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -163,5 +180,29 @@ mod tests {
         assert_eq!(judge(1, &wide, 1, &READ, form), Verdict::Answer);
         assert_eq!(answer_pdu(&wide, form), READ_ANSWER);
         assert_eq!(answer_pdu(&wide, ReplyForm::Standard), wide);
+    }
+
+    #[test]
+    fn a_modbus_tcp_servers_answer_to_an_rtu_frame_is_told_from_a_slaves_reply() {
+        // Read 2 holding registers from 0000H of slave 1, as RTU; pymodbus 3.16's Modbus TCP
+        // server reads it as MBAP (transaction 0103H, unit C4H, function 0BH) and answers so.
+        let frame = [0x01, 0x03, 0x00, 0x00, 0x00, 0x02, 0xC4, 0x0B];
+        let answer = [
+            0x01, 0x03, 0x00, 0x00, 0x00, 0x06, 0xC4, 0x0B, 0x00, 0x00, 0x00, 0x00,
+        ];
+        assert!(is_mbap_reply(&answer, &frame));
+        // Cut short, or with more after it, it is not one frame.
+        assert!(!is_mbap_reply(&answer[..11], &frame));
+        assert!(!is_mbap_reply(&[&answer[..], &[0]].concat(), &frame));
+        // The slave's own RTU reply, even one that starts alike, is not.
+        let reply = [0x01, 0x03, 0x04, 0x00, 0x07, 0x00, 0x07, 0x3A, 0x30];
+        assert!(!is_mbap_reply(&reply, &frame));
+        // A write's echo whose value happens to match the length is no MBAP answer either:
+        // protocol id 0001H is neither 0 nor echoed.
+        let write = [0x01, 0x06, 0x00, 0x01, 0x00, 0x02, 0x59, 0xCB];
+        assert!(!is_mbap_reply(
+            &write,
+            &[0x01, 0x06, 0x00, 0x00, 0x00, 0x02, 0x08, 0x0B]
+        ));
     }
 }

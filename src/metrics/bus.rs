@@ -16,6 +16,7 @@ use prometheus::{
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::fmt::Display;
 use std::io;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 use tracing::{debug, error, info, warn};
@@ -51,6 +52,8 @@ pub(super) struct PortFamilies {
     port_up: IntGaugeVec,
     port_reopens: IntCounterVec,
     port_open_errors: IntCounterVec,
+    link_round_trip: GaugeVec,
+    link_budget: GaugeVec,
     latency_timer: GaugeVec,
 }
 
@@ -124,8 +127,9 @@ impl QueueFamilies {
             ),
             info: define.int_gauge(
                 "modbus_gateway_bus_info",
-                "The bus's line: its framing (rtu, ascii) and serial format; always 1.",
-                &["bus", "framing", "format"],
+                "The bus's line: its framing (rtu, ascii), serial format and transport (serial, \
+                 sim, tcp, rfc2217); always 1.",
+                &["bus", "framing", "format", "transport"],
             ),
             queue_capacity: define.int_gauge(
                 "modbus_gateway_queue_capacity",
@@ -142,17 +146,32 @@ impl PortFamilies {
         PortFamilies {
             port_up: define.int_gauge(
                 "modbus_gateway_port_up",
-                "1 while the bus has its serial port open, else 0.",
+                "1 while the bus has its serial port open (or its device server connected), \
+                 else 0.",
                 bus,
             ),
             port_reopens: define.int_counter(
                 "modbus_gateway_port_reopens_total",
-                "Times the serial port was opened again after being lost or failing to open.",
+                "Times the serial port was opened (or the device server connected) again after \
+                 being lost or failing to open.",
                 bus,
             ),
             port_open_errors: define.int_counter(
                 "modbus_gateway_port_open_errors_total",
-                "Attempts to open the serial port that failed.",
+                "Attempts to open the serial port (or connect to the device server) that failed.",
+                bus,
+            ),
+            link_round_trip: define.gauge(
+                "modbus_gateway_link_round_trip_seconds",
+                "A line behind a serial device server: the round trip the kernel measures on its \
+                 connection (smoothed); no series while it is not connected.",
+                bus,
+            ),
+            link_budget: define.gauge(
+                "modbus_gateway_link_budget_seconds",
+                "A line behind a serial device server: the time added to every frame's for the \
+                 link, which the response timeout counts from; no series while it is not \
+                 connected.",
                 bus,
             ),
             latency_timer: define.gauge(
@@ -235,6 +254,10 @@ impl BusFamilies {
             port_reopens: self.port.port_reopens.with_label_values(labels),
             port_open_errors: self.port.port_open_errors.with_label_values(labels),
             latency_timer: self.port.latency_timer.clone(),
+            link_round_trip: self.port.link_round_trip.clone(),
+            link_budget: self.port.link_budget.clone(),
+            link: Mutex::new(None),
+            network: AtomicBool::new(false),
             retries: self.slave.retries.clone(),
             coalesced: self.slave.coalesced.clone(),
             cache_hits: self.slave.cache_hits.clone(),
@@ -269,6 +292,8 @@ impl BusFamilies {
         }
         let _ = self.line.busy.remove_label_values(labels);
         let _ = self.port.latency_timer.remove_label_values(labels);
+        let _ = self.port.link_round_trip.remove_label_values(labels);
+        let _ = self.port.link_budget.remove_label_values(labels);
         let _ = self.line.round_trip.remove_label_values(labels);
         for class in CLASSES {
             let _ = self
@@ -315,12 +340,24 @@ pub struct SlaveSnapshot {
     pub requests: BTreeMap<String, u64>,
 }
 
+/// A device server's connection, as the status page shows it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LinkSnapshot {
+    /// The address connected to.
+    pub peer: String,
+    /// What the gateway adds to each frame's time for the link.
+    pub budget: Duration,
+    /// The kernel's smoothed round trip, if it measured one.
+    pub round_trip: Option<Duration>,
+}
+
 /// The metrics of one bus, label values resolved once. Shared by its handle and its task.
 pub struct BusMetrics {
     pub(super) name: Arc<str>,
     pub(super) info: IntGaugeVec,
-    /// The framing and format labels of the bus's info series, to remove when they change.
-    pub(super) info_labels: Mutex<Option<[String; 2]>>,
+    /// The framing, format and transport labels of the bus's info series, to remove when they
+    /// change.
+    pub(super) info_labels: Mutex<Option<[String; 3]>>,
     pub(super) queue_capacity: IntGauge,
     /// Seconds per character on the line, to turn bytes into busy time.
     pub(super) char_time: f64,
@@ -337,6 +374,12 @@ pub struct BusMetrics {
     pub(super) port_reopens: IntCounter,
     pub(super) port_open_errors: IntCounter,
     pub(super) latency_timer: GaugeVec,
+    pub(super) link_round_trip: GaugeVec,
+    pub(super) link_budget: GaugeVec,
+    /// The device server's connection as last reported, for the status page.
+    pub(super) link: Mutex<Option<LinkSnapshot>>,
+    /// The line is behind a device server: its port events are told as connections.
+    pub(super) network: AtomicBool,
     pub(super) retries: IntCounterVec,
     pub(super) coalesced: IntCounterVec,
     pub(super) cache_hits: IntCounterVec,
@@ -398,9 +441,13 @@ impl BusMetrics {
     /// The bus's settings, at start or after a reload: its queue capacity, and series at zero for
     /// its known slaves (`[[bus.slave]]` and simulated ones).
     pub fn reconfigured(&self, settings: &config::Bus) {
+        let transport = settings.transport();
+        self.network
+            .store(transport.is_network(), Ordering::Relaxed);
         self.set_info(Some([
             settings.framing.name().to_owned(),
             settings.format().to_string(),
+            transport.label().to_owned(),
         ]));
         self.queue_capacity
             .set(i64::try_from(settings.queue_depth).unwrap_or(i64::MAX));
@@ -410,8 +457,8 @@ impl BusMetrics {
         }
     }
 
-    /// Replace the bus's info series with one of `labels` (framing, format), or none.
-    fn set_info(&self, labels: Option<[String; 2]>) {
+    /// Replace the bus's info series with one of `labels` (framing, format, transport), or none.
+    fn set_info(&self, labels: Option<[String; 3]>) {
         let mut current = self
             .info_labels
             .lock()
@@ -419,14 +466,14 @@ impl BusMetrics {
         if *current == labels {
             return;
         }
-        if let Some([framing, format]) = current.take() {
+        if let Some([framing, format, transport]) = current.take() {
             let _ = self
                 .info
-                .remove_label_values(&[&*self.name, &framing, &format]);
+                .remove_label_values(&[&*self.name, &framing, &format, &transport]);
         }
-        if let Some([framing, format]) = &labels {
+        if let Some([framing, format, transport]) = &labels {
             self.info
-                .with_label_values(&[&*self.name, framing, format])
+                .with_label_values(&[&*self.name, framing, format, transport])
                 .set(1);
         }
         *current = labels;
@@ -618,17 +665,18 @@ impl BusMetrics {
     /// and how many opens failed meanwhile).
     pub(crate) fn port_opened(&self, device: &str, down: Option<(Duration, u32)>) {
         let bus = &*self.name;
+        let network = self.is_network();
         match down {
+            None if network => info!(target: BUS_EVENTS, bus, device, "device server connected"),
             None => info!(target: BUS_EVENTS, bus, device, "serial port open"),
             Some((down_for, failed_opens)) => {
                 self.port_reopens.inc();
-                info!(target: BUS_EVENTS,
-                    bus,
-                    device,
-                    failed_opens,
-                    down_s = down_for.as_secs_f64(),
-                    "serial port reopened"
-                );
+                let down_s = down_for.as_secs_f64();
+                if network {
+                    info!(target: BUS_EVENTS, bus, device, failed_opens, down_s, "device server reconnected");
+                } else {
+                    info!(target: BUS_EVENTS, bus, device, failed_opens, down_s, "serial port reopened");
+                }
             }
         }
         self.port_up.set(1);
@@ -636,7 +684,64 @@ impl BusMetrics {
 
     pub(crate) fn port_lost(&self, device: &str, error: &dyn Display) {
         self.port_up.set(0);
-        warn!(target: BUS_EVENTS, bus = &*self.name, device, %error, "serial port lost; answering 0x0A and reopening");
+        self.link(None);
+        let bus = &*self.name;
+        if self.is_network() {
+            warn!(target: BUS_EVENTS, bus, device, %error, "device server connection lost; answering 0x0A and reconnecting");
+        } else {
+            warn!(target: BUS_EVENTS, bus, device, %error, "serial port lost; answering 0x0A and reopening");
+        }
+    }
+
+    fn is_network(&self) -> bool {
+        self.network.load(Ordering::Relaxed)
+    }
+
+    /// The device server's connection now (`None`: not connected): its series and the status
+    /// page's figures. Cheap when nothing changed, as after most transactions.
+    pub(crate) fn link(&self, now: Option<(&str, Duration, Option<Duration>)>) {
+        let mut link = self.link.lock().unwrap_or_else(PoisonError::into_inner);
+        let was = link
+            .as_ref()
+            .map(|l| (l.peer.as_str(), l.budget, l.round_trip));
+        if was == now {
+            return;
+        }
+        let now = now.map(|(peer, budget, round_trip)| LinkSnapshot {
+            peer: peer.to_owned(),
+            budget,
+            round_trip,
+        });
+        let labels = &[&*self.name];
+        match &now {
+            Some(snapshot) => {
+                self.link_budget
+                    .with_label_values(labels)
+                    .set(snapshot.budget.as_secs_f64());
+                match snapshot.round_trip {
+                    Some(rtt) => self
+                        .link_round_trip
+                        .with_label_values(labels)
+                        .set(rtt.as_secs_f64()),
+                    None => {
+                        let _ = self.link_round_trip.remove_label_values(labels);
+                    }
+                }
+            }
+            None => {
+                let _ = self.link_budget.remove_label_values(labels);
+                let _ = self.link_round_trip.remove_label_values(labels);
+            }
+        }
+        *link = now;
+    }
+
+    /// The device server's connection as last reported, if connected.
+    pub fn link_snapshot(&self) -> Option<LinkSnapshot> {
+        self.link
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
     }
 
     /// The USB adapter's latency timer as the port's open found (and maybe set) it, with the
@@ -675,10 +780,18 @@ impl BusMetrics {
     pub(crate) fn open_failed(&self, device: &str, error: &io::Error, first: bool) {
         self.port_open_errors.inc();
         let bus = &*self.name;
-        if first && error.kind() == io::ErrorKind::Unsupported {
+        let network = self.is_network();
+        let refused = error.kind() == io::ErrorKind::Unsupported;
+        if first && refused && network {
+            error!(target: BUS_EVENTS, bus, device, %error, "the device server refuses the line's settings; answering 0x0A and retrying");
+        } else if first && refused {
             error!(target: BUS_EVENTS, bus, device, %error, "cannot open serial port; answering 0x0A and retrying");
+        } else if first && network {
+            warn!(target: BUS_EVENTS, bus, device, %error, "cannot connect to the device server; answering 0x0A and retrying");
         } else if first {
             warn!(target: BUS_EVENTS, bus, device, %error, "cannot open serial port; answering 0x0A and retrying");
+        } else if network {
+            debug!(target: BUS_EVENTS, bus, device, %error, "device server still cannot be reached");
         } else {
             debug!(target: BUS_EVENTS, bus, device, %error, "serial port still cannot be opened");
         }

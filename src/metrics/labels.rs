@@ -140,7 +140,7 @@ impl Fate {
         match last {
             NoReply::Timeout => Fate::Timeout,
             NoReply::Check => Fate::CrcError,
-            NoReply::Frame | NoReply::Echo => Fate::FrameError,
+            NoReply::Frame | NoReply::Echo | NoReply::ModbusTcp => Fate::FrameError,
             NoReply::LineBusy => Fate::LineBusy,
         }
     }
@@ -150,7 +150,7 @@ impl Fate {
         match error {
             TxError::Timeout => Fate::Timeout,
             TxError::Check => Fate::CrcError,
-            TxError::Frame | TxError::Echo => Fate::FrameError,
+            TxError::Frame | TxError::Echo | TxError::ModbusTcp => Fate::FrameError,
             TxError::LineBusy => Fate::LineBusy,
             TxError::PortLost(_) => Fate::PortDown,
         }

@@ -17,7 +17,7 @@ use crate::dispatch::Dispatcher;
 use crate::master::{MasterId, Protocol, Rights, Transport};
 use crate::metrics::{Metrics, Rejection, TcpMetrics, TlsMaster};
 use crate::shutdown::Stopping;
-use socket2::{SockRef, TcpKeepalive};
+use crate::socket::set_keepalive;
 use std::collections::HashMap;
 use std::io;
 use std::net::{IpAddr, SocketAddr};
@@ -34,8 +34,6 @@ use tracing::{debug, error, warn};
 const ACCEPT_ERROR_PAUSE: Duration = Duration::from_millis(100);
 /// How long a new master waits for the connection closed to make room for it.
 const EVICTION_WAIT: Duration = Duration::from_secs(1);
-/// Keepalive probes a silent peer gets before its connection is dropped.
-const KEEPALIVE_PROBES: u32 = 3;
 /// TLS handshakes worked on at once; more wait their turn (within the handshake timeout), so a
 /// crowd of masters reconnecting together cannot take every core.
 const HANDSHAKES_AT_ONCE: usize = 32;
@@ -302,21 +300,6 @@ impl Drop for Ticket {
             }
         }
     }
-}
-
-/// Probe a silent peer after `idle`, then every third of that, and drop the connection when
-/// `KEEPALIVE_PROBES` go unanswered, or when data sent to it stays unacknowledged as long: a
-/// master that lost power or its link no longer holds a connection slot.
-pub fn set_keepalive(stream: &TcpStream, idle: Duration) -> io::Result<()> {
-    let interval = (idle / 3).max(Duration::from_secs(1));
-    let socket = SockRef::from(stream);
-    socket.set_tcp_keepalive(
-        &TcpKeepalive::new()
-            .with_time(idle)
-            .with_interval(interval)
-            .with_retries(KEEPALIVE_PROBES),
-    )?;
-    socket.set_tcp_user_timeout(Some(idle + interval * KEEPALIVE_PROBES))
 }
 
 /// Accept masters of `protocol` (on a stream transport) on `listener`, bound at `addr`,

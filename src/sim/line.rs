@@ -411,7 +411,7 @@ impl Transport for SimPort {
         }
     }
 
-    fn clear_input(&mut self) -> io::Result<()> {
+    fn clear_input(&mut self, _stale: &mut Vec<u8>) -> io::Result<()> {
         let mut state = self.shared.lock();
         let now = Instant::now();
         while state.inbound.front().is_some_and(|&(at, _)| at <= now) {
@@ -591,7 +591,7 @@ mod tests {
         port.send(&READ).await.unwrap();
         // The reply ends 16 characters and t3.5 later; resend one character time after that.
         tokio::time::advance(timing.frame_time(16) + timing.t35 + timing.char_time).await;
-        port.clear_input().unwrap();
+        port.clear_input(&mut Vec::new()).unwrap();
         port.send(&READ).await.unwrap();
         let stats = line.stats();
         assert_eq!(stats.gap_violations, 1);

@@ -216,7 +216,7 @@ mod tests {
             }
         }
 
-        fn clear_input(&mut self) -> io::Result<()> {
+        fn clear_input(&mut self, _stale: &mut Vec<u8>) -> io::Result<()> {
             Ok(())
         }
     }

@@ -242,7 +242,7 @@ async fn connection(
     peer: SocketAddr,
     close: Arc<Notify>,
 ) {
-    if let Err(error) = crate::net::server::set_keepalive(&stream, TCP_KEEPALIVE) {
+    if let Err(error) = crate::socket::set_keepalive(&stream, TCP_KEEPALIVE) {
         debug!(%peer, %error, "metrics endpoint: cannot set TCP keepalive");
     }
     if let Err(error) = socket2::SockRef::from(&stream).set_send_buffer_size(SEND_BUFFER) {

@@ -14,7 +14,7 @@ pub(crate) use endpoint::serve;
 use crate::bus::BusHandle;
 use crate::config;
 use crate::net::server::Connected;
-use status::{BusStatus, MasterStatus, SlaveStatus, Status, Utilisation};
+use status::{BusStatus, LinkStatus, MasterStatus, SlaveStatus, Status, Utilisation};
 use std::time::SystemTime;
 use tokio::time::Instant;
 
@@ -142,7 +142,13 @@ fn bus_status(
         },
         framing: settings.framing.name(),
         format: settings.format().to_string(),
+        transport: settings.transport().label(),
         port_up: handle.is_up(),
+        link: metrics.link_snapshot().map(|link| LinkStatus {
+            peer: link.peer,
+            round_trip_seconds: link.round_trip.map(|rtt| rtt.as_secs_f64()),
+            budget_seconds: link.budget.as_secs_f64(),
+        }),
         utilisation,
         queue_depth: handle.queue_depth(),
         queue_capacity: settings.queue_depth,

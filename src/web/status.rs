@@ -40,7 +40,12 @@ pub(crate) struct BusStatus {
     pub(crate) framing: &'static str,
     /// The serial format, e.g. `9600 8E1`.
     pub(crate) format: String,
+    /// What carries the line: `serial`, `sim`, `tcp` or `rfc2217`.
+    pub(crate) transport: &'static str,
+    /// The serial port is open, or the device server connected.
     pub(crate) port_up: bool,
+    /// A line behind a device server, while connected: its link.
+    pub(crate) link: Option<LinkStatus>,
     /// Share of the recent past (about a minute) the line carried characters, 0 to 1.
     pub(crate) utilisation: f64,
     pub(crate) queue_depth: usize,
@@ -48,6 +53,17 @@ pub(crate) struct BusStatus {
     /// Transactions on the line since the bus started, retries included in each.
     pub(crate) transactions: u64,
     pub(crate) slaves: Vec<SlaveStatus>,
+}
+
+/// A device server's connection (docs/device-servers.md).
+#[derive(Clone, Debug, Serialize)]
+pub(crate) struct LinkStatus {
+    /// The address connected to.
+    pub(crate) peer: String,
+    /// The kernel's smoothed round trip, if measured.
+    pub(crate) round_trip_seconds: Option<f64>,
+    /// What the gateway adds to each frame's time for the link.
+    pub(crate) budget_seconds: f64,
 }
 
 #[derive(Clone, Debug, Serialize)]

@@ -1,8 +1,9 @@
 //! What a bus opens: its line's transport. A [`Device`] says what to open (a serial device in its
-//! format with its driver settings, or the simulated line); opened, it is a [`Port`], which the
-//! line's master drives through [`Transport`]. This file only dispatches: each transport lives in
-//! its own file ([`serial`]: tokio-serial, RS-485 direction control, a USB adapter's latency
-//! timer; `sim`: the simulated line's glue). Which framing may run over which transport is not
+//! format with its driver settings, a serial device server on the network, or the simulated
+//! line); opened, it is a [`Port`], which the line's master drives through [`Transport`]. This
+//! file only dispatches: each transport lives in its own file ([`serial`]: tokio-serial, RS-485
+//! direction control, a USB adapter's latency timer; `net`: a device server's socket, its link
+//! budget and, for `rfc2217://`, Telnet; `sim`: the simulated line's glue). Which framing may run over which transport is not
 //! decided here but in one table of the line's, [`Framing::runs_over`], which
 //! [`Device::open_for`] consults. Knows nothing of queues, transactions or what the bytes mean.
 //!
@@ -10,6 +11,8 @@
 //! opens, and the [`Transport`] of the opened thing), a [`TransportKind`] with its rows in the
 //! framing table; the compiler then names every `match` below that needs an arm for it.
 
+pub(crate) mod net;
+mod rfc2217;
 pub(crate) mod serial;
 mod sim;
 
@@ -17,6 +20,7 @@ pub use serial::SerialDriver;
 
 pub(crate) use serial::SerialFd;
 
+use crate::config::{ServerAddr, ServerMode};
 use crate::line::framing::TransportKind;
 use crate::line::{Framing, SerialFormat, Transport};
 use crate::sim::{SimLine, SimPort};
@@ -33,12 +37,19 @@ pub enum Device {
         format: SerialFormat,
         driver: SerialDriver,
     },
+    /// A serial device server: its address, and the line's format (which `rfc2217://` sets on
+    /// the far port at every connect).
+    Server {
+        addr: ServerAddr,
+        format: SerialFormat,
+    },
     Sim(SimLine),
 }
 
 /// An opened [`Device`].
 pub enum Port {
     Serial(SerialFd),
+    Net(net::NetPort),
     Sim(SimPort),
 }
 
@@ -59,6 +70,9 @@ impl Device {
                     driver: d,
                 },
             ) => path == p && format == f && driver.same_as(d),
+            (Device::Server { addr, format }, Device::Server { addr: a, format: f }) => {
+                addr == a && format == f
+            }
             (Device::Sim(line), Device::Sim(other)) => sim::same_as(line, other),
             // Two kinds of transport are never one line.
             _ => false,
@@ -69,26 +83,32 @@ impl Device {
     pub fn kind(&self) -> TransportKind {
         match self {
             Device::Serial { .. } => TransportKind::Serial,
+            Device::Server { addr, .. } => match addr.mode {
+                ServerMode::Raw => TransportKind::Tcp,
+                ServerMode::Rfc2217 => TransportKind::Rfc2217,
+            },
             Device::Sim(_) => TransportKind::Sim,
         }
     }
 
     /// Open the transport. Serial ports are opened exclusively, so two gateways cannot share
-    /// one; a device that refuses the RS-485 mode asked for fails the open, naming the key.
-    pub fn open(&self) -> io::Result<Port> {
+    /// one; a device that refuses the RS-485 mode asked for fails the open, naming the key. A
+    /// device server is connected to (within [`net::CONNECT_TIMEOUT`]).
+    pub async fn open(&self) -> io::Result<Port> {
         match self {
             Device::Serial {
                 path,
                 format,
                 driver,
             } => serial::open(path, format, driver).map(Port::Serial),
+            Device::Server { addr, format } => net::open(addr, format).await.map(Port::Net),
             Device::Sim(line) => sim::open(line),
         }
     }
 
     /// Open the transport for a line framed by `framing`: refused (`Unsupported`, which
     /// retrying does not cure) if the framing table does not let `framing` run over it.
-    pub(crate) fn open_for(&self, framing: Framing) -> io::Result<Port> {
+    pub(crate) async fn open_for(&self, framing: Framing) -> io::Result<Port> {
         let kind = self.kind();
         if !framing.runs_over(kind) {
             return Err(io::Error::new(
@@ -100,22 +120,22 @@ impl Device {
                 ),
             ));
         }
-        self.open()
+        self.open().await
     }
 
     /// The path of a serial device.
     pub fn path(&self) -> Option<&str> {
         match self {
             Device::Serial { path, .. } => Some(path),
-            Device::Sim(_) => None,
+            Device::Server { .. } | Device::Sim(_) => None,
         }
     }
 
-    /// What the bus asks of its serial driver; `None` on the simulated line.
+    /// What the bus asks of its serial driver; `None` on other lines.
     pub fn driver(&self) -> Option<&SerialDriver> {
         match self {
             Device::Serial { driver, .. } => Some(driver),
-            Device::Sim(_) => None,
+            Device::Server { .. } | Device::Sim(_) => None,
         }
     }
 }
@@ -125,12 +145,25 @@ impl Port {
     pub fn serial(stream: mio_serial::SerialStream) -> io::Result<Port> {
         SerialFd::new(stream).map(Port::Serial)
     }
+
+    /// A device server's connection: the peer's address, what the link adds to each frame's
+    /// time now and the kernel's smoothed round trip it is from. `None` on other lines.
+    pub(crate) fn link(&self) -> Option<(&str, Duration, Option<Duration>)> {
+        match self {
+            Port::Net(port) => {
+                let (budget, srtt) = port.budget();
+                Some((port.peer(), budget, srtt))
+            }
+            Port::Serial(_) | Port::Sim(_) => None,
+        }
+    }
 }
 
 impl Transport for Port {
     async fn send(&mut self, frame: &[u8]) -> io::Result<()> {
         match self {
             Port::Serial(port) => port.send(frame).await,
+            Port::Net(port) => port.send(frame).await,
             Port::Sim(port) => port.send(frame).await,
         }
     }
@@ -138,6 +171,7 @@ impl Transport for Port {
     fn end_of_transmission(&self, returned: Instant, frame_time: Duration) -> Instant {
         match self {
             Port::Serial(port) => port.end_of_transmission(returned, frame_time),
+            Port::Net(port) => port.end_of_transmission(returned, frame_time),
             Port::Sim(port) => port.end_of_transmission(returned, frame_time),
         }
     }
@@ -145,14 +179,16 @@ impl Transport for Port {
     async fn recv(&mut self, buf: &mut Vec<u8>) -> io::Result<usize> {
         match self {
             Port::Serial(port) => port.recv(buf).await,
+            Port::Net(port) => port.recv(buf).await,
             Port::Sim(port) => port.recv(buf).await,
         }
     }
 
-    fn clear_input(&mut self) -> io::Result<()> {
+    fn clear_input(&mut self, stale: &mut Vec<u8>) -> io::Result<()> {
         match self {
-            Port::Serial(port) => port.clear_input(),
-            Port::Sim(port) => port.clear_input(),
+            Port::Serial(port) => port.clear_input(stale),
+            Port::Net(port) => port.clear_input(stale),
+            Port::Sim(port) => port.clear_input(stale),
         }
     }
 }
@@ -172,13 +208,13 @@ mod tests {
         Device::Sim(SimLine::new(LineTiming::new(&format)))
     }
 
-    #[test]
-    fn the_simulated_line_opens_for_every_framing_the_table_lets_run_over_it() {
+    #[tokio::test]
+    async fn the_simulated_line_opens_for_every_framing_the_table_lets_run_over_it() {
         let device = sim();
         for framing in [Framing::Rtu, Framing::Ascii] {
             assert_eq!(
                 framing.runs_over(device.kind()),
-                device.open_for(framing).is_ok()
+                device.open_for(framing).await.is_ok()
             );
         }
     }

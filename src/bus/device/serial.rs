@@ -274,7 +274,7 @@ impl Transport for SerialFd {
         Ok(n)
     }
 
-    fn clear_input(&mut self) -> io::Result<()> {
+    fn clear_input(&mut self, _stale: &mut Vec<u8>) -> io::Result<()> {
         if !may_hold_input(&self.fd) {
             return Ok(());
         }
@@ -413,7 +413,7 @@ mod tests {
         far.send(&[0xAA, 0xBB]).await.unwrap();
         // Long enough for the runtime's reactor to see them arrive.
         tokio::time::sleep(Duration::from_millis(50)).await;
-        near.clear_input().unwrap();
+        near.clear_input(&mut Vec::new()).unwrap();
         far.send(&[0x01]).await.unwrap();
         assert_eq!(recv_exactly(&mut near, 1).await, [0x01]);
     }

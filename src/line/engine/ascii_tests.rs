@@ -45,6 +45,7 @@ fn line(slaves: Vec<(u8, Vec<Option<Transmission>>)>) -> (SimLine, LineMaster<Si
         line: line.timing(),
         gap: Duration::ZERO,
         silence: BYTE_TIMEOUT,
+        packing: Duration::ZERO,
     };
     let master = LineMaster::new(line.open().unwrap(), Framing::Ascii, timing);
     (line, master)

@@ -44,7 +44,7 @@ impl Transport for ScriptedLine {
         Ok(n)
     }
 
-    fn clear_input(&mut self) -> io::Result<()> {
+    fn clear_input(&mut self, _stale: &mut Vec<u8>) -> io::Result<()> {
         Ok(())
     }
 
