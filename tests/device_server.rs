@@ -326,7 +326,7 @@ impl TwoLines {
 }
 
 /// (request PDU, the script's reply PDU), in order: reads of each table, writes, a read of the
-/// writes, an exception. After the third-party masters: register 5 holds 4343.
+/// writes, an exception.
 const CASES: [(&[u8], &[u8]); 9] = [
     // 01 read coils 0-15: on at 0, 3, 6 (49), 9, 12, 15 (92).
     (&[0x01, 0x00, 0x00, 0x00, 0x10], &[0x01, 0x02, 0x49, 0x92]),
@@ -337,10 +337,10 @@ const CASES: [(&[u8], &[u8]); 9] = [
         &[0x04, 0x00, 0x00, 0x00, 0x02],
         &[0x04, 0x04, 0x07, 0xD0, 0x07, 0xD1],
     ),
-    // 03 read holding registers 4-6: 1004, mbpoll's 4343, 1006.
+    // 03 read holding registers 6-7: 1006, 1007.
     (
-        &[0x03, 0x00, 0x04, 0x00, 0x03],
-        &[0x03, 0x06, 0x03, 0xEC, 0x10, 0xF7, 0x03, 0xEE],
+        &[0x03, 0x00, 0x06, 0x00, 0x02],
+        &[0x03, 0x04, 0x03, 0xEE, 0x03, 0xEF],
     ),
     // 05 write coil 1 on: echo.
     (
@@ -650,6 +650,9 @@ async fn until_counts(what: &str, tallies: &[Arc<Tally>], floors: &[usize], answ
     .await;
 }
 
+/// Answers each master gets before ser2net is killed, and again after the reconnect.
+const TRAFFIC: usize = 20;
+
 /// The write of holding register 9 = `n`, as a PDU.
 fn write_9(n: u16) -> Vec<u8> {
     let [hi, lo] = n.to_be_bytes();
@@ -704,7 +707,7 @@ async fn ser2net_restarted_mid_traffic_gives_0x0a_then_the_gateway_reconnects_wi
     );
 
     let reopens = "modbus_gateway_port_reopens_total{bus=\"net\"}";
-    until_counts("traffic before the restart", &tallies, &[5; 4], true).await;
+    until_counts("traffic before the restart", &tallies, &[TRAFFIC; 4], true).await;
     let before = Scrape::of(&gateway).await;
     ser2net.stop();
     wait_for_bus(&gateway, "net", false).await;
@@ -717,7 +720,7 @@ async fn ser2net_restarted_mid_traffic_gives_0x0a_then_the_gateway_reconnects_wi
     wait_for_bus(&gateway, "net", true).await;
     let floors: Vec<usize> = tallies
         .iter()
-        .map(|t| t.answered.load(Ordering::Relaxed) + 5)
+        .map(|t| t.answered.load(Ordering::Relaxed) + TRAFFIC)
         .collect();
     until_counts("traffic after the reconnect", &tallies, &floors, true).await;
     stop.store(true, Ordering::Relaxed);
