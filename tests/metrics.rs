@@ -339,11 +339,17 @@ async fn gateway_after_mixed_traffic() -> Gateway {
 
 #[tokio::test]
 async fn promtool_finds_nothing_to_lint_in_a_scrape() {
+    let gateway = gateway_after_mixed_traffic().await;
+    let scrape = Scrape::of(&gateway).await;
+    assert_promtool_finds_nothing_to_lint(&scrape.text).await;
+}
+
+/// `promtool check metrics` on `text` succeeds and says nothing (or, without promtool, the test
+/// says it checks nothing).
+pub(crate) async fn assert_promtool_finds_nothing_to_lint(text: &str) {
     let Some(promtool) = crate::support::tool("promtool") else {
         return;
     };
-    let gateway = gateway_after_mixed_traffic().await;
-    let scrape = Scrape::of(&gateway).await;
     let mut child = std::process::Command::new(promtool)
         .args(["check", "metrics"])
         .stdin(std::process::Stdio::piped())
@@ -354,7 +360,7 @@ async fn promtool_finds_nothing_to_lint_in_a_scrape() {
     {
         use std::io::Write;
         let mut stdin = child.stdin.take().unwrap();
-        stdin.write_all(scrape.text.as_bytes()).unwrap();
+        stdin.write_all(text.as_bytes()).unwrap();
     }
     let out = within(
         "promtool",

@@ -48,7 +48,7 @@ const IGNORED: [u8; 3] = [0x64, 0x00, 0x00];
 const RESPONSE_TIMEOUT: &str = "response_timeout = \"300ms\"";
 
 /// A Python that can run the script, if there is one (see the module doc).
-fn python_with_pymodbus() -> Option<OsString> {
+pub(crate) fn python_with_pymodbus() -> Option<OsString> {
     let can_run = |python: &OsString| {
         Command::new(python)
             .args(["-c", "import serial, pymodbus.server, pymodbus.simulator"])

@@ -1,4 +1,10 @@
 //! The integration tests, in one crate so they build once. Where a new test goes:
+//! - `device_link`: a bus behind a serial device server (`tcp://`), against device servers that
+//!   misbehave as converters do: stale bytes, a late reply, a restart, a Modbus TCP server where a
+//!   raw converter should be (pymodbus).
+//! - `device_server`: a bus on `tcp://` or `rfc2217://` to ser2net in front of a pty, with
+//!   pymodbus's RTU and ASCII servers behind it: third-party masters as on a local line, the
+//!   line's settings over RFC 2217 and 0xFF both ways, ser2net restarted mid-traffic.
 //! - `docs`: the reference pages (docs/) name every configuration key and every metric, and
 //!   every link between them and the README leads somewhere.
 //! - `layers`: the crate's modules have no cycle, and `metrics` imports no runtime part.
@@ -24,9 +30,6 @@
 //! - `peers`: third-party peers on the serial path: pymodbus's RTU and ASCII servers behind the
 //!   gateway, its ASCII client on `simulate`, its RTU-over-TCP and UDP clients on the gateway;
 //!   `peers::tls_walkthrough` runs the TLS walkthrough of docs/security.md (openssl) and its TLS client.
-//! - `device_server`: a bus on `tcp://` or `rfc2217://` to ser2net in front of a pty, with
-//!   pymodbus's RTU and ASCII servers behind it: third-party masters as on a local line, the
-//!   line's settings over RFC 2217 and 0xFF both ways, ser2net restarted mid-traffic.
 //! - `reads`: many masters, one read: coalescing and its freshness, `coalesce_reads = false`,
 //!   the cache, priority masters and their share of the line.
 //! - `rtu_over_tcp`: masters sending plain RTU frames on TCP: framing, bad CRCs, exceptions as RTU.
@@ -57,6 +60,7 @@ mod access;
 mod answers;
 mod ascii;
 mod cli;
+mod device_link;
 mod device_server;
 mod docs;
 mod drives;

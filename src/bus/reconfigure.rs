@@ -3,6 +3,7 @@
 //! the device or its serial format changed. Also what the task derives from its settings, the
 //! longest one transaction can take among them.
 
+use super::device::net::MAX_LINK_BUDGET;
 use super::device::{Device, Port};
 use super::{BusHandle, Intake, HEARTBEAT, STALL_MARGIN};
 use crate::config;
@@ -45,8 +46,9 @@ fn needs_reopen(device: &Device, settings: &config::Bus, update: &Reconfigure) -
 
 /// The longest one transaction on a bus with `settings` can take: the gap before its frame,
 /// which stray bytes may hold busy for as long as a response timeout, then the longest response
-/// timeout, two longest frames, the RS-485 delays around the request, the silence that ends a
-/// reply and a broadcast's turnaround.
+/// timeout, two longest frames, the RS-485 delays around the request, a device server's link and
+/// packing timer (twice: the request's way and the reply's), the silence that ends a reply and a
+/// broadcast's turnaround.
 /// Whoever waits for a transaction to end adds its own margin to this.
 pub(crate) fn longest_transaction(settings: &config::Bus) -> Duration {
     Derived::of(settings).longest_transaction(settings.turnaround_delay)
@@ -77,6 +79,9 @@ pub(super) struct Derived {
     pub(super) down: super::health::DownPolicy,
     /// What the RS-485 direction control adds around each frame sent.
     driver_delays: Duration,
+    /// Behind a device server: the most the link and the converter's packing timer add to a
+    /// frame's time and to its reply's deadline.
+    link: Duration,
 }
 
 impl Derived {
@@ -93,6 +98,11 @@ impl Derived {
             })),
             stall_limit: Duration::ZERO,
             driver_delays: settings.rs485.delay_before_send + settings.rs485.delay_after_send,
+            link: if settings.transport().is_network() {
+                MAX_LINK_BUDGET + settings.packing_delay
+            } else {
+                Duration::ZERO
+            },
             down: super::health::DownPolicy {
                 after: settings.slave_down_after,
                 probe_interval: settings.slave_probe_interval,
@@ -109,6 +119,7 @@ impl Derived {
         longest_timeout * 2
             + longest_frame * 2
             + self.driver_delays
+            + self.link * 2
             + self.timing.silence
             + turnaround
     }

@@ -154,7 +154,10 @@ impl BusTask {
                         }
                         Served::Stopped => break,
                         // Straight to the new device, as a first open.
-                        Served::Reopen => continue,
+                        Served::Reopen => {
+                            metrics.link(None);
+                            continue;
+                        }
                     }
                     down_since = Some((Instant::now(), 0));
                 }

@@ -2,7 +2,7 @@
 //! reopen backoff, reconfiguration between transactions, and the slave-state changes it renders.
 
 use super::transaction::Ran;
-use super::{BusHandle, BusTask, Device, Job, Reconfigure, Waiter};
+use super::{longest_transaction, BusHandle, BusTask, Device, Job, Reconfigure, Waiter};
 use crate::config::{self, Config};
 use crate::error::NoReply;
 use crate::error::{Answer, Outcome, RequestError};
@@ -269,4 +269,26 @@ async fn slave_up_follows_the_slaves_health_through_failing_down_and_back() {
 #[tokio::test(start_paused = true)]
 async fn an_ascii_bus_keeps_the_same_down_policy_probes_and_slave_up() {
     health_through_failing_down_and_back(Framing::Ascii).await;
+}
+
+#[test]
+fn behind_a_device_server_the_longest_transaction_allows_for_the_link_both_ways_and_the_packing() {
+    let on = |device: &str, keys: &str| {
+        let text = format!("[[bus]]\nname = \"line\"\ndevice = \"{device}\"\n{keys}\n");
+        Config::from_toml_str(&text)
+            .expect("test config")
+            .bus
+            .remove(0)
+    };
+    let local = longest_transaction(&on("/dev/ttyS1", ""));
+    let remote = longest_transaction(&on("tcp://nport:4001", "byte_timeout = \"1.75ms\""));
+    let budget = crate::bus::device::net::MAX_LINK_BUDGET;
+    assert_eq!(remote, local + budget * 2);
+    let packed = on(
+        "tcp://nport:4001",
+        "byte_timeout = \"1.75ms\"\npacking_delay = \"50ms\"",
+    );
+    // Twice on the way (request, reply), and once more as silence a reply may hold.
+    let packing = Duration::from_millis(50);
+    assert_eq!(longest_transaction(&packed), remote + packing * 3);
 }

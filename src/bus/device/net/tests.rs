@@ -120,3 +120,42 @@ async fn on_an_rfc2217_line_a_data_byte_0xff_crosses_escaped_and_commands_are_no
     port.clear_input(&mut stale).unwrap();
     assert_eq!(stale, [0xFF]);
 }
+
+#[tokio::test]
+async fn stale_bytes_are_counted_as_stray_and_recorded_for_the_trace_before_the_request_goes_out() {
+    use crate::line::{Framing, LineMaster, LineTiming, MasterTiming, Parity, Seen, SerialFormat};
+    let timing = LineTiming::new(&SerialFormat {
+        baud: 115_200,
+        data_bits: 8,
+        parity: Parity::None,
+        stop_bits: 2,
+    });
+    let (port, mut far) = port(None);
+    let mut master = LineMaster::new(port, Framing::Rtu, MasterTiming::new(timing, MS, MS));
+    master.record_frames(true);
+    far.write_all(&[0xDE, 0xAD]).await.unwrap();
+    let answering = tokio::spawn(async move {
+        let mut request = [0u8; 8];
+        far.read_exact(&mut request).await.unwrap();
+        far.write_all(&crate::line::rtu::encode(1, &[0x03, 0x02, 0x00, 0x07]))
+            .await
+            .unwrap();
+        far
+    });
+    let reply = master
+        .transact(1, &[0x03, 0x00, 0x00, 0x00, 0x01], 100 * MS)
+        .await;
+    assert_eq!(
+        reply.unwrap(),
+        crate::line::Reply::Fits(vec![0x03, 0x02, 0x00, 0x07])
+    );
+    let recorded: Vec<_> = master.recorded().map(|f| (f.seen, f.bytes)).collect();
+    assert_eq!(
+        recorded[0],
+        (Seen::Stale, vec![0xDE, 0xAD]),
+        "{recorded:02X?}"
+    );
+    assert_eq!(recorded[1].0, Seen::Sent);
+    assert_eq!(master.counters().stray_bytes, 2);
+    drop(answering.await.unwrap());
+}
