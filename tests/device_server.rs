@@ -673,6 +673,76 @@ async fn rfc2217_bus_sets_the_line_again_when_it_reconnects_to_a_restarted_ser2n
     );
 }
 
+#[tokio::test]
+async fn a_reply_left_in_the_pty_while_ser2net_was_down_is_not_the_answer_after_the_reconnect() {
+    use std::io::Write;
+    use std::os::unix::fs::OpenOptionsExt;
+    let Some(python) = python_with_pymodbus() else {
+        return;
+    };
+    let slave = Slave::start(&python, "rtu").await;
+    let Some(mut ser2net) = Ser2net::start(&slave.path, SER2NET_SETTINGS, Accepter::Raw).await
+    else {
+        return;
+    };
+    let gateway = GatewayConfig::new()
+        .bus(
+            Bus::on("net", &ser2net.device())
+                .baud(115_200)
+                .parity("none")
+                .response_timeout("1s")
+                .key("reopen_delay", "100ms")
+                .key("reopen_delay_max", "100ms"),
+        )
+        .start()
+        .await;
+    wait_for_bus(&gateway, "net", true).await;
+    ser2net.stop();
+    wait_for_bus(&gateway, "net", false).await;
+    // While ser2net is down, a read of register 1 goes to the slave from the pty's own side, and
+    // its answer (1001) waits in the pty for whoever reads it next: ser2net, once it is back.
+    let stale_read = rtu::encode(UNIT, &[0x03, 0x00, 0x01, 0x00, 0x01]);
+    let stale_reply = rtu::encode(UNIT, &[0x03, 0x02, 0x03, 0xE9]);
+    let mut pty = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .custom_flags(libc::O_NOCTTY)
+        .open(&slave.path)
+        .expect("open the pty");
+    pty.write_all(&stale_read).expect("write to the pty");
+    let wire = slave
+        .wire_when(|wire| wire.to_master.ends_with(&stale_reply))
+        .await;
+    assert!(
+        wire.to_master.ends_with(&stale_reply),
+        "the slave answers: {wire:02X?}"
+    );
+    drop(pty);
+    // A master reads register 0 (1000) all along: 0x0A while the line is down, then 1000.
+    let stop = Arc::new(AtomicBool::new(false));
+    let tally = Arc::new(Tally::default());
+    let reader = master_loop(
+        &gateway,
+        Arc::clone(&tally),
+        Arc::clone(&stop),
+        |_| vec![0x03, 0x00, 0x00, 0x00, 0x01],
+        |_| vec![0x03, 0x02, 0x03, 0xE8],
+    );
+    until_counts("0x0A while down", &[Arc::clone(&tally)], &[1], false).await;
+    ser2net.restart().await;
+    until_counts(
+        "answers after the reconnect",
+        &[Arc::clone(&tally)],
+        &[TRAFFIC],
+        true,
+    )
+    .await;
+    stop.store(true, Ordering::Relaxed);
+    within("the reader stops", reader)
+        .await
+        .expect("the reader got 1000 or 0x0A, never 1001");
+}
+
 /// One master's tally: answers as expected, and 0x0A; and whether it got anything else.
 #[derive(Default)]
 struct Tally {
