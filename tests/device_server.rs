@@ -10,6 +10,12 @@
 //! The script logs every byte on its cable, so the wire is read beside the answers: an IAC not
 //! escaped, a byte dropped or a write sent twice shows there.
 //!
+//! ser2net killed and restarted is a device server's power cut: the masters of the gateway get
+//! their answers or 0x0A, never another master's, and no write twice. A reply that the slave
+//! gives while ser2net is down waits in the pty, and ser2net forwards it when it next opens the
+//! pty, which is when the gateway reconnects: a stale reply that reaches the socket after the
+//! first request has gone out (a converter's buffer does the same).
+//!
 //! The first two tests check the fixture itself, with no gateway: ser2net carries pymodbus's
 //! RTU-over-TCP client to the slave, and its RFC 2217 accepter changes the pty's settings only when
 //! a client asks (so the RFC 2217 test's reading of the pty would fail if the gateway sent none).
