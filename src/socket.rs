@@ -1,6 +1,6 @@
 //! What the gateway asks of its TCP sockets' kernel side, upstream (masters) and downstream
-//! (device servers) alike: keepalive with a bound on unacknowledged data, and the round trip the
-//! kernel measures. Knows nothing of what the sockets carry.
+//! (device servers) alike: keepalive with a bound on unacknowledged data, and the least round
+//! trip the kernel has measured. Knows nothing of what the sockets carry.
 
 use socket2::{SockRef, TcpKeepalive};
 use std::io;
@@ -26,15 +26,18 @@ pub fn set_keepalive(stream: &TcpStream, idle: Duration) -> io::Result<()> {
     socket.set_tcp_user_timeout(Some(idle + interval * KEEPALIVE_PROBES))
 }
 
-/// The round trip the kernel has measured on `stream` (`TCP_INFO`): its smoothed estimate and
-/// the estimate's mean deviation.
-pub(crate) fn round_trip(stream: &TcpStream) -> io::Result<(Duration, Duration)> {
+/// The least round trip the kernel has measured on `stream` (`TCP_INFO`'s `tcpi_min_rtt`, over
+/// its window of minutes), or its smoothed estimate on a kernel too old to keep the minimum. The
+/// minimum is the link's own: a peer that answers requests acknowledges them with its answer, so
+/// every later sample (and the smoothed estimate) also counts how long the peer took to answer.
+pub(crate) fn round_trip(stream: &TcpStream) -> io::Result<Duration> {
     // SAFETY: tcp_info is plain integers; all zeroes is a valid value.
     let mut info: libc::tcp_info = unsafe { std::mem::zeroed() };
     let mut len = libc::socklen_t::try_from(std::mem::size_of::<libc::tcp_info>())
         .map_err(|_| io::Error::other("tcp_info is larger than a socklen_t"))?;
-    // SAFETY: `info` is a tcp_info of `len` bytes, which the kernel fills up to `len`; the
-    // descriptor is the stream's, open while it is borrowed.
+    // SAFETY: `info` is a tcp_info of `len` bytes, which the kernel fills up to `len` (an older
+    // kernel fills less, leaving the rest zero); the descriptor is the stream's, open while it
+    // is borrowed.
     let done = unsafe {
         libc::getsockopt(
             stream.as_raw_fd(),
@@ -47,10 +50,11 @@ pub(crate) fn round_trip(stream: &TcpStream) -> io::Result<(Duration, Duration)>
     if done != 0 {
         return Err(io::Error::last_os_error());
     }
-    Ok((
-        Duration::from_micros(u64::from(info.tcpi_rtt)),
-        Duration::from_micros(u64::from(info.tcpi_rttvar)),
-    ))
+    let least = match info.tcpi_min_rtt {
+        0 => info.tcpi_rtt,
+        least => least,
+    };
+    Ok(Duration::from_micros(u64::from(least)))
 }
 
 #[cfg(test)]
@@ -62,9 +66,34 @@ mod tests {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         let addr = listener.local_addr().unwrap();
         let (client, _server) = tokio::join!(TcpStream::connect(addr), listener.accept());
-        let (srtt, _rttvar) = round_trip(&client.unwrap()).unwrap();
+        let least = round_trip(&client.unwrap()).unwrap();
         // The handshake gave it a first sample: on loopback well under a second, never zero.
-        assert!(srtt > Duration::ZERO, "{srtt:?}");
-        assert!(srtt < Duration::from_secs(1), "{srtt:?}");
+        assert!(least > Duration::ZERO, "{least:?}");
+        assert!(least < Duration::from_secs(1), "{least:?}");
+    }
+
+    #[tokio::test]
+    async fn a_peer_that_answers_slowly_does_not_lengthen_the_round_trip_reported() {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        // The peer answers each request 30 ms later, its acknowledgement riding on the answer.
+        let peer = tokio::spawn(async move {
+            let (mut socket, _) = listener.accept().await.unwrap();
+            let mut request = [0u8; 8];
+            while socket.read_exact(&mut request).await.is_ok() {
+                tokio::time::sleep(Duration::from_millis(30)).await;
+                socket.write_all(&request).await.unwrap();
+            }
+        });
+        let mut client = TcpStream::connect(addr).await.unwrap();
+        client.set_nodelay(true).unwrap();
+        for _ in 0..10 {
+            client.write_all(&[1; 8]).await.unwrap();
+            client.read_exact(&mut [0; 8]).await.unwrap();
+        }
+        let least = round_trip(&client).unwrap();
+        assert!(least < Duration::from_millis(10), "{least:?}");
+        peer.abort();
     }
 }

@@ -1,7 +1,7 @@
 //! The gateway under test as a process: its configuration written for the scenario, the binary
 //! started on it and stopped when dropped, and what /proc says of its CPU time and memory.
 
-use crate::scenarios::{Kind, Line, Scenario, PRIORITY_IP, SLAVES};
+use crate::scenarios::{Kind, Scenario, PRIORITY_IP, SLAVES};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -15,8 +15,8 @@ use tokio_rustls::TlsConnector;
 
 /// The role of the bench's master certificate, given read-only access in `[server.tls]`.
 const ROLE: &str = "bench";
-/// How long the gateway may take to listen.
-const START_LIMIT: Duration = Duration::from_secs(10);
+/// How long the gateway (or the device server's `simulate`) may take to listen.
+pub(crate) const START_LIMIT: Duration = Duration::from_secs(10);
 
 /// The TLS listener of a TLS scenario, and the masters' way in: a connector that trusts the
 /// scenario's CA and presents the master certificate.
@@ -47,7 +47,7 @@ impl Drop for Gateway {
 }
 
 /// A file removed when dropped.
-struct TempPath(PathBuf);
+pub(crate) struct TempPath(pub(crate) PathBuf);
 
 impl Drop for TempPath {
     fn drop(&mut self) {
@@ -78,9 +78,11 @@ fn tls_for(scenario: &str, listen: SocketAddr) -> (String, Tls) {
     (table, tls)
 }
 
-/// The bench's bus on `device`: the scenario's line, a queue for every master twice over.
-fn bus(scenario: &Scenario, device: &str, masters: usize) -> Bus {
+/// The bench's bus on `device`: the scenario's line, a queue for every master twice over, and
+/// the simulated slaves if `device` is the simulated line.
+pub(crate) fn bus(scenario: &Scenario, device: &str) -> Bus {
     let f = &scenario.format;
+    let masters = connections(scenario);
     let mut bus = Bus::on("bench", device)
         .framing(scenario.framing.name())
         .baud(f.baud)
@@ -92,10 +94,15 @@ fn bus(scenario: &Scenario, device: &str, masters: usize) -> Bus {
     if !scenario.coalesce {
         bus = bus.key("coalesce_reads", false);
     }
-    if scenario.line == Line::Sim {
+    if device == "sim" {
         bus = bus.sim_slaves(&format!("1-{SLAVES}"));
     }
     bus
+}
+
+/// The masters the bench connects in `scenario`: at least one, and the priority master.
+fn connections(scenario: &Scenario) -> usize {
+    scenario.masters.max(1) + usize::from(scenario.priority.is_some())
 }
 
 impl Gateway {
@@ -112,7 +119,7 @@ impl Gateway {
             .and_then(|s| s.local_addr())
             .map_err(|e| e.to_string())?;
         let metrics = free_addr().map_err(|e| e.to_string())?;
-        let masters = scenario.masters.max(1) + usize::from(scenario.priority.is_some());
+        let masters = connections(scenario);
         let mut config = GatewayConfig::new()
             .listen(listen)
             .listen_rtu_over_tcp(listen_rtu_over_tcp)
@@ -134,7 +141,7 @@ impl Gateway {
         let config = config
             .metrics_listen(metrics)
             .table("log", &[("level", "warn".into())])
-            .bus(bus(scenario, device, masters));
+            .bus(bus(scenario, device));
         let path = std::env::temp_dir().join(format!(
             "mbgw-bench-{}-{}.toml",
             std::process::id(),

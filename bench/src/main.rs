@@ -4,13 +4,17 @@
 //! time, and reports transactions per second, bus efficiency (the physical minimum of every
 //! completed transaction over the wall time), latency percentiles, fairness (Jain's index over the
 //! masters' completions), and the gateway process's own RSS and CPU per transaction (from
-//! /proc, so the masters' cost is not in it; the simulated slaves', inside the gateway, is).
+//! /proc, so the masters' cost is not in it; the simulated slaves', inside the gateway, is, except
+//! on the device-server line, whose simulated line runs in `simulate --listen` and is counted
+//! apart).
 //! A workspace member of its own: `cargo install` and the Debian package carry only the daemon.
 //!
-//! The modules, in the order a run goes through them: `scenarios` (what to measure), `gateway`
-//! (the process under test), `masters` (the load), `watch` (its HTTP endpoint: metrics, trace,
-//! scraper), `run` (one scenario's warm-up and window), `report` (the figures and their tables).
+//! The modules, in the order a run goes through them: `scenarios` (what to measure),
+//! `device_server` (the far end of the device-server line), `gateway` (the process under test),
+//! `masters` (the load), `watch` (its HTTP endpoint: metrics, trace, scraper), `run` (one
+//! scenario's warm-up and window), `report` (the figures and their tables).
 
+mod device_server;
 mod gateway;
 mod masters;
 mod report;
@@ -105,6 +109,7 @@ async fn main() -> ExitCode {
     report::print_line_table(&reports);
     report::print_priority_table(&reports);
     report::print_scrape_table(&reports);
+    report::print_device_server_table(&reports);
     if failed {
         ExitCode::FAILURE
     } else {

@@ -2,7 +2,7 @@
 //! for the scenarios that have them, the line, priority and scrape tables).
 
 use crate::run::{Minimum, Window};
-use crate::scenarios::{Line, Load, Scenario};
+use crate::scenarios::{Load, Scenario};
 use crate::watch::Counters;
 use serde::Serialize;
 use std::time::Duration;
@@ -14,17 +14,21 @@ pub(crate) struct Report {
     masters: usize,
     transactions: u64,
     tx_per_s: f64,
-    /// Sum of the physical minimum of the completed transactions over the wall time (sim only).
+    /// Sum of the physical minimum of the completed transactions over the wall time (timed
+    /// lines: the simulated one, local or behind a device server).
     efficiency: Option<f64>,
     p50_ms: Option<f64>,
     p99_ms: Option<f64>,
     max_ms: Option<f64>,
-    /// Latency above the physical minimum at the median, for one master on the sim line.
+    /// Latency above the physical minimum at the median, for one master on a timed line.
     added_p50_ms: Option<f64>,
     added_p99_ms: Option<f64>,
     fairness: Option<f64>,
     pub(crate) rss_mb: f64,
     cpu_us_per_tx: Option<f64>,
+    /// The device server's (`simulate --listen`'s) CPU per transaction, on that line: the
+    /// simulated line's share, which the gateway's figure carries on the local one.
+    simulate_cpu_us_per_tx: Option<f64>,
     seconds: f64,
     /// Connection set-up, one master after another: TCP connect to connected (plain TCP, RTU
     /// over TCP) or to the TLS handshake complete (TLS), median and slowest over the masters.
@@ -32,7 +36,7 @@ pub(crate) struct Report {
     connect_max_ms: Option<f64>,
     /// The gateway's CPU time across the connect phase, per master.
     connect_cpu_us: Option<f64>,
-    /// From the gateway's metrics, scraped at the window's ends (sim only): transactions on the
+    /// From the gateway's metrics, scraped at the window's ends (timed lines only): transactions on the
     /// line (`modbus_gateway_round_trip_seconds_count`), per second, per answered request, and
     /// requests answered by another's (`modbus_gateway_coalesced_requests_total`).
     line_tx: Option<u64>,
@@ -90,6 +94,11 @@ fn percentile(sorted: &[Duration], p: f64) -> Option<f64> {
 )]
 fn count(delta: f64) -> u64 {
     delta as u64
+}
+
+/// CPU time `cpu` per transaction, in µs, if there were any.
+fn per_tx(cpu: Duration, transactions: u64) -> Option<f64> {
+    (transactions > 0).then(|| cpu.as_secs_f64() * 1e6 / transactions as f64)
 }
 
 impl Report {
@@ -150,9 +159,9 @@ impl Report {
         if let Some((before, after)) = &w.metrics {
             self.counters(s, &Counters::of(before), &Counters::of(after), t_min);
         }
-        self.cpu_us_per_tx =
-            (transactions > 0).then(|| w.cpu.as_secs_f64() * 1e6 / transactions as f64);
-        if s.line == Line::Sim {
+        self.cpu_us_per_tx = per_tx(w.cpu, transactions);
+        self.simulate_cpu_us_per_tx = w.far_cpu.and_then(|cpu| per_tx(cpu, transactions));
+        if s.line.timed() {
             self.efficiency = Some(physical.as_secs_f64() / wall);
             // Coalesced reads took no time of the line: count its transactions instead.
             if s.load == Load::Same {
@@ -226,7 +235,7 @@ fn cell(value: Option<f64>, precision: usize) -> String {
 /// The table's header.
 pub(crate) fn print_header() {
     println!(
-        "{:<30} {:>7} {:>9} {:>6} {:>6} {:>8} {:>8} {:>8} {:>8} {:>6} {:>7} {:>8} {:>8} {:>8} {:>8}",
+        "{:<33} {:>7} {:>9} {:>6} {:>6} {:>8} {:>8} {:>8} {:>8} {:>6} {:>7} {:>8} {:>8} {:>8} {:>8}",
         "scenario",
         "masters",
         "tx",
@@ -248,7 +257,7 @@ pub(crate) fn print_header() {
 /// The table's row for `r`.
 pub(crate) fn print_row(r: &Report) {
     println!(
-        "{:<30} {:>7} {:>9} {:>6.1} {:>6} {:>8} {:>8} {:>8} {:>8} {:>6} {:>7.1} {:>8} {:>8} {:>8} {:>8}",
+        "{:<33} {:>7} {:>9} {:>6.1} {:>6} {:>8} {:>8} {:>8} {:>8} {:>6} {:>7.1} {:>8} {:>8} {:>8} {:>8}",
         r.scenario,
         r.masters,
         r.transactions,
@@ -277,7 +286,7 @@ pub(crate) fn print_line_table(reports: &[Report]) {
         return;
     }
     println!(
-        "\n{:<30} {:>7} {:>10} {:>10} {:>8} {:>10} {:>9} {:>9}",
+        "\n{:<33} {:>7} {:>10} {:>10} {:>8} {:>10} {:>9} {:>9}",
         "scenario",
         "masters",
         "answered/s",
@@ -289,7 +298,7 @@ pub(crate) fn print_line_table(reports: &[Report]) {
     );
     for r in rows {
         println!(
-            "{:<30} {:>7} {:>10.1} {:>10} {:>8.2} {:>12} {:>9} {:>9}",
+            "{:<33} {:>7} {:>10.1} {:>10} {:>8.2} {:>12} {:>9} {:>9}",
             r.scenario,
             r.masters,
             r.tx_per_s,
@@ -309,7 +318,7 @@ pub(crate) fn print_priority_table(reports: &[Report]) {
         return;
     }
     println!(
-        "\n{:<30} {:>7} {:>8} {:>8} {:>8} {:>9} {:>9} {:>10} {:>10} {:>8}",
+        "\n{:<33} {:>7} {:>8} {:>8} {:>8} {:>9} {:>9} {:>10} {:>10} {:>8}",
         "scenario (t_min units)",
         "prio tx",
         "lat p50",
@@ -323,7 +332,7 @@ pub(crate) fn print_priority_table(reports: &[Report]) {
     );
     for r in rows {
         println!(
-            "{:<30} {:>7} {:>8} {:>8} {:>8} {:>9} {:>9} {:>10} {:>10} {:>8}",
+            "{:<33} {:>7} {:>8} {:>8} {:>8} {:>9} {:>9} {:>10} {:>10} {:>8}",
             r.scenario,
             r.priority_tx.unwrap_or_default(),
             cell(r.priority_p50_tmin, 2),
@@ -345,12 +354,12 @@ pub(crate) fn print_scrape_table(reports: &[Report]) {
         return;
     }
     println!(
-        "\n{:<30} {:>6} {:>8} {:>8} {:>8} {:>8} {:>8}",
+        "\n{:<33} {:>6} {:>8} {:>8} {:>8} {:>8} {:>8}",
         "scenario (scraped)", "eff", "scrapes", "p50 ms", "p99 ms", "max ms", "bytes"
     );
     for r in rows {
         println!(
-            "{:<30} {:>6} {:>8} {:>8} {:>8} {:>8} {:>8}",
+            "{:<33} {:>6} {:>8} {:>8} {:>8} {:>8} {:>8}",
             r.scenario,
             cell(r.efficiency, 3),
             r.scrapes.unwrap_or_default(),
@@ -358,6 +367,50 @@ pub(crate) fn print_scrape_table(reports: &[Report]) {
             cell(r.scrape_p99_ms, 2),
             cell(r.scrape_max_ms, 1),
             r.scrape_bytes.map_or("-".into(), |b| b.to_string()),
+        );
+    }
+}
+
+/// Each device-server scenario beside its `sim-` twin, when both ran: efficiency and the
+/// gateway's CPU per transaction on both lines, and their ratios (device server over local).
+pub(crate) fn print_device_server_table(reports: &[Report]) {
+    let pairs: Vec<_> = reports
+        .iter()
+        .filter_map(|ds| {
+            let twin = format!("sim-{}", ds.scenario.strip_prefix("device-server-")?);
+            Some((reports.iter().find(|r| r.scenario == twin)?, ds))
+        })
+        .collect();
+    if pairs.is_empty() {
+        return;
+    }
+    println!(
+        "\n{:<33} {:>8} {:>8} {:>6} {:>6} {:>7} {:>9} {:>9} {:>7} {:>10}",
+        "scenario (local vs ds)",
+        "tx/s",
+        "ds tx/s",
+        "eff",
+        "ds eff",
+        "eff x",
+        "cpu us/tx",
+        "ds cpu",
+        "cpu x",
+        "sim cpu/tx"
+    );
+    let ratio = |a: Option<f64>, b: Option<f64>| a.zip(b).map(|(a, b)| b / a);
+    for (sim, ds) in pairs {
+        println!(
+            "{:<33} {:>8.1} {:>8.1} {:>6} {:>6} {:>7} {:>9} {:>9} {:>7} {:>10}",
+            ds.scenario,
+            sim.tx_per_s,
+            ds.tx_per_s,
+            cell(sim.efficiency, 3),
+            cell(ds.efficiency, 3),
+            cell(ratio(sim.efficiency, ds.efficiency), 3),
+            cell(sim.cpu_us_per_tx, 1),
+            cell(ds.cpu_us_per_tx, 1),
+            cell(ratio(sim.cpu_us_per_tx, ds.cpu_us_per_tx), 2),
+            cell(ds.simulate_cpu_us_per_tx, 1),
         );
     }
 }

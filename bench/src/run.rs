@@ -1,7 +1,8 @@
 //! One scenario's run: the gateway started, the masters connected, a warm-up, then a window in
-//! which the masters' completions, the gateway's CPU time and (on the simulated line) its
+//! which the masters' completions, the gateway's CPU time and (on a timed line) its
 //! metrics are taken. The figures are `report`'s.
 
+use crate::device_server::DeviceServer;
 use crate::gateway::{cpu_time, rss_mb, Gateway};
 use crate::masters::{connect_all, master, priority_connect, untimed_slave, Done};
 use crate::report::Report;
@@ -26,11 +27,13 @@ pub(crate) struct Window {
     pub(crate) end: Instant,
     /// The gateway's CPU time across the window.
     pub(crate) cpu: Duration,
+    /// The device server's (`simulate`'s) CPU time across the window, on that line.
+    pub(crate) far_cpu: Option<Duration>,
     pub(crate) rss_mb: f64,
     /// Every master's completions, in the order the masters were connected (the priority
     /// master last); `start..=end` is the window's share.
     pub(crate) masters: Vec<Vec<Done>>,
-    /// The metrics page at the window's start and end (simulated line only).
+    /// The metrics page at the window's start and end (timed lines only).
     pub(crate) metrics: Option<(String, String)>,
     /// The `--scrape` scraper's scrapes within the window.
     pub(crate) scrapes: Option<Vec<Scraped>>,
@@ -39,12 +42,18 @@ pub(crate) struct Window {
 /// Run scenario `s` on the gateway binary at `binary`.
 pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report, String> {
     let timing = LineTiming::new(&s.format);
-    let (device, slave) = match s.line {
-        Line::Sim => ("sim".to_owned(), None),
+    let (mut slave, mut far) = (None, None);
+    let device = match s.line {
+        Line::Sim => "sim".to_owned(),
         Line::Pty => {
             let (path, task) = untimed_slave(&s.format)?;
-            (path, Some(task))
+            slave = Some(task);
+            path
         }
+        Line::DeviceServer => far
+            .insert(DeviceServer::start(binary, s).await?)
+            .device
+            .clone(),
     };
     let gateway = Gateway::start(binary, s, &device).await?;
     let pid = gateway.pid();
@@ -77,12 +86,13 @@ pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report
             .transaction_minimum(&timing, WRITE_1.len(), WRITE_1.len()),
     };
     // Long enough for every master to complete `rounds` requests at the line's pace.
-    let pace = if s.line == Line::Sim {
+    let pace = if s.line.timed() {
         minimum.read
     } else {
         timing.t35
     };
-    let window = measure(cli, &gateway, s, streams, pace).await?;
+    let far_pid = far.as_ref().map(DeviceServer::pid);
+    let window = measure(cli, (&gateway, far_pid), s, streams, pace).await?;
     if let Some(slave) = slave {
         slave.abort();
     }
@@ -90,10 +100,11 @@ pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report
     Ok(report)
 }
 
-/// Start the masters on `streams`, warm up, and take the window.
+/// Start the masters on `streams`, warm up, and take the window; `far` is the device server's
+/// process, if the line has one.
 async fn measure(
     cli: &Cli,
-    gateway: &Gateway,
+    (gateway, far): (&Gateway, Option<u32>),
     s: &Scenario,
     streams: Vec<crate::masters::Conn>,
     pace: Duration,
@@ -124,16 +135,18 @@ async fn measure(
         })
         .collect();
     tokio::time::sleep(warm_up).await;
-    let sim = s.line == Line::Sim;
-    let before = if sim {
+    let timed = s.line.timed();
+    let before = if timed {
         Some(scrape(gateway.metrics).await?)
     } else {
         None
     };
+    let far_start = far.map(cpu_time);
     let (start, cpu_start) = (Instant::now(), cpu_time(pid));
     tokio::time::sleep(length).await;
     let (end, cpu_end) = (Instant::now(), cpu_time(pid));
-    let after = if sim {
+    let far_cpu = far.map(cpu_time).zip(far_start).map(|(e, s)| e - s);
+    let after = if timed {
         Some(scrape(gateway.metrics).await?)
     } else {
         None
@@ -153,6 +166,7 @@ async fn measure(
         start,
         end,
         cpu: cpu_end - cpu_start,
+        far_cpu,
         rss_mb,
         masters,
         metrics: before.zip(after),

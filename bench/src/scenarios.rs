@@ -20,6 +20,17 @@ pub(crate) enum Line {
     Sim,
     /// A pty pair with an RTU slave in this process that answers at once: no line timing.
     Pty,
+    /// The same simulated line, timed at its baud rate, served by `simulate --listen` in a
+    /// process of its own; the gateway's bus reaches it as a serial device server (`tcp://`).
+    DeviceServer,
+}
+
+impl Line {
+    /// Whether the line keeps the physical timing of its baud rate, so that its efficiency and
+    /// the gateway's line metrics mean something.
+    pub(crate) fn timed(self) -> bool {
+        matches!(self, Line::Sim | Line::DeviceServer)
+    }
 }
 
 #[derive(Clone, Copy, PartialEq)]
@@ -115,17 +126,25 @@ pub(crate) fn scenarios() -> Vec<Scenario> {
     all
 }
 
-/// Modbus TCP masters reading (and writing) on the simulated RTU and ASCII lines.
+/// Modbus TCP masters reading (and writing) on the simulated RTU and ASCII lines; for 1 and 100
+/// masters reading, right after, the same with the simulated line behind a device server, so
+/// that a run of both interleaves them.
 fn line_scenarios(all: &mut Vec<Scenario>) {
     for (baud, parity, label) in LINES {
         for masters in [1, 10, 100, 1000] {
             let name = format!("sim-{baud}-{label}-read-{masters}");
-            all.push(Scenario::sim(
-                name,
-                format(baud, parity),
-                masters,
-                Load::Read,
-            ));
+            let sim = Scenario::sim(name, format(baud, parity), masters, Load::Read);
+            if masters == 1 || masters == 100 {
+                let name = format!("device-server-{baud}-{label}-read-{masters}");
+                let twin = Scenario {
+                    name,
+                    line: Line::DeviceServer,
+                    ..Scenario::sim(String::new(), sim.format, masters, Load::Read)
+                };
+                all.extend([sim, twin]);
+            } else {
+                all.push(sim);
+            }
         }
         let name = format!("sim-{baud}-{label}-mix-100");
         all.push(Scenario::sim(name, format(baud, parity), 100, Load::Mix));

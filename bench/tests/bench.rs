@@ -135,3 +135,39 @@ fn masters_reading_the_same_block_share_the_line_s_transactions() {
     }
     assert!(same["priority_tx"].is_null(), "{same}");
 }
+
+/// Processes whose command line mentions `needle`.
+fn processes_mentioning(needle: &str) -> Vec<String> {
+    std::fs::read_dir("/proc")
+        .unwrap()
+        .filter_map(|entry| std::fs::read(entry.ok()?.path().join("cmdline")).ok())
+        .map(|cmdline| String::from_utf8_lossy(&cmdline).replace('\0', " "))
+        .filter(|cmdline| cmdline.contains(needle))
+        .collect()
+}
+
+#[test]
+fn the_device_server_line_is_measured_as_the_sim_line_and_its_simulate_is_stopped() {
+    let scenario = "device-server-115200-8N1-read-1";
+    let mut config = PathBuf::new();
+    let ds = bench_json(&[scenario], |id| {
+        config = std::env::temp_dir().join(format!("mbgw-bench-{id}-{scenario}-simulate.toml"));
+    })
+    .remove(0);
+    assert_eq!(ds["scenario"], scenario);
+    assert!(ds["transactions"].as_u64().unwrap() > 0, "{ds}");
+    // The line's timing holds in the other process: still no faster than physics.
+    let efficiency = ds["efficiency"].as_f64().unwrap();
+    assert!(efficiency > 0.0 && efficiency <= 1.0, "{ds}");
+    for field in [
+        "cpu_us_per_tx",
+        "simulate_cpu_us_per_tx",
+        "added_p50_ms",
+        "line_tx_per_s",
+    ] {
+        assert!(ds[field].as_f64().is_some_and(|v| v > 0.0), "{field}: {ds}");
+    }
+    assert!(!config.exists(), "{} is left behind", config.display());
+    let left = processes_mentioning(&config.to_string_lossy());
+    assert!(left.is_empty(), "still running: {left:?}");
+}

@@ -113,9 +113,9 @@ fn describe_link(name: &str, addr: &ServerAddr, packing: Duration) -> String {
     };
     format!(
         "# bus {name}: behind the device server at {addr} ({how}), connected at start; a reply's \
-         deadline counts from the frame's time on the wire plus the link budget (the kernel's \
-         smoothed round trip plus four deviations, {} to {}; live on the status page and as \
-         modbus_gateway_link_budget_seconds){packing}.\n",
+         deadline counts from the frame's time on the wire plus the link budget (twice the least \
+         round trip the kernel measures on the connection, {} to {}; live on the status page and \
+         as modbus_gateway_link_budget_seconds){packing}.\n",
         ms(MIN_LINK_BUDGET),
         ms(MAX_LINK_BUDGET),
     )

@@ -163,8 +163,8 @@ impl PortFamilies {
             ),
             link_round_trip: define.gauge(
                 "modbus_gateway_link_round_trip_seconds",
-                "A line behind a serial device server: the round trip the kernel measures on its \
-                 connection (smoothed); no series while it is not connected.",
+                "A line behind a serial device server: the least round trip the kernel has \
+                 measured on its connection; no series while it is not connected.",
                 bus,
             ),
             link_budget: define.gauge(
@@ -347,7 +347,7 @@ pub struct LinkSnapshot {
     pub peer: String,
     /// What the gateway adds to each frame's time for the link.
     pub budget: Duration,
-    /// The kernel's smoothed round trip, if it measured one.
+    /// The least round trip the kernel has measured, if it did.
     pub round_trip: Option<Duration>,
 }
 

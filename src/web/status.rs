@@ -60,7 +60,7 @@ pub(crate) struct BusStatus {
 pub(crate) struct LinkStatus {
     /// The address connected to.
     pub(crate) peer: String,
-    /// The kernel's smoothed round trip, if measured.
+    /// The least round trip the kernel has measured, if it did.
     pub(crate) round_trip_seconds: Option<f64>,
     /// What the gateway adds to each frame's time for the link.
     pub(crate) budget_seconds: f64,

@@ -147,7 +147,7 @@ impl Port {
     }
 
     /// A device server's connection: the peer's address, what the link adds to each frame's
-    /// time now and the kernel's smoothed round trip it is from. `None` on other lines.
+    /// time now and the least round trip it is from. `None` on other lines.
     pub(crate) fn link(&self) -> Option<(&str, Duration, Option<Duration>)> {
         match self {
             Port::Net(port) => {

@@ -8,10 +8,11 @@
 //!
 //! The timing rule (docs/device-servers.md): the gateway cannot see the far wire, so a frame
 //! "has left the wire" when it can have crossed the link and left the converter's UART: the
-//! frame's time at the line's speed plus the link budget, the round trip the kernel measures on
-//! the socket (`TCP_INFO`'s smoothed RTT plus four times its deviation, as TCP bounds its own
-//! retransmission timer), between [`MIN_LINK_BUDGET`] and [`MAX_LINK_BUDGET`]. The response
-//! timeout counts from there, so the reply's way back is inside the budget too. The gap before a
+//! frame's time at the line's speed plus the link budget, twice the least round trip the kernel
+//! has measured on the socket (`TCP_INFO`'s `min_rtt`: the link's own, where the smoothed RTT
+//! would count the slaves' answering time, since the converter acknowledges a request with its
+//! reply), between [`MIN_LINK_BUDGET`] and [`MAX_LINK_BUDGET`]. The response timeout counts from
+//! there, so the reply's way back is inside the budget too, and as much again for queueing. The gap before a
 //! frame counts from the last byte received, as on a local line: the request then reaches the
 //! far wire at least the gap after the reply left it.
 
@@ -45,22 +46,22 @@ const READ_CHUNK: usize = 512;
 
 /// A byte stream to a device server, with the round trip its kernel measures, if it does.
 pub trait Link: AsyncRead + AsyncWrite + Unpin + Send {
-    /// The smoothed round trip and its mean deviation.
-    fn round_trip(&self) -> Option<(Duration, Duration)>;
+    /// The least round trip measured on it.
+    fn round_trip(&self) -> Option<Duration>;
 }
 
 impl Link for TcpStream {
-    fn round_trip(&self) -> Option<(Duration, Duration)> {
+    fn round_trip(&self) -> Option<Duration> {
         crate::socket::round_trip(self).ok()
     }
 }
 
-/// What the link adds to every frame's time, from the kernel's measurement: the bound TCP puts on
-/// its own retransmission timer (RFC 6298: SRTT + 4 RTTVAR), kept within
+/// What the link adds to every frame's time, from the least round trip measured: twice it (the
+/// way there and back, and as much again for queueing on the way), kept within
 /// [`MIN_LINK_BUDGET`]..=[`MAX_LINK_BUDGET`]; the most when nothing is measured.
-pub(crate) fn link_budget(measured: Option<(Duration, Duration)>) -> Duration {
-    measured.map_or(MAX_LINK_BUDGET, |(srtt, rttvar)| {
-        (srtt + rttvar * 4).clamp(MIN_LINK_BUDGET, MAX_LINK_BUDGET)
+pub(crate) fn link_budget(least_round_trip: Option<Duration>) -> Duration {
+    least_round_trip.map_or(MAX_LINK_BUDGET, |rtt| {
+        (rtt * 2).clamp(MIN_LINK_BUDGET, MAX_LINK_BUDGET)
     })
 }
 
@@ -70,7 +71,7 @@ pub struct NetPort<S = TcpStream> {
     /// The peer's address as connected, for the logs and the status page.
     peer: String,
     budget: Duration,
-    measured: Option<(Duration, Duration)>,
+    measured: Option<Duration>,
     measured_at: Instant,
     chunk: Box<[u8; READ_CHUNK]>,
     /// On an `rfc2217://` line: the Telnet state, what it owes the server (sent before the next
@@ -139,10 +140,10 @@ impl<S: Link> NetPort<S> {
         &self.peer
     }
 
-    /// What the link adds to each frame's time now, and the kernel's smoothed round trip it is
-    /// from, if measured.
+    /// What the link adds to each frame's time now, and the least round trip it is from, if
+    /// measured.
     pub(crate) fn budget(&self) -> (Duration, Option<Duration>) {
-        (self.budget, self.measured.map(|(srtt, _)| srtt))
+        (self.budget, self.measured)
     }
 
     /// Read the kernel's measurement again if the last is older than [`REMEASURE_EVERY`].

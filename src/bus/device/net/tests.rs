@@ -4,7 +4,7 @@ use tokio::io::DuplexStream;
 /// One end of an in-memory link whose kernel would report `round_trip`.
 pub(super) struct Measured {
     pub(super) stream: DuplexStream,
-    pub(super) round_trip: Option<(Duration, Duration)>,
+    pub(super) round_trip: Option<Duration>,
 }
 
 impl AsyncRead for Measured {
@@ -36,12 +36,12 @@ impl AsyncWrite for Measured {
 }
 
 impl Link for Measured {
-    fn round_trip(&self) -> Option<(Duration, Duration)> {
+    fn round_trip(&self) -> Option<Duration> {
         self.round_trip
     }
 }
 
-fn port(round_trip: Option<(Duration, Duration)>) -> (NetPort<Measured>, DuplexStream) {
+fn port(round_trip: Option<Duration>) -> (NetPort<Measured>, DuplexStream) {
     let (near, far) = tokio::io::duplex(4096);
     let link = Measured {
         stream: near,
@@ -53,19 +53,21 @@ fn port(round_trip: Option<(Duration, Duration)>) -> (NetPort<Measured>, DuplexS
 const MS: Duration = Duration::from_millis(1);
 
 #[test]
-fn the_link_budget_is_the_measured_round_trip_plus_four_deviations_within_bounds() {
-    assert_eq!(link_budget(Some((20 * MS, 5 * MS))), 40 * MS);
+fn the_link_budget_is_twice_the_least_round_trip_within_bounds() {
+    assert_eq!(link_budget(Some(20 * MS)), 40 * MS);
     // Loopback: a few microseconds, raised to the timer's resolution.
-    let tiny = Duration::from_micros(40);
-    assert_eq!(link_budget(Some((tiny, tiny))), MIN_LINK_BUDGET);
+    assert_eq!(
+        link_budget(Some(Duration::from_micros(40))),
+        MIN_LINK_BUDGET
+    );
     // A link gone bad, or nothing measured: the most, never more.
-    assert_eq!(link_budget(Some((3000 * MS, 100 * MS))), MAX_LINK_BUDGET);
+    assert_eq!(link_budget(Some(3000 * MS)), MAX_LINK_BUDGET);
     assert_eq!(link_budget(None), MAX_LINK_BUDGET);
 }
 
 #[tokio::test(start_paused = true)]
 async fn a_frame_has_left_the_far_wire_once_its_time_and_the_link_budget_have_passed() {
-    let (port, _far) = port(Some((20 * MS, 5 * MS)));
+    let (port, _far) = port(Some(20 * MS));
     let now = Instant::now();
     assert_eq!(port.end_of_transmission(now, 9 * MS), now + 49 * MS);
     assert_eq!(port.budget(), (40 * MS, Some(20 * MS)));
