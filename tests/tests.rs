@@ -2,6 +2,10 @@
 //! - `device_link`: a bus behind a serial device server (`tcp://`), against device servers that
 //!   misbehave as converters do: stale bytes, a late reply, a restart, a Modbus TCP server where a
 //!   raw converter should be (pymodbus).
+//! - `device_server`: a bus on `tcp://` or `rfc2217://` to ser2net in front of a pty, with
+//!   pymodbus's RTU and ASCII servers behind it: third-party masters as on a local line, the
+//!   line's settings over RFC 2217 (at every connect) and 0xFF both ways, ser2net restarted
+//!   mid-traffic, a stale reply it forwards on the reconnect.
 //! - `docs`: the reference pages (docs/) name every configuration key and every metric, and
 //!   every link between them and the README leads somewhere.
 //! - `layers`: the crate's modules have no cycle, and `metrics` imports no runtime part.
@@ -58,6 +62,7 @@ mod answers;
 mod ascii;
 mod cli;
 mod device_link;
+mod device_server;
 mod docs;
 mod drives;
 mod fairness;

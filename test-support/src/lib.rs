@@ -5,6 +5,8 @@
 //!   started by hand, with no gateway around it.
 //! - `frames`: a Modbus TCP ADU (MBAP) and an RTU frame; `master`: a raw Modbus TCP master.
 //! - `pty`: an RTU slave on a pty pair (the real serial path).
+//! - `ser2net`: ser2net as a serial device server in front of a pty (a `tcp://` or `rfc2217://`
+//!   bus's far side).
 //! - `tls`: a test PKI (CA, server and master certificates with the Modbus/TCP Security RoleOID)
 //!   and TLS masters.
 //! - `http`: the metrics endpoint: GETs, `/metrics` parsed, `/trace` readers.
@@ -25,6 +27,7 @@ pub mod load;
 pub mod master;
 pub mod process;
 pub mod pty;
+pub mod ser2net;
 pub mod sim;
 pub mod tls;
 pub mod wait;
@@ -38,5 +41,6 @@ pub use load::*;
 pub use master::*;
 pub use process::*;
 pub use pty::*;
+pub use ser2net::{Accepter, Ser2net};
 pub use sim::*;
 pub use wait::*;

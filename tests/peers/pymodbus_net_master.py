@@ -1,7 +1,8 @@
-"""pymodbus's network clients as third-party masters for tests/peers.rs: its TCP client with the
-RTU framer (RTU over TCP) or its UDP client (Modbus UDP), against the gateway.
+"""pymodbus's network clients as third-party masters for tests/peers.rs and tests/device_server.rs:
+its TCP client with the RTU framer (RTU over TCP), its UDP client (Modbus UDP) or its plain Modbus
+TCP client, against the gateway.
 
-Usage: pymodbus_net_master.py rtu-over-tcp|udp HOST PORT UNIT
+Usage: pymodbus_net_master.py rtu-over-tcp|udp|tcp HOST PORT UNIT
 
 It writes holding register 5 = 4242, reads registers 5-6 back, then reads 17 registers from 0
 (an answer the test knows), and prints one line per request, flushed:
@@ -22,8 +23,10 @@ def main():
     kind, host, port, unit = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
     if kind == "rtu-over-tcp":
         client = ModbusTcpClient(host, port=port, framer=FramerType.RTU, timeout=2, retries=0)
-    else:
+    elif kind == "udp":
         client = ModbusUdpClient(host, port=port, timeout=2, retries=0)
+    else:
+        client = ModbusTcpClient(host, port=port, timeout=2, retries=0)
     if not client.connect():
         sys.exit(f"cannot connect to {host}:{port}")
     report(6, client.write_register(5, 4242, device_id=unit))
