@@ -361,3 +361,50 @@ async fn a_device_server_is_reached_by_host_name_or_ipv6_address_and_its_echo_is
         server.abort();
     }
 }
+
+#[tokio::test]
+async fn a_reply_to_a_request_cut_off_by_a_lost_connection_never_answers_one_after_the_reconnect() {
+    let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let port = server.local_addr().unwrap().port();
+    let gateway = GatewayConfig::new()
+        .listen("127.0.0.1:0")
+        .bus(
+            Bus::on("remote", &format!("tcp://127.0.0.1:{port}"))
+                .baud(115_200)
+                .parity("none")
+                .response_timeout("500ms")
+                .key("reopen_delay", "50ms"),
+        )
+        .start()
+        .await;
+    let device = tokio::spawn(async move {
+        // The first connection drops as soon as the request on it is in: the slave has it.
+        let (mut first, _) = server.accept().await.unwrap();
+        let cut_off = next_request(&mut first).await.unwrap();
+        let heard = tokio::time::Instant::now();
+        drop(first);
+        // On the next one, the slave's answer to it comes 300 ms after it heard it (within
+        // its 500 ms timeout, after the reconnect and its settling), then every answer in turn.
+        let (mut second, _) = server.accept().await.unwrap();
+        tokio::time::sleep_until(heard + Duration::from_millis(300)).await;
+        second.write_all(&rtu(1, &answer(cut_off))).await.unwrap();
+        while let Some(register) = next_request(&mut second).await {
+            second.write_all(&rtu(1, &answer(register))).await.unwrap();
+        }
+    });
+    let addr = crate::support::addr(&gateway);
+    let mut first = RawMaster::connect(addr).await;
+    let mut second = RawMaster::connect(addr).await;
+    assert_eq!(first.call(1, 1, &read(100)).await, [0x83, 0x0A]);
+    let reopened = "modbus_gateway_port_reopens_total{bus=\"remote\"}";
+    within("the gateway reconnects", async {
+        while Scrape::of(&gateway).await.value(reopened) < 1.0 {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    })
+    .await;
+    // The next read of that slave waits until its late answer can no longer come: register
+    // 200's answer, never register 100's.
+    assert_eq!(second.call(2, 1, &read(200)).await, answer(200));
+    device.abort();
+}

@@ -64,12 +64,20 @@ impl BusTask {
             let job = match self.next_job(&mut serving).await {
                 Next::Run(job) => job,
                 Next::Again => continue,
-                Next::End(end) => return end,
+                Next::End(end) => return self.end_serving(&serving, end),
             };
             if let Some(end) = self.run_job(&mut serving, job).await {
-                return end;
+                return self.end_serving(&serving, end);
             }
         }
+    }
+
+    /// Serving ends as `end`; a lost port leaves its late-reply windows to the next one.
+    fn end_serving(&mut self, serving: &Serving<'_>, end: Served) -> Served {
+        if matches!(end, Served::Lost(_)) {
+            self.windows_at_loss = serving.master.late_reply_windows();
+        }
+        end
     }
 
     /// Wait for the next request, or for whatever else needs the loop's attention.
@@ -161,6 +169,13 @@ impl BusTask {
                 None
             }
             Ran::PortLost(error) => {
+                // The request may have reached the slave, which may still answer.
+                let timeout = self.current.derived.timeouts[usize::from(job.slave)];
+                if job.slave != BROADCAST {
+                    serving
+                        .master
+                        .expect_late_reply(job.slave, Instant::now() + timeout);
+                }
                 self.handle.answer(job, Err(RequestError::PortDown));
                 Some(Served::Lost(error))
             }

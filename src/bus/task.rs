@@ -19,6 +19,7 @@ use std::path::Path;
 use std::pin::pin;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, Weak};
+use std::time::Duration;
 use tokio::time::{sleep, sleep_until, Instant};
 use tracing::info;
 
@@ -29,6 +30,11 @@ pub(super) enum Served {
     /// The configuration names another device or format: open again.
     Reopen,
 }
+
+/// After connecting to a device server, how long the line must have been quiet (on top of the
+/// link budget) before the first request: bytes the converter held while nobody was connected
+/// (a reply to a request of before the outage) come at once, and are discarded.
+const CONNECT_SETTLE: Duration = Duration::from_millis(100);
 
 /// How an attempt to open the port ended. One per open, moved once: its size costs nothing.
 #[allow(clippy::large_enum_variant)]
@@ -58,6 +64,9 @@ pub struct BusTask {
     pub(super) trace: BusTap,
     /// The device's Modbus TCP answers have been logged on this connection.
     pub(super) told_wrong_mode: bool,
+    /// The late-reply windows open when the port was lost: a reply to a request of before may
+    /// still come through the reopened port.
+    pub(super) windows_at_loss: Vec<(u8, Instant)>,
 }
 
 impl BusTask {
@@ -92,6 +101,7 @@ impl BusTask {
             health: Health::default(),
             trace,
             told_wrong_mode: false,
+            windows_at_loss: Vec::new(),
         }
     }
 
@@ -146,12 +156,13 @@ impl BusTask {
                         self.current.derived.timing,
                     );
                     self.current.configure(&mut master);
-                    if self.current.device.kind().is_network() {
-                        // A reply to a request of before the outage may still be on its way,
-                        // or held by the converter until someone connects: let it come and go
-                        // before the first request.
-                        let settle = self.current.derived.longest_timeout();
-                        master.keep_quiet_until(Instant::now() + settle);
+                    for (slave, until) in self.windows_at_loss.drain(..) {
+                        master.expect_late_reply(slave, until);
+                    }
+                    if let Some((_, budget, _)) = master.port().link() {
+                        // What a converter held while nobody was connected comes at once:
+                        // let it come (and go) before the first request.
+                        master.keep_quiet_until(Instant::now() + budget + CONNECT_SETTLE);
                     }
                     let end = self.serve(master, &mut stopping).await;
                     self.set_up(false);

@@ -313,7 +313,7 @@ impl<T: Transport> LineMaster<T> {
     }
 
     /// A reply from `slave` may still come until `until`.
-    fn expect_late_reply(&mut self, slave: u8, until: Instant) {
+    pub(crate) fn expect_late_reply(&mut self, slave: u8, until: Instant) {
         let window = &mut self.late_until[usize::from(slave)];
         *window = Some(window.map_or(until, |open| open.max(until)));
     }
@@ -554,6 +554,18 @@ impl<T: Transport> LineMaster<T> {
 }
 
 impl<T> LineMaster<T> {
+    /// Every slave's late-reply window still open, to carry over to the master of a reopened port
+    /// (a reply to a request of before may still come through it).
+    pub(crate) fn late_reply_windows(&self) -> Vec<(u8, Instant)> {
+        let now = Instant::now();
+        (0..=u8::MAX)
+            .filter_map(|slave| {
+                let until = self.late_until[usize::from(slave)]?;
+                (until > now).then_some((slave, until))
+            })
+            .collect()
+    }
+
     /// Until when a reply to an earlier try to `slave` may still come, if that is later than now.
     /// A new request to `slave` should not go out before then: the late reply could pass for its
     /// answer.
