@@ -23,6 +23,7 @@
 //! ser2net, Python with pymodbus (`MBGW_PYTHON`), mbpoll and stty are external tools: without one
 //! a test checks nothing and says so, or fails under `MBGW_REQUIRE_TOOLS=1`.
 
+use crate::peers::python_with_pymodbus;
 use crate::support::{
     tool, wait_for_bus, within, Accepter, Bus, GatewayConfig, RawMaster, Scrape, Ser2net, PATIENCE,
 };
@@ -49,33 +50,6 @@ const LOCAL_UNIT: u8 = 11;
 const SER2NET_SETTINGS: &str = "9600n81";
 /// How often a condition is looked at again.
 const POLL: Duration = Duration::from_millis(10);
-
-/// A Python that has pymodbus and pyserial, from `MBGW_PYTHON` or the PATH; `None` (after saying
-/// so) without one, unless `MBGW_REQUIRE_TOOLS` is set.
-fn python_with_pymodbus() -> Option<OsString> {
-    let can_run = |python: &OsString| {
-        Command::new(python)
-            .args(["-c", "import serial, pymodbus.server, pymodbus.client"])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .status()
-            .is_ok_and(|status| status.success())
-    };
-    if let Some(python) = std::env::var_os("MBGW_PYTHON") {
-        assert!(can_run(&python), "MBGW_PYTHON={python:?} has no pymodbus");
-        return Some(python);
-    }
-    let python = tool("python3")?.into_os_string();
-    if can_run(&python) {
-        return Some(python);
-    }
-    assert!(
-        std::env::var_os("MBGW_REQUIRE_TOOLS").is_none(),
-        "pymodbus is required (MBGW_REQUIRE_TOOLS is set): set MBGW_PYTHON, as .ci/run does"
-    );
-    eprintln!("python3 has no pymodbus and MBGW_PYTHON is not set: this test checks nothing here");
-    None
-}
 
 /// The bytes a slave's cable carried so far, each way.
 #[derive(Default, Clone, Debug, PartialEq)]
@@ -617,6 +591,62 @@ async fn rfc2217_bus_sets_ser2nets_line_to_its_own_format_and_0xff_crosses_both_
     assert!(
         stty_says(&settings, 19_200, true),
         "the pty's settings after the gateway connected:\n{settings}"
+    );
+}
+
+#[tokio::test]
+async fn a_master_cannot_reset_the_converters_line_with_a_telnet_command_hidden_in_its_data() {
+    let Some(python) = python_with_pymodbus() else {
+        return;
+    };
+    let slave = Slave::start(&python, "rtu").await;
+    let Some(ser2net) = Ser2net::start(&slave.path, SER2NET_SETTINGS, Accepter::Rfc2217).await
+    else {
+        return;
+    };
+    let gateway = GatewayConfig::new()
+        .bus(
+            Bus::on("net", &ser2net.device())
+                .baud(19_200)
+                .parity("none")
+                .key("stop_bits", 2u8)
+                .response_timeout("1s"),
+        )
+        .start()
+        .await;
+    wait_for_bus(&gateway, "net", true).await;
+    let mut master = RawMaster::connect(gateway.tcp_addrs()[0]).await;
+    // Registers 0-4 written with the bytes of IAC SB COM-PORT-OPTION SET-BAUDRATE 1200 IAC SE:
+    // unescaped, ser2net would take them as its client's command and run the line at 1200 baud.
+    let command = [0xFF, 0xFA, 0x2C, 0x01, 0x00, 0x00, 0x04, 0xB0, 0xFF, 0xF0];
+    let mut write = vec![0x10, 0x00, 0x00, 0x00, 0x05, 0x0A];
+    write.extend(command);
+    let mut read_back = vec![0x03, 0x0A];
+    read_back.extend(command);
+    within("the write and its read-back", async {
+        assert_eq!(
+            master.call(1, UNIT, &write).await,
+            [0x10, 0x00, 0x00, 0x00, 0x05]
+        );
+        assert_eq!(
+            master.call(2, UNIT, &[0x03, 0x00, 0x00, 0x00, 0x05]).await,
+            read_back
+        );
+    })
+    .await;
+    // The slave got the bytes as data, and the line still runs at what the bus says.
+    let wire = slave
+        .wire_when(|wire| occurrences(&wire.to_slave, &frame("rtu", &write)) == 1)
+        .await;
+    assert_eq!(
+        occurrences(&wire.to_slave, &frame("rtu", &write)),
+        1,
+        "{wire:02X?}"
+    );
+    let settings = pty_settings_until(&slave.path, 19_200, true).await;
+    assert!(
+        stty_says(&settings, 19_200, true),
+        "after the write:\n{settings}"
     );
 }
 
