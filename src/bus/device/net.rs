@@ -101,7 +101,7 @@ pub(super) async fn open(addr: &ServerAddr, format: &SerialFormat) -> io::Result
 
 /// Connect to `host`:`port` (a name is looked up each time, as a converter's address may
 /// change), by [`CONNECT_TIMEOUT`].
-pub(crate) async fn connect(host: &str, port: u16) -> io::Result<NetPort> {
+async fn connect(host: &str, port: u16) -> io::Result<NetPort> {
     let connecting = TcpStream::connect((host, port));
     let stream = tokio::time::timeout(CONNECT_TIMEOUT, connecting)
         .await
