@@ -23,20 +23,19 @@
 //! ser2net, Python with pymodbus (`MBGW_PYTHON`), mbpoll and stty are external tools: without one
 //! a test checks nothing and says so, or fails under `MBGW_REQUIRE_TOOLS=1`.
 
-use crate::peers::python_with_pymodbus;
+use crate::peers::{python_with_pymodbus, Pymodbus as Slave, Wire};
 use crate::support::{
     tool, wait_for_bus, within, Accepter, Bus, GatewayConfig, RawMaster, Scrape, Ser2net, PATIENCE,
 };
 use modbus_gateway::line::rtu;
 use modbus_gateway::Gateway;
 use std::ffi::OsString;
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Duration;
 
-const SLAVE: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/peers/pymodbus_slave.py");
+/// pymodbus's network master (Modbus TCP, RTU over TCP, UDP), one request per argument set.
 const NET_MASTER: &str = concat!(
     env!("CARGO_MANIFEST_DIR"),
     "/tests/peers/pymodbus_net_master.py"
@@ -50,95 +49,6 @@ const LOCAL_UNIT: u8 = 11;
 const SER2NET_SETTINGS: &str = "9600n81";
 /// How often a condition is looked at again.
 const POLL: Duration = Duration::from_millis(10);
-
-/// The bytes a slave's cable carried so far, each way.
-#[derive(Default, Clone, Debug, PartialEq)]
-struct Wire {
-    to_slave: Vec<u8>,
-    to_master: Vec<u8>,
-}
-
-/// `tests/peers/pymodbus_slave.py`, running: device [`UNIT`], holding registers 0-9 = 1000-1009,
-/// input registers 0-9 = 2000-2009, coils on at multiples of 3, discrete inputs on where odd.
-/// Killed when dropped.
-struct Slave {
-    child: Child,
-    /// The master's end of the cable: what ser2net or the gateway opens.
-    path: String,
-    wire: Arc<Mutex<Wire>>,
-}
-
-impl Slave {
-    /// The script with `framer` (`rtu`, `ascii`), once pymodbus has its port open.
-    async fn start(python: &OsString, framer: &str) -> Slave {
-        let mut child = Command::new(python)
-            .args([SLAVE, framer])
-            // The script exits when its stdin closes, should the kill be missed.
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .expect("python starts");
-        let stdout = child.stdout.take().expect("piped stdout");
-        let (ready, path) = tokio::sync::oneshot::channel();
-        let wire = Arc::new(Mutex::new(Wire::default()));
-        let log = Arc::clone(&wire);
-        std::thread::spawn(move || {
-            let mut ready = Some(ready);
-            for line in BufReader::new(stdout).lines() {
-                let Ok(line) = line else { return };
-                let Some((what, value)) = line.split_once(' ') else {
-                    continue;
-                };
-                let mut wire = log.lock().unwrap();
-                match what {
-                    "ready" => {
-                        if let Some(ready) = ready.take() {
-                            let _ = ready.send(value.to_owned());
-                        }
-                    }
-                    "to-slave" => wire.to_slave.extend(unhex(value)),
-                    "to-gateway" => wire.to_master.extend(unhex(value)),
-                    _ => {}
-                }
-            }
-        });
-        let path = within("pymodbus opens its port", path)
-            .await
-            .expect("the script says `ready PATH` (its errors are above)");
-        Slave { child, path, wire }
-    }
-
-    fn wire(&self) -> Wire {
-        self.wire.lock().unwrap().clone()
-    }
-
-    /// The wire once `done` holds for it; the last one seen after the patience, whatever it is.
-    async fn wire_when(&self, done: impl Fn(&Wire) -> bool) -> Wire {
-        let deadline = tokio::time::Instant::now() + PATIENCE;
-        loop {
-            let wire = self.wire();
-            if done(&wire) || tokio::time::Instant::now() >= deadline {
-                return wire;
-            }
-            tokio::time::sleep(POLL).await;
-        }
-    }
-}
-
-impl Drop for Slave {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn unhex(text: &str) -> Vec<u8> {
-    (0..text.len())
-        .step_by(2)
-        .map(|i| u8::from_str_radix(&text[i..i + 2], 16).expect("the script writes hex"))
-        .collect()
-}
 
 /// Each PDU as an RTU frame to or from [`UNIT`], back to back: what an RTU line carries.
 fn frames(pdus: &[&[u8]]) -> Vec<u8> {
@@ -256,9 +166,9 @@ struct TwoLines {
 impl TwoLines {
     async fn start(framing: &'static str) -> Option<TwoLines> {
         let python = python_with_pymodbus()?;
-        let net = Slave::start(&python, framing).await;
+        let net = Slave::start(framing).await?;
         let ser2net = Ser2net::start(&net.path, SER2NET_SETTINGS, Accepter::Raw).await?;
-        let local = Slave::start(&python, framing).await;
+        let local = Slave::start(framing).await?;
         let line = |bus: Bus| {
             bus.baud(115_200)
                 .parity("none")
@@ -330,7 +240,7 @@ impl TwoLines {
         let (request, reply) = CASES[CASES.len() - 1];
         let (request, reply) = (frame(self.framing, request), frame(self.framing, reply));
         let complete =
-            |wire: &Wire| wire.to_slave.ends_with(&request) && wire.to_master.ends_with(&reply);
+            |wire: &Wire| wire.to_slave.ends_with(&request) && wire.to_gateway.ends_with(&reply);
         let local = self.local.wire_when(complete).await;
         let net = self.net.wire_when(complete).await;
         assert!(complete(&local), "the local cable: {local:02X?}");
@@ -381,10 +291,10 @@ const CASES: [(&[u8], &[u8]); 9] = [
 
 #[tokio::test]
 async fn ser2net_raw_carries_pymodbus_rtu_over_tcp_client_to_the_pty_slave() {
-    let Some(python) = python_with_pymodbus() else {
+    let Some(slave) = Slave::start("rtu").await else {
         return;
     };
-    let slave = Slave::start(&python, "rtu").await;
+    let python = python_with_pymodbus().expect("the slave's Python");
     let Some(ser2net) = Ser2net::start(&slave.path, SER2NET_SETTINGS, Accepter::Raw).await else {
         return;
     };
@@ -463,10 +373,9 @@ fn the_stty_reading_tells_one_stop_bit_from_two() {
 #[tokio::test]
 async fn ser2net_rfc2217_sets_the_pty_from_what_a_client_sends_and_not_otherwise() {
     use tokio::io::AsyncWriteExt;
-    let Some(python) = python_with_pymodbus() else {
+    let Some(slave) = Slave::start("rtu").await else {
         return;
     };
-    let slave = Slave::start(&python, "rtu").await;
     let Some(ser2net) = Ser2net::start(&slave.path, SER2NET_SETTINGS, Accepter::Rfc2217).await
     else {
         return;
@@ -506,8 +415,8 @@ async fn pymodbus_and_mbpoll_reach_an_rtu_slave_behind_ser2net_as_on_a_local_lin
         .await;
     // RTU: the very frames of the requests and the answers, each as the spec has it.
     let replies: Vec<&[u8]> = CASES.iter().map(|(_, reply)| *reply).collect();
-    let wire = lines.net.wire();
-    assert!(wire.to_master.ends_with(&frames(&replies)), "{wire:02X?}");
+    let wire = lines.net.wire_now();
+    assert!(wire.to_gateway.ends_with(&frames(&replies)), "{wire:02X?}");
 }
 
 #[tokio::test]
@@ -518,9 +427,9 @@ async fn pymodbus_and_mbpoll_reach_an_ascii_slave_behind_ser2net_as_on_a_local_l
     lines
         .third_party_masters_get_the_local_lines_answers()
         .await;
-    let wire = lines.net.wire();
+    let wire = lines.net.wire_now();
     assert!(
-        wire.to_slave.starts_with(b":") && wire.to_master.ends_with(b"\r\n"),
+        wire.to_slave.starts_with(b":") && wire.to_gateway.ends_with(b"\r\n"),
         "ASCII on the cable: {:?}",
         String::from_utf8_lossy(&wire.to_slave)
     );
@@ -528,10 +437,9 @@ async fn pymodbus_and_mbpoll_reach_an_ascii_slave_behind_ser2net_as_on_a_local_l
 
 #[tokio::test]
 async fn rfc2217_bus_sets_ser2nets_line_to_its_own_format_and_0xff_crosses_both_ways() {
-    let Some(python) = python_with_pymodbus() else {
+    let Some(slave) = Slave::start("rtu").await else {
         return;
     };
-    let slave = Slave::start(&python, "rtu").await;
     let Some(ser2net) = Ser2net::start(&slave.path, SER2NET_SETTINGS, Accepter::Rfc2217).await
     else {
         return;
@@ -582,7 +490,7 @@ async fn rfc2217_bus_sets_ser2nets_line_to_its_own_format_and_0xff_crosses_both_
     let (requests, replies): (Vec<&[u8]>, Vec<&[u8]>) = cases.iter().copied().unzip();
     let expected = Wire {
         to_slave: frames(&requests),
-        to_master: frames(&replies),
+        to_gateway: frames(&replies),
     };
     let wire = slave.wire_when(|wire| *wire == expected).await;
     assert_eq!(wire, expected, "every FF once on the cable, either way");
@@ -596,10 +504,9 @@ async fn rfc2217_bus_sets_ser2nets_line_to_its_own_format_and_0xff_crosses_both_
 
 #[tokio::test]
 async fn a_master_cannot_reset_the_converters_line_with_a_telnet_command_hidden_in_its_data() {
-    let Some(python) = python_with_pymodbus() else {
+    let Some(slave) = Slave::start("rtu").await else {
         return;
     };
-    let slave = Slave::start(&python, "rtu").await;
     let Some(ser2net) = Ser2net::start(&slave.path, SER2NET_SETTINGS, Accepter::Rfc2217).await
     else {
         return;
@@ -652,10 +559,9 @@ async fn a_master_cannot_reset_the_converters_line_with_a_telnet_command_hidden_
 
 #[tokio::test]
 async fn rfc2217_bus_sets_the_line_again_when_it_reconnects_to_a_restarted_ser2net() {
-    let Some(python) = python_with_pymodbus() else {
+    let Some(slave) = Slave::start("rtu").await else {
         return;
     };
-    let slave = Slave::start(&python, "rtu").await;
     let Some(mut ser2net) = Ser2net::start(&slave.path, SER2NET_SETTINGS, Accepter::Rfc2217).await
     else {
         return;
@@ -713,10 +619,9 @@ async fn rfc2217_bus_sets_the_line_again_when_it_reconnects_to_a_restarted_ser2n
 async fn a_reply_left_in_the_pty_while_ser2net_was_down_is_not_the_answer_after_the_reconnect() {
     use std::io::Write;
     use std::os::unix::fs::OpenOptionsExt;
-    let Some(python) = python_with_pymodbus() else {
+    let Some(slave) = Slave::start("rtu").await else {
         return;
     };
-    let slave = Slave::start(&python, "rtu").await;
     let Some(mut ser2net) = Ser2net::start(&slave.path, SER2NET_SETTINGS, Accepter::Raw).await
     else {
         return;
@@ -747,10 +652,10 @@ async fn a_reply_left_in_the_pty_while_ser2net_was_down_is_not_the_answer_after_
         .expect("open the pty");
     pty.write_all(&stale_read).expect("write to the pty");
     let wire = slave
-        .wire_when(|wire| wire.to_master.ends_with(&stale_reply))
+        .wire_when(|wire| wire.to_gateway.ends_with(&stale_reply))
         .await;
     assert!(
-        wire.to_master.ends_with(&stale_reply),
+        wire.to_gateway.ends_with(&stale_reply),
         "the slave answers: {wire:02X?}"
     );
     drop(pty);
@@ -870,10 +775,9 @@ fn write_9(n: u16) -> Vec<u8> {
 #[tokio::test]
 async fn ser2net_restarted_mid_traffic_gives_0x0a_then_the_gateway_reconnects_with_back_off_and_no_write_twice(
 ) {
-    let Some(python) = python_with_pymodbus() else {
+    let Some(slave) = Slave::start("rtu").await else {
         return;
     };
-    let slave = Slave::start(&python, "rtu").await;
     let Some(mut ser2net) = Ser2net::start(&slave.path, SER2NET_SETTINGS, Accepter::Raw).await
     else {
         return;

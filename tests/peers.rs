@@ -78,24 +78,25 @@ pub(crate) fn python_with_pymodbus() -> Option<OsString> {
 }
 
 /// The bytes the script's cable carried so far, each way.
-#[derive(Default)]
-struct Wire {
-    to_slave: Vec<u8>,
-    to_gateway: Vec<u8>,
+#[derive(Clone, Debug, Default, PartialEq)]
+pub(crate) struct Wire {
+    pub(crate) to_slave: Vec<u8>,
+    pub(crate) to_gateway: Vec<u8>,
 }
 
-/// The slave script, running; killed when dropped, whatever the test's outcome.
-struct Pymodbus {
+/// The slave script, running; killed when dropped, whatever the test's outcome. Also the far end
+/// of `device_server`'s ser2net.
+pub(crate) struct Pymodbus {
     child: Child,
-    /// The gateway's end of the cable.
-    path: String,
+    /// The gateway's end of the cable (or ser2net's).
+    pub(crate) path: String,
     wire: Arc<Mutex<Wire>>,
 }
 
 impl Pymodbus {
     /// Start the script with `framer` (`rtu`, `ascii`) and wait until pymodbus has its port
     /// open; `None` without Python.
-    async fn start(framer: &str) -> Option<Pymodbus> {
+    pub(crate) async fn start(framer: &str) -> Option<Pymodbus> {
         let python = python_with_pymodbus()?;
         let mut child = Command::new(python)
             .args([SCRIPT, framer])
@@ -140,6 +141,23 @@ impl Pymodbus {
         Some(slave)
     }
 
+    /// What the cable carried so far.
+    pub(crate) fn wire_now(&self) -> Wire {
+        self.wire.lock().unwrap().clone()
+    }
+
+    /// The wire once `done` holds for it; the last one seen after the patience, whatever it is.
+    pub(crate) async fn wire_when(&self, done: impl Fn(&Wire) -> bool) -> Wire {
+        let deadline = tokio::time::Instant::now() + crate::support::PATIENCE;
+        loop {
+            let wire = self.wire_now();
+            if done(&wire) || tokio::time::Instant::now() >= deadline {
+                return wire;
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    }
+
     /// The wire, once it carried at least these many bytes each way.
     async fn wire(&self, to_slave: usize, to_gateway: usize) -> (Vec<u8>, Vec<u8>) {
         within("the wire log", async {
@@ -164,7 +182,7 @@ impl Drop for Pymodbus {
     }
 }
 
-fn unhex(text: &str) -> Vec<u8> {
+pub(crate) fn unhex(text: &str) -> Vec<u8> {
     (0..text.len())
         .step_by(2)
         .map(|i| u8::from_str_radix(&text[i..i + 2], 16).expect("the script writes hex"))
