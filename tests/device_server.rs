@@ -50,6 +50,22 @@ const SER2NET_SETTINGS: &str = "9600n81";
 /// How often a condition is looked at again.
 const POLL: Duration = Duration::from_millis(10);
 
+/// pymodbus's RTU slave behind ser2net (its `accepter`), and a gateway whose bus `net` is that
+/// ser2net with the keys `keys` sets, connected; `None` (having said why) without the tools.
+async fn rtu_slave_behind_ser2net(
+    accepter: Accepter,
+    keys: impl FnOnce(Bus) -> Bus,
+) -> Option<(Slave, Ser2net, Gateway)> {
+    let slave = Slave::start("rtu").await?;
+    let ser2net = Ser2net::start(&slave.path, SER2NET_SETTINGS, accepter).await?;
+    let gateway = GatewayConfig::new()
+        .bus(keys(Bus::on("net", &ser2net.device())))
+        .start()
+        .await;
+    wait_for_bus(&gateway, "net", true).await;
+    Some((slave, ser2net, gateway))
+}
+
 /// Each PDU as an RTU frame to or from [`UNIT`], back to back: what an RTU line carries.
 fn frames(pdus: &[&[u8]]) -> Vec<u8> {
     pdus.iter().flat_map(|pdu| rtu::encode(UNIT, pdu)).collect()
@@ -504,24 +520,16 @@ async fn rfc2217_bus_sets_ser2nets_line_to_its_own_format_and_0xff_crosses_both_
 
 #[tokio::test]
 async fn a_master_cannot_reset_the_converters_line_with_a_telnet_command_hidden_in_its_data() {
-    let Some(slave) = Slave::start("rtu").await else {
-        return;
-    };
-    let Some(ser2net) = Ser2net::start(&slave.path, SER2NET_SETTINGS, Accepter::Rfc2217).await
+    let Some((slave, _ser2net, gateway)) = rtu_slave_behind_ser2net(Accepter::Rfc2217, |bus| {
+        bus.baud(19_200)
+            .parity("none")
+            .key("stop_bits", 2u8)
+            .response_timeout("1s")
+    })
+    .await
     else {
         return;
     };
-    let gateway = GatewayConfig::new()
-        .bus(
-            Bus::on("net", &ser2net.device())
-                .baud(19_200)
-                .parity("none")
-                .key("stop_bits", 2u8)
-                .response_timeout("1s"),
-        )
-        .start()
-        .await;
-    wait_for_bus(&gateway, "net", true).await;
     let mut master = RawMaster::connect(gateway.tcp_addrs()[0]).await;
     // Registers 0-4 written with the bytes of IAC SB COM-PORT-OPTION SET-BAUDRATE 1200 IAC SE:
     // unescaped, ser2net would take them as its client's command and run the line at 1200 baud.
@@ -559,25 +567,17 @@ async fn a_master_cannot_reset_the_converters_line_with_a_telnet_command_hidden_
 
 #[tokio::test]
 async fn rfc2217_bus_sets_the_line_again_when_it_reconnects_to_a_restarted_ser2net() {
-    let Some(slave) = Slave::start("rtu").await else {
-        return;
-    };
-    let Some(mut ser2net) = Ser2net::start(&slave.path, SER2NET_SETTINGS, Accepter::Rfc2217).await
+    let Some((slave, mut ser2net, gateway)) = rtu_slave_behind_ser2net(Accepter::Rfc2217, |bus| {
+        bus.baud(19_200)
+            .parity("none")
+            .key("stop_bits", 2u8)
+            .response_timeout("1s")
+            .key("reopen_delay", "100ms")
+    })
+    .await
     else {
         return;
     };
-    let gateway = GatewayConfig::new()
-        .bus(
-            Bus::on("net", &ser2net.device())
-                .baud(19_200)
-                .parity("none")
-                .key("stop_bits", 2u8)
-                .response_timeout("1s")
-                .key("reopen_delay", "100ms"),
-        )
-        .start()
-        .await;
-    wait_for_bus(&gateway, "net", true).await;
     let settings = pty_settings_until(&slave.path, 19_200, true).await;
     assert!(
         stty_says(&settings, 19_200, true),
@@ -619,25 +619,17 @@ async fn rfc2217_bus_sets_the_line_again_when_it_reconnects_to_a_restarted_ser2n
 async fn a_reply_left_in_the_pty_while_ser2net_was_down_is_not_the_answer_after_the_reconnect() {
     use std::io::Write;
     use std::os::unix::fs::OpenOptionsExt;
-    let Some(slave) = Slave::start("rtu").await else {
-        return;
-    };
-    let Some(mut ser2net) = Ser2net::start(&slave.path, SER2NET_SETTINGS, Accepter::Raw).await
+    let Some((slave, mut ser2net, gateway)) = rtu_slave_behind_ser2net(Accepter::Raw, |bus| {
+        bus.baud(115_200)
+            .parity("none")
+            .response_timeout("1s")
+            .key("reopen_delay", "100ms")
+            .key("reopen_delay_max", "100ms")
+    })
+    .await
     else {
         return;
     };
-    let gateway = GatewayConfig::new()
-        .bus(
-            Bus::on("net", &ser2net.device())
-                .baud(115_200)
-                .parity("none")
-                .response_timeout("1s")
-                .key("reopen_delay", "100ms")
-                .key("reopen_delay_max", "100ms"),
-        )
-        .start()
-        .await;
-    wait_for_bus(&gateway, "net", true).await;
     ser2net.stop();
     wait_for_bus(&gateway, "net", false).await;
     // While ser2net is down, a read of register 1 goes to the slave from the pty's own side, and
@@ -775,25 +767,17 @@ fn write_9(n: u16) -> Vec<u8> {
 #[tokio::test]
 async fn ser2net_restarted_mid_traffic_gives_0x0a_then_the_gateway_reconnects_with_back_off_and_no_write_twice(
 ) {
-    let Some(slave) = Slave::start("rtu").await else {
-        return;
-    };
-    let Some(mut ser2net) = Ser2net::start(&slave.path, SER2NET_SETTINGS, Accepter::Raw).await
+    let Some((slave, mut ser2net, gateway)) = rtu_slave_behind_ser2net(Accepter::Raw, |bus| {
+        bus.baud(115_200)
+            .parity("none")
+            .response_timeout("1s")
+            .key("reopen_delay", "100ms")
+            .key("reopen_delay_max", "400ms")
+    })
+    .await
     else {
         return;
     };
-    let gateway = GatewayConfig::new()
-        .bus(
-            Bus::on("net", &ser2net.device())
-                .baud(115_200)
-                .parity("none")
-                .response_timeout("1s")
-                .key("reopen_delay", "100ms")
-                .key("reopen_delay_max", "400ms"),
-        )
-        .start()
-        .await;
-    wait_for_bus(&gateway, "net", true).await;
 
     let stop = Arc::new(AtomicBool::new(false));
     let tallies: Vec<Arc<Tally>> = (0..4).map(|_| Arc::default()).collect();
