@@ -150,20 +150,7 @@ impl BusTask {
                     self.adjust_latency_timer();
                     self.told_wrong_mode = false;
                     delay = self.current.settings.reopen_delay;
-                    let mut master = LineMaster::new(
-                        port,
-                        self.current.derived.framing,
-                        self.current.derived.timing,
-                    );
-                    self.current.configure(&mut master);
-                    for (slave, until) in self.windows_at_loss.drain(..) {
-                        master.expect_late_reply(slave, until);
-                    }
-                    if let Some((_, budget, _)) = master.port().link() {
-                        // What a converter held while nobody was connected comes at once:
-                        // let it come (and go) before the first request.
-                        master.keep_quiet_until(Instant::now() + budget + CONNECT_SETTLE);
-                    }
+                    let master = self.master_on(port);
                     let end = self.serve(master, &mut stopping).await;
                     self.set_up(false);
                     match end {
@@ -199,6 +186,23 @@ impl BusTask {
             delay = (delay * 2).min(self.current.settings.reopen_delay_max);
         }
         self.finish();
+    }
+
+    /// The line's master on a freshly opened `port`, configured. A slave that may still answer a
+    /// request of before the port was lost keeps its late-reply window; a device server's line
+    /// is kept quiet a while first, since what its converter held while nobody was connected
+    /// comes at once.
+    fn master_on(&mut self, port: Port) -> LineMaster<Port> {
+        let derived = &self.current.derived;
+        let mut master = LineMaster::new(port, derived.framing, derived.timing);
+        self.current.configure(&mut master);
+        for (slave, until) in self.windows_at_loss.drain(..) {
+            master.expect_late_reply(slave, until);
+        }
+        if let Some((_, budget, _)) = master.port().link() {
+            master.keep_quiet_until(Instant::now() + budget + CONNECT_SETTLE);
+        }
+        master
     }
 
     /// Open the configured device, showing a heartbeat meanwhile (a connect to a device server
