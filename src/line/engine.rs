@@ -195,6 +195,10 @@ impl RecordedFrame {
     }
 }
 
+/// Frames recorded for the trace at most between two tries, when they are stray bytes: the rest
+/// are only counted.
+const MAX_STALE_RECORDS: usize = 32;
+
 pub(crate) struct LineMaster<T> {
     port: T,
     framing: Framing,
@@ -338,7 +342,9 @@ impl<T: Transport> LineMaster<T> {
         self.counters.stray_bytes += n as u64;
         self.counters.received_bytes += n as u64;
         self.quiet_until = Instant::now() + self.timing.gap;
-        if self.recording {
+        // Bounded: a line that babbles while nobody asks anything would grow the record until
+        // the next try publishes it.
+        if self.recording && self.recorded.len() < MAX_STALE_RECORDS {
             let bytes = &self.rx[self.rx.len() - n..];
             let (address, function) = self.framing.header(bytes);
             let (address, function) = (address.unwrap_or(0), function.unwrap_or(0));

@@ -161,3 +161,23 @@ async fn stale_bytes_are_counted_as_stray_and_recorded_for_the_trace_before_the_
     assert_eq!(master.counters().stray_bytes, 2);
     drop(answering.await.unwrap());
 }
+
+#[tokio::test]
+async fn a_line_that_babbles_while_nobody_asks_is_counted_but_recorded_only_so_far() {
+    use crate::line::{Framing, LineMaster, LineTiming, MasterTiming, Parity, SerialFormat};
+    let timing = LineTiming::new(&SerialFormat {
+        baud: 115_200,
+        data_bits: 8,
+        parity: Parity::None,
+        stop_bits: 2,
+    });
+    let (port, mut far) = port(None);
+    let mut master = LineMaster::new(port, Framing::Rtu, MasterTiming::new(timing, MS, MS));
+    master.record_frames(true);
+    for _ in 0..100 {
+        far.write_all(&[0x55]).await.unwrap();
+        assert_eq!(master.watch_idle().await.unwrap(), 1);
+    }
+    assert_eq!(master.counters().stray_bytes, 100);
+    assert_eq!(master.recorded().count(), 32);
+}
