@@ -8,7 +8,6 @@
 use crate::bus::{BusHandle, Tally, Waiter};
 use crate::config::UnitSet;
 use crate::error::{Outcome, RequestError};
-use crate::line::BROADCAST;
 use crate::master::{MasterId, Origin, Protocol, Rights};
 use crate::metrics::{Metrics, Refusal};
 use crate::pdu::{self, RequestLen};
@@ -199,9 +198,7 @@ fn admit(
     } else {
         match target {
             None => RequestError::NoRoute(unit),
-            Some(target)
-                if target.address == BROADCAST && pdu::broadcast_response(pdu).is_none() =>
-            {
+            Some(target) if target.broadcast && pdu::broadcast_response(pdu).is_none() => {
                 RequestError::NotBroadcastable(function)
             }
             Some(target) => return Ok(target),

@@ -1,18 +1,33 @@
 //! Unit id to (bus, slave address): the `[[route]]` entries first, then the default (with exactly
-//! one bus, unit id = slave address 0-247; with several, nothing). A pure table built once. The
+//! one bus, unit id = slave address 0-247, or 0-255 on a Modbus TCP device; with several,
+//! nothing). A pure table built once. The
 //! rule that turns a routed unit into an address is the config's
 //! [`Route::target`](crate::config::Route::target), which the config's check uses too: routing
 //! reads the config, never the other way round.
 
-use crate::config::{Config, MAX_SLAVE_ADDRESS};
+use crate::config::Config;
+use crate::line::BROADCAST;
 
 /// Where a unit's requests go.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(crate) struct Target {
     /// Index into the configured buses.
     pub bus: usize,
-    /// Slave address on that bus; 0 is broadcast.
+    /// Slave address on that bus.
     pub address: u8,
+    /// The address is every slave's: 0 on a serial line (not on a Modbus TCP device).
+    pub broadcast: bool,
+}
+
+impl Target {
+    fn on(bus: usize, address: u8, config: &Config) -> Target {
+        let broadcasts = config.bus[bus].framing.broadcasts();
+        Target {
+            bus,
+            address,
+            broadcast: address == BROADCAST && broadcasts,
+        }
+    }
 }
 
 #[derive(Clone, Debug)]
@@ -24,17 +39,19 @@ impl Router {
     /// Build the table from a validated configuration.
     pub fn new(config: &Config) -> Router {
         let mut table = [None; 256];
-        if config.bus.len() == 1 {
-            for address in 0..=MAX_SLAVE_ADDRESS {
-                table[usize::from(address)] = Some(Target { bus: 0, address });
+        if let [only] = &config.bus[..] {
+            for address in 0..=only.framing.highest_address() {
+                table[usize::from(address)] = Some(Target::on(0, address, config));
             }
         }
         for route in &config.route {
             let bus = config.bus.iter().position(|b| b.name == route.bus);
             for unit in route.units.iter() {
-                table[usize::from(unit)] = bus
-                    .zip(route.target(unit))
-                    .map(|(bus, address)| Target { bus, address });
+                table[usize::from(unit)] = bus.and_then(|bus| {
+                    let highest = config.bus[bus].framing.highest_address();
+                    let address = route.target(unit, highest)?;
+                    Some(Target::on(bus, address, config))
+                });
             }
         }
         Router { table }
@@ -49,6 +66,15 @@ impl Router {
 mod tests {
     use super::*;
 
+    /// On a serial line, where address 0 is a broadcast.
+    fn at(bus: usize, address: u8) -> Target {
+        Target {
+            bus,
+            address,
+            broadcast: address == 0,
+        }
+    }
+
     fn router(text: &str) -> Router {
         Router::new(&Config::from_toml_str(text).unwrap())
     }
@@ -60,21 +86,9 @@ mod tests {
     #[test]
     fn with_one_bus_and_no_routes_the_unit_is_the_slave_address() {
         let r = router(ONE_BUS);
-        assert_eq!(r.resolve(0), Some(Target { bus: 0, address: 0 }));
-        assert_eq!(
-            r.resolve(17),
-            Some(Target {
-                bus: 0,
-                address: 17
-            })
-        );
-        assert_eq!(
-            r.resolve(247),
-            Some(Target {
-                bus: 0,
-                address: 247
-            })
-        );
+        assert_eq!(r.resolve(0), Some(at(0, 0)));
+        assert_eq!(r.resolve(17), Some(at(0, 17)));
+        assert_eq!(r.resolve(247), Some(at(0, 247)));
         assert_eq!(r.resolve(248), None);
         assert_eq!(r.resolve(255), None);
     }
@@ -85,21 +99,9 @@ mod tests {
             "{ONE_BUS}[[route]]\nunits = \"255\"\nbus = \"line1\"\naddress = 17\n\
              [[route]]\nunits = \"1-2\"\nbus = \"line1\"\noffset = 10\n"
         ));
-        assert_eq!(
-            r.resolve(255),
-            Some(Target {
-                bus: 0,
-                address: 17
-            })
-        );
-        assert_eq!(
-            r.resolve(1),
-            Some(Target {
-                bus: 0,
-                address: 11
-            })
-        );
-        assert_eq!(r.resolve(3), Some(Target { bus: 0, address: 3 }));
+        assert_eq!(r.resolve(255), Some(at(0, 17)));
+        assert_eq!(r.resolve(1), Some(at(0, 11)));
+        assert_eq!(r.resolve(3), Some(at(0, 3)));
     }
 
     #[test]
@@ -108,9 +110,31 @@ mod tests {
             "{TWO_BUSES}[[route]]\nunits = \"1-10\"\nbus = \"a\"\n\
              [[route]]\nunits = \"101-110\"\nbus = \"b\"\noffset = -100\n"
         ));
-        assert_eq!(r.resolve(5), Some(Target { bus: 0, address: 5 }));
-        assert_eq!(r.resolve(105), Some(Target { bus: 1, address: 5 }));
+        assert_eq!(r.resolve(5), Some(at(0, 5)));
+        assert_eq!(r.resolve(105), Some(at(1, 5)));
         assert_eq!(r.resolve(50), None);
         assert_eq!(r.resolve(0), None);
+    }
+
+    #[test]
+    fn on_a_modbus_tcp_device_units_0_to_255_are_its_own_and_0_is_no_broadcast() {
+        let r = router(
+            "[[bus]]\nname = \"inverter\"\ndevice = \"tcp://10.0.0.9:502\"\nframing = \"tcp\"\n",
+        );
+        let unit = |bus, address| Target {
+            bus,
+            address,
+            broadcast: false,
+        };
+        assert_eq!(r.resolve(0), Some(unit(0, 0)));
+        assert_eq!(r.resolve(255), Some(unit(0, 255)));
+        let remapped = router(
+            "[[bus]]\nname = \"inverter\"\ndevice = \"tcp://10.0.0.9:502\"\nframing = \"tcp\"\n\
+             [[bus]]\nname = \"line\"\ndevice = \"sim\"\n\
+             [[route]]\nunits = \"1\"\nbus = \"inverter\"\naddress = 0\n\
+             [[route]]\nunits = \"2\"\nbus = \"line\"\naddress = 0\n",
+        );
+        assert_eq!(remapped.resolve(1), Some(unit(0, 0)));
+        assert_eq!(remapped.resolve(2), Some(at(1, 0)));
     }
 }

@@ -171,7 +171,7 @@ async fn a_device_server_that_goes_away_gets_0x0a_at_once_and_is_reconnected_whe
 
 /// pymodbus's Modbus TCP server on a free port, or `None` (and why) without pymodbus. It exits
 /// when the child's stdin closes, with the `Child` dropped.
-async fn pymodbus_tcp_server() -> Option<(std::process::Child, u16)> {
+pub(crate) async fn pymodbus_tcp_server() -> Option<(std::process::Child, u16)> {
     let python = crate::peers::python_with_pymodbus()?;
     let script = concat!(
         env!("CARGO_MANIFEST_DIR"),

@@ -34,6 +34,8 @@
 //! - `reads`: many masters, one read: coalescing and its freshness, `coalesce_reads = false`,
 //!   the cache, priority masters and their share of the line.
 //! - `rtu_over_tcp`: masters sending plain RTU frames on TCP: framing, bad CRCs, exceptions as RTU.
+//! - `tcp_device`: a Modbus TCP device behind the gateway (`framing = "tcp"`): one connection for
+//!   many masters, replies matched by transaction id, unit 0, `connect_delay`, a restart.
 //! - `tls`: Modbus/TCP Security: roles, refused certificates, handshake timeout, many TLS masters.
 //! - `udp`: Modbus UDP masters: replies to their source, access lists, what is dropped.
 //! - `simulate`: the `simulate` subcommand answering RTU masters on a pty.
@@ -80,6 +82,7 @@ mod service;
 mod simulate;
 mod status;
 mod tcp;
+mod tcp_device;
 mod tls;
 mod trace;
 mod transparency;

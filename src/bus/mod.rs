@@ -51,6 +51,8 @@ struct Heartbeat {
 /// per slave whether reads coalesce and how old a cached answer may be.
 pub(crate) struct Intake {
     queue_timeout: Duration,
+    /// Address 0 is a broadcast on this line (not on a Modbus TCP device's).
+    broadcasts: bool,
     coalesce: Box<[bool; 256]>,
     cache: Box<[Duration; 256]>,
 }
@@ -59,6 +61,7 @@ impl Intake {
     pub(crate) fn of(settings: &config::Bus) -> Intake {
         let mut intake = Intake {
             queue_timeout: settings.queue_timeout,
+            broadcasts: settings.framing.broadcasts(),
             coalesce: Box::new([settings.coalesce_reads; 256]),
             cache: Box::new([Duration::ZERO; 256]),
         };
@@ -166,7 +169,9 @@ impl BusHandle {
             let at = usize::from(slave);
             (
                 Instant::now() + intake.queue_timeout,
-                intake.coalesce[at] && slave != crate::line::BROADCAST && pdu::is_read_only(&pdu),
+                intake.coalesce[at]
+                    && (slave != crate::line::BROADCAST || !intake.broadcasts)
+                    && pdu::is_read_only(&pdu),
                 intake.cache[at],
             )
         };

@@ -141,11 +141,12 @@ impl BusTask {
     /// is down. Returns why serving ends, if it does.
     async fn run_job(&mut self, serving: &mut Serving<'_>, job: Job) -> Option<Served> {
         let job = self.settle_waiters(job)?;
-        let admission = match job.slave {
-            BROADCAST => Admission::Send,
-            slave => self
-                .health
-                .admit(slave, Instant::now(), self.current.derived.down),
+        let broadcast = job.slave == BROADCAST && self.current.derived.framing.broadcasts();
+        let admission = if broadcast {
+            Admission::Send
+        } else {
+            self.health
+                .admit(job.slave, Instant::now(), self.current.derived.down)
         };
         if let Admission::Skip { timeouts } = admission {
             self.handle
@@ -171,7 +172,7 @@ impl BusTask {
             Ran::PortLost(error) => {
                 // The request may have reached the slave, which may still answer.
                 let timeout = self.current.derived.timeouts[usize::from(job.slave)];
-                if job.slave != BROADCAST {
+                if job.slave != BROADCAST || !self.current.derived.framing.broadcasts() {
                     serving
                         .master
                         .expect_late_reply(job.slave, Instant::now() + timeout);

@@ -192,15 +192,24 @@ impl BusTask {
     /// request of before the port was lost keeps its late-reply window; a device server's line
     /// is kept quiet a while first, since what its converter held while nobody was connected
     /// comes at once.
+    /// `connect_delay` after a connect, as a device may need, comes on top. A Modbus TCP
+    /// device's connection carries nothing of an earlier one, so it needs neither.
     fn master_on(&mut self, port: Port) -> LineMaster<Port> {
         let derived = &self.current.derived;
+        let serial = derived.framing.broadcasts();
         let mut master = LineMaster::new(port, derived.framing, derived.timing);
         self.current.configure(&mut master);
-        for (slave, until) in self.windows_at_loss.drain(..) {
+        for (slave, until) in self.windows_at_loss.drain(..).filter(|_| serial) {
             master.expect_late_reply(slave, until);
         }
         if let Some((_, budget, _)) = master.port().link() {
-            master.keep_quiet_until(Instant::now() + budget + CONNECT_SETTLE);
+            let settle = if serial {
+                budget + CONNECT_SETTLE
+            } else {
+                Duration::ZERO
+            };
+            let delay = self.current.settings.connect_delay;
+            master.keep_quiet_until(Instant::now() + settle.max(delay));
         }
         master
     }

@@ -226,7 +226,7 @@ async fn health_through_failing_down_and_back(framing: Framing) {
     let line = SimLine::with_framing(settings(&keys).line_timing(), framing);
     let reply = || {
         let mut frame = Vec::new();
-        framing.encode_into(&mut frame, 1, &[0x03, 0x04, 0, 1, 0, 2]);
+        framing.encode_into(&mut frame, 0, 1, &[0x03, 0x04, 0, 1, 0, 2]);
         Some(Transmission {
             bytes: frame,
             delay: Duration::ZERO,

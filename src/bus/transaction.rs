@@ -55,7 +55,7 @@ impl BusTask {
         // The one cost of the trace with nobody watching: this load.
         let tracing = self.trace.hub().active();
         master.record_frames(tracing);
-        if job.slave == BROADCAST {
+        if job.slave == BROADCAST && self.current.derived.framing.broadcasts() {
             return self.broadcast(master, job, tracing).await;
         }
         let settings = &self.current.settings;

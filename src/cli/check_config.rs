@@ -146,10 +146,19 @@ fn describe(path: &Path, config: &Config, tls: Option<&TlsServer>, now: SystemTi
                 ms(master.gap),
                 ms(master.silence),
             ),
+            Framing::Tcp => format!(
+                "# bus {}: a Modbus TCP device at {}, connected at start; one request at a time, \
+                 each {} after the last reply, its reply matched by transaction id; unit 0 is a \
+                 unit, not a broadcast.\n",
+                bus.name,
+                bus.device,
+                ms(master.gap),
+            ),
         };
         match bus.device_name() {
             DeviceName::Sim => {}
             DeviceName::Serial(_) => out += &describe_driver(bus),
+            DeviceName::Server(_) if bus.framing == Framing::Tcp => {}
             DeviceName::Server(addr) => out += &describe_link(&bus.name, &addr, master.packing),
         }
     }

@@ -43,6 +43,7 @@ pub fn simulate(config: Config, bus: Option<&str>, on: &Serve) -> ExitCode {
             let framing = match bus.framing {
                 Framing::Rtu => "",
                 Framing::Ascii => " (Modbus ASCII)",
+                Framing::Tcp => " (Modbus TCP)",
             };
             super::print_out(&format!(
                 "serving bus {} on {path} at {}{framing}\n",

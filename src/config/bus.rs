@@ -59,6 +59,10 @@ pub struct Bus {
         skip_serializing_if = "Option::is_none"
     )]
     pub byte_timeout: Option<Duration>,
+    /// A line on the network: silence after a connection is made before the first request (a
+    /// device that needs time after a connect, as some inverters' dongles do).
+    #[serde(default, with = "duration", skip_serializing_if = "is_zero")]
+    pub connect_delay: Duration,
     /// A line behind a serial device server: the silence inside a reply its packing timer may
     /// add, tolerated and added to every reply's deadline.
     #[serde(default, with = "duration", skip_serializing_if = "is_zero")]
@@ -237,9 +241,13 @@ impl Bus {
         self.device_name().kind()
     }
 
-    /// Character time and the spec's gaps at this bus's format.
+    /// Character time and the spec's gaps at this bus's format; none on a Modbus TCP device,
+    /// which has no wire of the gateway's.
     pub fn line_timing(&self) -> LineTiming {
-        LineTiming::new(&self.format())
+        match self.framing {
+            Framing::Tcp => LineTiming::NONE,
+            Framing::Rtu | Framing::Ascii => LineTiming::new(&self.format()),
+        }
     }
 
     /// The gaps the master keeps. RTU: t3.5, raised by `inter_frame_delay` and `byte_timeout`
@@ -271,8 +279,25 @@ impl Bus {
                     .unwrap_or_else(defaults::ascii_byte_timeout),
                 packing: Duration::ZERO,
             },
+            // No wire of the gateway's and no silence rules: a request waits only for
+            // `inter_frame_delay` after the last reply, and a reply's length is in its header.
+            Framing::Tcp => MasterTiming {
+                line,
+                gap: self.inter_frame_delay.unwrap_or_default(),
+                silence: self.byte_timeout.unwrap_or(defaults::NETWORK_BYTE_TIMEOUT),
+                packing: Duration::ZERO,
+            },
         };
         timing.with_packing(self.packing_delay)
+    }
+
+    /// The serial format as the metrics and the status page show it: `none` on a Modbus TCP
+    /// device, which has no serial line of the gateway's.
+    pub fn format_label(&self) -> String {
+        match self.framing {
+            Framing::Tcp => "none".to_owned(),
+            Framing::Rtu | Framing::Ascii => self.format().to_string(),
+        }
     }
 
     pub fn format(&self) -> SerialFormat {

@@ -76,7 +76,7 @@ impl Config {
             check_bus(i, bus, &mut names, drives, &mut report);
         }
         check_devices_once(&self.bus, &mut report);
-        check_routes(&self.route, &names, &mut report);
+        check_routes(&self.route, &self.bus, &names, &mut report);
         if report.0.is_empty() {
             Ok(())
         } else {
@@ -314,10 +314,22 @@ fn check_device(bus: &Bus, key: &dyn Fn(&str) -> String, report: &mut Report) {
             format!("\"{}\" cannot run over {}", bus.framing.name(), kind.name()),
         );
     }
-    if !bus.packing_delay.is_zero() && !kind.is_network() {
+    if !bus.packing_delay.is_zero() && (!kind.is_network() || bus.framing == Framing::Tcp) {
         report.fail(
             key("packing_delay"),
             "only a line behind a serial device server (tcp:// or rfc2217://) has a packing timer",
+        );
+    }
+    if !bus.connect_delay.is_zero() && !kind.is_network() {
+        report.fail(
+            key("connect_delay"),
+            "only a line on the network (tcp:// or rfc2217://) is connected to",
+        );
+    }
+    if bus.framing == Framing::Tcp && bus.rs485.echo {
+        report.fail(
+            key("rs485.echo"),
+            "a Modbus TCP device has no line of the gateway's to echo",
         );
     }
 }
@@ -351,7 +363,8 @@ fn check_slaves(i: usize, bus: &Bus, report: &mut Report) {
     let mut seen = UnitSet::default();
     for (j, slave) in bus.slave.iter().enumerate() {
         let key = format!("bus[{i}].slave[{j}]");
-        if slave.address == 0 || slave.address > MAX_SLAVE_ADDRESS {
+        let serial = bus.framing.broadcasts();
+        if serial && (slave.address == 0 || slave.address > MAX_SLAVE_ADDRESS) {
             report.fail(
                 format!("{key}.address"),
                 format!("{} is not a slave address 1-247", slave.address),
@@ -467,12 +480,21 @@ fn check_drive(
     }
 }
 
-/// `route`: every route to a bus by a valid name (`names`), each unit routed once and to an
-/// address on the line.
-fn check_routes(routes: &[Route], names: &BTreeMap<String, usize>, report: &mut Report) {
+/// `route`: every route to a bus by a valid name (`names`, indexes into `buses`), each unit
+/// routed once and to an address on the line (0-247 on a serial line, 0-255 on a Modbus TCP
+/// device).
+fn check_routes(
+    routes: &[Route],
+    buses: &[Bus],
+    names: &BTreeMap<String, usize>,
+    report: &mut Report,
+) {
     let mut routed: BTreeMap<u8, usize> = BTreeMap::new();
     for (i, route) in routes.iter().enumerate() {
         let key = |field: &str| format!("route[{i}].{field}");
+        let highest = names
+            .get(&route.bus)
+            .map_or(MAX_SLAVE_ADDRESS, |&at| buses[at].framing.highest_address());
         if !names.contains_key(&route.bus) {
             let known: Vec<String> = names.keys().map(|n| format!("`{n}`")).collect();
             let known = match known.len() {
@@ -487,8 +509,11 @@ fn check_routes(routes: &[Route], names: &BTreeMap<String, usize>, report: &mut 
         if route.address.is_some() && route.offset.is_some() {
             report.fail(key("offset"), "give `address` or `offset`, not both");
         }
-        if route.address.is_some_and(|a| a > MAX_SLAVE_ADDRESS) {
-            report.fail(key("address"), "must be a slave address 0-247");
+        if route.address.is_some_and(|a| a > highest) {
+            report.fail(
+                key("address"),
+                format!("must be a slave address 0-{highest}"),
+            );
         }
         if route.units.is_empty() {
             report.fail(key("units"), "names no unit");
@@ -501,10 +526,10 @@ fn check_routes(routes: &[Route], names: &BTreeMap<String, usize>, report: &mut 
                 );
                 break;
             }
-            if route.target(unit).is_none() {
+            if route.target(unit, highest).is_none() {
                 report.fail(
                     key("offset"),
-                    format!("sends unit {unit} outside slave addresses 0-247"),
+                    format!("sends unit {unit} outside slave addresses 0-{highest}"),
                 );
                 break;
             }
@@ -581,6 +606,48 @@ mod tests {
                 "device = \"tcp://box:4001\"\n[bus.rs485]\nmode = \"rts\"",
                 "bus[0].rs485.mode",
                 "the device server's to drive",
+            ),
+        ] {
+            let e = errors(&format!("[[bus]]\nname = \"a\"\n{keys}\n"));
+            assert_eq!(e.len(), 1, "{keys}: {e:?}");
+            assert!(e[0].starts_with(key), "{keys}: {e:?}");
+            assert!(e[0].contains(reason), "{keys}: {e:?}");
+        }
+    }
+
+    #[test]
+    fn a_modbus_tcp_device_takes_units_0_to_255_and_no_serial_line_key() {
+        let ok = Config::from_toml_str(
+            "[[bus]]\nname = \"inverter\"\ndevice = \"tcp://10.0.0.9:502\"\nframing = \"tcp\"\n\
+             connect_delay = \"2s\"\n[[bus.slave]]\naddress = 0\n[[bus.slave]]\naddress = 255\n\
+             [[route]]\nunits = \"1\"\nbus = \"inverter\"\naddress = 255\n",
+        );
+        assert!(ok.is_ok(), "{ok:?}");
+        for (keys, key, reason) in [
+            (
+                "device = \"/dev/ttyS0\"\nframing = \"tcp\"",
+                "bus[0].framing",
+                "\"tcp\" cannot run over a serial port",
+            ),
+            (
+                "device = \"rfc2217://box:2217\"\nframing = \"tcp\"",
+                "bus[0].framing",
+                "cannot run over a serial device server's RFC 2217 socket",
+            ),
+            (
+                "device = \"tcp://box:502\"\nframing = \"tcp\"\npacking_delay = \"10ms\"",
+                "bus[0].packing_delay",
+                "only a line behind a serial device server",
+            ),
+            (
+                "device = \"/dev/ttyS0\"\nconnect_delay = \"1s\"",
+                "bus[0].connect_delay",
+                "only a line on the network",
+            ),
+            (
+                "device = \"tcp://box:502\"\nframing = \"tcp\"\n[bus.rs485]\necho = true",
+                "bus[0].rs485.echo",
+                "no line of the gateway's to echo",
             ),
         ] {
             let e = errors(&format!("[[bus]]\nname = \"a\"\n{keys}\n"));

@@ -37,7 +37,7 @@ pub(crate) fn baud() -> u32 {
 /// V1.02, 2.5.2).
 pub(crate) fn data_bits(framing: Framing) -> u8 {
     match framing {
-        Framing::Rtu => 8,
+        Framing::Rtu | Framing::Tcp => 8,
         Framing::Ascii => 7,
     }
 }

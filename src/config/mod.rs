@@ -52,7 +52,7 @@ pub use unit_set::UnitSet;
 use serde::{Deserialize, Serialize};
 
 /// Highest unicast slave address on a serial line.
-pub(crate) const MAX_SLAVE_ADDRESS: u8 = 247;
+pub(crate) const MAX_SLAVE_ADDRESS: u8 = crate::line::MAX_SERIAL_ADDRESS;
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

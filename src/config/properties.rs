@@ -334,6 +334,7 @@ fn bus() -> impl Strategy<Value = Bus> {
                 slave,
                 sim_slave,
                 packing_delay: Duration::ZERO,
+                connect_delay: Duration::ZERO,
             };
             if bus.transport().is_network() {
                 bus.packing_delay = down.3;

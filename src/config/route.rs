@@ -1,7 +1,7 @@
 //! The `[[route]]` sections, and the one rule that turns a routed unit id into a slave address
 //! (the router's table and the checks both use it). Knows nothing of buses' tasks.
 
-use super::{UnitSet, MAX_SLAVE_ADDRESS};
+use super::UnitSet;
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -18,15 +18,13 @@ pub struct Route {
 }
 
 impl Route {
-    /// The slave address `unit` goes to, if it is on the serial line's address range.
-    pub fn target(&self, unit: u8) -> Option<u8> {
+    /// The slave address `unit` goes to, if it is within the line's addresses, 0 to `highest`.
+    pub fn target(&self, unit: u8, highest: u8) -> Option<u8> {
         let address = match (self.address, self.offset) {
             (Some(address), _) => i64::from(address),
             (None, offset) => i64::from(unit) + i64::from(offset.unwrap_or(0)),
         };
-        u8::try_from(address)
-            .ok()
-            .filter(|&a| a <= MAX_SLAVE_ADDRESS)
+        u8::try_from(address).ok().filter(|&a| a <= highest)
     }
 }
 
@@ -42,21 +40,23 @@ mod tests {
             address: Some(17),
             offset: None,
         };
-        assert_eq!(fixed.target(255), Some(17));
+        assert_eq!(fixed.target(255, 247), Some(17));
         let shifted = Route {
             units: UnitSet::default(),
             bus: "b".into(),
             address: None,
             offset: Some(-100),
         };
-        assert_eq!(shifted.target(101), Some(1));
-        assert_eq!(shifted.target(99), None);
+        assert_eq!(shifted.target(101, 247), Some(1));
+        assert_eq!(shifted.target(99, 247), None);
         let same = Route {
             units: UnitSet::default(),
             bus: "b".into(),
             address: None,
             offset: None,
         };
-        assert_eq!(same.target(248), None);
+        assert_eq!(same.target(248, 247), None);
+        // A Modbus TCP device's units go up to 255.
+        assert_eq!(same.target(255, 255), Some(255));
     }
 }

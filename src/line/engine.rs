@@ -219,6 +219,8 @@ pub(crate) struct LineMaster<T> {
     late_until: Box<[Option<Instant>; 256]>,
     /// The line hands back every byte sent (`rs485.echo`).
     echo: bool,
+    /// The transaction id of the last frame sent, in a framing that has them.
+    transaction: u16,
     timer: LineTimer,
     /// Whether frames are recorded for the trace: only while someone watches, so that the line
     /// copies nothing otherwise.
@@ -258,6 +260,7 @@ impl<T: Transport> LineMaster<T> {
             forms: Box::new([ReplyForm::Standard; 256]),
             late_until: Box::new([None; 256]),
             echo: false,
+            transaction: 0,
             timer: LineTimer::new(),
             recording: false,
             recorded: Vec::new(),
@@ -341,7 +344,8 @@ impl<T: Transport> LineMaster<T> {
     fn saw_stray_bytes(&mut self, n: usize) {
         self.counters.stray_bytes += n as u64;
         self.counters.received_bytes += n as u64;
-        self.quiet_until = Instant::now() + self.timing.gap;
+        // Never sooner than the line was to be quiet anyway (a broadcast's turnaround, a settle).
+        self.quiet_until = self.quiet_until.max(Instant::now() + self.timing.gap);
         // Bounded: a line that babbles while nobody asks anything would grow the record until
         // the next try publishes it.
         if self.recording && self.recorded.len() < MAX_STALE_RECORDS {
@@ -372,12 +376,19 @@ impl<T: Transport> LineMaster<T> {
             }
             Err(error) => Err(error),
         };
+        let serial = self.framing.transaction(&self.tx).is_none();
         let result = match result {
-            Err(TxError::Check | TxError::Frame) if reply::is_mbap_reply(&self.rx, &self.tx) => {
+            Err(TxError::Check | TxError::Frame)
+                if serial && reply::is_mbap_reply(&self.rx, &self.tx) =>
+            {
                 Err(TxError::ModbusTcp)
             }
             result => result,
         };
+        if !serial {
+            // Its transaction id tells a late reply from this try's: no window is needed.
+            return result;
+        }
         match &result {
             // Silence, or only other frames: the slave may still answer. So may it when the
             // echo failed: the request may have reached it.
@@ -447,7 +458,9 @@ impl<T: Transport> LineMaster<T> {
         busy_limit: Duration,
     ) -> Result<Instant, TxError> {
         self.wait_for_gap(busy_limit).await?;
-        self.framing.encode_into(&mut self.tx, address, pdu);
+        self.transaction = self.transaction.wrapping_add(1);
+        self.framing
+            .encode_into(&mut self.tx, self.transaction, address, pdu);
         self.port.send(&self.tx).await.map_err(TxError::PortLost)?;
         let returned = Instant::now();
         if self.recording {
@@ -595,7 +608,15 @@ impl<T> LineMaster<T> {
             return Some(Err(TxError::Check));
         };
         let pdu = &self.pdu;
-        let judged = match reply::judge(address, pdu, slave, request, form) {
+        // A reply to another transaction (a try that timed out) answers nothing here.
+        let other_transaction =
+            self.framing.transaction(&self.rx[..len]) != self.framing.transaction(&self.tx);
+        let verdict = if other_transaction {
+            Verdict::Foreign
+        } else {
+            reply::judge(address, pdu, slave, request, form)
+        };
+        let judged = match verdict {
             Verdict::Answer => Some(Ok(Reply::Fits(reply::answer_pdu(pdu, form)))),
             Verdict::Malformed if !late_reply_possible => {
                 Some(Ok(Reply::Malformed(reply::answer_pdu(pdu, form))))

@@ -1,6 +1,7 @@
 //! How frames look on the wire of one line, for the [`engine`](super::engine): encoding a PDU to
 //! an address, telling when a received frame is complete, and checking and unwrapping it: Modbus
-//! RTU ([`rtu`]) or Modbus ASCII ([`ascii`]). Pure functions over
+//! RTU ([`rtu`]), Modbus ASCII ([`ascii`]), or MBAP towards a Modbus TCP device (`tcp`: a
+//! header with the gateway's own transaction id, no check, no silence rules). Pure functions over
 //! bytes; knows nothing of ports, time or what a reply means. Also the one table of which
 //! framing may run over which kind of transport ([`Framing::runs_over`]).
 //!
@@ -9,6 +10,7 @@
 //! whichever framing its line uses.
 
 use super::ascii;
+use super::mbap;
 use super::reply::ReplyForm;
 use super::rtu::{self, FrameLen};
 use super::timing::LineTiming;
@@ -26,6 +28,10 @@ pub enum Framing {
     /// Modbus ASCII: `:`, hex pairs of address, PDU and LRC, CR LF; frames are delimited by
     /// their characters, and silence mid-frame (the inter-character timeout) fails one.
     Ascii,
+    /// Modbus TCP towards a device that speaks it (MBAP): transaction id, protocol id 0, length,
+    /// unit id, PDU; frames are delimited by their length, and a reply is the request's by its
+    /// transaction id. Unit 0 is a unit like any other: there is no broadcast.
+    Tcp,
 }
 
 /// How far the bytes received so far make a frame.
@@ -57,14 +63,39 @@ impl Framing {
         match self {
             Framing::Rtu => rtu::MAX_FRAME_LEN,
             Framing::Ascii => ascii::MAX_FRAME_LEN,
+            Framing::Tcp => mbap::MAX_FRAME_LEN,
         }
     }
 
-    /// Build the frame for `pdu` to `address` into `out` (cleared first).
-    pub(crate) fn encode_into(self, out: &mut Vec<u8>, address: u8, pdu: &[u8]) {
+    /// Build the frame for `pdu` to `address` into `out` (cleared first); `transaction` is the
+    /// MBAP transaction id (the serial framings have none).
+    pub(crate) fn encode_into(self, out: &mut Vec<u8>, transaction: u16, address: u8, pdu: &[u8]) {
         match self {
             Framing::Rtu => rtu::encode_into(out, address, pdu),
             Framing::Ascii => ascii::encode_into(out, address, pdu),
+            Framing::Tcp => mbap::encode_into(out, transaction, address, pdu),
+        }
+    }
+
+    /// The transaction id of a whole frame, in a framing that has one.
+    pub(crate) fn transaction(self, whole: &[u8]) -> Option<u16> {
+        match self {
+            Framing::Rtu | Framing::Ascii => None,
+            Framing::Tcp => Some(u16::from_be_bytes([*whole.first()?, *whole.get(1)?])),
+        }
+    }
+
+    /// Whether address 0 is every slave's (a broadcast) rather than one unit's.
+    pub fn broadcasts(self) -> bool {
+        self != Framing::Tcp
+    }
+
+    /// The highest address a request may go to: 247 on a serial line, 255 on a Modbus TCP
+    /// device (whose unit 255 is common).
+    pub fn highest_address(self) -> u8 {
+        match self {
+            Framing::Rtu | Framing::Ascii => crate::line::MAX_SERIAL_ADDRESS,
+            Framing::Tcp => u8::MAX,
         }
     }
 
@@ -86,6 +117,7 @@ impl Framing {
             },
             // CR LF ends a frame whatever it holds, so no length rule is needed.
             Framing::Ascii => Self::ascii_completion(received),
+            Framing::Tcp => mbap::completion(received),
         }
     }
 
@@ -99,6 +131,7 @@ impl Framing {
                 FrameLen::Invalid => Completion::Invalid,
             },
             Framing::Ascii => Self::ascii_completion(received),
+            Framing::Tcp => mbap::completion(received),
         }
     }
 
@@ -119,6 +152,7 @@ impl Framing {
                 whole[0]
             }),
             Framing::Ascii => ascii::decode_into(whole, pdu),
+            Framing::Tcp => mbap::decode_into(whole, pdu),
         }
     }
 
@@ -134,6 +168,7 @@ impl Framing {
                 };
                 (pair(1), pair(3))
             }
+            Framing::Tcp => (frame.get(6).copied(), frame.get(7).copied()),
         }
     }
 
@@ -143,6 +178,7 @@ impl Framing {
         match self {
             Framing::Rtu => pdu_len + 3,
             Framing::Ascii => 2 * (pdu_len + 2) + 3,
+            Framing::Tcp => pdu_len + 7,
         }
     }
 
@@ -161,6 +197,8 @@ impl Framing {
         match self {
             Framing::Rtu => timing.transaction_minimum(request, reply, timing.t35),
             Framing::Ascii => timing.frame_time(request + reply),
+            // No wire of the gateway's: the device's own time is all there is.
+            Framing::Tcp => Duration::ZERO,
         }
     }
 
@@ -169,6 +207,7 @@ impl Framing {
         match self {
             Framing::Rtu => "rtu",
             Framing::Ascii => "ascii",
+            Framing::Tcp => "tcp",
         }
     }
 }
@@ -228,6 +267,8 @@ const LINES: &[(TransportKind, Framing)] = &[
     (TransportKind::Tcp, Framing::Ascii),
     (TransportKind::Rfc2217, Framing::Rtu),
     (TransportKind::Rfc2217, Framing::Ascii),
+    // A Modbus TCP device: MBAP on a plain socket.
+    (TransportKind::Tcp, Framing::Tcp),
 ];
 
 impl Framing {
@@ -242,7 +283,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn every_framing_runs_over_every_transport_today() {
+    fn every_serial_framing_runs_over_every_transport_and_mbap_only_over_a_plain_socket() {
         for transport in [
             TransportKind::Serial,
             TransportKind::Sim,
@@ -255,6 +296,10 @@ mod tests {
                     "{framing:?} over {transport:?}"
                 );
             }
+            assert_eq!(
+                Framing::Tcp.runs_over(transport),
+                transport == TransportKind::Tcp
+            );
         }
     }
 
@@ -306,7 +351,7 @@ mod tests {
     #[test]
     fn an_rtu_frame_decodes_to_its_address_and_pdu_only_with_a_good_crc() {
         let mut out = vec![0xAA];
-        Framing::Rtu.encode_into(&mut out, 1, &READ_REPLY[1..7]);
+        Framing::Rtu.encode_into(&mut out, 0, 1, &READ_REPLY[1..7]);
         assert_eq!(out, READ_REPLY);
         let mut pdu = Vec::new();
         assert_eq!(Framing::Rtu.decode_into(&READ_REPLY, &mut pdu), Some(1));
@@ -339,7 +384,7 @@ mod tests {
         assert_eq!(ascii.decode_into(&reply[..19], &mut pdu), Some(1));
         assert_eq!(pdu, &READ_REPLY[1..7]);
         let mut out = Vec::new();
-        ascii.encode_into(&mut out, 1, &READ);
+        ascii.encode_into(&mut out, 0, 1, &READ);
         assert_eq!(out, b":010300040002F6\r\n");
         assert_eq!(ascii.max_frame_len(), 513);
     }

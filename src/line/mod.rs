@@ -7,6 +7,7 @@
 pub(crate) mod ascii;
 pub(crate) mod engine;
 pub(crate) mod framing;
+pub(crate) mod mbap;
 pub(crate) mod reply;
 pub mod rtu;
 pub(crate) mod timing;
@@ -27,6 +28,9 @@ use tokio::time::Instant;
 
 /// The slave address that every slave obeys and none answers, in every serial framing.
 pub(crate) const BROADCAST: u8 = 0;
+
+/// The highest address of a slave on a serial line.
+pub(crate) const MAX_SERIAL_ADDRESS: u8 = 247;
 
 /// A byte pipe onto a line as a UART driver presents it, whatever carries it: a serial port, a
 /// serial device server's socket or the simulated line. Which [`Framing`] may run over which kind of transport is the one

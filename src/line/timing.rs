@@ -111,6 +111,13 @@ pub struct LineTiming {
 }
 
 impl LineTiming {
+    /// No wire: frames take no time (a Modbus TCP device's line).
+    pub const NONE: LineTiming = LineTiming {
+        char_time: Duration::ZERO,
+        t15: Duration::ZERO,
+        t35: Duration::ZERO,
+    };
+
     pub fn new(format: &SerialFormat) -> Self {
         let bits = u64::from(format.bits_per_char());
         let baud = u64::from(format.baud.max(1));

@@ -446,7 +446,7 @@ impl BusMetrics {
             .store(transport.is_network(), Ordering::Relaxed);
         self.set_info(Some([
             settings.framing.name().to_owned(),
-            settings.format().to_string(),
+            settings.format_label(),
             transport.label().to_owned(),
         ]));
         self.queue_capacity

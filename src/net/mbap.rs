@@ -5,12 +5,8 @@
 
 use bytes::{Buf, BytesMut};
 
-/// Transaction id, protocol id, length, unit id.
-pub(crate) const HEADER_LEN: usize = 7;
-/// The length field counts the unit id and the PDU: at least a function code...
-pub(crate) const MIN_LENGTH: u16 = 2;
-/// ...and at most a 253-byte PDU.
-pub(crate) const MAX_LENGTH: u16 = 254;
+/// The header's size and the length field's bounds are the same both ways.
+pub(crate) use crate::line::mbap::{HEADER_LEN, MAX_LENGTH, MIN_LENGTH};
 const MODBUS_PROTOCOL: u16 = 0;
 
 /// What a reply must echo.

@@ -92,10 +92,11 @@ impl<S: Slave> Faulty<S> {
         }
     }
 
-    /// Break the frame's check: the last CRC byte, or the last LRC character.
+    /// Break the frame's check: the last CRC byte, or the last LRC character (MBAP has no check:
+    /// its last byte).
     fn corrupt_check(&self, bytes: &mut [u8]) {
         let from_end = match self.framing {
-            Framing::Rtu => 1,
+            Framing::Rtu | Framing::Tcp => 1,
             Framing::Ascii => 1 + ascii::END.len(),
         };
         if let Some(at) = bytes.len().checked_sub(from_end) {
@@ -125,7 +126,7 @@ impl<S: Slave> Slave for Faulty<S> {
             if let (Some(function), Some(wrong)) = (pdu.first_mut(), self.faults.reply_function) {
                 *function = wrong | (*function & EXCEPTION_BIT);
             }
-            self.framing.encode_into(&mut reply.bytes, address, &pdu);
+            self.framing.encode_into(&mut reply.bytes, 0, address, &pdu);
         }
         if self.faults.crc_error_rate > 0.0 && self.rng.f64() < self.faults.crc_error_rate {
             self.corrupt_check(&mut reply.bytes);

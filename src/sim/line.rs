@@ -267,11 +267,11 @@ impl LineState {
         // silence where the bytes cannot tell: bytes after that length are a request of their
         // own, heard after the first is answered.
         let framing = self.slaves.framing();
-        // A slave knows the request has ended after t3.5 of silence (RTU) or at its LF (ASCII),
-        // then processes it.
+        // A slave knows the request has ended after t3.5 of silence (RTU) or at its own end
+        // (ASCII's LF, MBAP's length), then processes it.
         let mut ready_at = match framing {
             Framing::Rtu => end + timing.t35,
-            Framing::Ascii => end,
+            Framing::Ascii | Framing::Tcp => end,
         };
         let mut rest = bytes;
         while !rest.is_empty() {

@@ -146,11 +146,11 @@ impl Responder {
             } => (address, function, reply),
         };
         self.stats.requests += 1;
-        // The slave knows the request is over after t3.5 of silence (RTU) or at its LF (ASCII),
-        // then takes its own time.
+        // The slave knows the request is over after t3.5 of silence (RTU) or at its own end
+        // (ASCII's LF, MBAP's length), then takes its own time.
         let heard_at = match self.slaves.framing() {
             Framing::Rtu => at + self.timing.t35,
-            Framing::Ascii => at,
+            Framing::Ascii | Framing::Tcp => at,
         };
         let start = heard_at + reply.delay;
         sleep_until(start).await;

@@ -141,7 +141,7 @@ fn bus_status(
             settings.device.clone()
         },
         framing: settings.framing.name(),
-        format: settings.format().to_string(),
+        format: settings.format_label(),
         transport: settings.transport().label(),
         port_up: handle.is_up(),
         link: metrics.link_snapshot().map(|link| LinkStatus {

@@ -1,0 +1,293 @@
+//! A Modbus TCP device behind the gateway (`framing = "tcp"` on `device = "tcp://..."`): many
+//! masters, one connection to the device, no crossed reply. Against pymodbus's Modbus TCP server,
+//! and against devices written here to misbehave as real ones do: a late answer, a device that
+//! ignores requests right after a connect, wrong transaction ids, a restart.
+
+use crate::support::{addr, within, Bus, GatewayConfig, RawMaster, Scrape};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpListener, TcpStream};
+
+/// One request as the device reads it: transaction id, unit, PDU.
+type Request = (u16, u8, Vec<u8>);
+
+/// The next MBAP request on `socket`.
+async fn next_request(socket: &mut TcpStream) -> Option<Request> {
+    let mut header = [0u8; 7];
+    socket.read_exact(&mut header).await.ok()?;
+    assert_eq!(header[2..4], [0, 0], "protocol id 0");
+    let length = usize::from(u16::from_be_bytes([header[4], header[5]]));
+    let mut pdu = vec![0u8; length - 1];
+    socket.read_exact(&mut pdu).await.ok()?;
+    Some((u16::from_be_bytes([header[0], header[1]]), header[6], pdu))
+}
+
+/// The MBAP frame of `pdu` from `unit` in transaction `transaction`.
+fn reply(transaction: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {
+    crate::support::mbap(transaction, unit, pdu)
+}
+
+/// Read holding register `register`, one of them.
+fn read(register: u16) -> Vec<u8> {
+    let [hi, lo] = register.to_be_bytes();
+    vec![0x03, hi, lo, 0x00, 0x01]
+}
+
+/// The device's answer to [`read`]: the register's own number as its value.
+fn answer_to(request: &[u8]) -> Vec<u8> {
+    vec![0x03, 0x02, request[1], request[2]]
+}
+
+/// A gateway whose one bus `dev` is the Modbus TCP device at `port`, with `keys` added.
+async fn gateway_on(port: u16, keys: &str) -> modbus_gateway::Gateway {
+    GatewayConfig::new()
+        .listen("127.0.0.1:0")
+        .bus(
+            Bus::on("dev", &format!("tcp://127.0.0.1:{port}"))
+                .framing("tcp")
+                .response_timeout("200ms")
+                .text(keys),
+        )
+        .start()
+        .await
+}
+
+/// A device that answers every read with [`answer_to`], each connection in its own task;
+/// counts its connections.
+async fn answering_device() -> (u16, Arc<AtomicUsize>) {
+    let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let port = server.local_addr().unwrap().port();
+    let connections = Arc::new(AtomicUsize::new(0));
+    let count = connections.clone();
+    tokio::spawn(async move {
+        while let Ok((mut socket, _)) = server.accept().await {
+            count.fetch_add(1, Ordering::SeqCst);
+            tokio::spawn(async move {
+                while let Some((transaction, unit, pdu)) = next_request(&mut socket).await {
+                    let frame = reply(transaction, unit, &answer_to(&pdu));
+                    if socket.write_all(&frame).await.is_err() {
+                        break;
+                    }
+                }
+            });
+        }
+    });
+    (port, connections)
+}
+
+#[tokio::test]
+async fn many_masters_share_one_connection_to_the_device_and_each_gets_its_own_answer() {
+    let (port, connections) = answering_device().await;
+    let gateway = gateway_on(port, "").await;
+    let mut masters = Vec::new();
+    for m in 0..10u16 {
+        let addr = addr(&gateway);
+        masters.push(tokio::spawn(async move {
+            let mut master = RawMaster::connect(addr).await;
+            for n in 0..20u16 {
+                let register = m * 100 + n;
+                assert_eq!(
+                    master.call(n, 1, &read(register)).await,
+                    answer_to(&read(register))
+                );
+            }
+        }));
+    }
+    for master in masters {
+        within("a master's 20 reads", master).await.unwrap();
+    }
+    assert_eq!(
+        connections.load(Ordering::SeqCst),
+        1,
+        "one connection to the device"
+    );
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(
+        scrape.value(
+            "modbus_gateway_bus_info{bus=\"dev\",format=\"none\",framing=\"tcp\",transport=\"tcp\"}"
+        ),
+        1.0
+    );
+}
+
+#[tokio::test]
+async fn unit_0_and_unit_255_are_units_of_the_device_not_a_broadcast() {
+    let (port, _) = answering_device().await;
+    let gateway = gateway_on(port, "").await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    // A read to unit 0 would be refused on a serial line (0x01: no reply comes to a broadcast).
+    assert_eq!(master.call(1, 0, &read(4)).await, answer_to(&read(4)));
+    assert_eq!(master.call(2, 255, &read(5)).await, answer_to(&read(5)));
+}
+
+#[tokio::test]
+async fn a_late_answer_is_discarded_and_every_master_after_it_gets_its_own() {
+    let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let port = server.local_addr().unwrap().port();
+    let gateway = gateway_on(port, "").await;
+    let (mut socket, _) = server.accept().await.unwrap();
+    let device = tokio::spawn(async move {
+        // The first request is answered 300 ms late (its timeout is 200 ms), while the next
+        // one waits in the socket; every later one at once.
+        let (transaction, unit, pdu) = next_request(&mut socket).await.unwrap();
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        socket
+            .write_all(&reply(transaction, unit, &answer_to(&pdu)))
+            .await
+            .unwrap();
+        while let Some((transaction, unit, pdu)) = next_request(&mut socket).await {
+            socket
+                .write_all(&reply(transaction, unit, &answer_to(&pdu)))
+                .await
+                .unwrap();
+        }
+    });
+    let addr = addr(&gateway);
+    let mut late = RawMaster::connect(addr).await;
+    late.send(1, 1, &read(100)).await;
+    tokio::time::sleep(Duration::from_millis(20)).await;
+    let mut masters = Vec::new();
+    for m in 1..=3u16 {
+        masters.push(tokio::spawn(async move {
+            let mut master = RawMaster::connect(addr).await;
+            let register = 100 + m;
+            assert_eq!(
+                master.call(m, 1, &read(register)).await,
+                answer_to(&read(register))
+            );
+        }));
+    }
+    assert_eq!(late.recv().await.pdu, [0x83, 0x0B]);
+    for master in masters {
+        within("the masters after the late one", master)
+            .await
+            .unwrap();
+    }
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(
+        scrape.value("modbus_gateway_discarded_frames_total{bus=\"dev\"}"),
+        1.0,
+        "the late answer, discarded"
+    );
+    device.abort();
+}
+
+#[tokio::test]
+async fn a_reply_with_another_transaction_id_never_answers_and_the_request_gets_0x0b() {
+    let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let port = server.local_addr().unwrap().port();
+    let gateway = gateway_on(port, "").await;
+    let (mut socket, _) = server.accept().await.unwrap();
+    let device = tokio::spawn(async move {
+        // Firmware that always answers transaction 0.
+        while let Some((_, unit, pdu)) = next_request(&mut socket).await {
+            socket
+                .write_all(&reply(0, unit, &answer_to(&pdu)))
+                .await
+                .unwrap();
+        }
+    });
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    assert_eq!(master.call(7, 1, &read(3)).await, [0x83, 0x0B]);
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(
+        scrape.value("modbus_gateway_discarded_frames_total{bus=\"dev\"}"),
+        1.0
+    );
+    device.abort();
+}
+
+#[tokio::test]
+async fn a_device_that_ignores_requests_right_after_a_connect_is_served_with_connect_delay() {
+    let ignoring = |server: TcpListener| {
+        tokio::spawn(async move {
+            let (mut socket, _) = server.accept().await.unwrap();
+            let connected = tokio::time::Instant::now();
+            while let Some((transaction, unit, pdu)) = next_request(&mut socket).await {
+                // Like an inverter's dongle: nothing in the first 200 ms after the connect.
+                if connected.elapsed() < Duration::from_millis(200) {
+                    continue;
+                }
+                let frame = reply(transaction, unit, &answer_to(&pdu));
+                socket.write_all(&frame).await.unwrap();
+            }
+        })
+    };
+    for (delay, expected) in [("0ms", vec![0x83, 0x0B]), ("300ms", answer_to(&read(9)))] {
+        let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let port = server.local_addr().unwrap().port();
+        let device = ignoring(server);
+        let gateway = gateway_on(port, &format!("connect_delay = \"{delay}\"\n")).await;
+        let mut master = RawMaster::connect(addr(&gateway)).await;
+        assert_eq!(
+            master.call(1, 1, &read(9)).await,
+            expected,
+            "connect_delay {delay}"
+        );
+        device.abort();
+    }
+}
+
+#[tokio::test]
+async fn a_device_restarted_mid_traffic_gives_0x0a_and_is_served_again_after_the_reconnect() {
+    let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let port = server.local_addr().unwrap().port();
+    let gateway = gateway_on(port, "reopen_delay = \"50ms\"\n").await;
+    let (mut socket, _) = server.accept().await.unwrap();
+    // The device takes the request and goes away without answering.
+    let device = tokio::spawn(async move {
+        let _ = next_request(&mut socket).await;
+        drop(socket);
+        drop(server);
+    });
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    assert_eq!(master.call(1, 1, &read(1)).await, [0x83, 0x0A]);
+    device.await.unwrap();
+    let server = TcpListener::bind(("127.0.0.1", port)).await.unwrap();
+    let (mut socket, _) = within("the gateway reconnects", server.accept())
+        .await
+        .unwrap();
+    let device = tokio::spawn(async move {
+        while let Some((transaction, unit, pdu)) = next_request(&mut socket).await {
+            let frame = reply(transaction, unit, &answer_to(&pdu));
+            socket.write_all(&frame).await.unwrap();
+        }
+    });
+    crate::support::wait_for_bus(&gateway, "dev", true).await;
+    assert_eq!(master.call(2, 1, &read(2)).await, answer_to(&read(2)));
+    device.abort();
+}
+
+#[tokio::test]
+async fn pymodbus_tcp_server_answers_masters_through_the_gateway_byte_for_byte() {
+    let Some((_server, port)) = crate::device_link::pymodbus_tcp_server().await else {
+        return;
+    };
+    let gateway = gateway_on(port, "").await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    // pymodbus's device 1: holding registers 0-19 at 7.
+    let cases: [(&[u8], &[u8]); 4] = [
+        (
+            &[0x03, 0x00, 0x00, 0x00, 0x02],
+            &[0x03, 0x04, 0x00, 0x07, 0x00, 0x07],
+        ),
+        (
+            &[0x06, 0x00, 0x01, 0x12, 0x34],
+            &[0x06, 0x00, 0x01, 0x12, 0x34],
+        ),
+        (
+            &[0x03, 0x00, 0x00, 0x00, 0x02],
+            &[0x03, 0x04, 0x00, 0x07, 0x12, 0x34],
+        ),
+        (&[0x03, 0x00, 0x30, 0x00, 0x01], &[0x83, 0x02]),
+    ];
+    for (transaction, (request, answer)) in (1..).zip(cases) {
+        assert_eq!(
+            master.call(transaction, 1, request).await,
+            answer,
+            "{request:02X?}"
+        );
+    }
+}
