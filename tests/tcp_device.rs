@@ -291,3 +291,104 @@ async fn pymodbus_tcp_server_answers_masters_through_the_gateway_byte_for_byte()
         );
     }
 }
+
+#[tokio::test]
+async fn a_device_that_always_answers_transaction_0_is_named_in_the_log_with_the_key_that_helps() {
+    use crate::support::{connect_when_listening, exit_status, free_addr, signal};
+    let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let port = server.local_addr().unwrap().port();
+    let device = tokio::spawn(async move {
+        let (mut socket, _) = server.accept().await.unwrap();
+        while let Some((_, unit, pdu)) = next_request(&mut socket).await {
+            socket
+                .write_all(&reply(0, unit, &answer_to(&pdu)))
+                .await
+                .unwrap();
+        }
+    });
+    let (listen, metrics) = (free_addr(), free_addr());
+    let config = format!(
+        "[server]\nlisten = \"{listen}\"\n[metrics]\nlisten = \"{metrics}\"\n\
+         [[bus]]\nname = \"dev\"\ndevice = \"tcp://127.0.0.1:{port}\"\nframing = \"tcp\"\n\
+         response_timeout = \"200ms\"\n"
+    );
+    let dir = std::env::temp_dir();
+    let path = dir.join(format!("mbgw-tid0-{}.toml", std::process::id()));
+    let log = dir.join(format!("mbgw-tid0-{}.log", std::process::id()));
+    std::fs::write(&path, config).unwrap();
+    let child = std::process::Command::new(env!("CARGO_BIN_EXE_modbus-gateway"))
+        .args(["--config", path.to_str().unwrap(), "run"])
+        .env_remove("RUST_LOG")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let mut master = connect_when_listening(listen).await;
+    for transaction in 1..=2 {
+        assert_eq!(master.call(transaction, 1, &read(3)).await, [0x83, 0x0B]);
+    }
+    signal(&child, "TERM");
+    assert!(exit_status(child).await.success());
+    let text = std::fs::read_to_string(&log).unwrap();
+    let told: Vec<&str> = text
+        .lines()
+        .filter(|line| line.contains("match_transaction_id = false"))
+        .collect();
+    assert_eq!(told.len(), 1, "once per connection: {text}");
+    assert!(
+        told[0].contains("WARN") && told[0].contains("sent=1 got=0"),
+        "{}",
+        told[0]
+    );
+    device.abort();
+    let _ = std::fs::remove_file(path);
+    let _ = std::fs::remove_file(log);
+}
+
+#[tokio::test]
+async fn matched_by_order_such_a_device_is_served_and_a_timeout_resets_its_connection() {
+    let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let port = server.local_addr().unwrap().port();
+    let connections = Arc::new(AtomicUsize::new(0));
+    let count = connections.clone();
+    let device = tokio::spawn(async move {
+        while let Ok((mut socket, _)) = server.accept().await {
+            let first = count.fetch_add(1, Ordering::SeqCst) == 0;
+            tokio::spawn(async move {
+                let mut n = 0;
+                while let Some((_, unit, pdu)) = next_request(&mut socket).await {
+                    n += 1;
+                    // Always transaction 0; on the first connection the second answer is late.
+                    if first && n == 2 {
+                        tokio::time::sleep(Duration::from_millis(300)).await;
+                    }
+                    if socket
+                        .write_all(&reply(0, unit, &answer_to(&pdu)))
+                        .await
+                        .is_err()
+                    {
+                        break;
+                    }
+                }
+            });
+        }
+    });
+    let gateway = gateway_on(
+        port,
+        "match_transaction_id = false\nreopen_delay = \"50ms\"\n",
+    )
+    .await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    assert_eq!(master.call(1, 1, &read(1)).await, answer_to(&read(1)));
+    assert_eq!(master.call(2, 1, &read(2)).await, [0x83, 0x0B], "late");
+    // The late answer to register 2 would pass for the next request's: the connection is made
+    // anew instead, and the next read gets register 3's own answer.
+    within("the gateway reconnects", async {
+        while connections.load(Ordering::SeqCst) < 2 || gateway.bus_up("dev") != Some(true) {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    })
+    .await;
+    assert_eq!(master.call(3, 1, &read(3)).await, answer_to(&read(3)));
+    device.abort();
+}

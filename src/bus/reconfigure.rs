@@ -170,6 +170,7 @@ impl Current {
     pub(super) fn configure(&self, master: &mut LineMaster<Port>) {
         master.set_timing(self.derived.timing);
         master.set_echo(self.settings.rs485.echo);
+        master.set_match_transaction(self.settings.match_transaction_id);
         for address in 0..=u8::MAX {
             master.set_reply_form(address, ReplyForm::Standard);
         }

@@ -10,6 +10,7 @@ use crate::error::RequestError;
 use crate::line::BROADCAST;
 use crate::line::{LineCounters, LineMaster};
 use crate::shutdown::Stopping;
+use std::io;
 use std::pin::Pin;
 use tokio::time::{sleep, Instant, Sleep};
 
@@ -168,6 +169,13 @@ impl BusTask {
                 self.remember(&job, &outcome);
                 self.handle.answer(job, outcome);
                 None
+            }
+            Ran::Reset(outcome) => {
+                self.handle.answer(job, outcome);
+                Some(Served::Lost(io::Error::other(
+                    "reset after a timeout: with match_transaction_id = false a late answer \
+                     could not be told from the next request's",
+                )))
             }
             Ran::PortLost(error) => {
                 // The request may have reached the slave, which may still answer.

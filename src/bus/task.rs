@@ -64,6 +64,8 @@ pub struct BusTask {
     pub(super) trace: BusTap,
     /// The device's Modbus TCP answers have been logged on this connection.
     pub(super) told_wrong_mode: bool,
+    /// A Modbus TCP device's wrong transaction ids have been logged on this connection.
+    pub(super) told_mismatch: bool,
     /// The late-reply windows open when the port was lost: a reply to a request of before may
     /// still come through the reopened port.
     pub(super) windows_at_loss: Vec<(u8, Instant)>,
@@ -101,6 +103,7 @@ impl BusTask {
             health: Health::default(),
             trace,
             told_wrong_mode: false,
+            told_mismatch: false,
             windows_at_loss: Vec::new(),
         }
     }
@@ -149,6 +152,7 @@ impl BusTask {
                     metrics.link(port.link());
                     self.adjust_latency_timer();
                     self.told_wrong_mode = false;
+                    self.told_mismatch = false;
                     delay = self.current.settings.reopen_delay;
                     let master = self.master_on(port);
                     let end = self.serve(master, &mut stopping).await;

@@ -14,7 +14,7 @@ use crate::pdu;
 use crate::trace::{Direction, TraceEvent, FOREIGN, STALE};
 use std::io;
 use tokio::time::Instant;
-use tracing::{debug, error};
+use tracing::{debug, error, warn};
 
 /// How one request on the line ended.
 pub(super) enum Ran {
@@ -22,6 +22,10 @@ pub(super) enum Ran {
     Done(Outcome),
     /// The port is gone: this request and the port's other users get 0x0A.
     PortLost(io::Error),
+    /// The request's outcome, and the connection must be made anew: a device matched by order
+    /// (`match_transaction_id = false`) timed out, and its late answer could not be told from
+    /// the next request's.
+    Reset(Outcome),
 }
 
 impl Response {
@@ -111,7 +115,37 @@ impl BusTask {
             .metrics
             .transaction(job.slave, attempts, round_trip, &outcome);
         self.record(job, &outcome);
+        if let Some((sent, got)) = master.take_transaction_mismatch() {
+            self.transaction_mismatch(sent, got);
+        }
+        let timed_out = matches!(
+            outcome,
+            Err(RequestError::NoResponse {
+                last: NoReply::Timeout,
+                ..
+            })
+        );
+        if timed_out && !self.current.settings.match_transaction_id {
+            return Ran::Reset(outcome);
+        }
         Ran::Done(outcome)
+    }
+
+    /// A Modbus TCP device answered with another transaction id than its request's, where no
+    /// late answer could have come: said once per connection, with the key that helps.
+    fn transaction_mismatch(&mut self, sent: u16, got: u16) {
+        if std::mem::replace(&mut self.told_mismatch, true) {
+            return;
+        }
+        warn!(
+            bus = &*self.handle.name,
+            device = self.current.settings.device,
+            sent,
+            got,
+            "the device answered a request with another transaction id than the request's, so \
+             its answers are discarded (0x0B after the timeout); if it always does, set \
+             match_transaction_id = false on this bus to match its answers by order"
+        );
     }
 
     /// The device answered in Modbus TCP: said once per connection, at error level, with the fix

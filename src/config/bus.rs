@@ -59,6 +59,14 @@ pub struct Bus {
         skip_serializing_if = "Option::is_none"
     )]
     pub byte_timeout: Option<Duration>,
+    /// A Modbus TCP device: a reply must carry its request's transaction id. Off, for firmware
+    /// that echoes a wrong one: the request in flight takes the reply by unit and function, and
+    /// a timeout resets the connection (a late reply could not be told apart).
+    #[serde(
+        default = "defaults::match_transaction_id",
+        skip_serializing_if = "is_true"
+    )]
+    pub match_transaction_id: bool,
     /// A line on the network: silence after a connection is made before the first request (a
     /// device that needs time after a connect, as some inverters' dongles do).
     #[serde(default, with = "duration", skip_serializing_if = "is_zero")]
@@ -224,6 +232,12 @@ pub struct SimSlave {
     /// Fault knob: bytes of every reply sent before its `reply_gap`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub(crate) reply_gap_after: Option<usize>,
+}
+
+/// For serde: a key whose default is `true` is left out when it has it.
+#[allow(clippy::trivially_copy_pass_by_ref)] // serde's signature
+fn is_true(value: &bool) -> bool {
+    *value
 }
 
 impl Bus {

@@ -326,6 +326,12 @@ fn check_device(bus: &Bus, key: &dyn Fn(&str) -> String, report: &mut Report) {
             "only a line on the network (tcp:// or rfc2217://) is connected to",
         );
     }
+    if !bus.match_transaction_id && bus.framing != Framing::Tcp {
+        report.fail(
+            key("match_transaction_id"),
+            "only a Modbus TCP device (framing = \"tcp\") has transaction ids",
+        );
+    }
     if bus.framing == Framing::Tcp && bus.rs485.echo {
         report.fail(
             key("rs485.echo"),
@@ -643,6 +649,11 @@ mod tests {
                 "device = \"/dev/ttyS0\"\nconnect_delay = \"1s\"",
                 "bus[0].connect_delay",
                 "only a line on the network",
+            ),
+            (
+                "device = \"tcp://box:4001\"\nmatch_transaction_id = false",
+                "bus[0].match_transaction_id",
+                "only a Modbus TCP device",
             ),
             (
                 "device = \"tcp://box:502\"\nframing = \"tcp\"\n[bus.rs485]\necho = true",

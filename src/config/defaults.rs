@@ -80,6 +80,9 @@ pub(crate) fn reopen_delay_max() -> Duration {
 pub(crate) fn slave_down_after() -> u32 {
     3
 }
+pub(crate) fn match_transaction_id() -> bool {
+    true
+}
 pub(crate) fn coalesce_reads() -> bool {
     true
 }

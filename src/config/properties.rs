@@ -335,6 +335,7 @@ fn bus() -> impl Strategy<Value = Bus> {
                 sim_slave,
                 packing_delay: Duration::ZERO,
                 connect_delay: Duration::ZERO,
+                match_transaction_id: true,
             };
             if bus.transport().is_network() {
                 bus.packing_delay = down.3;

@@ -221,6 +221,15 @@ pub(crate) struct LineMaster<T> {
     echo: bool,
     /// The transaction id of the last frame sent, in a framing that has them.
     transaction: u16,
+    /// Whether a reply must carry the transaction id of its request (`match_transaction_id`);
+    /// off, the one request in flight takes whatever answers it, by unit and function.
+    match_transaction: bool,
+    /// When a try on a framing with transaction ids last timed out: until twice the timeout
+    /// after it, a reply with another transaction id may be its late answer.
+    timed_out_at: Option<Instant>,
+    /// A reply that answered the request in all but its transaction id, at a time no late
+    /// answer could come: (the id sent, the id it carried). Taken by the caller.
+    mismatch: Option<(u16, u16)>,
     timer: LineTimer,
     /// Whether frames are recorded for the trace: only while someone watches, so that the line
     /// copies nothing otherwise.
@@ -261,6 +270,9 @@ impl<T: Transport> LineMaster<T> {
             late_until: Box::new([None; 256]),
             echo: false,
             transaction: 0,
+            match_transaction: true,
+            timed_out_at: None,
+            mismatch: None,
             timer: LineTimer::new(),
             recording: false,
             recorded: Vec::new(),
@@ -276,6 +288,17 @@ impl<T: Transport> LineMaster<T> {
     /// back as sent, before its reply.
     pub(crate) fn set_echo(&mut self, echo: bool) {
         self.echo = echo;
+    }
+
+    /// Whether a reply must carry its request's transaction id (in a framing that has them).
+    pub(crate) fn set_match_transaction(&mut self, on: bool) {
+        self.match_transaction = on;
+    }
+
+    /// A reply that answered a request in all but its transaction id, since the last call: the
+    /// id sent and the id it carried.
+    pub(crate) fn take_transaction_mismatch(&mut self) -> Option<(u16, u16)> {
+        self.mismatch.take()
     }
 
     /// Expect replies from `slave` in `form`; its answers are still returned in standard form.
@@ -387,6 +410,9 @@ impl<T: Transport> LineMaster<T> {
         };
         if !serial {
             // Its transaction id tells a late reply from this try's: no window is needed.
+            if matches!(result, Err(TxError::Timeout)) {
+                self.timed_out_at = Some(Instant::now());
+            }
             return result;
         }
         match &result {
@@ -530,13 +556,15 @@ impl<T: Transport> LineMaster<T> {
                 .framing
                 .reply_completion(&self.rx, slave, request, form);
             let wait_until = match completion {
-                Completion::Whole(n) => match self.judge(n, slave, request, form) {
-                    Some(reply) => return reply,
-                    None => {
-                        self.rx.drain(..n);
-                        continue;
+                Completion::Whole(n) => {
+                    match self.judge(n, slave, request, (form, response_timeout)) {
+                        Some(reply) => return reply,
+                        None => {
+                            self.rx.drain(..n);
+                            continue;
+                        }
                     }
-                },
+                }
                 _ if self.rx.is_empty() => first_byte_by,
                 Completion::Invalid => return self.frame_error(),
                 Completion::AtLeast(n) => {
@@ -562,7 +590,7 @@ impl<T: Transport> LineMaster<T> {
                     if completion != Completion::Open(Silence::EndsFrame) {
                         return self.frame_error();
                     }
-                    match self.judge(self.rx.len(), slave, request, form) {
+                    match self.judge(self.rx.len(), slave, request, (form, response_timeout)) {
                         Some(reply) => return reply,
                         None => self.rx.clear(),
                     }
@@ -600,7 +628,7 @@ impl<T> LineMaster<T> {
         len: usize,
         slave: u8,
         request: &[u8],
-        form: ReplyForm,
+        (form, response_timeout): (ReplyForm, Duration),
     ) -> Option<Result<Reply, TxError>> {
         let late_reply_possible = self.late_reply_window(slave).is_some();
         let Some(address) = self.framing.decode_into(&self.rx[..len], &mut self.pdu) else {
@@ -609,12 +637,20 @@ impl<T> LineMaster<T> {
         };
         let pdu = &self.pdu;
         // A reply to another transaction (a try that timed out) answers nothing here.
-        let other_transaction =
-            self.framing.transaction(&self.rx[..len]) != self.framing.transaction(&self.tx);
-        let verdict = if other_transaction {
-            Verdict::Foreign
-        } else {
-            reply::judge(address, pdu, slave, request, form)
+        let sent = self.framing.transaction(&self.tx);
+        let got = self.framing.transaction(&self.rx[..len]);
+        let verdict = reply::judge(address, pdu, slave, request, form);
+        let verdict = match (sent, got) {
+            (Some(sent), Some(got)) if self.match_transaction && sent != got => {
+                let late_answer_possible = self
+                    .timed_out_at
+                    .is_some_and(|at| at.elapsed() < 2 * response_timeout);
+                if verdict == Verdict::Answer && !late_answer_possible {
+                    self.mismatch = Some((sent, got));
+                }
+                Verdict::Foreign
+            }
+            _ => verdict,
         };
         let judged = match verdict {
             Verdict::Answer => Some(Ok(Reply::Fits(reply::answer_pdu(pdu, form)))),
