@@ -392,3 +392,80 @@ async fn matched_by_order_such_a_device_is_served_and_a_timeout_resets_its_conne
     assert_eq!(master.call(3, 1, &read(3)).await, answer_to(&read(3)));
     device.abort();
 }
+
+#[tokio::test]
+async fn masters_that_choose_the_same_transaction_ids_each_get_their_own_answer_with_their_own_id()
+{
+    let (port, _) = answering_device().await;
+    let gateway = gateway_on(port, "").await;
+    let addr = addr(&gateway);
+    let mut masters = Vec::new();
+    for m in 0..4u16 {
+        masters.push(tokio::spawn(async move {
+            let mut master = RawMaster::connect(addr).await;
+            for n in 0..25u16 {
+                // Every master counts its transactions from 1, as most do: the ids collide, and
+                // the gateway's own ids towards the device keep the answers apart.
+                let register = 1000 * m + n;
+                master.send(n + 1, 1, &read(register)).await;
+                let got = master.recv().await;
+                assert_eq!(
+                    (got.transaction, got.pdu),
+                    (n + 1, answer_to(&read(register)))
+                );
+            }
+        }));
+    }
+    for master in masters {
+        within("a master's 25 reads", master).await.unwrap();
+    }
+}
+
+#[tokio::test]
+async fn a_read_only_master_cannot_hide_a_write_to_the_device_after_a_read() {
+    let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let port = server.local_addr().unwrap().port();
+    let seen = Arc::new(std::sync::Mutex::new(Vec::new()));
+    let log = seen.clone();
+    tokio::spawn(async move {
+        let (mut socket, _) = server.accept().await.unwrap();
+        while let Some((transaction, unit, pdu)) = next_request(&mut socket).await {
+            log.lock().unwrap().push(pdu.clone());
+            let answer = if pdu[0] == 0x03 {
+                answer_to(&pdu)
+            } else {
+                pdu.clone()
+            };
+            socket
+                .write_all(&reply(transaction, unit, &answer))
+                .await
+                .unwrap();
+        }
+    });
+    let gateway = GatewayConfig::new()
+        .listen("127.0.0.1:0")
+        .read_only(&["127.0.0.1"])
+        .bus(
+            Bus::on("dev", &format!("tcp://127.0.0.1:{port}"))
+                .framing("tcp")
+                .response_timeout("200ms"),
+        )
+        .start()
+        .await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    // A read with a whole MBAP write request after it, inside one request's PDU.
+    let mut hidden = read(1);
+    hidden.extend(reply(9, 1, &[0x06, 0x00, 0x01, 0xDE, 0xAD]));
+    assert_eq!(master.call(1, 1, &hidden).await, [0x83, 0x03]);
+    // A write outright: refused as ever.
+    assert_eq!(
+        master.call(2, 1, &[0x06, 0x00, 0x01, 0xDE, 0xAD]).await,
+        [0x86, 0x01]
+    );
+    assert_eq!(master.call(3, 1, &read(1)).await, answer_to(&read(1)));
+    assert_eq!(
+        *seen.lock().unwrap(),
+        [read(1)],
+        "only the plain read reached the device"
+    );
+}
