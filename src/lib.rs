@@ -63,6 +63,7 @@ pub mod metrics;
 #[cfg_attr(not(feature = "test-util"), allow(unreachable_pub))]
 mod net;
 pub mod pdu;
+mod pem;
 // What `testing` re-exports is `pub` for the tests' build (feature `test-util`) and unreachable
 // in the daemon's: the lint is for the build that has the hooks (clippy --all-targets).
 #[cfg_attr(not(feature = "test-util"), allow(unreachable_pub))]

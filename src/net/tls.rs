@@ -7,8 +7,8 @@
 
 use crate::config::{self, ConfigError, ConfigErrors, Role, RoleAccess, UnitSet, OTHER_ROLE};
 use crate::master::Rights;
-use rustls::pki_types::pem::PemObject;
-use rustls::pki_types::{CertificateDer, CertificateRevocationListDer, PrivateKeyDer};
+use crate::pem;
+use rustls::pki_types::{CertificateDer, CertificateRevocationListDer};
 use rustls::server::danger::ClientCertVerifier;
 use rustls::server::{VerifierBuilderError, WebPkiClientVerifier};
 use rustls::{RootCertStore, ServerConfig};
@@ -120,38 +120,8 @@ impl Problems {
     }
 }
 
-/// The certificates of a PEM file, or why there are none.
-fn read_certificates(path: &Path) -> Result<Vec<CertificateDer<'static>>, String> {
-    let pem = read(path)?;
-    let certificates = CertificateDer::pem_slice_iter(&pem)
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(|e| format!("{}: not a PEM file of certificates: {e}", path.display()))?;
-    if certificates.is_empty() {
-        return Err(format!(
-            "{}: holds no PEM certificate (-----BEGIN CERTIFICATE-----)",
-            path.display()
-        ));
-    }
-    Ok(certificates)
-}
-
 /// A problem with the key it is about: `("client_ca", "...")`.
 type KeyedProblem = (&'static str, String);
-
-/// The certificate revocation lists of a PEM file, or why there are none.
-fn read_crls(path: &Path) -> Result<Vec<CertificateRevocationListDer<'static>>, String> {
-    let pem = read(path)?;
-    let crls = CertificateRevocationListDer::pem_slice_iter(&pem)
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(|e| format!("{}: not a PEM file of CRLs: {e}", path.display()))?;
-    if crls.is_empty() {
-        return Err(format!(
-            "{}: holds no PEM CRL (-----BEGIN X509 CRL-----)",
-            path.display()
-        ));
-    }
-    Ok(crls)
-}
 
 /// What checks a master's certificate: chained to `client_ca`, valid, for client
 /// authentication, and not revoked by `crls` where they cover its issuer; with the number of CA
@@ -162,7 +132,7 @@ fn client_verifier(
     provider: Arc<rustls::crypto::CryptoProvider>,
 ) -> Result<(Arc<dyn ClientCertVerifier>, usize), KeyedProblem> {
     let client_ca = settings.client_ca.display();
-    let cas = read_certificates(&settings.client_ca).map_err(|e| ("client_ca", e))?;
+    let cas = pem::certificates(&settings.client_ca).map_err(|e| ("client_ca", e))?;
     let count = cas.len();
     let mut roots = RootCertStore::empty();
     let (_, unusable) = roots.add_parsable_certificates(cas);
@@ -185,10 +155,6 @@ fn client_verifier(
             }
             e => ("client_ca", format!("{client_ca}: {e}")),
         })
-}
-
-fn read(path: &Path) -> Result<Vec<u8>, String> {
-    std::fs::read(path).map_err(|e| format!("cannot read {}: {e}", path.display()))
 }
 
 fn parse(der: &[u8]) -> Result<X509Certificate<'_>, String> {
@@ -229,22 +195,14 @@ impl TlsServer {
     pub(crate) fn load(settings: &config::Tls) -> Result<TlsServer, ConfigErrors> {
         let provider = Arc::new(rustls::crypto::ring::default_provider());
         let mut problems = Problems::default();
-        let chain = read_certificates(&settings.certificate)
+        let chain = pem::certificates(&settings.certificate)
             .and_then(|chain| Ok((inspect_chain(&settings.certificate, &chain)?, chain)))
             .map_err(|e| problems.fail("certificate", e))
             .ok();
-        let key = read(&settings.private_key)
-            .and_then(|pem| {
-                PrivateKeyDer::from_pem_slice(&pem).map_err(|e| {
-                    format!(
-                        "{}: holds no PEM private key (PKCS#8, PKCS#1 or SEC1): {e}",
-                        settings.private_key.display()
-                    )
-                })
-            })
+        let key = pem::private_key(&settings.private_key)
             .map_err(|e| problems.fail("private_key", e))
             .ok();
-        let crls = settings.crl.as_deref().map(read_crls).transpose();
+        let crls = settings.crl.as_deref().map(pem::crls).transpose();
         // The CA file is checked even when the CRL file is broken: every problem in one report.
         let usable_crls = crls
             .as_ref()
@@ -353,6 +311,7 @@ pub(crate) fn role_of(certificate: &X509Certificate<'_>) -> Result<Option<String
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rustls::pki_types::pem::PemObject;
     use rcgen::{
         BasicConstraints, CertificateParams, CertifiedIssuer, CustomExtension, DnType,
         ExtendedKeyUsagePurpose, IsCa, KeyPair, KeyUsagePurpose, SanType,
