@@ -4,8 +4,8 @@
 //! gracefully. Owns their tasks: dropping the gateway stops them. Also where a configuration is
 //! loaded with its simulated drives checked ([`load_config`]): the one place that knows both.
 
-use crate::bus::{BusHandle, BusTask, BusUpdates, Device, Reconfigure, SerialDriver};
-use crate::config::{self, BusChange, Config, ConfigDiff, ConfigErrors, DeviceName};
+use crate::bus::{BusHandle, BusTask, BusUpdates, Device, Reconfigure, SerialDriver, TlsDevice};
+use crate::config::{self, BusChange, Config, ConfigDiff, ConfigError, ConfigErrors, DeviceName};
 use crate::dispatch::Dispatcher;
 use crate::master::Protocol;
 use crate::metrics::Metrics;
@@ -193,10 +193,25 @@ fn device_for(
             })
         }
         DeviceName::Server(addr) => {
+            // A `tls://` device's files are read now: a bad one is an error naming its key.
+            let tls = settings
+                .tls
+                .as_ref()
+                .map(|tls| {
+                    TlsDevice::load(tls, &addr.host).map_err(|problems| {
+                        let errors = problems.into_iter().map(|(key, reason)| ConfigError {
+                            key: format!("bus[{index}].tls.{key}"),
+                            reason,
+                        });
+                        StartError::Tls(ConfigErrors(errors.collect()))
+                    })
+                })
+                .transpose()?;
             return Ok(Device::Server {
                 addr,
                 format: settings.format(),
-            })
+                tls,
+            });
         }
         DeviceName::Sim => {}
     }

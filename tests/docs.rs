@@ -28,6 +28,11 @@ fn every_configuration_key_is_documented_in_the_configuration_reference() {
          [bus.rs485]\nmode = \"kernel\"\nrts_on_send = true\nrts_after_send = false\n\
          delay_before_send = \"1ms\"\ndelay_after_send = \"1ms\"\nrx_during_tx = true\n\
          echo = true\n\
+         [[bus]]\nname = \"c\"\ndevice = \"tcp://h:1\"\npacking_delay = \"10ms\"\n\
+         connect_delay = \"1s\"\n\
+         [[bus]]\nname = \"d\"\ndevice = \"tls://h:2\"\nframing = \"tcp\"\n\
+         match_transaction_id = false\n\
+         [bus.tls]\ncertificate = \"e\"\nprivate_key = \"f\"\nca = \"g\"\nserver_name = \"h\"\n\
          [[route]]\nunits = \"255\"\nbus = \"a\"\naddress = 1\n",
     )
     .expect("a valid configuration");

@@ -469,3 +469,117 @@ async fn a_read_only_master_cannot_hide_a_write_to_the_device_after_a_read() {
         "only the plain read reached the device"
     );
 }
+
+/// A Modbus/TCP Security device: a second gateway's TLS listener (mutual TLS, roles as
+/// `tls_extra` sets them) in front of simulated slaves 1-4; and the CA that signed its
+/// certificate.
+async fn tls_device(tls_extra: &str) -> (crate::support::tls::Pki, modbus_gateway::Gateway) {
+    let pki = crate::support::tls::Pki::new("device-ca");
+    let server = pki.server("device", "device", 365);
+    let toml = crate::support::sim_config_with_server(
+        &format!(
+            "listen_tls = \"127.0.0.1:0\"\n{}",
+            pki.tls_table(&server, tls_extra)
+        ),
+        "",
+    );
+    let device = crate::support::start(&toml).await;
+    (pki, device)
+}
+
+/// A gateway whose bus `dev` is the `tls://` device at `port`, presenting `client` and trusting
+/// `ca`.
+async fn gateway_on_tls(
+    port: u16,
+    client: &crate::support::tls::Issued,
+    ca: &std::path::Path,
+) -> modbus_gateway::Gateway {
+    let tls = format!(
+        "[bus.tls]\ncertificate = \"{}\"\nprivate_key = \"{}\"\nca = \"{}\"\n",
+        client.cert_path.display(),
+        client.key_path.display(),
+        ca.display()
+    );
+    GatewayConfig::new()
+        .listen("127.0.0.1:0")
+        .bus(
+            Bus::on("dev", &format!("tls://127.0.0.1:{port}"))
+                .framing("tcp")
+                .response_timeout("1s")
+                .key("reopen_delay", "100ms")
+                .text(&tls),
+        )
+        .start()
+        .await
+}
+
+#[tokio::test]
+async fn a_tls_device_is_served_with_the_gateways_certificate_and_its_role_is_the_devices_to_apply()
+{
+    use crate::support::tls::Role;
+    let (pki, device) = tls_device("roles = { viewer = \"read_only\" }").await;
+    let port = device.tls_addrs()[0].port();
+    // The gateway presents a certificate with the role `viewer`: the device lets it read only.
+    let client = pki.master("gateway-client", Role::Named("viewer"));
+    let gateway = gateway_on_tls(port, &client, &pki.ca_path).await;
+    crate::support::wait_for_bus(&gateway, "dev", true).await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    assert_eq!(
+        master.call(1, 1, &[0x03, 0x00, 0x00, 0x00, 0x01]).await,
+        [0x03, 0x02, 0x00, 0x00]
+    );
+    // The device refuses the write (0x01) and the gateway hands that on, byte for byte.
+    assert_eq!(
+        master.call(2, 1, &[0x06, 0x00, 0x00, 0x12, 0x34]).await,
+        [0x86, 0x01]
+    );
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(
+        scrape.value(
+            "modbus_gateway_bus_info{bus=\"dev\",format=\"none\",framing=\"tcp\",transport=\"tls\"}"
+        ),
+        1.0
+    );
+}
+
+#[tokio::test]
+async fn a_tls_device_whose_certificate_does_not_chain_to_the_ca_is_never_spoken_to() {
+    use crate::support::tls::Role;
+    let (pki, device) = tls_device("").await;
+    let port = device.tls_addrs()[0].port();
+    let client = pki.master("gateway-client", Role::Without);
+    // The gateway trusts another CA: the handshake fails, the bus stays down, masters get 0x0A.
+    let other = crate::support::tls::Pki::new("other-ca");
+    let gateway = gateway_on_tls(port, &client, &other.ca_path).await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    assert_eq!(
+        master.call(1, 1, &[0x03, 0x00, 0x00, 0x00, 0x01]).await,
+        [0x83, 0x0A]
+    );
+    let scrape = Scrape::of(&gateway).await;
+    assert!(scrape.value("modbus_gateway_port_open_errors_total{bus=\"dev\"}") >= 1.0);
+    assert_eq!(scrape.value("modbus_gateway_port_up{bus=\"dev\"}"), 0.0);
+}
+
+#[tokio::test]
+async fn a_tls_device_with_unreadable_files_stops_the_start_naming_each_key() {
+    let config = GatewayConfig::new()
+        .listen("127.0.0.1:0")
+        .bus(Bus::on("dev", "tls://127.0.0.1:802").framing("tcp").text(
+            "[bus.tls]\ncertificate = \"/nonexistent/gw.crt\"\n\
+                     private_key = \"/nonexistent/gw.key\"\nca = \"/nonexistent/ca.crt\"\n",
+        ))
+        .load();
+    let error = modbus_gateway::Gateway::start(&config)
+        .await
+        .err()
+        .expect("refused")
+        .to_string();
+    for key in [
+        "bus[0].tls.certificate",
+        "bus[0].tls.private_key",
+        "bus[0].tls.ca",
+    ] {
+        assert!(error.contains(key), "{key}: {error}");
+    }
+}

@@ -18,7 +18,7 @@ mod task;
 mod transaction;
 mod waiter;
 
-pub use device::{Device, Port, SerialDriver};
+pub use device::{Device, Port, SerialDriver, TlsDevice};
 pub use queue::{FairQueue, Job, Pushed};
 pub(crate) use reconfigure::{longest_transaction, BusUpdates, Reconfigure};
 pub use task::BusTask;

@@ -102,6 +102,7 @@ fn describe_link(name: &str, addr: &ServerAddr, packing: Duration) -> String {
     let how = match addr.mode {
         ServerMode::Raw => "raw TCP",
         ServerMode::Rfc2217 => "RFC 2217, which sets the format above on the far port at connect",
+        ServerMode::Tls => "Modbus/TCP Security",
     };
     let packing = if packing.is_zero() {
         String::new()

@@ -7,7 +7,7 @@ use super::device::DeviceName;
 use super::serde_adapters::{
     duration, is_false, is_zero, is_zero_f64, is_zero_usize, opt_duration,
 };
-use super::{Rs485, UnitSet};
+use super::{DeviceTls, Rs485, UnitSet};
 use crate::line::framing::TransportKind;
 use crate::line::{Framing, LineTiming, MasterTiming, Parity, SerialFormat};
 use serde::{Deserialize, Serialize};
@@ -59,6 +59,9 @@ pub struct Bus {
         skip_serializing_if = "Option::is_none"
     )]
     pub byte_timeout: Option<Duration>,
+    /// A `tls://` device: the gateway's client certificate and the CA of the device's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tls: Option<DeviceTls>,
     /// A Modbus TCP device: a reply must carry its request's transaction id. Off, for firmware
     /// that echoes a wrong one: the request in flight takes the reply by unit and function, and
     /// a timeout resets the connection (a late reply could not be told apart).

@@ -320,6 +320,14 @@ fn check_device(bus: &Bus, key: &dyn Fn(&str) -> String, report: &mut Report) {
             "only a line behind a serial device server (tcp:// or rfc2217://) has a packing timer",
         );
     }
+    match (kind == TransportKind::Tls, &bus.tls) {
+        (true, None) => report.fail(
+            key("tls"),
+            "a tls:// device needs [bus.tls] with certificate, private_key and ca",
+        ),
+        (false, Some(_)) => report.fail(key("tls"), "only a tls:// device takes [bus.tls]"),
+        _ => {}
+    }
     if !bus.connect_delay.is_zero() && !kind.is_network() {
         report.fail(
             key("connect_delay"),

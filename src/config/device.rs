@@ -1,7 +1,8 @@
 //! What a bus's `device` names, read once: the simulated line (`"sim"`), a serial device of the
-//! gateway's own (a path), or a serial device server on the network (`tcp://HOST:PORT` in raw,
-//! transparent mode; `rfc2217://HOST:PORT` with the line's settings negotiated over Telnet). Pure
-//! parsing; knows nothing of sockets, name resolution or ports.
+//! gateway's own (a path), or a peer on the network: a serial device server (`tcp://HOST:PORT` in
+//! raw, transparent mode; `rfc2217://HOST:PORT` with the line's settings negotiated over Telnet)
+//! or a Modbus TCP device (`tcp://` with `framing = "tcp"`, or `tls://HOST:PORT`, Modbus/TCP
+//! Security). Pure parsing; knows nothing of sockets, name resolution or ports.
 
 use super::bus::SIM_DEVICE;
 use crate::line::framing::TransportKind;
@@ -14,6 +15,8 @@ pub enum ServerMode {
     Raw,
     /// `rfc2217://`: Telnet with COM-PORT-OPTION; the gateway sets the far port's format.
     Rfc2217,
+    /// `tls://`: a Modbus TCP device behind TLS (Modbus/TCP Security), `[bus.tls]`.
+    Tls,
 }
 
 impl ServerMode {
@@ -22,6 +25,7 @@ impl ServerMode {
         match self {
             ServerMode::Raw => "tcp",
             ServerMode::Rfc2217 => "rfc2217",
+            ServerMode::Tls => "tls",
         }
     }
 }
@@ -73,6 +77,7 @@ impl DeviceName {
         let mode = match scheme {
             "tcp" => ServerMode::Raw,
             "rfc2217" => ServerMode::Rfc2217,
+            "tls" => ServerMode::Tls,
             _ => {
                 return Err(format!(
                     "`{scheme}://` is not a kind of device: a serial device path, \
@@ -92,13 +97,16 @@ impl DeviceName {
             DeviceName::Server(addr) => match addr.mode {
                 ServerMode::Raw => TransportKind::Tcp,
                 ServerMode::Rfc2217 => TransportKind::Rfc2217,
+                ServerMode::Tls => TransportKind::Tls,
             },
         }
     }
 }
 
 /// The network forms `device` takes, for messages.
-const TAKES: &str = "tcp://HOST:PORT (a serial device server in raw mode) or rfc2217://HOST:PORT";
+const TAKES: &str =
+    "tcp://HOST:PORT (a serial device server in raw mode, or a Modbus TCP device), \
+                     rfc2217://HOST:PORT or tls://HOST:PORT (a Modbus/TCP Security device)";
 
 /// `HOST:PORT` or `[IPV6]:PORT`, and nothing after it.
 fn host_and_port(text: &str) -> Result<(String, u16), String> {

@@ -46,7 +46,7 @@ pub use server::Server;
 pub(crate) use server::WhenFull;
 pub use tls::RoleAccess;
 pub(crate) use tls::OTHER_ROLE;
-pub use tls::{Role, Tls};
+pub use tls::{DeviceTls, Role, Tls};
 pub use unit_set::UnitSet;
 
 use serde::{Deserialize, Serialize};

@@ -1,6 +1,7 @@
 //! The `[server.tls]` table: where the Modbus/TCP Security listeners find their certificate, key
-//! and client CA, and what each certificate role may do. Paths and names as values; reading the
-//! files is the TLS listener's business.
+//! and client CA, and what each certificate role may do; and a `tls://` device's `[bus.tls]`:
+//! the gateway's client certificate and the CA its device must chain to. Paths and names as
+//! values; reading the files is the TLS side's business.
 
 use super::defaults;
 use super::serde_adapters::duration;
@@ -32,6 +33,22 @@ pub struct Tls {
     /// The TLS handshake must be over this long after the connection is accepted.
     #[serde(with = "duration", default = "defaults::tls_handshake_timeout")]
     pub handshake_timeout: Duration,
+}
+
+/// `[bus.tls]`: the gateway as a Modbus/TCP Security client of a `tls://` device.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DeviceTls {
+    /// The gateway's certificate chain (PEM), its own first; it may carry a role.
+    pub certificate: PathBuf,
+    /// The private key of that certificate (PEM: PKCS#8, PKCS#1 or SEC1).
+    pub private_key: PathBuf,
+    /// The CA certificates (PEM bundle) the device's certificate must chain to.
+    pub ca: PathBuf,
+    /// The name the device's certificate must carry, when the device's HOST is an address (or
+    /// another name) its certificate does not name.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub server_name: Option<String>,
 }
 
 /// What one role may do: its access, and the unit ids it may address (`None`: any). Written

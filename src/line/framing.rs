@@ -224,6 +224,8 @@ pub enum TransportKind {
     Tcp,
     /// A serial device server's socket speaking Telnet COM-PORT-OPTION (RFC 2217).
     Rfc2217,
+    /// A TLS connection to a Modbus TCP device (Modbus/TCP Security).
+    Tls,
 }
 
 impl TransportKind {
@@ -234,6 +236,7 @@ impl TransportKind {
             TransportKind::Sim => "the simulated line",
             TransportKind::Tcp => "a serial device server's raw TCP socket",
             TransportKind::Rfc2217 => "a serial device server's RFC 2217 socket",
+            TransportKind::Tls => "a Modbus/TCP Security (TLS) connection",
         }
     }
 
@@ -244,19 +247,24 @@ impl TransportKind {
             TransportKind::Sim => "sim",
             TransportKind::Tcp => "tcp",
             TransportKind::Rfc2217 => "rfc2217",
+            TransportKind::Tls => "tls",
         }
     }
 
     /// Whether the line's bytes cross a network to a serial device server: its timing then
     /// budgets the link (docs/device-servers.md).
     pub fn is_network(self) -> bool {
-        matches!(self, TransportKind::Tcp | TransportKind::Rfc2217)
+        matches!(
+            self,
+            TransportKind::Tcp | TransportKind::Rfc2217 | TransportKind::Tls
+        )
     }
 }
 
 /// Which framing may run over which transport: the one place that decides, for every line. Both
 /// serial framings need a byte stream onto a line that keeps the timing; a device server's socket
-/// is one (its UART keeps the wire's timing, the link's delay is budgeted). A framing or
+/// is one (its UART keeps the wire's timing, the link's delay is budgeted). MBAP needs a device
+/// that speaks Modbus TCP: on a plain socket, or inside TLS. A framing or
 /// transport that comes adds its rows here, and nowhere else.
 const LINES: &[(TransportKind, Framing)] = &[
     (TransportKind::Serial, Framing::Rtu),
@@ -267,8 +275,9 @@ const LINES: &[(TransportKind, Framing)] = &[
     (TransportKind::Tcp, Framing::Ascii),
     (TransportKind::Rfc2217, Framing::Rtu),
     (TransportKind::Rfc2217, Framing::Ascii),
-    // A Modbus TCP device: MBAP on a plain socket.
+    // A Modbus TCP device: MBAP on a plain socket, or inside TLS.
     (TransportKind::Tcp, Framing::Tcp),
+    (TransportKind::Tls, Framing::Tcp),
 ];
 
 impl Framing {
@@ -289,16 +298,18 @@ mod tests {
             TransportKind::Sim,
             TransportKind::Tcp,
             TransportKind::Rfc2217,
+            TransportKind::Tls,
         ] {
             for framing in [Framing::Rtu, Framing::Ascii] {
-                assert!(
+                assert_eq!(
                     framing.runs_over(transport),
+                    transport != TransportKind::Tls,
                     "{framing:?} over {transport:?}"
                 );
             }
             assert_eq!(
                 Framing::Tcp.runs_over(transport),
-                transport == TransportKind::Tcp
+                matches!(transport, TransportKind::Tcp | TransportKind::Tls)
             );
         }
     }

@@ -311,11 +311,11 @@ pub(crate) fn role_of(certificate: &X509Certificate<'_>) -> Result<Option<String
 #[cfg(test)]
 mod tests {
     use super::*;
-    use rustls::pki_types::pem::PemObject;
     use rcgen::{
         BasicConstraints, CertificateParams, CertifiedIssuer, CustomExtension, DnType,
         ExtendedKeyUsagePurpose, IsCa, KeyPair, KeyUsagePurpose, SanType,
     };
+    use rustls::pki_types::pem::PemObject;
     use std::path::PathBuf;
 
     const ROLE: &[u64] = &[1, 3, 6, 1, 4, 1, 50316, 802, 1];

@@ -15,8 +15,10 @@ pub(crate) mod net;
 mod rfc2217;
 pub(crate) mod serial;
 mod sim;
+pub(crate) mod tls;
 
 pub use serial::SerialDriver;
+pub use tls::TlsDevice;
 
 pub(crate) use serial::SerialFd;
 
@@ -42,6 +44,8 @@ pub enum Device {
     Server {
         addr: ServerAddr,
         format: SerialFormat,
+        /// A `tls://` device's client side.
+        tls: Option<TlsDevice>,
     },
     Sim(SimLine),
 }
@@ -50,6 +54,8 @@ pub enum Device {
 pub enum Port {
     Serial(SerialFd),
     Net(net::NetPort),
+    /// Boxed: a TLS session is large, and one port per bus is made per connect.
+    Tls(Box<net::NetPort<tokio_rustls::client::TlsStream<tokio::net::TcpStream>>>),
     Sim(SimPort),
 }
 
@@ -70,8 +76,20 @@ impl Device {
                     driver: d,
                 },
             ) => path == p && format == f && driver.same_as(d),
-            (Device::Server { addr, format }, Device::Server { addr: a, format: f }) => {
-                addr == a && format == f
+            (
+                Device::Server { addr, format, tls },
+                Device::Server {
+                    addr: a,
+                    format: f,
+                    tls: t,
+                },
+            ) => {
+                let same_tls = match (tls, t) {
+                    (Some(tls), Some(t)) => tls.same_as(t),
+                    (None, None) => true,
+                    _ => false,
+                };
+                addr == a && format == f && same_tls
             }
             (Device::Sim(line), Device::Sim(other)) => sim::same_as(line, other),
             // Two kinds of transport are never one line.
@@ -86,6 +104,7 @@ impl Device {
             Device::Server { addr, .. } => match addr.mode {
                 ServerMode::Raw => TransportKind::Tcp,
                 ServerMode::Rfc2217 => TransportKind::Rfc2217,
+                ServerMode::Tls => TransportKind::Tls,
             },
             Device::Sim(_) => TransportKind::Sim,
         }
@@ -101,7 +120,7 @@ impl Device {
                 format,
                 driver,
             } => serial::open(path, format, driver).map(Port::Serial),
-            Device::Server { addr, format } => net::open(addr, format).await.map(Port::Net),
+            Device::Server { addr, format, tls } => net::open(addr, format, tls.as_ref()).await,
             Device::Sim(line) => sim::open(line),
         }
     }
@@ -154,6 +173,10 @@ impl Port {
                 let (budget, srtt) = port.budget();
                 Some((port.peer(), budget, srtt))
             }
+            Port::Tls(port) => {
+                let (budget, srtt) = port.budget();
+                Some((port.peer(), budget, srtt))
+            }
             Port::Serial(_) | Port::Sim(_) => None,
         }
     }
@@ -164,6 +187,7 @@ impl Transport for Port {
         match self {
             Port::Serial(port) => port.send(frame).await,
             Port::Net(port) => port.send(frame).await,
+            Port::Tls(port) => port.send(frame).await,
             Port::Sim(port) => port.send(frame).await,
         }
     }
@@ -172,6 +196,7 @@ impl Transport for Port {
         match self {
             Port::Serial(port) => port.end_of_transmission(returned, frame_time),
             Port::Net(port) => port.end_of_transmission(returned, frame_time),
+            Port::Tls(port) => port.end_of_transmission(returned, frame_time),
             Port::Sim(port) => port.end_of_transmission(returned, frame_time),
         }
     }
@@ -180,6 +205,7 @@ impl Transport for Port {
         match self {
             Port::Serial(port) => port.recv(buf).await,
             Port::Net(port) => port.recv(buf).await,
+            Port::Tls(port) => port.recv(buf).await,
             Port::Sim(port) => port.recv(buf).await,
         }
     }
@@ -188,6 +214,7 @@ impl Transport for Port {
         match self {
             Port::Serial(port) => port.clear_input(stale),
             Port::Net(port) => port.clear_input(stale),
+            Port::Tls(port) => port.clear_input(stale),
             Port::Sim(port) => port.clear_input(stale),
         }
     }

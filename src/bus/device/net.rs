@@ -17,6 +17,7 @@
 //! far wire at least the gap after the reply left it.
 
 use super::rfc2217::{self, Telnet};
+use super::{Port, TlsDevice};
 use crate::config::{ServerAddr, ServerMode};
 use crate::line::{SerialFormat, Transport};
 use std::io;
@@ -26,6 +27,7 @@ use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt, ReadBuf};
 use tokio::net::TcpStream;
 use tokio::time::Instant;
+use tokio_rustls::client::TlsStream;
 
 /// The least the link adds to a frame's time: the timer's resolution.
 pub(crate) const MIN_LINK_BUDGET: Duration = Duration::from_millis(1);
@@ -56,6 +58,13 @@ impl Link for TcpStream {
     }
 }
 
+/// A `tls://` device: the round trip is its TCP connection's.
+impl Link for TlsStream<TcpStream> {
+    fn round_trip(&self) -> Option<Duration> {
+        crate::socket::round_trip(self.get_ref().0).ok()
+    }
+}
+
 /// What the link adds to every frame's time, from the least round trip measured: twice it (the
 /// way there and back, and as much again for queueing on the way), kept within
 /// [`MIN_LINK_BUDGET`]..=[`MAX_LINK_BUDGET`]; the most when nothing is measured.
@@ -81,12 +90,28 @@ pub struct NetPort<S = TcpStream> {
     out: Vec<u8>,
 }
 
-/// Connect to the device server at `addr`, whose line runs in `format`.
+/// Connect to the device server or device at `addr`, whose line runs in `format`.
 /// On `rfc2217://`, the server must acknowledge `format` within [`NEGOTIATION_TIMEOUT`]; a
 /// server that refuses COM-PORT-OPTION fails the open as `Unsupported` (retrying will not cure
-/// it).
-pub(super) async fn open(addr: &ServerAddr, format: &SerialFormat) -> io::Result<NetPort> {
-    let mut port = connect(&addr.host, addr.port).await?;
+/// it). On `tls://`, the TLS handshake must be over within [`CONNECT_TIMEOUT`] too.
+pub(super) async fn open(
+    addr: &ServerAddr,
+    format: &SerialFormat,
+    tls: Option<&TlsDevice>,
+) -> io::Result<Port> {
+    let stream = connect(&addr.host, addr.port).await?;
+    let peer = stream.peer_addr()?.to_string();
+    if let Some(tls) = tls {
+        let handshake = tokio::time::timeout(CONNECT_TIMEOUT, tls.handshake(stream));
+        let stream = handshake.await.map_err(|_| {
+            io::Error::new(
+                io::ErrorKind::TimedOut,
+                format!("no TLS handshake within {CONNECT_TIMEOUT:?}"),
+            )
+        })??;
+        return Ok(Port::Tls(Box::new(NetPort::new(stream, peer))));
+    }
+    let mut port = NetPort::new(stream, peer);
     if addr.mode == ServerMode::Rfc2217 {
         let mut telnet = Box::new(Telnet::new());
         let deadline = Instant::now() + NEGOTIATION_TIMEOUT;
@@ -96,12 +121,12 @@ pub(super) async fn open(addr: &ServerAddr, format: &SerialFormat) -> io::Result
         }
         port.telnet = Some(telnet);
     }
-    Ok(port)
+    Ok(Port::Net(port))
 }
 
 /// Connect to `host`:`port` (a name is looked up each time, as a converter's address may
 /// change), by [`CONNECT_TIMEOUT`].
-async fn connect(host: &str, port: u16) -> io::Result<NetPort> {
+async fn connect(host: &str, port: u16) -> io::Result<TcpStream> {
     let connecting = TcpStream::connect((host, port));
     let stream = tokio::time::timeout(CONNECT_TIMEOUT, connecting)
         .await
@@ -114,8 +139,7 @@ async fn connect(host: &str, port: u16) -> io::Result<NetPort> {
     // A frame goes out whole and at once: never held back to be joined with the next.
     stream.set_nodelay(true)?;
     crate::socket::set_keepalive(&stream, KEEPALIVE_IDLE)?;
-    let peer = stream.peer_addr()?.to_string();
-    Ok(NetPort::new(stream, peer))
+    Ok(stream)
 }
 
 impl<S: Link> NetPort<S> {
