@@ -172,6 +172,11 @@ async fn a_device_server_that_goes_away_gets_0x0a_at_once_and_is_reconnected_whe
 /// pymodbus's Modbus TCP server on a free port, or `None` (and why) without pymodbus. It exits
 /// when the child's stdin closes, with the `Child` dropped.
 pub(crate) async fn pymodbus_tcp_server() -> Option<(std::process::Child, u16)> {
+    pymodbus_tcp_server_with(&[]).await
+}
+
+/// [`pymodbus_tcp_server`] with the script's `args` (`tls CERT KEY CA`: its TLS server).
+pub(crate) async fn pymodbus_tcp_server_with(args: &[&str]) -> Option<(std::process::Child, u16)> {
     let python = crate::peers::python_with_pymodbus()?;
     let script = concat!(
         env!("CARGO_MANIFEST_DIR"),
@@ -179,6 +184,7 @@ pub(crate) async fn pymodbus_tcp_server() -> Option<(std::process::Child, u16)> 
     );
     let mut child = std::process::Command::new(python)
         .arg(script)
+        .args(args)
         .stdin(Stdio::piped())
         .stdout(Stdio::piped())
         .spawn()

@@ -583,3 +583,44 @@ async fn a_tls_device_with_unreadable_files_stops_the_start_naming_each_key() {
         assert!(error.contains(key), "{key}: {error}");
     }
 }
+
+#[tokio::test]
+async fn pymodbus_tls_server_answers_masters_through_a_tls_bus() {
+    use crate::support::tls::{Pki, Role};
+    let pki = Pki::new("pymodbus-ca");
+    let server = pki.server("pymodbus", "pymodbus", 365);
+    let (cert, key, ca) = (
+        server.cert_path.to_str().unwrap(),
+        server.key_path.to_str().unwrap(),
+        pki.ca_path.to_str().unwrap(),
+    );
+    let args = ["tls", cert, key, ca];
+    let Some((_server, port)) = crate::device_link::pymodbus_tcp_server_with(&args).await else {
+        return;
+    };
+    let client = pki.master("gateway-client", Role::Without);
+    let gateway = gateway_on_tls(port, &client, &pki.ca_path).await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    // pymodbus's device 1: holding registers 0-19 at 7.
+    let cases: [(&[u8], &[u8]); 3] = [
+        (
+            &[0x03, 0x00, 0x00, 0x00, 0x02],
+            &[0x03, 0x04, 0x00, 0x07, 0x00, 0x07],
+        ),
+        (
+            &[0x06, 0x00, 0x01, 0x12, 0x34],
+            &[0x06, 0x00, 0x01, 0x12, 0x34],
+        ),
+        (
+            &[0x03, 0x00, 0x00, 0x00, 0x02],
+            &[0x03, 0x04, 0x00, 0x07, 0x12, 0x34],
+        ),
+    ];
+    for (transaction, (request, answer)) in (1..).zip(cases) {
+        assert_eq!(
+            master.call(transaction, 1, request).await,
+            answer,
+            "{request:02X?}"
+        );
+    }
+}

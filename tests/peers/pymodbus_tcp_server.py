@@ -1,7 +1,10 @@
-"""pymodbus's Modbus TCP server, where tests/device_link.rs's gateway expects a serial device server
-in raw mode: a converter left in its "Modbus TCP gateway" mode, or a Modbus TCP device, at the
-address of a line. Device 1 has holding and input registers 0-19 at 7, coils and discrete inputs
+"""pymodbus's Modbus TCP server: where tests/device_link.rs's gateway expects a serial device server
+in raw mode (a converter left in its "Modbus TCP gateway" mode), and the Modbus TCP device of
+tests/tcp_device.rs. Device 1 has holding and input registers 0-19 at 7, coils and discrete inputs
 0-15 off.
+
+Usage: pymodbus_tcp_server.py [tls CERT KEY CA]: with `tls`, pymodbus's Modbus/TCP Security server
+(ModbusTlsServer), presenting CERT and KEY and requiring a client certificate that chains to CA.
 
 Stdout, one line, flushed: `listening PORT` once the server accepts connections on 127.0.0.1:PORT
 (a free port). The script exits when its stdin closes, so it never outlives its test.
@@ -11,7 +14,9 @@ import asyncio
 import socket
 import sys
 
-from pymodbus.server import ModbusTcpServer
+import ssl
+
+from pymodbus.server import ModbusTcpServer, ModbusTlsServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
 
@@ -27,7 +32,15 @@ async def main():
     registers = [SimData(address=0, values=[7] * 20, datatype=DataType.REGISTERS)]
     device = SimDevice(id=1, simdata=(bits, bits, registers, registers))
     port = free_port()
-    server = ModbusTcpServer(device, address=("127.0.0.1", port))
+    if len(sys.argv) == 5 and sys.argv[1] == "tls":
+        _, _, cert, key, ca = sys.argv
+        context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+        context.load_cert_chain(cert, key)
+        context.load_verify_locations(ca)
+        context.verify_mode = ssl.CERT_REQUIRED
+        server = ModbusTlsServer(device, address=("127.0.0.1", port), sslctx=context)
+    else:
+        server = ModbusTcpServer(device, address=("127.0.0.1", port))
     await server.serve_forever(background=True)
     while True:
         try:
