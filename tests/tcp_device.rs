@@ -624,3 +624,127 @@ async fn pymodbus_tls_server_answers_masters_through_a_tls_bus() {
         );
     }
 }
+
+/// A device on `server` that answers reads with [`answer_to`] and writes with their echo, and
+/// logs every write's value; it goes away (connection and listener) once `stop_after` requests
+/// have come in, if given.
+fn logging_device(
+    server: TcpListener,
+    writes: Arc<std::sync::Mutex<Vec<u16>>>,
+    stop_after: Option<usize>,
+) -> tokio::task::JoinHandle<()> {
+    tokio::spawn(async move {
+        let (mut socket, _) = server.accept().await.unwrap();
+        let mut seen = 0;
+        while let Some((transaction, unit, pdu)) = next_request(&mut socket).await {
+            seen += 1;
+            if stop_after.is_some_and(|n| seen > n) {
+                return;
+            }
+            let answer = if pdu[0] == 0x06 {
+                writes
+                    .lock()
+                    .unwrap()
+                    .push(u16::from_be_bytes([pdu[3], pdu[4]]));
+                pdu.clone()
+            } else {
+                answer_to(&pdu)
+            };
+            if socket
+                .write_all(&reply(transaction, unit, &answer))
+                .await
+                .is_err()
+            {
+                return;
+            }
+        }
+    })
+}
+
+#[tokio::test]
+async fn a_device_restarted_under_traffic_gives_0x0a_never_a_wrong_answer_and_no_write_twice() {
+    let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let port = server.local_addr().unwrap().port();
+    let writes = Arc::new(std::sync::Mutex::new(Vec::new()));
+    let first = logging_device(server, writes.clone(), Some(60));
+    let gateway = gateway_on(
+        port,
+        "reopen_delay = \"50ms\"\nreopen_delay_max = \"100ms\"\n",
+    )
+    .await;
+    let addr = addr(&gateway);
+    let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    // Three readers of registers of their own, and a writer of 1, 2, 3... to register 9.
+    let mut masters = Vec::new();
+    for m in 0..4u16 {
+        let stop = stop.clone();
+        masters.push(tokio::spawn(async move {
+            let mut master = RawMaster::connect(addr).await;
+            let (mut answered, mut unavailable) = (Vec::new(), 0);
+            let mut n = 0u16;
+            while !stop.load(Ordering::Relaxed) {
+                n += 1;
+                let request = if m == 3 {
+                    vec![0x06, 0x00, 0x09, (n >> 8) as u8, n as u8]
+                } else {
+                    read(100 * m + n)
+                };
+                let expected = if m == 3 {
+                    request.clone()
+                } else {
+                    answer_to(&request)
+                };
+                let got = within("an answer", master.call(n, 1, &request)).await;
+                if got == expected {
+                    answered.push(n);
+                } else {
+                    assert_eq!(got[1..], [0x0A], "master {m} request {n}: {got:02X?}");
+                    unavailable += 1;
+                }
+            }
+            (answered, unavailable)
+        }));
+    }
+    // The device goes away after 60 requests; once the gateway has noticed, it comes back.
+    first.await.unwrap();
+    crate::support::wait_for_bus(&gateway, "dev", false).await;
+    let server = TcpListener::bind(("127.0.0.1", port)).await.unwrap();
+    let second = logging_device(server, writes.clone(), None);
+    within("traffic resumes", async {
+        let reopened = "modbus_gateway_port_reopens_total{bus=\"dev\"}";
+        while Scrape::of(&gateway).await.value(reopened) < 1.0 {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    })
+    .await;
+    stop.store(true, Ordering::Relaxed);
+    let mut unavailable = 0;
+    let mut written = Vec::new();
+    for (m, master) in masters.into_iter().enumerate() {
+        let (answered, refused) = within("a master stops", master).await.unwrap();
+        assert!(!answered.is_empty(), "master {m} was answered");
+        unavailable += refused;
+        if m == 3 {
+            written = answered;
+        }
+    }
+    assert!(unavailable >= 1, "someone met the outage");
+    // Every write the writer saw answered was carried out once, and no write twice.
+    let carried = writes.lock().unwrap().clone();
+    let mut unique = carried.clone();
+    unique.sort_unstable();
+    unique.dedup();
+    assert_eq!(
+        unique.len(),
+        carried.len(),
+        "a write carried out twice: {carried:?}"
+    );
+    for n in written {
+        assert!(
+            carried.contains(&n),
+            "write {n} was answered but never carried out"
+        );
+    }
+    second.abort();
+}
