@@ -33,6 +33,7 @@ fn every_configuration_key_is_documented_in_the_configuration_reference() {
          [[bus]]\nname = \"d\"\ndevice = \"tls://h:2\"\nframing = \"tcp\"\n\
          match_transaction_id = false\n\
          [bus.tls]\ncertificate = \"e\"\nprivate_key = \"f\"\nca = \"g\"\nserver_name = \"h\"\n\
+         [[bus]]\nname = \"e\"\ndevice = \"tcp://h:3\"\nframing = \"tcp\"\nmax_in_flight = 4\n\
          [[route]]\nunits = \"255\"\nbus = \"a\"\naddress = 1\n",
     )
     .expect("a valid configuration");

@@ -748,3 +748,111 @@ async fn a_device_restarted_under_traffic_gives_0x0a_never_a_wrong_answer_and_no
     }
     second.abort();
 }
+
+/// A device that answers every request `delay` after it came, several at once if they come so,
+/// and keeps the most it ever had unanswered at once.
+async fn slow_device(delay: Duration) -> (u16, Arc<AtomicUsize>) {
+    let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let port = server.local_addr().unwrap().port();
+    let most = Arc::new(AtomicUsize::new(0));
+    let most_seen = most.clone();
+    tokio::spawn(async move {
+        let (socket, _) = server.accept().await.unwrap();
+        let (mut reader, writer) = socket.into_split();
+        let writer = Arc::new(tokio::sync::Mutex::new(writer));
+        let pending = Arc::new(AtomicUsize::new(0));
+        loop {
+            let mut header = [0u8; 7];
+            if reader.read_exact(&mut header).await.is_err() {
+                return;
+            }
+            let length = usize::from(u16::from_be_bytes([header[4], header[5]]));
+            let mut pdu = vec![0u8; length - 1];
+            if reader.read_exact(&mut pdu).await.is_err() {
+                return;
+            }
+            let now = pending.fetch_add(1, Ordering::SeqCst) + 1;
+            most_seen.fetch_max(now, Ordering::SeqCst);
+            let (writer, pending) = (writer.clone(), pending.clone());
+            tokio::spawn(async move {
+                tokio::time::sleep(delay).await;
+                let transaction = u16::from_be_bytes([header[0], header[1]]);
+                let frame = reply(transaction, header[6], &answer_to(&pdu));
+                pending.fetch_sub(1, Ordering::SeqCst);
+                let _ = writer.lock().await.write_all(&frame).await;
+            });
+        }
+    });
+    (port, most)
+}
+
+#[tokio::test]
+async fn with_max_in_flight_requests_overlap_at_the_device_up_to_it_and_each_master_gets_its_own() {
+    for in_flight in [1usize, 4] {
+        let (port, most) = slow_device(Duration::from_millis(5)).await;
+        let gateway = gateway_on(port, &format!("max_in_flight = {in_flight}\n")).await;
+        let addr = addr(&gateway);
+        let mut masters = Vec::new();
+        for m in 0..8u16 {
+            masters.push(tokio::spawn(async move {
+                let mut master = RawMaster::connect(addr).await;
+                for n in 0..10u16 {
+                    let register = 100 * m + n;
+                    let got = master.call(n, 1, &read(register)).await;
+                    assert_eq!(got, answer_to(&read(register)), "max_in_flight {in_flight}");
+                }
+            }));
+        }
+        for master in masters {
+            within("a master's reads", master).await.unwrap();
+        }
+        assert_eq!(
+            most.load(Ordering::SeqCst),
+            in_flight,
+            "requests outstanding at the device at once"
+        );
+    }
+}
+
+#[tokio::test]
+async fn pipelined_a_late_answer_is_discarded_and_a_read_is_retried_under_its_own_new_id() {
+    let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let port = server.local_addr().unwrap().port();
+    let gateway = gateway_on(port, "max_in_flight = 4\nretries = 1\n").await;
+    let (mut socket, _) = server.accept().await.unwrap();
+    let device = tokio::spawn(async move {
+        // The first try of the first read goes unanswered until its retry has been answered:
+        // then its late answer comes, under the first try's id.
+        let (first_id, unit, first) = next_request(&mut socket).await.unwrap();
+        let (retry_id, _, retried) = next_request(&mut socket).await.unwrap();
+        assert_eq!(retried, first, "the retry is the same request");
+        assert_ne!(retry_id, first_id, "under an id of its own");
+        socket
+            .write_all(&reply(retry_id, unit, &answer_to(&retried)))
+            .await
+            .unwrap();
+        socket
+            .write_all(&reply(first_id, unit, &[0x03, 0x02, 0xBA, 0xD0]))
+            .await
+            .unwrap();
+        while let Some((transaction, unit, pdu)) = next_request(&mut socket).await {
+            socket
+                .write_all(&reply(transaction, unit, &answer_to(&pdu)))
+                .await
+                .unwrap();
+        }
+    });
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    assert_eq!(master.call(1, 1, &read(7)).await, answer_to(&read(7)));
+    assert_eq!(master.call(2, 1, &read(8)).await, answer_to(&read(8)));
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(
+        scrape.value("modbus_gateway_discarded_frames_total{bus=\"dev\"}"),
+        1.0
+    );
+    assert_eq!(
+        scrape.value("modbus_gateway_retries_total{bus=\"dev\",slave=\"1\"}"),
+        1.0
+    );
+    device.abort();
+}

@@ -11,6 +11,7 @@
 
 pub(crate) mod device;
 pub(crate) mod health;
+mod pipelined;
 pub(crate) mod queue;
 mod reconfigure;
 mod serve;

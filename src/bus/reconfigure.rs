@@ -39,9 +39,12 @@ impl BusUpdates {
 }
 
 /// Whether going from `current` to `update` takes the port closed and opened again: another
-/// device or format, or another framing.
+/// device or format, another framing, or another `max_in_flight` (one request at a time and
+/// pipelining are two ways of serving a connection).
 fn needs_reopen(device: &Device, settings: &config::Bus, update: &Reconfigure) -> bool {
-    !device.same_as(&update.device) || settings.framing != update.settings.framing
+    !device.same_as(&update.device)
+        || settings.framing != update.settings.framing
+        || settings.max_in_flight != update.settings.max_in_flight
 }
 
 /// The longest one transaction on a bus with `settings` can take: the gap before its frame,

@@ -194,7 +194,7 @@ impl BusTask {
     /// Answer at once who no longer waits for `job`, or waited too long: its own master and
     /// each follower. The job, if anyone is left for the line to answer: led by the first
     /// follower still waiting if its own master is settled.
-    fn settle_waiters(&self, mut job: Job) -> Option<Job> {
+    pub(super) fn settle_waiters(&self, mut job: Job) -> Option<Job> {
         let now = Instant::now();
         let (slave, function) = (job.slave, job.function());
         job.followers = std::mem::take(&mut job.followers)
@@ -232,7 +232,7 @@ impl BusTask {
     }
 
     /// Keep a slave's normal reply to a read for its `cache`, if it has one.
-    fn remember(&self, job: &Job, outcome: &crate::error::Outcome) {
+    pub(super) fn remember(&self, job: &Job, outcome: &crate::error::Outcome) {
         let Ok(crate::error::Answer::Reply(pdu)) = outcome else {
             return;
         };

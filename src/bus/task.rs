@@ -154,8 +154,13 @@ impl BusTask {
                     self.told_wrong_mode = false;
                     self.told_mismatch = false;
                     delay = self.current.settings.reopen_delay;
-                    let master = self.master_on(port);
-                    let end = self.serve(master, &mut stopping).await;
+                    let pipelined = self.current.settings.max_in_flight > 1;
+                    let end = if pipelined {
+                        self.serve_pipelined(port, &mut stopping).await
+                    } else {
+                        let master = self.master_on(port);
+                        self.serve(master, &mut stopping).await
+                    };
                     self.set_up(false);
                     match end {
                         Served::Lost(error) => {

@@ -214,7 +214,7 @@ impl BusTask {
     }
 
     /// Tell the slave's health how the request ended, and the metrics what changed.
-    fn record(&mut self, job: &Job, outcome: &Outcome) {
+    pub(super) fn record(&mut self, job: &Job, outcome: &Outcome) {
         let down = self.current.derived.down;
         let change = self.health.record(
             job.slave,

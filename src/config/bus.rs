@@ -62,6 +62,10 @@ pub struct Bus {
     /// A `tls://` device: the gateway's client certificate and the CA of the device's.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tls: Option<DeviceTls>,
+    /// A Modbus TCP device: requests outstanding on its connection at once (1: one at a time;
+    /// more: pipelined, replies matched by transaction id).
+    #[serde(default = "defaults::max_in_flight", skip_serializing_if = "is_one")]
+    pub max_in_flight: usize,
     /// A Modbus TCP device: a reply must carry its request's transaction id. Off, for firmware
     /// that echoes a wrong one: the request in flight takes the reply by unit and function, and
     /// a timeout resets the connection (a late reply could not be told apart).
@@ -241,6 +245,12 @@ pub struct SimSlave {
 #[allow(clippy::trivially_copy_pass_by_ref)] // serde's signature
 fn is_true(value: &bool) -> bool {
     *value
+}
+
+/// For serde: `max_in_flight` at its default is left out.
+#[allow(clippy::trivially_copy_pass_by_ref)] // serde's signature
+fn is_one(value: &usize) -> bool {
+    *value == 1
 }
 
 impl Bus {

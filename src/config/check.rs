@@ -3,6 +3,7 @@
 //! changes nothing (deriving values is [`resolve`](super::resolve)'s); reports every problem, in
 //! the order of the file, each with its key path. Knows nothing of how a drive is simulated.
 
+use super::defaults;
 use super::rs485::LATENCY_TIMER_MS;
 use super::DeviceName;
 use super::OTHER_ROLE;
@@ -334,6 +335,27 @@ fn check_device(bus: &Bus, key: &dyn Fn(&str) -> String, report: &mut Report) {
             "only a line on the network (tcp:// or rfc2217://) is connected to",
         );
     }
+    if bus.max_in_flight != 1 && bus.framing != Framing::Tcp {
+        report.fail(
+            key("max_in_flight"),
+            "only a Modbus TCP device (framing = \"tcp\") pipelines: a serial line has one \
+             request at a time",
+        );
+    } else if !(1..=defaults::MAX_IN_FLIGHT).contains(&bus.max_in_flight) {
+        report.fail(
+            key("max_in_flight"),
+            format!(
+                "{} is not 1 to {}",
+                bus.max_in_flight,
+                defaults::MAX_IN_FLIGHT
+            ),
+        );
+    } else if bus.max_in_flight > 1 && !bus.match_transaction_id {
+        report.fail(
+            key("max_in_flight"),
+            "pipelined replies are told apart by transaction id: not with match_transaction_id = false",
+        );
+    }
     if !bus.match_transaction_id && bus.framing != Framing::Tcp {
         report.fail(
             key("match_transaction_id"),
@@ -657,6 +679,16 @@ mod tests {
                 "device = \"/dev/ttyS0\"\nconnect_delay = \"1s\"",
                 "bus[0].connect_delay",
                 "only a line on the network",
+            ),
+            (
+                "device = \"tcp://box:4001\"\nmax_in_flight = 2",
+                "bus[0].max_in_flight",
+                "a serial line has one request at a time",
+            ),
+            (
+                "device = \"tcp://box:502\"\nframing = \"tcp\"\nmax_in_flight = 17",
+                "bus[0].max_in_flight",
+                "17 is not 1 to 16",
             ),
             (
                 "device = \"tcp://box:4001\"\nmatch_transaction_id = false",

@@ -80,6 +80,12 @@ pub(crate) fn reopen_delay_max() -> Duration {
 pub(crate) fn slave_down_after() -> u32 {
     3
 }
+pub(crate) fn max_in_flight() -> usize {
+    1
+}
+/// The most requests a device's connection may have outstanding: Modbus TCP devices that
+/// pipeline at all take a handful.
+pub(crate) const MAX_IN_FLIGHT: usize = 16;
 pub(crate) fn match_transaction_id() -> bool {
     true
 }

@@ -336,6 +336,7 @@ fn bus() -> impl Strategy<Value = Bus> {
                 packing_delay: Duration::ZERO,
                 connect_delay: Duration::ZERO,
                 match_transaction_id: true,
+                max_in_flight: 1,
                 tls: None,
             };
             if bus.transport().is_network() {

@@ -1,0 +1,297 @@
+//! Serving a Modbus TCP device with several requests outstanding (`max_in_flight` above 1): the
+//! fair queue's requests go out as soon as there is room, each under the gateway's own
+//! transaction id, and each reply, in whatever order the device sends them, answers the request
+//! of its id, unit and function code, and only that one. A request without its reply by its
+//! deadline is retried (a read under `retries`) or answered 0x0B; a reply that answers none in
+//! flight is discarded and counted. Slave health, the cache, coalescing, the metrics and the
+//! trace are the one-at-a-time loop's (`serve`, `transaction`).
+
+use super::health::Admission;
+use super::task::{BusTask, Served};
+use super::{Job, Port, HEARTBEAT};
+use crate::error::{Answer, NoReply, Outcome, RequestError};
+use crate::line::pipeline::{Frame, Pipeline};
+use crate::line::reply::{self, ReplyForm, Verdict};
+use crate::line::{LineCounters, Reply};
+use crate::metrics::Fate;
+use crate::pdu;
+use crate::shutdown::Stopping;
+use crate::trace::{Direction, TraceEvent};
+use std::io;
+use std::time::SystemTime;
+use tokio::time::{sleep, Instant};
+
+/// A request on the wire.
+struct Flight {
+    transaction: u16,
+    job: Job,
+    deadline: Instant,
+    attempts: u32,
+    retries: u32,
+    first_sent: Instant,
+    /// The request as sent, for the trace.
+    sent: Vec<u8>,
+    sent_at: SystemTime,
+}
+
+/// What the loop does next.
+enum Step {
+    Send(Job),
+    Frame(io::Result<Frame>),
+    Deadline,
+    Again,
+    Stop(Instant),
+}
+
+impl BusTask {
+    /// Serve `port` with up to `max_in_flight` requests outstanding, until it is lost, a new
+    /// configuration names another device, or a stop (with no request left in flight).
+    pub(super) async fn serve_pipelined(&mut self, port: Port, stopping: &mut Stopping) -> Served {
+        let mut pipeline = Pipeline::new(port);
+        let mut flights: Vec<Flight> = Vec::new();
+        let mut counted = LineCounters::default();
+        let mut draining: Option<Instant> = None;
+        let mut quiet_until = Instant::now() + self.current.settings.connect_delay;
+        loop {
+            self.handle.beat();
+            if self.take_update() == Some(true) {
+                return self.lose_flights(flights, Served::Reopen);
+            }
+            if let Some(deadline) = draining {
+                let over = Instant::now() >= deadline;
+                if (flights.is_empty() && self.handle.queue.is_empty()) || over {
+                    return self.lose_flights(flights, Served::Stopped);
+                }
+            }
+            let room = flights.len() < self.current.settings.max_in_flight;
+            let next_deadline = flights.iter().map(|f| f.deadline).min();
+            let step = tokio::select! {
+                biased;
+                at = stopping.requested(), if draining.is_none() => Step::Stop(at),
+                () = self.updates.changed() => Step::Again,
+                frame = pipeline.next_frame() => Step::Frame(frame),
+                () = crate::timer::sleep_until(next_deadline.unwrap_or(quiet_until)),
+                    if next_deadline.is_some() => Step::Deadline,
+                () = crate::timer::sleep_until(quiet_until), if Instant::now() < quiet_until => {
+                    Step::Again
+                }
+                job = self.handle.queue.pop(), if room && Instant::now() >= quiet_until => {
+                    Step::Send(job)
+                }
+                () = sleep(HEARTBEAT) => Step::Again,
+            };
+            let lost = match step {
+                Step::Stop(at) => {
+                    draining = Some(at);
+                    None
+                }
+                Step::Again => None,
+                Step::Send(job) => self.take_off(&mut pipeline, &mut flights, job).await.err(),
+                Step::Frame(Ok(frame)) => {
+                    self.land(&mut pipeline, &mut flights, frame);
+                    quiet_until = Instant::now() + self.current.derived.timing.gap;
+                    None
+                }
+                Step::Frame(Err(error)) => Some(error),
+                Step::Deadline => self.expire(&mut pipeline, &mut flights).await.err(),
+            };
+            let traffic = pipeline.counters();
+            self.handle.metrics.line(&traffic.since(&counted));
+            counted = traffic;
+            if let Some(link) = pipeline.port().link() {
+                self.handle.metrics.link(Some(link));
+            }
+            if let Some(error) = lost {
+                return self.lose_flights(flights, Served::Lost(error));
+            }
+        }
+    }
+
+    /// Every request in flight gets 0x0A: the connection they were on is gone.
+    fn lose_flights(&mut self, flights: Vec<Flight>, end: Served) -> Served {
+        for flight in flights {
+            self.handle.answer(flight.job, Err(RequestError::PortDown));
+        }
+        end
+    }
+
+    /// Send `job`, if anyone still waits for it and its slave is not down.
+    async fn take_off(
+        &mut self,
+        pipeline: &mut Pipeline<Port>,
+        flights: &mut Vec<Flight>,
+        job: Job,
+    ) -> io::Result<()> {
+        let Some(job) = self.settle_waiters(job) else {
+            return Ok(());
+        };
+        let now = Instant::now();
+        let admission = self.health.admit(job.slave, now, self.current.derived.down);
+        if let Admission::Skip { timeouts } = admission {
+            self.handle
+                .answer(job, Err(RequestError::SlaveDown { timeouts }));
+            return Ok(());
+        }
+        let settings = &self.current.settings;
+        let retries = if admission == Admission::Probe {
+            0
+        } else if pdu::is_read_only(&job.pdu) || settings.retry_writes {
+            settings.retries
+        } else {
+            0
+        };
+        let (transaction, sent) = match pipeline.send(job.slave, &job.pdu).await {
+            Ok((transaction, sent)) => (transaction, sent.to_vec()),
+            Err(error) => {
+                self.handle.answer(job, Err(RequestError::PortDown));
+                return Err(error);
+            }
+        };
+        flights.push(Flight {
+            transaction,
+            deadline: self.flight_deadline(pipeline, job.slave),
+            job,
+            attempts: 1,
+            retries,
+            first_sent: now,
+            sent,
+            sent_at: SystemTime::now(),
+        });
+        Ok(())
+    }
+
+    /// When a request sent now to `slave` must have its reply: its response timeout from when it
+    /// can have reached the device.
+    fn flight_deadline(&self, pipeline: &Pipeline<Port>, slave: u8) -> Instant {
+        let timeout = self.current.derived.timeouts[usize::from(slave)];
+        let budget = pipeline.port().link().map(|(_, budget, _)| budget);
+        Instant::now() + budget.unwrap_or_default() + timeout
+    }
+
+    /// `frame` came: the request in flight it answers ends, or it is discarded.
+    fn land(&mut self, pipeline: &mut Pipeline<Port>, flights: &mut Vec<Flight>, frame: Frame) {
+        let position = flights.iter().position(|f| {
+            f.transaction == frame.transaction
+                && f.job.slave == frame.unit
+                && matches!(
+                    reply::judge(
+                        frame.unit,
+                        &frame.pdu,
+                        f.job.slave,
+                        &f.job.pdu,
+                        ReplyForm::Standard
+                    ),
+                    Verdict::Answer | Verdict::Malformed
+                )
+        });
+        let Some(at) = position else {
+            pipeline.discarded();
+            self.trace_frame(
+                Direction::Rx,
+                &frame.bytes,
+                SystemTime::now(),
+                crate::trace::FOREIGN,
+            );
+            return;
+        };
+        let flight = flights.swap_remove(at);
+        let verdict = reply::judge(
+            frame.unit,
+            &frame.pdu,
+            flight.job.slave,
+            &flight.job.pdu,
+            ReplyForm::Standard,
+        );
+        let reply = match verdict {
+            Verdict::Answer => Reply::Fits(frame.pdu),
+            _ => Reply::Malformed(frame.pdu),
+        };
+        let outcome: Outcome = Ok(Answer::from(reply));
+        let (fate, _) = Fate::of(&outcome);
+        self.trace_flight(&flight, fate);
+        self.trace_frame(Direction::Rx, &frame.bytes, SystemTime::now(), fate.label());
+        self.land_outcome(flight, outcome);
+    }
+
+    /// Requests past their deadline: sent again (a read with retries left) or answered 0x0B.
+    async fn expire(
+        &mut self,
+        pipeline: &mut Pipeline<Port>,
+        flights: &mut Vec<Flight>,
+    ) -> io::Result<()> {
+        let now = Instant::now();
+        let mut index = 0;
+        while index < flights.len() {
+            if flights[index].deadline > now {
+                index += 1;
+                continue;
+            }
+            let mut flight = flights.swap_remove(index);
+            self.trace_flight(&flight, Fate::Timeout);
+            if flight.attempts > flight.retries || flight.job.abandoned() {
+                let outcome = Err(RequestError::NoResponse {
+                    attempts: flight.attempts,
+                    last: NoReply::Timeout,
+                });
+                self.land_outcome(flight, outcome);
+                continue;
+            }
+            let (transaction, sent) = match pipeline.send(flight.job.slave, &flight.job.pdu).await {
+                Ok((transaction, sent)) => (transaction, sent.to_vec()),
+                Err(error) => {
+                    self.handle.answer(flight.job, Err(RequestError::PortDown));
+                    return Err(error);
+                }
+            };
+            flight.transaction = transaction;
+            flight.sent = sent;
+            flight.sent_at = SystemTime::now();
+            flight.attempts += 1;
+            flight.deadline = self.flight_deadline(pipeline, flight.job.slave);
+            flights.push(flight);
+        }
+        Ok(())
+    }
+
+    /// The request of `flight` ends in `outcome`: counted, told to the slave's health, kept for
+    /// the cache, answered.
+    fn land_outcome(&mut self, flight: Flight, outcome: Outcome) {
+        let round_trip = flight.first_sent.elapsed();
+        self.handle.metrics.transaction(
+            flight.job.slave,
+            flight.attempts,
+            Some(round_trip),
+            &outcome,
+        );
+        self.record(&flight.job, &outcome);
+        self.remember(&flight.job, &outcome);
+        self.handle.answer(flight.job, outcome);
+    }
+
+    /// The request of `flight`, to the trace, with the fate of its try.
+    fn trace_flight(&self, flight: &Flight, fate: Fate) {
+        self.trace_frame(Direction::Tx, &flight.sent, flight.sent_at, fate.label());
+    }
+
+    fn trace_frame(
+        &self,
+        direction: Direction,
+        bytes: &[u8],
+        time: SystemTime,
+        outcome: &'static str,
+    ) {
+        let hub = self.trace.hub();
+        if !hub.active() {
+            return;
+        }
+        hub.publish(TraceEvent {
+            time,
+            bus: self.trace.bus().clone(),
+            direction,
+            slave: bytes.get(6).copied().unwrap_or(0),
+            function: bytes.get(7).copied().unwrap_or(0),
+            bytes: bytes.to_vec(),
+            outcome,
+        });
+    }
+}
