@@ -1,7 +1,7 @@
 //! The gateway under test as a process: its configuration written for the scenario, the binary
 //! started on it and stopped when dropped, and what /proc says of its CPU time and memory.
 
-use crate::scenarios::{Kind, Scenario, PRIORITY_IP, SLAVES};
+use crate::scenarios::{Kind, Line, Scenario, PRIORITY_IP, SLAVES};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -55,7 +55,7 @@ impl Drop for TempPath {
     }
 }
 
-fn free_addr() -> std::io::Result<SocketAddr> {
+pub(crate) fn free_addr() -> std::io::Result<SocketAddr> {
     std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()
 }
 
@@ -78,19 +78,24 @@ fn tls_for(scenario: &str, listen: SocketAddr) -> (String, Tls) {
     (table, tls)
 }
 
-/// The bench's bus on `device`: the scenario's line, a queue for every master twice over, and
+/// The bench's bus on `device`: the scenario's line (its serial format, but for a Modbus TCP
+/// device), a queue for every master twice over, and
 /// the simulated slaves if `device` is the simulated line.
 pub(crate) fn bus(scenario: &Scenario, device: &str) -> Bus {
     let f = &scenario.format;
     let masters = connections(scenario);
     let mut bus = Bus::on("bench", device)
         .framing(scenario.framing.name())
-        .baud(f.baud)
-        .key("data_bits", f.data_bits)
-        .parity(f.parity.name())
-        .key("stop_bits", f.stop_bits)
         .key("queue_depth", masters * 2 + 16)
         .key("queue_timeout", "1h");
+    // A Modbus TCP device has no serial format.
+    if scenario.line != Line::TcpDevice {
+        bus = bus
+            .baud(f.baud)
+            .key("data_bits", f.data_bits)
+            .parity(f.parity.name())
+            .key("stop_bits", f.stop_bits);
+    }
     if !scenario.coalesce {
         bus = bus.key("coalesce_reads", false);
     }

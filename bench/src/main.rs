@@ -6,20 +6,26 @@
 //! masters' completions), and the gateway process's own RSS and CPU per transaction (from
 //! /proc, so the masters' cost is not in it; the simulated slaves', inside the gateway, is, except
 //! on the device-server line, whose simulated line runs in `simulate --listen` and is counted
-//! apart).
+//! apart). On a Modbus TCP device (the tcp-device scenarios), which has no line to measure against,
+//! it measures the gateway beside one client reading from the device directly and beside
+//! modbus-proxy, if installed.
 //! A workspace member of its own: `cargo install` and the Debian package carry only the daemon.
 //!
 //! The modules, in the order a run goes through them: `scenarios` (what to measure),
-//! `device_server` (the far end of the device-server line), `gateway` (the process under test),
+//! `device_server` (the far end of the device-server line), `tcp_device` (the Modbus TCP device
+//! of the tcp-device line), `beside` (what is measured beside the gateway on that line: a direct
+//! client, modbus-proxy), `gateway` (the process under test),
 //! `masters` (the load), `watch` (its HTTP endpoint: metrics, trace, scraper), `run` (one
 //! scenario's warm-up and window), `report` (the figures and their tables).
 
+mod beside;
 mod device_server;
 mod gateway;
 mod masters;
 mod report;
 mod run;
 mod scenarios;
+mod tcp_device;
 mod watch;
 
 use clap::Parser;
@@ -57,6 +63,11 @@ struct Cli {
     /// scrapes in the window are reported (compare the efficiency with a run without it).
     #[arg(long)]
     scrape: bool,
+    /// modbus-proxy, run beside the gateway in the tcp-device scenarios (default:
+    /// `modbus-proxy-venv/bin/modbus-proxy` in the target directory this program is in); left
+    /// out, with a message, if it is not there.
+    #[arg(long)]
+    modbus_proxy: Option<PathBuf>,
 }
 
 #[tokio::main]
@@ -110,6 +121,7 @@ async fn main() -> ExitCode {
     report::print_priority_table(&reports);
     report::print_scrape_table(&reports);
     report::print_device_server_table(&reports);
+    report::print_tcp_device_table(&reports);
     if failed {
         ExitCode::FAILURE
     } else {

@@ -1,8 +1,9 @@
 //! The figures of a run and how they are shown: a JSON object per scenario, or the table (and,
 //! for the scenarios that have them, the line, priority and scrape tables).
 
+use crate::beside::Driven;
 use crate::run::{Minimum, Window};
-use crate::scenarios::{Load, Scenario};
+use crate::scenarios::{Line, Load, Scenario};
 use crate::watch::Counters;
 use serde::Serialize;
 use std::time::Duration;
@@ -10,7 +11,8 @@ use std::time::Duration;
 #[derive(Serialize, Default)]
 pub(crate) struct Report {
     pub(crate) scenario: String,
-    baud: u32,
+    /// None on a Modbus TCP device: no serial line.
+    baud: Option<u32>,
     masters: usize,
     transactions: u64,
     tx_per_s: f64,
@@ -20,7 +22,8 @@ pub(crate) struct Report {
     p50_ms: Option<f64>,
     p99_ms: Option<f64>,
     max_ms: Option<f64>,
-    /// Latency above the physical minimum at the median, for one master on a timed line.
+    /// Latency above the physical minimum at the median, for one master on a timed line; on a
+    /// Modbus TCP device, above the direct client's.
     added_p50_ms: Option<f64>,
     added_p99_ms: Option<f64>,
     fairness: Option<f64>,
@@ -62,6 +65,16 @@ pub(crate) struct Report {
     /// count), in t_min.
     queue_wait_priority_tmin: Option<f64>,
     queue_wait_normal_tmin: Option<f64>,
+    /// On a Modbus TCP device: one client reading from it directly, back to back, for as long
+    /// (its rate and median), and the gateway's rate over its.
+    direct_tx_per_s: Option<f64>,
+    direct_p50_ms: Option<f64>,
+    tx_vs_direct: Option<f64>,
+    /// The same masters through modbus-proxy in front of the same device, if it is installed.
+    proxy_tx_per_s: Option<f64>,
+    proxy_p50_ms: Option<f64>,
+    proxy_p99_ms: Option<f64>,
+    proxy_cpu_us_per_tx: Option<f64>,
     /// With `--scrape` only: the scraper's scrapes in the window, their time (median, 99th
     /// percentile, slowest) and the size of the last page.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -107,7 +120,7 @@ impl Report {
     pub(crate) fn new(s: &Scenario, setup: &[Duration], connect_cpu: Duration) -> Report {
         Report {
             scenario: s.name.clone(),
-            baud: s.format.baud,
+            baud: (s.line != Line::TcpDevice).then_some(s.format.baud),
             masters: s.masters,
             connect_p50_ms: percentile(setup, 0.5),
             connect_max_ms: setup.last().map(|d| d.as_secs_f64() * 1e3),
@@ -175,6 +188,26 @@ impl Report {
         }
         if let Some(scrapes) = &w.scrapes {
             self.scrapes(scrapes);
+        }
+    }
+
+    /// The figures of the direct client and of modbus-proxy (if it ran) beside the gateway's on
+    /// the Modbus TCP device of scenario `s`.
+    pub(crate) fn beside(&mut self, s: &Scenario, direct: &Driven, proxy: Option<&Driven>) {
+        self.direct_tx_per_s = Some(direct.tx_per_s);
+        self.direct_p50_ms = percentile(&direct.latencies, 0.5);
+        self.tx_vs_direct = (direct.tx_per_s > 0.0).then(|| self.tx_per_s / direct.tx_per_s);
+        if s.masters == 1 {
+            self.added_p50_ms = self.p50_ms.zip(self.direct_p50_ms).map(|(p, d)| p - d);
+            self.added_p99_ms = self.p99_ms.zip(self.direct_p50_ms).map(|(p, d)| p - d);
+        }
+        if let Some(proxy) = proxy {
+            self.proxy_tx_per_s = Some(proxy.tx_per_s);
+            self.proxy_p50_ms = percentile(&proxy.latencies, 0.5);
+            self.proxy_p99_ms = percentile(&proxy.latencies, 0.99);
+            self.proxy_cpu_us_per_tx = proxy
+                .cpu
+                .and_then(|cpu| per_tx(cpu, proxy.latencies.len() as u64));
         }
     }
 
@@ -411,6 +444,50 @@ pub(crate) fn print_device_server_table(reports: &[Report]) {
             cell(ds.cpu_us_per_tx, 1),
             cell(ratio(sim.cpu_us_per_tx, ds.cpu_us_per_tx), 2),
             cell(ds.simulate_cpu_us_per_tx, 1),
+        );
+    }
+}
+
+/// The tcp-device scenarios' own columns: the gateway beside one direct client and beside
+/// modbus-proxy, on the same device.
+pub(crate) fn print_tcp_device_table(reports: &[Report]) {
+    let rows: Vec<_> = reports
+        .iter()
+        .filter(|r| r.direct_tx_per_s.is_some())
+        .collect();
+    if rows.is_empty() {
+        return;
+    }
+    println!(
+        "\n{:<33} {:>8} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9} {:>8} {:>9} {:>9} {:>9}",
+        "scenario (Modbus TCP device)",
+        "tx/s",
+        "p50 ms",
+        "p99 ms",
+        "+p50 ms",
+        "cpu us/tx",
+        "direct/s",
+        "dir p50",
+        "x direct",
+        "proxy/s",
+        "proxy p99",
+        "proxy cpu"
+    );
+    for r in rows {
+        println!(
+            "{:<33} {:>8.1} {:>8} {:>8} {:>8} {:>9} {:>9} {:>9} {:>8} {:>9} {:>9} {:>9}",
+            r.scenario,
+            r.tx_per_s,
+            cell(r.p50_ms, 3),
+            cell(r.p99_ms, 3),
+            cell(r.added_p50_ms, 3),
+            cell(r.cpu_us_per_tx, 1),
+            cell(r.direct_tx_per_s, 1),
+            cell(r.direct_p50_ms, 3),
+            cell(r.tx_vs_direct, 3),
+            cell(r.proxy_tx_per_s, 1),
+            cell(r.proxy_p99_ms, 3),
+            cell(r.proxy_cpu_us_per_tx, 1),
         );
     }
 }

@@ -1,12 +1,15 @@
 //! One scenario's run: the gateway started, the masters connected, a warm-up, then a window in
 //! which the masters' completions, the gateway's CPU time and (on a timed line) its
-//! metrics are taken. The figures are `report`'s.
+//! metrics are taken; on the tcp-device line, one direct client before and modbus-proxy after.
+//! The figures are `report`'s.
 
+use crate::beside;
 use crate::device_server::DeviceServer;
 use crate::gateway::{cpu_time, rss_mb, Gateway};
 use crate::masters::{connect_all, master, priority_connect, untimed_slave, Done};
 use crate::report::Report;
 use crate::scenarios::{Line, Load, Scenario, READ_10, WRITE_1};
+use crate::tcp_device::TcpDevice;
 use crate::watch::{scrape, watch_trace, Scraped, Scraper};
 use crate::Cli;
 use modbus_gateway::line::LineTiming;
@@ -42,7 +45,7 @@ pub(crate) struct Window {
 /// Run scenario `s` on the gateway binary at `binary`.
 pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report, String> {
     let timing = LineTiming::new(&s.format);
-    let (mut slave, mut far) = (None, None);
+    let (mut slave, mut far, mut tcp) = (None, None, None);
     let device = match s.line {
         Line::Sim => "sim".to_owned(),
         Line::Pty => {
@@ -54,6 +57,12 @@ pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report
             .insert(DeviceServer::start(binary, s).await?)
             .device
             .clone(),
+        Line::TcpDevice => tcp.insert(TcpDevice::start().await?).device(),
+    };
+    // The direct client first, on the device alone.
+    let direct = match &tcp {
+        Some(device) => Some(beside::direct(cli, device.addr).await?),
+        None => None,
     };
     let gateway = Gateway::start(binary, s, &device).await?;
     let pid = gateway.pid();
@@ -97,6 +106,12 @@ pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report
         slave.abort();
     }
     report.measured(s, &window, &minimum);
+    if let (Some(device), Some(direct)) = (&tcp, direct) {
+        // modbus-proxy alone in front of the device, as the gateway was.
+        drop(gateway);
+        let proxy = beside::through_proxy(cli, s.masters, device.addr).await?;
+        report.beside(s, &direct, proxy.as_ref());
+    }
     Ok(report)
 }
 

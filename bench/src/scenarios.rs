@@ -23,6 +23,9 @@ pub(crate) enum Line {
     /// The same simulated line, timed at its baud rate, served by `simulate --listen` in a
     /// process of its own; the gateway's bus reaches it as a serial device server (`tcp://`).
     DeviceServer,
+    /// A Modbus TCP device in this process that answers at once (`framing = "tcp"` on
+    /// `tcp://`): no serial line at all.
+    TcpDevice,
 }
 
 impl Line {
@@ -115,6 +118,18 @@ pub(crate) fn scenarios() -> Vec<Scenario> {
     line_scenarios(&mut all);
     kind_scenarios(&mut all);
     many_scenarios(&mut all);
+    for masters in [1, 100] {
+        all.push(Scenario {
+            line: Line::TcpDevice,
+            framing: Framing::Tcp,
+            ..Scenario::sim(
+                format!("tcp-device-read-{masters}"),
+                format(115_200, Parity::None),
+                masters,
+                Load::Read,
+            )
+        });
+    }
     for masters in [0, 1000] {
         all.push(Scenario::sim(
             format!("idle-{masters}"),

@@ -171,3 +171,40 @@ fn the_device_server_line_is_measured_as_the_sim_line_and_its_simulate_is_stoppe
     let left = processes_mentioning(&config.to_string_lossy());
     assert!(left.is_empty(), "still running: {left:?}");
 }
+
+#[test]
+fn the_tcp_device_line_is_measured_beside_a_direct_client_and_modbus_proxy_if_installed() {
+    let scenario = "tcp-device-read-1";
+    let tcp = bench_json(&[scenario], |_| {}).remove(0);
+    assert_eq!(tcp["scenario"], scenario);
+    assert!(tcp["transactions"].as_u64().unwrap() > 0, "{tcp}");
+    // No serial line: no baud rate, no efficiency.
+    assert!(
+        tcp["baud"].is_null() && tcp["efficiency"].is_null(),
+        "{tcp}"
+    );
+    for field in [
+        "p50_ms",
+        "cpu_us_per_tx",
+        "direct_tx_per_s",
+        "direct_p50_ms",
+        "tx_vs_direct",
+    ] {
+        assert!(
+            tcp[field].as_f64().is_some_and(|v| v > 0.0),
+            "{field}: {tcp}"
+        );
+    }
+    // For one master: the gateway's median less the direct client's.
+    assert!(tcp["added_p50_ms"].as_f64().is_some(), "{tcp}");
+    if tcp["proxy_tx_per_s"].is_null() {
+        eprintln!("modbus-proxy is not installed in target/modbus-proxy-venv: its figures skipped");
+    } else {
+        for field in ["proxy_tx_per_s", "proxy_p50_ms", "proxy_p99_ms"] {
+            assert!(
+                tcp[field].as_f64().is_some_and(|v| v > 0.0),
+                "{field}: {tcp}"
+            );
+        }
+    }
+}

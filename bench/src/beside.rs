@@ -1,0 +1,148 @@
+//! What the tcp-device scenarios measure beside the gateway, on the same in-process device: one
+//! client reading from the device directly (no gateway), and the scenario's masters through
+//! modbus-proxy, a separate program (run as a process, never linked), if it is installed.
+
+use crate::gateway::{cpu_time, free_addr, START_LIMIT};
+use crate::masters::{master, Conn, Done};
+use crate::scenarios::Load;
+use crate::Cli;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio::net::TcpStream;
+
+/// Where the bench looks for modbus-proxy unless told: a venv in the target directory, the
+/// parent of this program's own (`python3 -m venv target/modbus-proxy-venv`).
+const PROXY_IN_TARGET: &str = "modbus-proxy-venv/bin/modbus-proxy";
+/// Masters reading back to back before the window opens.
+const WARM_UP: Duration = Duration::from_secs(1);
+
+/// One load's figures in its window.
+pub(crate) struct Driven {
+    pub(crate) tx_per_s: f64,
+    /// Latencies, sorted.
+    pub(crate) latencies: Vec<Duration>,
+    /// The CPU time across the window of the process in between, if there is one.
+    pub(crate) cpu: Option<Duration>,
+}
+
+/// Modbus TCP masters on `conns` reading back to back: a warm-up, then a window of the run's
+/// length, across which the CPU time of process `pid` (if any) is taken.
+async fn drive(cli: &Cli, conns: Vec<Conn>, pid: Option<u32>) -> Result<Driven, String> {
+    let stop = Arc::new(AtomicBool::new(false));
+    let tasks: Vec<_> = conns
+        .into_iter()
+        .enumerate()
+        .map(|(i, conn)| tokio::spawn(master(conn, i, Load::Read, Duration::ZERO, stop.clone())))
+        .collect();
+    tokio::time::sleep(WARM_UP).await;
+    let (start, cpu_start) = (Instant::now(), pid.map(cpu_time));
+    tokio::time::sleep(Duration::from_secs_f64(cli.seconds)).await;
+    let (end, cpu_end) = (Instant::now(), pid.map(cpu_time));
+    stop.store(true, Ordering::Relaxed);
+    let mut latencies = Vec::new();
+    for task in tasks {
+        let done: Vec<Done> = task
+            .await
+            .map_err(|e| e.to_string())?
+            .map_err(|e| e.to_string())?;
+        latencies.extend(
+            done.iter()
+                .filter(|(at, _, _)| (start..=end).contains(at))
+                .map(|(_, latency, _)| *latency),
+        );
+    }
+    latencies.sort();
+    Ok(Driven {
+        tx_per_s: latencies.len() as f64 / (end - start).as_secs_f64(),
+        latencies,
+        cpu: cpu_end.zip(cpu_start).map(|(e, s)| e - s),
+    })
+}
+
+/// `n` Modbus TCP connections to `addr`.
+async fn connect(addr: SocketAddr, n: usize) -> Result<Vec<Conn>, String> {
+    let mut conns = Vec::with_capacity(n);
+    for _ in 0..n {
+        let stream = TcpStream::connect(addr)
+            .await
+            .map_err(|e| format!("connect to {addr}: {e}"))?;
+        stream.set_nodelay(true).map_err(|e| e.to_string())?;
+        conns.push(Conn::Tcp(stream));
+    }
+    Ok(conns)
+}
+
+/// One client reading from the device at `device` back to back, with nothing in between.
+pub(crate) async fn direct(cli: &Cli, device: SocketAddr) -> Result<Driven, String> {
+    drive(cli, connect(device, 1).await?, None).await
+}
+
+/// The modbus-proxy program the run uses: `--modbus-proxy`, or the one in the target directory.
+fn proxy_program(cli: &Cli) -> Option<PathBuf> {
+    cli.modbus_proxy.clone().or_else(|| {
+        let exe = std::env::current_exe().ok()?;
+        Some(exe.parent()?.parent()?.join(PROXY_IN_TARGET))
+    })
+}
+
+/// modbus-proxy in front of `device`, listening on `listen`, stopped when dropped.
+struct Proxy(Child);
+
+impl Drop for Proxy {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+impl Proxy {
+    async fn start(
+        program: &Path,
+        listen: SocketAddr,
+        device: SocketAddr,
+    ) -> Result<Proxy, String> {
+        let child = Command::new(program)
+            .arg("--bind")
+            .arg(format!("tcp://{listen}"))
+            .arg("--modbus")
+            .arg(format!("tcp://{device}"))
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .map_err(|e| format!("{}: {e}", program.display()))?;
+        let proxy = Proxy(child);
+        let started = Instant::now();
+        while TcpStream::connect(listen).await.is_err() {
+            if started.elapsed() > START_LIMIT {
+                return Err("modbus-proxy did not start listening within 10 s".into());
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        Ok(proxy)
+    }
+}
+
+/// `masters` Modbus TCP masters reading back to back through modbus-proxy in front of the device
+/// at `device`, or nothing (and why, on stderr) if the program is not there.
+pub(crate) async fn through_proxy(
+    cli: &Cli,
+    masters: usize,
+    device: SocketAddr,
+) -> Result<Option<Driven>, String> {
+    let Some(program) = proxy_program(cli).filter(|p| p.is_file()) else {
+        eprintln!(
+            "modbus-proxy not found (--modbus-proxy, or python3 -m venv target/modbus-proxy-venv \
+             and its pip install modbus-proxy): measured without it"
+        );
+        return Ok(None);
+    };
+    let listen = free_addr().map_err(|e| e.to_string())?;
+    let proxy = Proxy::start(&program, listen, device).await?;
+    let conns = connect(listen, masters).await?;
+    let driven = drive(cli, conns, Some(proxy.0.id())).await?;
+    Ok(Some(driven))
+}
