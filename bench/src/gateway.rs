@@ -99,6 +99,9 @@ pub(crate) fn bus(scenario: &Scenario, device: &str) -> Bus {
     if !scenario.coalesce {
         bus = bus.key("coalesce_reads", false);
     }
+    if scenario.in_flight > 1 {
+        bus = bus.key("max_in_flight", scenario.in_flight);
+    }
     if device == "sim" {
         bus = bus.sim_slaves(&format!("1-{SLAVES}"));
     }

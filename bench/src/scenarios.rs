@@ -76,6 +76,8 @@ pub(crate) struct Scenario {
     pub(crate) load: Load,
     /// `[[bus]] coalesce_reads` (the gateway's default: on).
     pub(crate) coalesce: bool,
+    /// A Modbus TCP device's `max_in_flight` (1: one request at a time).
+    pub(crate) in_flight: usize,
     /// One more master, connecting from 127.0.0.2 (in `server.priority`), reading a block of its
     /// own: back to back (`Some(ZERO)`) or one read per period.
     pub(crate) priority: Option<Duration>,
@@ -93,6 +95,7 @@ impl Scenario {
             masters,
             load,
             coalesce: true,
+            in_flight: 1,
             priority: None,
         }
     }
@@ -130,6 +133,18 @@ pub(crate) fn scenarios() -> Vec<Scenario> {
             )
         });
     }
+    // The same 100 masters with 16 requests outstanding on the device's connection.
+    all.push(Scenario {
+        line: Line::TcpDevice,
+        framing: Framing::Tcp,
+        in_flight: 16,
+        ..Scenario::sim(
+            "tcp-device-pipelined-read-100".to_owned(),
+            format(115_200, Parity::None),
+            100,
+            Load::Read,
+        )
+    });
     for masters in [0, 1000] {
         all.push(Scenario::sim(
             format!("idle-{masters}"),
