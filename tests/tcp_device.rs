@@ -856,3 +856,159 @@ async fn pipelined_a_late_answer_is_discarded_and_a_read_is_retried_under_its_ow
     );
     device.abort();
 }
+
+/// A relay on a free port in front of `target` that counts the connections made through it.
+async fn counting_relay(target: u16) -> (u16, Arc<AtomicUsize>) {
+    let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let port = listener.local_addr().unwrap().port();
+    let count = Arc::new(AtomicUsize::new(0));
+    let counted = count.clone();
+    tokio::spawn(async move {
+        while let Ok((mut inbound, _)) = listener.accept().await {
+            counted.fetch_add(1, Ordering::SeqCst);
+            tokio::spawn(async move {
+                let Ok(mut outbound) = TcpStream::connect(("127.0.0.1", target)).await else {
+                    return;
+                };
+                let _ = tokio::io::copy_bidirectional(&mut inbound, &mut outbound).await;
+            });
+        }
+    });
+    (port, count)
+}
+
+#[tokio::test]
+async fn pymodbus_and_mbpoll_masters_reach_pymodbus_tcp_server_at_once_over_one_connection() {
+    let Some((_server, device)) = crate::device_link::pymodbus_tcp_server().await else {
+        return;
+    };
+    let Some(mbpoll) = crate::support::tool("mbpoll") else {
+        return;
+    };
+    let python = crate::peers::python_with_pymodbus().expect("pymodbus, as the server runs");
+    let (port, connections) = counting_relay(device).await;
+    let gateway = gateway_on(port, "").await;
+    let gateway_port = addr(&gateway).port().to_string();
+    let script = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/peers/pymodbus_net_master.py"
+    );
+    let spawn = |program: std::ffi::OsString, args: Vec<String>| {
+        tokio::task::spawn_blocking(move || {
+            std::process::Command::new(program)
+                .args(args)
+                .output()
+                .expect("the master runs")
+        })
+    };
+    let pymodbus = spawn(
+        python,
+        [script, "tcp", "127.0.0.1", &gateway_port, "1"]
+            .map(String::from)
+            .to_vec(),
+    );
+    let mbpoll = spawn(
+        mbpoll.into_os_string(),
+        [
+            "-m",
+            "tcp",
+            "-p",
+            &gateway_port,
+            "-a",
+            "1",
+            "-0",
+            "-1",
+            "-r",
+            "10",
+            "-c",
+            "3",
+            "127.0.0.1",
+        ]
+        .map(String::from)
+        .to_vec(),
+    );
+    let raw = async {
+        let mut master = RawMaster::connect(addr(&gateway)).await;
+        for n in 0..20 {
+            let got = master.call(n, 1, &[0x03, 0x00, 0x0A, 0x00, 0x01]).await;
+            assert_eq!(got, [0x03, 0x02, 0x00, 0x07]);
+        }
+    };
+    let (pymodbus, mbpoll, ()) = within("three masters at once", async {
+        tokio::join!(pymodbus, mbpoll, raw)
+    })
+    .await;
+    let pymodbus = String::from_utf8_lossy(&pymodbus.unwrap().stdout).into_owned();
+    assert_eq!(
+        pymodbus.lines().collect::<Vec<_>>(),
+        ["result 6 ok", "result 3 4242 7", "result 3 7 7 7"],
+        "{pymodbus}"
+    );
+    let mbpoll = mbpoll.unwrap();
+    let text = String::from_utf8_lossy(&mbpoll.stdout);
+    assert!(mbpoll.status.success(), "{text}");
+    for register in 10..13 {
+        assert!(text.contains(&format!("[{register}]: \t7")), "{text}");
+    }
+    assert_eq!(
+        connections.load(Ordering::SeqCst),
+        1,
+        "one connection to the device"
+    );
+}
+
+#[tokio::test]
+async fn a_device_that_closes_the_connection_every_five_requests_is_reconnected_and_never_crosses_replies(
+) {
+    let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let port = server.local_addr().unwrap().port();
+    tokio::spawn(async move {
+        while let Ok((mut socket, _)) = server.accept().await {
+            tokio::spawn(async move {
+                for _ in 0..5 {
+                    let Some((transaction, unit, pdu)) = next_request(&mut socket).await else {
+                        return;
+                    };
+                    let frame = reply(transaction, unit, &answer_to(&pdu));
+                    if socket.write_all(&frame).await.is_err() {
+                        return;
+                    }
+                }
+            });
+        }
+    });
+    let gateway = gateway_on(
+        port,
+        "reopen_delay = \"20ms\"\nreopen_delay_max = \"20ms\"\n",
+    )
+    .await;
+    let addr = addr(&gateway);
+    let mut masters = Vec::new();
+    for m in 0..3u16 {
+        masters.push(tokio::spawn(async move {
+            let mut master = RawMaster::connect(addr).await;
+            // 0x0A while the gateway reconnects, else each read's own answer, until 15 answers.
+            let (mut answered, mut n) = (0, 0u16);
+            while answered < 15 {
+                n += 1;
+                let register = 100 * m + n % 100;
+                let got = master.call(n, 1, &read(register)).await;
+                if got == answer_to(&read(register)) {
+                    answered += 1;
+                } else {
+                    assert_eq!(got, [0x83, 0x0A], "master {m} read {register}");
+                    tokio::time::sleep(Duration::from_millis(5)).await;
+                }
+            }
+        }));
+    }
+    for master in masters {
+        within("every master answered 15 times", master)
+            .await
+            .unwrap();
+    }
+    let reopens = Scrape::of(&gateway)
+        .await
+        .value("modbus_gateway_port_reopens_total{bus=\"dev\"}");
+    assert!(reopens >= 3.0, "reconnected after every close: {reopens}");
+}
