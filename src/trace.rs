@@ -47,8 +47,11 @@ pub struct TraceEvent {
     pub slave: u8,
     /// The function code byte as on the wire (an exception has the high bit set).
     pub function: u8,
-    /// The whole frame as on the wire: address, PDU and CRC (RTU), or the ASCII frame's bytes.
+    /// The whole frame as on the wire: address, PDU and CRC (RTU), the ASCII frame's bytes, or
+    /// header and PDU (MBAP, to a Modbus TCP device).
     pub bytes: Vec<u8>,
+    /// The line's framing: `rtu`, `ascii` or `tcp`, which says how to read `bytes`.
+    pub framing: &'static str,
     /// What became of the try the frame belongs to, as the metrics' `outcome` label says it;
     /// `FOREIGN` for a frame that answered nothing, `STALE` for bytes no reply was awaited for.
     pub outcome: &'static str,
@@ -63,6 +66,7 @@ struct Wire<'a> {
     slave: u8,
     function: u8,
     hex: String,
+    framing: &'a str,
     outcome: &'a str,
 }
 
@@ -89,6 +93,7 @@ impl TraceEvent {
             slave: self.slave,
             function: self.function,
             hex: hex(&self.bytes),
+            framing: self.framing,
             outcome: self.outcome,
         };
         // Strings, numbers and a unit enum: serialising cannot fail.
@@ -261,6 +266,7 @@ mod tests {
             slave,
             function: 3,
             bytes: vec![0x01, 0x03, 0x00, 0x00, 0x00, 0x02, 0xc4, 0x0b],
+            framing: "rtu",
             outcome: "ok",
         }
     }
@@ -272,7 +278,7 @@ mod tests {
             event(&bus, 1).to_sse(),
             "event: frame\ndata: {\"time\":\"2026-11-23T14:00:00.123456Z\",\"bus\":\"line1\",\
              \"direction\":\"tx\",\"slave\":1,\"function\":3,\
-             \"hex\":\"01 03 00 00 00 02 c4 0b\",\"outcome\":\"ok\"}\n\n"
+             \"hex\":\"01 03 00 00 00 02 c4 0b\",\"framing\":\"rtu\",\"outcome\":\"ok\"}\n\n"
         );
         assert_eq!(lost_sse(17), "event: lost\ndata: {\"lost\":17}\n\n");
     }

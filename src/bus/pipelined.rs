@@ -291,6 +291,7 @@ impl BusTask {
             slave: bytes.get(6).copied().unwrap_or(0),
             function: bytes.get(7).copied().unwrap_or(0),
             bytes: bytes.to_vec(),
+            framing: crate::line::Framing::Tcp.name(),
             outcome,
         });
     }

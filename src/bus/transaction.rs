@@ -204,6 +204,7 @@ impl BusTask {
                 slave: frame.address,
                 function: frame.function,
                 bytes: frame.bytes,
+                framing: self.current.derived.framing.name(),
                 outcome: match frame.seen {
                     Seen::Foreign => FOREIGN,
                     Seen::Stale => STALE,

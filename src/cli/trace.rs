@@ -199,6 +199,9 @@ struct Frame {
     slave: u8,
     function: u8,
     hex: String,
+    /// Absent from a gateway older than the field: RTU or ASCII, told by the bytes.
+    #[serde(default)]
+    framing: String,
     outcome: String,
 }
 
@@ -273,9 +276,12 @@ fn registers(bytes: &[u8]) -> String {
     words.join(" ")
 }
 
-/// The PDU a wire frame carries: an ASCII frame's if it is one, else an RTU frame's (whether or
-/// not its check passes: the outcome says that).
-fn pdu_of(frame: &[u8]) -> Option<Vec<u8>> {
+/// The PDU a wire frame of `framing` carries: an MBAP frame's after its header; an ASCII frame's
+/// if it is one, else an RTU frame's (whether or not its check passes: the outcome says that).
+fn pdu_of(framing: &str, frame: &[u8]) -> Option<Vec<u8>> {
+    if framing == "tcp" {
+        return frame.get(7..).map(<[u8]>::to_vec);
+    }
     let mut pdu = Vec::new();
     if frame.first() == Some(&b':') && ascii::decode_into(frame, &mut pdu).is_some() {
         return Some(pdu);
@@ -297,7 +303,7 @@ impl Frame {
             .split_whitespace()
             .filter_map(|b| u8::from_str_radix(b, 16).ok())
             .collect();
-        let pdu = pdu_of(&bytes).filter(|pdu| !pdu.is_empty());
+        let pdu = pdu_of(&self.framing, &bytes).filter(|pdu| !pdu.is_empty());
         let mut line = format!(
             "{time} {} {:<3} slave {:<3}  ",
             self.bus, self.direction, self.slave
@@ -362,6 +368,7 @@ mod tests {
             slave: bytes[0],
             function: bytes[1],
             hex: hex.into(),
+            framing: String::new(),
             outcome: outcome.into(),
         }
     }
@@ -403,6 +410,22 @@ mod tests {
             rx.describe(),
             "14:00:00.123456 line1 rx  slave 1    0x03 ok  2 registers: 0x0000 0x0001   \
              01 03 04 00 00 00 01 3b f3"
+        );
+    }
+
+    #[test]
+    fn a_modbus_tcp_devices_frames_are_decoded_after_their_mbap_header() {
+        // Transaction 1, unit 1, read 2 holding registers from 0000H: its RTU reading would
+        // take the header for an address and a function.
+        let mut tx = frame("tx", "00 01 00 00 00 06 01 03 00 00 00 02", "ok");
+        tx.framing = "tcp".into();
+        tx.slave = 1;
+        tx.function = 3;
+        assert!(
+            tx.describe()
+                .contains("read holding registers 0x03  addr 0x0000 (0) count 2"),
+            "{}",
+            tx.describe()
         );
     }
 

@@ -224,6 +224,7 @@ mod tests {
             slave,
             function: 3,
             bytes: vec![slave, 3],
+            framing: "rtu",
             outcome: "ok",
         }
     }
