@@ -123,18 +123,26 @@ async fn on_an_rfc2217_line_a_data_byte_0xff_crosses_escaped_and_commands_are_no
     assert_eq!(stale, [0xFF]);
 }
 
-#[tokio::test]
-async fn stale_bytes_are_counted_as_stray_and_recorded_for_the_trace_before_the_request_goes_out() {
-    use crate::line::{Framing, LineMaster, LineTiming, MasterTiming, Parity, Seen, SerialFormat};
+/// An RTU line's master at 115200 8N2 on a port of an in-memory link, recording for the trace;
+/// and the link's far end.
+fn recording_master() -> (crate::line::LineMaster<NetPort<Measured>>, DuplexStream) {
+    use crate::line::{Framing, LineMaster, LineTiming, MasterTiming, Parity, SerialFormat};
     let timing = LineTiming::new(&SerialFormat {
         baud: 115_200,
         data_bits: 8,
         parity: Parity::None,
         stop_bits: 2,
     });
-    let (port, mut far) = port(None);
+    let (port, far) = port(None);
     let mut master = LineMaster::new(port, Framing::Rtu, MasterTiming::new(timing, MS, MS));
     master.record_frames(true);
+    (master, far)
+}
+
+#[tokio::test]
+async fn stale_bytes_are_counted_as_stray_and_recorded_for_the_trace_before_the_request_goes_out() {
+    use crate::line::Seen;
+    let (mut master, mut far) = recording_master();
     far.write_all(&[0xDE, 0xAD]).await.unwrap();
     let answering = tokio::spawn(async move {
         let mut request = [0u8; 8];
@@ -164,16 +172,7 @@ async fn stale_bytes_are_counted_as_stray_and_recorded_for_the_trace_before_the_
 
 #[tokio::test]
 async fn a_line_that_babbles_while_nobody_asks_is_counted_but_recorded_only_so_far() {
-    use crate::line::{Framing, LineMaster, LineTiming, MasterTiming, Parity, SerialFormat};
-    let timing = LineTiming::new(&SerialFormat {
-        baud: 115_200,
-        data_bits: 8,
-        parity: Parity::None,
-        stop_bits: 2,
-    });
-    let (port, mut far) = port(None);
-    let mut master = LineMaster::new(port, Framing::Rtu, MasterTiming::new(timing, MS, MS));
-    master.record_frames(true);
+    let (mut master, mut far) = recording_master();
     for _ in 0..100 {
         far.write_all(&[0x55]).await.unwrap();
         assert_eq!(master.watch_idle().await.unwrap(), 1);
