@@ -170,21 +170,18 @@ impl BusTask {
 
     /// `frame` came: the request in flight it answers ends, or it is discarded.
     fn land(&mut self, pipeline: &mut Pipeline<Port>, flights: &mut Vec<Flight>, frame: Frame) {
-        let position = flights.iter().position(|f| {
-            f.transaction == frame.transaction
-                && f.job.slave == frame.unit
-                && matches!(
-                    reply::judge(
-                        frame.unit,
-                        &frame.pdu,
-                        f.job.slave,
-                        &f.job.pdu,
-                        ReplyForm::Standard
-                    ),
-                    Verdict::Answer | Verdict::Malformed
-                )
+        // The flight of the frame's transaction, if the frame answers its request: judged once.
+        let found = flights.iter().enumerate().find_map(|(at, f)| {
+            if f.transaction != frame.transaction || f.job.slave != frame.unit {
+                return None;
+            }
+            let form = ReplyForm::Standard;
+            match reply::judge(frame.unit, &frame.pdu, f.job.slave, &f.job.pdu, form) {
+                verdict @ (Verdict::Answer | Verdict::Malformed) => Some((at, verdict)),
+                Verdict::Foreign | Verdict::Corrupt => None,
+            }
         });
-        let Some(at) = position else {
+        let Some((at, verdict)) = found else {
             pipeline.discarded();
             self.trace_frame(
                 Direction::Rx,
@@ -195,13 +192,6 @@ impl BusTask {
             return;
         };
         let flight = flights.swap_remove(at);
-        let verdict = reply::judge(
-            frame.unit,
-            &frame.pdu,
-            flight.job.slave,
-            &flight.job.pdu,
-            ReplyForm::Standard,
-        );
         let reply = match verdict {
             Verdict::Answer => Reply::Fits(frame.pdu),
             _ => Reply::Malformed(frame.pdu),
