@@ -242,4 +242,6 @@ impl BusHandle {
 #[cfg(test)]
 mod exits_tests;
 #[cfg(test)]
+mod pipelined_tests;
+#[cfg(test)]
 mod tests;

@@ -6,9 +6,10 @@
 //! flight is discarded and counted. Slave health, the cache, coalescing, the metrics and the
 //! trace are the one-at-a-time loop's (`serve`, `transaction`).
 
+use super::device::Linked;
 use super::health::Admission;
 use super::task::{BusTask, Served};
-use super::{Job, Port, HEARTBEAT};
+use super::{Job, HEARTBEAT};
 use crate::error::{Answer, NoReply, Outcome, RequestError};
 use crate::line::pipeline::{Frame, Pipeline};
 use crate::line::reply::{self, ReplyForm, Verdict};
@@ -46,7 +47,11 @@ enum Step {
 impl BusTask {
     /// Serve `port` with up to `max_in_flight` requests outstanding, until it is lost, a new
     /// configuration names another device, or a stop (with no request left in flight).
-    pub(super) async fn serve_pipelined(&mut self, port: Port, stopping: &mut Stopping) -> Served {
+    pub(super) async fn serve_pipelined<T: Linked>(
+        &mut self,
+        port: T,
+        stopping: &mut Stopping,
+    ) -> Served {
         let mut pipeline = Pipeline::new(port);
         let mut flights: Vec<Flight> = Vec::new();
         let mut counted = LineCounters::default();
@@ -116,9 +121,9 @@ impl BusTask {
     }
 
     /// Send `job`, if anyone still waits for it and its slave is not down.
-    async fn take_off(
+    async fn take_off<T: Linked>(
         &mut self,
-        pipeline: &mut Pipeline<Port>,
+        pipeline: &mut Pipeline<T>,
         flights: &mut Vec<Flight>,
         job: Job,
     ) -> io::Result<()> {
@@ -162,14 +167,19 @@ impl BusTask {
 
     /// When a request sent now to `slave` must have its reply: its response timeout from when it
     /// can have reached the device.
-    fn flight_deadline(&self, pipeline: &Pipeline<Port>, slave: u8) -> Instant {
+    fn flight_deadline<T: Linked>(&self, pipeline: &Pipeline<T>, slave: u8) -> Instant {
         let timeout = self.current.derived.timeouts[usize::from(slave)];
         let budget = pipeline.port().link().map(|(_, budget, _)| budget);
         Instant::now() + budget.unwrap_or_default() + timeout
     }
 
     /// `frame` came: the request in flight it answers ends, or it is discarded.
-    fn land(&mut self, pipeline: &mut Pipeline<Port>, flights: &mut Vec<Flight>, frame: Frame) {
+    fn land<T: Linked>(
+        &mut self,
+        pipeline: &mut Pipeline<T>,
+        flights: &mut Vec<Flight>,
+        frame: Frame,
+    ) {
         // The flight of the frame's transaction, if the frame answers its request: judged once.
         let found = flights.iter().enumerate().find_map(|(at, f)| {
             if f.transaction != frame.transaction || f.job.slave != frame.unit {
@@ -204,9 +214,9 @@ impl BusTask {
     }
 
     /// Requests past their deadline: sent again (a read with retries left) or answered 0x0B.
-    async fn expire(
+    async fn expire<T: Linked>(
         &mut self,
-        pipeline: &mut Pipeline<Port>,
+        pipeline: &mut Pipeline<T>,
         flights: &mut Vec<Flight>,
     ) -> io::Result<()> {
         let now = Instant::now();

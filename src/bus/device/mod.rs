@@ -169,16 +169,29 @@ impl Port {
     /// time now and the least round trip it is from. `None` on other lines.
     pub(crate) fn link(&self) -> Option<(&str, Duration, Option<Duration>)> {
         match self {
-            Port::Net(port) => {
-                let (budget, srtt) = port.budget();
-                Some((port.peer(), budget, srtt))
-            }
-            Port::Tls(port) => {
-                let (budget, srtt) = port.budget();
-                Some((port.peer(), budget, srtt))
-            }
+            Port::Net(port) => Some(port.link()),
+            Port::Tls(port) => Some(port.link()),
             Port::Serial(_) | Port::Sim(_) => None,
         }
+    }
+}
+
+/// A transport as the bus task reports it: with the link it crosses, if any. The port of every
+/// line; the serving loops are generic over it so that tests can run them on in-memory links.
+pub(crate) trait Linked: Transport {
+    /// As [`Port::link`].
+    fn link(&self) -> Option<(&str, Duration, Option<Duration>)>;
+}
+
+impl Linked for Port {
+    fn link(&self) -> Option<(&str, Duration, Option<Duration>)> {
+        Port::link(self)
+    }
+}
+
+impl<S: net::Link> Linked for net::NetPort<S> {
+    fn link(&self) -> Option<(&str, Duration, Option<Duration>)> {
+        Some(net::NetPort::link(self))
     }
 }
 

@@ -159,15 +159,10 @@ impl<S: Link> NetPort<S> {
         }
     }
 
-    /// The peer's address as connected.
-    pub(crate) fn peer(&self) -> &str {
-        &self.peer
-    }
-
-    /// What the link adds to each frame's time now, and the least round trip it is from, if
-    /// measured.
-    pub(crate) fn budget(&self) -> (Duration, Option<Duration>) {
-        (self.budget, self.measured)
+    /// The peer's address, what the link adds to each frame's time now, and the least round
+    /// trip it is from, if measured.
+    pub(crate) fn link(&self) -> (&str, Duration, Option<Duration>) {
+        (&self.peer, self.budget, self.measured)
     }
 
     /// Read the kernel's measurement again if the last is older than [`REMEASURE_EVERY`].
@@ -263,4 +258,4 @@ impl<S: Link> Transport for NetPort<S> {
 #[cfg(test)]
 mod link_tests;
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;

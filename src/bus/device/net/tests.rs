@@ -2,9 +2,9 @@ use super::*;
 use tokio::io::DuplexStream;
 
 /// One end of an in-memory link whose kernel would report `round_trip`.
-pub(super) struct Measured {
-    pub(super) stream: DuplexStream,
-    pub(super) round_trip: Option<Duration>,
+pub(crate) struct Measured {
+    pub(crate) stream: DuplexStream,
+    pub(crate) round_trip: Option<Duration>,
 }
 
 impl AsyncRead for Measured {
@@ -70,8 +70,7 @@ async fn a_frame_has_left_the_far_wire_once_its_time_and_the_link_budget_have_pa
     let (port, _far) = port(Some(20 * MS));
     let now = Instant::now();
     assert_eq!(port.end_of_transmission(now, 9 * MS), now + 49 * MS);
-    assert_eq!(port.budget(), (40 * MS, Some(20 * MS)));
-    assert_eq!(port.peer(), "192.0.2.7:4001");
+    assert_eq!(port.link(), ("192.0.2.7:4001", 40 * MS, Some(20 * MS)));
 }
 
 #[tokio::test]
