@@ -1,7 +1,8 @@
 //! A Modbus TCP device behind the gateway (`framing = "tcp"` on `device = "tcp://..."`): many
 //! masters, one connection to the device, no crossed reply. Against pymodbus's Modbus TCP server,
-//! and against devices written here to misbehave as real ones do: a late answer, a device that
-//! ignores requests right after a connect, wrong transaction ids, a restart.
+//! and against devices written here to misbehave as real ones do: one connection only, a late
+//! answer, a device that ignores requests right after a connect, wrong transaction ids, a
+//! restart, a close every few requests.
 
 use crate::support::{addr, within, Bus, GatewayConfig, RawMaster, Scrape};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -110,6 +111,63 @@ async fn many_masters_share_one_connection_to_the_device_and_each_gets_its_own_a
         ),
         1.0
     );
+}
+
+/// A device that serves one connection at a time, as many inverters and meters do: while one is
+/// open, another is accepted and closed at once. Returns its port and how many it closed so.
+async fn one_connection_device() -> (u16, Arc<AtomicUsize>) {
+    let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let port = server.local_addr().unwrap().port();
+    let refused = Arc::new(AtomicUsize::new(0));
+    let count = refused.clone();
+    let busy = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    tokio::spawn(async move {
+        while let Ok((mut socket, _)) = server.accept().await {
+            if busy.swap(true, Ordering::SeqCst) {
+                count.fetch_add(1, Ordering::SeqCst);
+                continue;
+            }
+            let busy = busy.clone();
+            tokio::spawn(async move {
+                while let Some((transaction, unit, pdu)) = next_request(&mut socket).await {
+                    let frame = reply(transaction, unit, &answer_to(&pdu));
+                    if socket.write_all(&frame).await.is_err() {
+                        break;
+                    }
+                }
+                busy.store(false, Ordering::SeqCst);
+            });
+        }
+    });
+    (port, refused)
+}
+
+#[tokio::test]
+async fn a_device_that_accepts_one_connection_serves_every_master_through_the_gateways_one() {
+    let (port, refused) = one_connection_device().await;
+    let gateway = gateway_on(port, "").await;
+    let mut masters = Vec::new();
+    for m in 0..5u16 {
+        let addr = addr(&gateway);
+        masters.push(tokio::spawn(async move {
+            let mut master = RawMaster::connect(addr).await;
+            for n in 0..10u16 {
+                let register = m * 100 + n;
+                assert_eq!(
+                    master.call(n, 1, &read(register)).await,
+                    answer_to(&read(register))
+                );
+            }
+        }));
+    }
+    for master in masters {
+        within("a master's 10 reads", master).await.unwrap();
+    }
+    assert_eq!(refused.load(Ordering::SeqCst), 0, "connections refused");
+    // A master going to the device on its own is turned away: the gateway holds the one.
+    let mut direct = RawMaster::connect(([127, 0, 0, 1], port).into()).await;
+    assert!(direct.is_closed().await, "a second connection is closed");
+    assert_eq!(refused.load(Ordering::SeqCst), 1);
 }
 
 #[tokio::test]
