@@ -1,6 +1,9 @@
 //! What the tcp-device scenarios measure beside the gateway, on the same in-process device: one
 //! client reading from the device directly (no gateway), and the scenario's masters through
-//! modbus-proxy, a separate program (run as a process, never linked), if it is installed.
+//! modbus-proxy, a separate program (run as a process, never linked), if it is installed. The
+//! direct client is a process of its own (this program again, `--direct-client`), as a master
+//! is: a client in the device's own process would cross no process boundary at all, and the
+//! gateway's masters cross two to reach it and two to come back.
 
 use crate::gateway::{cpu_time, free_addr, START_LIMIT};
 use crate::masters::{master, Conn, Done};
@@ -8,7 +11,7 @@ use crate::scenarios::Load;
 use crate::Cli;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command, ExitCode, Stdio};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -19,6 +22,9 @@ use tokio::net::TcpStream;
 const PROXY_IN_TARGET: &str = "modbus-proxy-venv/bin/modbus-proxy";
 /// Masters reading back to back before the window opens.
 const WARM_UP: Duration = Duration::from_secs(1);
+/// The flag that makes this program the direct client instead of the bench: `--direct-client
+/// ADDR SECONDS`.
+pub(crate) const DIRECT_FLAG: &str = "--direct-client";
 
 /// One load's figures in its window.
 pub(crate) struct Driven {
@@ -29,9 +35,9 @@ pub(crate) struct Driven {
     pub(crate) cpu: Option<Duration>,
 }
 
-/// Modbus TCP masters on `conns` reading back to back: a warm-up, then a window of the run's
-/// length, across which the CPU time of process `pid` (if any) is taken.
-async fn drive(cli: &Cli, conns: Vec<Conn>, pid: Option<u32>) -> Result<Driven, String> {
+/// Modbus TCP masters on `conns` reading back to back: a warm-up, then a window of `seconds`,
+/// across which the CPU time of process `pid` (if any) is taken.
+async fn drive(seconds: f64, conns: Vec<Conn>, pid: Option<u32>) -> Result<Driven, String> {
     let stop = Arc::new(AtomicBool::new(false));
     let tasks: Vec<_> = conns
         .into_iter()
@@ -40,7 +46,7 @@ async fn drive(cli: &Cli, conns: Vec<Conn>, pid: Option<u32>) -> Result<Driven, 
         .collect();
     tokio::time::sleep(WARM_UP).await;
     let (start, cpu_start) = (Instant::now(), pid.map(cpu_time));
-    tokio::time::sleep(Duration::from_secs_f64(cli.seconds)).await;
+    tokio::time::sleep(Duration::from_secs_f64(seconds)).await;
     let (end, cpu_end) = (Instant::now(), pid.map(cpu_time));
     stop.store(true, Ordering::Relaxed);
     let mut latencies = Vec::new();
@@ -76,9 +82,74 @@ async fn connect(addr: SocketAddr, n: usize) -> Result<Vec<Conn>, String> {
     Ok(conns)
 }
 
-/// One client reading from the device at `device` back to back, with nothing in between.
+/// One client reading from the device at `device` back to back, with nothing in between: this
+/// program as `--direct-client`, in a process of its own, for the run's length. Its figures
+/// come back on its stdout: the rate, then every latency in nanoseconds, one line each.
 pub(crate) async fn direct(cli: &Cli, device: SocketAddr) -> Result<Driven, String> {
-    drive(cli, connect(device, 1).await?, None).await
+    let exe = std::env::current_exe().map_err(|e| format!("the bench's own path: {e}"))?;
+    let child = Command::new(exe)
+        .arg(DIRECT_FLAG)
+        .arg(device.to_string())
+        .arg(cli.seconds.to_string())
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .spawn()
+        .map_err(|e| format!("the direct client's process: {e}"))?;
+    let waiting = tokio::task::spawn_blocking(move || child.wait_with_output());
+    let limit = WARM_UP + Duration::from_secs_f64(cli.seconds) + START_LIMIT;
+    let output = match tokio::time::timeout(limit, waiting).await {
+        Ok(Ok(Ok(output))) if output.status.success() => output.stdout,
+        Ok(Ok(Ok(output))) => return Err(format!("the direct client: {}", output.status)),
+        Ok(Ok(Err(e))) => return Err(format!("the direct client: {e}")),
+        Ok(Err(e)) => return Err(e.to_string()),
+        Err(_) => return Err(format!("the direct client took more than {limit:?}")),
+    };
+    let text = String::from_utf8_lossy(&output);
+    let mut lines = text.lines();
+    let tx_per_s = lines.next().and_then(|rate| rate.parse().ok());
+    let latencies: Option<Vec<Duration>> = lines
+        .map(|nanos| nanos.parse().ok().map(Duration::from_nanos))
+        .collect();
+    match (tx_per_s, latencies) {
+        (Some(tx_per_s), Some(latencies)) => Ok(Driven {
+            tx_per_s,
+            latencies,
+            cpu: None,
+        }),
+        _ => Err("the direct client's figures do not parse".into()),
+    }
+}
+
+/// Be the direct client (`--direct-client ADDR SECONDS`): one connection to the device at ADDR
+/// reading back to back on one thread, as [`direct`] reads its figures.
+pub(crate) fn direct_here(args: &[String]) -> ExitCode {
+    let (Some(Ok(device)), Some(Ok(seconds))) = (
+        args.first().map(|a| a.parse::<SocketAddr>()),
+        args.get(1).map(|s| s.parse::<f64>()),
+    ) else {
+        eprintln!("usage: modbus-gateway-bench {DIRECT_FLAG} ADDR SECONDS");
+        return ExitCode::from(2);
+    };
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build();
+    let driven = runtime.map_err(|e| e.to_string()).and_then(|runtime| {
+        runtime.block_on(async { drive(seconds, connect(device, 1).await?, None).await })
+    });
+    match driven {
+        Ok(driven) => {
+            let mut out = format!("{}\n", driven.tx_per_s);
+            for latency in &driven.latencies {
+                out.push_str(&format!("{}\n", latency.as_nanos()));
+            }
+            print!("{out}");
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("the direct client: {e}");
+            ExitCode::FAILURE
+        }
+    }
 }
 
 /// The modbus-proxy program the run uses: `--modbus-proxy`, or the one in the target directory.
@@ -143,6 +214,6 @@ pub(crate) async fn through_proxy(
     let listen = free_addr().map_err(|e| e.to_string())?;
     let proxy = Proxy::start(&program, listen, device).await?;
     let conns = connect(listen, masters).await?;
-    let driven = drive(cli, conns, Some(proxy.0.id())).await?;
+    let driven = drive(cli.seconds, conns, Some(proxy.0.id())).await?;
     Ok(Some(driven))
 }

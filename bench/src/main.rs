@@ -7,8 +7,8 @@
 //! /proc, so the masters' cost is not in it; the simulated slaves', inside the gateway, is, except
 //! on the device-server line, whose simulated line runs in `simulate --listen` and is counted
 //! apart). On a Modbus TCP device (the tcp-device scenarios), which has no line to measure against,
-//! it measures the gateway beside one client reading from the device directly and beside
-//! modbus-proxy, if installed.
+//! it measures the gateway beside one client reading from the device directly (this program
+//! again, `--direct-client`, in a process of its own) and beside modbus-proxy, if installed.
 //! A workspace member of its own: `cargo install` and the Debian package carry only the daemon.
 //!
 //! The modules, in the order a run goes through them: `scenarios` (what to measure),
@@ -70,9 +70,22 @@ struct Cli {
     modbus_proxy: Option<PathBuf>,
 }
 
-#[tokio::main]
-async fn main() -> ExitCode {
-    let cli = Cli::parse();
+fn main() -> ExitCode {
+    // The direct client of the tcp-device line is this program again, in a process of its own.
+    let args: Vec<String> = std::env::args().collect();
+    if args.get(1).map(String::as_str) == Some(beside::DIRECT_FLAG) {
+        return beside::direct_here(&args[2..]);
+    }
+    match tokio::runtime::Runtime::new() {
+        Ok(runtime) => runtime.block_on(bench(Cli::parse())),
+        Err(e) => {
+            eprintln!("modbus-gateway-bench: the runtime: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+async fn bench(cli: Cli) -> ExitCode {
     // As in the daemon: the untimed slave's replies are due at once, and tokio's timer would
     // hold each one to the next whole millisecond.
     modbus_gateway::timer::use_precise_timer();

@@ -65,8 +65,8 @@ pub(crate) struct Report {
     /// count), in t_min.
     queue_wait_priority_tmin: Option<f64>,
     queue_wait_normal_tmin: Option<f64>,
-    /// On a Modbus TCP device: one client reading from it directly, back to back, for as long
-    /// (its rate and median), and the gateway's rate over its.
+    /// On a Modbus TCP device: one client, in a process of its own, reading from it directly,
+    /// back to back, for as long (its rate and median), and the gateway's rate over its.
     direct_tx_per_s: Option<f64>,
     direct_p50_ms: Option<f64>,
     tx_vs_direct: Option<f64>,
