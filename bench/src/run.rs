@@ -57,7 +57,7 @@ pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report
             .insert(DeviceServer::start(binary, s).await?)
             .device
             .clone(),
-        Line::TcpDevice => tcp.insert(TcpDevice::start().await?).device(),
+        Line::TcpDevice => tcp.insert(TcpDevice::start(s.device_delay).await?).device(),
     };
     // The direct client first, on the device alone.
     let direct = match &tcp {

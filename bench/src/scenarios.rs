@@ -23,8 +23,8 @@ pub(crate) enum Line {
     /// The same simulated line, timed at its baud rate, served by `simulate --listen` in a
     /// process of its own; the gateway's bus reaches it as a serial device server (`tcp://`).
     DeviceServer,
-    /// A Modbus TCP device in this process that answers at once (`framing = "tcp"` on
-    /// `tcp://`): no serial line at all.
+    /// A Modbus TCP device in this process that answers at once, or after the scenario's
+    /// `device_delay` (`framing = "tcp"` on `tcp://`): no serial line at all.
     TcpDevice,
 }
 
@@ -78,6 +78,8 @@ pub(crate) struct Scenario {
     pub(crate) coalesce: bool,
     /// A Modbus TCP device's `max_in_flight` (1: one request at a time).
     pub(crate) in_flight: usize,
+    /// How long the Modbus TCP device takes to answer each request (zero: at once).
+    pub(crate) device_delay: Duration,
     /// One more master, connecting from 127.0.0.2 (in `server.priority`), reading a block of its
     /// own: back to back (`Some(ZERO)`) or one read per period.
     pub(crate) priority: Option<Duration>,
@@ -96,6 +98,7 @@ impl Scenario {
             load,
             coalesce: true,
             in_flight: 1,
+            device_delay: Duration::ZERO,
             priority: None,
         }
     }
@@ -145,6 +148,24 @@ pub(crate) fn scenarios() -> Vec<Scenario> {
             Load::Read,
         )
     });
+    // 8 masters on a device that answers every request after 5 ms, one request at a time and 4.
+    for (in_flight, name) in [
+        (1, "tcp-device-5ms-read-8"),
+        (4, "tcp-device-5ms-pipelined-read-8"),
+    ] {
+        all.push(Scenario {
+            line: Line::TcpDevice,
+            framing: Framing::Tcp,
+            in_flight,
+            device_delay: Duration::from_millis(5),
+            ..Scenario::sim(
+                name.to_owned(),
+                format(115_200, Parity::None),
+                8,
+                Load::Read,
+            )
+        });
+    }
     for masters in [0, 1000] {
         all.push(Scenario::sim(
             format!("idle-{masters}"),

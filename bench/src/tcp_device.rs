@@ -1,8 +1,11 @@
 //! The far end of the tcp-device line: a Modbus TCP device in the bench's process that answers
-//! every read of holding registers at once, on a loopback port, each connection in a task of its
-//! own, stopped when dropped. Knows nothing of the gateway or of whoever else connects to it.
+//! every read of holding registers at once, or a fixed time after each request came (several
+//! outstanding at once if they come so, each answered on time by the precise timer), on a
+//! loopback port, each connection in a task of its own, stopped when dropped. Knows nothing of
+//! the gateway or of whoever else connects to it.
 
 use std::net::SocketAddr;
+use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
 
@@ -29,8 +32,9 @@ impl Drop for TcpDevice {
 }
 
 impl TcpDevice {
-    /// A device listening on 127.0.0.1, on a port of the system's choosing.
-    pub(crate) async fn start() -> Result<TcpDevice, String> {
+    /// A device listening on 127.0.0.1, on a port of the system's choosing, answering each
+    /// request `delay` after it came.
+    pub(crate) async fn start(delay: Duration) -> Result<TcpDevice, String> {
         let listener = TcpListener::bind("127.0.0.1:0")
             .await
             .map_err(|e| format!("the Modbus TCP device: {e}"))?;
@@ -38,7 +42,11 @@ impl TcpDevice {
         let task = tokio::spawn(async move {
             let mut connections = tokio::task::JoinSet::new();
             while let Ok((stream, _)) = listener.accept().await {
-                connections.spawn(serve(stream));
+                if delay.is_zero() {
+                    connections.spawn(serve(stream));
+                } else {
+                    connections.spawn(serve_after(stream, delay));
+                }
             }
         });
         Ok(TcpDevice { addr, task })
@@ -75,6 +83,47 @@ async fn serve(mut stream: TcpStream) {
             _ => return,
         }
     }
+}
+
+/// Answer every whole request `stream` brings `delay` after it came, until it closes: each
+/// request waits in a task of its own, and the replies go out in the order they fall due.
+async fn serve_after(stream: TcpStream, delay: Duration) {
+    if stream.set_nodelay(true).is_err() {
+        return;
+    }
+    let (mut reader, mut writer) = stream.into_split();
+    let (due, mut replies) = tokio::sync::mpsc::unbounded_channel::<Vec<u8>>();
+    let writing = tokio::spawn(async move {
+        while let Some(reply) = replies.recv().await {
+            if writer.write_all(&reply).await.is_err() {
+                return;
+            }
+        }
+    });
+    let mut received = Vec::with_capacity(512);
+    let mut chunk = [0u8; 512];
+    loop {
+        match reader.read(&mut chunk).await {
+            Ok(n) if n > 0 => received.extend_from_slice(&chunk[..n]),
+            _ => break,
+        }
+        let came = tokio::time::Instant::now();
+        let mut start = 0;
+        loop {
+            let mut reply = Vec::new();
+            let Answer::Answered(used) = answer(&received[start..], &mut reply) else {
+                break;
+            };
+            start += used;
+            let due = due.clone();
+            tokio::spawn(async move {
+                modbus_gateway::timer::sleep_until(came + delay).await;
+                let _ = due.send(reply);
+            });
+        }
+        received.drain(..start);
+    }
+    writing.abort();
 }
 
 /// What [`answer`] made of the bytes received so far.
