@@ -828,6 +828,41 @@ async fn slow_device(delay: Duration) -> (u16, Arc<AtomicUsize>) {
 }
 
 #[tokio::test]
+async fn a_device_slower_than_one_units_timeout_gets_0x0b_there_and_its_late_answers_never_reach_another_unit(
+) {
+    // Every reply 150 ms after its request: within unit 2's 300 ms, past the bus's 100 ms.
+    let (port, _) = slow_device(Duration::from_millis(150)).await;
+    let gateway = GatewayConfig::new()
+        .listen("127.0.0.1:0")
+        .bus(
+            Bus::on("dev", &format!("tcp://127.0.0.1:{port}"))
+                .framing("tcp")
+                .response_timeout("100ms")
+                .slave(2, &[("response_timeout", "300ms".into())]),
+        )
+        .start()
+        .await;
+    let mut fast = RawMaster::connect(addr(&gateway)).await;
+    let mut patient = RawMaster::connect(addr(&gateway)).await;
+    for n in 0..3u16 {
+        // Unit 1's request times out; the late answer comes while unit 2's is outstanding.
+        assert_eq!(fast.call(n, 1, &read(n)).await, [0x83, 0x0B]);
+        let register = 100 + n;
+        assert_eq!(
+            patient.call(n, 2, &read(register)).await,
+            answer_to(&read(register)),
+            "unit 2 gets its own answer"
+        );
+    }
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(
+        scrape.value("modbus_gateway_discarded_frames_total{bus=\"dev\"}"),
+        3.0,
+        "unit 1's three late answers"
+    );
+}
+
+#[tokio::test]
 async fn with_max_in_flight_requests_overlap_at_the_device_up_to_it_and_each_master_gets_its_own() {
     for in_flight in [1usize, 4] {
         let (port, most) = slow_device(Duration::from_millis(5)).await;
