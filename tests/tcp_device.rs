@@ -41,6 +41,16 @@ fn answer_to(request: &[u8]) -> Vec<u8> {
     vec![0x03, 0x02, request[1], request[2]]
 }
 
+/// Answer every read `socket` brings with [`answer_to`], until it closes.
+async fn answer_every_read(socket: &mut TcpStream) {
+    while let Some((transaction, unit, pdu)) = next_request(socket).await {
+        let frame = reply(transaction, unit, &answer_to(&pdu));
+        if socket.write_all(&frame).await.is_err() {
+            return;
+        }
+    }
+}
+
 /// A gateway whose one bus `dev` is the Modbus TCP device at `port`, with `keys` added.
 async fn gateway_on(port: u16, keys: &str) -> modbus_gateway::Gateway {
     GatewayConfig::new()
@@ -66,12 +76,7 @@ async fn answering_device() -> (u16, Arc<AtomicUsize>) {
         while let Ok((mut socket, _)) = server.accept().await {
             count.fetch_add(1, Ordering::SeqCst);
             tokio::spawn(async move {
-                while let Some((transaction, unit, pdu)) = next_request(&mut socket).await {
-                    let frame = reply(transaction, unit, &answer_to(&pdu));
-                    if socket.write_all(&frame).await.is_err() {
-                        break;
-                    }
-                }
+                answer_every_read(&mut socket).await;
             });
         }
     });
@@ -129,12 +134,7 @@ async fn one_connection_device() -> (u16, Arc<AtomicUsize>) {
             }
             let busy = busy.clone();
             tokio::spawn(async move {
-                while let Some((transaction, unit, pdu)) = next_request(&mut socket).await {
-                    let frame = reply(transaction, unit, &answer_to(&pdu));
-                    if socket.write_all(&frame).await.is_err() {
-                        break;
-                    }
-                }
+                answer_every_read(&mut socket).await;
                 busy.store(false, Ordering::SeqCst);
             });
         }
@@ -195,12 +195,7 @@ async fn a_late_answer_is_discarded_and_every_master_after_it_gets_its_own() {
             .write_all(&reply(transaction, unit, &answer_to(&pdu)))
             .await
             .unwrap();
-        while let Some((transaction, unit, pdu)) = next_request(&mut socket).await {
-            socket
-                .write_all(&reply(transaction, unit, &answer_to(&pdu)))
-                .await
-                .unwrap();
-        }
+        answer_every_read(&mut socket).await;
     });
     let addr = addr(&gateway);
     let mut late = RawMaster::connect(addr).await;
@@ -308,10 +303,7 @@ async fn a_device_restarted_mid_traffic_gives_0x0a_and_is_served_again_after_the
         .await
         .unwrap();
     let device = tokio::spawn(async move {
-        while let Some((transaction, unit, pdu)) = next_request(&mut socket).await {
-            let frame = reply(transaction, unit, &answer_to(&pdu));
-            socket.write_all(&frame).await.unwrap();
-        }
+        answer_every_read(&mut socket).await;
     });
     crate::support::wait_for_bus(&gateway, "dev", true).await;
     assert_eq!(master.call(2, 1, &read(2)).await, answer_to(&read(2)));
