@@ -8,7 +8,7 @@
 use crate::bus::{BusHandle, Tally, Waiter};
 use crate::config::UnitSet;
 use crate::error::{Outcome, RequestError};
-use crate::master::{MasterId, Origin, Protocol, Rights};
+use crate::master::{Class, MasterId, Origin, Protocol, Rights};
 use crate::metrics::{Metrics, Refusal};
 use crate::pdu::{self, RequestLen};
 use crate::routing::{Router, Target};
@@ -114,7 +114,7 @@ impl Dispatcher {
             master: client.master,
             admission: client.admission,
             protocol: client.protocol,
-            priority: client.priority,
+            class: Class::of_master(client.priority),
         };
         let refusal = match admit(client, unit, &pdu, target) {
             Ok(target) => return table.buses[target.bus].submit_from(origin, target.address, pdu),

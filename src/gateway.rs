@@ -15,6 +15,7 @@ use crate::net::{self, ListenAddrs, Policy};
 use crate::routing::Router;
 use crate::shutdown::{self, Stop};
 use crate::sim::{self, SimLine};
+use crate::values::{Exported, Store, Values};
 use crate::web;
 use std::io;
 use std::net::SocketAddr;
@@ -68,6 +69,8 @@ pub struct Gateway {
     stop: Stop,
     listeners: JoinSet<()>,
     shared: Arc<Shared>,
+    /// The plant values and their pollers.
+    values: Values,
     tasks: JoinSet<()>,
 }
 
@@ -129,6 +132,7 @@ pub fn config_from_toml(text: &str) -> Result<Config, ConfigErrors> {
 struct Inspected {
     shared: Arc<Shared>,
     config: Arc<Mutex<Config>>,
+    values: Arc<Store>,
 }
 
 impl web::Inspect for Inspected {
@@ -143,6 +147,10 @@ impl web::Inspect for Inspected {
 
     fn masters(&self) -> Vec<net::server::Connected> {
         self.shared.masters()
+    }
+
+    fn values(&self) -> &Store {
+        &self.values
     }
 }
 
@@ -257,7 +265,10 @@ impl Gateway {
         for bus in &buses {
             bus.handle.set_priority_share(config.server.priority_share);
         }
-        let handles = buses.iter().map(|b| b.handle.clone()).collect();
+        let handles: Vec<BusHandle> = buses.iter().map(|b| b.handle.clone()).collect();
+        let values = Values::new();
+        metrics.collect_also(Box::new(Exported(values.store().clone())));
+        values.apply(config, &handles);
         let dispatcher = Dispatcher::new(Router::new(config), handles, metrics.clone());
         let (stop, stopping) = shutdown::channel();
         let shared = Arc::new(Shared::new(
@@ -272,8 +283,9 @@ impl Gateway {
         let inspected = Inspected {
             shared: shared.clone(),
             config: config.clone(),
+            values: values.store().clone(),
         };
-        info!(listen = %metrics_addr, "serving the status page (/), /status, /trace, /metrics, /healthz and /readyz");
+        info!(listen = %metrics_addr, "serving the status page (/), /status, /values, /trace, /metrics, /healthz and /readyz");
         tasks.spawn(web::serve(
             metrics_listener,
             metrics.clone(),
@@ -295,6 +307,7 @@ impl Gateway {
             stop,
             listeners: listener_tasks,
             shared,
+            values,
             tasks,
         })
     }
@@ -363,7 +376,11 @@ impl Gateway {
         for bus in running.iter() {
             bus.handle.set_priority_share(new.server.priority_share);
         }
-        let handles = running.iter().map(|r| r.handle.clone()).collect();
+        let handles: Vec<BusHandle> = running.iter().map(|r| r.handle.clone()).collect();
+        self.values.apply(new, &handles);
+        if diff.values {
+            done.applied.push("plant values".to_owned());
+        }
         self.shared.dispatcher.replace(Router::new(new), handles);
         if diff.connection_policy {
             done.applied

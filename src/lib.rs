@@ -20,6 +20,9 @@
 //!   timing.
 //! - [`sim`]: the simulated RS-485 line and its slaves (`device = "sim"`): register banks and the
 //!   reference manuals' drives on one drive pipeline.
+//! - `values`: the plant's values for Prometheus: each slave's listed values and its device
+//!   template's, polled by the gateway itself through the bus's queue below every master, kept
+//!   for `/metrics`, `/values` and the status page.
 //! - [`metrics`]: what all of the above count and log, from plain values (it imports no runtime
 //!   module).
 //! - `web`: the operator's HTTP surface on `metrics.listen`: the status page and `/status`, the
@@ -76,6 +79,7 @@ pub mod sim;
 mod socket;
 pub mod timer;
 pub mod trace;
+mod values;
 mod web;
 
 pub use config::Config;
@@ -100,10 +104,11 @@ pub mod testing {
 
     /// The operator's HTTP endpoint on `listener`, for a gateway with no bus and no master.
     pub async fn serve_web(listener: tokio::net::TcpListener, metrics: Arc<Metrics>) {
-        crate::web::serve(listener, metrics, Arc::new(Empty)).await;
+        crate::web::serve(listener, metrics, Arc::new(Empty::default())).await;
     }
 
-    struct Empty;
+    #[derive(Default)]
+    struct Empty(crate::values::Store);
 
     impl crate::web::Inspect for Empty {
         fn buses(&self) -> Vec<crate::bus::BusHandle> {
@@ -116,6 +121,10 @@ pub mod testing {
 
         fn masters(&self) -> Vec<crate::net::server::Connected> {
             Vec::new()
+        }
+
+        fn values(&self) -> &crate::values::Store {
+            &self.0
         }
     }
 }

@@ -15,8 +15,47 @@ pub struct Origin {
     pub admission: MasterId,
     /// How the master talks to the gateway, for the requests' `protocol` label.
     pub protocol: Protocol,
-    /// Served before the others (`server.priority`).
-    pub priority: bool,
+    /// Whose ring it waits in: the masters', the priority masters' or the gateway's own polls.
+    pub class: Class,
+}
+
+/// Which ring of the bus queue a request waits in, and the `class` label of its queue wait.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum Class {
+    /// A master's.
+    #[default]
+    Normal,
+    /// A master's in `server.priority`: served before the others up to `priority_share`.
+    Priority,
+    /// The gateway's own read of a plant value: served after every master, up to `poll_share`.
+    Poll,
+}
+
+impl Class {
+    pub const ALL: [Class; 3] = [Class::Normal, Class::Priority, Class::Poll];
+
+    /// A master in `server.priority`, or not.
+    pub fn of_master(priority: bool) -> Class {
+        if priority {
+            Class::Priority
+        } else {
+            Class::Normal
+        }
+    }
+
+    /// Its place in [`Class::ALL`]: the queue's ring, the metrics' series.
+    pub fn index(self) -> usize {
+        self as usize
+    }
+
+    /// The `class` label.
+    pub fn label(self) -> &'static str {
+        match self {
+            Class::Normal => "normal",
+            Class::Priority => "priority",
+            Class::Poll => "poll",
+        }
+    }
 }
 
 /// How a master talks to the gateway: a transport and a framing, as the gateway offers them

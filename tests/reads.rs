@@ -235,7 +235,7 @@ fn origin(master: u64, priority: bool) -> Origin {
         master,
         admission: master,
         protocol: Protocol::Tcp,
-        priority,
+        class: modbus_gateway::master::Class::of_master(priority),
     }
 }
 

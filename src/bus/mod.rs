@@ -28,10 +28,10 @@ pub use waiter::Waiter;
 
 use crate::config;
 use crate::error::{Answer, Outcome, RequestError};
-use crate::master::{MasterId, Origin, Protocol};
+use crate::master::{Class, MasterId, Origin, Protocol};
 use crate::metrics::BusMetrics;
 use crate::pdu;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Duration;
 use tokio::sync::oneshot;
@@ -87,6 +87,9 @@ pub struct BusHandle {
     heartbeat: Arc<Heartbeat>,
     /// Signalled once the task has made its first attempt to open the port.
     attempted: Arc<tokio::sync::Notify>,
+    /// The line's time the gateway's polls have taken so far, in nanoseconds: what a poll led
+    /// took from its first frame to its end, retries included.
+    poll_time: Arc<AtomicU64>,
 }
 
 impl BusHandle {
@@ -131,6 +134,19 @@ impl BusHandle {
         self.attempted.notified().await;
     }
 
+    /// The line's time the gateway's polls have taken since the bus started.
+    pub(crate) fn poll_time(&self) -> Duration {
+        Duration::from_nanos(self.poll_time.load(Ordering::Relaxed))
+    }
+
+    /// `job` ended after taking the line for `line_time`: counted if it is a poll.
+    fn took_line(&self, job: &Job, line_time: Duration) {
+        if job.class() == Class::Poll {
+            let nanos = u64::try_from(line_time.as_nanos()).unwrap_or(u64::MAX);
+            self.poll_time.fetch_add(nanos, Ordering::Relaxed);
+        }
+    }
+
     fn beat(&self) {
         *self
             .heartbeat
@@ -146,7 +162,7 @@ impl BusHandle {
             master,
             admission: master,
             protocol: Protocol::Tcp,
-            priority: false,
+            class: Class::Normal,
         };
         self.submit_from(origin, slave, pdu)
     }

@@ -257,6 +257,7 @@ impl BusTask {
     /// the cache, answered.
     fn land_outcome(&mut self, flight: Flight, outcome: Outcome) {
         let round_trip = flight.first_sent.elapsed();
+        self.handle.took_line(&flight.job, round_trip);
         self.handle.metrics.transaction(
             flight.job.slave,
             flight.attempts,

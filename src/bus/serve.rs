@@ -223,7 +223,7 @@ impl BusTask {
             return None;
         }
         let metrics = &self.handle.metrics;
-        metrics.dequeued(waiter.queued_at.elapsed(), waiter.origin.priority);
+        metrics.dequeued(waiter.queued_at.elapsed(), waiter.origin.class);
         if now > waiter.deadline {
             waiter.answer(tally, slave, function, Err(RequestError::Expired));
             return None;

@@ -95,6 +95,7 @@ impl BusTask {
                 stall_limit: Mutex::new(current.derived.stall_limit),
             }),
             attempted: Arc::new(tokio::sync::Notify::new()),
+            poll_time: Arc::default(),
         };
         BusTask {
             current,

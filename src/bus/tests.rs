@@ -30,7 +30,7 @@ fn job(slave: u8, pdu: &[u8]) -> (Job, oneshot::Receiver<Outcome>) {
         master: 1,
         admission: 1,
         protocol: crate::master::Protocol::Tcp,
-        priority: false,
+        class: crate::master::Class::Normal,
     };
     let deadline = Instant::now() + Duration::from_secs(60);
     let (waiter, outcome) = Waiter::new(origin, deadline);

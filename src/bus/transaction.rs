@@ -111,6 +111,7 @@ impl BusTask {
         };
         // A request the line was always too busy to send has no round trip.
         let round_trip = first_sent_at.map(|sent| sent.elapsed());
+        self.handle.took_line(job, round_trip.unwrap_or_default());
         self.handle
             .metrics
             .transaction(job.slave, attempts, round_trip, &outcome);

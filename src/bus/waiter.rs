@@ -4,7 +4,7 @@
 //! so each request gets exactly one answer and one count. Knows nothing of queues or lines.
 
 use crate::error::Outcome;
-use crate::master::Origin;
+use crate::master::{Class, Origin};
 use crate::metrics::{BusMetrics, Metrics};
 use tokio::sync::oneshot;
 use tokio::time::Instant;
@@ -19,6 +19,10 @@ pub enum Tally<'a> {
 
 impl Tally<'_> {
     fn count(self, slave: u8, function: u8, origin: &Origin, outcome: Option<&Outcome>) {
+        // The gateway's own polls are no master's requests: the poller counts them.
+        if origin.class == Class::Poll {
+            return;
+        }
         match self {
             Tally::Bus(metrics) => metrics.request(slave, function, origin.protocol, outcome),
             Tally::Unrouted(metrics) => metrics.unrouted(function, origin.protocol, outcome),

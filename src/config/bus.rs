@@ -7,7 +7,7 @@ use super::device::DeviceName;
 use super::serde_adapters::{
     duration, is_false, is_zero, is_zero_f64, is_zero_usize, opt_duration,
 };
-use super::{DeviceTls, Rs485, UnitSet};
+use super::{DeviceTls, Rs485, UnitSet, Value};
 use crate::line::framing::TransportKind;
 use crate::line::{Framing, LineTiming, MasterTiming, Parity, SerialFormat};
 use serde::{Deserialize, Serialize};
@@ -117,6 +117,9 @@ pub struct Bus {
         skip_serializing_if = "Option::is_none"
     )]
     pub latency_timer: Option<Duration>,
+    /// The most of the line's time the polls of plant values may take.
+    #[serde(default = "defaults::poll_share")]
+    pub poll_share: f64,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub slave: Vec<Slave>,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -144,6 +147,22 @@ pub struct Slave {
     /// Answer an identical read from the last answer while it is younger than this ("0s": never).
     #[serde(default, with = "duration", skip_serializing_if = "is_zero")]
     pub cache: Duration,
+    /// A device template whose values this slave exports.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub template: Option<String>,
+    /// How often its values are read, unless a value says otherwise (default 10 s).
+    #[serde(
+        default,
+        with = "opt_duration",
+        skip_serializing_if = "Option::is_none"
+    )]
+    pub poll_interval: Option<Duration>,
+    /// The most registers one poll reads from it; left out, its template's or 125.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_read_registers: Option<u16>,
+    /// Its own values.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub value: Vec<Value>,
 }
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]

@@ -5,9 +5,11 @@
 
 use super::defaults;
 use super::rs485::LATENCY_TIMER_MS;
+use super::values;
 use super::DeviceName;
+use super::UnitSet;
 use super::OTHER_ROLE;
-use super::{Bus, Config, ConfigError, ConfigErrors, Route, Server, SimSlave, Tls, UnitSet};
+use super::{Bus, Config, ConfigError, ConfigErrors, Route, Server, SimSlave, Templates, Tls};
 use super::{MAX_SLAVE_ADDRESS, SIM_DEVICE};
 use crate::line::framing::TransportKind;
 use crate::line::{Framing, SerialFormat};
@@ -75,7 +77,28 @@ impl Config {
         let mut names = BTreeMap::new();
         for (i, bus) in self.bus.iter().enumerate() {
             check_bus(i, bus, &mut names, drives, &mut report);
+            check_values(i, bus, &self.templates, &mut report);
         }
+        let values = self.bus.iter().enumerate().flat_map(|(i, bus)| {
+            bus.slave.iter().enumerate().flat_map(move |(j, slave)| {
+                let template = slave
+                    .template
+                    .as_deref()
+                    .and_then(|name| self.templates.get(name));
+                let from_template = template.into_iter().flat_map(move |t| {
+                    t.value.iter().enumerate().map(move |(k, v)| {
+                        (format!("bus[{i}].slave[{j}].template (its value[{k}])"), v)
+                    })
+                });
+                let own = slave
+                    .value
+                    .iter()
+                    .enumerate()
+                    .map(move |(k, v)| (format!("bus[{i}].slave[{j}].value[{k}]"), v));
+                from_template.chain(own)
+            })
+        });
+        values::check_families(values, &mut report.0);
         check_devices_once(&self.bus, &mut report);
         check_routes(&self.route, &self.bus, &names, &mut report);
         if report.0.is_empty() {
@@ -391,6 +414,28 @@ fn check_serial_driver(bus: &Bus, key: &dyn Fn(&str) -> String, report: &mut Rep
                 "must be whole milliseconds, 1ms to 255ms",
             );
         }
+    }
+}
+
+/// `bus[i]`'s plant values: each slave's own and its template's, and the share of the line
+/// their polls may take.
+fn check_values(i: usize, bus: &Bus, templates: &Templates, report: &mut Report) {
+    for (j, slave) in bus.slave.iter().enumerate() {
+        values::check_slave(
+            &format!("bus[{i}].slave[{j}]"),
+            slave,
+            templates,
+            &mut report.0,
+        );
+    }
+    if !(bus.poll_share > 0.0 && bus.poll_share <= 1.0) {
+        report.fail(
+            format!("bus[{i}].poll_share"),
+            format!(
+                "{} must be more than 0 and at most 1 (a share of the line's time)",
+                bus.poll_share
+            ),
+        );
     }
 }
 

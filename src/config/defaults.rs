@@ -96,3 +96,10 @@ pub(crate) const PRIORITY_SHARE: f64 = 0.9;
 pub(crate) fn slave_probe_interval() -> Duration {
     Duration::from_secs(5)
 }
+
+/// The most of a line's time polling may take while masters wait.
+pub(crate) fn poll_share() -> f64 {
+    0.2
+}
+/// How often a slave's values are read unless it or a value says otherwise.
+pub(crate) const POLL_INTERVAL: Duration = Duration::from_secs(10);

@@ -2,7 +2,7 @@
 //! or removed, routes, the connection policy, and the keys that only a restart applies. Pure:
 //! computed from two configurations; knows nothing of how the running gateway applies it.
 
-use super::{Config, Server};
+use super::{Bus, Config, Server, Value};
 use std::time::Duration;
 
 /// What happens to a bus of the new configuration.
@@ -27,6 +27,9 @@ pub(crate) struct ConfigDiff {
     pub removed: Vec<String>,
     /// The `[[route]]` sections differ.
     pub routes: bool,
+    /// The plant values to poll differ: a slave's values, template, interval or read limit, a
+    /// bus's `poll_share`, or a template's file.
+    pub values: bool,
     /// Something in `[server]` that new connections follow changed: everything but the listen
     /// addresses and `shutdown_timeout`.
     pub(crate) connection_policy: bool,
@@ -50,7 +53,7 @@ impl ConfigDiff {
                     Some(at) => {
                         left.swap_remove(at);
                         match old.bus.iter().find(|b| b.name == bus.name) {
-                            Some(was) if was == bus => BusChange::Same,
+                            Some(was) if line_of(was) == line_of(bus) => BusChange::Same,
                             _ => BusChange::Changed,
                         }
                     }
@@ -82,12 +85,58 @@ impl ConfigDiff {
             buses,
             removed: left.into_iter().map(str::to_owned).collect(),
             routes: new.route != old.route,
+            values: new.templates != old.templates
+                || old
+                    .bus
+                    .iter()
+                    .map(values_of)
+                    .ne(new.bus.iter().map(values_of)),
             connection_policy: policy(&new.server) != policy(&old.server),
             shutdown_timeout: new.server.shutdown_timeout != old.server.shutdown_timeout,
             log_level: new.log.level != old.log.level,
             need_restart,
         }
     }
+}
+
+/// A bus's settings but those of its plant values, which its poller follows, not its line.
+fn line_of(bus: &Bus) -> Bus {
+    let mut line = bus.clone();
+    line.poll_share = 0.0;
+    for slave in &mut line.slave {
+        slave.template = None;
+        slave.poll_interval = None;
+        slave.max_read_registers = None;
+        slave.value.clear();
+    }
+    line
+}
+
+/// The plant values' settings of a bus: what [`line_of`] leaves out.
+type ValuesOf<'a> = (
+    &'a str,
+    f64,
+    Vec<(
+        u8,
+        &'a Option<String>,
+        Option<Duration>,
+        Option<u16>,
+        &'a [Value],
+    )>,
+);
+
+fn values_of(bus: &Bus) -> ValuesOf<'_> {
+    let slaves = bus.slave.iter().map(|s| {
+        let own = s.value.as_slice();
+        (
+            s.address,
+            &s.template,
+            s.poll_interval,
+            s.max_read_registers,
+            own,
+        )
+    });
+    (&bus.name, bus.poll_share, slaves.collect())
 }
 
 /// Everything in `[server]` but the listen addresses and the stop's timeout.

@@ -3,7 +3,7 @@
 //! configuration back. Owns [`ConfigError`] and [`ConfigErrors`]. Knows nothing of what the
 //! values are used for.
 
-use super::{Config, DriveCheck, TlsFilesCheck};
+use super::{Config, DriveCheck, Templates, TlsFilesCheck};
 use std::fmt;
 use std::path::Path;
 
@@ -76,7 +76,7 @@ impl Config {
         path: &Path,
         env: impl IntoIterator<Item = (String, String)>,
     ) -> Result<Config, ConfigErrors> {
-        Self::finish(Self::read(path, env)?, None, None)
+        Self::finish(Self::read(path, env)?, path.parent(), None, None)
     }
 
     /// [`Config::load`], with the simulated drives' parameters checked by `drives` and the
@@ -87,13 +87,18 @@ impl Config {
         drives: &dyn DriveCheck,
         tls: &dyn TlsFilesCheck,
     ) -> Result<Config, ConfigErrors> {
-        Self::finish(Self::read(path, env)?, Some(drives), Some(tls))
+        Self::finish(
+            Self::read(path, env)?,
+            path.parent(),
+            Some(drives),
+            Some(tls),
+        )
     }
 
     /// Parse TOML text with no environment, fill in defaults and validate. The simulated
     /// drives' parameters are not checked: `Config::from_toml_str_with` checks them.
     pub fn from_toml_str(text: &str) -> Result<Config, ConfigErrors> {
-        Self::finish(Self::parse(text)?, None, None)
+        Self::finish(Self::parse(text)?, None, None, None)
     }
 
     /// [`Config::from_toml_str`], with the simulated drives' parameters checked by `drives`.
@@ -101,7 +106,7 @@ impl Config {
         text: &str,
         drives: &dyn DriveCheck,
     ) -> Result<Config, ConfigErrors> {
-        Self::finish(Self::parse(text)?, Some(drives), None)
+        Self::finish(Self::parse(text)?, None, Some(drives), None)
     }
 
     fn read(
@@ -136,9 +141,11 @@ impl Config {
     /// Deserialize, check and resolve. A key that cannot be read is reported and taken out, and
     /// the rest read again, so one run names every unknown key and unreadable value (up to
     /// [`MAX_REPORTED`]); the checks run on what remains, and report what the removed keys do not
-    /// explain. A missing required key ends the reading: nothing can stand in for it.
+    /// explain. A missing required key ends the reading: nothing can stand in for it. The
+    /// templates are read from `template_dir`, taken from `base` (the file's folder) if relative.
     fn finish(
         raw: config::Config,
+        base: Option<&Path>,
         drives: Option<&dyn DriveCheck>,
         tls: Option<&dyn TlsFilesCheck>,
     ) -> Result<Config, ConfigErrors> {
@@ -152,7 +159,25 @@ impl Config {
                 Ok(mut config) => {
                     // Tables are read in no particular order: report in key order.
                     errors.sort_by(|a: &ConfigError, b| a.key.cmp(&b.key));
+                    let dir = config.template_dir.as_ref().map(|dir| match base {
+                        Some(base) => base.join(dir),
+                        None => dir.clone(),
+                    });
+                    let templates = Templates::load(dir.as_deref(), "template_dir");
+                    let unread = match templates {
+                        Ok(templates) => {
+                            config.templates = templates;
+                            None
+                        }
+                        Err(unread) => Some(unread),
+                    };
                     let mut checked = config.check(drives);
+                    if let Some(unread) = unread {
+                        match &mut checked {
+                            Err(found) => found.0.splice(0..0, unread.0).for_each(drop),
+                            Ok(()) => checked = Err(unread),
+                        }
+                    }
                     let files = tls.zip(config.server.tls.as_ref());
                     if let Some(Err(more)) = files.map(|(tls, settings)| tls.read_files(settings)) {
                         match &mut checked {

@@ -20,6 +20,7 @@ mod serde_adapters;
 mod server;
 mod tls;
 mod unit_set;
+mod values;
 
 pub use bus::{Bus, Slave};
 pub use device::{DeviceName, ServerAddr, ServerMode};
@@ -48,6 +49,8 @@ pub use tls::RoleAccess;
 pub(crate) use tls::OTHER_ROLE;
 pub use tls::{DeviceTls, Role, Tls};
 pub use unit_set::UnitSet;
+pub use values::{Order, Table, Template, Templates, Value, ValueType};
+pub(crate) use values::{MAX_READ_BITS, MAX_READ_REGISTERS};
 
 use serde::{Deserialize, Serialize};
 
@@ -57,6 +60,10 @@ pub(crate) const MAX_SLAVE_ADDRESS: u8 = crate::line::MAX_SERIAL_ADDRESS;
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Config {
+    /// A folder of the user's own device templates (`NAME.toml`); relative to the
+    /// configuration file's folder.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub template_dir: Option<std::path::PathBuf>,
     #[serde(default)]
     pub server: Server,
     #[serde(default)]
@@ -67,6 +74,9 @@ pub struct Config {
     pub bus: Vec<Bus>,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub route: Vec<Route>,
+    /// The templates slaves may name: the shipped ones and `template_dir`'s, read at load.
+    #[serde(skip)]
+    pub templates: Templates,
 }
 
 #[cfg(test)]

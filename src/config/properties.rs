@@ -202,6 +202,10 @@ fn slaves() -> impl Strategy<Value = Vec<Slave>> {
                         wide_read_count,
                         coalesce_reads,
                         cache,
+                        template: None,
+                        poll_interval: None,
+                        max_read_registers: None,
+                        value: Vec::new(),
                     },
                 )
                 .collect()
@@ -338,6 +342,7 @@ fn bus() -> impl Strategy<Value = Bus> {
                 match_transaction_id: true,
                 max_in_flight: 1,
                 tls: None,
+                poll_share: crate::config::defaults::poll_share(),
             };
             if bus.transport().is_network() {
                 bus.packing_delay = down.3;
@@ -439,11 +444,13 @@ fn config() -> impl Strategy<Value = Config> {
                 });
             }
             Config {
+                template_dir: None,
                 server,
                 metrics: Metrics { listen: metrics },
                 log,
                 bus,
                 route,
+                templates: crate::config::Templates::default(),
             }
         })
 }

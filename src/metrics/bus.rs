@@ -7,7 +7,7 @@ use super::{Definer, RequestCounters, BUS_EVENTS};
 use crate::config;
 use crate::error::{Answer, Outcome, RequestError};
 use crate::line::LineCounters;
-use crate::master::Protocol;
+use crate::master::{Class, Protocol};
 use prometheus::core::Collector;
 use prometheus::{
     Counter, CounterVec, Gauge, GaugeVec, Histogram, HistogramVec, IntCounter, IntCounterVec,
@@ -64,10 +64,20 @@ pub(super) struct SlaveFamilies {
     cache_hits: IntCounterVec,
     slave_up: IntGaugeVec,
     slave_last_success: GaugeVec,
+    polls: IntCounterVec,
+    poll_errors: IntCounterVec,
 }
 
-/// The `class` label of the queue wait: the others, then the priority masters.
-const CLASSES: [&str; 2] = ["normal", "priority"];
+/// The `outcome` label of a failed poll of plant values.
+pub(crate) const POLL_OUTCOMES: [&str; 7] = [
+    "timeout",
+    "exception",
+    "bad_reply",
+    "port_down",
+    "slave_down",
+    "queue_full",
+    "expired",
+];
 
 impl LineFamilies {
     fn new(define: &Definer) -> Self {
@@ -117,7 +127,7 @@ impl QueueFamilies {
             queue_wait: define.histogram(
                 "modbus_gateway_queue_wait_seconds",
                 "Time requests spent in the bus queue before the line took them, by class \
-                 (priority masters or the others).",
+                 (the masters, the priority masters, the gateway's polls of plant values).",
                 &["bus", "class"],
             ),
             queue_depth: define.int_gauge(
@@ -215,6 +225,17 @@ impl SlaveFamilies {
                 "Unix time of the slave's last answer (normal or exception); 0 if none yet.",
                 bus_slave,
             ),
+            polls: define.int_counter(
+                "modbus_gateway_polls_total",
+                "Reads the gateway sent of its own to poll the slave's plant values.",
+                bus_slave,
+            ),
+            poll_errors: define.int_counter(
+                "modbus_gateway_poll_errors_total",
+                "Polls of plant values that failed, by outcome; their values are not exported \
+                 until a poll is good again.",
+                &["bus", "slave", "outcome"],
+            ),
         }
     }
 }
@@ -243,8 +264,11 @@ impl BusFamilies {
             char_time: settings.line_timing().char_time.as_secs_f64(),
             counters,
             round_trip: self.line.round_trip.with_label_values(labels),
-            queue_wait: [CLASSES[0], CLASSES[1]]
-                .map(|class| self.queue.queue_wait.with_label_values(&[name, class])),
+            queue_wait: Class::ALL.map(|class| {
+                self.queue
+                    .queue_wait
+                    .with_label_values(&[name, class.label()])
+            }),
             busy: self.line.busy.with_label_values(labels),
             sent: self.line.sent.with_label_values(labels),
             received: self.line.received.with_label_values(labels),
@@ -263,6 +287,8 @@ impl BusFamilies {
             cache_hits: self.slave.cache_hits.clone(),
             slave_up: self.slave.slave_up.clone(),
             slave_last_success: self.slave.slave_last_success.clone(),
+            polls: self.slave.polls.clone(),
+            poll_errors: self.slave.poll_errors.clone(),
             slaves: BusMetrics::no_slaves(),
         };
         metrics.reconfigured(settings);
@@ -295,11 +321,11 @@ impl BusFamilies {
         let _ = self.port.link_round_trip.remove_label_values(labels);
         let _ = self.port.link_budget.remove_label_values(labels);
         let _ = self.line.round_trip.remove_label_values(labels);
-        for class in CLASSES {
+        for class in Class::ALL {
             let _ = self
                 .queue
                 .queue_wait
-                .remove_label_values(&[&*bus.name, class]);
+                .remove_label_values(&[&*bus.name, class.label()]);
         }
         for address in bus.known_slaves() {
             let labels = &[&*bus.name, decimal(address)];
@@ -309,8 +335,13 @@ impl BusFamilies {
                 &self.slave.retries,
                 &self.slave.coalesced,
                 &self.slave.cache_hits,
+                &self.slave.polls,
             ] {
                 let _ = vec.remove_label_values(labels);
+            }
+            for outcome in POLL_OUTCOMES {
+                let labels = &[&*bus.name, decimal(address), outcome];
+                let _ = self.slave.poll_errors.remove_label_values(labels);
             }
         }
     }
@@ -363,8 +394,8 @@ pub struct BusMetrics {
     pub(super) char_time: f64,
     pub(super) counters: RequestCounters,
     pub(super) round_trip: Histogram,
-    /// Per class: the others', then the priority masters'.
-    pub(super) queue_wait: [Histogram; 2],
+    /// Per class, in the order of [`Class::ALL`].
+    pub(super) queue_wait: [Histogram; 3],
     pub(super) busy: Counter,
     pub(super) sent: IntCounter,
     pub(super) received: IntCounter,
@@ -385,6 +416,8 @@ pub struct BusMetrics {
     pub(super) cache_hits: IntCounterVec,
     pub(super) slave_up: IntGaugeVec,
     pub(super) slave_last_success: GaugeVec,
+    pub(super) polls: IntCounterVec,
+    pub(super) poll_errors: IntCounterVec,
     pub(super) slaves: Box<[OnceLock<SlaveMetrics>; 256]>,
 }
 
@@ -488,14 +521,25 @@ impl BusMetrics {
 
     /// The line took a request after it waited `wait` in the queue; `priority` if it came from
     /// a master in `server.priority`.
-    pub(crate) fn dequeued(&self, wait: Duration, priority: bool) {
-        self.queue_wait[usize::from(priority)].observe(wait.as_secs_f64());
+    pub(crate) fn dequeued(&self, wait: Duration, class: Class) {
+        self.queue_wait[class.index()].observe(wait.as_secs_f64());
     }
 
     /// A read to `slave` joined another master's identical one.
     pub fn coalesced(&self, slave: u8) {
         if let Some(slave) = self.known(slave) {
             slave.coalesced.inc();
+        }
+    }
+
+    /// The gateway polled `slave`'s plant values; the poll failed as `failed` (one of
+    /// [`POLL_OUTCOMES`]) if it did.
+    pub(crate) fn polled(&self, slave: u8, failed: Option<&'static str>) {
+        let address = decimal(slave);
+        self.polls.with_label_values(&[&*self.name, address]).inc();
+        if let Some(outcome) = failed {
+            let labels = &[&*self.name, address, outcome];
+            self.poll_errors.with_label_values(labels).inc();
         }
     }
 

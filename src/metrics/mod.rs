@@ -206,6 +206,15 @@ impl Metrics {
         self.buses.queue.queue_depth.with_label_values(&[name])
     }
 
+    /// Collect what `collector` has at every scrape besides the gateway's own metrics (the plant
+    /// values, whose names come from the configuration). It describes nothing up front; the
+    /// configuration's check keeps its names apart from the gateway's.
+    pub(crate) fn collect_also(&self, collector: Box<dyn prometheus::core::Collector>) {
+        if let Err(e) = self.registry.register(collector) {
+            tracing::error!(%e, "a collector of the metrics could not be registered");
+        }
+    }
+
     /// Run `hook` before every scrape, to read a gauge from its source.
     pub(crate) fn on_scrape(&self, hook: impl Fn() + Send + Sync + 'static) {
         self.scrape_hooks

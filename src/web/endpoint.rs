@@ -343,6 +343,35 @@ fn status_page() -> Response<Full<Bytes>> {
     page
 }
 
+/// `what` as JSON, or a 500 saying why it cannot be.
+fn json(what: &str, value: &impl serde::Serialize) -> Response<Full<Bytes>> {
+    match serde_json::to_string(value) {
+        Ok(json) => response(StatusCode::OK, JSON, json),
+        Err(error) => {
+            warn!(%error, "cannot render the {what}");
+            response(
+                StatusCode::INTERNAL_SERVER_ERROR,
+                TEXT,
+                format!("cannot render the {what}: {error}\n"),
+            )
+        }
+    }
+}
+
+/// `GET /values` with `query`.
+fn values(state: &State, query: Option<&str>) -> Response<Full<Bytes>> {
+    let buses: Vec<String> = state
+        .gateway
+        .buses()
+        .iter()
+        .map(|b| b.name().to_owned())
+        .collect();
+    match super::values::filter(query, &buses) {
+        Ok(filter) => json("values", &state.gateway.values().listing(&filter)),
+        Err((status, message)) => response(status, TEXT, message),
+    }
+}
+
 fn respond(state: &State, request: &Request<Incoming>) -> Response<Full<Bytes>> {
     if !matches!(*request.method(), Method::GET | Method::HEAD) {
         let mut refused = response(
@@ -357,17 +386,8 @@ fn respond(state: &State, request: &Request<Incoming>) -> Response<Full<Bytes>> 
     }
     match request.uri().path() {
         "/" => status_page(),
-        "/status" => match serde_json::to_string(&state.status.read(state.gateway.as_ref())) {
-            Ok(json) => response(StatusCode::OK, JSON, json),
-            Err(error) => {
-                warn!(%error, "cannot render the status");
-                response(
-                    StatusCode::INTERNAL_SERVER_ERROR,
-                    TEXT,
-                    format!("cannot render the status: {error}\n"),
-                )
-            }
-        },
+        "/status" => json("status", &state.status.read(state.gateway.as_ref())),
+        "/values" => values(state, request.uri().query()),
         "/metrics" => match state.metrics.render() {
             Ok(text) => response(StatusCode::OK, prometheus::TEXT_FORMAT, text),
             Err(error) => {
@@ -399,7 +419,8 @@ fn respond(state: &State, request: &Request<Incoming>) -> Response<Full<Bytes>> 
         _ => response(
             StatusCode::NOT_FOUND,
             TEXT,
-            "not found; try / (the status page), /status, /trace, /metrics, /healthz or /readyz\n"
+            "not found; try / (the status page), /status, /values, /trace, /metrics, /healthz or \
+             /readyz\n"
                 .into(),
         ),
     }

@@ -1,5 +1,6 @@
 //! The operator's HTTP surface on `metrics.listen`: the status page (`/`) and its data
-//! (`/status`, [`status`]), the live trace as server-sent events (`/trace`, `sse`), the
+//! (`/status`, [`status`]), the plant values as JSON (`/values`, `values`), the live trace as
+//! server-sent events (`/trace`, `sse`), the
 //! Prometheus text format (`/metrics`) and the health checks (`/healthz`, `/readyz`), served by
 //! [`endpoint`]. It reads the running gateway only through [`Inspect`] and the metrics' registry
 //! and trace hub; it changes nothing, and knows nothing of how listeners, sessions or the line
@@ -8,6 +9,7 @@
 mod endpoint;
 mod sse;
 pub(crate) mod status;
+mod values;
 
 pub(crate) use endpoint::serve;
 
@@ -26,6 +28,8 @@ pub(crate) trait Inspect: Send + Sync + 'static {
     fn settings(&self, name: &str) -> Option<config::Bus>;
     /// The masters connected now, longest connected first.
     fn masters(&self) -> Vec<Connected>;
+    /// The plant values as last read.
+    fn values(&self) -> &crate::values::Store;
 }
 
 /// The buses whose port is not open, for `/readyz`.

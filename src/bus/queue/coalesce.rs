@@ -9,7 +9,7 @@
 use super::cache::Epoch;
 use super::rings::RINGS;
 use super::{Inner, Job, Waiter};
-use crate::master::MasterId;
+use crate::master::{Class, MasterId};
 use std::collections::{hash_map, HashMap};
 
 /// A read others may join, as [`Leaders`] knows it: its slave, that slave's write epoch when it
@@ -50,9 +50,14 @@ impl Leaders {
     }
 
     /// A master whose head `job` may join: a priority one first, and for a priority job only
-    /// such a one.
+    /// such a one. A poll joins any read, another poll's last; a master's read never joins a
+    /// poll, whose ring would hold it back.
     pub(super) fn find(&self, job: &Job) -> Option<MasterId> {
-        let rings: &[usize] = if job.priority() { &[1] } else { &[1, 0] };
+        let rings: &[usize] = match job.class() {
+            Class::Priority => &[1],
+            Class::Normal => &[1, 0],
+            Class::Poll => &[1, 0, 2],
+        };
         let key = Self::key(job);
         rings
             .iter()

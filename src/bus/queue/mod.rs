@@ -18,11 +18,11 @@ mod testing;
 pub(crate) use cache::Epoch;
 
 use super::Waiter;
-use crate::master::MasterId;
+use crate::master::{Class, MasterId};
 use crate::pdu;
 use cache::Cached;
 use coalesce::Leaders;
-use rings::{ring, Held, Place, Ring, Share, RINGS};
+use rings::{ring, Held, Place, Ring, Share, POLLS, RINGS};
 use std::collections::{hash_map, HashMap, VecDeque};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Mutex, MutexGuard, PoisonError};
@@ -69,7 +69,12 @@ impl Job {
 
     /// From a master in `server.priority`.
     pub fn priority(&self) -> bool {
-        self.waiter.origin.priority
+        self.waiter.origin.class == Class::Priority
+    }
+
+    /// Which ring it waits in.
+    pub fn class(&self) -> Class {
+        self.waiter.origin.class
     }
 
     /// Nobody waits for its answer any more: its master and every follower left.
@@ -137,6 +142,8 @@ struct Inner {
     /// that a master's requests reach the line in its own order.
     following: HashMap<MasterId, usize>,
     share: Share,
+    /// Masters' jobs taken since the last poll (from the start: as if a whole round).
+    since_poll: usize,
     /// Answers of reads to slaves with a `cache`, by (slave, PDU).
     cache: HashMap<(u8, Vec<u8>), Cached>,
 }
@@ -154,6 +161,7 @@ impl FairQueue {
                 epochs: Box::new([0; 256]),
                 following: HashMap::new(),
                 share: Share::new(crate::config::defaults::PRIORITY_SHARE),
+                since_poll: usize::MAX,
                 cache: HashMap::new(),
             }),
             ready: Notify::new(),
@@ -182,6 +190,10 @@ impl FairQueue {
                 return Err(job);
             }
             let capacity = self.capacity.load(Ordering::Relaxed);
+            // A poll takes no master's place: a full queue refuses it.
+            if inner.len >= capacity && job.class() == Class::Poll {
+                return Err(job);
+            }
             let victim = if inner.len >= capacity {
                 match inner.victim(job.admission(), capacity) {
                     Some(victim) => Some(victim),
@@ -226,18 +238,26 @@ impl FairQueue {
 
     /// The next job: from the priority ring first, up to its share of the line while others
     /// wait, then round robin across admission keys within a ring, and across a key's masters
-    /// within its turns. Its followers come with it; from now on nothing joins it.
+    /// within its turns; a poll when no master waits, or when each master waiting has had its
+    /// turn since the last poll. Its followers come with it; from now on nothing joins it.
     pub fn try_pop(&self) -> Option<Job> {
         let mut inner = self.lock();
-        let next = [0, 1].map(|r| inner.ready_master(r));
-        let priority = match next.map(|next| next.is_some()) {
-            [true, true] => inner.share.priority_next(),
-            [false, true] => true,
-            [true, false] => false,
-            [false, false] => return None,
+        let next = [0, 1, POLLS].map(|r| inner.ready_master(r));
+        let masters_waiting = inner.turn[0].keys.len() + inner.turn[1].keys.len();
+        let r = match next.map(|next| next.is_some()) {
+            [false, false, false] => return None,
+            [false, false, true] => POLLS,
+            [_, _, true] if inner.since_poll >= masters_waiting => POLLS,
+            [true, true, _] => ring(Class::of_master(inner.share.priority_next())),
+            [false, true, _] => 1,
+            [true, false, _] => 0,
         };
-        inner.share.picked(priority);
-        let r = ring(priority);
+        if r == POLLS {
+            inner.since_poll = 0;
+        } else {
+            inner.share.picked(r == 1);
+            inner.since_poll = inner.since_poll.saturating_add(1);
+        }
         let (place, master) = next[r]?;
         let inner = &mut *inner;
         let queue = inner.queues.get_mut(&master)?;
@@ -256,7 +276,8 @@ impl FairQueue {
         let job = job?;
         inner.release(job.admission(), job.priority());
         for follower in &job.followers {
-            inner.release(follower.origin.admission, follower.origin.priority);
+            let priority = follower.origin.class == Class::Priority;
+            inner.release(follower.origin.admission, priority);
             inner.unfollow(follower.origin.master);
         }
         Some(job)
@@ -364,7 +385,7 @@ impl Inner {
             }
             hash_map::Entry::Occupied(queue) => queue.into_mut().jobs.push_back(job),
             hash_map::Entry::Vacant(queue) => {
-                let (r, key) = (ring(job.priority()), job.admission());
+                let (r, key) = (job.class().index(), job.admission());
                 self.turn[r].push(key, job.master());
                 self.leaders.add(r, &job);
                 queue.insert(Fifo {

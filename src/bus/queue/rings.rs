@@ -4,7 +4,10 @@
 //! ports of one host flooding the line take one transaction in two while a connection waits,
 //! not 40 in 41; each port still has its own FIFO, order and replies, and its turns come in
 //! rotation among its address's ports. Masters in `server.priority` have a ring of their own,
-//! served first up to `priority_share` of the line.
+//! served first up to `priority_share` of the line. The gateway's polls of plant values have the
+//! last ring: a poll goes when no master waits, or once every master waiting has had a turn
+//! since the last poll, so that it holds up a master's request by one transaction at most (how
+//! much of the line polling takes in all, `poll_share`, the poller keeps to itself).
 //!
 //! Admission is fair as well. `queue_depth` bounds the requests waiting for the line (followers
 //! included) over all masters, and while there is room every request goes in. Once the queue is
@@ -23,7 +26,7 @@
 //! [`Origin::admission`]: crate::master::Origin::admission
 
 use super::{Inner, Job};
-use crate::master::MasterId;
+use crate::master::{Class, MasterId};
 use std::cmp::Reverse;
 use std::collections::{hash_map, HashMap, VecDeque};
 
@@ -71,10 +74,12 @@ impl Share {
     }
 }
 
-/// The normal ring, then the priority ring.
-pub(super) const RINGS: usize = 2;
-pub(super) fn ring(priority: bool) -> usize {
-    usize::from(priority)
+/// The normal ring, the priority ring and the polls' ring, in [`Class::ALL`]'s order.
+pub(super) const RINGS: usize = Class::ALL.len();
+/// The polls' ring.
+pub(super) const POLLS: usize = 2;
+pub(super) fn ring(class: Class) -> usize {
+    class.index()
 }
 
 /// The masters with jobs queued in one ring, in serving order: round robin over admission keys,
@@ -473,5 +478,98 @@ mod tests {
         let (j, _r) = request(origin(1, false), 1, &[0x41, 0]);
         q.push(j, NONE).unwrap();
         assert_eq!(q.try_pop().unwrap().master(), 1);
+    }
+}
+
+#[cfg(test)]
+mod poll_tests {
+    use super::super::testing::*;
+    use super::super::*;
+    use crate::master::Origin;
+
+    /// The poller's origin: a master of its own in the polls' ring.
+    fn poll_origin() -> Origin {
+        Origin {
+            class: Class::Poll,
+            ..origin(99, false)
+        }
+    }
+
+    #[test]
+    fn a_poll_waits_until_every_master_waiting_has_had_a_turn_since_the_last_poll() {
+        let q = FairQueue::new(64);
+        let mut keep = Vec::new();
+        // Three masters with two reads each, and two polls: the first poll goes first (no poll
+        // yet), the second after the three masters' turns.
+        for tag in 0..2 {
+            for master in 1..=3 {
+                // A function of its own: nothing coalesces.
+                let (j, rx) = request(origin(master, false), 1, &[0x41, tag]);
+                q.push(j, NONE).unwrap();
+                keep.push(rx);
+            }
+        }
+        for tag in [10, 11] {
+            let (j, rx) = request(poll_origin(), 1, &[0x04, tag]);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        consistent(&q);
+        assert_eq!(
+            order(&q),
+            [
+                (99, 10),
+                (1, 0),
+                (2, 0),
+                (3, 0),
+                (99, 11),
+                (1, 1),
+                (2, 1),
+                (3, 1)
+            ]
+        );
+    }
+
+    #[test]
+    fn with_no_master_waiting_polls_go_back_to_back() {
+        let q = FairQueue::new(64);
+        let mut keep = Vec::new();
+        for tag in 0..3 {
+            let (j, rx) = request(poll_origin(), 1, &[0x04, tag]);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        assert_eq!(order(&q), [(99, 0), (99, 1), (99, 2)]);
+    }
+
+    #[test]
+    fn a_poll_rides_on_a_masters_identical_read_but_no_master_waits_behind_a_poll() {
+        let q = FairQueue::new(64);
+        let (master_read, _m) = request(origin(1, false), 1, &READ);
+        q.push(master_read, NONE).unwrap();
+        let (poll, _p) = request(poll_origin(), 1, &READ);
+        assert_eq!(pushed(q.push(poll, NONE)), Some(Went::Joined));
+        let taken = q.try_pop().unwrap();
+        assert_eq!((taken.master(), taken.followers.len()), (1, 1));
+        // The other way round: the master's read does not join the poll's.
+        let (poll, _p) = request(poll_origin(), 1, &READ);
+        assert_eq!(pushed(q.push(poll, NONE)), Some(Went::Queued));
+        let (master_read, _m) = request(origin(2, false), 1, &READ);
+        assert_eq!(pushed(q.push(master_read, NONE)), Some(Went::Queued));
+        consistent(&q);
+    }
+
+    #[test]
+    fn a_full_queue_refuses_a_poll_and_never_makes_room_for_it() {
+        let q = FairQueue::new(2);
+        let mut keep = Vec::new();
+        for tag in 0..2 {
+            let (j, rx) = job(1, tag);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        let (poll, _p) = request(poll_origin(), 1, &READ);
+        assert!(q.push(poll, NONE).is_err(), "refused");
+        assert_eq!(order(&q), [(1, 0), (1, 1)]);
     }
 }

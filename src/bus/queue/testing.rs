@@ -5,7 +5,7 @@ use super::coalesce::{Leaders, ReadKey};
 use super::rings::{ring, RINGS};
 use super::{FairQueue, Job, Pushed, Waiter};
 use crate::error::Outcome;
-use crate::master::{MasterId, Origin, Protocol};
+use crate::master::{Class, MasterId, Origin, Protocol};
 use crate::pdu;
 use std::collections::HashMap;
 use std::time::Duration;
@@ -21,7 +21,7 @@ pub(super) fn origin(master: MasterId, priority: bool) -> Origin {
         master,
         admission: master,
         protocol: Protocol::Tcp,
-        priority,
+        class: Class::of_master(priority),
     }
 }
 
@@ -68,7 +68,7 @@ pub(super) fn consistent(q: &FairQueue) {
                 let queue = &inner.queues[master];
                 assert_eq!((queue.ring, queue.key), (r, *key));
                 assert!(queue.jobs.iter().all(|j| {
-                    (ring(j.priority()), j.admission(), j.master()) == (r, *key, *master)
+                    (ring(j.class()), j.admission(), j.master()) == (r, *key, *master)
                 }));
                 assert!(placed.insert(*master), "master {master} once");
             }

@@ -1,0 +1,321 @@
+//! The plant values as last read: one entry per configured value of a slave, its last good
+//! reading or why the last poll failed, and its good readings of the last minutes for the status
+//! page's plot. Rendered for Prometheus (a collector in the gateway's registry: a value whose
+//! last poll failed is left out, so its series goes stale) and as JSON for `GET /values`.
+//! Plain data behind one lock; knows nothing of polling or HTTP.
+
+use prometheus::core::{Collector, Desc};
+use prometheus::proto::{Gauge, LabelPair, Metric, MetricFamily, MetricType};
+use serde::Serialize;
+use std::collections::{BTreeMap, VecDeque};
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+/// How far back a value's readings are kept for its plot.
+pub(crate) const HISTORY: Duration = Duration::from_secs(600);
+/// The most readings kept per value: a value polled every second keeps its last two minutes.
+const HISTORY_POINTS: usize = 120;
+
+/// What a value is, as configured: whose, what it is called and how it is shown.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct Spec {
+    pub(crate) bus: Arc<str>,
+    pub(crate) slave: u8,
+    pub(crate) name: String,
+    pub(crate) help: String,
+    pub(crate) unit: Option<String>,
+    pub(crate) labels: BTreeMap<String, String>,
+}
+
+/// A value's entry: what it is, and what its polls found.
+#[derive(Debug)]
+struct Entry {
+    spec: Spec,
+    /// The last good reading, if the last poll was good.
+    value: Option<f64>,
+    /// When the last good poll was, even if a later one failed.
+    read_at: Option<SystemTime>,
+    /// Why the last poll failed, if it did.
+    error: Option<&'static str>,
+    /// Good readings of the last [`HISTORY`], oldest first: Unix milliseconds and value.
+    history: VecDeque<(u64, f64)>,
+}
+
+impl Entry {
+    fn new(spec: Spec) -> Entry {
+        Entry {
+            spec,
+            value: None,
+            read_at: None,
+            error: None,
+            history: VecDeque::new(),
+        }
+    }
+}
+
+/// Every configured value and what was read of it.
+#[derive(Default)]
+pub(crate) struct Store {
+    entries: Mutex<Vec<Entry>>,
+}
+
+/// Which values `GET /values` asks for.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub(crate) struct Filter {
+    pub(crate) bus: Option<String>,
+    pub(crate) slave: Option<u8>,
+    pub(crate) history: bool,
+}
+
+/// One value as `GET /values` gives it.
+#[derive(Serialize)]
+pub(crate) struct Shown {
+    bus: String,
+    slave: u8,
+    name: String,
+    labels: BTreeMap<String, String>,
+    value: Option<f64>,
+    unit: Option<String>,
+    read_at: Option<String>,
+    error: Option<&'static str>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    history: Option<Vec<(u64, f64)>>,
+}
+
+/// `GET /values`.
+#[derive(Serialize)]
+pub(crate) struct Listing {
+    values: Vec<Shown>,
+}
+
+fn unix_ms(time: SystemTime) -> u64 {
+    let since = time.duration_since(UNIX_EPOCH).unwrap_or_default();
+    u64::try_from(since.as_millis()).unwrap_or(u64::MAX)
+}
+
+impl Store {
+    fn lock(&self) -> MutexGuard<'_, Vec<Entry>> {
+        self.entries.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Configure the values anew as `specs` (a reload): an entry that stays the same keeps what
+    /// was read of it; the others start unread. Returns nothing: entries are addressed by their
+    /// place in `specs` from now on.
+    pub(crate) fn configure(&self, specs: Vec<Spec>) {
+        let mut entries = self.lock();
+        let mut old: Vec<Option<Entry>> = entries.drain(..).map(Some).collect();
+        for spec in specs {
+            let kept = old
+                .iter_mut()
+                .find(|e| e.as_ref().is_some_and(|e| e.spec == spec))
+                .and_then(Option::take);
+            entries.push(kept.unwrap_or_else(|| Entry::new(spec)));
+        }
+    }
+
+    /// Value `at` read `value` at `when`.
+    pub(crate) fn read(&self, at: usize, value: f64, when: SystemTime) {
+        let mut entries = self.lock();
+        let Some(entry) = entries.get_mut(at) else {
+            return;
+        };
+        entry.value = Some(value);
+        entry.read_at = Some(when);
+        entry.error = None;
+        let now = unix_ms(when);
+        let horizon = now.saturating_sub(u64::try_from(HISTORY.as_millis()).unwrap_or(0));
+        while entry
+            .history
+            .front()
+            .is_some_and(|&(t, _)| t < horizon || entry.history.len() >= HISTORY_POINTS)
+        {
+            entry.history.pop_front();
+        }
+        entry.history.push_back((now, value));
+    }
+
+    /// The poll of value `at` failed as `outcome`: it is not exported until a good one.
+    pub(crate) fn failed(&self, at: usize, outcome: &'static str) {
+        if let Some(entry) = self.lock().get_mut(at) {
+            entry.value = None;
+            entry.error = Some(outcome);
+        }
+    }
+
+    /// The values `filter` asks for, in configuration order.
+    pub(crate) fn listing(&self, filter: &Filter) -> Listing {
+        let entries = self.lock();
+        let chosen = entries.iter().filter(|e| {
+            filter.bus.as_deref().is_none_or(|bus| *e.spec.bus == *bus)
+                && filter.slave.is_none_or(|slave| e.spec.slave == slave)
+        });
+        Listing {
+            values: chosen
+                .map(|e| Shown {
+                    bus: e.spec.bus.to_string(),
+                    slave: e.spec.slave,
+                    name: e.spec.name.clone(),
+                    labels: e.spec.labels.clone(),
+                    value: e.value,
+                    unit: e.spec.unit.clone(),
+                    read_at: e
+                        .read_at
+                        .map(|t| humantime::format_rfc3339_millis(t).to_string()),
+                    error: e.error,
+                    history: filter.history.then(|| e.history.iter().copied().collect()),
+                })
+                .collect(),
+        }
+    }
+
+    /// How many values are configured.
+    #[cfg(test)]
+    pub(crate) fn len(&self) -> usize {
+        self.lock().len()
+    }
+}
+
+/// The store as the gateway's registry collects it.
+pub(crate) struct Exported(pub(crate) Arc<Store>);
+
+impl Collector for Exported {
+    fn desc(&self) -> Vec<&Desc> {
+        Vec::new()
+    }
+
+    fn collect(&self) -> Vec<MetricFamily> {
+        self.0.collect()
+    }
+}
+
+/// A label pair of the exposition.
+fn label(name: &str, value: &str) -> LabelPair {
+    let mut pair = LabelPair::default();
+    pair.set_name(name.to_owned());
+    pair.set_value(value.to_owned());
+    pair
+}
+
+/// The values with a good last reading, as one gauge family per name: `bus`, `slave` and the
+/// value's own labels. The store describes no metric up front: its names change with the
+/// configuration, and the gateway's registry checks them at load instead.
+impl Collector for Store {
+    fn desc(&self) -> Vec<&Desc> {
+        Vec::new()
+    }
+
+    fn collect(&self) -> Vec<MetricFamily> {
+        let entries = self.lock();
+        let mut families: BTreeMap<&str, MetricFamily> = BTreeMap::new();
+        for entry in entries.iter() {
+            let Some(value) = entry.value else {
+                continue;
+            };
+            let spec = &entry.spec;
+            let family = families.entry(&spec.name).or_insert_with(|| {
+                let mut family = MetricFamily::default();
+                family.set_name(spec.name.clone());
+                family.set_help(spec.help.clone());
+                family.set_field_type(MetricType::GAUGE);
+                family
+            });
+            let mut labels = vec![
+                label("bus", &spec.bus),
+                label("slave", &spec.slave.to_string()),
+            ];
+            labels.extend(spec.labels.iter().map(|(k, v)| label(k, v)));
+            let mut gauge = Gauge::default();
+            gauge.set_value(value);
+            let mut metric = Metric::default();
+            metric.set_label(labels);
+            metric.set_gauge(gauge);
+            family.mut_metric().push(metric);
+        }
+        families.into_values().collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spec(slave: u8, name: &str) -> Spec {
+        Spec {
+            bus: "line".into(),
+            slave,
+            name: name.to_owned(),
+            help: format!("{name}'s help"),
+            unit: Some("Hz".to_owned()),
+            labels: BTreeMap::new(),
+        }
+    }
+
+    fn at(seconds: u64) -> SystemTime {
+        UNIX_EPOCH + Duration::from_secs(seconds)
+    }
+
+    #[test]
+    fn a_value_is_exported_while_its_last_poll_was_good_and_listed_either_way() {
+        let store = Store::default();
+        store.configure(vec![
+            spec(1, "drive_output_frequency_hertz"),
+            spec(2, "drive_output_frequency_hertz"),
+        ]);
+        store.read(0, 37.5, at(100));
+        store.read(1, 50.0, at(100));
+        let families = store.collect();
+        assert_eq!(families.len(), 1);
+        assert_eq!(families[0].get_metric().len(), 2);
+        store.failed(1, "timeout");
+        let families = store.collect();
+        assert_eq!(
+            families[0].get_metric().len(),
+            1,
+            "slave 2's series goes stale"
+        );
+        let listing = serde_json::to_value(store.listing(&Filter::default())).unwrap();
+        assert_eq!(listing["values"][1]["value"], serde_json::Value::Null);
+        assert_eq!(listing["values"][1]["error"], "timeout");
+        assert_eq!(listing["values"][1]["read_at"], "1970-01-01T00:01:40.000Z");
+        assert_eq!(listing["values"][0]["value"], 37.5);
+        assert!(listing["values"][0].get("history").is_none());
+    }
+
+    #[test]
+    fn history_keeps_the_last_ten_minutes_and_at_most_its_points() {
+        let store = Store::default();
+        store.configure(vec![spec(1, "a")]);
+        for s in 0..700u32 {
+            store.read(0, f64::from(s), at(1000 + u64::from(s) * 10));
+        }
+        let filter = Filter {
+            history: true,
+            ..Filter::default()
+        };
+        let listing = serde_json::to_value(store.listing(&filter)).unwrap();
+        let history = listing["values"][0]["history"].as_array().unwrap().clone();
+        // Every 10 s: ten minutes are 61 readings.
+        assert_eq!(history.len(), 61);
+        assert_eq!(history.last().unwrap()[1], 699.0);
+        for s in 0..300 {
+            store.read(0, 1.0, at(8000 + s));
+        }
+        let listing = serde_json::to_value(store.listing(&filter)).unwrap();
+        assert_eq!(
+            listing["values"][0]["history"].as_array().unwrap().len(),
+            HISTORY_POINTS
+        );
+    }
+
+    #[test]
+    fn a_reload_keeps_what_was_read_of_values_that_stay() {
+        let store = Store::default();
+        store.configure(vec![spec(1, "a"), spec(1, "b")]);
+        store.read(1, 2.0, at(5));
+        store.configure(vec![spec(1, "b"), spec(1, "c")]);
+        let listing = serde_json::to_value(store.listing(&Filter::default())).unwrap();
+        assert_eq!(listing["values"][0]["value"], 2.0);
+        assert_eq!(listing["values"][1]["value"], serde_json::Value::Null);
+        assert_eq!(store.len(), 2);
+    }
+}

@@ -1,0 +1,83 @@
+//! `GET /values`: which plant values a query string asks for (`bus`, `slave`, `history`), or why
+//! it is refused. The listing itself is the values' store's.
+
+use crate::values::Filter;
+use hyper::StatusCode;
+
+/// The filter `query` asks for, or the status and message that refuse it.
+pub(super) fn filter(
+    query: Option<&str>,
+    buses: &[String],
+) -> Result<Filter, (StatusCode, String)> {
+    let mut filter = Filter::default();
+    for pair in query
+        .unwrap_or_default()
+        .split('&')
+        .filter(|p| !p.is_empty())
+    {
+        let (key, value) = pair.split_once('=').unwrap_or((pair, ""));
+        match key {
+            "bus" if buses.iter().any(|b| b == value) => filter.bus = Some(value.to_owned()),
+            "bus" => {
+                let known = buses.join(", ");
+                return Err((
+                    StatusCode::NOT_FOUND,
+                    format!("no bus named `{value}`; the buses are: {known}\n"),
+                ));
+            }
+            "slave" => match value.parse::<u8>() {
+                Ok(slave) => filter.slave = Some(slave),
+                Err(_) => {
+                    return Err((
+                        StatusCode::BAD_REQUEST,
+                        format!("slave must be an address from 0 to 255, not `{value}`\n"),
+                    ))
+                }
+            },
+            "history" => match value {
+                "1" | "true" | "" => filter.history = true,
+                "0" | "false" => filter.history = false,
+                _ => {
+                    return Err((
+                        StatusCode::BAD_REQUEST,
+                        format!("history is 1 or 0, not `{value}`\n"),
+                    ))
+                }
+            },
+            _ => {
+                return Err((
+                    StatusCode::BAD_REQUEST,
+                    format!("unknown parameter `{key}`; /values takes bus, slave and history\n"),
+                ))
+            }
+        }
+    }
+    Ok(filter)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_query_picks_a_bus_a_slave_and_the_history_or_is_refused_saying_why() {
+        let buses = ["line1".to_owned(), "line2".to_owned()];
+        let picked = filter(Some("bus=line2&slave=255&history=1"), &buses).unwrap();
+        assert_eq!(
+            picked,
+            Filter {
+                bus: Some("line2".to_owned()),
+                slave: Some(255),
+                history: true
+            }
+        );
+        assert_eq!(filter(None, &buses).unwrap(), Filter::default());
+        let (status, message) = super::filter(Some("bus=line9"), &buses).unwrap_err();
+        assert_eq!(status, StatusCode::NOT_FOUND);
+        assert!(message.contains("line1, line2"), "{message}");
+        for query in ["slave=256", "slave=x", "history=maybe", "colour=red"] {
+            let (status, _) = super::filter(Some(query), &buses).unwrap_err();
+            assert_eq!(status, StatusCode::BAD_REQUEST, "{query}");
+        }
+    }
+}
