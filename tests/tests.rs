@@ -43,6 +43,8 @@
 //! - `metrics`: `/metrics`, `/healthz`, `/readyz` after known traffic; promtool; shipped rules.
 //! - `status`: the status page `/` and its data `/status` after known traffic.
 //! - `trace`: `GET /trace` and the `trace` subcommand: frames, filters, slow readers, limits.
+//! - `values`: plant values for Prometheus: a drive's values in their units, a slave that stops
+//!   answering, `GET /values`, bad values and templates refused naming their keys.
 //!
 //! `support` has the shared pieces: the workspace's `test-support` crate (gateway start-up, typed
 //! configurations, a bus on the simulated line, a raw master, a pty slave, the test PKI).
@@ -87,3 +89,4 @@ mod tls;
 mod trace;
 mod transparency;
 mod udp;
+mod values;

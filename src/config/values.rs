@@ -22,10 +22,7 @@ const RESERVED_SUFFIXES: [&str; 6] = ["_total", "_count", "_sum", "_bucket", "_c
 const OWN_LABELS: [&str; 2] = ["bus", "slave"];
 
 /// Where a value's registers are, and which function reads them.
-#[derive(
-    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize,
-)]
-#[serde(rename_all = "lowercase")]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub enum Table {
     /// Holding registers, read with 03.
     #[default]
@@ -39,6 +36,8 @@ pub enum Table {
 }
 
 impl Table {
+    const ALL: [Table; 4] = [Table::Holding, Table::Input, Table::Coil, Table::Discrete];
+
     /// The function code that reads it.
     pub fn function(self) -> u8 {
         match self {
@@ -66,8 +65,7 @@ impl Table {
 }
 
 /// How a value's registers are read as a number.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ValueType {
     U16,
     I16,
@@ -81,6 +79,18 @@ pub enum ValueType {
 }
 
 impl ValueType {
+    const ALL: [ValueType; 9] = [
+        ValueType::U16,
+        ValueType::I16,
+        ValueType::U32,
+        ValueType::I32,
+        ValueType::U64,
+        ValueType::I64,
+        ValueType::F32,
+        ValueType::F64,
+        ValueType::Bool,
+    ];
+
     /// How many registers it takes (one coil or input for `bool` on a bit table).
     pub fn registers(self) -> u16 {
         match self {
@@ -107,8 +117,7 @@ impl ValueType {
 }
 
 /// Big: the most significant first; little: the least.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Order {
     #[default]
     Big,
@@ -116,10 +125,46 @@ pub enum Order {
 }
 
 impl Order {
+    const ALL: [Order; 2] = [Order::Big, Order::Little];
+
     fn is_big(&self) -> bool {
         *self == Order::Big
     }
+
+    fn name(self) -> &'static str {
+        match self {
+            Order::Big => "big",
+            Order::Little => "little",
+        }
+    }
 }
+
+/// Serde for the keys whose values are one of a few words: written as the word, and a word
+/// that is none of them refused with the list (as the other keys of the file are).
+macro_rules! words {
+    ($($kind:ty),*) => {$(
+        impl Serialize for $kind {
+            fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+                s.serialize_str(self.name())
+            }
+        }
+
+        impl<'de> Deserialize<'de> for $kind {
+            fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+                let text = String::deserialize(d)?;
+                <$kind>::ALL.into_iter().find(|k| k.name() == text).ok_or_else(|| {
+                    let names: Vec<&str> = <$kind>::ALL.iter().map(|k| k.name()).collect();
+                    serde::de::Error::custom(format!(
+                        "`{text}` is not {}",
+                        names.join(", ")
+                    ))
+                })
+            }
+        }
+    )*};
+}
+
+words!(Table, ValueType, Order);
 
 /// One value of a slave: where it is, how to read it, what to call it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -657,7 +702,7 @@ mod tests {
         assert!(
             errors[0]
                 .reason
-                .starts_with("t.toml: value[0].type: unknown variant `u17`"),
+                .starts_with("t.toml: value[0].type: `u17` is not u16, i16, u32"),
             "{}",
             errors[0].reason
         );

@@ -1,0 +1,227 @@
+//! Plant values for Prometheus (docs/plant-values.md): a drive's values polled by the gateway on
+//! the simulated line and exported in their units, a slave that stops answering losing its
+//! values and getting them back, promtool's verdict on a scrape with values, `GET /values`, and
+//! every bad value or template refused in one run, naming its key. How polls share the line is
+//! measured on tokio's paused clock in `src/values/`.
+
+use crate::support::{within, Bus, GatewayConfig, RawMaster, Scrape};
+use modbus_gateway::sim::{RegisterBank, Scripted};
+use std::time::Duration;
+
+/// The demo's Goodrive300 at unit 2, taking run commands and its reference from the bus, with
+/// its output frequency, reference and identifying code listed as values read every 200 ms,
+/// and a 1 s ramp (P00.11 = 1.0 s from 0 to 50.00 Hz).
+fn drive_bus() -> Bus {
+    Bus::on("demo", "sim").baud(115_200).parity("none").text(
+        r#"
+[[bus.slave]]
+address = 2
+poll_interval = "200ms"
+
+[[bus.slave.value]]
+name = "drive_output_frequency_hertz"
+register = 0x3000
+scale = 0.01
+unit = "Hz"
+help = "Output frequency"
+
+[[bus.slave.value]]
+name = "drive_reference_frequency_hertz"
+register = 0x3001
+scale = 0.01
+unit = "Hz"
+help = "Frequency reference"
+
+[[bus.slave.value]]
+name = "drive_identifying_code"
+register = 0x2103
+help = "The drive's identifying code"
+
+[[bus.sim_slave]]
+address = 2
+model = "gd300"
+params = { "P00.01" = 2, "P00.06" = 8, "P00.11" = 10 }
+"#,
+    )
+}
+
+async fn drive_gateway() -> modbus_gateway::Gateway {
+    GatewayConfig::new()
+        .listen("127.0.0.1:0")
+        .bus(drive_bus())
+        .start()
+        .await
+}
+
+/// Scrape until `series` has a value `done` accepts; every value seen on the way, in order.
+async fn watch(
+    gateway: &modbus_gateway::Gateway,
+    series: &str,
+    done: impl Fn(f64) -> bool,
+) -> Vec<f64> {
+    within(series, async {
+        let mut seen: Vec<f64> = Vec::new();
+        loop {
+            if let Some(value) = Scrape::of(gateway).await.get(series) {
+                if seen.last() != Some(&value) {
+                    seen.push(value);
+                }
+                if done(value) {
+                    return seen;
+                }
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await
+}
+
+const FREQUENCY: &str = "drive_output_frequency_hertz{bus=\"demo\",slave=\"2\"}";
+
+#[tokio::test]
+async fn a_drive_set_to_50_hz_and_run_shows_its_output_frequency_ramping_to_50_hz_in_hz() {
+    let gateway = drive_gateway().await;
+    let identity = "drive_identifying_code{bus=\"demo\",slave=\"2\"}";
+    // Goodrive300's identifying code, 010AH.
+    assert_eq!(
+        watch(&gateway, identity, |v| v > 0.0).await.last(),
+        Some(&266.0)
+    );
+    assert_eq!(watch(&gateway, FREQUENCY, |_| true).await, [0.0], "stopped");
+    let mut master = RawMaster::connect(crate::support::addr(&gateway)).await;
+    // 2001H = 5000 (50.00 Hz), then 2000H = 0001H (run forward): Goodrive300 manual 10.4.
+    let set = [0x06, 0x20, 0x01, 0x13, 0x88];
+    assert_eq!(master.call(1, 2, &set).await, set);
+    let run = [0x06, 0x20, 0x00, 0x00, 0x01];
+    assert_eq!(master.call(2, 2, &run).await, run);
+    let ramp = watch(&gateway, FREQUENCY, |v| v >= 50.0).await;
+    assert_eq!(ramp.last(), Some(&50.0), "in Hz, not in 0.01 Hz: {ramp:?}");
+    assert!(
+        ramp.iter().any(|&v| v > 0.0 && v < 50.0),
+        "seen on the way up: {ramp:?}"
+    );
+    assert!(ramp.windows(2).all(|w| w[0] <= w[1]), "rising: {ramp:?}");
+    let reference = "drive_reference_frequency_hertz{bus=\"demo\",slave=\"2\"}";
+    assert_eq!(Scrape::of(&gateway).await.value(reference), 50.0);
+    crate::metrics::assert_promtool_finds_nothing_to_lint(&Scrape::of(&gateway).await.text).await;
+}
+
+#[tokio::test]
+async fn a_slave_that_stops_answering_loses_its_values_counts_the_timeouts_and_gets_them_back() {
+    let gateway = drive_gateway().await;
+    watch(&gateway, FREQUENCY, |_| true).await;
+    let line = gateway.sim_line("demo").expect("a simulated line");
+    // Unit 2 falls silent: nothing answers at its address.
+    line.add_slave(2, Scripted::new([]));
+    within("the values vanish", async {
+        while Scrape::of(&gateway).await.get(FREQUENCY).is_some() {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await;
+    let scrape = Scrape::of(&gateway).await;
+    let timeouts = "modbus_gateway_poll_errors_total{bus=\"demo\",outcome=\"timeout\",slave=\"2\"}";
+    assert!(scrape.value(timeouts) >= 1.0, "{}", scrape.text);
+    let (status, body) = crate::support::http_get(gateway.metrics_addr(), "/values?slave=2").await;
+    assert_eq!(status, 200);
+    let listing: serde_json::Value = serde_json::from_str(&body).unwrap();
+    let frequency = &listing["values"][0];
+    assert_eq!(frequency["name"], "drive_output_frequency_hertz");
+    assert!(frequency["value"].is_null(), "{frequency}");
+    assert_eq!(frequency["error"], "timeout");
+    assert!(
+        frequency["read_at"].is_string(),
+        "the last good read stays known"
+    );
+    // Back on the line (a plain register bank: its registers hold 0).
+    line.add_slave(2, RegisterBank::new(Duration::ZERO));
+    assert_eq!(watch(&gateway, FREQUENCY, |_| true).await, [0.0]);
+}
+
+#[tokio::test]
+async fn values_are_listed_as_json_with_their_units_and_when_they_were_read() {
+    let gateway = drive_gateway().await;
+    watch(&gateway, FREQUENCY, |_| true).await;
+    let (status, body) =
+        crate::support::http_get(gateway.metrics_addr(), "/values?bus=demo&history=1").await;
+    assert_eq!(status, 200, "{body}");
+    let listing: serde_json::Value = serde_json::from_str(&body).unwrap();
+    let values = listing["values"].as_array().unwrap();
+    let names: Vec<&str> = values.iter().map(|v| v["name"].as_str().unwrap()).collect();
+    assert_eq!(
+        names,
+        [
+            "drive_output_frequency_hertz",
+            "drive_reference_frequency_hertz",
+            "drive_identifying_code"
+        ]
+    );
+    assert_eq!(values[0]["unit"], "Hz");
+    assert_eq!(values[0]["slave"], 2);
+    assert!(values[0]["history"]
+        .as_array()
+        .is_some_and(|h| !h.is_empty()));
+    let (status, _) = crate::support::http_get(gateway.metrics_addr(), "/values?bus=nope").await;
+    assert_eq!(status, 404);
+}
+
+#[test]
+fn every_bad_value_and_template_is_refused_in_one_run_naming_its_key() {
+    let dir = std::env::temp_dir().join(format!("mbgw-templates-{}", std::process::id()));
+    std::fs::create_dir_all(dir.join("mine")).unwrap();
+    std::fs::write(
+        dir.join("mine/pump.toml"),
+        "description = \"a pump\"\n[[value]]\nname = \"pump_speed\"\nregister = 1\ntype = \"u17\"\n",
+    )
+    .unwrap();
+    let config = dir.join("gateway.toml");
+    std::fs::write(
+        &config,
+        r#"template_dir = "mine"
+
+[[bus]]
+name = "line"
+device = "sim"
+
+[[bus.slave]]
+address = 1
+template = "nothing-by-this-name"
+
+[[bus.slave.value]]
+name = "speed"
+register = 0
+type = "u17"
+
+[[bus.slave.value]]
+name = "2speed"
+register = 0
+
+[[bus.slave.value]]
+name = "energy"
+register = 65534
+type = "u64"
+
+[[bus.slave.value]]
+name = "flags"
+register = 0
+type = "u32"
+bit = 3
+"#,
+    )
+    .unwrap();
+    let errors = modbus_gateway::gateway::load_config(&config, std::iter::empty())
+        .expect_err("refused")
+        .to_string();
+    std::fs::remove_dir_all(&dir).unwrap();
+    for expected in [
+        "template_dir: ",
+        "mine/pump.toml: value[0].type: `u17` is not u16, i16, u32, i32, u64, i64, f32, f64, bool",
+        "bus[0].slave[0].value[0].type: `u17` is not u16, i16, u32",
+        "bus[0].slave[0].template: no template `nothing-by-this-name`",
+        "bus[0].slave[0].value[1].name: `2speed` is no Prometheus metric name",
+        "bus[0].slave[0].value[2].register: 65534 with 4 register(s) of u64 ends at 65537, past 65535",
+        "bus[0].slave[0].value[3].bit: picks one bit of a 16-bit register",
+    ] {
+        assert!(errors.contains(expected), "missing `{expected}` in:\n{errors}");
+    }
+}
