@@ -141,3 +141,6 @@ impl Drop for Values {
         }
     }
 }
+
+#[cfg(test)]
+mod tests;

@@ -23,7 +23,7 @@ use crate::pdu;
 use cache::Cached;
 use coalesce::Leaders;
 use rings::{ring, Held, Place, Ring, Share, POLLS, RINGS};
-use std::collections::{hash_map, HashMap, VecDeque};
+use std::collections::{hash_map, HashMap, HashSet, VecDeque};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Mutex, MutexGuard, PoisonError};
 use std::time::Duration;
@@ -142,8 +142,9 @@ struct Inner {
     /// that a master's requests reach the line in its own order.
     following: HashMap<MasterId, usize>,
     share: Share,
-    /// Masters' jobs taken since the last poll (from the start: as if a whole round).
-    since_poll: usize,
+    /// The admission keys that were waiting when the last poll went and have not had their turn
+    /// since: the next poll waits for them, so no request waits behind two polls.
+    owed: HashSet<MasterId>,
     /// Answers of reads to slaves with a `cache`, by (slave, PDU).
     cache: HashMap<(u8, Vec<u8>), Cached>,
 }
@@ -161,7 +162,7 @@ impl FairQueue {
                 epochs: Box::new([0; 256]),
                 following: HashMap::new(),
                 share: Share::new(crate::config::defaults::PRIORITY_SHARE),
-                since_poll: usize::MAX,
+                owed: HashSet::new(),
                 cache: HashMap::new(),
             }),
             ready: Notify::new(),
@@ -243,24 +244,30 @@ impl FairQueue {
     pub fn try_pop(&self) -> Option<Job> {
         let mut inner = self.lock();
         let next = [0, 1, POLLS].map(|r| inner.ready_master(r));
-        let masters_waiting = inner.turn[0].keys.len() + inner.turn[1].keys.len();
+        let inner = &mut *inner;
+        let waiting = |key: &MasterId| {
+            inner.turn[..POLLS]
+                .iter()
+                .any(|r| r.masters.contains_key(key))
+        };
+        inner.owed.retain(waiting);
         let r = match next.map(|next| next.is_some()) {
             [false, false, false] => return None,
             [false, false, true] => POLLS,
-            [_, _, true] if inner.since_poll >= masters_waiting => POLLS,
+            [_, _, true] if inner.owed.is_empty() => POLLS,
             [true, true, _] => ring(Class::of_master(inner.share.priority_next())),
             [false, true, _] => 1,
             [true, false, _] => 0,
         };
+        let (place, master) = next[r]?;
+        let queue = inner.queues.get_mut(&master)?;
         if r == POLLS {
-            inner.since_poll = 0;
+            let keys = inner.turn[..POLLS].iter().flat_map(|r| r.keys.iter());
+            inner.owed = keys.copied().collect();
         } else {
             inner.share.picked(r == 1);
-            inner.since_poll = inner.since_poll.saturating_add(1);
+            inner.owed.remove(&queue.key);
         }
-        let (place, master) = next[r]?;
-        let inner = &mut *inner;
-        let queue = inner.queues.get_mut(&master)?;
         let job = queue.jobs.pop_front();
         if let Some(job) = &job {
             inner.leaders.remove(queue.ring, job);

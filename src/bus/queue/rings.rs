@@ -5,9 +5,9 @@
 //! not 40 in 41; each port still has its own FIFO, order and replies, and its turns come in
 //! rotation among its address's ports. Masters in `server.priority` have a ring of their own,
 //! served first up to `priority_share` of the line. The gateway's polls of plant values have the
-//! last ring: a poll goes when no master waits, or once every master waiting has had a turn
-//! since the last poll, so that it holds up a master's request by one transaction at most (how
-//! much of the line polling takes in all, `poll_share`, the poller keeps to itself).
+//! last ring: a poll goes when no master is ready, or once every master that was waiting when
+//! the last poll went has had its turn (or left), so that no request waits behind two polls
+//! (how much of the line polling takes in all, `poll_share`, the poller keeps to itself).
 //!
 //! Admission is fair as well. `queue_depth` bounds the requests waiting for the line (followers
 //! included) over all masters, and while there is room every request goes in. Once the queue is
