@@ -225,3 +225,45 @@ bit = 3
         assert!(errors.contains(expected), "missing `{expected}` in:\n{errors}");
     }
 }
+
+#[tokio::test]
+async fn a_reload_polls_the_new_values_drops_the_old_ones_and_leaves_the_line_as_it_was() {
+    let gateway = drive_gateway().await;
+    let mut master = RawMaster::connect(crate::support::addr(&gateway)).await;
+    watch(&gateway, FREQUENCY, |_| true).await;
+    // The identifying code goes; the drive's state word 1 (2100H) comes.
+    let text = GatewayConfig::new()
+        .listen("127.0.0.1:0")
+        .bus(drive_bus().text(
+            r#"
+[[bus.slave.value]]
+name = "drive_state"
+register = 0x2100
+help = "State word 1"
+"#,
+        ))
+        .to_toml()
+        .replace(
+            "[[bus.slave.value]]\nname = \"drive_identifying_code\"\nregister = 0x2103\nhelp = \"The drive's identifying code\"\n",
+            "",
+        );
+    let mut config = modbus_gateway::Config::from_toml_str(&text).expect("the new config");
+    config.metrics.listen = ([127, 0, 0, 1], 0).into();
+    let done = gateway.reload(&config).unwrap();
+    assert_eq!(
+        done.applied,
+        ["plant values"],
+        "the bus itself is as it was"
+    );
+    let state = "drive_state{bus=\"demo\",slave=\"2\"}";
+    // Stopped: 0003H (Goodrive300 manual, 2100H).
+    assert_eq!(watch(&gateway, state, |_| true).await, [3.0]);
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(
+        scrape.get("drive_identifying_code{bus=\"demo\",slave=\"2\"}"),
+        None
+    );
+    assert_eq!(scrape.value(FREQUENCY), 0.0, "kept across the reload");
+    let read = [0x03, 0x21, 0x00, 0x00, 0x01];
+    assert_eq!(master.call(1, 2, &read).await, [0x03, 0x02, 0x00, 0x03]);
+}
