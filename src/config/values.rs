@@ -714,3 +714,46 @@ mod tests {
         assert!(reasons[1].starts_with("t.toml: value[0].poll_interval:"));
     }
 }
+
+#[cfg(test)]
+mod printed {
+    use crate::config::Config;
+
+    #[test]
+    fn a_configuration_with_values_prints_as_it_reads_back() {
+        let text = r#"
+[[bus]]
+name = "line"
+device = "sim"
+poll_share = 0.3
+
+[[bus.slave]]
+address = 3
+poll_interval = "2s"
+max_read_registers = 16
+
+[[bus.slave.value]]
+name = "pressure_pascals"
+register = 0x10
+table = "input"
+type = "f32"
+word_order = "little"
+byte_order = "little"
+scale = 100000.0
+offset = -1.5
+unit = "Pa"
+help = "Pressure"
+labels = { site = "north" }
+poll_interval = "500ms"
+
+[[bus.slave.value]]
+name = "running"
+register = 0x2100
+bit = 0
+"#;
+        let config = Config::from_toml_str(text).expect("a configuration");
+        let printed = config.to_toml();
+        assert_eq!(Config::from_toml_str(&printed).expect("printed"), config);
+        assert!(printed.contains("table = \"input\""), "{printed}");
+    }
+}
