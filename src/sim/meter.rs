@@ -132,6 +132,13 @@ const FREQUENCY: Swing = Swing {
     phase: 0.0,
 };
 
+/// What the meter has counted of `power` (W or var, never negative) `t` seconds after power-on,
+/// in kWh or kvarh. Just after power-on the integral's two terms nearly cancel and rounding may
+/// leave it a hair below 0, which a meter's count never is.
+fn energy(power: Swing, t: f64) -> f64 {
+    (power.integral(t) / JOULES_PER_KILOWATT_HOUR).max(0.0)
+}
+
 /// What the meter measures at one moment, in its own units (V, A, W, VA, var, degrees, Hz,
 /// kWh, kvarh).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -152,8 +159,8 @@ impl Readings {
             active_power: ACTIVE_POWER.at(t),
             reactive_power: REACTIVE_POWER.at(t),
             frequency: FREQUENCY.at(t),
-            import_active_energy: ACTIVE_POWER.integral(t) / JOULES_PER_KILOWATT_HOUR,
-            import_reactive_energy: REACTIVE_POWER.integral(t) / JOULES_PER_KILOWATT_HOUR,
+            import_active_energy: energy(ACTIVE_POWER, t),
+            import_reactive_energy: energy(REACTIVE_POWER, t),
         }
     }
 
@@ -360,6 +367,18 @@ mod tests {
         assert_eq!(export, 0.0);
         assert_eq!(one(&mut meter, 0x0156, hour), import);
         assert_eq!(one(&mut meter, 0x0000, hour), 230.0);
+    }
+
+    #[test]
+    fn just_after_power_on_no_energy_reads_below_zero() {
+        let t0 = Instant::now();
+        let mut meter = Sdm120::new(Duration::ZERO, t0);
+        for micros in 0..2000 {
+            let at = t0 + Duration::from_micros(micros * 7);
+            for energy in read(&mut meter, 0x0048, 4, at) {
+                assert!(energy >= 0.0, "{micros}: {energy}");
+            }
+        }
     }
 
     #[test]
