@@ -180,11 +180,17 @@ pub enum SimModel {
     /// The inverter with the Pd communication group (shared/reference/003).
     #[serde(rename = "pd-inverter")]
     PdInverter,
+    /// Eastron SDM120-Modbus single-phase energy meter.
+    Sdm120,
 }
 
 impl SimModel {
+    /// A drive of shared/reference: it takes `params` and `trip`, which it checks itself.
     pub(crate) fn is_drive(self) -> bool {
-        self != SimModel::Registers
+        matches!(
+            self,
+            SimModel::Gd20 | SimModel::Gd300 | SimModel::Gd10 | SimModel::PdInverter
+        )
     }
 
     /// As the configuration spells it.
@@ -195,6 +201,7 @@ impl SimModel {
             SimModel::Gd300 => "gd300",
             SimModel::Gd10 => "gd10",
             SimModel::PdInverter => "pd-inverter",
+            SimModel::Sdm120 => "sdm120",
         }
     }
 }

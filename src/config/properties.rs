@@ -219,6 +219,7 @@ fn sim_slaves() -> impl Strategy<Value = Vec<SimSlave>> {
         SimModel::Gd300,
         SimModel::Gd10,
         SimModel::PdInverter,
+        SimModel::Sdm120,
     ];
     let knobs = (
         prop::sample::select(models.to_vec()),
@@ -719,7 +720,10 @@ fn toml_document() -> impl Strategy<Value = String> {
         ("reopen_delay_max", &["\"1m\""]),
         ("address", &["3", "247"]),
         ("wide_read_count", &["true"]),
-        ("model", &["\"registers\"", "\"gd20\"", "\"pd-inverter\""]),
+        (
+            "model",
+            &["\"registers\"", "\"gd20\"", "\"pd-inverter\"", "\"sdm120\""],
+        ),
         ("params", &["{ \"P00.01\" = 2 }", "{ \"Pd-00\" = 3 }"]),
         ("trip", &["35"]),
         ("offline", &["true"]),

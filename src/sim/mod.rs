@@ -1,7 +1,8 @@
 //! The simulated RS-485 line (`device = "sim"`) and the slaves on it, so the whole gateway runs and
 //! is tested with no hardware: `line` times every frame at the configured baud and
 //! checks the gaps; `registers` holds plain register-bank slaves; `drive` models the drives of
-//! the reference manuals on one shared request pipeline; [`faults`] bends any slave's replies;
+//! the reference manuals on one shared request pipeline; `meter` an Eastron SDM120 energy meter;
+//! [`faults`] bends any slave's replies;
 //! `scripted` plays a script for tests; [`responder`] serves the slaves on a real serial port
 //! (`modbus-gateway simulate`) and `device_server` the line on a byte stream, as a serial device
 //! server does (`simulate --listen`). Knows nothing of TCP or the bus queue; the bus opens the line like
@@ -11,6 +12,7 @@ pub(crate) mod device_server;
 pub(crate) mod drive;
 pub mod faults;
 pub(crate) mod line;
+pub(crate) mod meter;
 pub(crate) mod registers;
 pub mod responder;
 pub(crate) mod scripted;
@@ -30,6 +32,7 @@ use drive::goodrive::{Goodrive, Variant};
 use drive::pd_inverter::PdInverter;
 use drive::{DriveSettings, SetupError};
 use faults::{Faults, Faulty};
+use meter::Sdm120;
 use std::time::Duration;
 use tokio::time::Instant;
 
@@ -78,6 +81,12 @@ pub fn build(
         SimModel::PdInverter => {
             with_faults(PdInverter::new(&settings, now)?, faults, address, framing)
         }
+        SimModel::Sdm120 => with_faults(
+            Sdm120::new(spec.processing_delay, now),
+            faults,
+            address,
+            framing,
+        ),
     })
 }
 
