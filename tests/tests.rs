@@ -43,6 +43,8 @@
 //! - `metrics`: `/metrics`, `/healthz`, `/readyz` after known traffic; promtool; shipped rules.
 //! - `status`: the status page `/` and its data `/status` after known traffic.
 //! - `trace`: `GET /trace` and the `trace` subcommand: frames, filters, slow readers, limits.
+//! - `templates`: the shipped device templates against the simulated devices they were made
+//!   for, each in a known state.
 //! - `values`: plant values for Prometheus: a drive's values in their units, a slave that stops
 //!   answering, `GET /values`, bad values and templates refused naming their keys.
 //!
@@ -85,6 +87,7 @@ mod simulate;
 mod status;
 mod tcp;
 mod tcp_device;
+mod templates;
 mod tls;
 mod trace;
 mod transparency;

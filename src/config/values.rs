@@ -374,8 +374,29 @@ pub struct Template {
     pub value: Vec<Value>,
 }
 
-/// The shipped templates, built in: name and text.
-const SHIPPED: &[(&str, &str)] = &[];
+/// The shipped templates (config/templates/), built in: name and text.
+const SHIPPED: &[(&str, &str)] = &[
+    (
+        "goodrive20",
+        include_str!("../../config/templates/goodrive20.toml"),
+    ),
+    (
+        "goodrive300",
+        include_str!("../../config/templates/goodrive300.toml"),
+    ),
+    (
+        "goodrive10",
+        include_str!("../../config/templates/goodrive10.toml"),
+    ),
+    (
+        "pd-inverter",
+        include_str!("../../config/templates/pd-inverter.toml"),
+    ),
+    (
+        "eastron-sdm120",
+        include_str!("../../config/templates/eastron-sdm120.toml"),
+    ),
+];
 
 /// The templates a configuration may name: the shipped ones, and those of `template_dir`, which
 /// replace shipped ones of the same name. Each with where it came from, for the errors.
