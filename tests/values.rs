@@ -267,3 +267,35 @@ help = "State word 1"
     let read = [0x03, 0x21, 0x00, 0x00, 0x01];
     assert_eq!(master.call(1, 2, &read).await, [0x03, 0x02, 0x00, 0x03]);
 }
+
+#[tokio::test]
+async fn a_master_flooding_the_line_with_pipelined_reads_cannot_starve_the_polls() {
+    let gateway = drive_gateway().await;
+    watch(&gateway, FREQUENCY, |_| true).await;
+    let addr = crate::support::addr(&gateway);
+    // Eight reads in flight at all times, each of its own registers: nothing to coalesce.
+    let flood = tokio::spawn(async move {
+        let mut master = RawMaster::connect(addr).await;
+        for round in 0u16.. {
+            for n in 0..8u16 {
+                master
+                    .send(8 * round + n, 2, &[0x03, 0x30, n as u8, 0x00, 0x01])
+                    .await;
+            }
+            for _ in 0..8 {
+                master.recv().await;
+            }
+        }
+    });
+    let polls = "modbus_gateway_polls_total{bus=\"demo\",slave=\"2\"}";
+    let before = Scrape::of(&gateway).await.value(polls);
+    within("polls go on under the flood", async {
+        while Scrape::of(&gateway).await.value(polls) < before + 5.0 {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    })
+    .await;
+    let scrape = Scrape::of(&gateway).await;
+    assert!(scrape.get(FREQUENCY).is_some(), "the values stay exported");
+    flood.abort();
+}
