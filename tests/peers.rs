@@ -97,9 +97,16 @@ impl Pymodbus {
     /// Start the script with `framer` (`rtu`, `ascii`) and wait until pymodbus has its port
     /// open; `None` without Python.
     pub(crate) async fn start(framer: &str) -> Option<Pymodbus> {
+        Pymodbus::start_script(SCRIPT, &[framer]).await
+    }
+
+    /// [`Pymodbus::start`] for a sibling of the script that serves other tables through its
+    /// cable (`tests/peers/pymodbus_values_slave.py`), with `args`.
+    pub(crate) async fn start_script(script: &str, args: &[&str]) -> Option<Pymodbus> {
         let python = python_with_pymodbus()?;
         let mut child = Command::new(python)
-            .args([SCRIPT, framer])
+            .arg(script)
+            .args(args)
             // Kept open by `child`: the script exits when it closes, should the kill be missed.
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())

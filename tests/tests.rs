@@ -31,6 +31,8 @@
 //! - `peers`: third-party peers on the serial path: pymodbus's RTU and ASCII servers behind the
 //!   gateway, its ASCII client on `simulate`, its RTU-over-TCP and UDP clients on the gateway;
 //!   `peers::tls_walkthrough` runs the TLS walkthrough of docs/security.md (openssl) and its TLS client.
+//! - `values_peers`: plant values of every type and layout polled from pymodbus's RTU server on a
+//!   pty, exact on `/values` and `/metrics`, in the plan's reads.
 //! - `reads`: many masters, one read: coalescing and its freshness, `coalesce_reads = false`,
 //!   the cache, priority masters and their share of the line.
 //! - `rtu_over_tcp`: masters sending plain RTU frames on TCP: framing, bad CRCs, exceptions as RTU.
@@ -93,3 +95,4 @@ mod trace;
 mod transparency;
 mod udp;
 mod values;
+mod values_peers;

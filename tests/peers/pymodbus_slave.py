@@ -68,7 +68,10 @@ def bridge(loop, src, dst, label):
     loop.add_reader(src, forward)
 
 
-async def main(framer, trace_packet):
+async def serve(device, framer=FramerType.RTU, trace_packet=None):
+    """Serve `device` (a pymodbus SimDevice) with `framer` on one end of a pty cable, printing
+    `ready PATH` and the wire as above, until stdin closes. Also the server of sibling scripts
+    that load other tables (pymodbus_values_slave.py)."""
     loop = asyncio.get_running_loop()
     slave_master, slave_end = os.openpty()
     gateway_master, gateway_end = os.openpty()
@@ -79,16 +82,6 @@ async def main(framer, trace_packet):
     bridge(loop, gateway_master, slave_master, "to-slave")
     bridge(loop, slave_master, gateway_master, "to-gateway")
 
-    device = SimDevice(
-        id=SLAVE_ID,
-        # (coils, discrete inputs, holding registers, input registers)
-        simdata=(
-            [SimData(address=0, values=COILS, datatype=DataType.BITS)],
-            [SimData(address=0, values=DISCRETE_INPUTS, datatype=DataType.BITS)],
-            [SimData(address=0, values=REGISTERS, datatype=DataType.REGISTERS)],
-            [SimData(address=0, values=INPUT_REGISTERS, datatype=DataType.REGISTERS)],
-        ),
-    )
     server = ModbusSerialServer(
         device,
         framer=framer,
@@ -111,6 +104,20 @@ async def main(framer, trace_packet):
     say(f"ready {os.ttyname(gateway_end)}")
     await stdin_closed
     await server.shutdown()
+
+
+async def main(framer, trace_packet):
+    device = SimDevice(
+        id=SLAVE_ID,
+        # (coils, discrete inputs, holding registers, input registers)
+        simdata=(
+            [SimData(address=0, values=COILS, datatype=DataType.BITS)],
+            [SimData(address=0, values=DISCRETE_INPUTS, datatype=DataType.BITS)],
+            [SimData(address=0, values=REGISTERS, datatype=DataType.REGISTERS)],
+            [SimData(address=0, values=INPUT_REGISTERS, datatype=DataType.REGISTERS)],
+        ),
+    )
+    await serve(device, framer, trace_packet)
 
 
 if __name__ == "__main__":
