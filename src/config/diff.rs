@@ -2,7 +2,7 @@
 //! or removed, routes, the connection policy, and the keys that only a restart applies. Pure:
 //! computed from two configurations; knows nothing of how the running gateway applies it.
 
-use super::{Bus, Config, Server, Value};
+use super::{Bus, Config, Server, Slave, Value};
 use std::time::Duration;
 
 /// What happens to a bus of the new configuration.
@@ -89,8 +89,8 @@ impl ConfigDiff {
                 || old
                     .bus
                     .iter()
-                    .map(values_of)
-                    .ne(new.bus.iter().map(values_of)),
+                    .filter_map(values_of)
+                    .ne(new.bus.iter().filter_map(values_of)),
             connection_policy: policy(&new.server) != policy(&old.server),
             shutdown_timeout: new.server.shutdown_timeout != old.server.shutdown_timeout,
             log_level: new.log.level != old.log.level,
@@ -112,7 +112,8 @@ fn line_of(bus: &Bus) -> Bus {
     line
 }
 
-/// The plant values' settings of a bus: what [`line_of`] leaves out.
+/// The plant values' settings of a bus: what [`line_of`] leaves out; `None` for a bus with no
+/// values, whose coming and going changes no poll.
 type ValuesOf<'a> = (
     &'a str,
     f64,
@@ -125,18 +126,24 @@ type ValuesOf<'a> = (
     )>,
 );
 
-fn values_of(bus: &Bus) -> ValuesOf<'_> {
-    let slaves = bus.slave.iter().map(|s| {
-        let own = s.value.as_slice();
-        (
-            s.address,
-            &s.template,
-            s.poll_interval,
-            s.max_read_registers,
-            own,
-        )
-    });
-    (&bus.name, bus.poll_share, slaves.collect())
+fn values_of(bus: &Bus) -> Option<ValuesOf<'_>> {
+    let polled = |s: &&Slave| s.template.is_some() || !s.value.is_empty();
+    let slaves: Vec<_> = bus
+        .slave
+        .iter()
+        .filter(polled)
+        .map(|s| {
+            let own = s.value.as_slice();
+            (
+                s.address,
+                &s.template,
+                s.poll_interval,
+                s.max_read_registers,
+                own,
+            )
+        })
+        .collect();
+    (!slaves.is_empty()).then_some((&bus.name, bus.poll_share, slaves))
 }
 
 /// Everything in `[server]` but the listen addresses and the stop's timeout.
@@ -257,5 +264,19 @@ mod tests {
             buses(&["a"])
         ));
         assert!(ConfigDiff::new(&old, &new).routes);
+    }
+
+    #[test]
+    fn only_a_change_of_what_is_polled_changes_the_values_and_it_leaves_the_bus_as_it_was() {
+        let value = "[[bus.slave]]\naddress = 1\n[[bus.slave.value]]\nname = \"v\"\nregister = 0\n";
+        let old = config(&format!("{}{value}", buses(&["a"])));
+        // Another bus, with nothing to poll: the values stay as they are.
+        let more = config(&format!("{}{value}{}", buses(&["a"]), buses(&["b"])));
+        let diff = ConfigDiff::new(&old, &more);
+        assert!(!diff.values);
+        let moved = config(&format!("{}{}", buses(&["a"]), value.replace("= 0", "= 1")));
+        let diff = ConfigDiff::new(&old, &moved);
+        assert!(diff.values);
+        assert_eq!(diff.buses, [("a".to_owned(), BusChange::Same)]);
     }
 }

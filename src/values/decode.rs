@@ -57,7 +57,14 @@ pub(crate) fn decode(value: &Value, words: &[u16]) -> Option<f64> {
     let kind = value.kind();
     let words = words.get(..usize::from(kind.registers()))?;
     let raw = match value.bit {
-        Some(bit) => f64::from((words[0] >> bit) & 1),
+        // The bit of the register as its byte order makes it, as a u16 would read it.
+        Some(bit) => {
+            let word = match value.byte_order {
+                Order::Big => words[0],
+                Order::Little => words[0].swap_bytes(),
+            };
+            f64::from((word >> bit) & 1)
+        }
         None => raw(kind, words, value.word_order, value.byte_order),
     };
     Some(raw * value.scale + value.offset)
@@ -177,6 +184,10 @@ mod tests {
         bit.bit = Some(3);
         assert_eq!(decode(&bit, &[0b1000]), Some(1.0));
         assert_eq!(decode(&bit, &[0b0111]), Some(0.0));
+        // With its bytes swapped, bit 3 is in the other byte as sent.
+        bit.byte_order = Order::Little;
+        assert_eq!(decode(&bit, &[0x0800]), Some(1.0));
+        assert_eq!(decode(&bit, &[0b1000]), Some(0.0));
         assert_eq!(decode(&value("bool", "big", "big"), &[7]), Some(1.0));
         assert_eq!(
             decode(&value("f32", "big", "big"), &[0x449A]),
