@@ -451,7 +451,8 @@ fn config() -> impl Strategy<Value = Config> {
                 log,
                 bus,
                 route,
-                templates: crate::config::Templates::default(),
+                templates: crate::config::Templates::load(None, "template_dir")
+                    .expect("the shipped templates"),
             }
         })
 }

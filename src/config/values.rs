@@ -594,6 +594,24 @@ pub(crate) fn check_slave(
             );
         }
     }
+    let most = slave
+        .max_read_registers
+        .or(template.and_then(|t| t.max_read_registers))
+        .unwrap_or(MAX_READ_REGISTERS);
+    let widest = template
+        .into_iter()
+        .flat_map(|t| &t.value)
+        .chain(&slave.value)
+        .filter(|v| !v.table.is_bits())
+        .map(Value::width)
+        .max()
+        .unwrap_or(0);
+    if widest > most {
+        fail(
+            format!("{at}.max_read_registers"),
+            format!("{most} is fewer registers than a value of this slave takes ({widest})"),
+        );
+    }
     if slave.poll_interval.is_some_and(|d| d.is_zero()) {
         fail(
             format!("{at}.poll_interval"),
@@ -711,6 +729,32 @@ mod tests {
         assert_eq!(
             problems(&label),
             ["v.labels.slave: `slave` is a label every value has already"]
+        );
+    }
+
+    #[test]
+    fn the_shipped_templates_load_each_with_its_devices_limit_and_no_value_past_it() {
+        let templates = Templates::load(None, "template_dir").expect("the shipped templates");
+        let names: Vec<&str> = templates.names().collect();
+        assert_eq!(
+            names,
+            [
+                "eastron-sdm120",
+                "goodrive10",
+                "goodrive20",
+                "goodrive300",
+                "pd-inverter"
+            ]
+        );
+        for name in names {
+            let template = templates.get(name).unwrap();
+            assert!(!template.value.is_empty(), "{name}");
+            let most = template.max_read_registers.unwrap_or(MAX_READ_REGISTERS);
+            assert!(template.value.iter().all(|v| v.width() <= most), "{name}");
+        }
+        assert_eq!(
+            templates.get("goodrive300").unwrap().max_read_registers,
+            Some(16)
         );
     }
 
