@@ -67,7 +67,19 @@ pub(crate) fn decode(value: &Value, words: &[u16]) -> Option<f64> {
         }
         None => raw(kind, words, value.word_order, value.byte_order),
     };
-    Some(raw * value.scale + value.offset)
+    Some(scaled(raw, value.scale) + value.offset)
+}
+
+/// `raw` x `scale`; a scale that is one over a whole number (0.1, 0.01) divides by that number,
+/// which gives the number as written (111 x 0.1 is 11.100000000000001, 111 / 10 is 11.1).
+fn scaled(raw: f64, scale: f64) -> f64 {
+    let inverse = 1.0 / scale;
+    let whole = inverse.round();
+    if scale.abs() < 1.0 && (inverse - whole).abs() <= 1e-9 * whole.abs() {
+        raw / whole
+    } else {
+        raw * scale
+    }
 }
 
 /// `words` read as `kind`, the registers in `word_order` and each one's bytes in `byte_order`.
@@ -180,6 +192,14 @@ mod tests {
         let mut scaled = value("u16", "big", "big");
         (scaled.scale, scaled.offset) = (0.01, -10.0);
         assert_eq!(decode(&scaled, &[5000]), Some(40.0));
+        // As written, not as 111 x 0.1 rounds: 11.1, and 29.25 from 2925 at 0.01.
+        scaled.offset = 0.0;
+        scaled.scale = 0.1;
+        assert_eq!(decode(&scaled, &[111]), Some(11.1));
+        scaled.scale = 0.01;
+        assert_eq!(decode(&scaled, &[2925]), Some(29.25));
+        scaled.scale = 0.25;
+        assert_eq!(decode(&scaled, &[3]), Some(0.75));
         let mut bit = value("u16", "big", "big");
         bit.bit = Some(3);
         assert_eq!(decode(&bit, &[0b1000]), Some(1.0));
