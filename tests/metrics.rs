@@ -395,8 +395,35 @@ fn names_in(text: &str) -> BTreeSet<String> {
 
 #[tokio::test]
 async fn the_shipped_alerts_and_dashboard_use_only_metrics_the_gateway_exports() {
-    let gateway = gateway_after_mixed_traffic().await;
-    let scrape = Scrape::of(&gateway).await;
+    // The mixed traffic's line, with a plant value on a slave that never answers: its polls
+    // time out, so the poll metrics have series too.
+    let gateway = GatewayConfig::new()
+        .bus(
+            sim_line()
+                .slave(5, &[("response_timeout", "50ms".into())])
+                .sim_slaves("1-4")
+                .text(
+                    "[[bus.slave]]\naddress = 6\nresponse_timeout = \"50ms\"\n\
+                     poll_interval = \"100ms\"\n[[bus.slave.value]]\nname = \"silent_value\"\n\
+                     register = 0\n",
+                ),
+        )
+        .start()
+        .await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    assert_eq!(master.call(1, 1, &READ_2).await.len(), 6);
+    assert_eq!(master.call(2, 2, &READ_126).await, [0x83, 0x03]);
+    let errors = "modbus_gateway_poll_errors_total{bus=\"sim\",outcome=\"timeout\",slave=\"6\"}";
+    let scrape = within("a poll times out", async {
+        loop {
+            let scrape = Scrape::of(&gateway).await;
+            if scrape.get(errors).is_some() {
+                return scrape;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+        }
+    })
+    .await;
     let exported: BTreeSet<String> = scrape
         .text
         .lines()
