@@ -30,22 +30,26 @@ async fn gateway(template: &str, slave: &str, model: &str, sim: &str) -> modbus_
         .await
 }
 
+/// Unit 1's values as `GET /values` lists them, once every one has been read.
+async fn read_once(gateway: &modbus_gateway::Gateway) -> Option<BTreeMap<String, f64>> {
+    let (status, body) = http_get(gateway.metrics_addr(), "/values?slave=1").await;
+    assert_eq!(status, 200, "{body}");
+    let listing: serde_json::Value = serde_json::from_str(&body).unwrap();
+    listing["values"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| Some((v["name"].as_str()?.to_owned(), v["value"].as_f64()?)))
+        .collect()
+}
+
 /// Every value of unit 1 once two listings in a row agree and every value has been read.
 async fn settled(gateway: &modbus_gateway::Gateway) -> BTreeMap<String, f64> {
     within("the template's values settle", async {
         let mut last = BTreeMap::new();
         loop {
             tokio::time::sleep(Duration::from_millis(150)).await;
-            let (status, body) = http_get(gateway.metrics_addr(), "/values?slave=1").await;
-            assert_eq!(status, 200, "{body}");
-            let listing: serde_json::Value = serde_json::from_str(&body).unwrap();
-            let read: Option<BTreeMap<String, f64>> = listing["values"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .map(|v| Some((v["name"].as_str()?.to_owned(), v["value"].as_f64()?)))
-                .collect();
-            match read {
+            match read_once(gateway).await {
                 Some(now) if now == last => return now,
                 Some(now) => last = now,
                 None => last.clear(),
@@ -158,15 +162,7 @@ async fn eastron_sdm120_reads_the_meters_floats_in_their_units_near_power_on() {
     // energy yet): within the first seconds each lies in a narrow band around them.
     let got = within("the meter's values", async {
         loop {
-            let (_, body) = http_get(meter.metrics_addr(), "/values?slave=1").await;
-            let listing: serde_json::Value = serde_json::from_str(&body).unwrap();
-            let read: Option<BTreeMap<String, f64>> = listing["values"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .map(|v| Some((v["name"].as_str()?.to_owned(), v["value"].as_f64()?)))
-                .collect();
-            if let Some(read) = read {
+            if let Some(read) = read_once(&meter).await {
                 return read;
             }
             tokio::time::sleep(Duration::from_millis(50)).await;

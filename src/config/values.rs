@@ -308,23 +308,30 @@ impl Value {
     }
 }
 
-/// Whether `name` may be a value's metric: Prometheus's rules, and none of the names the gateway
-/// or promtool's lint keep for themselves.
-pub(crate) fn metric_name(name: &str) -> Result<(), String> {
+/// Whether `name` is a name by Prometheus's rules for `what` (metrics and labels share them
+/// here, since values' names need no colon), and not one of Prometheus's own (`__`).
+fn prometheus_name(name: &str, what: &str) -> Result<(), String> {
     let mut chars = name.chars();
     let first_ok = chars
         .next()
         .is_some_and(|c| c.is_ascii_alphabetic() || c == '_');
     if !first_ok || !chars.all(|c| c.is_ascii_alphanumeric() || c == '_') {
         return Err(format!(
-            "`{name}` is no Prometheus metric name: letters, digits and _, not first a digit"
+            "`{name}` is no Prometheus {what} name: letters, digits and _, not first a digit"
         ));
     }
     if name.starts_with("__") {
         return Err(format!(
-            "`{name}`: names starting with __ are Prometheus's own"
+            "`{name}`: {what} names starting with __ are Prometheus's own"
         ));
     }
+    Ok(())
+}
+
+/// Whether `name` may be a value's metric: Prometheus's rules, and none of the names the gateway
+/// or promtool's lint keep for themselves.
+pub(crate) fn metric_name(name: &str) -> Result<(), String> {
+    prometheus_name(name, "metric")?;
     if name.starts_with(OWN_PREFIX) {
         return Err(format!(
             "`{name}`: names starting with {OWN_PREFIX} are the gateway's own metrics"
@@ -340,20 +347,7 @@ pub(crate) fn metric_name(name: &str) -> Result<(), String> {
 
 /// Whether `name` may be a constant label of a value.
 fn label_name(name: &str) -> Result<(), String> {
-    let mut chars = name.chars();
-    let first_ok = chars
-        .next()
-        .is_some_and(|c| c.is_ascii_alphabetic() || c == '_');
-    if !first_ok || !chars.all(|c| c.is_ascii_alphanumeric() || c == '_') {
-        return Err(format!(
-            "`{name}` is no Prometheus label name: letters, digits and _, not first a digit"
-        ));
-    }
-    if name.starts_with("__") {
-        return Err(format!(
-            "`{name}`: labels starting with __ are Prometheus's own"
-        ));
-    }
+    prometheus_name(name, "label")?;
     if OWN_LABELS.contains(&name) {
         return Err(format!("`{name}` is a label every value has already"));
     }

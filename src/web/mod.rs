@@ -32,6 +32,27 @@ pub(crate) trait Inspect: Send + Sync + 'static {
     fn values(&self) -> &crate::values::Store;
 }
 
+/// The `key=value` pairs of a query string, in order (a key alone has an empty value).
+fn query_pairs(query: Option<&str>) -> impl Iterator<Item = (&str, &str)> {
+    query
+        .unwrap_or_default()
+        .split('&')
+        .filter(|p| !p.is_empty())
+        .map(|pair| pair.split_once('=').unwrap_or((pair, "")))
+}
+
+/// The bus a `bus=` parameter names, or the 404 and message that list the buses there are.
+fn bus_named(value: &str, buses: &[String]) -> Result<String, (hyper::StatusCode, String)> {
+    if buses.iter().any(|b| b == value) {
+        return Ok(value.to_owned());
+    }
+    let known = buses.join(", ");
+    Err((
+        hyper::StatusCode::NOT_FOUND,
+        format!("no bus named `{value}`; the buses are: {known}\n"),
+    ))
+}
+
 /// The buses whose port is not open, for `/readyz`.
 fn not_ready(gateway: &dyn Inspect) -> Vec<String> {
     let buses = gateway.buses();

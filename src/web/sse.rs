@@ -42,21 +42,9 @@ struct Filter {
 /// The filter a query string asks for, or the status and message that refuse it.
 fn filter(query: Option<&str>, buses: &[String]) -> Result<Filter, (StatusCode, String)> {
     let mut filter = Filter::default();
-    for pair in query
-        .unwrap_or_default()
-        .split('&')
-        .filter(|p| !p.is_empty())
-    {
-        let (key, value) = pair.split_once('=').unwrap_or((pair, ""));
+    for (key, value) in super::query_pairs(query) {
         match key {
-            "bus" if buses.iter().any(|b| b == value) => filter.bus = Some(value.to_owned()),
-            "bus" => {
-                let known = buses.join(", ");
-                return Err((
-                    StatusCode::NOT_FOUND,
-                    format!("no bus named `{value}`; the buses are: {known}\n"),
-                ));
-            }
+            "bus" => filter.bus = Some(super::bus_named(value, buses)?),
             "slave" => match value.parse::<u8>() {
                 Ok(slave) if slave <= 247 => filter.slave = Some(slave),
                 _ => {
