@@ -154,12 +154,15 @@ async fn the_status_page_is_one_html_page_that_loads_nothing_from_elsewhere() {
     for external in ["http://", "https://", "//cdn", " src=", " href="] {
         assert!(!page.contains(external), "the page holds {external:?}");
     }
-    // It reads its data from this endpoint, and the trace from the trace endpoint.
-    assert!(page.contains("fetch(\"status\""));
+    // It reads its data and the plant values from this endpoint, and the trace from the trace
+    // endpoint.
+    assert!(page.contains("fetchJson(\"status\")"));
+    assert!(page.contains("fetchJson(\"values?history=1\")"));
     assert!(page.contains("new EventSource(url)"));
     for table in ["buses", "slaves", "masters", "trace"] {
         assert!(page.contains(&format!("<tbody id=\"{table}\">")), "{table}");
     }
+    assert!(page.contains("<div id=\"values\">"));
     let (head_only, nothing) = request(gateway.metrics_addr(), "HEAD", "/").await;
     assert!(head_only.starts_with("http/1.1 200"), "{head_only}");
     assert!(head_only.contains("content-security-policy: default-src 'none'"));
