@@ -1,7 +1,9 @@
 """Load the status page of a running demo gateway in headless Chromium and check what a person
 sees: the bus and the four demo drives in the tables, in the trace panel a request sent after the
 page loaded, its master among the connected ones, and with the slave filter set, that slave's
-frames alone. Fails on a script error or a Content-Security-Policy violation in the page.
+frames alone; in the plant values, drive 2's output frequency rising after a run command written
+to the drive, and its plot gaining points. Fails on a script error or a Content-Security-Policy
+violation in the page.
 
 Chromium is driven over the DevTools protocol on a pipe (--remote-debugging-pipe: JSON messages
 ending in NUL, commands on fd 3, replies and events on fd 4), so the standard library is enough.
@@ -29,6 +31,15 @@ WAIT = 20.0  # seconds for anything the page should show
 # What the page must show of config/demo.toml: its bus, and its drives by address and model.
 DEMO_BUS = "demo"
 DEMO_DRIVES = {1: "gd20", 2: "gd300", 3: "gd10", 4: "pd-inverter"}
+
+# Drive 2's plant value in config/demo.toml (its goodrive300 template: 3000H in 0.01 Hz), polled
+# every 2 s.
+FREQUENCY = "drive_output_frequency_hertz"
+FREQUENCY_SLAVE = 2
+# After the run command, the page must show this many successive readings, each higher than the
+# one before (the drive ramps from 0 to 50.00 Hz in 15 s, P00.11), and its plot as many more
+# points.
+RISING_READINGS = 3
 
 # A laptop's half screen and a phone: the page must fit; only tables may scroll sideways, inside
 # their own box.
@@ -60,7 +71,25 @@ SNAPSHOT = """JSON.stringify({
   frames: [...document.querySelectorAll('#trace tr')].map(r =>
     ({direction: r.dataset.direction, slave: Number(r.dataset.slave), bus: r.dataset.bus,
       cells: [...r.cells].map(c => c.textContent)})),
+  // Each value's row: name, reading, age, last poll; and the readings its plot draws (one "M" or
+  // "L" each in its path).
+  values: [...document.querySelectorAll('#values tr[data-name]')].map(r =>
+    ({bus: r.dataset.bus, slave: Number(r.dataset.slave), name: r.dataset.name,
+      cells: [...r.cells].slice(0, 4).map(c => c.textContent),
+      points: (r.querySelector('path')?.getAttribute('d') ?? '').split(/[ML]/).length - 1})),
 })"""
+
+# The page's own pure functions, on inputs the demo does not produce: what each must return.
+PAGE_FUNCTIONS = {
+    'reading(6.390000000000001, "Hz")': "6.39 Hz",
+    'reading(null, "Hz")': "–",
+    'reading(1234567.5, "")': "1234568",
+    'reading(-3, null)': "-3",
+    # A lone reading is a dot; a silence of three usual spacings or more breaks the line.
+    'sparkline([[1000, 7]]).path': "M0.000 50h0",
+    'sparkline([[0, 0], [1000, 10], [2000, 5], [9000, 5], [10000, 0]]).path':
+        "M0.000 100.00h0L1.000 0.00L2.000 50.00M9.000 50.00h0L10.000 100.00",
+}
 
 
 class Browser:
@@ -224,6 +253,17 @@ class Master:
         frame = bytes([unit]) + pdu
         return " ".join(f"{b:02x}" for b in frame + crc16(frame))
 
+    def write(self, unit, register, value):
+        """Write one holding register (06); fail naming the exception if the unit refuses."""
+        self.transaction += 1
+        pdu = struct.pack(">BHH", 6, register, value)
+        self.socket.sendall(struct.pack(">HHHB", self.transaction, 0, len(pdu) + 1, unit) + pdu)
+        header = self.socket.recv(7, socket.MSG_WAITALL)
+        length = struct.unpack(">H", header[4:6])[0]
+        reply = self.socket.recv(length - 1, socket.MSG_WAITALL)
+        if reply != pdu:
+            fail(f"writing {value} to {register:04X}H of unit {unit}", {"reply": reply.hex(" ")})
+
     def close(self):
         self.socket.close()
 
@@ -241,6 +281,55 @@ def age(text):
             return -1
         seconds += int(number) * {"s": 1, "min": 60, "h": 3600, "d": 86400}[unit]
     return seconds
+
+
+def frequency(snapshot):
+    """Drive 2's output frequency as the page shows it: its row, or None."""
+    return next((v for v in snapshot["values"] if v["bus"] == DEMO_BUS
+                 and v["slave"] == FREQUENCY_SLAVE and v["name"] == FREQUENCY), None)
+
+
+def hertz(row):
+    """The reading in a value's row if it is a number of Hz ("37.52 Hz"), else None."""
+    number, _, unit = (row or {"cells": ["", ""]})["cells"][1].partition(" ")
+    try:
+        return float(number) if unit == "Hz" else None
+    except ValueError:
+        return None
+
+
+def follows_a_write(browser, port):
+    """Drive 2 set to 50.00 Hz and run forward: the frequency the page shows must rise through
+    RISING_READINGS successive readings and its plot gain as many points. Returns the readings."""
+    before = frequency(browser.wait_for(
+        f"drive {FREQUENCY_SLAVE}'s {FREQUENCY} in Hz with a plot",
+        lambda s: hertz(frequency(s)) is not None and frequency(s)["points"] > 0))
+    master = Master(port)
+    master.write(FREQUENCY_SLAVE, 0x2001, 5000)  # frequency reference: 50.00 Hz
+    master.write(FREQUENCY_SLAVE, 0x2000, 1)  # run forward
+    master.close()
+    readings = [hertz(before)]
+    deadline = time.monotonic() + WAIT
+    while True:
+        snapshot = browser.snapshot()
+        if browser.problems:
+            fail("the page reported problems", browser.problems)
+        row = frequency(snapshot)
+        shown = hertz(row)
+        if shown is not None and shown != readings[-1]:
+            if shown < readings[-1]:
+                fail(f"drive {FREQUENCY_SLAVE}'s frequency on the page fell while the drive ramps "
+                     "up", {"readings": readings + [shown], "row": row})
+            readings.append(shown)
+        gained = row["points"] - before["points"] if row else 0
+        if len(readings) > RISING_READINGS and gained >= RISING_READINGS:
+            return readings, before["points"], row["points"]
+        if time.monotonic() > deadline:
+            fail(f"the page did not follow drive {FREQUENCY_SLAVE}'s ramp within {WAIT:.0f} s: "
+                 f"wanted {RISING_READINGS} rising readings after {readings[0]} Hz and "
+                 f"{RISING_READINGS} more points in the plot",
+                 {"readings": readings, "points before": before["points"], "row": row})
+        time.sleep(0.2)
 
 
 def shows_demo(snapshot):
@@ -279,6 +368,10 @@ def main():
         browser.open(f"http://127.0.0.1:{metrics_port}/")
         browser.wait_for("the demo bus and its four drives", shows_demo)
         browser.wait_for("the live trace connected", lambda s: s["trace"] == "live")
+        for call, wanted in PAGE_FUNCTIONS.items():
+            got = browser.evaluate(call)
+            if got != wanted:
+                fail(f"the page's {call}", {"wanted": wanted, "got": got})
         # Sent after the page loaded and its trace connected: the panel must show it.
         master = Master(modbus_port)
         request = master.read(3, 0x2103, 1)
@@ -306,6 +399,7 @@ def main():
         if others:
             fail("frames of other slaves in the trace filtered for slave 2", others)
         master.close()
+        readings, points_before, points_after = follows_a_write(browser, modbus_port)
         for width in NARROW_WIDTHS:
             browser.resize(width)
             scroll = browser.wait_for_layout(width)
@@ -317,6 +411,9 @@ def main():
               f"the frame {request} in the trace panel ({len(frame['frames'])} frames shown), "
               f"and with the slave filter only slave 2's; no sideways page scroll at "
               f"{' and '.join(f'{w} px' for w in NARROW_WIDTHS)}")
+        print(f"plant values: after the run command, drive {FREQUENCY_SLAVE}'s {FREQUENCY} "
+              f"shown {' -> '.join(f'{r:g} Hz' for r in readings)}, its plot from "
+              f"{points_before} to {points_after} readings")
         if screenshot:
             stop = threading.Event()
             threads = traffic(modbus_port, stop)
@@ -336,8 +433,9 @@ def main():
         lost = browser.wait_for(
             "that it cannot reach the gateway, and ages counting on (3 s or more)",
             lambda s: "Cannot reach the gateway" in s["problem"] and age(s["updated"]) >= 3
-            and age(s["drive 3"]) >= 3)
-        print(f"offline: \"updated {lost['updated']}\", drive 3's last answer {lost['drive 3']}")
+            and age(s["drive 3"]) >= 3 and age(frequency(s)["cells"][2]) >= 3)
+        print(f"offline: \"updated {lost['updated']}\", drive 3's last answer {lost['drive 3']}, "
+              f"drive {FREQUENCY_SLAVE}'s last frequency reading {frequency(lost)['cells'][2]}")
     finally:
         browser.close()
 
