@@ -323,12 +323,16 @@ fn page_policy() -> &'static HeaderValue {
     })
 }
 
+/// The content of the first `<tag>` element of `page` ("" if it has none).
+fn inline<'a>(page: &'a str, tag: &str) -> &'a str {
+    page.split_once(&format!("<{tag}>"))
+        .and_then(|(_, rest)| rest.split_once(&format!("</{tag}>")))
+        .map_or("", |(content, _)| content)
+}
+
 /// The CSP source (`'sha256-...'`) of the content of the first `<tag>` element of `page`.
 fn inline_hash(page: &str, tag: &str) -> String {
-    let content = page
-        .split_once(&format!("<{tag}>"))
-        .and_then(|(_, rest)| rest.split_once(&format!("</{tag}>")))
-        .map_or("", |(content, _)| content);
+    let content = inline(page, tag);
     let digest = ring::digest::digest(&ring::digest::SHA256, content.as_bytes());
     format!("'sha256-{}'", BASE64_STANDARD.encode(digest))
 }
@@ -497,5 +501,26 @@ mod tests {
         }
         assert!(policy.starts_with("default-src 'none'; connect-src 'self';"));
         assert!(!policy.contains("unsafe"));
+    }
+
+    #[test]
+    fn the_page_puts_what_it_is_given_in_as_text_and_styles_only_by_class() {
+        // Bus names, value names, labels and units come from the configuration and the trace
+        // from the line: none of it may become markup. And the policy refuses style attributes,
+        // so a plot or a row styled by one would silently lose its style.
+        let script = inline(status::PAGE, "script");
+        assert!(script.contains("textContent"), "the script is found");
+        for markup in [
+            "innerHTML",
+            "outerHTML",
+            "insertAdjacentHTML",
+            "document.write",
+            "createContextualFragment",
+            "DOMParser",
+            "setAttribute(\"style\"",
+        ] {
+            assert!(!script.contains(markup), "the page's script uses {markup}");
+        }
+        assert!(!status::PAGE.contains(" style="), "a style attribute");
     }
 }
