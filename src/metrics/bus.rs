@@ -16,7 +16,7 @@ use prometheus::{
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::fmt::Display;
 use std::io;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 use tracing::{debug, error, info, warn};
@@ -358,6 +358,8 @@ pub(super) struct SlaveMetrics {
     coalesced: IntCounter,
     cache_hits: IntCounter,
     round_trips: Mutex<VecDeque<Duration>>,
+    /// The gateway's polls of its plant values, for the status page.
+    polls: AtomicU64,
 }
 
 /// What the status page shows of a slave, as its metrics have it.
@@ -369,6 +371,8 @@ pub struct SlaveSnapshot {
     pub(crate) round_trip_p50: Option<Duration>,
     /// Its requests by outcome label.
     pub requests: BTreeMap<String, u64>,
+    /// The gateway's own polls of its plant values.
+    pub polls: u64,
 }
 
 /// A device server's connection, as the status page shows it.
@@ -465,6 +469,7 @@ impl BusMetrics {
                 coalesced: self.coalesced.with_label_values(labels),
                 cache_hits: self.cache_hits.with_label_values(labels),
                 round_trips: Mutex::new(VecDeque::with_capacity(RECENT_ROUND_TRIPS)),
+                polls: AtomicU64::new(0),
             };
             slave.up.set(0);
             slave
@@ -537,6 +542,9 @@ impl BusMetrics {
     pub(crate) fn polled(&self, slave: u8, failed: Option<&'static str>) {
         let address = decimal(slave);
         self.polls.with_label_values(&[&*self.name, address]).inc();
+        if let Some(known) = self.known(slave) {
+            known.polls.fetch_add(1, Ordering::Relaxed);
+        }
         if let Some(outcome) = failed {
             let labels = &[&*self.name, address, outcome];
             self.poll_errors.with_label_values(labels).inc();
@@ -657,6 +665,7 @@ impl BusMetrics {
                     last_answer: (last > 0.0).then(|| UNIX_EPOCH + Duration::from_secs_f64(last)),
                     round_trip_p50: super::median::median(round_trips.iter().copied()),
                     requests: requests.remove(&address).unwrap_or_default(),
+                    polls: slave.polls.load(Ordering::Relaxed),
                 })
             })
             .collect()

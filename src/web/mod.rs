@@ -155,6 +155,7 @@ fn bus_status(
                 round_trip_p50_seconds: slave.round_trip_p50.map(|d| d.as_secs_f64()),
                 requests: slave.requests,
                 errors,
+                polls: slave.polls,
             }
         })
         .collect();

@@ -82,6 +82,8 @@ pub(crate) struct SlaveStatus {
     pub(crate) requests: BTreeMap<String, u64>,
     /// Its requests that did not end `ok`.
     pub(crate) errors: u64,
+    /// The gateway's own polls of its plant values (`modbus_gateway_polls_total`).
+    pub(crate) polls: u64,
 }
 
 #[derive(Clone, Debug, Serialize)]
