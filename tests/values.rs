@@ -154,6 +154,13 @@ async fn a_slave_that_stops_answering_loses_its_values_counts_the_timeouts_and_g
         frequency["read_at"].is_string(),
         "the last good read stays known"
     );
+    // The status page counts the polls of a slave no master asks, so it is not "not asked yet".
+    let (_, body) = crate::support::http_get(gateway.metrics_addr(), "/status").await;
+    let status: serde_json::Value = serde_json::from_str(&body).unwrap();
+    let slaves = status["buses"][0]["slaves"].as_array().unwrap();
+    let unit_2 = slaves.iter().find(|s| s["address"] == 2).unwrap();
+    assert!(unit_2["polls"].as_u64().is_some_and(|n| n > 0), "{unit_2}");
+    assert_eq!(unit_2["up"], false);
     // Back on the line (a plain register bank: its registers hold 0).
     line.add_slave(2, RegisterBank::new(Duration::ZERO));
     assert_eq!(watch(&gateway, FREQUENCY, |_| true).await, [0.0]);
