@@ -67,25 +67,25 @@ pub(crate) struct Filter {
     pub(crate) history: bool,
 }
 
-/// One value as `GET /values` gives it.
+/// One value as `GET /values` gives it, borrowed from its entry while the listing is written.
 #[derive(Serialize)]
-pub(crate) struct Shown {
-    bus: String,
+struct Shown<'a> {
+    bus: &'a str,
     slave: u8,
-    name: String,
-    labels: BTreeMap<String, String>,
+    name: &'a str,
+    labels: &'a BTreeMap<String, String>,
     value: Option<f64>,
-    unit: Option<String>,
+    unit: Option<&'a str>,
     read_at: Option<String>,
     error: Option<&'static str>,
     #[serde(skip_serializing_if = "Option::is_none")]
-    history: Option<Vec<(u64, f64)>>,
+    history: Option<&'a VecDeque<(u64, f64)>>,
 }
 
 /// `GET /values`.
 #[derive(Serialize)]
-pub(crate) struct Listing {
-    values: Vec<Shown>,
+struct Listing<'a> {
+    values: Vec<Shown<'a>>,
 }
 
 fn unix_ms(time: SystemTime) -> u64 {
@@ -142,30 +142,32 @@ impl Store {
         }
     }
 
-    /// The values `filter` asks for, in configuration order.
-    pub(crate) fn listing(&self, filter: &Filter) -> Listing {
+    /// The values `filter` asks for, in configuration order, as `GET /values`'s JSON: written
+    /// from the entries themselves, so a listing with every value's history copies none of it.
+    pub(crate) fn listing(&self, filter: &Filter) -> serde_json::Result<String> {
         let entries = self.lock();
         let chosen = entries.iter().filter(|e| {
             filter.bus.as_deref().is_none_or(|bus| *e.spec.bus == *bus)
                 && filter.slave.is_none_or(|slave| e.spec.slave == slave)
         });
-        Listing {
+        let listing = Listing {
             values: chosen
                 .map(|e| Shown {
-                    bus: e.spec.bus.to_string(),
+                    bus: &e.spec.bus,
                     slave: e.spec.slave,
-                    name: e.spec.name.clone(),
-                    labels: e.spec.labels.clone(),
+                    name: &e.spec.name,
+                    labels: &e.spec.labels,
                     value: e.value,
-                    unit: e.spec.unit.clone(),
+                    unit: e.spec.unit.as_deref(),
                     read_at: e
                         .read_at
                         .map(|t| humantime::format_rfc3339_millis(t).to_string()),
                     error: e.error,
-                    history: filter.history.then(|| e.history.iter().copied().collect()),
+                    history: filter.history.then_some(&e.history),
                 })
                 .collect(),
-        }
+        };
+        serde_json::to_string(&listing)
     }
 
     /// How many values are configured.
@@ -250,6 +252,10 @@ mod tests {
         }
     }
 
+    fn listed(store: &Store, filter: &Filter) -> serde_json::Value {
+        serde_json::from_str(&store.listing(filter).unwrap()).unwrap()
+    }
+
     fn at(seconds: u64) -> SystemTime {
         UNIX_EPOCH + Duration::from_secs(seconds)
     }
@@ -273,7 +279,7 @@ mod tests {
             1,
             "slave 2's series goes stale"
         );
-        let listing = serde_json::to_value(store.listing(&Filter::default())).unwrap();
+        let listing = listed(&store, &Filter::default());
         assert_eq!(listing["values"][1]["value"], serde_json::Value::Null);
         assert_eq!(listing["values"][1]["error"], "timeout");
         assert_eq!(listing["values"][1]["read_at"], "1970-01-01T00:01:40.000Z");
@@ -292,7 +298,7 @@ mod tests {
             history: true,
             ..Filter::default()
         };
-        let listing = serde_json::to_value(store.listing(&filter)).unwrap();
+        let listing = listed(&store, &filter);
         let history = listing["values"][0]["history"].as_array().unwrap().clone();
         // Every 10 s: ten minutes are 61 readings.
         assert_eq!(history.len(), 61);
@@ -300,7 +306,7 @@ mod tests {
         for s in 0..300 {
             store.read(0, 1.0, at(8000 + s));
         }
-        let listing = serde_json::to_value(store.listing(&filter)).unwrap();
+        let listing = listed(&store, &filter);
         assert_eq!(
             listing["values"][0]["history"].as_array().unwrap().len(),
             HISTORY_POINTS
@@ -313,7 +319,7 @@ mod tests {
         store.configure(vec![spec(1, "a"), spec(1, "b")]);
         store.read(1, 2.0, at(5));
         store.configure(vec![spec(1, "b"), spec(1, "c")]);
-        let listing = serde_json::to_value(store.listing(&Filter::default())).unwrap();
+        let listing = listed(&store, &Filter::default());
         assert_eq!(listing["values"][0]["value"], 2.0);
         assert_eq!(listing["values"][1]["value"], serde_json::Value::Null);
         assert_eq!(store.len(), 2);

@@ -371,7 +371,14 @@ fn values(state: &State, query: Option<&str>) -> Response<Full<Bytes>> {
         .map(|b| b.name().to_owned())
         .collect();
     match super::values::filter(query, &buses) {
-        Ok(filter) => json("values", &state.gateway.values().listing(&filter)),
+        Ok(filter) => match state.gateway.values().listing(&filter) {
+            Ok(json) => response(StatusCode::OK, JSON, json),
+            Err(error) => response(
+                StatusCode::INTERNAL_SERVER_ERROR,
+                TEXT,
+                format!("cannot render the values: {error}\n"),
+            ),
+        },
         Err((status, message)) => response(status, TEXT, message),
     }
 }
