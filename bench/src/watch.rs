@@ -1,5 +1,6 @@
 //! The gateway's HTTP endpoint as the bench uses it: its metrics scraped at the window's ends, a
-//! reader on `GET /trace`, and a scraper fetching `/metrics` back to back (`--scrape`).
+//! reader on `GET /trace`, a scraper fetching `/metrics` back to back (`--scrape`), and any other
+//! page's body (`GET /values`).
 
 use clap::ValueEnum;
 use std::net::SocketAddr;
@@ -60,8 +61,28 @@ pub(crate) async fn scrape(addr: SocketAddr) -> Result<String, String> {
     Ok(page)
 }
 
+/// The body of the gateway's answer to `GET path`, which must be 200 OK.
+pub(crate) async fn get(addr: SocketAddr, path: &str) -> Result<String, String> {
+    let doing = format!("GET {path}");
+    let mut stream = http_get(addr, path, &doing).await?;
+    let mut answer = String::new();
+    stream
+        .read_to_string(&mut answer)
+        .await
+        .map_err(|e| format!("{doing}: {e}"))?;
+    let Some(head) = answer.find("\r\n\r\n") else {
+        return Err(format!("{doing}: no end to the answer's head"));
+    };
+    if !answer.starts_with("HTTP/1.1 200 ") {
+        let status = answer.lines().next().unwrap_or_default();
+        return Err(format!("{doing}: {status}"));
+    }
+    answer.drain(..head + 4);
+    Ok(answer)
+}
+
 /// The sum of the samples of `name` on the bench's bus with every one of `labels`.
-fn sample(page: &str, name: &str, labels: &[&str]) -> f64 {
+pub(crate) fn sample(page: &str, name: &str, labels: &[&str]) -> f64 {
     page.lines()
         .filter(|l| !l.starts_with('#'))
         .filter_map(|l| {
