@@ -2,12 +2,13 @@
 //! `[[bus.slave]]` listing [`PLANT_VALUES`], written here). It is waited on until every value has
 //! been read once (`GET /values` until none is null), then measured: its CPU time a second while
 //! it only polls, its memory, and the CPU time, wall time and size of each answer to `GET
-//! /metrics`, `GET /values` and `GET /values?history=1`, fetched back to back. The figures are
+//! /metrics`, `GET /values` and `GET /values?history=1`, fetched back to back by a client that
+//! acknowledges at once, and the wall time of a fetch by an ordinary one. The figures are
 //! `report`'s.
 
 use crate::gateway::{cpu_time, rss_mb, Gateway};
 use crate::scenarios::{plant_base, PLANT_VALUES, SLAVES};
-use crate::watch::{get, sample, scrape};
+use crate::watch::{get, sample, scrape, Acks};
 use crate::Cli;
 use std::fmt::Write as _;
 use std::net::SocketAddr;
@@ -56,11 +57,13 @@ pub(crate) fn slaves() -> String {
 }
 
 /// One page fetched back to back: how many times, the gateway's CPU time and the wall time
-/// across them, and the size of the last answer's body.
+/// across them, the wall time of one fetch by a client that delays its ACKs, and the size of
+/// the last answer's body.
 pub(crate) struct Gets {
     pub(crate) count: u64,
     pub(crate) cpu: Duration,
     pub(crate) wall: Duration,
+    pub(crate) plain: Duration,
     pub(crate) bytes: usize,
 }
 
@@ -140,7 +143,7 @@ pub(crate) async fn measure(
 async fn first_pass(addr: SocketAddr) -> Result<usize, String> {
     let started = Instant::now();
     loop {
-        let listed = listing(&get(addr, "/values").await?)?;
+        let listed = listing(&get(addr, "/values", Acks::Delayed).await?)?;
         let unread = listed.iter().filter(|v| v["value"].is_null()).count();
         if unread == 0 && !listed.is_empty() {
             return Ok(listed.len());
@@ -165,30 +168,33 @@ fn listing(body: &str) -> Result<Vec<serde_json::Value>, String> {
     }
 }
 
-/// `path` fetched back to back for `--seconds` and at least `--rounds` times, and the last
-/// answer's body.
+/// `path` fetched back to back by a client that acknowledges at once, for `--seconds` and at
+/// least `--rounds` times, then `--rounds` times by one that delays its ACKs as Linux does by
+/// default; and the last answer's body.
 async fn gets(cli: &Cli, pid: u32, addr: SocketAddr, path: &str) -> Result<(Gets, String), String> {
     let least = Duration::from_secs_f64(cli.seconds);
     let (start, cpu_start) = (Instant::now(), cpu_time(pid));
     let mut count = 0;
     let last = loop {
-        let body = get(addr, path).await?;
+        let body = get(addr, path, Acks::Quick).await?;
         count += 1;
         if start.elapsed() >= least && count >= u64::from(cli.rounds) {
             break body;
         }
     };
     let (wall, cpu) = (start.elapsed(), cpu_time(pid) - cpu_start);
-    let bytes = last.len();
-    Ok((
-        Gets {
-            count,
-            cpu,
-            wall,
-            bytes,
-        },
-        last,
-    ))
+    let plain = Instant::now();
+    for _ in 0..cli.rounds {
+        get(addr, path, Acks::Delayed).await?;
+    }
+    let gets = Gets {
+        count,
+        cpu,
+        wall,
+        plain: plain.elapsed() / cli.rounds.max(1),
+        bytes: last.len(),
+    };
+    Ok((gets, last))
 }
 
 #[cfg(test)]

@@ -236,7 +236,7 @@ fn the_values_scenario_waits_until_every_plant_value_is_read_then_measures_polli
             values[format!("{page}_gets")].as_u64().unwrap() >= 1,
             "{page}: {values}"
         );
-        for figure in ["cpu_us_per_get", "ms_per_get"] {
+        for figure in ["cpu_us_per_get", "ms_per_get", "ms_per_get_plain_client"] {
             let field = format!("{page}_{figure}");
             assert!(
                 values[&field].as_f64().is_some_and(|v| v > 0.0),
