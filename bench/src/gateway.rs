@@ -1,7 +1,8 @@
 //! The gateway under test as a process: its configuration written for the scenario, the binary
 //! started on it and stopped when dropped, and what /proc says of its CPU time and memory.
 
-use crate::scenarios::{Kind, Line, Scenario, PRIORITY_IP, SLAVES};
+use crate::plant;
+use crate::scenarios::{Kind, Line, Load, Scenario, PRIORITY_IP, SLAVES};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -79,8 +80,8 @@ fn tls_for(scenario: &str, listen: SocketAddr) -> (String, Tls) {
 }
 
 /// The bench's bus on `device`: the scenario's line (its serial format, but for a Modbus TCP
-/// device), a queue for every master twice over, and
-/// the simulated slaves if `device` is the simulated line.
+/// device), a queue for every master twice over, the plant values' `[[bus.slave]]`s in the
+/// `values-` scenario, and the simulated slaves if `device` is the simulated line.
 pub(crate) fn bus(scenario: &Scenario, device: &str) -> Bus {
     let f = &scenario.format;
     let masters = connections(scenario);
@@ -101,6 +102,9 @@ pub(crate) fn bus(scenario: &Scenario, device: &str) -> Bus {
     }
     if scenario.in_flight > 1 {
         bus = bus.key("max_in_flight", scenario.in_flight);
+    }
+    if scenario.load == Load::Values {
+        bus = bus.text(&plant::slaves());
     }
     if device == "sim" {
         bus = bus.sim_slaves(&format!("1-{SLAVES}"));

@@ -9,19 +9,25 @@
 //! apart). On a Modbus TCP device (the tcp-device scenarios), which has no line to measure against,
 //! it measures the gateway beside one client reading from the device directly (this program
 //! again, `--direct-client`, in a process of its own) and beside modbus-proxy, if installed.
+//! With no master but 247 slaves' plant values to poll (the `values-` scenario, and its twin
+//! behind a device server), it measures what polling costs the gateway, its memory, and each
+//! page that serves the values.
 //! A workspace member of its own: `cargo install` and the Debian package carry only the daemon.
 //!
 //! The modules, in the order a run goes through them: `scenarios` (what to measure),
 //! `device_server` (the far end of the device-server line), `tcp_device` (the Modbus TCP device
 //! of the tcp-device line), `beside` (what is measured beside the gateway on that line: a direct
 //! client, modbus-proxy), `gateway` (the process under test),
-//! `masters` (the load), `watch` (its HTTP endpoint: metrics, trace, scraper), `run` (one
-//! scenario's warm-up and window), `report` (the figures and their tables).
+//! `masters` (the load), `plant` (no load but the gateway's own polls of plant values: the
+//! cost of polling and of each page serving them), `watch` (its HTTP endpoint: metrics, trace,
+//! scraper, pages), `run` (one scenario's warm-up and window), `report` (the figures and their
+//! tables).
 
 mod beside;
 mod device_server;
 mod gateway;
 mod masters;
+mod plant;
 mod report;
 mod run;
 mod scenarios;
@@ -135,6 +141,7 @@ async fn bench(cli: Cli) -> ExitCode {
     report::print_scrape_table(&reports);
     report::print_device_server_table(&reports);
     report::print_tcp_device_table(&reports);
+    report::print_plant_table(&reports);
     if failed {
         ExitCode::FAILURE
     } else {

@@ -1,7 +1,9 @@
 //! The figures of a run and how they are shown: a JSON object per scenario, or the table (and,
-//! for the scenarios that have them, the line, priority and scrape tables).
+//! for the scenarios that have them, the line, priority, scrape, device-server, tcp-device and
+//! plant-values tables).
 
 use crate::beside::Driven;
+use crate::plant::{Gets, PlantWindow};
 use crate::run::{Minimum, Window};
 use crate::scenarios::{Line, Load, Scenario};
 use crate::watch::Counters;
@@ -87,6 +89,82 @@ pub(crate) struct Report {
     scrape_max_ms: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     scrape_bytes: Option<u64>,
+    /// The `values-` scenario only.
+    #[serde(flatten)]
+    plant: Option<PlantFigures>,
+}
+
+/// The figures of the `values-` scenarios: the gateway polling plant values, no master.
+#[derive(Serialize)]
+pub(crate) struct PlantFigures {
+    /// The values configured, as `GET /values` lists them.
+    plant_values: u64,
+    /// From the gateway listening until every value had been read once (to within the
+    /// bench's 250 ms between looks).
+    first_pass_s: f64,
+    /// While the gateway only polls (`--seconds`, after the first pass): its polls
+    /// (`modbus_gateway_polls_total`) and CPU time a second, and on the device-server line
+    /// `simulate`'s, which on the local line is in the gateway's.
+    polls_per_s: f64,
+    poll_cpu_ms_per_s: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    simulate_poll_cpu_ms_per_s: Option<f64>,
+    /// The gateway's memory after that window, before any page was fetched (`rss_mb` is at
+    /// the end, after them).
+    rss_polling_mb: f64,
+    /// Each page fetched back to back (for `--seconds`, at least `--rounds` times) by a client
+    /// that acknowledges at once: how many times; the gateway's CPU time per fetch, as
+    /// measured (the polls going on meanwhile included) and less the polling window's CPU a
+    /// second over the fetch's wall time; the wall time per fetch; then the wall time per fetch
+    /// of a client that delays its ACKs as Linux does by default (`--rounds` times, as curl or
+    /// Prometheus would); and the size of the body.
+    metrics_gets: u64,
+    metrics_cpu_us_per_get: f64,
+    metrics_cpu_us_per_get_less_polling: f64,
+    metrics_ms_per_get: f64,
+    metrics_ms_per_get_plain_client: f64,
+    metrics_bytes: u64,
+    values_gets: u64,
+    values_cpu_us_per_get: f64,
+    values_cpu_us_per_get_less_polling: f64,
+    values_ms_per_get: f64,
+    values_ms_per_get_plain_client: f64,
+    values_bytes: u64,
+    history_gets: u64,
+    history_cpu_us_per_get: f64,
+    history_cpu_us_per_get_less_polling: f64,
+    history_ms_per_get: f64,
+    history_ms_per_get_plain_client: f64,
+    history_bytes: u64,
+    /// Readings per value in the last `GET /values?history=1`, on average: its size and cost
+    /// grow with them, up to 10 minutes' worth.
+    history_points: f64,
+}
+
+/// One page's figures, as [`PlantFigures`] has them.
+struct PerGet {
+    gets: u64,
+    cpu_us: f64,
+    less_polling_us: f64,
+    ms: f64,
+    plain_ms: f64,
+    bytes: u64,
+}
+
+impl PerGet {
+    /// The figures of `g`, the gateway's polling costing `poll_cpu` (a fraction of a CPU).
+    fn of(g: &Gets, poll_cpu: f64) -> PerGet {
+        let n = g.count.max(1) as f64;
+        let (cpu, wall) = (g.cpu.as_secs_f64() / n, g.wall.as_secs_f64() / n);
+        PerGet {
+            gets: g.count,
+            cpu_us: cpu * 1e6,
+            less_polling_us: (cpu - poll_cpu * wall) * 1e6,
+            ms: wall * 1e3,
+            plain_ms: g.plain.as_secs_f64() * 1e3,
+            bytes: g.bytes as u64,
+        }
+    }
 }
 
 /// The `p` quantile of `sorted`, in milliseconds (nearest rank).
@@ -189,6 +267,44 @@ impl Report {
         if let Some(scrapes) = &w.scrapes {
             self.scrapes(scrapes);
         }
+    }
+
+    /// The figures of the `values-` scenarios' window `w`.
+    pub(crate) fn plant(&mut self, w: &PlantWindow) {
+        let polling = w.polling.as_secs_f64();
+        let poll_cpu = w.polling_cpu.as_secs_f64() / polling;
+        let metrics = PerGet::of(&w.metrics, poll_cpu);
+        let values = PerGet::of(&w.values_gets, poll_cpu);
+        let history = PerGet::of(&w.history, poll_cpu);
+        self.rss_mb = w.rss_mb;
+        self.seconds = polling;
+        self.plant = Some(PlantFigures {
+            plant_values: w.values as u64,
+            first_pass_s: w.first_pass.as_secs_f64(),
+            polls_per_s: w.polls / polling,
+            poll_cpu_ms_per_s: poll_cpu * 1e3,
+            simulate_poll_cpu_ms_per_s: w.far_polling_cpu.map(|c| c.as_secs_f64() * 1e3 / polling),
+            rss_polling_mb: w.rss_polling_mb,
+            metrics_gets: metrics.gets,
+            metrics_cpu_us_per_get: metrics.cpu_us,
+            metrics_cpu_us_per_get_less_polling: metrics.less_polling_us,
+            metrics_ms_per_get: metrics.ms,
+            metrics_ms_per_get_plain_client: metrics.plain_ms,
+            metrics_bytes: metrics.bytes,
+            values_gets: values.gets,
+            values_cpu_us_per_get: values.cpu_us,
+            values_cpu_us_per_get_less_polling: values.less_polling_us,
+            values_ms_per_get: values.ms,
+            values_ms_per_get_plain_client: values.plain_ms,
+            values_bytes: values.bytes,
+            history_gets: history.gets,
+            history_cpu_us_per_get: history.cpu_us,
+            history_cpu_us_per_get_less_polling: history.less_polling_us,
+            history_ms_per_get: history.ms,
+            history_ms_per_get_plain_client: history.plain_ms,
+            history_bytes: history.bytes,
+            history_points: w.history_points,
+        });
     }
 
     /// The figures of the direct client and of modbus-proxy (if it ran) beside the gateway's on
@@ -489,5 +605,75 @@ pub(crate) fn print_tcp_device_table(reports: &[Report]) {
             cell(r.proxy_p99_ms, 3),
             cell(r.proxy_cpu_us_per_tx, 1),
         );
+    }
+}
+
+/// The `values-` scenarios' own columns: the gateway polling alone, then each page it serves.
+pub(crate) fn print_plant_table(reports: &[Report]) {
+    for r in reports {
+        let Some(p) = &r.plant else {
+            continue;
+        };
+        println!(
+            "\n{:<33} {:>7} {:>7} {:>8} {:>9} {:>9} {:>7} {:>7} {:>8}",
+            "scenario (plant values)",
+            "values",
+            "pass s",
+            "polls/s",
+            "cpu ms/s",
+            "sim ms/s",
+            "rss pol",
+            "rss MB",
+            "hist pts"
+        );
+        println!(
+            "{:<33} {:>7} {:>7.1} {:>8.2} {:>9.2} {:>9} {:>7.1} {:>7.1} {:>8.1}",
+            r.scenario,
+            p.plant_values,
+            p.first_pass_s,
+            p.polls_per_s,
+            p.poll_cpu_ms_per_s,
+            cell(p.simulate_poll_cpu_ms_per_s, 2),
+            p.rss_polling_mb,
+            r.rss_mb,
+            p.history_points
+        );
+        println!(
+            "{:<33} {:>7} {:>10} {:>10} {:>9} {:>9} {:>10}",
+            "GET", "gets", "cpu us/get", "-polling", "ms/get", "plain ms", "bytes"
+        );
+        for (page, gets, cpu, net, ms, plain, bytes) in [
+            (
+                "/metrics",
+                p.metrics_gets,
+                p.metrics_cpu_us_per_get,
+                p.metrics_cpu_us_per_get_less_polling,
+                p.metrics_ms_per_get,
+                p.metrics_ms_per_get_plain_client,
+                p.metrics_bytes,
+            ),
+            (
+                "/values",
+                p.values_gets,
+                p.values_cpu_us_per_get,
+                p.values_cpu_us_per_get_less_polling,
+                p.values_ms_per_get,
+                p.values_ms_per_get_plain_client,
+                p.values_bytes,
+            ),
+            (
+                "/values?history=1",
+                p.history_gets,
+                p.history_cpu_us_per_get,
+                p.history_cpu_us_per_get_less_polling,
+                p.history_ms_per_get,
+                p.history_ms_per_get_plain_client,
+                p.history_bytes,
+            ),
+        ] {
+            println!(
+                "{page:<33} {gets:>7} {cpu:>10.0} {net:>10.0} {ms:>9.2} {plain:>9.2} {bytes:>10}"
+            );
+        }
     }
 }

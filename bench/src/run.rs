@@ -1,12 +1,13 @@
 //! One scenario's run: the gateway started, the masters connected, a warm-up, then a window in
 //! which the masters' completions, the gateway's CPU time and (on a timed line) its
-//! metrics are taken; on the tcp-device line, one direct client before and modbus-proxy after.
-//! The figures are `report`'s.
+//! metrics are taken; on the tcp-device line, one direct client before and modbus-proxy after;
+//! with no master but plant values to poll, `plant`'s. The figures are `report`'s.
 
 use crate::beside;
 use crate::device_server::DeviceServer;
 use crate::gateway::{cpu_time, rss_mb, Gateway};
 use crate::masters::{connect_all, master, priority_connect, untimed_slave, Done};
+use crate::plant;
 use crate::report::Report;
 use crate::scenarios::{Line, Load, Scenario, READ_10, WRITE_1};
 use crate::tcp_device::TcpDevice;
@@ -65,6 +66,7 @@ pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report
         None => None,
     };
     let gateway = Gateway::start(binary, s, &device).await?;
+    let listening = Instant::now();
     let pid = gateway.pid();
     let cpu_before = cpu_time(pid);
     let (mut streams, mut setup) = connect_all(&gateway, s.kind, s.masters).await?;
@@ -77,6 +79,11 @@ pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report
     let connect_cpu = cpu_time(pid) - cpu_before;
     setup.sort();
     let mut report = Report::new(s, &setup, connect_cpu);
+    if s.load == Load::Values {
+        let far_pid = far.as_ref().map(DeviceServer::pid);
+        report.plant(&plant::measure(cli, (&gateway, far_pid), listening).await?);
+        return Ok(report);
+    }
     if s.load == Load::Idle {
         tokio::time::sleep(Duration::from_secs(2)).await;
         report.rss_mb = rss_mb(pid);

@@ -14,6 +14,123 @@ pub(crate) const SLAVES: u8 = 247;
 /// The local address the priority master connects from, and `server.priority`.
 pub(crate) const PRIORITY_IP: Ipv4Addr = Ipv4Addr::new(127, 0, 0, 2);
 
+/// One plant value every slave lists in the `values-` scenario: a drive's running values, all
+/// in the input registers from 100 x the slave's address (a simulated register slave's input
+/// register `a` reads `a`, so each slave's values differ), contiguous, so that each slave is one
+/// read of 24 registers. The types, orders, scales and bits mix so that decoding is exercised.
+pub(crate) struct PlantValue {
+    pub(crate) name: &'static str,
+    /// The value's first register from the slave's block.
+    pub(crate) offset: u16,
+    pub(crate) kind: &'static str,
+    /// 1: none.
+    pub(crate) scale: f64,
+    pub(crate) bit: Option<u8>,
+    /// Its registers least significant first (CDAB).
+    pub(crate) words_little: bool,
+    /// The bytes of each register swapped (BADC).
+    pub(crate) bytes_little: bool,
+    pub(crate) unit: Option<&'static str>,
+}
+
+/// A value of `kind` at `offset`, no scale, bit, order or unit.
+const fn value(name: &'static str, offset: u16, kind: &'static str) -> PlantValue {
+    PlantValue {
+        name,
+        offset,
+        kind,
+        scale: 1.0,
+        bit: None,
+        words_little: false,
+        bytes_little: false,
+        unit: None,
+    }
+}
+
+impl PlantValue {
+    const fn scale(self, scale: f64) -> PlantValue {
+        PlantValue { scale, ..self }
+    }
+
+    const fn bit(self, bit: u8) -> PlantValue {
+        PlantValue {
+            bit: Some(bit),
+            ..self
+        }
+    }
+
+    const fn words_little(self) -> PlantValue {
+        PlantValue {
+            words_little: true,
+            ..self
+        }
+    }
+
+    const fn bytes_little(self) -> PlantValue {
+        PlantValue {
+            bytes_little: true,
+            ..self
+        }
+    }
+
+    const fn unit(self, unit: &'static str) -> PlantValue {
+        PlantValue {
+            unit: Some(unit),
+            ..self
+        }
+    }
+}
+
+/// The values of each slave in the `values-` scenario: 20, in 24 registers.
+pub(crate) const PLANT_VALUES: [PlantValue; 20] = [
+    value("drive_output_frequency_hertz", 0, "u16")
+        .scale(0.01)
+        .unit("Hz"),
+    value("drive_set_frequency_hertz", 1, "u16")
+        .scale(0.01)
+        .unit("Hz"),
+    value("drive_output_voltage_volts", 2, "u16")
+        .scale(0.1)
+        .unit("V"),
+    value("drive_output_current_amperes", 3, "u16")
+        .scale(0.1)
+        .unit("A"),
+    value("drive_output_torque_ratio", 4, "i16").scale(0.001),
+    value("drive_motor_speed_rpm", 5, "i16").unit("rpm"),
+    value("drive_running", 6, "u16").bit(0),
+    value("drive_reverse", 6, "u16").bit(1),
+    value("drive_fault", 6, "bool").bit(3),
+    value("drive_fault_code", 7, "u16"),
+    value("drive_heatsink_temperature_celsius", 8, "i16")
+        .scale(0.1)
+        .unit("°C"),
+    value("drive_dc_bus_voltage_volts", 9, "u16")
+        .scale(0.1)
+        .unit("V"),
+    value("drive_run_time_seconds", 10, "u32")
+        .scale(3600.0)
+        .unit("s"),
+    value("drive_energy_joules", 12, "u32")
+        .words_little()
+        .scale(3_600_000.0)
+        .unit("J"),
+    value("drive_output_power_watts", 14, "f32")
+        .scale(1000.0)
+        .unit("W"),
+    value("drive_power_factor_ratio", 16, "f32").words_little(),
+    value("drive_input_frequency_hertz", 18, "f32")
+        .bytes_little()
+        .unit("Hz"),
+    value("drive_encoder_position_counts", 20, "i32"),
+    value("drive_pid_setpoint_ratio", 22, "u16").scale(0.001),
+    value("drive_pid_feedback_ratio", 23, "u16").scale(0.001),
+];
+
+/// Where slave `address`'s block of plant values starts.
+pub(crate) fn plant_base(address: u8) -> u16 {
+    100 * u16::from(address)
+}
+
 #[derive(Clone, Copy, PartialEq)]
 pub(crate) enum Line {
     /// The built-in simulated line, timed at its baud rate.
@@ -49,6 +166,9 @@ pub(crate) enum Load {
     /// Every master reads its own 10 holding registers of slave 1, back to back: nothing to
     /// coalesce.
     Own,
+    /// No master: every slave lists [`PLANT_VALUES`], which the gateway polls; the bench reads
+    /// its metrics endpoint (`plant`).
+    Values,
 }
 
 /// How the bench's masters talk to the gateway.
@@ -174,6 +294,16 @@ pub(crate) fn scenarios() -> Vec<Scenario> {
             Load::Idle,
         ));
     }
+    // The gateway polling plant values with no master; behind a device server, the simulated
+    // slaves' CPU is `simulate`'s, so the gateway's own cost of polling shows.
+    let name = format!("values-{SLAVES}x{}", PLANT_VALUES.len());
+    let values = Scenario::sim(name, format(115_200, Parity::None), 0, Load::Values);
+    let twin = Scenario {
+        name: format!("device-server-{}", values.name),
+        line: Line::DeviceServer,
+        ..Scenario::sim(String::new(), values.format, 0, Load::Values)
+    };
+    all.extend([values, twin]);
     all
 }
 

@@ -1,5 +1,6 @@
 //! The gateway's HTTP endpoint as the bench uses it: its metrics scraped at the window's ends, a
-//! reader on `GET /trace`, and a scraper fetching `/metrics` back to back (`--scrape`).
+//! reader on `GET /trace`, a scraper fetching `/metrics` back to back (`--scrape`), and any other
+//! page's body (`GET /values`).
 
 use clap::ValueEnum;
 use std::net::SocketAddr;
@@ -60,8 +61,51 @@ pub(crate) async fn scrape(addr: SocketAddr) -> Result<String, String> {
     Ok(page)
 }
 
+/// How a client acknowledges what it receives.
+#[derive(Clone, Copy, PartialEq)]
+pub(crate) enum Acks {
+    /// As Linux does by default (curl, Prometheus): a lone segment's ACK waits for the next
+    /// segment or the delayed-ACK timer.
+    Delayed,
+    /// At once (TCP_QUICKACK, set again before every read): a sender whose send buffer holds
+    /// about one segment, as the gateway's endpoint's does on loopback, never waits for the
+    /// timer, so the time is the gateway's.
+    Quick,
+}
+
+/// The body of the gateway's answer to `GET path`, which must be 200 OK, read acknowledging
+/// as `acks` says.
+pub(crate) async fn get(addr: SocketAddr, path: &str, acks: Acks) -> Result<String, String> {
+    let doing = format!("GET {path}");
+    let failed = |e: std::io::Error| format!("{doing}: {e}");
+    let mut stream = http_get(addr, path, &doing).await?;
+    let mut answer = Vec::new();
+    let mut chunk = vec![0; 256 * 1024];
+    loop {
+        if acks == Acks::Quick {
+            socket2::SockRef::from(&stream)
+                .set_tcp_quickack(true)
+                .map_err(failed)?;
+        }
+        match stream.read(&mut chunk).await.map_err(failed)? {
+            0 => break,
+            n => answer.extend_from_slice(&chunk[..n]),
+        }
+    }
+    let mut answer = String::from_utf8(answer).map_err(|e| format!("{doing}: {e}"))?;
+    let Some(head) = answer.find("\r\n\r\n") else {
+        return Err(format!("{doing}: no end to the answer's head"));
+    };
+    if !answer.starts_with("HTTP/1.1 200 ") {
+        let status = answer.lines().next().unwrap_or_default();
+        return Err(format!("{doing}: {status}"));
+    }
+    answer.drain(..head + 4);
+    Ok(answer)
+}
+
 /// The sum of the samples of `name` on the bench's bus with every one of `labels`.
-fn sample(page: &str, name: &str, labels: &[&str]) -> f64 {
+pub(crate) fn sample(page: &str, name: &str, labels: &[&str]) -> f64 {
     page.lines()
         .filter(|l| !l.starts_with('#'))
         .filter_map(|l| {

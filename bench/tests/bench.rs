@@ -208,3 +208,48 @@ fn the_tcp_device_line_is_measured_beside_a_direct_client_and_modbus_proxy_if_in
         }
     }
 }
+
+#[test]
+fn the_values_scenario_waits_until_every_plant_value_is_read_then_measures_polling_and_each_page() {
+    let scenario = "values-247x20";
+    let values = bench_json(&[scenario], |_| {}).remove(0);
+    assert_eq!(values["scenario"], scenario);
+    assert_eq!(values["masters"].as_u64(), Some(0), "{values}");
+    // 247 slaves of 20 values each, every one read before the measurements began.
+    assert_eq!(values["plant_values"].as_u64(), Some(247 * 20), "{values}");
+    assert!(
+        values["history_points"].as_f64().unwrap() >= 1.0,
+        "{values}"
+    );
+    for field in ["first_pass_s", "rss_polling_mb", "rss_mb"] {
+        assert!(
+            values[field].as_f64().is_some_and(|v| v > 0.0),
+            "{field}: {values}"
+        );
+    }
+    // The second pass may not have begun within a one-second window: a rate, not a positive one.
+    for field in ["polls_per_s", "poll_cpu_ms_per_s"] {
+        assert!(values[field].as_f64().is_some(), "{field}: {values}");
+    }
+    for page in ["metrics", "values", "history"] {
+        assert!(
+            values[format!("{page}_gets")].as_u64().unwrap() >= 1,
+            "{page}: {values}"
+        );
+        for figure in ["cpu_us_per_get", "ms_per_get", "ms_per_get_plain_client"] {
+            let field = format!("{page}_{figure}");
+            assert!(
+                values[&field].as_f64().is_some_and(|v| v > 0.0),
+                "{field}: {values}"
+            );
+        }
+        let field = format!("{page}_cpu_us_per_get_less_polling");
+        assert!(values[&field].as_f64().is_some(), "{field}: {values}");
+    }
+    // Every value is on /metrics, and the history adds to each one of /values.
+    let bytes = |page: &str| values[format!("{page}_bytes")].as_u64().unwrap();
+    assert!(bytes("metrics") > 247 * 20 * 30, "{values}");
+    assert!(bytes("history") > bytes("values"), "{values}");
+    // The simulated line is in the gateway's process: no `simulate` to count apart.
+    assert!(values["simulate_poll_cpu_ms_per_s"].is_null(), "{values}");
+}
