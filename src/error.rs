@@ -19,13 +19,16 @@ pub enum Answer {
     Malformed(Vec<u8>),
     /// Nothing: a broadcast with `broadcast_reply = false`.
     Nothing,
+    /// The normal reply to a write, made by the gateway for an `acknowledge` rule: the write
+    /// was never sent.
+    Acknowledged(Vec<u8>),
 }
 
 impl Answer {
     /// The PDU the master gets, if any.
     pub fn into_pdu(self) -> Option<Vec<u8>> {
         match self {
-            Answer::Reply(pdu) | Answer::Malformed(pdu) => Some(pdu),
+            Answer::Reply(pdu) | Answer::Malformed(pdu) | Answer::Acknowledged(pdu) => Some(pdu),
             Answer::Nothing => None,
         }
     }
@@ -58,12 +61,18 @@ pub enum RequestError {
     NoAccess(u8),
     #[error("unit {0} refused: the master's TLS role may not address it")]
     UnitNotPermitted(u8),
+    #[error("function code {function:#04x} refused by a [[rule]]")]
+    Denied { function: u8, registers: bool },
+    #[error("function code {0:#04x} refused: the audit journal cannot be written (audit.on_error = \"deny_writes\")")]
+    Unrecorded(u8),
     #[error("no route for unit {0}")]
     NoRoute(u8),
     #[error("function code {0:#04x} cannot be broadcast")]
     NotBroadcastable(u8),
     #[error("serial port is down")]
     PortDown,
+    #[error("the port was lost during the transaction: the request may have reached the slave")]
+    PortLost,
     #[error("bus queue is full")]
     QueueFull,
     #[error("not sent within the queue timeout")]
@@ -87,8 +96,18 @@ impl RequestError {
             | RequestError::NoAccess(_)
             | RequestError::Unverifiable(_)
             | RequestError::UnitNotPermitted(_) => ExceptionCode::IllegalFunction,
+            RequestError::Denied {
+                registers: false, ..
+            } => ExceptionCode::IllegalFunction,
+            RequestError::Denied {
+                registers: true, ..
+            } => ExceptionCode::IllegalDataAddress,
             RequestError::BadLength { .. } => ExceptionCode::IllegalDataValue,
-            RequestError::NoRoute(_) | RequestError::PortDown | RequestError::ShuttingDown => {
+            RequestError::NoRoute(_)
+            | RequestError::PortDown
+            | RequestError::PortLost
+            | RequestError::Unrecorded(_)
+            | RequestError::ShuttingDown => {
                 ExceptionCode::GatewayPathUnavailable
             }
             RequestError::QueueFull | RequestError::Expired => ExceptionCode::ServerDeviceBusy,

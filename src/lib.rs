@@ -48,6 +48,7 @@
 // Unit tests may be long and cast freely; the product code may not (Cargo.toml's lint table).
 #![cfg_attr(test, allow(clippy::too_many_lines, clippy::cast_possible_truncation))]
 
+mod audit;
 pub mod bus;
 pub mod cli;
 pub mod config;
@@ -71,6 +72,7 @@ mod pem;
 // in the daemon's: the lint is for the build that has the hooks (clippy --all-targets).
 #[cfg_attr(not(feature = "test-util"), allow(unreachable_pub))]
 mod routing;
+mod rules;
 pub mod shutdown;
 pub mod sim;
 // What `testing` re-exports is `pub` for the tests' build (feature `test-util`) and unreachable

@@ -469,6 +469,142 @@ pub(crate) fn broadcast_response(pdu: &[u8]) -> Option<Vec<u8>> {
     }
 }
 
+/// The data tables of the Modbus data model, as the journal names them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DataTable {
+    Coils,
+    DiscreteInputs,
+    HoldingRegisters,
+    InputRegisters,
+}
+
+impl DataTable {
+    /// The word the journal and `[[bus.slave.value]]`'s `table` use.
+    pub fn word(self) -> &'static str {
+        match self {
+            DataTable::Coils => "coil",
+            DataTable::DiscreteInputs => "discrete",
+            DataTable::HoldingRegisters => "holding",
+            DataTable::InputRegisters => "input",
+        }
+    }
+}
+
+/// Data addresses `first` to `last` of one table that a request touches. `last` may run past
+/// 65535 when a request asks for more than the table holds: such a span is seen whole.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Span {
+    pub table: DataTable,
+    pub first: u16,
+    pub last: u32,
+}
+
+impl Span {
+    /// `quantity` addresses from `first` (a quantity of 0, which no slave accepts, touches the
+    /// first address only).
+    fn of(table: DataTable, first: u16, quantity: u16) -> Span {
+        Span {
+            table,
+            first,
+            last: u32::from(first) + u32::from(quantity.max(1)) - 1,
+        }
+    }
+
+    /// How many addresses it spans.
+    pub fn count(&self) -> u32 {
+        self.last - u32::from(self.first) + 1
+    }
+}
+
+/// The data addresses a request touches, as far as its bytes tell.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Touches {
+    /// No data address: diagnostics, identification, event counters.
+    Nothing,
+    /// One span, or two (Read/Write Multiple Registers reads one and writes another).
+    Spans(Span, Option<Span>),
+    /// The bytes cannot tell (user-defined codes, file records, a request too short to say):
+    /// it may touch any.
+    Unknown,
+}
+
+fn word_at(pdu: &[u8], at: usize) -> Option<u16> {
+    Some(u16::from_be_bytes([*pdu.get(at)?, *pdu.get(at + 1)?]))
+}
+
+/// The data addresses `pdu`, a request, touches.
+pub fn touches(pdu: &[u8]) -> Touches {
+    use DataTable::{Coils, DiscreteInputs, HoldingRegisters, InputRegisters};
+    let Some(&function) = pdu.first() else {
+        return Touches::Unknown;
+    };
+    let span = |table, quantity: Option<u16>| {
+        let first = word_at(pdu, 1)?;
+        Some(Span::of(table, first, quantity?))
+    };
+    let one = |span: Option<Span>| span.map_or(Touches::Unknown, |s| Touches::Spans(s, None));
+    match function {
+        READ_COILS => one(span(Coils, word_at(pdu, 3))),
+        READ_DISCRETE_INPUTS => one(span(DiscreteInputs, word_at(pdu, 3))),
+        READ_HOLDING_REGISTERS => one(span(HoldingRegisters, word_at(pdu, 3))),
+        READ_INPUT_REGISTERS => one(span(InputRegisters, word_at(pdu, 3))),
+        WRITE_SINGLE_COIL | WRITE_MULTIPLE_COILS => {
+            let quantity = if function == WRITE_SINGLE_COIL { Some(1) } else { word_at(pdu, 3) };
+            one(span(Coils, quantity))
+        }
+        WRITE_SINGLE_REGISTER | MASK_WRITE_REGISTER | READ_FIFO_QUEUE => {
+            one(span(HoldingRegisters, Some(1)))
+        }
+        WRITE_MULTIPLE_REGISTERS => one(span(HoldingRegisters, word_at(pdu, 3))),
+        READ_WRITE_MULTIPLE_REGISTERS => {
+            let read = span(HoldingRegisters, word_at(pdu, 3));
+            let write = word_at(pdu, 5)
+                .zip(word_at(pdu, 7))
+                .map(|(first, quantity)| Span::of(HoldingRegisters, first, quantity));
+            match (read, write) {
+                (Some(read), Some(write)) => Touches::Spans(read, Some(write)),
+                _ => Touches::Unknown,
+            }
+        }
+        READ_EXCEPTION_STATUS | DIAGNOSTICS | GET_COMM_EVENT_COUNTER | GET_COMM_EVENT_LOG
+        | REPORT_SERVER_ID | ENCAPSULATED_INTERFACE => Touches::Nothing,
+        _ => Touches::Unknown,
+    }
+}
+
+/// What a write request sets: the span it writes, if its bytes say, and the bytes of the values
+/// (for a write the table does not know, everything after the function code).
+pub fn written(pdu: &[u8]) -> (Option<Span>, &[u8]) {
+    let after = |at: usize| pdu.get(at..).unwrap_or_default();
+    let span = match touches(pdu) {
+        Touches::Spans(_, Some(write)) => Some(write),
+        Touches::Spans(span, None) => Some(span),
+        Touches::Nothing | Touches::Unknown => None,
+    };
+    let values = match pdu.first().copied() {
+        Some(WRITE_SINGLE_COIL | WRITE_SINGLE_REGISTER | MASK_WRITE_REGISTER) => after(3),
+        Some(WRITE_MULTIPLE_COILS | WRITE_MULTIPLE_REGISTERS) => after(6),
+        Some(READ_WRITE_MULTIPLE_REGISTERS) => after(10),
+        _ => after(1),
+    };
+    (span, values)
+}
+
+/// The Modbus Application Protocol's diagnostics functions (its function-code categories):
+/// Read Exception Status, Diagnostics, Get Comm Event Counter and Log, Report Server ID, and the
+/// Encapsulated Interface Transport (Read Device Identification).
+pub(crate) fn is_diagnostic(function: u8) -> bool {
+    matches!(
+        function,
+        READ_EXCEPTION_STATUS
+            | DIAGNOSTICS
+            | GET_COMM_EVENT_COUNTER
+            | GET_COMM_EVENT_LOG
+            | REPORT_SERVER_ID
+            | ENCAPSULATED_INTERFACE
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -785,4 +921,46 @@ mod tests {
         assert!(!is_read_only(&long));
         assert!(!is_read_only(&[0x08, 0x00, 0x00]));
     }
+    #[test]
+    fn a_request_touches_the_addresses_its_bytes_name_and_an_unknown_one_may_touch_any() {
+        use DataTable::*;
+        let span = |table, first, last| Span { table, first, last };
+        assert_eq!(
+            touches(&[0x03, 0x20, 0x00, 0x00, 0x02]),
+            Touches::Spans(span(HoldingRegisters, 0x2000, 0x2001), None)
+        );
+        assert_eq!(
+            touches(&[0x05, 0x00, 0x07, 0xFF, 0x00]),
+            Touches::Spans(span(Coils, 7, 7), None)
+        );
+        // Past the end of the table: seen whole, not cut at 65535.
+        assert_eq!(
+            touches(&[0x10, 0xFF, 0xFF, 0x00, 0x02, 0x04, 0, 1, 0, 2]),
+            Touches::Spans(span(HoldingRegisters, 0xFFFF, 0x10000), None)
+        );
+        assert_eq!(
+            touches(&[0x17, 0, 0x10, 0, 2, 0x20, 0, 0, 1, 2, 0xAB, 0xCD]),
+            Touches::Spans(
+                span(HoldingRegisters, 0x10, 0x11),
+                Some(span(HoldingRegisters, 0x2000, 0x2000))
+            )
+        );
+        assert_eq!(touches(&[0x08, 0x00, 0x01, 0x00, 0x00]), Touches::Nothing);
+        assert_eq!(touches(&[0x41, 0x20, 0x00]), Touches::Unknown);
+        assert_eq!(touches(&[0x06, 0x20]), Touches::Unknown);
+        assert_eq!(touches(&[]), Touches::Unknown);
+        assert_eq!(
+            written(&[0x17, 0, 0x10, 0, 2, 0x20, 0, 0, 1, 2, 0xAB, 0xCD]),
+            (Some(span(HoldingRegisters, 0x2000, 0x2000)), &[0xAB, 0xCD][..])
+        );
+        assert_eq!(
+            written(&[0x10, 0x00, 0x04, 0x00, 0x02, 0x04, 0x13, 0x88, 0x00, 0x32]),
+            (
+                Some(span(HoldingRegisters, 4, 5)),
+                &[0x13, 0x88, 0x00, 0x32][..]
+            )
+        );
+        assert_eq!(written(&[0x41, 1, 2]), (None, &[1, 2][..]));
+    }
+
 }

@@ -115,7 +115,7 @@ impl BusTask {
     /// Every request in flight gets 0x0A: the connection they were on is gone.
     fn lose_flights(&mut self, flights: Vec<Flight>, end: Served) -> Served {
         for flight in flights {
-            self.handle.answer(flight.job, Err(RequestError::PortDown));
+            self.handle.answer(flight.job, Err(RequestError::PortLost));
         }
         end
     }
@@ -148,7 +148,7 @@ impl BusTask {
         let (transaction, sent) = match pipeline.send(job.slave, &job.pdu).await {
             Ok((transaction, sent)) => (transaction, sent.to_vec()),
             Err(error) => {
-                self.handle.answer(job, Err(RequestError::PortDown));
+                self.handle.answer(job, Err(RequestError::PortLost));
                 return Err(error);
             }
         };
@@ -239,7 +239,7 @@ impl BusTask {
             let (transaction, sent) = match pipeline.send(flight.job.slave, &flight.job.pdu).await {
                 Ok((transaction, sent)) => (transaction, sent.to_vec()),
                 Err(error) => {
-                    self.handle.answer(flight.job, Err(RequestError::PortDown));
+                    self.handle.answer(flight.job, Err(RequestError::PortLost));
                     return Err(error);
                 }
             };

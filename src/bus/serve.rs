@@ -185,7 +185,7 @@ impl BusTask {
                         .master
                         .expect_late_reply(job.slave, Instant::now() + timeout);
                 }
-                self.handle.answer(job, Err(RequestError::PortDown));
+                self.handle.answer(job, Err(RequestError::PortLost));
                 Some(Served::Lost(error))
             }
         }

@@ -9,7 +9,9 @@ use super::values;
 use super::DeviceName;
 use super::UnitSet;
 use super::OTHER_ROLE;
-use super::{Bus, Config, ConfigError, ConfigErrors, Route, Server, SimSlave, Templates, Tls};
+use super::audit::{MAX_AUDIT_KEEP, MIN_AUDIT_SIZE};
+use super::{Audit, Bus, Config, ConfigError, ConfigErrors, Route, Rule, Server, SimSlave};
+use super::{Templates, Tls};
 use super::{MAX_SLAVE_ADDRESS, SIM_DEVICE};
 use crate::line::framing::TransportKind;
 use crate::line::{Framing, SerialFormat};
@@ -101,6 +103,10 @@ impl Config {
         values::check_families(values, &mut report.0);
         check_devices_once(&self.bus, &mut report);
         check_routes(&self.route, &self.bus, &names, &mut report);
+        check_rules(&self.rule, &self.server, &names, &mut report);
+        if let Some(audit) = &self.audit {
+            check_audit(audit, &mut report);
+        }
         if report.0.is_empty() {
             Ok(())
         } else {
@@ -935,5 +941,64 @@ mod tests {
                 "{knobs}: {e:?}"
             );
         }
+    }
+}
+
+/// Rules name buses that exist, roles only where masters have certificates, and unique names.
+fn check_rules(
+    rules: &[Rule],
+    server: &Server,
+    buses: &BTreeMap<String, usize>,
+    report: &mut Report,
+) {
+    let mut named: BTreeMap<&str, usize> = BTreeMap::new();
+    for (i, rule) in rules.iter().enumerate() {
+        let key = |field: &str| format!("rule[{i}].{field}");
+        if let Some(name) = &rule.name {
+            if name.trim().is_empty() {
+                report.fail(key("name"), "is empty: leave it out to be called `rule N`");
+            } else if let Some(first) = named.insert(name, i) {
+                report.fail(
+                    key("name"),
+                    format!("`{name}` is already rule[{first}].name: the journal could not tell them apart"),
+                );
+            }
+        }
+        for bus in &rule.buses {
+            if !buses.contains_key(bus) {
+                report.fail(key("buses"), format!("there is no bus named `{bus}`"));
+            }
+        }
+        if !rule.roles.is_empty() && server.tls.is_none() {
+            report.fail(
+                key("roles"),
+                "no master has a role without [server.tls]: roles come from TLS masters' \
+                 certificates",
+            );
+        }
+        if rule.units.is_some_and(|units| units.is_empty()) {
+            report.fail(key("units"), "names no unit: leave it out for any unit");
+        }
+    }
+}
+
+fn check_audit(audit: &Audit, report: &mut Report) {
+    if audit.path.as_os_str().is_empty() {
+        report.fail("audit.path", "is empty: name the journal's file");
+    }
+    if audit.max_size.0 < MIN_AUDIT_SIZE {
+        report.fail(
+            "audit.max_size",
+            format!("{} is below the smallest journal, 4KiB", audit.max_size),
+        );
+    }
+    if !(1..=MAX_AUDIT_KEEP).contains(&audit.keep) {
+        report.fail(
+            "audit.keep",
+            format!(
+                "{} rotated files: keep 1 to {MAX_AUDIT_KEEP} (the journal is never thrown away whole)",
+                audit.keep
+            ),
+        );
     }
 }

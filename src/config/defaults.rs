@@ -103,3 +103,12 @@ pub(crate) fn poll_share() -> f64 {
 }
 /// How often a slave's values are read unless it or a value says otherwise.
 pub(crate) const POLL_INTERVAL: Duration = Duration::from_secs(10);
+
+/// The journal's size before it rotates.
+pub(crate) fn audit_max_size() -> super::audit::ByteSize {
+    super::audit::ByteSize(10 << 20)
+}
+/// Rotated journal files kept.
+pub(crate) fn audit_keep() -> u32 {
+    5
+}

@@ -5,6 +5,7 @@
 //! tasks or the simulator (a simulated drive's parameters are checked through the
 //! [`DriveCheck`] the caller passes).
 
+mod audit;
 mod bus;
 mod check;
 pub(crate) mod defaults;
@@ -16,12 +17,14 @@ mod metrics;
 mod resolve;
 mod route;
 mod rs485;
+mod rules;
 mod serde_adapters;
 mod server;
 mod tls;
 mod unit_set;
 mod values;
 
+pub use audit::{Audit, ByteSize, OnError};
 pub use bus::{Bus, Slave};
 pub use device::{DeviceName, ServerAddr, ServerMode};
 
@@ -43,6 +46,7 @@ pub use log::LogFormat;
 pub use metrics::Metrics;
 pub use route::Route;
 pub use rs485::{Rs485, Rs485Mode};
+pub use rules::{Action, Functions, Registers, Rule};
 pub use server::Server;
 pub(crate) use server::WhenFull;
 pub use tls::RoleAccess;
@@ -74,6 +78,12 @@ pub struct Config {
     pub bus: Vec<Bus>,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub route: Vec<Route>,
+    /// What requests may do, first match wins; no rule matching: allowed.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub rule: Vec<Rule>,
+    /// The journal of writes; none without it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub audit: Option<Audit>,
     /// The templates slaves may name: the shipped ones and `template_dir`'s, read at load.
     #[serde(skip)]
     pub templates: Templates,

@@ -451,6 +451,8 @@ fn config() -> impl Strategy<Value = Config> {
                 log,
                 bus,
                 route,
+                rule: Vec::new(),
+                audit: None,
                 templates: crate::config::Templates::load(None, "template_dir")
                     .expect("the shipped templates"),
             }

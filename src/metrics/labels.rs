@@ -50,6 +50,12 @@ pub(crate) enum Fate {
     /// The slave is down (timed out again and again) and it was not its probe's turn; never
     /// sent (0x0B).
     SlaveDown,
+    /// Refused by a `[[rule]]`; never sent (0x01, or 0x02 from a rule with registers).
+    Denied,
+    /// A write answered by an `acknowledge` rule with its normal reply; never sent.
+    Acknowledged,
+    /// A write refused because the audit journal cannot be written; never sent (0x0A).
+    Unrecorded,
 }
 
 impl Fate {
@@ -73,6 +79,9 @@ impl Fate {
             Fate::ReadOnly => "read_only",
             Fate::NoAccess => "no_access",
             Fate::SlaveDown => "slave_down",
+            Fate::Denied => "denied",
+            Fate::Acknowledged => "acknowledged",
+            Fate::Unrecorded => "unrecorded",
         }
     }
 
@@ -90,6 +99,7 @@ impl Fate {
                 )
             }
             Ok(Answer::Malformed(_)) => (Fate::MalformedReply, None),
+            Ok(Answer::Acknowledged(_)) => (Fate::Acknowledged, None),
             Ok(_) => (Fate::Ok, None),
             Err(error) => {
                 let fate = match error {
@@ -102,8 +112,10 @@ impl Fate {
                     | RequestError::UnitNotPermitted(_)
                     | RequestError::Unverifiable(_) => Fate::NoAccess,
                     RequestError::SlaveDown { .. } => Fate::SlaveDown,
+                    RequestError::Denied { .. } => Fate::Denied,
+                    RequestError::Unrecorded(_) => Fate::Unrecorded,
                     RequestError::NoRoute(_) => Fate::NoRoute,
-                    RequestError::PortDown => Fate::PortDown,
+                    RequestError::PortDown | RequestError::PortLost => Fate::PortDown,
                     RequestError::QueueFull => Fate::QueueFull,
                     RequestError::Expired => Fate::Expired,
                     RequestError::ShuttingDown => Fate::Shutdown,

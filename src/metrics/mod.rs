@@ -6,6 +6,7 @@
 //! knows nothing of frames, sockets, timing or the runtime's parts (it imports neither `bus` nor
 //! `dispatch` nor `net`).
 
+mod audit;
 mod bus;
 mod labels;
 mod median;
@@ -14,6 +15,7 @@ mod throttle;
 mod tls;
 mod udp;
 
+pub use audit::AuditMetrics;
 pub use bus::BusMetrics;
 
 pub use bus::SlaveSnapshot;
@@ -140,6 +142,8 @@ pub struct Metrics {
     pub tcp: TcpMetrics,
     pub udp: UdpMetrics,
     pub tls: TlsMetrics,
+    /// The writes, and the audit journal.
+    pub audit: AuditMetrics,
     /// The live trace of the lines' frames (`GET /trace`).
     pub trace: Arc<crate::trace::TraceHub>,
     /// Gauges read from their source at scrape time (queue depths).
@@ -174,6 +178,7 @@ impl Metrics {
             tcp: TcpMetrics::new(&define),
             udp: UdpMetrics::new(&define),
             tls: TlsMetrics::new(&define),
+            audit: AuditMetrics::new(&define),
             trace: Arc::new(crate::trace::TraceHub::new()),
             scrape_hooks: Mutex::new(Vec::new()),
             registry: registry.clone(),

@@ -70,7 +70,9 @@ fn take(poll: &Poll, outcome: Result<Outcome, impl Sized>, store: &Store) -> Opt
     let read = &poll.read;
     let words = match outcome {
         Ok(Ok(Answer::Reply(pdu))) => decode::words(read.table, read.count, &pdu),
-        Ok(Ok(Answer::Malformed(_) | Answer::Nothing)) | Err(_) => Err(Unreadable::BadReply),
+        Ok(Ok(Answer::Malformed(_) | Answer::Nothing | Answer::Acknowledged(_))) | Err(_) => {
+            Err(Unreadable::BadReply)
+        }
         Ok(Err(error)) => {
             let outcome = failure(&error);
             for &(entry, _, _) in &poll.values {

@@ -1,0 +1,326 @@
+//! Which `[[rule]]` decides a request, and what it decides: a pure table, like `routing`, built
+//! from the configuration and replaced whole on a reload. Knows who sent a request, where it
+//! goes and what its bytes ask; knows nothing of sessions, queues or the journal.
+//!
+//! A rule matches when every match key it gives matches. `registers` is the one key whose
+//! meaning follows the action: a `deny` or `acknowledge` rule matches a request that touches
+//! any of its addresses (overlapping is enough), while an `allow` rule matches only a request
+//! that touches none but its addresses, so that a write running past an allowed range is not let
+//! through by it. A request whose addresses its bytes cannot tell (a user-defined code, a file
+//! record) may touch any: it matches every `deny` and `acknowledge` rule with registers and no
+//! `allow` rule with registers.
+
+use crate::config::{Action, Functions, Registers, Rule};
+use crate::master::Protocol;
+use crate::pdu::{self, ExceptionCode, Span, Touches};
+use std::net::IpAddr;
+
+/// A request as the rules see it.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Asked<'a> {
+    pub(crate) peer: IpAddr,
+    /// The role its TLS master's certificate carries, as written.
+    pub(crate) role: Option<&'a str>,
+    pub(crate) protocol: Protocol,
+    /// The bus its unit routes to; `None` without a route.
+    pub(crate) bus: Option<&'a str>,
+    pub(crate) unit: u8,
+    pub(crate) pdu: &'a [u8],
+}
+
+/// What the rules decide for a request.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Decision {
+    /// The deciding rule's place in the list; `None`: no rule matched, and the request goes.
+    pub(crate) rule: Option<usize>,
+    pub(crate) action: Action,
+}
+
+impl Decision {
+    /// The exception a `deny` answers with: 0x02 when the rule names registers (the
+    /// addresses are what is refused), 0x01 when it is about anything else.
+    pub(crate) fn exception(&self, rules: &Rules) -> ExceptionCode {
+        match self.rule.map(|at| &rules.list[at]) {
+            Some(rule) if !rule.registers.is_empty() => ExceptionCode::IllegalDataAddress,
+            _ => ExceptionCode::IllegalFunction,
+        }
+    }
+}
+
+/// The rules in force, in their order.
+#[derive(Clone, Debug, Default)]
+pub(crate) struct Rules {
+    list: Vec<Rule>,
+    names: Vec<String>,
+}
+
+impl Rules {
+    pub(crate) fn new(list: &[Rule]) -> Rules {
+        Rules {
+            names: list
+                .iter()
+                .enumerate()
+                .map(|(at, rule)| rule.display_name(at))
+                .collect(),
+            list: list.to_vec(),
+        }
+    }
+
+    /// What the journal calls the rule at `at`.
+    pub(crate) fn name(&self, at: usize) -> &str {
+        &self.names[at]
+    }
+
+    /// The first rule that matches `asked`, and its action; none: allowed.
+    pub(crate) fn decide(&self, asked: &Asked<'_>) -> Decision {
+        let touches = pdu::touches(asked.pdu);
+        let found = self
+            .list
+            .iter()
+            .position(|rule| matches(rule, asked, touches));
+        Decision {
+            rule: found,
+            action: found.map_or(Action::Allow, |at| self.list[at].action),
+        }
+    }
+}
+
+fn matches(rule: &Rule, asked: &Asked<'_>, touches: Touches) -> bool {
+    // A dual-stack listener sees IPv4 masters as ::ffff:a.b.c.d; rules name them as IPv4.
+    let peer = asked.peer.to_canonical();
+    let any = |empty: bool, found: bool| empty || found;
+    any(
+        rule.masters.is_empty(),
+        rule.masters.iter().any(|net| net.contains(&peer)),
+    ) && any(
+        rule.roles.is_empty(),
+        asked
+            .role
+            .is_some_and(|role| rule.roles.iter().any(|r| r == role)),
+    ) && any(
+        rule.protocols.is_empty(),
+        rule.protocols.contains(&asked.protocol),
+    ) && any(
+        rule.buses.is_empty(),
+        asked
+            .bus
+            .is_some_and(|bus| rule.buses.iter().any(|b| b == bus)),
+    ) && rule.units.is_none_or(|units| units.contains(asked.unit))
+        && any(
+            rule.functions.is_empty(),
+            rule.functions.iter().any(|f| function_matches(*f, asked.pdu)),
+        )
+        && (rule.registers.is_empty() || registers_match(rule, touches))
+}
+
+fn function_matches(functions: Functions, pdu: &[u8]) -> bool {
+    let code = pdu.first().copied().unwrap_or(0);
+    match functions {
+        Functions::Code(wanted) => code == wanted,
+        Functions::Read => pdu::is_read_only(pdu),
+        Functions::Write => !pdu::is_read_only(pdu),
+        Functions::Diagnostic => pdu::is_diagnostic(code),
+    }
+}
+
+fn registers_match(rule: &Rule, touches: Touches) -> bool {
+    let ranges = &rule.registers;
+    let spans = match touches {
+        Touches::Nothing => return false,
+        Touches::Unknown => return rule.action != Action::Allow,
+        Touches::Spans(first, second) => [Some(first), second],
+    };
+    let spans = spans.into_iter().flatten();
+    if rule.action == Action::Allow {
+        spans.into_iter().all(|span| within(ranges, span))
+    } else {
+        spans.into_iter().any(|span| overlaps(ranges, span))
+    }
+}
+
+fn overlaps(ranges: &[Registers], span: Span) -> bool {
+    let last = u16::try_from(span.last).unwrap_or(u16::MAX);
+    ranges.iter().any(|r| r.overlaps(span.first, last))
+}
+
+/// Every address of `span` is in one of `ranges` (which may adjoin).
+fn within(ranges: &[Registers], span: Span) -> bool {
+    let mut next = u32::from(span.first);
+    while next <= span.last {
+        let holding = ranges
+            .iter()
+            .filter(|r| u32::from(r.first) <= next && next <= u32::from(r.last))
+            .map(|r| u32::from(r.last))
+            .max();
+        match holding {
+            Some(last) => next = last + 1,
+            None => return false,
+        }
+    }
+    true
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::{Config, UnitSet};
+
+    fn rules(toml: &str) -> Rules {
+        let text = format!("[[bus]]\nname = \"line1\"\ndevice = \"sim\"\n{toml}");
+        Rules::new(&Config::from_toml_str(&text).expect("valid rules").rule)
+    }
+
+    fn asked(pdu: &[u8]) -> Asked<'_> {
+        Asked {
+            peer: "192.168.20.5".parse().unwrap(),
+            role: None,
+            protocol: Protocol::Tcp,
+            bus: Some("line1"),
+            unit: 3,
+            pdu,
+        }
+    }
+
+    const WRITE_2000: [u8; 5] = [0x06, 0x20, 0x00, 0x00, 0x05];
+    const WRITE_1FFF_2001: [u8; 12] = [0x10, 0x1F, 0xFF, 0, 3, 6, 0, 1, 0, 2, 0, 3];
+    const READ_2000: [u8; 5] = [0x03, 0x20, 0x00, 0x00, 0x02];
+
+    #[test]
+    fn the_first_matching_rule_decides_and_no_match_allows() {
+        let rules = rules(
+            r#"
+            [[rule]]
+            name = "wallbox"
+            registers = "0x2000-0x2001"
+            functions = "write"
+            action = "allow"
+            [[rule]]
+            functions = "write"
+            action = "deny"
+            "#,
+        );
+        let decided = rules.decide(&asked(&WRITE_2000));
+        assert_eq!((decided.rule, decided.action), (Some(0), Action::Allow));
+        assert_eq!(rules.name(0), "wallbox");
+        let other = [0x06, 0x30, 0x00, 0x00, 0x05];
+        let decided = rules.decide(&asked(&other));
+        assert_eq!((decided.rule, decided.action), (Some(1), Action::Deny));
+        assert_eq!(decided.exception(&rules), ExceptionCode::IllegalFunction);
+        assert_eq!(rules.name(1), "rule 2");
+        let decided = rules.decide(&asked(&READ_2000));
+        assert_eq!((decided.rule, decided.action), (None, Action::Allow));
+    }
+
+    #[test]
+    fn an_allow_rule_covers_only_requests_within_its_registers_and_a_deny_any_that_overlaps() {
+        let rules = rules(
+            r#"
+            [[rule]]
+            registers = ["0x2000", "0x2001"]
+            action = "allow"
+            [[rule]]
+            registers = "0x2000-0x2001"
+            action = "deny"
+            "#,
+        );
+        // Adjoining ranges hold a two-register write between them.
+        let both = [0x10, 0x20, 0x00, 0, 2, 4, 0, 1, 0, 2];
+        assert_eq!(rules.decide(&asked(&both)).rule, Some(0));
+        // Running over the allowed range from below: not allowed by it, denied by the second.
+        let decided = rules.decide(&asked(&WRITE_1FFF_2001));
+        assert_eq!((decided.rule, decided.action), (Some(1), Action::Deny));
+        assert_eq!(decided.exception(&rules), ExceptionCode::IllegalDataAddress);
+        // A read of 0x2000 writing 0x0000: its write is outside the allowed range.
+        let hidden = [0x17, 0x20, 0x00, 0, 1, 0x00, 0x00, 0, 1, 2, 0xAB, 0xCD];
+        assert_eq!(rules.decide(&asked(&hidden)).rule, Some(1));
+        // A user-defined code may touch anything: denied, never allowed by registers.
+        assert_eq!(rules.decide(&asked(&[0x41, 0x20, 0x00])).rule, Some(1));
+        // Diagnostics touch no register.
+        assert_eq!(rules.decide(&asked(&[0x08, 0, 1, 0, 0])).rule, None);
+        // A span past 65535 is not cut short into an allowed range.
+        let rules = super::tests::rules("[[rule]]\nregisters = \"0xFFFF\"\naction = \"allow\"\n");
+        let past = [0x10, 0xFF, 0xFF, 0, 2, 4, 0, 1, 0, 2];
+        assert_eq!(rules.decide(&asked(&past)).rule, None);
+    }
+
+    #[test]
+    fn each_match_key_must_match() {
+        let rules = rules(
+            r#"
+            [[rule]]
+            masters = "192.168.20.0/24"
+            protocols = "udp"
+            buses = "line1"
+            units = "1-4"
+            functions = [6]
+            action = "deny"
+            "#,
+        );
+        let base = Asked {
+            protocol: Protocol::Udp,
+            ..asked(&WRITE_2000)
+        };
+        assert_eq!(rules.decide(&base).rule, Some(0));
+        let misses = [
+            Asked {
+                peer: "192.168.21.5".parse().unwrap(),
+                ..base
+            },
+            Asked {
+                protocol: Protocol::Tcp,
+                ..base
+            },
+            Asked { bus: None, ..base },
+            Asked { unit: 5, ..base },
+            Asked {
+                pdu: &WRITE_1FFF_2001,
+                ..base
+            },
+        ];
+        for miss in misses {
+            assert_eq!(rules.decide(&miss).rule, None, "{miss:?}");
+        }
+        let mapped = Asked {
+            peer: "::ffff:192.168.20.5".parse().unwrap(),
+            ..base
+        };
+        assert_eq!(rules.decide(&mapped).rule, Some(0), "IPv4 on a dual-stack listener");
+    }
+
+    #[test]
+    fn roles_match_tls_masters_by_the_role_their_certificate_carries() {
+        let list = vec![Rule {
+            name: None,
+            masters: Vec::new(),
+            roles: vec!["operator".into()],
+            protocols: Vec::new(),
+            buses: Vec::new(),
+            units: Some("10-19".parse::<UnitSet>().unwrap()),
+            functions: vec![Functions::Write],
+            registers: Vec::new(),
+            action: Action::Acknowledge,
+        }];
+        let rules = Rules::new(&list);
+        let operator = Asked {
+            role: Some("operator"),
+            unit: 12,
+            ..asked(&WRITE_2000)
+        };
+        assert_eq!(rules.decide(&operator).action, Action::Acknowledge);
+        assert_eq!(
+            rules.decide(&Asked { role: None, ..operator }).rule,
+            None
+        );
+        assert_eq!(
+            rules.decide(&Asked { pdu: &READ_2000, ..operator }).rule,
+            None
+        );
+        let diagnostic = rules_with_diagnostic();
+        assert_eq!(diagnostic.decide(&asked(&[0x2B, 0x0E, 1, 0])).rule, Some(0));
+        assert_eq!(diagnostic.decide(&asked(&READ_2000)).rule, None);
+    }
+
+    fn rules_with_diagnostic() -> Rules {
+        rules("[[rule]]\nfunctions = \"diagnostic\"\naction = \"deny\"\n")
+    }
+}
