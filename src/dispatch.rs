@@ -5,13 +5,15 @@
 //! a request are never sent, since a slave framing by length would take them as a request. Either way the session gets a
 //! receiver for its outcome.
 
+use crate::audit::{self, Audit, Pending};
 use crate::bus::{BusHandle, Tally, Waiter};
-use crate::config::UnitSet;
-use crate::error::{Outcome, RequestError};
+use crate::config::{Action, UnitSet};
+use crate::error::{Answer, Outcome, RequestError};
 use crate::master::{Class, MasterId, Origin, Protocol, Rights};
 use crate::metrics::{Metrics, Refusal};
 use crate::pdu::{self, RequestLen};
 use crate::routing::{Router, Target};
+use crate::rules::{self, Rules};
 use std::net::SocketAddr;
 use std::sync::{Arc, PoisonError, RwLock};
 use tokio::sync::oneshot;
@@ -33,6 +35,18 @@ pub struct Client {
     /// they take: its own, or one its listener gives all the masters of one source address
     /// (Modbus UDP).
     pub admission: MasterId,
+    /// Who a TLS master's certificate says it is.
+    pub identity: Option<Arc<Identity>>,
+    /// The setting that limits its rights, as the journal names it (`server.read_only`,
+    /// `server.tls.roles.NAME`); `None` while it may read and write.
+    pub limited_by: Option<Arc<str>>,
+}
+
+/// A TLS master's certificate: its subject and the role it carries, as written.
+#[derive(Debug)]
+pub struct Identity {
+    pub subject: String,
+    pub role: Option<String>,
 }
 
 impl Client {
@@ -45,6 +59,8 @@ impl Client {
             priority: false,
             protocol: Protocol::Tcp,
             admission: master,
+            identity: None,
+            limited_by: (rights < Rights::ReadWrite).then(|| Arc::from("server.read_only")),
         }
     }
 
@@ -62,25 +78,77 @@ impl Client {
     pub(crate) fn addressing(self, units: Option<UnitSet>) -> Self {
         Client { units, ..self }
     }
+
+    /// The same master, with its certificate's `identity`, its rights narrowed to `role_rights`
+    /// by the role `role_key` names (`server.tls.roles.NAME` or
+    /// `server.tls.default_role_access`).
+    pub(crate) fn identified(
+        self,
+        identity: Identity,
+        role_rights: Rights,
+        role_key: String,
+        role_units: bool,
+    ) -> Self {
+        let limited_by = match self.limited_by {
+            Some(by) if self.rights <= role_rights => Some(by),
+            _ if role_rights < Rights::ReadWrite || role_units => Some(Arc::from(role_key)),
+            by => by,
+        };
+        Client {
+            rights: self.rights.min(role_rights),
+            identity: Some(Arc::new(identity)),
+            limited_by,
+            ..self
+        }
+    }
+
+    fn role(&self) -> Option<&str> {
+        self.identity.as_ref().and_then(|i| i.role.as_deref())
+    }
 }
 
-/// The routes and the buses they index, replaced whole on a reload.
+/// The routes, the buses they index and the rules, replaced whole on a reload.
 struct Table {
     router: Router,
     buses: Vec<BusHandle>,
+    rules: Rules,
 }
 
 pub struct Dispatcher {
     table: RwLock<Arc<Table>>,
     metrics: Arc<Metrics>,
+    audit: Arc<Audit>,
 }
 
 impl Dispatcher {
+    /// With no rules and no journal: for the tests that drive the dispatcher on its own.
+    #[cfg(any(test, feature = "test-util"))]
     pub fn new(router: Router, buses: Vec<BusHandle>, metrics: Arc<Metrics>) -> Self {
+        let audit = Audit::new(metrics.clone());
+        Self::with_rules(router, buses, Rules::default(), audit, metrics)
+    }
+
+    pub(crate) fn with_rules(
+        router: Router,
+        buses: Vec<BusHandle>,
+        rules: Rules,
+        audit: Arc<Audit>,
+        metrics: Arc<Metrics>,
+    ) -> Self {
         Dispatcher {
-            table: RwLock::new(Arc::new(Table { router, buses })),
+            table: RwLock::new(Arc::new(Table {
+                router,
+                buses,
+                rules,
+            })),
             metrics,
+            audit,
         }
+    }
+
+    /// The writes' record.
+    pub(crate) fn audit(&self) -> &Arc<Audit> {
+        &self.audit
     }
 
     fn table(&self) -> Arc<Table> {
@@ -90,11 +158,14 @@ impl Dispatcher {
             .clone()
     }
 
-    /// Route by `router` to `buses` from the next request on; requests already queued stay where
-    /// they are.
-    pub fn replace(&self, router: Router, buses: Vec<BusHandle>) {
-        *self.table.write().unwrap_or_else(PoisonError::into_inner) =
-            Arc::new(Table { router, buses });
+    /// Route by `router` to `buses` under `rules` from the next request on; requests already
+    /// queued stay where they are.
+    pub(crate) fn replace(&self, router: Router, buses: Vec<BusHandle>, rules: Rules) {
+        *self.table.write().unwrap_or_else(PoisonError::into_inner) = Arc::new(Table {
+            router,
+            buses,
+            rules,
+        });
     }
 
     pub fn buses(&self) -> Vec<BusHandle> {
@@ -116,12 +187,160 @@ impl Dispatcher {
             protocol: client.protocol,
             class: Class::of_master(client.priority),
         };
-        let refusal = match admit(client, unit, &pdu, target) {
-            Ok(target) => return table.buses[target.bus].submit_from(origin, target.address, pdu),
-            Err(refusal) => refusal,
-        };
-        self.note_refusal(client, refusal);
         let function = pdu.first().copied().unwrap_or(0);
+        // Everything that may change a slave is journaled, whatever becomes of it.
+        let journaled = pdu::is_valid_request_function(function) && !pdu::is_read_only(&pdu);
+        let bus = target.map(|t| table.buses[t.bus].name());
+        let (refusal, pending) = match admit(client, unit, &pdu, target) {
+            Ok(target) => {
+                let asked = rules::Asked {
+                    peer: client.peer.ip(),
+                    role: client.role(),
+                    protocol: client.protocol,
+                    bus,
+                    unit,
+                    pdu: &pdu,
+                };
+                let decision = table.rules.decide(&asked);
+                let rule = decision.rule.map(|at| table.rules.name(at));
+                let pending = if journaled {
+                    let asked = self.asked(client, unit, bus, Some(target), &pdu);
+                    match self.audit.begin(&audit::Asked {
+                        rule,
+                        action: decision.action,
+                        ..asked
+                    }) {
+                        Ok(pending) => Some(pending),
+                        Err(audit::Refused) => {
+                            let refusal = RequestError::Unrecorded(function);
+                            return self.refuse(client, &table, Some(target), unit, function, refusal, None);
+                        }
+                    }
+                } else {
+                    None
+                };
+                let bus = &table.buses[target.bus];
+                match decision.action {
+                    Action::Allow => return bus.submit_journaled(origin, target.address, pdu, pending),
+                    Action::Acknowledge if journaled => {
+                        match acknowledgement(&pdu, target, bus) {
+                            Some(answer) => {
+                                let (waiter, receiver) = Waiter::new(origin, Instant::now());
+                                if let Some(pending) = pending {
+                                    pending.acknowledged();
+                                }
+                                waiter.answer(bus.tally(), target.address, function, Ok(answer));
+                                return receiver;
+                            }
+                            None => {
+                                let refusal = RequestError::Denied {
+                                    function,
+                                    registers: false,
+                                };
+                                let detail = format!(
+                                    "{}: its normal reply is the slave's to make, so it cannot \
+                                     be acknowledged unsent",
+                                    rule.unwrap_or("an acknowledge rule")
+                                );
+                                if let Some(pending) = pending {
+                                    pending.denied(refusal.exception_code() as u8, detail);
+                                }
+                                (refusal, None)
+                            }
+                        }
+                    }
+                    // A read under an `acknowledge` rule goes on: only writes are kept back.
+                    Action::Acknowledge => {
+                        return bus.submit_journaled(origin, target.address, pdu, None)
+                    }
+                    Action::Deny => {
+                        let refusal = RequestError::Denied {
+                            function,
+                            registers: decision.exception(&table.rules)
+                                == pdu::ExceptionCode::IllegalDataAddress,
+                        };
+                        if let Some(pending) = pending {
+                            let detail = format!("{}: deny", rule.unwrap_or("a rule"));
+                            pending.denied(refusal.exception_code() as u8, detail);
+                        }
+                        (refusal, None)
+                    }
+                }
+            }
+            Err(refusal) => {
+                // Refused before any rule: journaled with what refused it.
+                let pending = journaled
+                    .then(|| {
+                        let asked = self.asked(client, unit, bus, target, &pdu);
+                        let access = matches!(
+                            refusal,
+                            RequestError::ReadOnly(_)
+                                | RequestError::NoAccess(_)
+                                | RequestError::UnitNotPermitted(_)
+                                | RequestError::Unverifiable(_)
+                        );
+                        let (rule, action) = match &client.limited_by {
+                            Some(by) if access => (Some(&**by), Action::Deny),
+                            _ => (None, Action::Allow),
+                        };
+                        self.audit
+                            .begin(&audit::Asked {
+                                rule,
+                                action,
+                                ..asked
+                            })
+                            .ok()
+                    })
+                    .flatten();
+                (refusal, pending)
+            }
+        };
+        self.refuse(client, &table, target, unit, function, refusal, pending)
+    }
+
+    /// What the journal needs of a request from `client`, before the rules decide.
+    fn asked<'a>(
+        &self,
+        client: &'a Client,
+        unit: u8,
+        bus: Option<&'a str>,
+        target: Option<Target>,
+        pdu: &'a [u8],
+    ) -> audit::Asked<'a> {
+        audit::Asked {
+            master: client.peer,
+            protocol: client.protocol,
+            subject: client.identity.as_ref().map(|i| i.subject.as_str()),
+            role: client.role(),
+            unit,
+            bus,
+            slave: target.map(|t| t.address),
+            broadcast: target.is_some_and(|t| t.broadcast),
+            pdu,
+            rule: None,
+            action: Action::Allow,
+        }
+    }
+
+    /// Answer `refusal` to `client` at once, unsent; a journaled write's outcome with it.
+    #[allow(clippy::too_many_arguments)]
+    fn refuse(
+        &self,
+        client: &Client,
+        table: &Table,
+        target: Option<Target>,
+        unit: u8,
+        function: u8,
+        refusal: RequestError,
+        pending: Option<Pending>,
+    ) -> oneshot::Receiver<Outcome> {
+        self.note_refusal(client, refusal);
+        let origin = Origin {
+            master: client.master,
+            admission: client.admission,
+            protocol: client.protocol,
+            class: Class::of_master(client.priority),
+        };
         // Counted against the bus and slave the unit routes to, if any; without a route, with
         // no bus and no slave (the unit id is the master's to choose).
         let (tally, slave) = match target {
@@ -129,6 +348,7 @@ impl Dispatcher {
             None => (Tally::Unrouted(&self.metrics), unit),
         };
         let (waiter, receiver) = Waiter::new(origin, Instant::now());
+        let waiter = waiter.journaled(pending);
         waiter.answer(tally, slave, function, Err(refusal));
         receiver
     }
@@ -205,4 +425,16 @@ fn admit(
         }
     };
     Err(refusal)
+}
+
+/// The reply an `acknowledge` rule gives a write in place of the slave: the normal reply the
+/// slave would give (the one the gateway makes for a broadcast), or for a broadcast unit what a
+/// broadcast gets. `None` for a write whose normal reply only the slave can make (it carries
+/// data read, or is the vendor's).
+fn acknowledgement(pdu: &[u8], target: Target, bus: &BusHandle) -> Option<Answer> {
+    let reply = pdu::broadcast_response(pdu)?;
+    if target.broadcast && !bus.broadcast_reply() {
+        return Some(Answer::Nothing);
+    }
+    Some(Answer::Acknowledged(reply))
 }

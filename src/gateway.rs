@@ -12,7 +12,9 @@ use crate::metrics::Metrics;
 use crate::net::server::Shared;
 use crate::net::tls::TlsServer;
 use crate::net::{self, ListenAddrs, Policy};
+use crate::audit::Audit;
 use crate::routing::Router;
+use crate::rules::Rules;
 use crate::shutdown::{self, Stop};
 use crate::sim::{self, SimLine};
 use crate::values::{Exported, Store, Values};
@@ -33,6 +35,8 @@ pub enum StartError {
     Listen { addr: SocketAddr, source: io::Error },
     #[error("{0}")]
     Tls(ConfigErrors),
+    #[error("audit.path: cannot open the audit journal `{path}`: {source}")]
+    Journal { path: String, source: io::Error },
     #[error("bus {bus}: simulated slave {address}: {reason}")]
     SimSlave {
         bus: String,
@@ -81,6 +85,8 @@ pub struct Reloaded {
     pub applied: Vec<String>,
     /// Keys that changed but take a restart to apply (`log.level` is not the gateway's to apply).
     pub need_restart: Vec<String>,
+    /// Changes that could not be applied, each saying what was kept instead and why.
+    pub kept: Vec<String>,
 }
 
 /// A new simulated line for a `device = "sim"` bus, with its slaves powered on.
@@ -151,6 +157,10 @@ impl web::Inspect for Inspected {
 
     fn values(&self) -> &Store {
         &self.values
+    }
+
+    fn writes(&self) -> Vec<crate::audit::Recent> {
+        self.shared.dispatcher.audit().recent()
     }
 }
 
@@ -269,7 +279,24 @@ impl Gateway {
         let values = Values::new();
         metrics.collect_also(Box::new(Exported(values.store().clone())));
         values.apply(config, &handles);
-        let dispatcher = Dispatcher::new(Router::new(config), handles, metrics.clone());
+        let audit = Audit::new(metrics.clone());
+        audit
+            .open(config.audit.as_ref())
+            .map_err(|source| StartError::Journal {
+                path: config
+                    .audit
+                    .as_ref()
+                    .map(|a| a.path.display().to_string())
+                    .unwrap_or_default(),
+                source,
+            })?;
+        let dispatcher = Dispatcher::with_rules(
+            Router::new(config),
+            handles,
+            Rules::new(&config.rule),
+            audit,
+            metrics.clone(),
+        );
         let (stop, stopping) = shutdown::channel();
         let shared = Arc::new(Shared::new(
             dispatcher,
@@ -381,7 +408,17 @@ impl Gateway {
         if diff.values {
             done.applied.push("plant values".to_owned());
         }
-        self.shared.dispatcher.replace(Router::new(new), handles);
+        self.shared
+            .dispatcher
+            .replace(Router::new(new), handles, Rules::new(&new.rule));
+        if new.rule != config.rule {
+            done.applied.push("rules".to_owned());
+        }
+        match self.shared.dispatcher.audit().apply(new.audit.as_ref()) {
+            Ok(Some(what)) => done.applied.push(what),
+            Ok(None) => {}
+            Err(why) => done.kept.push(why),
+        }
         if diff.connection_policy {
             done.applied
                 .push("connection limits and access (for new connections)".to_owned());

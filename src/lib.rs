@@ -8,6 +8,9 @@
 //!   task per connection, Modbus UDP's datagrams.
 //! - `dispatch`: the gateway's immediate answers, or the bus a request goes to.
 //! - `routing`: unit id to (bus, slave address), a pure table.
+//! - `rules`: which `[[rule]]` decides a request (allow, deny, acknowledge), a pure table.
+//! - `audit`: every write-class request as it was decided and as it ended: the journal
+//!   (`[audit]`), written before a write goes to its bus, the last writes, the writes' metrics.
 //! - [`bus`]: one task per line, the only owner of its port: the fair queue (rings and shares,
 //!   coalescing, the cache), reopen, one transaction at a time with retries and broadcast rules,
 //!   reconfiguration between transactions, the one state machine that says whether a slave is
@@ -127,6 +130,10 @@ pub mod testing {
 
         fn values(&self) -> &crate::values::Store {
             &self.0
+        }
+
+        fn writes(&self) -> Vec<crate::audit::Recent> {
+            Vec::new()
         }
     }
 }

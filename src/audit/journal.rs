@@ -41,8 +41,7 @@ struct Failing {
 #[derive(Debug)]
 pub(crate) struct Unwritten {
     /// Refused (0x0A) under `on_error = "deny_writes"`; sent unrecorded under `"allow"`.
-    pub refuse: bool,
-    pub error: String,
+    pub(crate) refuse: bool,
 }
 
 impl Journal {
@@ -115,10 +114,7 @@ impl Journal {
                     failing.unrecorded += 1;
                 }
                 self.metrics.audit.unrecorded(refuse);
-                Err(Unwritten {
-                    refuse,
-                    error: error.to_string(),
-                })
+                Err(Unwritten { refuse })
             }
         }
     }

@@ -54,6 +54,8 @@ pub(crate) struct Asked<'a> {
     /// The bus and slave address its unit routes to, if any.
     pub(crate) bus: Option<&'a str>,
     pub(crate) slave: Option<u8>,
+    /// Its unit routes to address 0 of a line where that is every slave.
+    pub(crate) broadcast: bool,
     pub(crate) pdu: &'a [u8],
     /// The deciding rule's name; `None`: no rule matched.
     pub(crate) rule: Option<&'a str>,
@@ -173,7 +175,7 @@ impl Audit {
             id,
             protocol: asked.protocol,
             action: asked.action,
-            broadcast: asked.slave == Some(crate::line::BROADCAST),
+            broadcast: asked.broadcast,
         })
     }
 

@@ -54,6 +54,8 @@ pub(crate) struct Intake {
     queue_timeout: Duration,
     /// Address 0 is a broadcast on this line (not on a Modbus TCP device's).
     broadcasts: bool,
+    /// A broadcast write is answered with its normal reply.
+    broadcast_reply: bool,
     coalesce: Box<[bool; 256]>,
     cache: Box<[Duration; 256]>,
 }
@@ -63,6 +65,7 @@ impl Intake {
         let mut intake = Intake {
             queue_timeout: settings.queue_timeout,
             broadcasts: settings.framing.broadcasts(),
+            broadcast_reply: settings.broadcast_reply,
             coalesce: Box::new([settings.coalesce_reads; 256]),
             cache: Box::new([Duration::ZERO; 256]),
         };
@@ -172,6 +175,14 @@ impl BusHandle {
         self.queue.set_priority_share(share);
     }
 
+    /// Whether a broadcast write is answered with its normal reply (`broadcast_reply`).
+    pub(crate) fn broadcast_reply(&self) -> bool {
+        self.intake
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .broadcast_reply
+    }
+
     /// [`BusHandle::submit`] for a master of any protocol and class: a read may be answered
     /// from the cache, or join an identical one waiting. Admitted to a full queue in place of
     /// another master's request, that one is refused (queue full).
@@ -180,6 +191,18 @@ impl BusHandle {
         origin: Origin,
         slave: u8,
         pdu: Vec<u8>,
+    ) -> oneshot::Receiver<Outcome> {
+        self.submit_journaled(origin, slave, pdu, None)
+    }
+
+    /// [`BusHandle::submit_from`] for a write whose journal entry (`pending`) is written: its
+    /// outcome is written wherever the request ends.
+    pub(crate) fn submit_journaled(
+        &self,
+        origin: Origin,
+        slave: u8,
+        pdu: Vec<u8>,
+        pending: Option<crate::audit::Pending>,
     ) -> oneshot::Receiver<Outcome> {
         let (deadline, coalesce, cache) = {
             let intake = self.intake.lock().unwrap_or_else(PoisonError::into_inner);
@@ -193,7 +216,7 @@ impl BusHandle {
             )
         };
         let (waiter, outcome) = Waiter::new(origin, deadline);
-        let mut job = Job::new(waiter, slave, pdu);
+        let mut job = Job::new(waiter.journaled(pending), slave, pdu);
         job.coalesce = coalesce;
         if !self.is_up() {
             self.answer(job, Err(RequestError::PortDown));

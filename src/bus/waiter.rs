@@ -3,6 +3,7 @@
 //! refusal by the bus or the dispatcher, a master gone, shutdown) is a [`Waiter`] ended here,
 //! so each request gets exactly one answer and one count. Knows nothing of queues or lines.
 
+use crate::audit::Pending;
 use crate::error::Outcome;
 use crate::master::{Class, Origin};
 use crate::metrics::{BusMetrics, Metrics};
@@ -39,6 +40,8 @@ pub struct Waiter {
     /// If the line has not started it by then, it is answered 0x06 instead.
     pub deadline: Instant,
     reply: oneshot::Sender<Outcome>,
+    /// A write's journal entry, whose outcome is written when it ends.
+    journal: Option<Pending>,
 }
 
 impl Waiter {
@@ -50,8 +53,17 @@ impl Waiter {
             queued_at: Instant::now(),
             deadline,
             reply,
+            journal: None,
         };
         (waiter, outcome)
+    }
+
+    /// The same waiter, writing `pending`'s outcome when it ends.
+    pub(crate) fn journaled(self, pending: Option<Pending>) -> Waiter {
+        Waiter {
+            journal: pending,
+            ..self
+        }
     }
 
     /// Its master has stopped waiting (the connection closed).
@@ -73,12 +85,18 @@ impl Waiter {
     /// Sent, uncounted: for tests of the queue alone, which has no metrics.
     #[cfg(test)]
     pub(super) fn reply(self, outcome: Outcome) {
+        if let Some(pending) = self.journal {
+            pending.end(Some(&outcome));
+        }
         let _ = self.reply.send(outcome);
     }
 
     /// Every end goes through here: counted once, then sent once.
     fn end(self, tally: Tally<'_>, slave: u8, function: u8, outcome: Option<Outcome>) {
         tally.count(slave, function, &self.origin, outcome.as_ref());
+        if let Some(pending) = self.journal {
+            pending.end(outcome.as_ref());
+        }
         if let Some(outcome) = outcome {
             let _ = self.reply.send(outcome);
         }

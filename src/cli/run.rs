@@ -45,6 +45,9 @@ fn reload(path: &Path, gateway: &Gateway, logging: &mut Logging) {
                 if !done.need_restart.is_empty() {
                     warn!(changed = ?done.need_restart, "these changes take a restart");
                 }
+                for kept in &done.kept {
+                    error!(file, error = %kept, "part of the configuration not reloaded");
+                }
             }
             Err(e) => {
                 error!(file, error = %e, "configuration not reloaded; keeping the one in force")

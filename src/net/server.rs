@@ -12,7 +12,7 @@
 use super::listener::{self, Admission, Policy};
 use super::session::{self, Activity, Seen};
 use super::tls::Identity;
-use crate::config::WhenFull;
+use crate::config::{WhenFull, OTHER_ROLE};
 use crate::dispatch::Dispatcher;
 use crate::master::{MasterId, Protocol, Rights, Transport};
 use crate::metrics::{Metrics, Rejection, TcpMetrics, TlsMaster};
@@ -370,7 +370,7 @@ fn prepare(stream: &TcpStream, policy: &Policy, peer: SocketAddr) {
 /// both its address and its certificate's role allow. A handshake turn (one of its address's
 /// share, then one of all) is taken once the peer has sent something, within
 /// [`FIRST_BYTES_WAIT`].
-async fn accept_tls(stream: TcpStream, mut master: Master, policy: &Policy, shared: &Shared) {
+async fn accept_tls(stream: TcpStream, master: Master, policy: &Policy, shared: &Shared) {
     let Some(tls) = policy.tls.clone() else {
         error!(target: TcpMetrics::EVENTS, listen = %master.listen, "a TLS listener without [server.tls]; connection closed");
         return;
@@ -397,7 +397,6 @@ async fn accept_tls(stream: TcpStream, mut master: Master, policy: &Policy, shar
         }
     };
     let identity = tls.identify(stream.get_ref().1.peer_certificates());
-    master.admission.rights = master.admission.rights.min(identity.rights);
     admit(stream, master, Some(identity), policy, shared).await;
 }
 
@@ -459,6 +458,8 @@ async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
         rights,
         priority,
     } = admission;
+    // Its address's rights, narrowed by its certificate's role.
+    let rights = identity.as_ref().map_or(rights, |i| rights.min(i.rights));
     let id = shared.new_master();
     let tcp = &shared.metrics.tcp;
     tcp.accepted(protocol, id, &peer, rights == Rights::ReadOnly);
@@ -487,7 +488,19 @@ async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
         },
     );
     let units = identity.as_ref().and_then(|identity| identity.units);
-    let client = admission.client(id).addressing(units);
+    let mut client = admission.client(id).addressing(units);
+    if let Some(identity) = &identity {
+        let role_key = if identity.role_label == OTHER_ROLE {
+            "server.tls.default_role_access".to_owned()
+        } else {
+            format!("server.tls.roles.{}", identity.role_label)
+        };
+        let who = crate::dispatch::Identity {
+            subject: identity.subject.clone(),
+            role: identity.role.clone(),
+        };
+        client = client.identified(who, identity.rights, role_key, units.is_some());
+    }
     let error = session::run(
         &mut stream,
         protocol.framing(),

@@ -30,6 +30,8 @@ pub(crate) trait Inspect: Send + Sync + 'static {
     fn masters(&self) -> Vec<Connected>;
     /// The plant values as last read.
     fn values(&self) -> &crate::values::Store;
+    /// The last writes, newest last.
+    fn writes(&self) -> Vec<crate::audit::Recent>;
 }
 
 /// The `key=value` pairs of a query string, in order (a key alone has an empty value).
@@ -103,6 +105,7 @@ impl StatusSource {
                 .iter()
                 .map(|m| master_status(m, wall))
                 .collect(),
+            writes: gateway.writes(),
         }
     }
 }

@@ -29,6 +29,9 @@ pub(crate) struct Status {
     /// The masters connected now over TCP (Modbus TCP, RTU over TCP, TLS); UDP masters have no
     /// connection and are not listed.
     pub(crate) masters: Vec<MasterStatus>,
+    /// The last writes (every function that may change a slave), newest last, each with its
+    /// outcome once it has one: the journal's lines (docs/writes.md).
+    pub(crate) writes: Vec<crate::audit::Recent>,
 }
 
 #[derive(Clone, Debug, Serialize)]
