@@ -500,7 +500,12 @@ mod tests {
             let write_single = (prop_oneof![Just(0x05u8), Just(0x06)], any::<[u16; 2]>())
                 .prop_map(|(f, fields)| (pdu(f, &fields), pdu(f, &fields)));
             let status = (any::<u8>()).prop_map(|status| (vec![0x07], vec![0x07, status]));
-            let diagnostics = (any::<u16>(), bytes(0..=250)).prop_map(|(sub, data)| {
+            // Sub-functions with one data word have a length of their own (five bytes), which
+            // other tests pin; these are the ones only silence ends.
+            let by_silence = any::<u16>().prop_filter("a sub-function with one data word", |s| {
+                !matches!(s, 0x0001..=0x0004 | 0x000A..=0x0012 | 0x0014)
+            });
+            let diagnostics = (by_silence, bytes(0..=250)).prop_map(|(sub, data)| {
                 let echo = [pdu(0x08, &[sub]), data].concat();
                 (echo.clone(), echo)
             });
