@@ -181,132 +181,144 @@ impl Dispatcher {
     ) -> oneshot::Receiver<Outcome> {
         let table = self.table();
         let target = table.router.resolve(unit);
-        let origin = Origin {
-            master: client.master,
-            admission: client.admission,
-            protocol: client.protocol,
-            class: Class::of_master(client.priority),
-        };
         let function = pdu.first().copied().unwrap_or(0);
         // Everything that may change a slave is journaled, whatever becomes of it.
         let journaled = pdu::is_valid_request_function(function) && !pdu::is_read_only(&pdu);
-        let bus = target.map(|t| table.buses[t.bus].name());
-        let (refusal, pending) = match admit(client, unit, &pdu, target) {
-            Ok(target) => {
-                let asked = rules::Asked {
-                    peer: client.peer.ip(),
-                    role: client.role(),
-                    protocol: client.protocol,
-                    bus,
-                    unit,
-                    pdu: &pdu,
+        match admit(client, unit, &pdu, target) {
+            Ok(target) => self.ruled(client, &table, target, unit, pdu, journaled),
+            Err(refusal) => {
+                // Refused before any rule: journaled with the setting that refused it.
+                let access = matches!(
+                    refusal,
+                    RequestError::ReadOnly(_)
+                        | RequestError::NoAccess(_)
+                        | RequestError::UnitNotPermitted(_)
+                        | RequestError::Unverifiable(_)
+                );
+                let (rule, action) = match &client.limited_by {
+                    Some(by) if access => (Some(&**by), Action::Deny),
+                    _ => (None, Action::Allow),
                 };
-                let decision = table.rules.decide(&asked);
-                let rule = decision.rule.map(|at| table.rules.name(at));
-                let pending = if journaled {
-                    let asked = self.asked(client, unit, bus, Some(target), &pdu);
-                    match self.audit.begin(&audit::Asked {
-                        rule,
-                        action: decision.action,
-                        ..asked
-                    }) {
-                        Ok(pending) => Some(pending),
-                        Err(audit::Refused) => {
-                            let refusal = RequestError::Unrecorded(function);
-                            return self.refuse(client, &table, Some(target), unit, function, refusal, None);
-                        }
+                let pending = journaled
+                    .then(|| {
+                        let asked = self.asked(client, &table, unit, target, &pdu);
+                        let asked = audit::Asked {
+                            rule,
+                            action,
+                            ..asked
+                        };
+                        self.audit.begin(&asked).ok()
+                    })
+                    .flatten();
+                self.refuse(client, &table, target, unit, function, refusal, pending)
+            }
+        }
+    }
+
+    /// A request the master may make, as the first matching `[[rule]]` decides: sent, refused
+    /// or acknowledged; a write journaled first (refused 0x0A if it cannot be, with
+    /// `on_error = "deny_writes"`).
+    fn ruled(
+        &self,
+        client: &Client,
+        table: &Table,
+        target: Target,
+        unit: u8,
+        pdu: Vec<u8>,
+        journaled: bool,
+    ) -> oneshot::Receiver<Outcome> {
+        let function = pdu.first().copied().unwrap_or(0);
+        let bus = &table.buses[target.bus];
+        let decision = table.rules.decide(&rules::Asked {
+            peer: client.peer.ip(),
+            role: client.role(),
+            protocol: client.protocol,
+            bus: Some(bus.name()),
+            unit,
+            pdu: &pdu,
+        });
+        let rule = decision.rule.map(|at| table.rules.name(at));
+        let mut pending = None;
+        if journaled {
+            let asked = audit::Asked {
+                rule,
+                action: decision.action,
+                ..self.asked(client, table, unit, Some(target), &pdu)
+            };
+            match self.audit.begin(&asked) {
+                Ok(entry) => pending = Some(entry),
+                Err(audit::Refused) => {
+                    let refusal = RequestError::Unrecorded(function);
+                    let target = Some(target);
+                    return self.refuse(client, table, target, unit, function, refusal, None);
+                }
+            }
+        }
+        let rule = rule.unwrap_or("a rule");
+        let refusal = match (decision.action, pending) {
+            (Action::Allow, pending) => return self.send(client, bus, target, pdu, pending),
+            // A read under an `acknowledge` rule goes on: only writes are kept back.
+            (Action::Acknowledge, None) => return self.send(client, bus, target, pdu, None),
+            (Action::Acknowledge, Some(pending)) => {
+                match acknowledgement(&pdu, target, bus) {
+                    Some(answer) => {
+                        pending.acknowledged();
+                        let (waiter, receiver) = Waiter::new(origin_of(client), Instant::now());
+                        waiter.answer(bus.tally(), target.address, function, Ok(answer));
+                        return receiver;
                     }
-                } else {
-                    None
-                };
-                let bus = &table.buses[target.bus];
-                match decision.action {
-                    Action::Allow => return bus.submit_journaled(origin, target.address, pdu, pending),
-                    Action::Acknowledge if journaled => {
-                        match acknowledgement(&pdu, target, bus) {
-                            Some(answer) => {
-                                let (waiter, receiver) = Waiter::new(origin, Instant::now());
-                                if let Some(pending) = pending {
-                                    pending.acknowledged();
-                                }
-                                waiter.answer(bus.tally(), target.address, function, Ok(answer));
-                                return receiver;
-                            }
-                            None => {
-                                let refusal = RequestError::Denied {
-                                    function,
-                                    registers: false,
-                                };
-                                let detail = format!(
-                                    "{}: its normal reply is the slave's to make, so it cannot \
-                                     be acknowledged unsent",
-                                    rule.unwrap_or("an acknowledge rule")
-                                );
-                                if let Some(pending) = pending {
-                                    pending.denied(refusal.exception_code() as u8, detail);
-                                }
-                                (refusal, None)
-                            }
-                        }
-                    }
-                    // A read under an `acknowledge` rule goes on: only writes are kept back.
-                    Action::Acknowledge => {
-                        return bus.submit_journaled(origin, target.address, pdu, None)
-                    }
-                    Action::Deny => {
+                    None => {
                         let refusal = RequestError::Denied {
                             function,
-                            registers: decision.exception(&table.rules)
-                                == pdu::ExceptionCode::IllegalDataAddress,
+                            registers: false,
                         };
-                        if let Some(pending) = pending {
-                            let detail = format!("{}: deny", rule.unwrap_or("a rule"));
-                            pending.denied(refusal.exception_code() as u8, detail);
-                        }
-                        (refusal, None)
+                        let detail = format!(
+                            "{rule}: acknowledge; its normal reply is the slave's to make, so \
+                             it cannot be acknowledged unsent"
+                        );
+                        pending.denied(refusal.exception_code() as u8, detail);
+                        refusal
                     }
                 }
             }
-            Err(refusal) => {
-                // Refused before any rule: journaled with what refused it.
-                let pending = journaled
-                    .then(|| {
-                        let asked = self.asked(client, unit, bus, target, &pdu);
-                        let access = matches!(
-                            refusal,
-                            RequestError::ReadOnly(_)
-                                | RequestError::NoAccess(_)
-                                | RequestError::UnitNotPermitted(_)
-                                | RequestError::Unverifiable(_)
-                        );
-                        let (rule, action) = match &client.limited_by {
-                            Some(by) if access => (Some(&**by), Action::Deny),
-                            _ => (None, Action::Allow),
-                        };
-                        self.audit
-                            .begin(&audit::Asked {
-                                rule,
-                                action,
-                                ..asked
-                            })
-                            .ok()
-                    })
-                    .flatten();
-                (refusal, pending)
+            (Action::Deny, pending) => {
+                let registers =
+                    decision.exception(&table.rules) == pdu::ExceptionCode::IllegalDataAddress;
+                let refusal = RequestError::Denied {
+                    function,
+                    registers,
+                };
+                if let Some(pending) = pending {
+                    pending.denied(refusal.exception_code() as u8, format!("{rule}: deny"));
+                }
+                refusal
             }
         };
-        self.refuse(client, &table, target, unit, function, refusal, pending)
+        self.refuse(client, table, Some(target), unit, function, refusal, None)
+    }
+
+    /// `pdu` on its way to `target` on `bus`, with its journal entry if it has one.
+    fn send(
+        &self,
+        client: &Client,
+        bus: &BusHandle,
+        target: Target,
+        pdu: Vec<u8>,
+        pending: Option<Pending>,
+    ) -> oneshot::Receiver<Outcome> {
+        bus.submit_journaled(origin_of(client), target.address, pdu, pending)
     }
 
     /// What the journal needs of a request from `client`, before the rules decide.
     fn asked<'a>(
         &self,
         client: &'a Client,
+        table: &'a Table,
         unit: u8,
-        bus: Option<&'a str>,
         target: Option<Target>,
         pdu: &'a [u8],
     ) -> audit::Asked<'a> {
+        let bus = target.map(|t| table.buses[t.bus].name());
         audit::Asked {
             master: client.peer,
             protocol: client.protocol,
@@ -335,12 +347,7 @@ impl Dispatcher {
         pending: Option<Pending>,
     ) -> oneshot::Receiver<Outcome> {
         self.note_refusal(client, refusal);
-        let origin = Origin {
-            master: client.master,
-            admission: client.admission,
-            protocol: client.protocol,
-            class: Class::of_master(client.priority),
-        };
+        let origin = origin_of(client);
         // Counted against the bus and slave the unit routes to, if any; without a route, with
         // no bus and no slave (the unit id is the master's to choose).
         let (tally, slave) = match target {
@@ -386,6 +393,16 @@ impl Dispatcher {
         for bus in &self.table().buses {
             bus.forget(master);
         }
+    }
+}
+
+/// Who a request from `client` comes from, as the bus queues it.
+fn origin_of(client: &Client) -> Origin {
+    Origin {
+        master: client.master,
+        admission: client.admission,
+        protocol: client.protocol,
+        class: Class::of_master(client.priority),
     }
 }
 

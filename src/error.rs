@@ -107,9 +107,7 @@ impl RequestError {
             | RequestError::PortDown
             | RequestError::PortLost
             | RequestError::Unrecorded(_)
-            | RequestError::ShuttingDown => {
-                ExceptionCode::GatewayPathUnavailable
-            }
+            | RequestError::ShuttingDown => ExceptionCode::GatewayPathUnavailable,
             RequestError::QueueFull | RequestError::Expired => ExceptionCode::ServerDeviceBusy,
             RequestError::NoResponse { .. } | RequestError::SlaveDown { .. } => {
                 ExceptionCode::GatewayTargetFailedToRespond

@@ -4,6 +4,7 @@
 //! gracefully. Owns their tasks: dropping the gateway stops them. Also where a configuration is
 //! loaded with its simulated drives checked ([`load_config`]): the one place that knows both.
 
+use crate::audit::Audit;
 use crate::bus::{BusHandle, BusTask, BusUpdates, Device, Reconfigure, SerialDriver, TlsDevice};
 use crate::config::{self, BusChange, Config, ConfigDiff, ConfigError, ConfigErrors, DeviceName};
 use crate::dispatch::Dispatcher;
@@ -12,7 +13,6 @@ use crate::metrics::Metrics;
 use crate::net::server::Shared;
 use crate::net::tls::TlsServer;
 use crate::net::{self, ListenAddrs, Policy};
-use crate::audit::Audit;
 use crate::routing::Router;
 use crate::rules::Rules;
 use crate::shutdown::{self, Stop};
@@ -187,6 +187,23 @@ fn load_tls(
     Ok(Some(Arc::new(tls)))
 }
 
+/// The writes' record, with the journal of `[audit]` open; one that cannot be opened is a start
+/// error naming `audit.path`.
+fn open_audit(config: &Config, metrics: &Arc<Metrics>) -> Result<Arc<Audit>, StartError> {
+    let audit = Audit::new(metrics.clone());
+    audit
+        .open(config.audit.as_ref())
+        .map_err(|source| StartError::Journal {
+            path: config
+                .audit
+                .as_ref()
+                .map(|a| a.path.display().to_string())
+                .unwrap_or_default(),
+            source,
+        })?;
+    Ok(audit)
+}
+
 /// The running bus named `name`, taken out of `buses` (the last one takes its place, which is
 /// the order [`ConfigDiff::removed`] follows).
 fn take(buses: &mut Vec<Running>, name: &str) -> Option<Running> {
@@ -279,17 +296,7 @@ impl Gateway {
         let values = Values::new();
         metrics.collect_also(Box::new(Exported(values.store().clone())));
         values.apply(config, &handles);
-        let audit = Audit::new(metrics.clone());
-        audit
-            .open(config.audit.as_ref())
-            .map_err(|source| StartError::Journal {
-                path: config
-                    .audit
-                    .as_ref()
-                    .map(|a| a.path.display().to_string())
-                    .unwrap_or_default(),
-                source,
-            })?;
+        let audit = open_audit(config, &metrics)?;
         let dispatcher = Dispatcher::with_rules(
             Router::new(config),
             handles,

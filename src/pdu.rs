@@ -549,7 +549,11 @@ pub fn touches(pdu: &[u8]) -> Touches {
         READ_HOLDING_REGISTERS => one(span(HoldingRegisters, word_at(pdu, 3))),
         READ_INPUT_REGISTERS => one(span(InputRegisters, word_at(pdu, 3))),
         WRITE_SINGLE_COIL | WRITE_MULTIPLE_COILS => {
-            let quantity = if function == WRITE_SINGLE_COIL { Some(1) } else { word_at(pdu, 3) };
+            let quantity = if function == WRITE_SINGLE_COIL {
+                Some(1)
+            } else {
+                word_at(pdu, 3)
+            };
             one(span(Coils, quantity))
         }
         WRITE_SINGLE_REGISTER | MASK_WRITE_REGISTER | READ_FIFO_QUEUE => {
@@ -566,8 +570,12 @@ pub fn touches(pdu: &[u8]) -> Touches {
                 _ => Touches::Unknown,
             }
         }
-        READ_EXCEPTION_STATUS | DIAGNOSTICS | GET_COMM_EVENT_COUNTER | GET_COMM_EVENT_LOG
-        | REPORT_SERVER_ID | ENCAPSULATED_INTERFACE => Touches::Nothing,
+        READ_EXCEPTION_STATUS
+        | DIAGNOSTICS
+        | GET_COMM_EVENT_COUNTER
+        | GET_COMM_EVENT_LOG
+        | REPORT_SERVER_ID
+        | ENCAPSULATED_INTERFACE => Touches::Nothing,
         _ => Touches::Unknown,
     }
 }
@@ -951,7 +959,10 @@ mod tests {
         assert_eq!(touches(&[]), Touches::Unknown);
         assert_eq!(
             written(&[0x17, 0, 0x10, 0, 2, 0x20, 0, 0, 1, 2, 0xAB, 0xCD]),
-            (Some(span(HoldingRegisters, 0x2000, 0x2000)), &[0xAB, 0xCD][..])
+            (
+                Some(span(HoldingRegisters, 0x2000, 0x2000)),
+                &[0xAB, 0xCD][..]
+            )
         );
         assert_eq!(
             written(&[0x10, 0x00, 0x04, 0x00, 0x02, 0x04, 0x13, 0x88, 0x00, 0x32]),
@@ -962,5 +973,4 @@ mod tests {
         );
         assert_eq!(written(&[0x41, 1, 2]), (None, &[1, 2][..]));
     }
-
 }

@@ -108,7 +108,9 @@ fn matches(rule: &Rule, asked: &Asked<'_>, touches: Touches) -> bool {
     ) && rule.units.is_none_or(|units| units.contains(asked.unit))
         && any(
             rule.functions.is_empty(),
-            rule.functions.iter().any(|f| function_matches(*f, asked.pdu)),
+            rule.functions
+                .iter()
+                .any(|f| function_matches(*f, asked.pdu)),
         )
         && (rule.registers.is_empty() || registers_match(rule, touches))
 }
@@ -284,7 +286,11 @@ mod tests {
             peer: "::ffff:192.168.20.5".parse().unwrap(),
             ..base
         };
-        assert_eq!(rules.decide(&mapped).rule, Some(0), "IPv4 on a dual-stack listener");
+        assert_eq!(
+            rules.decide(&mapped).rule,
+            Some(0),
+            "IPv4 on a dual-stack listener"
+        );
     }
 
     #[test]
@@ -308,11 +314,21 @@ mod tests {
         };
         assert_eq!(rules.decide(&operator).action, Action::Acknowledge);
         assert_eq!(
-            rules.decide(&Asked { role: None, ..operator }).rule,
+            rules
+                .decide(&Asked {
+                    role: None,
+                    ..operator
+                })
+                .rule,
             None
         );
         assert_eq!(
-            rules.decide(&Asked { pdu: &READ_2000, ..operator }).rule,
+            rules
+                .decide(&Asked {
+                    pdu: &READ_2000,
+                    ..operator
+                })
+                .rule,
             None
         );
         let diagnostic = rules_with_diagnostic();

@@ -49,6 +49,8 @@
 //!   for, each in a known state.
 //! - `values`: plant values for Prometheus: a drive's values in their units, a slave that stops
 //!   answering, `GET /values`, bad values and templates refused naming their keys.
+//! - `writes`: `[[rule]]` through every protocol (each match key and action, what reaches the
+//!   line) and the journal of writes: masters, rules and outcomes, reload, start errors.
 //!
 //! `support` has the shared pieces: the workspace's `test-support` crate (gateway start-up, typed
 //! configurations, a bus on the simulated line, a raw master, a pty slave, the test PKI).
@@ -96,3 +98,4 @@ mod transparency;
 mod udp;
 mod values;
 mod values_peers;
+mod writes;

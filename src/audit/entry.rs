@@ -171,10 +171,12 @@ pub(crate) fn now() -> String {
 /// `bytes` as upper-case hex, no separators.
 pub(crate) fn hex(bytes: &[u8]) -> String {
     use std::fmt::Write as _;
-    bytes.iter().fold(String::with_capacity(bytes.len() * 2), |mut out, b| {
-        let _ = write!(out, "{b:02X}");
-        out
-    })
+    bytes
+        .iter()
+        .fold(String::with_capacity(bytes.len() * 2), |mut out, b| {
+            let _ = write!(out, "{b:02X}");
+            out
+        })
 }
 
 #[cfg(test)]
@@ -218,7 +220,10 @@ mod tests {
             detail: Some("no valid reply after 1 attempt(s): no reply".into()),
         });
         let text = serde_json::to_string(&ended).unwrap();
-        assert!(text.contains(r#""outcome":"timeout","carried_out":"maybe""#), "{text}");
+        assert!(
+            text.contains(r#""outcome":"timeout","carried_out":"maybe""#),
+            "{text}"
+        );
         assert_eq!(serde_json::from_str::<Line>(&text).unwrap(), ended);
         assert!(now().ends_with('Z') && now().len() == "2026-11-28T10:15:02.123456Z".len());
     }

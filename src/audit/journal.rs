@@ -247,9 +247,8 @@ fn open_file(path: &Path) -> io::Result<(File, u64)> {
 
 /// `line` as the journal writes it: one JSON object and a newline.
 fn line_of(line: &Line) -> Vec<u8> {
-    let mut bytes = serde_json::to_vec(line).unwrap_or_else(|e| {
-        format!("{{\"kind\":\"error\",\"error\":\"{e}\"}}").into_bytes()
-    });
+    let mut bytes = serde_json::to_vec(line)
+        .unwrap_or_else(|e| format!("{{\"kind\":\"error\",\"error\":\"{e}\"}}").into_bytes());
     bytes.push(b'\n');
     bytes
 }

@@ -217,7 +217,8 @@ impl Audit {
 /// multi-threaded runtime.
 fn in_place<T>(journal: &Journal, f: impl FnOnce() -> T) -> T {
     use tokio::runtime::{Handle, RuntimeFlavor};
-    let multi = Handle::try_current().is_ok_and(|h| h.runtime_flavor() == RuntimeFlavor::MultiThread);
+    let multi =
+        Handle::try_current().is_ok_and(|h| h.runtime_flavor() == RuntimeFlavor::MultiThread);
     if multi && journal.settings().fsync {
         tokio::task::block_in_place(f)
     } else {
@@ -276,7 +277,13 @@ impl Pending {
         self.finish(Outcome::Acknowledged, Carried::No, None, Some(detail));
     }
 
-    fn finish(self, outcome: Outcome, carried: Carried, exception: Option<u8>, detail: Option<String>) {
+    fn finish(
+        self,
+        outcome: Outcome,
+        carried: Carried,
+        exception: Option<u8>,
+        detail: Option<String>,
+    ) {
         let ended = entry::Ended {
             time: entry::now(),
             id: self.id,
@@ -304,7 +311,12 @@ impl Pending {
             Some([function, code, ..]) if function & EXCEPTION_BIT != 0 => {
                 let name = pdu::exception_name(*code).unwrap_or("the vendor's own code");
                 let detail = format!("the slave refused it: {name}");
-                (Outcome::SlaveException, Carried::No, Some(*code), Some(detail))
+                (
+                    Outcome::SlaveException,
+                    Carried::No,
+                    Some(*code),
+                    Some(detail),
+                )
             }
             _ => (Outcome::Answered, Carried::Yes, None, None),
         }
@@ -330,9 +342,12 @@ fn judge_error(error: RequestError) -> (Outcome, Carried, Option<u8>, Option<Str
         | RequestError::Denied { .. }
         | RequestError::NoAccess(_)
         | RequestError::UnitNotPermitted(_)
-        | RequestError::Unverifiable(_) => {
-            (Outcome::Denied, Carried::No, Some(code), Some(error.to_string()))
-        }
+        | RequestError::Unverifiable(_) => (
+            Outcome::Denied,
+            Carried::No,
+            Some(code),
+            Some(error.to_string()),
+        ),
         _ => (
             Outcome::GatewayException,
             Carried::No,

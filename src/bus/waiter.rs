@@ -41,7 +41,7 @@ pub struct Waiter {
     pub deadline: Instant,
     reply: oneshot::Sender<Outcome>,
     /// A write's journal entry, whose outcome is written when it ends.
-    journal: Option<Pending>,
+    journal: Option<Box<Pending>>,
 }
 
 impl Waiter {
@@ -61,7 +61,7 @@ impl Waiter {
     /// The same waiter, writing `pending`'s outcome when it ends.
     pub(crate) fn journaled(self, pending: Option<Pending>) -> Waiter {
         Waiter {
-            journal: pending,
+            journal: pending.map(Box::new),
             ..self
         }
     }

@@ -3,13 +3,13 @@
 //! changes nothing (deriving values is [`resolve`](super::resolve)'s); reports every problem, in
 //! the order of the file, each with its key path. Knows nothing of how a drive is simulated.
 
+use super::audit::{MAX_AUDIT_KEEP, MIN_AUDIT_SIZE};
 use super::defaults;
 use super::rs485::LATENCY_TIMER_MS;
 use super::values;
 use super::DeviceName;
 use super::UnitSet;
 use super::OTHER_ROLE;
-use super::audit::{MAX_AUDIT_KEEP, MIN_AUDIT_SIZE};
 use super::{Audit, Bus, Config, ConfigError, ConfigErrors, Route, Rule, Server, SimSlave};
 use super::{Templates, Tls};
 use super::{MAX_SLAVE_ADDRESS, SIM_DEVICE};

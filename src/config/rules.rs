@@ -340,7 +340,10 @@ mod tests {
         ));
         let text = found.join("\n");
         assert!(text.contains("rule[0].functions"), "{text}");
-        assert!(text.contains("no function code a master may send"), "{text}");
+        assert!(
+            text.contains("no function code a master may send"),
+            "{text}"
+        );
         assert!(text.contains("rule[1].registers"), "{text}");
         assert!(text.contains("rule[2].protocols"), "{text}");
         assert!(text.contains("rule[3].action"), "{text}");

@@ -70,6 +70,8 @@ impl Inner {
     /// Make `job` a follower of an identical read at the head of another master's FIFO, if it
     /// may: a coalescing read, of a master with nothing else waiting, the leader from the same
     /// epoch, and (for a priority master) a priority leader.
+    // The job handed back is moved, not boxed: a box would cost an allocation per request.
+    #[allow(clippy::result_large_err)]
     pub(super) fn join(&mut self, job: Job) -> Result<(), Job> {
         let master_busy =
             self.queues.contains_key(&job.master()) || self.following.contains_key(&job.master());

@@ -184,6 +184,8 @@ impl FairQueue {
     /// answer younger than `cache` is there. A full queue takes it only in place of the newest
     /// job of a master holding more than its share, which comes back with it, to be refused;
     /// otherwise a full or closed queue hands `job` back.
+    // The job handed back is moved, not boxed: a box would cost an allocation per request.
+    #[allow(clippy::result_large_err)]
     pub fn push(&self, mut job: Job, cache: Duration) -> Result<(Pushed, Option<Job>), Job> {
         let (pushed, evicted) = {
             let mut inner = self.lock();
