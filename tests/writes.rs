@@ -115,16 +115,31 @@ async fn a_read_only_house_lets_only_the_wallbox_setpoint_be_written_and_journal
         [0x03, 0x02, 0, 0],
         "reads go on"
     );
+    // A hostile master: a read of the setpoint that writes register 0x0010 is no setpoint write.
+    let read_setpoint_write_other = [0x17, 0x20, 0x00, 0, 1, 0x00, 0x10, 0, 1, 2, 0xAB, 0xCD];
+    assert_eq!(
+        master.call(6, 1, &read_setpoint_write_other).await,
+        [0x97, 0x01]
+    );
+    // The setpoint write with a second write hidden after it: refused by its length first.
+    let hidden = [&SETPOINT[..], &OTHER_WRITE[..]].concat();
+    assert_eq!(master.call(7, 1, &hidden).await, [0x86, 0x03]);
     assert_eq!(
         sent(&gateway, "sim"),
         [(1, SETPOINT.to_vec()), (2, READ.to_vec())],
         "only the setpoint and the read reached the line"
     );
 
-    let ended = ended_writes(&journal, 4).await;
-    assert_eq!(ended.len(), 4, "the read is not journaled");
+    let ended = ended_writes(&journal, 6).await;
+    assert_eq!(ended.len(), 6, "the read is not journaled");
+    assert_eq!(ended[4].1["outcome"], "denied");
+    // What the master sent is kept as evidence, hidden bytes and all.
+    assert_eq!(ended[5].0["values"], "13880600100001");
+    assert_eq!(ended[5].1["outcome"], "gateway_exception");
+    assert_eq!(ended[5].1["exception"], 3);
+    let ended = &ended[..4];
     let port = master_port(&ended[0].0);
-    for (write, _) in &ended {
+    for (write, _) in ended {
         assert_eq!(write["protocol"], "tcp");
         assert_eq!(master_port(write), port, "{write}");
     }
@@ -171,7 +186,8 @@ async fn a_read_only_house_lets_only_the_wallbox_setpoint_be_written_and_journal
         )
     };
     assert_eq!(scrape.value(&series("allow", "answered")), 1.0);
-    assert_eq!(scrape.value(&series("deny", "denied")), 3.0);
+    assert_eq!(scrape.value(&series("deny", "denied")), 4.0);
+    assert_eq!(scrape.value(&series("allow", "gateway_exception")), 1.0);
     let denied = "modbus_gateway_requests_total{bus=\"sim\",function=\"0x06\",outcome=\"denied\",protocol=\"tcp\",slave=\"1\"}";
     assert_eq!(scrape.value(denied), 1.0);
 }
