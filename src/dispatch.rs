@@ -259,28 +259,26 @@ impl Dispatcher {
             (Action::Allow, pending) => return self.send(client, bus, target, pdu, pending),
             // A read under an `acknowledge` rule goes on: only writes are kept back.
             (Action::Acknowledge, None) => return self.send(client, bus, target, pdu, None),
-            (Action::Acknowledge, Some(pending)) => {
-                match acknowledgement(&pdu, target, bus) {
-                    Some(answer) => {
-                        pending.acknowledged();
-                        let (waiter, receiver) = Waiter::new(origin_of(client), Instant::now());
-                        waiter.answer(bus.tally(), target.address, function, Ok(answer));
-                        return receiver;
-                    }
-                    None => {
-                        let refusal = RequestError::Denied {
-                            function,
-                            registers: false,
-                        };
-                        let detail = format!(
-                            "{rule}: acknowledge; its normal reply is the slave's to make, so \
-                             it cannot be acknowledged unsent"
-                        );
-                        pending.denied(refusal.exception_code() as u8, detail);
-                        refusal
-                    }
+            (Action::Acknowledge, Some(pending)) => match acknowledgement(&pdu, target, bus) {
+                Some(answer) => {
+                    pending.acknowledged();
+                    let (waiter, receiver) = Waiter::new(origin_of(client), Instant::now());
+                    waiter.answer(bus.tally(), target.address, function, Ok(answer));
+                    return receiver;
                 }
-            }
+                None => {
+                    let refusal = RequestError::Denied {
+                        function,
+                        registers: false,
+                    };
+                    let detail = format!(
+                        "{rule}: acknowledge; its normal reply is the slave's to make, so \
+                             it cannot be acknowledged unsent"
+                    );
+                    pending.denied(refusal.exception_code() as u8, detail);
+                    refusal
+                }
+            },
             (Action::Deny, pending) => {
                 let registers =
                     decision.exception(&table.rules) == pdu::ExceptionCode::IllegalDataAddress;

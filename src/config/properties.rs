@@ -5,6 +5,7 @@ use super::check::{MAX_GARBAGE, MAX_RETRIES};
 use super::*;
 use crate::gateway::config_from_toml;
 use crate::line::{Framing, Parity};
+use crate::master::Protocol;
 use ipnet::IpNet;
 use proptest::prelude::*;
 use std::collections::BTreeMap;
@@ -380,6 +381,84 @@ fn routes(buses: usize) -> impl Strategy<Value = Vec<(UnitSet, usize, Target)>> 
 
 /// A configuration that validates: every section, a few buses (some simulated), slaves,
 /// simulated slaves and routes.
+/// Up to three rules, each with some of the match keys (names unique by position).
+fn rules() -> impl Strategy<Value = Vec<Rule>> {
+    use crate::config::{Action, Functions, Registers};
+    let function = prop_oneof![
+        (1u8..=0x7F).prop_map(Functions::Code),
+        Just(Functions::Read),
+        Just(Functions::Write),
+        Just(Functions::Diagnostic),
+    ];
+    let registers = (any::<u16>(), any::<u16>()).prop_map(|(a, b)| Registers {
+        first: a.min(b),
+        last: a.max(b),
+    });
+    let protocol = prop_oneof![
+        Just(Protocol::Tcp),
+        Just(Protocol::RtuOverTcp),
+        Just(Protocol::Udp),
+        Just(Protocol::Tls),
+    ];
+    let rule = (
+        any::<bool>(),
+        prop::collection::vec(net(), 0..3),
+        prop::collection::vec("[a-z]{1,8}", 0..2),
+        prop::collection::vec(protocol, 0..3),
+        address_sets(1).prop_map(|sets| sets.into_iter().next()),
+        prop::collection::vec(function, 0..3),
+        prop::collection::vec(registers, 0..3),
+        prop_oneof![
+            Just(Action::Allow),
+            Just(Action::Deny),
+            Just(Action::Acknowledge)
+        ],
+    )
+        .prop_map(
+            |(named, masters, roles, protocols, units, functions, registers, action)| Rule {
+                name: named.then(String::new),
+                masters,
+                roles,
+                protocols,
+                buses: Vec::new(),
+                units: units.filter(|u| !u.is_empty()),
+                functions,
+                registers,
+                action,
+            },
+        );
+    prop::collection::vec(rule, 0..3).prop_map(|mut rules| {
+        for (i, rule) in rules.iter_mut().enumerate() {
+            if rule.name.is_some() {
+                rule.name = Some(format!("rule-{i}"));
+            }
+        }
+        rules
+    })
+}
+
+fn audit() -> impl Strategy<Value = crate::config::Audit> {
+    use crate::config::{Audit, ByteSize, OnError};
+    (
+        "/var/lib/[a-z]{1,8}\\.jsonl",
+        4096u64..(1 << 40),
+        1u32..=1000,
+        any::<bool>(),
+        any::<bool>(),
+    )
+        .prop_map(|(path, size, keep, allow, fsync)| Audit {
+            path: path.into(),
+            max_size: ByteSize(size),
+            keep,
+            on_error: if allow {
+                OnError::Allow
+            } else {
+                OnError::DenyWrites
+            },
+            fsync,
+        })
+}
+
 fn config() -> impl Strategy<Value = Config> {
     let parts = (
         server(),
@@ -390,73 +469,87 @@ fn config() -> impl Strategy<Value = Config> {
     parts
         .prop_flat_map(|(server, metrics, log, buses)| {
             let n = buses.len();
-            (Just((server, metrics, log, buses)), routes(n))
+            (
+                Just((server, metrics, log, buses)),
+                routes(n),
+                rules(),
+                prop::option::of(audit()),
+            )
         })
-        .prop_map(|((server, metrics, log, mut bus), wanted)| {
-            // Unique names: the generated prefix plus the position; a serial device, or a device
-            // server's port, once.
-            let mut devices = std::collections::BTreeSet::new();
-            for (i, b) in bus.iter_mut().enumerate() {
-                b.name = format!("{}{i}", b.name);
-                let owned = match b.device_name() {
-                    crate::config::DeviceName::Server(addr) => {
-                        format!("{}:{}", addr.host, addr.port)
-                    }
-                    _ => b.device.clone(),
-                };
-                if !b.is_sim() && !devices.insert(owned) {
-                    b.device = match b.device_name() {
+        .prop_map(
+            |((server, metrics, log, mut bus), wanted, mut rule, audit)| {
+                // Unique names: the generated prefix plus the position; a serial device, or a device
+                // server's port, once.
+                let mut devices = std::collections::BTreeSet::new();
+                for (i, b) in bus.iter_mut().enumerate() {
+                    b.name = format!("{}{i}", b.name);
+                    let owned = match b.device_name() {
                         crate::config::DeviceName::Server(addr) => {
-                            format!("{}://uniq{i}:{}", addr.mode.scheme(), addr.port)
+                            format!("{}:{}", addr.host, addr.port)
                         }
-                        _ => format!("{}-{i}", b.device),
+                        _ => b.device.clone(),
                     };
-                    devices.insert(b.device.clone());
-                }
-            }
-            let mut routed = UnitSet::default();
-            let mut route = Vec::new();
-            for (units, b, target) in wanted {
-                let mut fresh = UnitSet::default();
-                units
-                    .iter()
-                    .filter(|&u| !routed.contains(u))
-                    .for_each(|u| fresh.insert(u));
-                let (Some(low), Some(high)) = (fresh.iter().next(), fresh.iter().last()) else {
-                    continue;
-                };
-                let (low, high) = (i32::from(low), i32::from(high));
-                let max = i32::from(MAX_SLAVE_ADDRESS);
-                let (address, offset) = match target {
-                    Target::Same if high <= max => (None, None),
-                    Target::Offset(at) if high - low <= max => {
-                        let span = f64::from(max - high + low);
-                        (None, Some(-low + (at * span) as i32))
+                    if !b.is_sim() && !devices.insert(owned) {
+                        b.device = match b.device_name() {
+                            crate::config::DeviceName::Server(addr) => {
+                                format!("{}://uniq{i}:{}", addr.mode.scheme(), addr.port)
+                            }
+                            _ => format!("{}-{i}", b.device),
+                        };
+                        devices.insert(b.device.clone());
                     }
-                    Target::Address(a) => (Some(a), None),
-                    _ => (Some(1), None),
-                };
-                fresh.iter().for_each(|u| routed.insert(u));
-                route.push(Route {
-                    units: fresh,
-                    bus: bus[b].name.clone(),
-                    address,
-                    offset,
-                });
-            }
-            Config {
-                template_dir: None,
-                server,
-                metrics: Metrics { listen: metrics },
-                log,
-                bus,
-                route,
-                rule: Vec::new(),
-                audit: None,
-                templates: crate::config::Templates::load(None, "template_dir")
-                    .expect("the shipped templates"),
-            }
-        })
+                }
+                let mut routed = UnitSet::default();
+                let mut route = Vec::new();
+                for (units, b, target) in wanted {
+                    let mut fresh = UnitSet::default();
+                    units
+                        .iter()
+                        .filter(|&u| !routed.contains(u))
+                        .for_each(|u| fresh.insert(u));
+                    let (Some(low), Some(high)) = (fresh.iter().next(), fresh.iter().last()) else {
+                        continue;
+                    };
+                    let (low, high) = (i32::from(low), i32::from(high));
+                    let max = i32::from(MAX_SLAVE_ADDRESS);
+                    let (address, offset) = match target {
+                        Target::Same if high <= max => (None, None),
+                        Target::Offset(at) if high - low <= max => {
+                            let span = f64::from(max - high + low);
+                            (None, Some(-low + (at * span) as i32))
+                        }
+                        Target::Address(a) => (Some(a), None),
+                        _ => (Some(1), None),
+                    };
+                    fresh.iter().for_each(|u| routed.insert(u));
+                    route.push(Route {
+                        units: fresh,
+                        bus: bus[b].name.clone(),
+                        address,
+                        offset,
+                    });
+                }
+                // Rules name buses that exist, and roles only where TLS masters have them.
+                for r in &mut rule {
+                    r.buses.extend(bus.first().map(|b| b.name.clone()));
+                    if server.tls.is_none() {
+                        r.roles.clear();
+                    }
+                }
+                Config {
+                    template_dir: None,
+                    server,
+                    metrics: Metrics { listen: metrics },
+                    log,
+                    bus,
+                    route,
+                    rule,
+                    audit,
+                    templates: crate::config::Templates::load(None, "template_dir")
+                        .expect("the shipped templates"),
+                }
+            },
+        )
 }
 
 /// Where a key sits in the TOML document: `bus[1].slave[0].address`.
@@ -572,6 +665,31 @@ fn mutations(config: &Config) -> Vec<(String, toml::Value)> {
         if k > 0 {
             key("units", text(&config.route[0].units.to_string()));
         }
+    }
+    for (k, rule) in config.rule.iter().enumerate() {
+        let mut key = |field: &str, value| out.push((format!("rule[{k}].{field}"), value));
+        key("action", text("block"));
+        key("buses", text("nowhere"));
+        key("functions", Integer(0x80));
+        key("functions", text("writes"));
+        key("registers", text("0x2001-0x2000"));
+        key("registers", text("65536"));
+        key("protocols", text("modbus"));
+        key("masters", text("plc"));
+        key("units", text("300"));
+        if k > 0 && rule.name.is_some() && config.rule[0].name.is_some() {
+            key(
+                "name",
+                text(config.rule[0].name.as_deref().unwrap_or_default()),
+            );
+        }
+    }
+    if config.audit.is_some() {
+        out.push(("audit.max_size".to_owned(), Integer(4095)));
+        out.push(("audit.max_size".to_owned(), text("10 mb")));
+        out.push(("audit.keep".to_owned(), Integer(0)));
+        out.push(("audit.on_error".to_owned(), text("ignore")));
+        out.push(("audit.path".to_owned(), text("")));
     }
     out
 }

@@ -502,9 +502,10 @@ mod tests {
             let status = (any::<u8>()).prop_map(|status| (vec![0x07], vec![0x07, status]));
             // Sub-functions with one data word have a length of their own (five bytes), which
             // other tests pin; these are the ones only silence ends.
-            let by_silence = any::<u16>().prop_filter("a sub-function with one data word", |s| {
-                !matches!(s, 0x0001..=0x0004 | 0x000A..=0x0012 | 0x0014)
-            });
+            let by_silence = any::<u16>().prop_filter(
+                "a sub-function with one data word",
+                |s| !matches!(s, 0x0001..=0x0004 | 0x000A..=0x0012 | 0x0014),
+            );
             let diagnostics = (by_silence, bytes(0..=250)).prop_map(|(sub, data)| {
                 let echo = [pdu(0x08, &[sub]), data].concat();
                 (echo.clone(), echo)
