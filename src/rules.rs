@@ -73,11 +73,13 @@ impl Rules {
 
     /// The first rule that matches `asked`, and its action; none: allowed.
     pub(crate) fn decide(&self, asked: &Asked<'_>) -> Decision {
-        let touches = pdu::touches(asked.pdu);
-        let found = self
-            .list
-            .iter()
-            .position(|rule| matches(rule, asked, touches));
+        // What the request touches is read once, and only if a rule asks.
+        let mut touches = None;
+        let found = self.list.iter().position(|rule| {
+            matches(rule, asked, || {
+                *touches.get_or_insert_with(|| pdu::touches(asked.pdu))
+            })
+        });
         Decision {
             rule: found,
             action: found.map_or(Action::Allow, |at| self.list[at].action),
@@ -85,7 +87,7 @@ impl Rules {
     }
 }
 
-fn matches(rule: &Rule, asked: &Asked<'_>, touches: Touches) -> bool {
+fn matches(rule: &Rule, asked: &Asked<'_>, touches: impl FnOnce() -> Touches) -> bool {
     // A dual-stack listener sees IPv4 masters as ::ffff:a.b.c.d; rules name them as IPv4.
     let peer = asked.peer.to_canonical();
     let any = |empty: bool, found: bool| empty || found;
@@ -112,7 +114,7 @@ fn matches(rule: &Rule, asked: &Asked<'_>, touches: Touches) -> bool {
                 .iter()
                 .any(|f| function_matches(*f, asked.pdu)),
         )
-        && (rule.registers.is_empty() || registers_match(rule, touches))
+        && (rule.registers.is_empty() || registers_match(rule, touches()))
 }
 
 fn function_matches(functions: Functions, pdu: &[u8]) -> bool {

@@ -443,8 +443,9 @@ async fn a_tls_role_rule_acknowledges_the_operators_writes_and_the_journal_names
 async fn the_journal_records_a_timeout_a_slave_exception_a_broadcast_and_read_only_refusals_but_no_read(
 ) {
     let journal = dir("outcomes").join("w.jsonl");
+    // With fsync: each write waits for its entry to reach the disk, then goes on.
     let toml = format!(
-        "{}\n{}",
+        "{}\n{}fsync = true\n",
         sim_config_with_server(
             "read_only = \"127.0.0.9\"",
             "response_timeout = \"100ms\"\nturnaround_delay = \"20ms\""

@@ -1,8 +1,10 @@
 //! The journal's lines: what the gateway writes and `modbus-gateway audit` reads back, one JSON
 //! object a line, told apart by `kind`. A write has two lines sharing its `id`: the `write`,
-//! written before anything is sent, and its `outcome`, written when it ends. `open` starts each
-//! run of the gateway on the journal (ids count from 1 again after it); `gap` says how many
-//! writes went unrecorded, or were refused, while the journal could not be written.
+//! written before anything is sent, and its `outcome`, written when it ends. Ids count from 1
+//! when the gateway starts and are never reused while it runs; `open` is written when the
+//! gateway opens a journal (at start, or a reload's new path), so the ids after an `open` that
+//! starts a run count from 1 again. `gap` says how many writes went unrecorded, or were
+//! refused, while the journal could not be written.
 
 use serde::{Deserialize, Serialize};
 
@@ -91,6 +93,10 @@ pub(crate) struct Gap {
     pub(crate) since: String,
     pub(crate) unrecorded: u64,
     pub(crate) refused: u64,
+    /// Outcome lines of writes that could not be written: those writes read "no outcome
+    /// recorded".
+    #[serde(default)]
+    pub(crate) lost_outcomes: u64,
     /// The first error.
     pub(crate) error: String,
 }

@@ -15,7 +15,7 @@ use crate::metrics::Metrics;
 use crate::pdu::{self, EXCEPTION_BIT};
 use entry::{Carried, Line, Outcome, Write};
 pub(crate) use journal::rotated;
-use journal::Journal;
+use journal::{Journal, Ticket};
 use serde::Serialize;
 use std::collections::VecDeque;
 use std::io;
@@ -154,9 +154,13 @@ impl Audit {
         };
         let journal = self.journal();
         let mut recorded = None;
+        let mut ticket = None;
         if let Some(journal) = &journal {
-            match in_place(journal, || journal.record(&Line::Write(write.clone()))) {
-                Ok(()) => recorded = Some(journal.clone()),
+            match journal.record(&Line::Write(write.clone())) {
+                Ok(sync) => {
+                    recorded = Some(journal.clone());
+                    ticket = sync;
+                }
                 Err(unwritten) if unwritten.refuse => {
                     let protocol = asked.protocol.label();
                     let outcome = Outcome::GatewayException.label();
@@ -172,6 +176,7 @@ impl Audit {
         Ok(Pending {
             audit: self.clone(),
             journal: recorded,
+            ticket,
             id,
             protocol: asked.protocol,
             action: asked.action,
@@ -213,19 +218,6 @@ impl Audit {
     }
 }
 
-/// Run `f`, which may sync a file to the disk, where it does not hold up the other tasks of a
-/// multi-threaded runtime.
-fn in_place<T>(journal: &Journal, f: impl FnOnce() -> T) -> T {
-    use tokio::runtime::{Handle, RuntimeFlavor};
-    let multi =
-        Handle::try_current().is_ok_and(|h| h.runtime_flavor() == RuntimeFlavor::MultiThread);
-    if multi && journal.settings().fsync {
-        tokio::task::block_in_place(f)
-    } else {
-        f()
-    }
-}
-
 /// A journaled write on its way: its outcome is written when it ends. Ended once, by whoever
 /// ends its request; dropped unended (the gateway aborted mid-request), it leaves its entry
 /// without an outcome, which reads "may have been carried out".
@@ -233,6 +225,8 @@ fn in_place<T>(journal: &Journal, f: impl FnOnce() -> T) -> T {
 pub(crate) struct Pending {
     audit: Arc<Audit>,
     journal: Option<Arc<Journal>>,
+    /// With `fsync`: the entry's place in the line to the disk.
+    ticket: Option<Ticket>,
     id: u64,
     protocol: Protocol,
     action: Action,
@@ -252,6 +246,15 @@ impl std::fmt::Debug for Journal {
 }
 
 impl Pending {
+    /// Whether the write may go on the wire now: at once, or with `fsync` once its entry is on
+    /// the disk. `false`: syncing it failed and `on_error = "deny_writes"` refuses it.
+    pub(crate) async fn durable(&self) -> bool {
+        let (Some(ticket), Some(journal)) = (&self.ticket, &self.journal) else {
+            return true;
+        };
+        ticket.synced().await || !journal.sync_failed()
+    }
+
     /// The request ended in `outcome`; `None`: its master left before it was sent.
     pub(crate) fn end(self, outcome: Option<&Ended>) {
         let (outcome, carried, exception, detail) = match outcome {

@@ -130,6 +130,11 @@ impl BusTask {
         let Some(job) = self.settle_waiters(job) else {
             return Ok(());
         };
+        if !job.waiter.durable().await {
+            let refusal = RequestError::Unrecorded(job.function());
+            self.handle.answer(job, Err(refusal));
+            return Ok(());
+        }
         let now = Instant::now();
         let admission = self.health.admit(job.slave, now, self.current.derived.down);
         if let Admission::Skip { timeouts } = admission {

@@ -142,6 +142,11 @@ impl BusTask {
     /// is down. Returns why serving ends, if it does.
     async fn run_job(&mut self, serving: &mut Serving<'_>, job: Job) -> Option<Served> {
         let job = self.settle_waiters(job)?;
+        if !job.waiter.durable().await {
+            let refusal = RequestError::Unrecorded(job.function());
+            self.handle.answer(job, Err(refusal));
+            return None;
+        }
         let broadcast = job.slave == BROADCAST && self.current.derived.framing.broadcasts();
         let admission = if broadcast {
             Admission::Send

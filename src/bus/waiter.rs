@@ -66,6 +66,15 @@ impl Waiter {
         }
     }
 
+    /// Whether its request may go on the wire now: a write waits here for its journal entry to
+    /// reach the disk (`audit.fsync`); `false` if it cannot, and the journal refuses the write.
+    pub(crate) async fn durable(&self) -> bool {
+        match &self.journal {
+            Some(pending) => pending.durable().await,
+            None => true,
+        }
+    }
+
     /// Its master has stopped waiting (the connection closed).
     pub(crate) fn is_gone(&self) -> bool {
         self.reply.is_closed()

@@ -1,7 +1,7 @@
 //! The writes' metrics and the journal's events: writes by protocol, rule action and outcome;
 //! the journal's errors, the writes it could not record, whether it is writable now and how
 //! big its file is. Labels come as plain words from the journal's side (bounded sets: four
-//! protocols, three actions, eight outcomes, three operations).
+//! protocols, three actions, eight outcomes, four operations).
 
 use super::Definer;
 use prometheus::{IntCounterVec, IntGaugeVec};
@@ -12,7 +12,7 @@ use tracing::{debug, error, info};
 const NONE: &[&str] = &[];
 
 /// What the journal was doing when it failed: the `operation` label.
-const OPERATIONS: [&str; 3] = ["open", "write", "rotate"];
+const OPERATIONS: [&str; 4] = ["open", "write", "rotate", "sync"];
 
 pub struct AuditMetrics {
     writes: IntCounterVec,
@@ -30,7 +30,7 @@ impl AuditMetrics {
     pub(super) fn new(define: &Definer) -> Self {
         let errors = define.int_counter(
             "modbus_gateway_audit_errors_total",
-            "Audit journal operations that failed (open, write, rotate).",
+            "Audit journal operations that failed (open, write, rotate, sync).",
             &["operation"],
         );
         for operation in OPERATIONS {
