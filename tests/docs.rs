@@ -34,7 +34,12 @@ fn every_configuration_key_is_documented_in_the_configuration_reference() {
          match_transaction_id = false\n\
          [bus.tls]\ncertificate = \"e\"\nprivate_key = \"f\"\nca = \"g\"\nserver_name = \"h\"\n\
          [[bus]]\nname = \"e\"\ndevice = \"tcp://h:3\"\nframing = \"tcp\"\nmax_in_flight = 4\n\
-         [[route]]\nunits = \"255\"\nbus = \"a\"\naddress = 1\n",
+         [[route]]\nunits = \"255\"\nbus = \"a\"\naddress = 1\n\
+         [[rule]]\nname = \"r\"\nmasters = \"10.3.0.0/16\"\nroles = \"viewer\"\n\
+         protocols = \"tls\"\nbuses = \"a\"\nunits = \"1-4\"\nfunctions = \"write\"\n\
+         registers = \"0x2000-0x2001\"\naction = \"deny\"\n\
+         [audit]\npath = \"w.jsonl\"\nmax_size = \"1MiB\"\nkeep = 2\non_error = \"allow\"\n\
+         fsync = true\n",
     )
     .expect("a valid configuration");
     let printed = config.to_toml();
@@ -177,7 +182,8 @@ fn the_readme_links_every_docs_page() {
 /// config/gateway.toml with every commented `key = value` line and table header uncommented,
 /// but for the tables this file's bus or machine cannot take: `[server.tls]` (its files are not
 /// here, and `listen_tls` needs them) and `[[bus.sim_slave]]` (only on a `device = "sim"` bus),
-/// and the route's `address`, the alternative to its `offset`.
+/// the route's `address`, the alternative to its `offset`, and the rule's `roles` (which needs
+/// `[server.tls]`).
 fn gateway_toml_uncommented() -> String {
     let mut skipping = false;
     let mut out = String::new();
@@ -190,7 +196,9 @@ fn gateway_toml_uncommented() -> String {
                 .strip_prefix('#')
                 .and_then(|rest| rest.split_once(" = "))
                 .is_some_and(|(key, _)| key.chars().all(|c| c.is_ascii_lowercase() || c == '_'));
-        let excepted = line.starts_with("#address = 17") || line.starts_with("#listen_tls = ");
+        let excepted = line.starts_with("#address = 17")
+            || line.starts_with("#listen_tls = ")
+            || line.starts_with("#roles = [");
         if commented_setting && !skipping && !excepted {
             out.push_str(&line[1..]);
         } else {
