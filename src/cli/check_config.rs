@@ -166,5 +166,41 @@ fn describe(path: &Path, config: &Config, tls: Option<&TlsServer>, now: SystemTi
     if let Some(tls) = tls {
         out += &describe_tls(config, tls, now);
     }
+    out += &describe_writes(config);
     out + "\n" + &config.to_toml()
+}
+
+/// How writes are decided and recorded: the rules in their order, the journal.
+fn describe_writes(config: &Config) -> String {
+    let mut out = String::new();
+    if !config.rule.is_empty() {
+        let names: Vec<String> = config
+            .rule
+            .iter()
+            .enumerate()
+            .map(|(at, rule)| format!("{} ({})", rule.display_name(at), rule.action.label()))
+            .collect();
+        out += &format!(
+            "# rules, first match deciding, after server.read_only and the TLS roles: {}; a \
+             request no rule matches goes on.\n",
+            names.join(", ")
+        );
+    }
+    out += &match &config.audit {
+        None => "# writes are not journaled (no [audit]).\n".to_owned(),
+        Some(audit) => format!(
+            "# every write is journaled in {} before it is sent{}; rotated at {}, {} older \
+             files kept; if an entry cannot be written, {} (not opened here: the running \
+             gateway opens it).\n",
+            audit.path.display(),
+            if audit.fsync { ", synced to the disk" } else { "" },
+            audit.max_size,
+            audit.keep,
+            match audit.on_error {
+                crate::config::OnError::DenyWrites => "writes get 0x0A",
+                crate::config::OnError::Allow => "writes go on unrecorded",
+            }
+        ),
+    };
+    out
 }
