@@ -1,13 +1,14 @@
 //! The `modbus-gateway` command: `run` (the default) serves the configured gateway until SIGINT or
 //! SIGTERM; `check-config` validates the file and prints the resolved configuration; `simulate`
 //! serves a bus's simulated slaves on a real serial device or a pty; `trace` prints the frames on
-//! the lines of a running gateway; `completions` and `man` describe this command line. This file
+//! the lines of a running gateway; `audit` prints the journal of writes (`[audit]`), each write
+//! with its outcome; `completions` and `man` describe this command line. This file
 //! is the command line and the dispatch; each subcommand but those two is in the library's
 //! [`modbus_gateway::cli`].
 
 use clap::{CommandFactory, Parser, Subcommand};
 use modbus_gateway::cli::{
-    self,
+    self, audit,
     check_config::check_config,
     run::run,
     simulate::{simulate, Serve},
@@ -74,6 +75,18 @@ enum Command {
         #[arg(long)]
         url: Option<String>,
     },
+    /// Print the journal of writes (`[audit]`): each write-class request a master sent, who sent
+    /// it, where it went, the rule that decided and how it ended, oldest first, one line per
+    /// write (and a line for each gap in the journal). Filters combine: a write is printed when
+    /// it matches all of them.
+    Audit {
+        /// The journal to read, with its rotated files PATH.1, PATH.2...; default: `audit.path`
+        /// of the configuration. Given, no configuration file is read.
+        #[arg(long, value_name = "PATH")]
+        journal: Option<PathBuf>,
+        #[command(flatten)]
+        filters: AuditFilters,
+    },
     /// Print a completion script for a shell (bash: save it as
     /// /usr/share/bash-completion/completions/modbus-gateway).
     Completions {
@@ -86,6 +99,58 @@ enum Command {
         #[arg(long, value_name = "DIR")]
         out_dir: Option<PathBuf>,
     },
+}
+
+/// The `audit` subcommand's filters and format, as typed: the library checks them.
+#[derive(clap::Args)]
+struct AuditFilters {
+    /// Only writes at or after TIME: UTC, as 2026-11-28T10:00:00Z, `2026-11-28 10:00:00` or
+    /// 2026-11-28 (its midnight); or a duration ago, as 1h, 30m, 2days.
+    #[arg(long, value_name = "TIME")]
+    since: Option<String>,
+    /// Only writes at or before TIME (as for --since).
+    #[arg(long, value_name = "TIME")]
+    until: Option<String>,
+    /// Only writes from this master: an IP address (192.168.20.5), an address and port
+    /// (192.168.20.5:50312, [fd00::5]:50312) or a network (192.168.20.0/24).
+    #[arg(long, value_name = "ADDR")]
+    master: Option<String>,
+    /// Only writes to these unit ids: 3, or a list of ids and ranges as 1-4,7.
+    #[arg(long, value_name = "UNITS")]
+    unit: Option<String>,
+    /// Only writes to this data address or any of a range, decimal or hex: 100, 0x2000,
+    /// 0x2000-0x2001 (a write matches if the addresses it writes overlap it; a write whose
+    /// bytes name no address, such as a user-defined function, never does).
+    #[arg(long, value_name = "ADDRS")]
+    register: Option<String>,
+    /// Only writes that ended so: answered, slave_exception, gateway_exception, denied,
+    /// acknowledged, timeout, broadcast, cancelled, or pending (no outcome recorded). Repeat it
+    /// or give a comma list for any of several.
+    #[arg(long, value_name = "WORD")]
+    outcome: Vec<String>,
+    /// Only writes routed to this bus.
+    #[arg(long, value_name = "NAME")]
+    bus: Option<String>,
+    /// One JSON object a line instead: the write's journal fields, `kind` "write", and
+    /// `outcome` (its outcome line's fields, or null, with `pending` saying why); a gap is
+    /// its journal line.
+    #[arg(long)]
+    json: bool,
+}
+
+impl AuditFilters {
+    fn options(&self) -> audit::Options {
+        audit::Options {
+            since: self.since.clone(),
+            until: self.until.clone(),
+            master: self.master.clone(),
+            unit: self.unit.clone(),
+            register: self.register.clone(),
+            outcome: self.outcome.clone(),
+            bus: self.bus.clone(),
+            json: self.json,
+        }
+    }
 }
 
 fn main() -> ExitCode {
@@ -104,6 +169,14 @@ fn main() -> ExitCode {
     }) = &cli.command
     {
         return trace::trace(url, bus.as_deref(), *slave);
+    }
+    // Given its path, the journal needs no configuration: it may be a copy on another machine.
+    if let Some(Command::Audit {
+        journal: Some(journal),
+        filters,
+    }) = &cli.command
+    {
+        return audit::audit(journal, &filters.options());
     }
     let config = match cli::load(&cli.config) {
         Ok(config) => config,
@@ -128,6 +201,10 @@ fn main() -> ExitCode {
             let url = trace::url_of(config.metrics.listen);
             trace::trace(&url, bus.as_deref(), slave)
         }
+        Command::Audit { filters, .. } => match audit::journal_of(&cli.config, &config) {
+            Ok(journal) => audit::audit(&journal, &filters.options()),
+            Err(code) => code,
+        },
         Command::Completions { .. } | Command::Man { .. } => unreachable!("handled before loading"),
     }
 }

@@ -1,10 +1,11 @@
 //! The `modbus-gateway` command's subcommands, each a function from the parsed arguments and the
 //! loaded configuration to an exit code: [`run`] serves the gateway, [`check_config`] describes the
 //! configuration, [`simulate`] serves a bus's simulated slaves on a serial device, [`trace`]
-//! prints the frames on the lines of a running gateway. Here too what they share: loading the
-//! configuration (file and environment) and starting the runtime. Knows nothing of argument
-//! parsing, which is the binary's.
+//! prints the frames on the lines of a running gateway, [`audit`] prints the journal of writes.
+//! Here too what they share: loading the configuration (file and environment) and starting the
+//! runtime. Knows nothing of argument parsing, which is the binary's.
 
+pub mod audit;
 pub mod check_config;
 pub mod run;
 pub mod simulate;
