@@ -11,6 +11,8 @@
 //! - `layers`: the crate's modules have no cycle, and `metrics` imports no runtime part.
 //! - `cli`: the binary: check-config, config errors, environment, run and stop, logs. (The bench's
 //!   test is in `bench/tests/`.)
+//! - `audit_cli`: the `audit` subcommand on a journal and its rotated files: writes joined to
+//!   their outcomes, filters, `--json`, the configured journal, exit statuses.
 //! - `tcp`: the Modbus TCP side and masters that abuse it: pipelining and floods, MBAP errors and
 //!   length lies, half-sent requests, the connection limit and its policies, idle timeout,
 //!   keepalive, garbage.
@@ -70,6 +72,7 @@ mod support;
 mod access;
 mod answers;
 mod ascii;
+mod audit_cli;
 mod cli;
 mod device_link;
 mod device_server;

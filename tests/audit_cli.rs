@@ -1,0 +1,372 @@
+//! `modbus-gateway audit`: a journal and its rotated files read back as an auditor runs it.
+
+use serde_json::Value;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+
+const BINARY: &str = env!("CARGO_BIN_EXE_modbus-gateway");
+
+/// A folder of its own for the test `name`.
+fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("mbgw-audit-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+fn open(time: &str) -> String {
+    format!(r#"{{"kind":"open","time":"{time}","pid":812,"version":"0.1.0"}}"#)
+}
+
+/// A `write` line of Write Multiple Registers 0x2000-0x2001 = 1388 0032 from `master` to
+/// `unit`, routed to `bus` slave `unit`, allowed by the rule `wallbox`.
+fn write(id: u64, time: &str, master: &str, unit: u8, bus: &str) -> String {
+    format!(
+        r#"{{"kind":"write","time":"{time}","id":{id},"master":"{master}","protocol":"tcp","unit":{unit},"bus":"{bus}","slave":{unit},"function":16,"table":"holding","start":8192,"count":2,"values":"13880032","rule":"wallbox","action":"allow"}}"#
+    )
+}
+
+fn answered(id: u64, time: &str) -> String {
+    format!(
+        r#"{{"kind":"outcome","time":"{time}","id":{id},"outcome":"answered","carried_out":"yes"}}"#
+    )
+}
+
+/// The journal of two runs over three files, oldest first, and a stray older file past a gap
+/// in the numbers (`.4` without `.3`), which is not read.
+fn journal(dir: &Path) -> PathBuf {
+    let path = dir.join("writes.jsonl");
+    let file = |suffix: &str, lines: &[String]| {
+        let name = format!("writes.jsonl{suffix}");
+        std::fs::write(dir.join(name), lines.join("\n") + "\n").unwrap();
+    };
+    file(
+        ".4",
+        &[write(
+            9,
+            "2026-11-27T09:00:00.000000Z",
+            "10.9.9.9:1",
+            9,
+            "line9",
+        )],
+    );
+    file(
+        ".2",
+        &[
+            open("2026-11-28T10:00:00.000000Z"),
+            write(
+                1,
+                "2026-11-28T10:15:02.123456Z",
+                "192.168.20.5:50312",
+                3,
+                "line1",
+            ),
+            answered(1, "2026-11-28T10:15:02.140000Z"),
+            write(
+                2,
+                "2026-11-28T10:16:00.000000Z",
+                "192.168.20.6:40000",
+                5,
+                "line1",
+            ),
+            write(
+                3,
+                "2026-11-28T10:17:00.000000Z",
+                "192.168.30.7:40001",
+                3,
+                "line1",
+            ),
+        ],
+    );
+    file(
+        ".1",
+        &[
+            // Write 2's outcome, after the rotation.
+            r#"{"kind":"outcome","time":"2026-11-28T10:16:01.000000Z","id":2,"outcome":"timeout","carried_out":"maybe","exception":11,"detail":"no valid reply after 1 attempt(s): no reply; may have been carried out"}"#.to_owned(),
+            // The gateway restarted before write 3's outcome.
+            open("2026-11-28T11:00:00.000000Z"),
+            "{\"kind\":\"write\",\"time\":".to_owned(),
+            r#"{"kind":"write","time":"2026-11-28T11:05:00.000000Z","id":1,"master":"192.168.20.5:50999","protocol":"tls","subject":"CN=hmi-1","role":"operator","unit":3,"bus":"line2","slave":1,"function":6,"table":"holding","start":256,"count":1,"values":"00FF","rule":"operators","action":"deny"}"#.to_owned(),
+            r#"{"kind":"outcome","time":"2026-11-28T11:05:00.000100Z","id":1,"outcome":"denied","carried_out":"no","exception":1,"detail":"rule operators denies it"}"#.to_owned(),
+            r#"{"kind":"gap","time":"2026-11-28T11:10:00.000000Z","since":"2026-11-28T11:06:00.000000Z","unrecorded":0,"refused":2,"error":"No space left on device (os error 28)"}"#.to_owned(),
+        ],
+    );
+    file(
+        "",
+        &[
+            r#"{"kind":"write","time":"2026-11-28T11:20:00.000000Z","id":2,"master":"192.168.20.5:50999","protocol":"tcp","unit":7,"bus":"line2","slave":7,"function":65,"values":"0102","rule":null,"action":"allow"}"#.to_owned(),
+        ],
+    );
+    path
+}
+
+fn audit(args: &[&str]) -> Output {
+    Command::new(BINARY)
+        .arg("audit")
+        .args(args)
+        .env_remove("RUST_LOG")
+        .output()
+        .expect("binary runs")
+}
+
+fn lines(out: &Output) -> Vec<String> {
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout.clone())
+        .unwrap()
+        .lines()
+        .map(str::to_owned)
+        .collect()
+}
+
+/// The time of each line: which writes (and gaps) were printed.
+fn times(out: &Output) -> Vec<String> {
+    lines(out)
+        .iter()
+        .map(|line| line.split("  ").next().unwrap().to_owned())
+        .collect()
+}
+
+#[test]
+fn every_write_of_the_rotated_files_is_printed_oldest_first_with_its_outcome() {
+    let dir = temp_dir("all");
+    let path = journal(&dir);
+    let out = audit(&["--journal", path.to_str().unwrap()]);
+    let path = path.display();
+    assert_eq!(
+        lines(&out),
+        [
+            "2026-11-28T10:15:02.123456Z  192.168.20.5:50312 tcp  unit 3 -> line1 slave 3  \
+             Write Multiple Registers (0x10) holding 0x2000-0x2001 = 1388 0032  rule wallbox: \
+             allow  answered",
+            "2026-11-28T10:16:00.000000Z  192.168.20.6:40000 tcp  unit 5 -> line1 slave 5  \
+             Write Multiple Registers (0x10) holding 0x2000-0x2001 = 1388 0032  rule wallbox: \
+             allow  timeout (0x0B): no valid reply after 1 attempt(s): no reply; may have been \
+             carried out",
+            "2026-11-28T10:17:00.000000Z  192.168.30.7:40001 tcp  unit 3 -> line1 slave 3  \
+             Write Multiple Registers (0x10) holding 0x2000-0x2001 = 1388 0032  rule wallbox: \
+             allow  no outcome recorded: may have been carried out (the gateway stopped before \
+             its outcome)",
+            "2026-11-28T11:05:00.000000Z  192.168.20.5:50999 tls subject \"CN=hmi-1\" role \
+             operator  unit 3 -> line2 slave 1  Write Single Register (0x06) holding 0x0100 = \
+             00FF  rule operators: deny  denied (0x01): rule operators denies it",
+            "2026-11-28T11:10:00.000000Z  gap: the journal could not be written from \
+             2026-11-28T11:06:00.000000Z: No space left on device (os error 28); 2 writes \
+             refused (0x0A)",
+            "2026-11-28T11:20:00.000000Z  192.168.20.5:50999 tcp  unit 7 -> line2 slave 7  \
+             function 0x41 = 01 02  no rule: allow  no outcome recorded: may have been carried \
+             out (no outcome yet)",
+        ]
+    );
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(
+        err.lines()
+            .any(|line| line == format!("{path}.1:3: unreadable line")),
+        "{err}"
+    );
+    assert!(err.contains("1 unreadable line(s) skipped"), "{err}");
+}
+
+#[test]
+fn the_filters_select_the_writes_matching_all_of_them() {
+    let dir = temp_dir("filters");
+    let path = journal(&dir);
+    let journal = path.to_str().unwrap();
+    let select = |args: &[&str]| {
+        let mut all = vec!["--journal", journal];
+        all.extend_from_slice(args);
+        times(&audit(&all))
+    };
+    let (first, second, third) = (
+        "2026-11-28T10:15:02.123456Z",
+        "2026-11-28T10:16:00.000000Z",
+        "2026-11-28T10:17:00.000000Z",
+    );
+    let (denied, gap, last) = (
+        "2026-11-28T11:05:00.000000Z",
+        "2026-11-28T11:10:00.000000Z",
+        "2026-11-28T11:20:00.000000Z",
+    );
+    // Gaps are shown whatever the filters but time: their writes could have matched.
+    assert_eq!(
+        select(&["--unit", "3", "--outcome", "answered,denied"]),
+        [first, denied, gap]
+    );
+    assert_eq!(
+        select(&["--master", "192.168.20.0/24", "--register", "0x2001-0x2005"]),
+        [first, second, gap]
+    );
+    assert_eq!(
+        select(&["--master", "192.168.20.5:50999"]),
+        [denied, gap, last]
+    );
+    assert_eq!(
+        select(&["--outcome", "pending", "--outcome", "timeout"]),
+        [second, third, gap, last]
+    );
+    assert_eq!(
+        select(&[
+            "--since",
+            "2026-11-28 10:16:00",
+            "--until",
+            "2026-11-28T11:00:00Z"
+        ]),
+        [second, third]
+    );
+    assert_eq!(
+        select(&["--bus", "line2", "--since", "2026-11-28T11:15:00Z"]),
+        [last]
+    );
+    assert!(
+        select(&["--bus", "line9"]).iter().all(|t| t == gap),
+        "nothing matches: exit 0"
+    );
+    // 100000 days ago is in the 18th century, whatever the clock of the machine says.
+    assert!(
+        select(&["--until", "100000days"]).is_empty(),
+        "all of it is newer"
+    );
+    assert_eq!(select(&["--since", "100000days"]).len(), 6);
+}
+
+#[test]
+fn json_prints_each_write_with_its_outcome_object_or_null() {
+    let dir = temp_dir("json");
+    let path = journal(&dir);
+    let out = audit(&["--journal", path.to_str().unwrap(), "--json"]);
+    let objects: Vec<Value> = lines(&out)
+        .iter()
+        .map(|line| serde_json::from_str(line).unwrap())
+        .collect();
+    assert_eq!(objects.len(), 6);
+    assert_eq!(objects[1]["kind"], "write");
+    assert_eq!(objects[1]["master"], "192.168.20.6:40000");
+    assert_eq!(objects[1]["start"], 8192);
+    assert_eq!(objects[1]["outcome"]["outcome"], "timeout");
+    assert_eq!(objects[1]["outcome"]["exception"], 11);
+    assert_eq!(objects[2]["outcome"], Value::Null);
+    assert_eq!(objects[2]["pending"], "gateway_stopped");
+    assert_eq!(objects[3]["subject"], "CN=hmi-1");
+    assert_eq!(objects[4]["kind"], "gap");
+    assert_eq!(objects[4]["refused"], 2);
+    assert_eq!(objects[5]["pending"], "no_outcome_yet");
+}
+
+#[test]
+fn the_configured_journal_is_read_without_journal_and_a_config_without_one_exits_2() {
+    let dir = temp_dir("config");
+    let path = journal(&dir);
+    let config = dir.join("gateway.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "[[bus]]\nname = \"line1\"\ndevice = \"sim\"\n[audit]\npath = \"{}\"\n",
+            path.display()
+        ),
+    )
+    .unwrap();
+    let out = audit(&["--config", config.to_str().unwrap(), "--unit", "5"]);
+    assert_eq!(
+        times(&out),
+        ["2026-11-28T10:16:00.000000Z", "2026-11-28T11:10:00.000000Z"]
+    );
+    let out = Command::new(BINARY)
+        .args(["--config", config.to_str().unwrap(), "audit", "--unit", "5"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(0), "--config before the subcommand");
+
+    let bare = dir.join("no-audit.toml");
+    std::fs::write(&bare, "[[bus]]\nname = \"line1\"\ndevice = \"sim\"\n").unwrap();
+    let out = audit(&["--config", bare.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(
+        err.contains("has no [audit] table") && err.contains("--journal"),
+        "{err}"
+    );
+}
+
+#[test]
+fn a_missing_journal_exits_1_and_bad_filters_exit_2_naming_them() {
+    let dir = temp_dir("errors");
+    let missing = dir.join("none.jsonl");
+    let out = audit(&["--journal", missing.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(
+        err.contains(&format!("no journal at {}", missing.display())),
+        "{err}"
+    );
+
+    let path = journal(&dir);
+    let out = audit(&[
+        "--journal",
+        path.to_str().unwrap(),
+        "--outcome",
+        "answered,fine",
+        "--unit",
+        "1-300",
+    ]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(out.stdout.is_empty());
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(
+        err.contains(
+            "--outcome: `fine` is not an outcome; the outcomes are answered, slave_exception,"
+        ),
+        "{err}"
+    );
+    assert!(err.contains("pending"), "{err}");
+    assert!(err.contains("--unit: `300` is not a number"), "{err}");
+
+    // Only rotated files, the live one not made yet: read all the same.
+    std::fs::remove_file(&path).unwrap();
+    let out = audit(&["--journal", path.to_str().unwrap()]);
+    assert_eq!(lines(&out).len(), 5);
+}
+
+#[test]
+fn a_reader_that_goes_away_ends_the_listing_quietly_with_status_0() {
+    let dir = temp_dir("pipe");
+    let path = dir.join("big.jsonl");
+    // Far more than a pipe holds, so the listing is still writing when its reader leaves.
+    let lines: Vec<String> = (1..=5000)
+        .flat_map(|id| {
+            [
+                write(
+                    id,
+                    "2026-11-28T10:15:02.123456Z",
+                    "192.168.20.5:50312",
+                    3,
+                    "line1",
+                ),
+                answered(id, "2026-11-28T10:15:02.140000Z"),
+            ]
+        })
+        .collect();
+    std::fs::write(&path, lines.join("\n") + "\n").unwrap();
+    let mut child = Command::new(BINARY)
+        .args(["audit", "--journal", path.to_str().unwrap()])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut first = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut first)
+        .unwrap();
+    assert!(first.ends_with("answered\n"), "{first}");
+    let out = child.wait_with_output().unwrap();
+    assert_eq!(out.status.code(), Some(0));
+    assert!(
+        out.stderr.is_empty(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
