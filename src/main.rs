@@ -75,10 +75,11 @@ enum Command {
         #[arg(long)]
         url: Option<String>,
     },
-    /// Print the journal of writes (`[audit]`): each write-class request a master sent, who sent
-    /// it, where it went, the rule that decided and how it ended, oldest first, one line per
-    /// write (and a line for each gap in the journal). Filters combine: a write is printed when
-    /// it matches all of them.
+    /// Print the journal of writes (`[audit]`), each write with its outcome, oldest first.
+    ///
+    /// Each write-class request a master sent: when, who sent it, where it went, what it
+    /// writes, the rule that decided and how it ended, one line per write (and a line for each
+    /// gap in the journal). The filters combine: a write is printed when it matches all of them.
     Audit {
         /// The journal to read, with its rotated files PATH.1, PATH.2...; default: `audit.path`
         /// of the configuration. Given, no configuration file is read.
