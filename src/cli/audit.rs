@@ -500,9 +500,10 @@ fn parse_outcomes(values: &[String]) -> Result<Outcomes, String> {
     Ok(outcomes)
 }
 
-/// One line for a terminal.
+/// One line for a terminal. Control characters in the journal's strings (a certificate's
+/// subject, an error, a line someone edited) are shown escaped, never sent to the terminal.
 pub(crate) fn describe(item: &Item) -> String {
-    match item {
+    let line = match item {
         Item::Write(record) => describe_write(record),
         Item::Gap(gap) => {
             let mut went = Vec::new();
@@ -523,7 +524,19 @@ pub(crate) fn describe(item: &Item) -> String {
                 went.join(", ")
             )
         }
+    };
+    if !line.contains(char::is_control) {
+        return line;
     }
+    line.chars()
+        .fold(String::with_capacity(line.len()), |mut shown, c| {
+            if c.is_control() {
+                shown.extend(c.escape_default());
+            } else {
+                shown.push(c);
+            }
+            shown
+        })
 }
 
 fn writes(n: u64) -> String {
@@ -1050,11 +1063,13 @@ mod tests {
             exception: Some(0x02),
             detail: Some("the slave refused it: illegal data address".into()),
         });
+        tls.write.role = Some("op\u{1b}[2J".into());
         let line = describe(&Item::Write(Box::new(tls)));
         assert!(
             line.ends_with("  slave_exception (0x02): the slave refused it: illegal data address"),
             "{line}"
         );
+        assert!(line.contains(" role op\\u{1b}[2J  unit 3"), "{line}");
         let custom = record(
             r#"{"kind":"write","time":"2026-11-28T10:15:02Z","id":5,"master":"10.0.0.1:40000","protocol":"udp","unit":7,"bus":null,"slave":null,"function":65,"values":"0102A0","rule":null,"action":"deny"}"#,
         );
