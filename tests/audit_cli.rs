@@ -15,8 +15,9 @@ fn temp_dir(name: &str) -> PathBuf {
     dir
 }
 
-fn open(time: &str) -> String {
-    format!(r#"{{"kind":"open","time":"{time}","pid":812,"version":"0.1.0"}}"#)
+/// The `open` line of a run of the process `pid`.
+fn open(time: &str, pid: u32) -> String {
+    format!(r#"{{"kind":"open","time":"{time}","pid":{pid},"version":"0.1.0"}}"#)
 }
 
 /// A `write` line of Write Multiple Registers 0x2000-0x2001 = 1388 0032 from `master` to
@@ -54,7 +55,7 @@ fn journal(dir: &Path) -> PathBuf {
     file(
         ".2",
         &[
-            open("2026-11-28T10:00:00.000000Z"),
+            open("2026-11-28T10:00:00.000000Z", 812),
             write(
                 1,
                 "2026-11-28T10:15:02.123456Z",
@@ -85,11 +86,11 @@ fn journal(dir: &Path) -> PathBuf {
             // Write 2's outcome, after the rotation.
             r#"{"kind":"outcome","time":"2026-11-28T10:16:01.000000Z","id":2,"outcome":"timeout","carried_out":"maybe","exception":11,"detail":"no valid reply after 1 attempt(s): no reply; may have been carried out"}"#.to_owned(),
             // The gateway restarted before write 3's outcome.
-            open("2026-11-28T11:00:00.000000Z"),
+            open("2026-11-28T11:00:00.000000Z", 2307),
             "{\"kind\":\"write\",\"time\":".to_owned(),
             r#"{"kind":"write","time":"2026-11-28T11:05:00.000000Z","id":1,"master":"192.168.20.5:50999","protocol":"tls","subject":"CN=hmi-1","role":"operator","unit":3,"bus":"line2","slave":1,"function":6,"table":"holding","start":256,"count":1,"values":"00FF","rule":"operators","action":"deny"}"#.to_owned(),
             r#"{"kind":"outcome","time":"2026-11-28T11:05:00.000100Z","id":1,"outcome":"denied","carried_out":"no","exception":1,"detail":"rule operators denies it"}"#.to_owned(),
-            r#"{"kind":"gap","time":"2026-11-28T11:10:00.000000Z","since":"2026-11-28T11:06:00.000000Z","unrecorded":0,"refused":2,"error":"No space left on device (os error 28)"}"#.to_owned(),
+            r#"{"kind":"gap","time":"2026-11-28T11:10:00.000000Z","since":"2026-11-28T11:06:00.000000Z","unrecorded":0,"refused":2,"lost_outcomes":0,"error":"No space left on device (os error 28)"}"#.to_owned(),
         ],
     );
     file(

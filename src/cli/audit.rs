@@ -202,6 +202,14 @@ pub(crate) struct Joiner {
     waiting: HashMap<u64, u64>,
     /// Outcome lines that name no waiting write of their run.
     orphans: u64,
+    /// The process of this run, from its `open` line.
+    pid: Option<u32>,
+    /// The highest write id of this run so far.
+    last_id: u64,
+    /// An `open` by this run's process (or the first one met) came last: a reload that moved
+    /// the journal back here, ids going on, or a restart that got the same pid (in a container,
+    /// say), ids from 1 again. The next write's id tells which.
+    reopened: bool,
 }
 
 /// A line that is not one of the journal's.
@@ -214,12 +222,19 @@ impl Joiner {
         let bytes = bytes.strip_suffix(b"\n").unwrap_or(bytes);
         let line = serde_json::from_slice::<Line>(bytes).map_err(|_| Unreadable)?;
         match line {
-            Line::Open(_) => {
-                for (_, number) in std::mem::take(&mut self.waiting) {
-                    self.end(number, End::Stopped);
+            Line::Open(opened) => {
+                if self.pid.is_some_and(|pid| pid != opened.pid) {
+                    self.new_run();
+                } else {
+                    self.reopened = true;
                 }
+                self.pid = Some(opened.pid);
             }
             Line::Write(write) => {
+                if std::mem::take(&mut self.reopened) && write.id <= self.last_id {
+                    self.new_run();
+                }
+                self.last_id = self.last_id.max(write.id);
                 let number = self.handed + self.queue.len() as u64;
                 // The same id again in one run: its `open` line is missing, so the earlier
                 // write's run ended without its outcome.
@@ -238,6 +253,14 @@ impl Joiner {
             Line::Gap(gap) => self.queue.push_back(Item::Gap(gap)),
         }
         Ok(())
+    }
+
+    /// A new run began: the writes of the last one still waiting never got their outcome.
+    fn new_run(&mut self) {
+        for (_, number) in std::mem::take(&mut self.waiting) {
+            self.end(number, End::Stopped);
+        }
+        self.last_id = 0;
     }
 
     /// Say how the write numbered `number`, still queued, ended.
@@ -513,6 +536,11 @@ pub(crate) fn describe(item: &Item) -> String {
             if gap.refused > 0 {
                 went.push(format!("{} refused (0x0A)", writes(gap.refused)));
             }
+            match gap.lost_outcomes {
+                0 => {}
+                1 => went.push("1 outcome line lost".to_owned()),
+                n => went.push(format!("{n} outcome lines lost")),
+            }
             if went.is_empty() {
                 went.push("no write missed".to_owned());
             }
@@ -691,6 +719,13 @@ mod tests {
     const OPEN: &str =
         r#"{"kind":"open","time":"2026-11-28T10:00:00.000000Z","pid":812,"version":"0.1.0"}"#;
 
+    /// The `open` line of a run of the process `pid`.
+    fn open(pid: u32) -> String {
+        format!(
+            r#"{{"kind":"open","time":"2026-11-28T11:00:00.000000Z","pid":{pid},"version":"0.1.0"}}"#
+        )
+    }
+
     /// A `write` line: Write Multiple Registers from 192.168.20.5 to unit 3, line1 slave 3.
     fn write(id: u64, time: &str) -> String {
         format!(
@@ -761,9 +796,10 @@ mod tests {
     #[test]
     fn a_run_restart_leaves_the_earlier_write_without_outcome_and_ids_start_again() {
         let text = format!(
-            "{OPEN}\n{}\n{}\n{OPEN}\n{}\n{}\n{}\n",
+            "{OPEN}\n{}\n{}\n{}\n{}\n{}\n{}\n",
             write(1, "2026-11-28T10:15:02.000000Z"),
             write(2, "2026-11-28T10:15:03.000000Z"),
+            open(813),
             write(1, "2026-11-28T11:00:00.000000Z"),
             outcome(1, "answered"),
             write(2, "2026-11-28T11:00:01.000000Z"),
@@ -787,6 +823,45 @@ mod tests {
         assert_eq!(json["pending"], "gateway_stopped");
         assert_eq!(json["id"], 1);
         assert_eq!(json["values"], "13880032");
+    }
+
+    #[test]
+    fn an_open_by_the_same_process_goes_on_with_its_run_unless_the_ids_start_again() {
+        // A reload moved the journal away and back: the same pid, the ids going on, and an
+        // outcome of a write from before it.
+        let reload = format!(
+            "{OPEN}\n{}\n{}\n{}\n{}\n",
+            write(1, "2026-11-28T10:15:02.000000Z"),
+            open(812),
+            write(7, "2026-11-28T11:00:01.000000Z"),
+            outcome(1, "answered"),
+        );
+        let (items, _) = join(&[&reload]);
+        let not_yet = "no outcome recorded: may have been carried out (no outcome yet)";
+        assert_eq!(
+            ids_and_ends(&items),
+            [(1, "answered".to_owned()), (7, not_yet.to_owned())]
+        );
+        // A restart that got the same pid (pid 1 in a container): the ids start again.
+        let restart = format!(
+            "{}\n{}\n{}\n{}\n{}\n",
+            open(1),
+            write(1, "2026-11-28T10:15:02.000000Z"),
+            write(2, "2026-11-28T10:15:03.000000Z"),
+            open(1),
+            write(1, "2026-11-28T11:00:01.000000Z"),
+        );
+        let (items, _) = join(&[&restart]);
+        let stopped = "no outcome recorded: may have been carried out \
+                       (the gateway stopped before its outcome)";
+        assert_eq!(
+            ids_and_ends(&items),
+            [
+                (1, stopped.to_owned()),
+                (2, stopped.to_owned()),
+                (1, not_yet.to_owned())
+            ]
+        );
     }
 
     #[test]
@@ -831,7 +906,7 @@ mod tests {
 
     #[test]
     fn a_gap_is_its_own_line_in_its_place() {
-        let gap = r#"{"kind":"gap","time":"2026-11-28T10:20:00.000000Z","since":"2026-11-28T10:16:00.000000Z","unrecorded":0,"refused":3,"error":"No space left on device (os error 28)"}"#;
+        let gap = r#"{"kind":"gap","time":"2026-11-28T10:20:00.000000Z","since":"2026-11-28T10:16:00.000000Z","unrecorded":0,"refused":3,"lost_outcomes":1,"error":"No space left on device (os error 28)"}"#;
         let text = format!(
             "{}\n{}\n{gap}\n{}\n{}\n",
             write(1, "2026-11-28T10:15:02.000000Z"),
@@ -845,7 +920,7 @@ mod tests {
             describe(&items[1]),
             "2026-11-28T10:20:00.000000Z  gap: the journal could not be written from \
              2026-11-28T10:16:00.000000Z: No space left on device (os error 28); 3 writes \
-             refused (0x0A)"
+             refused (0x0A), 1 outcome line lost"
         );
         let json: serde_json::Value = serde_json::from_str(&as_json(&items[1])).unwrap();
         assert_eq!(json["kind"], "gap");
