@@ -159,16 +159,6 @@ pub(crate) enum Carried {
     Maybe,
 }
 
-impl Carried {
-    pub(crate) fn label(self) -> &'static str {
-        match self {
-            Carried::Yes => "yes",
-            Carried::No => "no",
-            Carried::Maybe => "maybe",
-        }
-    }
-}
-
 /// The time now as the journal writes it: UTC, RFC 3339, microseconds.
 pub(crate) fn now() -> String {
     humantime::format_rfc3339_micros(std::time::SystemTime::now()).to_string()

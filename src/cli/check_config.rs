@@ -186,9 +186,11 @@ fn describe_writes(config: &Config) -> String {
             names.join(", ")
         );
     }
-    out += &match &config.audit {
-        None => "# writes are not journaled (no [audit]).\n".to_owned(),
-        Some(audit) => format!(
+    out +=
+        &match &config.audit {
+            None => "# writes are not journaled (no [audit]).\n".to_owned(),
+            Some(audit) => {
+                format!(
             "# every write is journaled in {} before it is sent{}; rotated at {}, {} older \
              files kept; if an entry cannot be written, {} (not opened here: the running \
              gateway opens it).\n",
@@ -200,7 +202,8 @@ fn describe_writes(config: &Config) -> String {
                 crate::config::OnError::DenyWrites => "writes get 0x0A",
                 crate::config::OnError::Allow => "writes go on unrecorded",
             }
-        ),
-    };
+        )
+            }
+        };
     out
 }

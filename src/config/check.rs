@@ -624,6 +624,65 @@ fn check_routes(
     }
 }
 
+/// Rules name buses that exist, roles only where masters have certificates, and unique names.
+fn check_rules(
+    rules: &[Rule],
+    server: &Server,
+    buses: &BTreeMap<String, usize>,
+    report: &mut Report,
+) {
+    let mut named: BTreeMap<&str, usize> = BTreeMap::new();
+    for (i, rule) in rules.iter().enumerate() {
+        let key = |field: &str| format!("rule[{i}].{field}");
+        if let Some(name) = &rule.name {
+            if name.trim().is_empty() {
+                report.fail(key("name"), "is empty: leave it out to be called `rule N`");
+            } else if let Some(first) = named.insert(name, i) {
+                report.fail(
+                    key("name"),
+                    format!("`{name}` is already rule[{first}].name: the journal could not tell them apart"),
+                );
+            }
+        }
+        for bus in &rule.buses {
+            if !buses.contains_key(bus) {
+                report.fail(key("buses"), format!("there is no bus named `{bus}`"));
+            }
+        }
+        if !rule.roles.is_empty() && server.tls.is_none() {
+            report.fail(
+                key("roles"),
+                "no master has a role without [server.tls]: roles come from TLS masters' \
+                 certificates",
+            );
+        }
+        if rule.units.is_some_and(|units| units.is_empty()) {
+            report.fail(key("units"), "names no unit: leave it out for any unit");
+        }
+    }
+}
+
+fn check_audit(audit: &Audit, report: &mut Report) {
+    if audit.path.as_os_str().is_empty() {
+        report.fail("audit.path", "is empty: name the journal's file");
+    }
+    if audit.max_size.0 < MIN_AUDIT_SIZE {
+        report.fail(
+            "audit.max_size",
+            format!("{} is below the smallest journal, 4KiB", audit.max_size),
+        );
+    }
+    if !(1..=MAX_AUDIT_KEEP).contains(&audit.keep) {
+        report.fail(
+            "audit.keep",
+            format!(
+                "{} rotated files: keep 1 to {MAX_AUDIT_KEEP} (the journal is never thrown away whole)",
+                audit.keep
+            ),
+        );
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -941,64 +1000,5 @@ mod tests {
                 "{knobs}: {e:?}"
             );
         }
-    }
-}
-
-/// Rules name buses that exist, roles only where masters have certificates, and unique names.
-fn check_rules(
-    rules: &[Rule],
-    server: &Server,
-    buses: &BTreeMap<String, usize>,
-    report: &mut Report,
-) {
-    let mut named: BTreeMap<&str, usize> = BTreeMap::new();
-    for (i, rule) in rules.iter().enumerate() {
-        let key = |field: &str| format!("rule[{i}].{field}");
-        if let Some(name) = &rule.name {
-            if name.trim().is_empty() {
-                report.fail(key("name"), "is empty: leave it out to be called `rule N`");
-            } else if let Some(first) = named.insert(name, i) {
-                report.fail(
-                    key("name"),
-                    format!("`{name}` is already rule[{first}].name: the journal could not tell them apart"),
-                );
-            }
-        }
-        for bus in &rule.buses {
-            if !buses.contains_key(bus) {
-                report.fail(key("buses"), format!("there is no bus named `{bus}`"));
-            }
-        }
-        if !rule.roles.is_empty() && server.tls.is_none() {
-            report.fail(
-                key("roles"),
-                "no master has a role without [server.tls]: roles come from TLS masters' \
-                 certificates",
-            );
-        }
-        if rule.units.is_some_and(|units| units.is_empty()) {
-            report.fail(key("units"), "names no unit: leave it out for any unit");
-        }
-    }
-}
-
-fn check_audit(audit: &Audit, report: &mut Report) {
-    if audit.path.as_os_str().is_empty() {
-        report.fail("audit.path", "is empty: name the journal's file");
-    }
-    if audit.max_size.0 < MIN_AUDIT_SIZE {
-        report.fail(
-            "audit.max_size",
-            format!("{} is below the smallest journal, 4KiB", audit.max_size),
-        );
-    }
-    if !(1..=MAX_AUDIT_KEEP).contains(&audit.keep) {
-        report.fail(
-            "audit.keep",
-            format!(
-                "{} rotated files: keep 1 to {MAX_AUDIT_KEEP} (the journal is never thrown away whole)",
-                audit.keep
-            ),
-        );
     }
 }
