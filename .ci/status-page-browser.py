@@ -2,8 +2,9 @@
 sees: the bus and the four demo drives in the tables, in the trace panel a request sent after the
 page loaded, its master among the connected ones, and with the slave filter set, that slave's
 frames alone; in the plant values, drive 2's output frequency rising after a run command written
-to the drive, and its plot gaining points. Fails on a script error or a Content-Security-Policy
-violation in the page.
+to the drive, and its plot gaining points; in the last writes, none before the run command, then
+its two writes answered, and a write to drive 4 acknowledged unsent by the check's [[rule]].
+Fails on a script error or a Content-Security-Policy violation in the page.
 
 Chromium is driven over the DevTools protocol on a pipe (--remote-debugging-pipe: JSON messages
 ending in NUL, commands on fd 3, replies and events on fd 4), so the standard library is enough.
@@ -41,6 +42,14 @@ FREQUENCY_SLAVE = 2
 # points.
 RISING_READINGS = 3
 
+# The [[rule]] .ci/status-page-check adds to the demo: writes to this unit are acknowledged unsent.
+RULE = "drive 4 on trial"
+ACKNOWLEDGED_UNIT = 4
+# Drive 4's frequency reference (percent of P0-10, in 0.01 %), which the check writes there.
+ACKNOWLEDGED_REGISTER = 0x1000
+# The last writes' empty line.
+NO_WRITES = "no writes since the gateway started"
+
 # A laptop's half screen and a phone: the page must fit; only tables may scroll sideways, inside
 # their own box.
 NARROW_WIDTHS = (700, 390)
@@ -68,6 +77,11 @@ SNAPSHOT = """JSON.stringify({
   problem: document.getElementById('problem')?.textContent ?? '',
   updated: document.getElementById('updated')?.textContent ?? '',
   'drive 3': document.querySelector('#slaves tr[data-slave="3"] td:nth-child(5)')?.textContent ?? '',
+  // The last writes, newest first: each row's id, unit and outcome, and its cells' text.
+  writes: [...document.querySelectorAll('#writes tr')].map(r =>
+    ({id: r.dataset.id === undefined ? null : Number(r.dataset.id),
+      unit: r.dataset.unit === undefined ? null : Number(r.dataset.unit),
+      outcome: r.dataset.outcome ?? null, cells: [...r.cells].map(c => c.textContent)})),
   frames: [...document.querySelectorAll('#trace tr')].map(r =>
     ({direction: r.dataset.direction, slave: Number(r.dataset.slave), bus: r.dataset.bus,
       cells: [...r.cells].map(c => c.textContent)})),
@@ -89,6 +103,25 @@ PAGE_FUNCTIONS = {
     'sparkline([[1000, 7]]).path': "M0.000 50h0",
     'sparkline([[0, 0], [1000, 10], [2000, 5], [9000, 5], [10000, 0]]).path':
         "M0.000 100.00h0L1.000 0.00L2.000 50.00M9.000 50.00h0L10.000 100.00",
+    # A write's cells: registers as a rule names them, values a register to a group, the outcome
+    # with its exception and whether it may have been carried out.
+    'writeRegisters({table: "holding", start: 8192, count: 2})': "holding 0x2000–0x2001 (2)",
+    'writeRegisters({table: "coil", start: 5, count: 1})': "coil 0x0005",
+    'writeRegisters({function: 8, values: "0001FF00"})': "–",
+    'writeValues({table: "holding", values: "13880032"}).textContent': "1388 0032",
+    'writeValues({table: "coil", values: "CD01"}).textContent': "CD 01",
+    'writeFunction(0x10).textContent': "Write Multiple Registers",
+    'writeFunction(0x41).textContent': "0x41",
+    'writeOutcome(null).textContent': "pending",
+    'writeOutcome({outcome: "slave_exception", carried_out: "no", exception: 2}).textContent':
+        "slave_exception, exception 0x02",
+    '(() => { const td = writeOutcome({outcome: "timeout", carried_out: "maybe", exception: 11}); '
+    'return td.firstChild.textContent + " / " + td.querySelector(".note").textContent; })()':
+        "timeout, exception 0x0B / may have been carried out",
+    # A master's certificate subject is its own to choose: it must stay text.
+    '(() => { const td = writeMaster({master: "10.0.0.7:502", protocol: "tls", role: "operator", '
+    'subject: "CN=<b>x</b>"}); return td.textContent + " " + td.querySelectorAll("b").length; })()':
+        "10.0.0.7:502 tls, role operator, CN=<b>x</b> 0",
 }
 
 
@@ -332,6 +365,49 @@ def follows_a_write(browser, port):
         time.sleep(0.2)
 
 
+def write_row(snapshot, unit, register_text):
+    """The newest row of the last writes for `unit` whose registers read `register_text`."""
+    return next((w for w in snapshot["writes"]
+                 if w["unit"] == unit and len(w["cells"]) == 8 and w["cells"][4] == register_text),
+                None)
+
+
+def shows_writes(browser, port):
+    """After the run command's writes to drive 2 (answered by the drive, no rule), a write to
+    drive 4 that the check's [[rule]] acknowledges unsent: the last writes must show it first,
+    with its rule and outcome. Returns the rows."""
+    master = Master(port)
+    master.write(ACKNOWLEDGED_UNIT, ACKNOWLEDGED_REGISTER, 2500)  # 25.00 %
+    master.close()
+    run = "holding 0x2000"  # the run command of follows_a_write
+    kept = f"holding 0x{ACKNOWLEDGED_REGISTER:04X}"
+    snapshot = browser.wait_for(
+        f"the write to drive {ACKNOWLEDGED_UNIT} acknowledged by the rule \"{RULE}\" first in the "
+        "last writes, after drive 2's run command answered",
+        lambda s: s["writes"] and s["writes"][0]["unit"] == ACKNOWLEDGED_UNIT
+        and s["writes"][0]["outcome"] == "acknowledged"
+        and (write_row(s, FREQUENCY_SLAVE, run) or {}).get("outcome") == "answered")
+    acknowledged, answered = snapshot["writes"][0], write_row(snapshot, FREQUENCY_SLAVE, run)
+    wanted = {
+        "acknowledged": (acknowledged, {
+            2: f"{ACKNOWLEDGED_UNIT} → {DEMO_BUS} / {ACKNOWLEDGED_UNIT}",
+            3: "Write Single Register", 4: kept, 5: "09C4",
+            6: f"{RULE}: acknowledge", 7: "acknowledged"}),
+        "answered": (answered, {
+            2: f"{FREQUENCY_SLAVE} → {DEMO_BUS} / {FREQUENCY_SLAVE}",
+            3: "Write Single Register", 4: run, 5: "0001",
+            6: "no rule: allow", 7: "answered"}),
+    }
+    for what, (row, cells) in wanted.items():
+        wrong = {i: row["cells"][i] for i, text in cells.items() if row["cells"][i] != text}
+        if wrong or age(row["cells"][0]) < 0 or "127.0.0.1:" not in row["cells"][1]:
+            fail(f"the {what} write's row in the last writes", {"row": row, "wanted": cells})
+    ids = [w["id"] for w in snapshot["writes"]]
+    if ids != sorted(ids, reverse=True) or len(ids) != 3:
+        fail("the three writes, newest first", snapshot["writes"])
+    return snapshot["writes"]
+
+
 def shows_demo(snapshot):
     buses = [b for b in snapshot["buses"] if b["bus"] == DEMO_BUS and "open" in b["text"]]
     drives = {s["slave"]: s["text"] for s in snapshot["slaves"] if s["bus"] == DEMO_BUS}
@@ -399,7 +475,10 @@ def main():
         if others:
             fail("frames of other slaves in the trace filtered for slave 2", others)
         master.close()
+        browser.wait_for("no writes yet in the last writes",
+                         lambda s: [w["cells"] for w in s["writes"]] == [[NO_WRITES]])
         readings, points_before, points_after = follows_a_write(browser, modbus_port)
+        writes = shows_writes(browser, modbus_port)
         for width in NARROW_WIDTHS:
             browser.resize(width)
             scroll = browser.wait_for_layout(width)
@@ -411,6 +490,8 @@ def main():
               f"the frame {request} in the trace panel ({len(frame['frames'])} frames shown), "
               f"and with the slave filter only slave 2's; no sideways page scroll at "
               f"{' and '.join(f'{w} px' for w in NARROW_WIDTHS)}")
+        print("last writes, newest first: " + "; ".join(
+            " | ".join(w["cells"][2:]) for w in writes))
         print(f"plant values: after the run command, drive {FREQUENCY_SLAVE}'s {FREQUENCY} "
               f"shown {' -> '.join(f'{r:g} Hz' for r in readings)}, its plot from "
               f"{points_before} to {points_after} readings")

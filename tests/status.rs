@@ -2,7 +2,7 @@
 //! line, and `/` (the page), read over a real HTTP connection. `.ci/status-page-check` loads the
 //! page in a real browser.
 
-use crate::support::{addr, http_get, sim_line, within, GatewayConfig, RawMaster};
+use crate::support::{addr, http_get, sim_line, start, within, GatewayConfig, RawMaster};
 use serde_json::Value;
 use std::net::SocketAddr;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -12,6 +12,10 @@ use tokio::net::TcpStream;
 const READ_2: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x02];
 /// 126 registers is one more than a read may ask for: the slave's exception 03.
 const READ_126: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x7E];
+/// Write 0x1388 to holding register 0x2001.
+const WRITE_2001: [u8; 5] = [0x06, 0x20, 0x01, 0x13, 0x88];
+/// Write 2 registers from 0x0010: 0x0001, 0x0002.
+const WRITE_0010_2: [u8; 10] = [0x10, 0x00, 0x10, 0x00, 0x02, 0x04, 0x00, 0x01, 0x00, 0x02];
 
 /// One 9600 8E1 line "sim" with register slaves 1-4, and slave 5 configured but absent (silent)
 /// with a short timeout.
@@ -110,6 +114,11 @@ async fn status_shows_the_bus_each_slave_s_answers_and_errors_and_the_connected_
     assert_eq!(master_status["rights"], "read_write");
     assert_eq!(master_status["role"], Value::Null);
     assert_eq!(master_status["requests"], 3);
+    assert_eq!(
+        status["writes"],
+        serde_json::json!([]),
+        "reads are no writes"
+    );
     drop(master);
     within("the master that left is no longer listed", async {
         while !get_status(gateway.metrics_addr()).await["masters"]
@@ -121,6 +130,73 @@ async fn status_shows_the_bus_each_slave_s_answers_and_errors_and_the_connected_
         }
     })
     .await;
+    gateway.shutdown().await;
+}
+
+#[tokio::test]
+async fn status_lists_the_last_writes_oldest_first_with_their_rule_and_how_each_ended() {
+    let toml = format!(
+        "{}\n[[rule]]\nname = \"unit 2 on trial\"\nunits = \"2\"\nfunctions = \"write\"\n\
+         action = \"acknowledge\"\n",
+        line().to_toml()
+    );
+    let gateway = start(&toml).await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    assert_eq!(master.call(1, 1, &WRITE_0010_2).await, WRITE_0010_2[..5]);
+    assert_eq!(
+        master.call(2, 2, &WRITE_2001).await,
+        WRITE_2001,
+        "acknowledged"
+    );
+    assert_eq!(
+        master.call(3, 5, &WRITE_2001).await,
+        [0x86, 0x0B],
+        "slave 5 is silent"
+    );
+    assert_eq!(master.call(4, 1, &READ_2).await[0], 0x03);
+    let status = within("the three writes, each with its outcome", async {
+        loop {
+            let status = get_status(gateway.metrics_addr()).await;
+            let writes = status["writes"].as_array().expect("writes").clone();
+            if writes.len() == 3 && writes.iter().all(|w| w["outcome"].is_object()) {
+                return status;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+        }
+    })
+    .await;
+    let writes = status["writes"].as_array().unwrap();
+    let (answered, acknowledged, timed_out) = (&writes[0], &writes[1], &writes[2]);
+    let write = &answered["write"];
+    assert_eq!(write["id"], 1, "{status:#}");
+    assert!(write["time"].as_str().unwrap().ends_with('Z'));
+    assert!(write["master"].as_str().unwrap().starts_with("127.0.0.1:"));
+    assert_eq!(write["protocol"], "tcp");
+    assert_eq!(write["unit"], 1);
+    assert_eq!(write["bus"], "sim");
+    assert_eq!(write["slave"], 1);
+    assert_eq!(write["function"], 0x10);
+    assert_eq!(write["table"], "holding");
+    assert_eq!(write["start"], 0x0010);
+    assert_eq!(write["count"], 2);
+    assert_eq!(write["values"], "00010002");
+    assert_eq!(write["rule"], Value::Null);
+    assert_eq!(write["action"], "allow");
+    assert_eq!(answered["outcome"]["id"], 1);
+    assert_eq!(answered["outcome"]["outcome"], "answered");
+    assert_eq!(answered["outcome"]["carried_out"], "yes");
+
+    assert_eq!(acknowledged["write"]["unit"], 2);
+    assert_eq!(acknowledged["write"]["values"], "1388");
+    assert_eq!(acknowledged["write"]["rule"], "unit 2 on trial");
+    assert_eq!(acknowledged["write"]["action"], "acknowledge");
+    assert_eq!(acknowledged["outcome"]["outcome"], "acknowledged");
+    assert_eq!(acknowledged["outcome"]["carried_out"], "no");
+
+    assert_eq!(timed_out["write"]["slave"], 5);
+    assert_eq!(timed_out["outcome"]["outcome"], "timeout");
+    assert_eq!(timed_out["outcome"]["carried_out"], "maybe");
+    assert_eq!(timed_out["outcome"]["exception"], 0x0B);
     gateway.shutdown().await;
 }
 
@@ -159,7 +235,7 @@ async fn the_status_page_is_one_html_page_that_loads_nothing_from_elsewhere() {
     assert!(page.contains("fetchJson(\"status\")"));
     assert!(page.contains("fetchJson(\"values?history=1\")"));
     assert!(page.contains("new EventSource(url)"));
-    for table in ["buses", "slaves", "masters", "trace"] {
+    for table in ["buses", "slaves", "masters", "writes", "trace"] {
         assert!(page.contains(&format!("<tbody id=\"{table}\">")), "{table}");
     }
     assert!(page.contains("<div id=\"values\">"));

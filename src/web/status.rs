@@ -1,7 +1,7 @@
-//! What the status page shows, as data: the buses, their slaves and the masters connected now,
-//! served as JSON at `/status` and rendered by the page at `/` (`status.html`, compiled in).
-//! The values are read from where they are kept (the bus's metrics and handle, the listener's
-//! sessions); this module only holds their shape and the line's recent utilisation, which needs
+//! What the status page shows, as data: the buses, their slaves, the masters connected now and
+//! the last writes, served as JSON at `/status` and rendered by the page at `/` (`status.html`,
+//! compiled in). The values are read from where they are kept (the bus's metrics and handle, the
+//! listener's sessions, the writes' record); this module only holds their shape and the line's recent utilisation, which needs
 //! the busy time of a moment ago.
 
 use serde::Serialize;
