@@ -17,6 +17,8 @@
 //!   length lies, half-sent requests, the connection limit and its policies, idle timeout,
 //!   keepalive, garbage.
 //! - `access`: `server.allow` and `server.read_only`.
+//! - `audit_journal`: the journal of writes (`[audit]`): a `kill -9` in a burst of writes, a full
+//!   file system under each `on_error`, a journal that cannot be opened, rotation.
 //! - `hostile`: masters that break the rules on purpose: frames hidden after a request, every
 //!   unit and function code to swell the metrics, floods of errors to drown the log.
 //! - `answers`: what the gateway answers itself: no route, broadcast, queue full, port down/back.
@@ -73,6 +75,7 @@ mod access;
 mod answers;
 mod ascii;
 mod audit_cli;
+mod audit_journal;
 mod cli;
 mod device_link;
 mod device_server;
