@@ -552,6 +552,85 @@ async fn a_full_file_system_under_allow_lets_writes_go_on_unrecorded_and_counts_
 }
 
 #[tokio::test]
+async fn a_file_system_full_at_start_lets_the_gateway_run_and_its_open_line_leads_once_there_is_room(
+) {
+    let Some(tmpfs) = Tmpfs::mount("start", "64k") else {
+        return;
+    };
+    tmpfs.fill(&tmpfs.join("filler"));
+    let journal = tmpfs.join("writes.jsonl");
+    // The file opens (a name takes no block), but takes no line: no reason to keep reads down.
+    let gateway = journaled_sim(&journal, "deny_writes", vec![]).await;
+    let mut ctx = master(&gateway).await;
+    assert_eq!(
+        write(&mut ctx, 7, 0x0707).await,
+        Err(ExceptionCode::GatewayPathUnavailable)
+    );
+    assert_eq!(read(&mut ctx, 7).await, 0, "refused, not sent");
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(scrape.value(REFUSED), 1.0);
+    assert_eq!(scrape.value(WRITABLE), 0.0);
+    assert!(journal_lines(&journal).is_empty());
+
+    std::fs::remove_file(tmpfs.join("filler")).unwrap();
+    write(&mut ctx, 7, 0x0707).await.expect("room again");
+    let entries = journal_lines(&journal);
+    let kinds: Vec<&str> = entries.iter().map(kind).collect();
+    // The run's open line first, so the ids after it read as this run's; then what it missed.
+    assert_eq!(kinds, ["open", "gap", "write", "outcome"], "{entries:#?}");
+    assert_eq!(entries[0]["pid"], std::process::id());
+    assert_eq!(entries[1]["refused"], 1);
+    assert_eq!(Some(&entries[2]), write_line(&entries, 7, 0x0707));
+    assert_eq!(entries[3]["outcome"], "answered");
+    assert_eq!(Scrape::of(&gateway).await.value(WRITABLE), 1.0);
+    drop(ctx);
+    gateway.shutdown().await;
+}
+
+#[tokio::test]
+async fn a_journal_on_dev_full_lets_writes_go_on_under_allow_and_counts_every_error() {
+    let gateway = journaled_sim(Path::new("/dev/full"), "allow", vec![]).await;
+    let mut ctx = master(&gateway).await;
+    for k in 0..3 {
+        write(&mut ctx, 10 + k, 0x0A00 + k)
+            .await
+            .expect("a write goes on unrecorded");
+        assert_eq!(read(&mut ctx, 10 + k).await, 0x0A00 + k);
+    }
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(scrape.value(UNRECORDED), 3.0);
+    assert_eq!(scrape.value(REFUSED), 0.0);
+    assert!(scrape.value(WRITE_ERRORS) >= 3.0, "{}", scrape.text);
+    assert_eq!(scrape.value(WRITABLE), 0.0);
+    let answered =
+        "modbus_gateway_writes_total{action=\"allow\",outcome=\"answered\",protocol=\"tcp\"}";
+    assert_eq!(scrape.value(answered), 3.0);
+    drop(ctx);
+    gateway.shutdown().await;
+}
+
+#[tokio::test]
+async fn a_journal_on_dev_full_refuses_writes_with_0x0a_under_deny_writes_and_serves_reads() {
+    let gateway = journaled_sim(Path::new("/dev/full"), "deny_writes", vec![]).await;
+    let mut ctx = master(&gateway).await;
+    for k in 0..3 {
+        assert_eq!(
+            write(&mut ctx, 10 + k, 0x0A00 + k).await,
+            Err(ExceptionCode::GatewayPathUnavailable)
+        );
+        assert_eq!(read(&mut ctx, 10 + k).await, 0, "refused, not sent");
+    }
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(scrape.value(REFUSED), 3.0);
+    assert_eq!(scrape.value(REFUSED_BY_THE_GATEWAY), 3.0);
+    assert_eq!(scrape.value(UNRECORDED), 0.0);
+    assert!(scrape.value(WRITE_ERRORS) >= 3.0, "{}", scrape.text);
+    assert_eq!(scrape.value(WRITABLE), 0.0);
+    drop(ctx);
+    gateway.shutdown().await;
+}
+
+#[tokio::test]
 async fn a_journal_in_a_missing_folder_stops_the_start_with_an_error_naming_audit_path() {
     let dir = TempDir::new("missing");
     let journal = dir.join("no-such-folder").join("writes.jsonl");

@@ -173,6 +173,9 @@ struct State {
     /// Bytes in the live file: where a line that fails part-way is cut back to.
     len: u64,
     failing: Option<Failing>,
+    /// This run's `open` line while the file has not taken it: it goes first, before the next
+    /// entry and the `gap` before that one, so the ids that follow read as this run's.
+    opening: Option<Vec<u8>>,
 }
 
 /// Since the journal could not be written.
@@ -194,7 +197,10 @@ pub(crate) struct Unwritten {
 
 impl Journal {
     /// Open (or create) the journal of `settings` and begin this run on it with an `open` line.
-    /// An error here is a start error naming `audit.path`.
+    /// A file that cannot be opened is an error, a start error naming `audit.path`. A file that
+    /// opens but takes no line (its file system full, say) is not: the journal begins failing,
+    /// so writes do what `on_error` says, as they would had it filled up a moment later,
+    /// rather than the whole gateway, reads included, staying down until there is room.
     pub(crate) fn open(
         settings: &config::Audit,
         metrics: Arc<crate::metrics::Metrics>,
@@ -210,23 +216,32 @@ impl Journal {
                 file: Some(file),
                 len,
                 failing: None,
+                opening: None,
             }),
             metrics,
             syncer,
         };
-        let opened = Line::Open(Opened {
+        let opened = line_of(&Line::Open(Opened {
             time: entry::now(),
             pid: std::process::id(),
             version: env!("CARGO_PKG_VERSION").to_owned(),
-        });
+        }));
         let mut state = journal.state();
-        journal.append(&mut state, &line_of(&opened))?;
-        if settings.fsync {
-            if let Some(file) = &state.file {
-                file.sync_data()?;
+        match journal.append(&mut state, &opened) {
+            Ok(()) => {
+                if settings.fsync {
+                    if let Some(file) = &state.file {
+                        file.sync_data()?;
+                    }
+                }
+                journal.metrics.audit.journal(Some(state.len));
+            }
+            Err(error) => {
+                state.opening = Some(opened);
+                failing(&mut state, &error);
+                journal.metrics.audit.journal_bytes(state.len);
             }
         }
-        journal.metrics.audit.journal(Some(state.len));
         drop(state);
         Ok(journal)
     }
@@ -323,23 +338,23 @@ impl Journal {
             state.file = Some(file);
             state.len = len;
         }
-        let gap = state.failing.as_ref().map(|failing| {
-            line_of(&Line::Gap(Gap {
+        let mut all = state.opening.clone().unwrap_or_default();
+        if let Some(failing) = &state.failing {
+            all.extend(line_of(&Line::Gap(Gap {
                 time: entry::now(),
                 since: failing.since.clone(),
                 unrecorded: failing.unrecorded,
                 refused: failing.refused,
                 lost_outcomes: failing.outcomes,
                 error: failing.error.clone(),
-            }))
-        });
-        let needed = bytes.len() + gap.as_ref().map_or(0, Vec::len);
-        if state.len > 0 && state.len + needed as u64 > state.settings.max_size.0 {
+            })));
+        }
+        all.extend_from_slice(bytes);
+        if state.len > 0 && state.len + all.len() as u64 > state.settings.max_size.0 {
             self.rotate(state).map_err(|e| ("rotate", e))?;
         }
-        let mut all = gap.unwrap_or_default();
-        all.extend_from_slice(bytes);
         write_whole(state, &all).map_err(|e| ("write", e))?;
+        state.opening = None;
         if let Some(failing) = state.failing.take() {
             let metrics = &self.metrics.audit;
             metrics.journal_recovered(&self.path, failing.unrecorded, failing.refused);
