@@ -527,4 +527,64 @@ mod tests {
         }
         assert!(!rotated(&path, 3).exists());
     }
+
+    fn write(id: u64) -> Line {
+        Line::Write(entry::Write {
+            time: entry::now(),
+            id,
+            master: "127.0.0.1:50312".into(),
+            protocol: "tcp".into(),
+            subject: None,
+            role: None,
+            unit: 1,
+            bus: Some("line1".into()),
+            slave: Some(1),
+            function: 0x06,
+            table: Some("holding".into()),
+            start: Some(5),
+            count: Some(1),
+            values: "0001".into(),
+            rule: None,
+            action: "allow".into(),
+        })
+    }
+
+    #[test]
+    fn an_outcome_the_file_refuses_is_counted_in_the_gap_and_the_journal_reads_writable_again() {
+        let path = temp("outcome");
+        let metrics = Arc::new(crate::metrics::Metrics::new());
+        let writable = || {
+            let text = metrics.render().unwrap();
+            crate::metrics::sample(&text, "modbus_gateway_audit_journal_writable")
+        };
+        let journal = Journal::open(&settings(&path, false), metrics.clone()).unwrap();
+        journal.record(&write(1)).unwrap();
+        assert_eq!(writable(), Some(1.0));
+        // The file refuses the outcome (its disk full for a moment): lost, and not writable.
+        journal.state().file = Some(OpenOptions::new().append(true).open("/dev/full").unwrap());
+        journal.note(&Line::Outcome(entry::Ended {
+            time: entry::now(),
+            id: 1,
+            outcome: entry::Outcome::Answered,
+            carried_out: entry::Carried::Yes,
+            exception: None,
+            detail: None,
+        }));
+        assert_eq!(writable(), Some(0.0));
+        // The next entry reopens the file, which takes it after the gap that says so.
+        journal.record(&write(2)).unwrap();
+        assert_eq!(writable(), Some(1.0));
+        let text = fs::read_to_string(&path).unwrap();
+        let lines: Vec<Line> = text
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect();
+        match lines.as_slice() {
+            [Line::Open(_), Line::Write(first), Line::Gap(gap), Line::Write(second)] => {
+                assert_eq!((first.id, second.id), (1, 2));
+                assert_eq!((gap.lost_outcomes, gap.unrecorded, gap.refused), (1, 0, 0));
+            }
+            other => panic!("{other:#?}"),
+        }
+    }
 }
