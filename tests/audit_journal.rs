@@ -1,8 +1,10 @@
 //! The audit journal of writes (`[audit]`) as an operator relies on it: the gateway killed with
 //! `kill -9` in a burst of writes leaves an entry for every write its slave carried out; a full
-//! file system refuses writes (0x0A) or lets them go on unrecorded, as `on_error` says, and the
-//! journal says what it missed once it can be written again; a journal that cannot be opened
-//! stops the start; rotation keeps `keep` files of at most `max_size` bytes of whole lines.
+//! file system (a tmpfs filled up, or `/dev/full`) refuses writes (0x0A) or lets them go on
+//! unrecorded, as `on_error` says, while reads go on, and the journal says what it missed once
+//! it can be written again; a file system full at start does not keep the gateway down, but a
+//! journal that cannot be opened stops the start; rotation keeps `keep` files of at most
+//! `max_size` bytes of whole lines.
 //!
 //! The journal is read here as JSON lines, not through the product's types: a line that does not
 //! parse as a JSON object is a broken journal, whatever the product thinks of it.
@@ -62,6 +64,16 @@ impl TempDir {
 impl Drop for TempDir {
     fn drop(&mut self) {
         let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// A child process, killed (if it still runs) on drop: a failed test leaves no gateway behind.
+struct Process(std::process::Child);
+
+impl Drop for Process {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
     }
 }
 
@@ -297,19 +309,22 @@ async fn every_write_the_slave_carried_out_before_a_kill_9_has_its_write_line_in
         .to_toml();
     let gateway_config = dir.join("gateway.toml");
     std::fs::write(&gateway_config, config).unwrap();
-    let mut gateway = Command::new(BINARY)
-        .args(["--config", gateway_config.to_str().unwrap(), "run"])
-        .env_remove("RUST_LOG")
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(dir.join("gateway.log")).unwrap())
-        .spawn()
-        .expect("the gateway runs");
+    let mut gateway = Process(
+        Command::new(BINARY)
+            .args(["--config", gateway_config.to_str().unwrap(), "run"])
+            .env_remove("RUST_LOG")
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(dir.join("gateway.log")).unwrap())
+            .spawn()
+            .expect("the gateway runs"),
+    );
     drop(connect_when_listening(listen).await);
 
     let answered = Arc::new(AtomicUsize::new(0));
     let masters: Vec<_> = (0..MASTERS)
         .map(|m| {
             let answered = answered.clone();
+            let log = dir.join("gateway.log");
             tokio::spawn(async move {
                 let mut ctx = tcp::connect_slave(listen, Slave(SLAVE))
                     .await
@@ -323,7 +338,10 @@ async fn every_write_the_slave_carried_out_before_a_kill_9_has_its_write_line_in
                             done.push((register, value));
                             answered.fetch_add(1, Ordering::SeqCst);
                         }
-                        Ok(Err(e)) => panic!("write {register}={value} refused: {e:?}"),
+                        Ok(Err(e)) => panic!(
+                            "write {register}={value} refused: {e:?}; the gateway's log:\n{}",
+                            std::fs::read_to_string(&log).unwrap_or_default()
+                        ),
                         Err(_) => break,
                     }
                 }
@@ -338,8 +356,8 @@ async fn every_write_the_slave_carried_out_before_a_kill_9_has_its_write_line_in
     })
     .await;
     // SIGKILL, with every master's next write on its way.
-    gateway.kill().expect("kill -9 the gateway");
-    let _ = gateway.wait();
+    gateway.0.kill().expect("kill -9 the gateway");
+    let _ = gateway.0.wait();
     let mut confirmed = Vec::new();
     for master in masters {
         confirmed.extend(within("a master stops", master).await.expect("a master"));
@@ -395,15 +413,15 @@ async fn every_write_the_slave_carried_out_before_a_kill_9_has_its_write_line_in
         );
     }
     let writes = of_kind(&entries, "write");
-    let unended: Vec<&Json> = writes
+    let unended: Vec<u64> = writes
         .iter()
-        .filter(|w| !outcomes.contains_key(&w["id"].as_u64().unwrap()))
-        .copied()
+        .map(|w| w["id"].as_u64().unwrap())
+        .filter(|id| !outcomes.contains_key(id))
         .collect();
     // Those are the "may have been carried out" ones: queued or on the line when it died.
     eprintln!(
         "{} writes journaled, {} answered to their masters, {} carried out ({} of them \
-         unanswered); {} without an outcome line: {unended:?}",
+         unanswered); {} without an outcome line (ids {unended:?})",
         writes.len(),
         confirmed.len(),
         held.len(),
@@ -673,7 +691,11 @@ async fn rotation_keeps_keep_files_of_at_most_max_size_whole_lines_dropping_the_
     .await;
     let mut ctx = master(&gateway).await;
     for k in 0..WRITES {
-        write(&mut ctx, k, 0x5000 + k).await.expect("answered");
+        if let Err(e) = write(&mut ctx, k, 0x5000 + k).await {
+            let scrape = Scrape::of(&gateway).await;
+            let audit = scrape.series_of("modbus_gateway_audit_errors_total");
+            panic!("write {k} refused ({e:?}); the journal's errors: {audit:?}");
+        }
     }
     let rotated = |n: u32| PathBuf::from(format!("{}.{n}", journal.display()));
     let files = [rotated(2), rotated(1), journal.clone()];

@@ -13,12 +13,12 @@
 //!   test is in `bench/tests/`.)
 //! - `audit_cli`: the `audit` subcommand on a journal and its rotated files: writes joined to
 //!   their outcomes, filters, `--json`, the configured journal, exit statuses.
+//! - `audit_journal`: the journal of writes (`[audit]`): a `kill -9` in a burst of writes, a full
+//!   file system under each `on_error`, a journal that cannot be opened, rotation.
 //! - `tcp`: the Modbus TCP side and masters that abuse it: pipelining and floods, MBAP errors and
 //!   length lies, half-sent requests, the connection limit and its policies, idle timeout,
 //!   keepalive, garbage.
 //! - `access`: `server.allow` and `server.read_only`.
-//! - `audit_journal`: the journal of writes (`[audit]`): a `kill -9` in a burst of writes, a full
-//!   file system under each `on_error`, a journal that cannot be opened, rotation.
 //! - `hostile`: masters that break the rules on purpose: frames hidden after a request, every
 //!   unit and function code to swell the metrics, floods of errors to drown the log.
 //! - `answers`: what the gateway answers itself: no route, broadcast, queue full, port down/back.
