@@ -396,8 +396,10 @@ fn names_in(text: &str) -> BTreeSet<String> {
 #[tokio::test]
 async fn the_shipped_alerts_and_dashboard_use_only_metrics_the_gateway_exports() {
     // The mixed traffic's line, with a plant value on a slave that never answers: its polls
-    // time out, so the poll metrics have series too.
+    // time out, so the poll metrics have series too; and a journal of writes.
+    let journal = std::env::temp_dir().join(format!("mbgw-alerts-{}.jsonl", std::process::id()));
     let gateway = GatewayConfig::new()
+        .table("audit", &[("path", journal.display().to_string().into())])
         .bus(
             sim_line()
                 .slave(5, &[("response_timeout", "50ms".into())])
