@@ -270,17 +270,9 @@ impl Journal {
         let written = self.append(&mut state, &line_of(line));
         match written {
             Ok(()) => Ok(state.settings.fsync.then(|| self.syncer.ask())),
-            Err(error) => {
-                let refuse = state.settings.on_error == OnError::DenyWrites;
-                let failing = failing(&mut state, &error);
-                if refuse {
-                    failing.refused += 1;
-                } else {
-                    failing.unrecorded += 1;
-                }
-                self.metrics.audit.unrecorded(refuse);
-                Err(Unwritten { refuse })
-            }
+            Err(error) => Err(Unwritten {
+                refuse: self.without_entry(&mut state, &error),
+            }),
         }
     }
 
@@ -299,17 +291,24 @@ impl Journal {
         let mut state = self.state();
         let first = state.failing.is_none();
         let error = io::Error::other("cannot sync the journal to the disk");
+        let refuse = self.without_entry(&mut state, &error);
+        let writes = writes_word(state.settings.on_error);
+        let metrics = &self.metrics.audit;
+        metrics.journal_failed(&self.path, "sync", &error, first, writes);
+        refuse
+    }
+
+    /// A write whose entry is not on record (or not on the disk), in the failure streak of
+    /// `error` and counted; whether `on_error` refuses it.
+    fn without_entry(&self, state: &mut State, error: &io::Error) -> bool {
         let refuse = state.settings.on_error == OnError::DenyWrites;
-        let failing = failing(&mut state, &error);
+        let failing = failing(state, error);
         if refuse {
             failing.refused += 1;
         } else {
             failing.unrecorded += 1;
         }
-        let writes = writes_word(state.settings.on_error);
-        let metrics = &self.metrics.audit;
-        metrics.journal_failed(&self.path, "sync", &error, first, writes);
-        metrics.unrecorded(refuse);
+        self.metrics.audit.unrecorded(refuse);
         refuse
     }
 
