@@ -745,4 +745,33 @@ async fn rotation_keeps_keep_files_of_at_most_max_size_whole_lines_dropping_the_
     assert!(ids.iter().all(|id| outcomes.contains(id)));
     drop(ctx);
     gateway.shutdown().await;
+
+    // `modbus-gateway audit` reads across the three files: every kept write, with its outcome;
+    // and its register filter picks one.
+    let audit = |args: &[&str]| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_modbus-gateway"))
+            .args(["audit", "--journal"])
+            .arg(&journal)
+            .args(args)
+            .output()
+            .expect("the audit subcommand runs");
+        assert!(out.status.success(), "{out:?}");
+        String::from_utf8(out.stdout).expect("UTF-8")
+    };
+    let listed: Vec<serde_json::Value> = audit(&["--json"])
+        .lines()
+        .map(|line| serde_json::from_str(line).expect("JSON"))
+        .collect();
+    let listed_ids: Vec<u64> = listed.iter().map(|w| w["id"].as_u64().unwrap()).collect();
+    assert_eq!(listed_ids, ids);
+    assert!(listed.iter().all(|w| w["outcome"]["outcome"] == "answered"));
+    // Register k was written k + 0x5000: the last write, by its register.
+    let last = (WRITES - 1).to_string();
+    let one = audit(&["--register", &last]);
+    assert_eq!(one.lines().count(), 1, "{one}");
+    assert!(
+        one.contains(&format!("{:04X}", 0x5000 + WRITES - 1)),
+        "{one}"
+    );
+    assert!(one.contains("answered"), "{one}");
 }
