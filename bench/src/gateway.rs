@@ -1,8 +1,9 @@
 //! The gateway under test as a process: its configuration written for the scenario, the binary
 //! started on it and stopped when dropped, and what /proc says of its CPU time and memory.
 
+use crate::journal::JournalDir;
 use crate::plant;
-use crate::scenarios::{Kind, Line, Load, Scenario, PRIORITY_IP, SLAVES};
+use crate::scenarios::{Journal, Kind, Line, Load, Scenario, PRIORITY_IP, SLAVES};
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -37,6 +38,8 @@ pub(crate) struct Gateway {
     pub(crate) metrics: SocketAddr,
     /// The TLS listener and the certificates (TLS scenarios only).
     pub(crate) tls: Option<Tls>,
+    /// The audit journal's directory, if it keeps one; removed after the gateway is stopped.
+    pub(crate) journal: Option<JournalDir>,
     _config: TempPath,
 }
 
@@ -119,11 +122,12 @@ fn connections(scenario: &Scenario) -> usize {
 
 impl Gateway {
     /// The gateway binary at `binary`, started on a configuration for `scenario` with its bus on
-    /// `device`, once it listens.
+    /// `device` and its audit journal (if the scenario has one) in `journal`, once it listens.
     pub(crate) async fn start(
         binary: &Path,
         scenario: &Scenario,
         device: &str,
+        journal: Option<JournalDir>,
     ) -> Result<Gateway, String> {
         let listen = free_addr().map_err(|e| e.to_string())?;
         let listen_rtu_over_tcp = free_addr().map_err(|e| e.to_string())?;
@@ -150,6 +154,11 @@ impl Gateway {
         } else {
             None
         };
+        if let Some(journal) = &journal {
+            let path = journal.file().to_string_lossy().into_owned();
+            let fsync = scenario.journal == Journal::Fsync;
+            config = config.table("audit", &[("path", path.into()), ("fsync", fsync.into())]);
+        }
         let config = config
             .metrics_listen(metrics)
             .table("log", &[("level", "warn".into())])
@@ -173,6 +182,7 @@ impl Gateway {
             listen_udp,
             metrics,
             tls,
+            journal,
             _config: TempPath(path),
         };
         gateway.until_listening().await?;

@@ -11,13 +11,16 @@
 //! again, `--direct-client`, in a process of its own) and beside modbus-proxy, if installed.
 //! With no master but 247 slaves' plant values to poll (the `values-` scenario, and its twin
 //! behind a device server), it measures what polling costs the gateway, its memory, and each
-//! page that serves the values.
+//! page that serves the values. With the mixed load and the audit journal off, on, and synced to
+//! the disk (the `-journal-` scenarios, run one after the other), it measures what the journal
+//! costs each write against the same load without it.
 //! A workspace member of its own: `cargo install` and the Debian package carry only the daemon.
 //!
 //! The modules, in the order a run goes through them: `scenarios` (what to measure),
 //! `device_server` (the far end of the device-server line), `tcp_device` (the Modbus TCP device
 //! of the tcp-device line), `beside` (what is measured beside the gateway on that line: a direct
-//! client, modbus-proxy), `gateway` (the process under test),
+//! client, modbus-proxy), `journal` (the audit journal's directory, its file system and what a
+//! sync costs there), `gateway` (the process under test),
 //! `masters` (the load), `plant` (no load but the gateway's own polls of plant values: the
 //! cost of polling and of each page serving them), `watch` (its HTTP endpoint: metrics, trace,
 //! scraper, pages), `run` (one scenario's warm-up and window), `report` (the figures and their
@@ -26,6 +29,7 @@
 mod beside;
 mod device_server;
 mod gateway;
+mod journal;
 mod masters;
 mod plant;
 mod report;
@@ -74,6 +78,18 @@ struct Cli {
     /// out, with a message, if it is not there.
     #[arg(long)]
     modbus_proxy: Option<PathBuf>,
+    /// Where the `-journal-on` and `-journal-fsync` scenarios keep the gateway's audit journal,
+    /// each in a directory of its own that the bench removes (default: the system's temp
+    /// directory). A sync on tmpfs costs nothing: to measure `fsync` give a directory on a disk
+    /// if that one is tmpfs (the reports name the file system, `journal_fs`).
+    #[arg(long)]
+    journal_dir: Option<PathBuf>,
+}
+
+impl Cli {
+    fn journal_dir(&self) -> PathBuf {
+        self.journal_dir.clone().unwrap_or_else(std::env::temp_dir)
+    }
 }
 
 fn main() -> ExitCode {
@@ -119,15 +135,19 @@ async fn bench(cli: Cli) -> ExitCode {
     let mut reports = Vec::new();
     for s in chosen {
         match run::run(&cli, &binary, s).await {
-            Ok(r) if cli.json => match serde_json::to_string(&r) {
-                Ok(line) => println!("{line}"),
-                Err(e) => {
-                    eprintln!("{}: {e}", s.name);
-                    failed = true;
+            Ok(mut r) => {
+                r.against_journal_off(&reports);
+                if cli.json {
+                    match serde_json::to_string(&r) {
+                        Ok(line) => println!("{line}"),
+                        Err(e) => {
+                            eprintln!("{}: {e}", s.name);
+                            failed = true;
+                        }
+                    }
+                } else {
+                    report::print_row(&r);
                 }
-            },
-            Ok(r) => {
-                report::print_row(&r);
                 reports.push(r);
             }
             Err(e) => {
@@ -136,15 +156,23 @@ async fn bench(cli: Cli) -> ExitCode {
             }
         }
     }
-    report::print_line_table(&reports);
-    report::print_priority_table(&reports);
-    report::print_scrape_table(&reports);
-    report::print_device_server_table(&reports);
-    report::print_tcp_device_table(&reports);
-    report::print_plant_table(&reports);
+    if !cli.json {
+        print_tables(&reports);
+    }
     if failed {
         ExitCode::FAILURE
     } else {
         ExitCode::SUCCESS
     }
+}
+
+/// The tables after the main one, each for the scenarios that have its figures.
+fn print_tables(reports: &[report::Report]) {
+    report::print_line_table(reports);
+    report::print_priority_table(reports);
+    report::print_scrape_table(reports);
+    report::print_device_server_table(reports);
+    report::print_tcp_device_table(reports);
+    report::print_plant_table(reports);
+    report::print_journal_table(reports);
 }

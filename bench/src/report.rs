@@ -1,11 +1,11 @@
 //! The figures of a run and how they are shown: a JSON object per scenario, or the table (and,
-//! for the scenarios that have them, the line, priority, scrape, device-server, tcp-device and
-//! plant-values tables).
+//! for the scenarios that have them, the line, priority, scrape, device-server, tcp-device,
+//! plant-values and journal tables).
 
 use crate::beside::Driven;
 use crate::plant::{Gets, PlantWindow};
 use crate::run::{Minimum, Window};
-use crate::scenarios::{Line, Load, Scenario};
+use crate::scenarios::{journal_off_twin, Line, Load, Scenario};
 use crate::watch::Counters;
 use serde::Serialize;
 use std::time::Duration;
@@ -92,6 +92,34 @@ pub(crate) struct Report {
     /// The `values-` scenario only.
     #[serde(flatten)]
     plant: Option<PlantFigures>,
+    /// The mixed load only.
+    #[serde(flatten)]
+    journal: Option<JournalFigures>,
+}
+
+/// The mixed load's writes, and what the audit journal took for them.
+#[derive(Serialize)]
+pub(crate) struct JournalFigures {
+    /// `[audit]`: `off` (none), `on`, or `fsync` (`fsync = true`).
+    journal: &'static str,
+    /// Writes the masters completed in the window (of `transactions`).
+    writes: u64,
+    /// The journal's growth across the window per write: its entry and its outcome's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    journal_bytes_per_write: Option<f64>,
+    /// The type of the file system the journal is on (`/proc/self/mounts`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    journal_fs: Option<String>,
+    /// Against the `-journal-off` scenario of the same run: the rate over its; the gateway's
+    /// CPU time per write more than its (the difference in CPU per transaction, times
+    /// transactions per write); and the wall time per write more than its, the same way (what
+    /// each write held the line up by).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    tx_vs_journal_off: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    cpu_us_per_write_vs_journal_off: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    wall_ms_per_write_vs_journal_off: Option<f64>,
 }
 
 /// The figures of the `values-` scenarios: the gateway polling plant values, no master.
@@ -215,6 +243,7 @@ impl Report {
         let mut per_master = Vec::with_capacity(s.masters);
         let mut physical = Duration::ZERO;
         let mut priority = Vec::new();
+        let mut writes = 0;
         for (i, done) in w.masters.iter().enumerate() {
             let within: Vec<_> = done
                 .iter()
@@ -228,6 +257,7 @@ impl Report {
             for (_, latency, write) in within {
                 latencies.push(*latency);
                 physical += if *write { min.write } else { min.read };
+                writes += u64::from(*write);
             }
         }
         let wall = (w.end - w.start).as_secs_f64();
@@ -267,6 +297,52 @@ impl Report {
         if let Some(scrapes) = &w.scrapes {
             self.scrapes(scrapes);
         }
+        if s.load == Load::Mix {
+            self.journal = Some(JournalFigures {
+                journal: s.journal.label(),
+                writes,
+                journal_bytes_per_write: w
+                    .journal_bytes
+                    .filter(|_| writes > 0)
+                    .map(|bytes| bytes as f64 / writes as f64),
+                journal_fs: None,
+                tx_vs_journal_off: None,
+                cpu_us_per_write_vs_journal_off: None,
+                wall_ms_per_write_vs_journal_off: None,
+            });
+        }
+    }
+
+    /// The type of the file system the audit journal was on, if there was a journal.
+    pub(crate) fn journal_kept(&mut self, file_system: Option<String>) {
+        if let Some(figures) = &mut self.journal {
+            figures.journal_fs = file_system;
+        }
+    }
+
+    /// A `-journal-on` or `-journal-fsync` scenario's figures against its `-journal-off`
+    /// twin's, if that is among the `earlier` reports of the run.
+    pub(crate) fn against_journal_off(&mut self, earlier: &[Report]) {
+        let Some(twin) = journal_off_twin(&self.scenario) else {
+            return;
+        };
+        let Some(off) = earlier.iter().rev().find(|r| r.scenario == twin) else {
+            return;
+        };
+        let (Some(figures), Some(cpu), Some(cpu_off)) =
+            (&mut self.journal, self.cpu_us_per_tx, off.cpu_us_per_tx)
+        else {
+            return;
+        };
+        if figures.writes == 0 || self.tx_per_s <= 0.0 || off.tx_per_s <= 0.0 {
+            return;
+        }
+        let tx_per_write = self.transactions as f64 / figures.writes as f64;
+        figures.tx_vs_journal_off = Some(self.tx_per_s / off.tx_per_s);
+        figures.cpu_us_per_write_vs_journal_off = Some((cpu - cpu_off) * tx_per_write);
+        let wall_ms = |tx_per_s: f64| 1e3 / tx_per_s;
+        figures.wall_ms_per_write_vs_journal_off =
+            Some((wall_ms(self.tx_per_s) - wall_ms(off.tx_per_s)) * tx_per_write);
     }
 
     /// The figures of the `values-` scenarios' window `w`.
@@ -675,5 +751,105 @@ pub(crate) fn print_plant_table(reports: &[Report]) {
                 "{page:<33} {gets:>7} {cpu:>10.0} {net:>10.0} {ms:>9.2} {plain:>9.2} {bytes:>10}"
             );
         }
+    }
+}
+
+/// The journal scenarios' own columns: each beside the `-journal-off` one of its run.
+pub(crate) fn print_journal_table(reports: &[Report]) {
+    let rows: Vec<_> = reports
+        .iter()
+        .filter_map(|r| Some((r, r.journal.as_ref()?)))
+        .filter(|(r, _)| r.scenario.contains("-journal-"))
+        .collect();
+    if rows.is_empty() {
+        return;
+    }
+    println!(
+        "\n{:<40} {:>8} {:>7} {:>9} {:>7} {:>10} {:>10} {:>8} {:>6}",
+        "scenario (audit journal)",
+        "tx/s",
+        "x off",
+        "cpu us/tx",
+        "writes",
+        "+cpu us/w",
+        "+wall ms/w",
+        "B/write",
+        "fs"
+    );
+    for (r, j) in rows {
+        println!(
+            "{:<40} {:>8.1} {:>7} {:>9} {:>7} {:>10} {:>10} {:>8} {:>6}",
+            r.scenario,
+            r.tx_per_s,
+            cell(j.tx_vs_journal_off, 3),
+            cell(r.cpu_us_per_tx, 1),
+            j.writes,
+            cell(j.cpu_us_per_write_vs_journal_off, 1),
+            cell(j.wall_ms_per_write_vs_journal_off, 3),
+            cell(j.journal_bytes_per_write, 0),
+            j.journal_fs.as_deref().unwrap_or("-"),
+        );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{JournalFigures, Report};
+
+    /// A report of `scenario`: `transactions` in 10 s, `writes` of them writes, at `cpu_us`
+    /// of the gateway's CPU each.
+    fn report(scenario: &str, transactions: u64, writes: u64, cpu_us: f64) -> Report {
+        Report {
+            scenario: scenario.to_owned(),
+            transactions,
+            tx_per_s: transactions as f64 / 10.0,
+            cpu_us_per_tx: Some(cpu_us),
+            journal: Some(JournalFigures {
+                journal: "on",
+                writes,
+                journal_bytes_per_write: None,
+                journal_fs: None,
+                tx_vs_journal_off: None,
+                cpu_us_per_write_vs_journal_off: None,
+                wall_ms_per_write_vs_journal_off: None,
+            }),
+            ..Report::default()
+        }
+    }
+
+    #[test]
+    fn the_journal_s_cost_per_write_is_the_difference_per_transaction_times_transactions_per_write()
+    {
+        let off = report("pty-mix-100-journal-off", 5000, 1250, 80.0);
+        // The same rate, 5 us more a transaction: 20 us more for each write, one in four.
+        let mut on = report("pty-mix-100-journal-on", 5000, 1250, 85.0);
+        on.against_journal_off(&[off]);
+        let on = on.journal.unwrap();
+        assert_eq!(on.tx_vs_journal_off, Some(1.0));
+        assert!((on.cpu_us_per_write_vs_journal_off.unwrap() - 20.0).abs() < 1e-9);
+        assert!(on.wall_ms_per_write_vs_journal_off.unwrap().abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_slower_rate_is_the_wall_time_each_write_held_the_line_up_by() {
+        let off = report("sim-mix-100-journal-off", 5000, 1250, 80.0);
+        // 2 ms a transaction where it was 2 ms... 2.5 ms: 0.5 ms more each, 2 ms a write.
+        let mut fsync = report("sim-mix-100-journal-fsync", 4000, 1000, 80.0);
+        fsync.against_journal_off(&[off]);
+        let fsync = fsync.journal.unwrap();
+        assert_eq!(fsync.tx_vs_journal_off, Some(0.8));
+        assert!((fsync.wall_ms_per_write_vs_journal_off.unwrap() - 2.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn only_a_journal_scenario_with_its_off_twin_in_the_run_is_compared() {
+        let off = report("sim-mix-100-journal-off", 5000, 1250, 80.0);
+        let other = report("pty-mix-100-journal-off", 5000, 1250, 10.0);
+        let mut twinless = report("pty-mix-100-journal-on", 5000, 1250, 85.0);
+        twinless.against_journal_off(std::slice::from_ref(&off));
+        assert!(twinless.journal.unwrap().tx_vs_journal_off.is_none());
+        let mut itself = report("sim-mix-100-journal-off", 5000, 1250, 85.0);
+        itself.against_journal_off(&[off, other]);
+        assert!(itself.journal.unwrap().tx_vs_journal_off.is_none());
     }
 }

@@ -1,15 +1,17 @@
 //! One scenario's run: the gateway started, the masters connected, a warm-up, then a window in
-//! which the masters' completions, the gateway's CPU time and (on a timed line) its
-//! metrics are taken; on the tcp-device line, one direct client before and modbus-proxy after;
-//! with no master but plant values to poll, `plant`'s. The figures are `report`'s.
+//! which the masters' completions, the gateway's CPU time, (on a timed line) its metrics and
+//! (with an audit journal) the journal's growth are taken; on the tcp-device line, one direct
+//! client before and modbus-proxy after; with no master but plant values to poll, `plant`'s.
+//! The figures are `report`'s.
 
 use crate::beside;
 use crate::device_server::DeviceServer;
 use crate::gateway::{cpu_time, rss_mb, Gateway};
+use crate::journal::JournalDir;
 use crate::masters::{connect_all, master, priority_connect, untimed_slave, Done};
 use crate::plant;
 use crate::report::Report;
-use crate::scenarios::{Line, Load, Scenario, READ_10, WRITE_1};
+use crate::scenarios::{Journal, Line, Load, Scenario, READ_10, WRITE_1};
 use crate::tcp_device::TcpDevice;
 use crate::watch::{scrape, watch_trace, Scraped, Scraper};
 use crate::Cli;
@@ -41,6 +43,8 @@ pub(crate) struct Window {
     pub(crate) metrics: Option<(String, String)>,
     /// The `--scrape` scraper's scrapes within the window.
     pub(crate) scrapes: Option<Vec<Scraped>>,
+    /// How many bytes the audit journal grew by across the window, if there is one.
+    pub(crate) journal_bytes: Option<u64>,
 }
 
 /// Run scenario `s` on the gateway binary at `binary`.
@@ -65,7 +69,12 @@ pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report
         Some(device) => Some(beside::direct(cli, device.addr).await?),
         None => None,
     };
-    let gateway = Gateway::start(binary, s, &device).await?;
+    let journal = match s.journal {
+        Journal::Off => None,
+        Journal::On | Journal::Fsync => Some(JournalDir::make(&cli.journal_dir(), &s.name)?),
+    };
+    let file_system = journal.as_ref().and_then(JournalDir::file_system);
+    let gateway = Gateway::start(binary, s, &device, journal).await?;
     let listening = Instant::now();
     let pid = gateway.pid();
     let cpu_before = cpu_time(pid);
@@ -113,6 +122,7 @@ pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report
         slave.abort();
     }
     report.measured(s, &window, &minimum);
+    report.journal_kept(file_system);
     if let (Some(device), Some(direct)) = (&tcp, direct) {
         // modbus-proxy alone in front of the device, as the gateway was.
         drop(gateway);
@@ -164,9 +174,11 @@ async fn measure(
         None
     };
     let far_start = far.map(cpu_time);
+    let journal_start = gateway.journal.as_ref().map(JournalDir::bytes);
     let (start, cpu_start) = (Instant::now(), cpu_time(pid));
     tokio::time::sleep(length).await;
     let (end, cpu_end) = (Instant::now(), cpu_time(pid));
+    let journal_end = gateway.journal.as_ref().map(JournalDir::bytes);
     let far_cpu = far.map(cpu_time).zip(far_start).map(|(e, s)| e - s);
     let after = if timed {
         Some(scrape(gateway.metrics).await?)
@@ -193,5 +205,8 @@ async fn measure(
         masters,
         metrics: before.zip(after),
         scrapes,
+        journal_bytes: journal_end
+            .zip(journal_start)
+            .map(|(e, s)| e.saturating_sub(s)),
     })
 }

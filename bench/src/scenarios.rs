@@ -171,6 +171,29 @@ pub(crate) enum Load {
     Values,
 }
 
+/// The gateway's audit journal (`[audit]`), which takes an entry for every write before it is
+/// queued and one for its outcome.
+#[derive(Clone, Copy, PartialEq, Debug)]
+pub(crate) enum Journal {
+    /// No `[audit]`.
+    Off,
+    /// A journal in a directory the bench makes: each entry handed to the kernel (`write`).
+    On,
+    /// The same with `fsync = true`: each write's entry synced to the disk before it is queued.
+    Fsync,
+}
+
+impl Journal {
+    /// As the scenarios' names and the reports say it.
+    pub(crate) fn label(self) -> &'static str {
+        match self {
+            Journal::Off => "off",
+            Journal::On => "on",
+            Journal::Fsync => "fsync",
+        }
+    }
+}
+
 /// How the bench's masters talk to the gateway.
 #[derive(Clone, Copy, PartialEq)]
 pub(crate) enum Kind {
@@ -203,6 +226,7 @@ pub(crate) struct Scenario {
     /// One more master, connecting from 127.0.0.2 (in `server.priority`), reading a block of its
     /// own: back to back (`Some(ZERO)`) or one read per period.
     pub(crate) priority: Option<Duration>,
+    pub(crate) journal: Journal,
 }
 
 impl Scenario {
@@ -220,6 +244,7 @@ impl Scenario {
             in_flight: 1,
             device_delay: Duration::ZERO,
             priority: None,
+            journal: Journal::Off,
         }
     }
 }
@@ -243,6 +268,7 @@ pub(crate) fn scenarios() -> Vec<Scenario> {
     let mut all = Vec::new();
     line_scenarios(&mut all);
     kind_scenarios(&mut all);
+    journal_scenarios(&mut all);
     many_scenarios(&mut all);
     for masters in [1, 100] {
         all.push(Scenario {
@@ -375,6 +401,37 @@ fn kind_scenarios(all: &mut Vec<Scenario>) {
             ..Scenario::sim(name, sim_115200, 1, Load::Read)
         });
     }
+}
+
+/// The mixed load of 100 masters with the audit journal off, on, and on with `fsync`, one right
+/// after the other so that a run compares them: on the 115200 line, which is the bottleneck,
+/// and on the untimed pty, where what is left is the gateway's own time. Their names end in
+/// `-journal-off`, `-journal-on` and `-journal-fsync`; the last two are reported against the
+/// first.
+fn journal_scenarios(all: &mut Vec<Scenario>) {
+    let sim_115200 = format(115_200, Parity::None);
+    for (line, prefix) in [
+        (Line::Sim, "sim-115200-8N1"),
+        (Line::Pty, "pty-115200-untimed"),
+    ] {
+        for journal in [Journal::Off, Journal::On, Journal::Fsync] {
+            let name = format!("{prefix}-mix-100-journal-{}", journal.label());
+            all.push(Scenario {
+                line,
+                journal,
+                ..Scenario::sim(name, sim_115200, 100, Load::Mix)
+            });
+        }
+    }
+}
+
+/// The `-journal-off` scenario that `name`, a `-journal-on` or `-journal-fsync` one, is
+/// measured against.
+pub(crate) fn journal_off_twin(name: &str) -> Option<String> {
+    let stem = name
+        .strip_suffix("-journal-on")
+        .or_else(|| name.strip_suffix("-journal-fsync"))?;
+    Some(format!("{stem}-journal-off"))
 }
 
 /// Many masters, one read: coalescing, what it costs when there is nothing to coalesce, and a
