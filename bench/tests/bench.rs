@@ -253,3 +253,54 @@ fn the_values_scenario_waits_until_every_plant_value_is_read_then_measures_polli
     // The simulated line is in the gateway's process: no `simulate` to count apart.
     assert!(values["simulate_poll_cpu_ms_per_s"].is_null(), "{values}");
 }
+
+#[test]
+fn the_journal_scenarios_journal_every_write_and_are_measured_against_the_journal_off_one() {
+    let mut dirs = Vec::new();
+    let reports = bench_json(&["pty-115200-untimed-mix-100-journal"], |id| {
+        dirs = ["on", "fsync"]
+            .map(|j| {
+                std::env::temp_dir().join(format!(
+                    "mbgw-bench-audit-{id}-pty-115200-untimed-mix-100-journal-{j}"
+                ))
+            })
+            .to_vec();
+    });
+    let names: Vec<_> = reports.iter().map(|r| r["scenario"].clone()).collect();
+    assert_eq!(
+        names,
+        [
+            "pty-115200-untimed-mix-100-journal-off",
+            "pty-115200-untimed-mix-100-journal-on",
+            "pty-115200-untimed-mix-100-journal-fsync"
+        ]
+    );
+    for (report, journal) in reports.iter().zip(["off", "on", "fsync"]) {
+        assert_eq!(report["journal"], journal, "{report}");
+        // Every fourth request of the mix is a write.
+        let (tx, writes) = (
+            report["transactions"].as_u64().unwrap(),
+            report["writes"].as_u64().unwrap(),
+        );
+        assert!(writes > 0 && writes * 3 < tx && writes * 5 > tx, "{report}");
+    }
+    let off = &reports[0];
+    assert!(off["journal_bytes_per_write"].is_null(), "{off}");
+    assert!(off["cpu_us_per_write_vs_journal_off"].is_null(), "{off}");
+    for report in &reports[1..] {
+        // A write's entry and its outcome: far more than nothing, far less than a kilobyte.
+        let bytes = report["journal_bytes_per_write"].as_f64().unwrap();
+        assert!((100.0..1000.0).contains(&bytes), "{report}");
+        assert!(report["journal_fs"].as_str().is_some(), "{report}");
+        for field in [
+            "tx_vs_journal_off",
+            "cpu_us_per_write_vs_journal_off",
+            "wall_ms_per_write_vs_journal_off",
+        ] {
+            assert!(report[field].as_f64().is_some(), "{field}: {report}");
+        }
+    }
+    for dir in dirs {
+        assert!(!dir.exists(), "{} is left behind", dir.display());
+    }
+}
