@@ -102,8 +102,11 @@ pub(crate) struct Report {
 pub(crate) struct JournalFigures {
     /// `[audit]`: `off` (none), `on`, or `fsync` (`fsync = true`).
     journal: &'static str,
-    /// Writes the masters completed in the window (of `transactions`).
+    /// Writes the masters completed in the window (of `transactions`), and their latency
+    /// alone: median and 99th percentile.
     writes: u64,
+    write_p50_ms: Option<f64>,
+    write_p99_ms: Option<f64>,
     /// The journal's growth across the window per write: its entry and its outcome's.
     #[serde(skip_serializing_if = "Option::is_none")]
     journal_bytes_per_write: Option<f64>,
@@ -112,14 +115,16 @@ pub(crate) struct JournalFigures {
     journal_fs: Option<String>,
     /// Against the `-journal-off` scenario of the same run: the rate over its; the gateway's
     /// CPU time per write more than its (the difference in CPU per transaction, times
-    /// transactions per write); and the wall time per write more than its, the same way (what
-    /// each write held the line up by).
+    /// transactions per write); the wall time per write more than its, the same way (what
+    /// each write held the line up by); and the writes' median latency less its.
     #[serde(skip_serializing_if = "Option::is_none")]
     tx_vs_journal_off: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     cpu_us_per_write_vs_journal_off: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     wall_ms_per_write_vs_journal_off: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    write_p50_ms_vs_journal_off: Option<f64>,
 }
 
 /// The figures of the `values-` scenarios: the gateway polling plant values, no master.
@@ -243,7 +248,7 @@ impl Report {
         let mut per_master = Vec::with_capacity(s.masters);
         let mut physical = Duration::ZERO;
         let mut priority = Vec::new();
-        let mut writes = 0;
+        let mut writes = Vec::new();
         for (i, done) in w.masters.iter().enumerate() {
             let within: Vec<_> = done
                 .iter()
@@ -257,7 +262,9 @@ impl Report {
             for (_, latency, write) in within {
                 latencies.push(*latency);
                 physical += if *write { min.write } else { min.read };
-                writes += u64::from(*write);
+                if *write {
+                    writes.push(*latency);
+                }
             }
         }
         let wall = (w.end - w.start).as_secs_f64();
@@ -298,17 +305,22 @@ impl Report {
             self.scrapes(scrapes);
         }
         if s.load == Load::Mix {
+            writes.sort();
+            let count = writes.len() as u64;
             self.journal = Some(JournalFigures {
                 journal: s.journal.label(),
-                writes,
+                writes: count,
+                write_p50_ms: percentile(&writes, 0.5),
+                write_p99_ms: percentile(&writes, 0.99),
                 journal_bytes_per_write: w
                     .journal_bytes
-                    .filter(|_| writes > 0)
-                    .map(|bytes| bytes as f64 / writes as f64),
+                    .filter(|_| count > 0)
+                    .map(|bytes| bytes as f64 / count as f64),
                 journal_fs: None,
                 tx_vs_journal_off: None,
                 cpu_us_per_write_vs_journal_off: None,
                 wall_ms_per_write_vs_journal_off: None,
+                write_p50_ms_vs_journal_off: None,
             });
         }
     }
@@ -329,9 +341,12 @@ impl Report {
         let Some(off) = earlier.iter().rev().find(|r| r.scenario == twin) else {
             return;
         };
-        let (Some(figures), Some(cpu), Some(cpu_off)) =
-            (&mut self.journal, self.cpu_us_per_tx, off.cpu_us_per_tx)
-        else {
+        let (Some(figures), Some(cpu), Some(cpu_off), Some(off_figures)) = (
+            &mut self.journal,
+            self.cpu_us_per_tx,
+            off.cpu_us_per_tx,
+            &off.journal,
+        ) else {
             return;
         };
         if figures.writes == 0 || self.tx_per_s <= 0.0 || off.tx_per_s <= 0.0 {
@@ -343,6 +358,10 @@ impl Report {
         let wall_ms = |tx_per_s: f64| 1e3 / tx_per_s;
         figures.wall_ms_per_write_vs_journal_off =
             Some((wall_ms(self.tx_per_s) - wall_ms(off.tx_per_s)) * tx_per_write);
+        figures.write_p50_ms_vs_journal_off = figures
+            .write_p50_ms
+            .zip(off_figures.write_p50_ms)
+            .map(|(p, off)| p - off);
     }
 
     /// The figures of the `values-` scenarios' window `w`.
@@ -765,7 +784,7 @@ pub(crate) fn print_journal_table(reports: &[Report]) {
         return;
     }
     println!(
-        "\n{:<40} {:>8} {:>7} {:>9} {:>7} {:>10} {:>10} {:>8} {:>6}",
+        "\n{:<40} {:>8} {:>7} {:>9} {:>7} {:>10} {:>10} {:>8} {:>8} {:>9} {:>8} {:>6}",
         "scenario (audit journal)",
         "tx/s",
         "x off",
@@ -773,12 +792,15 @@ pub(crate) fn print_journal_table(reports: &[Report]) {
         "writes",
         "+cpu us/w",
         "+wall ms/w",
+        "w p50 ms",
+        "w p99 ms",
+        "+w p50 ms",
         "B/write",
         "fs"
     );
     for (r, j) in rows {
         println!(
-            "{:<40} {:>8.1} {:>7} {:>9} {:>7} {:>10} {:>10} {:>8} {:>6}",
+            "{:<40} {:>8.1} {:>7} {:>9} {:>7} {:>10} {:>10} {:>8} {:>8} {:>9} {:>8} {:>6}",
             r.scenario,
             r.tx_per_s,
             cell(j.tx_vs_journal_off, 3),
@@ -786,6 +808,9 @@ pub(crate) fn print_journal_table(reports: &[Report]) {
             j.writes,
             cell(j.cpu_us_per_write_vs_journal_off, 1),
             cell(j.wall_ms_per_write_vs_journal_off, 3),
+            cell(j.write_p50_ms, 2),
+            cell(j.write_p99_ms, 2),
+            cell(j.write_p50_ms_vs_journal_off, 3),
             cell(j.journal_bytes_per_write, 0),
             j.journal_fs.as_deref().unwrap_or("-"),
         );
@@ -807,11 +832,14 @@ mod tests {
             journal: Some(JournalFigures {
                 journal: "on",
                 writes,
+                write_p50_ms: Some(2.0),
+                write_p99_ms: Some(3.0),
                 journal_bytes_per_write: None,
                 journal_fs: None,
                 tx_vs_journal_off: None,
                 cpu_us_per_write_vs_journal_off: None,
                 wall_ms_per_write_vs_journal_off: None,
+                write_p50_ms_vs_journal_off: None,
             }),
             ..Report::default()
         }
@@ -833,12 +861,17 @@ mod tests {
     #[test]
     fn a_slower_rate_is_the_wall_time_each_write_held_the_line_up_by() {
         let off = report("sim-mix-100-journal-off", 5000, 1250, 80.0);
-        // 2 ms a transaction where it was 2 ms... 2.5 ms: 0.5 ms more each, 2 ms a write.
+        // 2.5 ms a transaction where it was 2 ms: 0.5 ms more each, 2 ms a write.
         let mut fsync = report("sim-mix-100-journal-fsync", 4000, 1000, 80.0);
+        if let Some(figures) = &mut fsync.journal {
+            figures.write_p50_ms = Some(4.5);
+        }
         fsync.against_journal_off(&[off]);
         let fsync = fsync.journal.unwrap();
         assert_eq!(fsync.tx_vs_journal_off, Some(0.8));
         assert!((fsync.wall_ms_per_write_vs_journal_off.unwrap() - 2.0).abs() < 1e-9);
+        // The writes' own median, 2 ms without the journal.
+        assert_eq!(fsync.write_p50_ms_vs_journal_off, Some(2.5));
     }
 
     #[test]

@@ -283,6 +283,10 @@ fn the_journal_scenarios_journal_every_write_and_are_measured_against_the_journa
             report["writes"].as_u64().unwrap(),
         );
         assert!(writes > 0 && writes * 3 < tx && writes * 5 > tx, "{report}");
+        assert!(
+            report["write_p50_ms"].as_f64().is_some_and(|v| v > 0.0),
+            "{report}"
+        );
     }
     let off = &reports[0];
     assert!(off["journal_bytes_per_write"].is_null(), "{off}");
@@ -296,6 +300,7 @@ fn the_journal_scenarios_journal_every_write_and_are_measured_against_the_journa
             "tx_vs_journal_off",
             "cpu_us_per_write_vs_journal_off",
             "wall_ms_per_write_vs_journal_off",
+            "write_p50_ms_vs_journal_off",
         ] {
             assert!(report[field].as_f64().is_some(), "{field}: {report}");
         }
