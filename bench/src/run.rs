@@ -1,7 +1,7 @@
 //! One scenario's run: the gateway started, the masters connected, a warm-up, then a window in
 //! which the masters' completions, the gateway's CPU time, (on a timed line) its metrics and
-//! (with an audit journal) the journal's growth are taken; on the tcp-device line, one direct
-//! client before and modbus-proxy after; with no master but plant values to poll, `plant`'s.
+//! (with an audit journal) the journal's growth are taken; on the tcp-device line with reads, one
+//! direct client before and modbus-proxy after; with no master but plant values to poll, `plant`'s.
 //! The figures are `report`'s.
 
 use crate::beside;
@@ -64,10 +64,11 @@ pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report
             .clone(),
         Line::TcpDevice => tcp.insert(TcpDevice::start(s.device_delay).await?).device(),
     };
-    // The direct client first, on the device alone.
+    // The direct client first, on the device alone; it and modbus-proxy's masters read, so
+    // they are the yardstick of reads only.
     let direct = match &tcp {
-        Some(device) => Some(beside::direct(cli, device.addr).await?),
-        None => None,
+        Some(device) if s.load == Load::Read => Some(beside::direct(cli, device.addr).await?),
+        _ => None,
     };
     let journal = match s.journal {
         Journal::Off => None,

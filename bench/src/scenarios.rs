@@ -404,22 +404,31 @@ fn kind_scenarios(all: &mut Vec<Scenario>) {
 }
 
 /// The mixed load with the audit journal off, on, and on with `fsync`, one right after the other
-/// so that a run compares them: 100 masters on the 115200 line, which is the bottleneck, and on
-/// the untimed pty, where what is left is the gateway's own time; and one master on the pty,
-/// whose every write waits for its own entry's sync (with 100, a write's sync is done long
-/// before its turn). Their names end in `-journal-off`, `-journal-on` and `-journal-fsync`; the
-/// last two are reported against the first.
+/// so that a run compares them. 100 masters on the 115200 line, which is the bottleneck; on the
+/// untimed pty and on a Modbus TCP device that answers at once, where what is left is the
+/// gateway's own time (and on the device, no inter-frame gap either); and one master on each of
+/// those two, whose every write waits for its own entry's sync where with 100 masters a write's
+/// sync is long done before its turn. Their names end in `-journal-off`, `-journal-on` and
+/// `-journal-fsync`; the last two are reported against the first.
 fn journal_scenarios(all: &mut Vec<Scenario>) {
     let sim_115200 = format(115_200, Parity::None);
     for (line, prefix, masters) in [
         (Line::Sim, "sim-115200-8N1", 100),
         (Line::Pty, "pty-115200-untimed", 100),
         (Line::Pty, "pty-115200-untimed", 1),
+        (Line::TcpDevice, "tcp-device", 100),
+        (Line::TcpDevice, "tcp-device", 1),
     ] {
+        let framing = if line == Line::TcpDevice {
+            Framing::Tcp
+        } else {
+            Framing::Rtu
+        };
         for journal in [Journal::Off, Journal::On, Journal::Fsync] {
             let name = format!("{prefix}-mix-{masters}-journal-{}", journal.label());
             all.push(Scenario {
                 line,
+                framing,
                 journal,
                 ..Scenario::sim(name, sim_115200, masters, Load::Mix)
             });

@@ -1,5 +1,5 @@
 //! The far end of the tcp-device line: a Modbus TCP device in the bench's process that answers
-//! every read of holding registers at once, or a fixed time after each request came (several
+//! every read of holding registers and every write of one register at once, or a fixed time after each request came (several
 //! outstanding at once if they come so, each answered on time by the precise timer), on a
 //! loopback port, each connection in a task of its own, stopped when dropped. Knows nothing of
 //! the gateway or of whoever else connects to it.
@@ -13,6 +13,8 @@ use tokio::net::{TcpListener, TcpStream};
 const HEADER_LEN: usize = 7;
 /// Read holding registers.
 const READ_HOLDING: u8 = 0x03;
+/// Write single register: address and value, echoed in the reply.
+const WRITE_SINGLE: u8 = 0x06;
 /// The most registers one read may ask for.
 const MAX_READ: u16 = 125;
 /// The exception codes it answers with: a function it does not serve, a count out of range.
@@ -136,7 +138,8 @@ enum Answer {
 }
 
 /// The reply to the request at the start of `received`, appended to `out`: for a read of
-/// holding registers, register n holds n (wrapping); anything else an exception. The
+/// holding registers, register n holds n (wrapping); a write of one register is acknowledged
+/// with its echo, as a device does, and changes nothing; anything else an exception. The
 /// transaction and unit ids are echoed.
 fn answer(received: &[u8], out: &mut Vec<u8>) -> Answer {
     let Some(header) = received.get(..HEADER_LEN) else {
@@ -160,6 +163,7 @@ fn answer(received: &[u8], out: &mut Vec<u8>) -> Answer {
             }
         }
         (READ_HOLDING, ..) => reply_pdu.extend_from_slice(&[READ_HOLDING | 0x80, ILLEGAL_VALUE]),
+        (WRITE_SINGLE, Some(_), Some(_)) if pdu.len() == 5 => reply_pdu.extend_from_slice(pdu),
         _ => reply_pdu.extend_from_slice(&[function | 0x80, ILLEGAL_FUNCTION]),
     }
     out.extend_from_slice(&header[..4]);
@@ -228,12 +232,22 @@ mod tests {
     }
 
     #[test]
-    fn other_functions_and_counts_out_of_range_get_an_exception() {
+    fn a_write_of_one_register_is_answered_with_its_echo() {
         let mut write = READ;
         write[7] = 0x06; // write single register
+        write[10..12].copy_from_slice(&0x1234u16.to_be_bytes()); // its value
         let mut out = Vec::new();
-        assert_eq!(answer(&write, &mut out), Answer::Answered(READ.len()));
-        assert_eq!(out, [0x12, 0x34, 0, 0, 0, 3, 0x07, 0x86, 0x01]);
+        assert_eq!(answer(&write, &mut out), Answer::Answered(write.len()));
+        assert_eq!(out, write);
+    }
+
+    #[test]
+    fn other_functions_and_counts_out_of_range_get_an_exception() {
+        let mut coil = READ;
+        coil[7] = 0x05; // write single coil
+        let mut out = Vec::new();
+        assert_eq!(answer(&coil, &mut out), Answer::Answered(READ.len()));
+        assert_eq!(out, [0x12, 0x34, 0, 0, 0, 3, 0x07, 0x85, 0x01]);
         let mut too_many = READ;
         too_many[10..12].copy_from_slice(&126u16.to_be_bytes());
         out.clear();
