@@ -103,10 +103,12 @@ pub(crate) struct JournalFigures {
     /// `[audit]`: `off` (none), `on`, or `fsync` (`fsync = true`).
     journal: &'static str,
     /// Writes the masters completed in the window (of `transactions`), and their latency
-    /// alone: median and 99th percentile.
+    /// alone: median and 99th percentile; beside it the reads' median, taken in the same
+    /// window, so in the same state of the machine.
     writes: u64,
     write_p50_ms: Option<f64>,
     write_p99_ms: Option<f64>,
+    read_p50_ms: Option<f64>,
     /// The journal's growth across the window per write: its entry and its outcome's.
     #[serde(skip_serializing_if = "Option::is_none")]
     journal_bytes_per_write: Option<f64>,
@@ -172,6 +174,37 @@ pub(crate) struct PlantFigures {
     /// Readings per value in the last `GET /values?history=1`, on average: its size and cost
     /// grow with them, up to 10 minutes' worth.
     history_points: f64,
+}
+
+impl JournalFigures {
+    /// The figures of scenario `s`'s window, whose writes and reads took `writes` and `reads`
+    /// and whose journal (if any) grew by `journal_bytes`; those against the journal-off one
+    /// come later.
+    fn of(
+        s: &Scenario,
+        mut writes: Vec<Duration>,
+        mut reads: Vec<Duration>,
+        journal_bytes: Option<u64>,
+    ) -> JournalFigures {
+        writes.sort();
+        reads.sort();
+        let count = writes.len() as u64;
+        JournalFigures {
+            journal: s.journal.label(),
+            writes: count,
+            write_p50_ms: percentile(&writes, 0.5),
+            write_p99_ms: percentile(&writes, 0.99),
+            read_p50_ms: percentile(&reads, 0.5),
+            journal_bytes_per_write: journal_bytes
+                .filter(|_| count > 0)
+                .map(|bytes| bytes as f64 / count as f64),
+            journal_fs: None,
+            tx_vs_journal_off: None,
+            cpu_us_per_write_vs_journal_off: None,
+            wall_ms_per_write_vs_journal_off: None,
+            write_p50_ms_vs_journal_off: None,
+        }
+    }
 }
 
 /// One page's figures, as [`PlantFigures`] has them.
@@ -248,7 +281,7 @@ impl Report {
         let mut per_master = Vec::with_capacity(s.masters);
         let mut physical = Duration::ZERO;
         let mut priority = Vec::new();
-        let mut writes = Vec::new();
+        let (mut writes, mut reads) = (Vec::new(), Vec::new());
         for (i, done) in w.masters.iter().enumerate() {
             let within: Vec<_> = done
                 .iter()
@@ -264,6 +297,8 @@ impl Report {
                 physical += if *write { min.write } else { min.read };
                 if *write {
                     writes.push(*latency);
+                } else {
+                    reads.push(*latency);
                 }
             }
         }
@@ -305,23 +340,7 @@ impl Report {
             self.scrapes(scrapes);
         }
         if s.load == Load::Mix {
-            writes.sort();
-            let count = writes.len() as u64;
-            self.journal = Some(JournalFigures {
-                journal: s.journal.label(),
-                writes: count,
-                write_p50_ms: percentile(&writes, 0.5),
-                write_p99_ms: percentile(&writes, 0.99),
-                journal_bytes_per_write: w
-                    .journal_bytes
-                    .filter(|_| count > 0)
-                    .map(|bytes| bytes as f64 / count as f64),
-                journal_fs: None,
-                tx_vs_journal_off: None,
-                cpu_us_per_write_vs_journal_off: None,
-                wall_ms_per_write_vs_journal_off: None,
-                write_p50_ms_vs_journal_off: None,
-            });
+            self.journal = Some(JournalFigures::of(s, writes, reads, w.journal_bytes));
         }
     }
 
@@ -784,7 +803,7 @@ pub(crate) fn print_journal_table(reports: &[Report]) {
         return;
     }
     println!(
-        "\n{:<40} {:>8} {:>7} {:>9} {:>7} {:>10} {:>10} {:>8} {:>8} {:>9} {:>8} {:>6}",
+        "\n{:<40} {:>8} {:>7} {:>9} {:>7} {:>10} {:>10} {:>8} {:>8} {:>8} {:>9} {:>8} {:>6}",
         "scenario (audit journal)",
         "tx/s",
         "x off",
@@ -792,6 +811,7 @@ pub(crate) fn print_journal_table(reports: &[Report]) {
         "writes",
         "+cpu us/w",
         "+wall ms/w",
+        "r p50 ms",
         "w p50 ms",
         "w p99 ms",
         "+w p50 ms",
@@ -800,7 +820,7 @@ pub(crate) fn print_journal_table(reports: &[Report]) {
     );
     for (r, j) in rows {
         println!(
-            "{:<40} {:>8.1} {:>7} {:>9} {:>7} {:>10} {:>10} {:>8} {:>8} {:>9} {:>8} {:>6}",
+            "{:<40} {:>8.1} {:>7} {:>9} {:>7} {:>10} {:>10} {:>8} {:>8} {:>8} {:>9} {:>8} {:>6}",
             r.scenario,
             r.tx_per_s,
             cell(j.tx_vs_journal_off, 3),
@@ -808,8 +828,9 @@ pub(crate) fn print_journal_table(reports: &[Report]) {
             j.writes,
             cell(j.cpu_us_per_write_vs_journal_off, 1),
             cell(j.wall_ms_per_write_vs_journal_off, 3),
-            cell(j.write_p50_ms, 2),
-            cell(j.write_p99_ms, 2),
+            cell(j.read_p50_ms, 3),
+            cell(j.write_p50_ms, 3),
+            cell(j.write_p99_ms, 3),
             cell(j.write_p50_ms_vs_journal_off, 3),
             cell(j.journal_bytes_per_write, 0),
             j.journal_fs.as_deref().unwrap_or("-"),
@@ -834,6 +855,7 @@ mod tests {
                 writes,
                 write_p50_ms: Some(2.0),
                 write_p99_ms: Some(3.0),
+                read_p50_ms: Some(2.0),
                 journal_bytes_per_write: None,
                 journal_fs: None,
                 tx_vs_journal_off: None,
