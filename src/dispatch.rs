@@ -207,7 +207,11 @@ impl Dispatcher {
                             action,
                             ..asked
                         };
-                        self.audit.begin(&asked).ok()
+                        let begun = self.audit.begin(&asked);
+                        if begun.is_err() {
+                            self.audit.unjournaled(&asked, refusal);
+                        }
+                        begun.ok()
                     })
                     .flatten();
                 self.refuse(client, &table, target, unit, function, refusal, pending)
@@ -249,6 +253,7 @@ impl Dispatcher {
                 Ok(entry) => pending = Some(entry),
                 Err(audit::Refused) => {
                     let refusal = RequestError::Unrecorded(function);
+                    self.audit.unjournaled(&asked, refusal);
                     let target = Some(target);
                     return self.refuse(client, table, target, unit, function, refusal, None);
                 }

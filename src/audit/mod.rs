@@ -161,14 +161,7 @@ impl Audit {
                     recorded = Some(journal.clone());
                     ticket = sync;
                 }
-                Err(unwritten) if unwritten.refuse => {
-                    let protocol = asked.protocol.label();
-                    let outcome = Outcome::GatewayException.label();
-                    self.metrics
-                        .audit
-                        .write_ended(protocol, asked.action.label(), outcome);
-                    return Err(Refused);
-                }
+                Err(unwritten) if unwritten.refuse => return Err(Refused),
                 Err(_) => {}
             }
         }
@@ -182,6 +175,16 @@ impl Audit {
             action: asked.action,
             broadcast: asked.broadcast,
         })
+    }
+
+    /// `asked`, whose entry could not be written, ended unsent in `refusal`: counted, as
+    /// every write is, by how it ended.
+    pub(crate) fn unjournaled(&self, asked: &Asked<'_>, refusal: RequestError) {
+        let (outcome, ..) = judge_error(refusal);
+        let (protocol, action) = (asked.protocol.label(), asked.action.label());
+        self.metrics
+            .audit
+            .write_ended(protocol, action, outcome.label());
     }
 
     fn remember(&self, write: Write) {
