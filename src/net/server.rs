@@ -455,12 +455,26 @@ async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
     let Admission {
         protocol,
         peer,
-        rights,
         priority,
+        ..
     } = admission;
-    // Its address's rights, narrowed by its certificate's role.
-    let rights = identity.as_ref().map_or(rights, |i| rights.min(i.rights));
     let id = shared.new_master();
+    let units = identity.as_ref().and_then(|identity| identity.units);
+    let mut client = admission.client(id).addressing(units);
+    if let Some(identity) = &identity {
+        let role_key = if identity.role_label == OTHER_ROLE {
+            "server.tls.default_role_access".to_owned()
+        } else {
+            format!("server.tls.roles.{}", identity.role_label)
+        };
+        let who = crate::dispatch::Identity {
+            subject: identity.subject.clone(),
+            role: identity.role.clone(),
+        };
+        client = client.identified(who, identity.rights, role_key, units.is_some());
+    }
+    // Its address's rights, narrowed by its certificate's role.
+    let rights = client.rights;
     let tcp = &shared.metrics.tcp;
     tcp.accepted(protocol, id, &peer, rights == Rights::ReadOnly);
     if let Some(identity) = &identity {
@@ -487,20 +501,6 @@ async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
             since: SystemTime::now(),
         },
     );
-    let units = identity.as_ref().and_then(|identity| identity.units);
-    let mut client = admission.client(id).addressing(units);
-    if let Some(identity) = &identity {
-        let role_key = if identity.role_label == OTHER_ROLE {
-            "server.tls.default_role_access".to_owned()
-        } else {
-            format!("server.tls.roles.{}", identity.role_label)
-        };
-        let who = crate::dispatch::Identity {
-            subject: identity.subject.clone(),
-            role: identity.role.clone(),
-        };
-        client = client.identified(who, identity.rights, role_key, units.is_some());
-    }
     let error = session::run(
         &mut stream,
         protocol.framing(),
