@@ -238,7 +238,7 @@ impl Dispatcher {
             role: client.role(),
             protocol: client.protocol,
             bus: Some(bus.name()),
-            unit,
+            target: Some(target),
             pdu: &pdu,
         });
         let rule = decision.rule.map(|at| table.rules.name(at));

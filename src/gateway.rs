@@ -297,13 +297,9 @@ impl Gateway {
         metrics.collect_also(Box::new(Exported(values.store().clone())));
         values.apply(config, &handles);
         let audit = open_audit(config, &metrics)?;
-        let dispatcher = Dispatcher::with_rules(
-            Router::new(config),
-            handles,
-            Rules::new(&config.rule),
-            audit,
-            metrics.clone(),
-        );
+        let router = Router::new(config);
+        let rules = Rules::new(&config.rule, &router);
+        let dispatcher = Dispatcher::with_rules(router, handles, rules, audit, metrics.clone());
         let (stop, stopping) = shutdown::channel();
         let shared = Arc::new(Shared::new(
             dispatcher,
@@ -415,9 +411,10 @@ impl Gateway {
         if diff.values {
             done.applied.push("plant values".to_owned());
         }
-        self.shared
-            .dispatcher
-            .replace(Router::new(new), handles, Rules::new(&new.rule));
+        // A rule's units are the slaves they route to: new routes make new rules of old ones.
+        let router = Router::new(new);
+        let rules = Rules::new(&new.rule, &router);
+        self.shared.dispatcher.replace(router, handles, rules);
         if new.rule != config.rule {
             done.applied.push("rules".to_owned());
         }

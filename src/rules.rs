@@ -2,17 +2,22 @@
 //! from the configuration and replaced whole on a reload. Knows who sent a request, where it
 //! goes and what its bytes ask; knows nothing of sessions, queues or the journal.
 //!
-//! A rule matches when every match key it gives matches. `registers` is the one key whose
-//! meaning follows the action: a `deny` or `acknowledge` rule matches a request that touches
+//! A rule matches when every match key it gives matches. `units` names slaves, not unit ids:
+//! the unit ids it lists are resolved through the routes once, when the table is built, and a
+//! request matches by the slave it reaches, whichever unit id it used; a broadcast reaches every
+//! slave of its bus. `units` and `registers` are the keys whose meaning follows the action: a `deny` or `acknowledge` rule matches a request that touches
 //! any of its addresses (overlapping is enough), while an `allow` rule matches only a request
 //! that touches none but its addresses, so that a write running past an allowed range is not let
 //! through by it. A request whose addresses its bytes cannot tell (a user-defined code, a file
 //! record) may touch any: it matches every `deny` and `acknowledge` rule with registers and no
-//! `allow` rule with registers.
+//! `allow` rule with registers. Likewise a broadcast matches every `deny` and `acknowledge` rule
+//! naming a slave of its bus, and only the `allow` rules naming the broadcast itself.
 
-use crate::config::{Action, Functions, Registers, Rule};
+use crate::config::{Action, Functions, Registers, Rule, UnitSet};
+use crate::line::BROADCAST;
 use crate::master::Protocol;
 use crate::pdu::{self, ExceptionCode, Span, Touches};
+use crate::routing::{Router, Target};
 use std::net::IpAddr;
 
 /// A request as the rules see it.
@@ -24,7 +29,8 @@ pub(crate) struct Asked<'a> {
     pub(crate) protocol: Protocol,
     /// The bus its unit routes to; `None` without a route.
     pub(crate) bus: Option<&'a str>,
-    pub(crate) unit: u8,
+    /// Where its unit routes to; `None` without a route.
+    pub(crate) target: Option<Target>,
     pub(crate) pdu: &'a [u8],
 }
 
@@ -52,15 +58,64 @@ impl Decision {
 pub(crate) struct Rules {
     list: Vec<Rule>,
     names: Vec<String>,
+    /// Each rule's `units` as the slaves they reach; `None` for a rule without `units`.
+    slaves: Vec<Option<Slaves>>,
+}
+
+/// The slaves some unit ids reach through the routes: for each bus, by its index, the
+/// addresses there (the broadcast address among them when a unit routes to it).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub(crate) struct Slaves(Vec<UnitSet>);
+
+impl Slaves {
+    /// Where `units` go by `router`: a unit with no route reaches nothing.
+    pub(crate) fn of(units: UnitSet, router: &Router) -> Slaves {
+        let mut buses: Vec<UnitSet> = Vec::new();
+        for target in units.iter().filter_map(|unit| router.resolve(unit)) {
+            if buses.len() <= target.bus {
+                buses.resize(target.bus + 1, UnitSet::default());
+            }
+            buses[target.bus].insert(target.address);
+        }
+        Slaves(buses)
+    }
+
+    /// The addresses reached on each bus that any are, by bus index.
+    pub(crate) fn by_bus(&self) -> impl Iterator<Item = (usize, UnitSet)> + '_ {
+        self.0
+            .iter()
+            .enumerate()
+            .filter(|(_, addresses)| !addresses.is_empty())
+            .map(|(bus, addresses)| (bus, *addresses))
+    }
+
+    /// Whether a request to `target` is about these slaves: it reaches one of them (a
+    /// broadcast reaches every slave of its bus), or, for an `allow` rule, nothing else (a
+    /// broadcast only when the broadcast itself is among them).
+    fn hold(&self, target: Target, action: Action) -> bool {
+        let Some(here) = self.0.get(target.bus) else {
+            return false;
+        };
+        match (target.broadcast, action) {
+            (true, Action::Allow) => here.contains(BROADCAST),
+            (true, Action::Deny | Action::Acknowledge) => !here.is_empty(),
+            (false, _) => here.contains(target.address),
+        }
+    }
 }
 
 impl Rules {
-    pub(crate) fn new(list: &[Rule]) -> Rules {
+    /// `list` in force, its `units` reaching the slaves `router` routes them to.
+    pub(crate) fn new(list: &[Rule], router: &Router) -> Rules {
         Rules {
             names: list
                 .iter()
                 .enumerate()
                 .map(|(at, rule)| rule.display_name(at))
+                .collect(),
+            slaves: list
+                .iter()
+                .map(|rule| rule.units.map(|units| Slaves::of(units, router)))
                 .collect(),
             list: list.to_vec(),
         }
@@ -75,11 +130,15 @@ impl Rules {
     pub(crate) fn decide(&self, asked: &Asked<'_>) -> Decision {
         // What the request touches is read once, and only if a rule asks.
         let mut touches = None;
-        let found = self.list.iter().position(|rule| {
-            matches(rule, asked, || {
-                *touches.get_or_insert_with(|| pdu::touches(asked.pdu))
-            })
-        });
+        let found = self
+            .list
+            .iter()
+            .zip(&self.slaves)
+            .position(|(rule, slaves)| {
+                matches(rule, slaves.as_ref(), asked, || {
+                    *touches.get_or_insert_with(|| pdu::touches(asked.pdu))
+                })
+            });
         Decision {
             rule: found,
             action: found.map_or(Action::Allow, |at| self.list[at].action),
@@ -87,7 +146,12 @@ impl Rules {
     }
 }
 
-fn matches(rule: &Rule, asked: &Asked<'_>, touches: impl FnOnce() -> Touches) -> bool {
+fn matches(
+    rule: &Rule,
+    slaves: Option<&Slaves>,
+    asked: &Asked<'_>,
+    touches: impl FnOnce() -> Touches,
+) -> bool {
     // A dual-stack listener sees IPv4 masters as ::ffff:a.b.c.d; rules name them as IPv4.
     let peer = asked.peer.to_canonical();
     let any = |empty: bool, found: bool| empty || found;
@@ -107,14 +171,16 @@ fn matches(rule: &Rule, asked: &Asked<'_>, touches: impl FnOnce() -> Touches) ->
         asked
             .bus
             .is_some_and(|bus| rule.buses.iter().any(|b| b == bus)),
-    ) && rule.units.is_none_or(|units| units.contains(asked.unit))
-        && any(
-            rule.functions.is_empty(),
-            rule.functions
-                .iter()
-                .any(|f| function_matches(*f, asked.pdu)),
-        )
-        && (rule.registers.is_empty() || registers_match(rule, touches()))
+    ) && slaves.is_none_or(|slaves| {
+        asked
+            .target
+            .is_some_and(|target| slaves.hold(target, rule.action))
+    }) && any(
+        rule.functions.is_empty(),
+        rule.functions
+            .iter()
+            .any(|f| function_matches(*f, asked.pdu)),
+    ) && (rule.registers.is_empty() || registers_match(rule, touches()))
 }
 
 fn function_matches(functions: Functions, pdu: &[u8]) -> bool {
@@ -169,9 +235,24 @@ mod tests {
     use super::*;
     use crate::config::{Config, UnitSet};
 
+    const LINE1: &str = "[[bus]]\nname = \"line1\"\ndevice = \"sim\"\n";
+
+    fn config(toml: &str) -> Config {
+        Config::from_toml_str(&format!("{LINE1}{toml}")).expect("valid rules")
+    }
+
     fn rules(toml: &str) -> Rules {
-        let text = format!("[[bus]]\nname = \"line1\"\ndevice = \"sim\"\n{toml}");
-        Rules::new(&Config::from_toml_str(&text).expect("valid rules").rule)
+        let config = config(toml);
+        Rules::new(&config.rule, &Router::new(&config))
+    }
+
+    /// Slave `address` of bus 0, a serial line (where 0 is the broadcast).
+    fn slave(address: u8) -> Option<Target> {
+        Some(Target {
+            bus: 0,
+            address,
+            broadcast: address == BROADCAST,
+        })
     }
 
     fn asked(pdu: &[u8]) -> Asked<'_> {
@@ -180,7 +261,7 @@ mod tests {
             role: None,
             protocol: Protocol::Tcp,
             bus: Some("line1"),
-            unit: 3,
+            target: slave(3),
             pdu,
         }
     }
@@ -275,7 +356,10 @@ mod tests {
                 ..base
             },
             Asked { bus: None, ..base },
-            Asked { unit: 5, ..base },
+            Asked {
+                target: slave(5),
+                ..base
+            },
             Asked {
                 pdu: &WRITE_1FFF_2001,
                 ..base
@@ -308,10 +392,10 @@ mod tests {
             registers: Vec::new(),
             action: Action::Acknowledge,
         }];
-        let rules = Rules::new(&list);
+        let rules = Rules::new(&list, &Router::new(&config("")));
         let operator = Asked {
             role: Some("operator"),
-            unit: 12,
+            target: slave(12),
             ..asked(&WRITE_2000)
         };
         assert_eq!(rules.decide(&operator).action, Action::Acknowledge);
@@ -336,6 +420,96 @@ mod tests {
         let diagnostic = rules_with_diagnostic();
         assert_eq!(diagnostic.decide(&asked(&[0x2B, 0x0E, 1, 0])).rule, Some(0));
         assert_eq!(diagnostic.decide(&asked(&READ_2000)).rule, None);
+    }
+
+    /// The drive-parameters rule of docs/writes.md on a line whose unit 200 is the broadcast
+    /// and whose units 101-104 are slaves 1-4.
+    const ROUTED: &str = r#"
+        [[route]]
+        units = "200"
+        bus = "line1"
+        address = 0
+        [[route]]
+        units = "101-104"
+        bus = "line1"
+        offset = -100
+    "#;
+
+    /// The rule deciding `pdu` to each of `units`, routed as `toml` says.
+    fn deciding(toml: &str, pdu: &[u8], units: &[u8]) -> Vec<Option<usize>> {
+        let config = config(toml);
+        let router = Router::new(&config);
+        let rules = Rules::new(&config.rule, &router);
+        let to = |&unit: &u8| Asked {
+            target: router.resolve(unit),
+            ..asked(pdu)
+        };
+        units
+            .iter()
+            .map(|unit| rules.decide(&to(unit)).rule)
+            .collect()
+    }
+
+    #[test]
+    fn a_units_rule_holds_its_slaves_by_any_unit_id_and_by_broadcast() {
+        let deny = "[[rule]]\nunits = \"1-4\"\nregisters = \"0x0000-0x1FFF\"\naction = \"deny\"\n";
+        let write = [0x06, 0x00, 0x05, 0x00, 0x01];
+        // Units 1, 0 (broadcast), 200 (routed to the broadcast), 101 (routed to slave 1).
+        assert_eq!(
+            deciding(&format!("{ROUTED}{deny}"), &write, &[1, 0, 200, 101]),
+            [Some(0); 4]
+        );
+        // Slave 5 by its own id and by 105: not a slave the rule names.
+        assert_eq!(
+            deciding(&format!("{ROUTED}{deny}"), &write, &[5, 105]),
+            [None; 2]
+        );
+        // Acknowledge rules take broadcasts the same way.
+        let acknowledge = deny.replace("deny", "acknowledge");
+        assert_eq!(
+            deciding(&format!("{ROUTED}{acknowledge}"), &write, &[0, 200]),
+            [Some(0); 2]
+        );
+        // A unit with no route names no slave: with two buses, unit 50 goes nowhere.
+        let two = "[[bus]]\nname = \"line2\"\ndevice = \"sim\"\n[[route]]\nunits = \"1-4\"\nbus = \"line1\"\n\
+                   [[rule]]\nunits = \"50\"\naction = \"deny\"\n";
+        assert_eq!(deciding(two, &write, &[1, 2]), [None; 2]);
+    }
+
+    #[test]
+    fn an_allow_rule_on_units_covers_a_broadcast_only_if_it_names_the_broadcast() {
+        let write = [0x06, 0x00, 0x05, 0x00, 0x01];
+        let allow = |units: &str| {
+            format!("{ROUTED}[[rule]]\nunits = \"{units}\"\naction = \"allow\"\n[[rule]]\naction = \"deny\"\n")
+        };
+        // Slaves 1-4 by any id; a broadcast reaches the others too, so it is not theirs.
+        assert_eq!(
+            deciding(&allow("1-4"), &write, &[1, 101, 0, 200]),
+            [Some(0), Some(0), Some(1), Some(1)]
+        );
+        // Naming unit 0, or a unit routed to it, names the broadcast: unit 200 and unit 0 alike.
+        assert_eq!(
+            deciding(&allow("200"), &write, &[0, 200, 1]),
+            [Some(0), Some(0), Some(1)]
+        );
+        // A deny rule naming the broadcast alone refuses broadcasts, not the slaves one by one.
+        let deny = format!("{ROUTED}[[rule]]\nunits = \"0\"\naction = \"deny\"\n");
+        assert_eq!(
+            deciding(&deny, &write, &[200, 0, 1]),
+            [Some(0), Some(0), None]
+        );
+    }
+
+    #[test]
+    fn on_a_modbus_tcp_device_unit_0_is_a_slave_of_its_own_not_a_broadcast() {
+        let device = "[[bus]]\nname = \"inverter\"\ndevice = \"tcp://127.0.0.1:502\"\n\
+                      framing = \"tcp\"\n\
+                      [[route]]\nunits = \"10\"\nbus = \"inverter\"\naddress = 0\n\
+                      [[route]]\nunits = \"11\"\nbus = \"inverter\"\naddress = 5\n\
+                      [[rule]]\nunits = \"11\"\naction = \"deny\"\n";
+        let write = [0x06, 0x00, 0x05, 0x00, 0x01];
+        // Unit 10 is the device's unit 0, one unit among others: the rule names unit 5 only.
+        assert_eq!(deciding(device, &write, &[10, 11]), [None, Some(0)]);
     }
 
     fn rules_with_diagnostic() -> Rules {

@@ -5,8 +5,8 @@
 
 use crate::support::tls::{tls_master, Pki, Role};
 use crate::support::{
-    addr, connect_from, frames_from, mbap, rtu, sim_config_with_server, start, Bus, GatewayConfig,
-    RawMaster, Scrape,
+    addr, connect_from, frames_from, mbap, rtu, sim_config_with_server, sim_line, start, Bus,
+    GatewayConfig, RawMaster, Scrape,
 };
 use modbus_gateway::sim::Source;
 use modbus_gateway::Gateway;
@@ -376,6 +376,134 @@ async fn rules_on_buses_and_units_decide_by_where_a_request_goes() {
     assert_eq!(master.call(3, 2, &OTHER_WRITE).await, OTHER_WRITE, "bus a");
     assert_eq!(sent(&gateway, "b"), [(1, OTHER_WRITE.to_vec())]);
     assert_eq!(sent(&gateway, "a"), [(2, OTHER_WRITE.to_vec())]);
+}
+
+/// docs/writes.md's "drive parameters" rule: drives 1-4 keep their parameters in 0000H-1FFFH.
+const DRIVE_PARAMETERS: &str = r#"
+[[rule]]
+name = "drive parameters"
+units = "1-4"
+functions = "write"
+registers = ["0x0000-0x1FFF", "0xF000-0xFFFF"]
+action = "deny"
+"#;
+
+/// The sim line with drives 1-4, whose unit 200 is the broadcast and units 101-104 the drives.
+fn routed_line() -> GatewayConfig {
+    GatewayConfig::new()
+        .bus(sim_line().sim_slaves("1-4"))
+        .route("200", "sim", 0)
+        .route_offset("101-104", "sim", -100)
+}
+
+#[tokio::test]
+async fn a_units_deny_rule_holds_its_slaves_against_broadcasts_and_routed_units() {
+    let journal = dir("slaves").join("w.jsonl");
+    let toml = format!(
+        "{}{DRIVE_PARAMETERS}{}",
+        routed_line().to_toml(),
+        audit_table(&journal)
+    );
+    let gateway = start(&toml).await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    // Write 1 to register 0005H, a drive parameter, by four ways to reach drive 1.
+    let parameter = [0x06, 0x00, 0x05, 0x00, 0x01];
+    for (tid, unit) in [(1, 1), (2, 0), (3, 200), (4, 101)] {
+        assert_eq!(
+            master.call(tid, unit, &parameter).await,
+            [0x86, 0x02],
+            "unit {unit}"
+        );
+    }
+    // A broadcast outside the ranges, and a read of a parameter through a routed unit, go on.
+    let outside = [0x06, 0x30, 0x00, 0x00, 0x01];
+    assert_eq!(master.call(5, 0, &outside).await, outside);
+    let read = [0x03, 0x00, 0x05, 0x00, 0x01];
+    assert_eq!(master.call(6, 104, &read).await[..2], [0x03, 0x02]);
+    assert_eq!(
+        sent(&gateway, "sim"),
+        [(0, outside.to_vec()), (4, read.to_vec())],
+        "no parameter write reached the line"
+    );
+    let ended = ended_writes(&journal, 5).await;
+    let seen: Vec<_> = ended
+        .iter()
+        .map(|(w, o)| {
+            let text = |v: &Value| v.as_str().unwrap_or("null").to_owned();
+            let slave = w["slave"].as_u64();
+            (
+                w["unit"].as_u64(),
+                slave,
+                text(&w["rule"]),
+                text(&w["action"]),
+                text(&o["outcome"]),
+            )
+        })
+        .collect();
+    let denied = |unit, slave| {
+        let rule = "drive parameters".to_owned();
+        (
+            Some(unit),
+            Some(slave),
+            rule,
+            "deny".to_owned(),
+            "denied".to_owned(),
+        )
+    };
+    assert_eq!(
+        seen,
+        [
+            denied(1, 1),
+            denied(0, 0),
+            denied(200, 0),
+            denied(101, 1),
+            (
+                Some(0),
+                Some(0),
+                "null".into(),
+                "allow".into(),
+                "broadcast".into()
+            ),
+        ]
+    );
+}
+
+#[tokio::test]
+async fn a_tls_role_rule_on_units_denies_the_role_a_broadcast_that_reaches_them() {
+    let journal = dir("tls-slaves").join("w.jsonl");
+    let pki = Pki::new("plant-ca");
+    let server = pki.server("gateway", "gateway", 365);
+    let roles = "roles = { operator = \"read_write\" }";
+    let toml = format!(
+        "{}\n{}{}",
+        routed_line()
+            .server_table(&format!(
+                "listen_tls = \"127.0.0.1:0\"\n{}",
+                pki.tls_table(&server, roles)
+            ))
+            .to_toml(),
+        "[[rule]]\nname = \"not the drives\"\nroles = \"operator\"\nunits = \"1-3\"\n\
+         functions = \"write\"\naction = \"deny\"\n",
+        audit_table(&journal)
+    );
+    let gateway = start(&toml).await;
+    let operator = pki.master("operator", Role::Named("operator"));
+    let mut operator = tls_master(gateway.tls_addrs()[0], &pki.connector(Some(&operator))).await;
+    // Units 0 and 200 broadcast to drives 1-3 as well; unit 103 is drive 3.
+    for (tid, unit) in [(1, 0), (2, 200), (3, 103), (4, 3)] {
+        let answer = operator.call(tid, unit, &OTHER_WRITE).await;
+        assert_eq!(answer, [0x86, 0x01], "unit {unit}");
+    }
+    // Drive 4 is not the rule's, by its own id or by 104.
+    assert_eq!(operator.call(5, 104, &OTHER_WRITE).await, OTHER_WRITE);
+    assert_eq!(sent(&gateway, "sim"), [(4, OTHER_WRITE.to_vec())]);
+    let ended = ended_writes(&journal, 5).await;
+    for (write, outcome) in &ended[..4] {
+        assert_eq!(write["rule"], "not the drives", "{write}");
+        assert_eq!(write["role"], "operator");
+        assert_eq!(outcome["outcome"], "denied");
+    }
+    assert_eq!(ended[4].0["rule"], Value::Null);
 }
 
 #[tokio::test]

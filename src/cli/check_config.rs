@@ -2,9 +2,12 @@
 //! worked out from the baud and format). Knows nothing of serving.
 
 use crate::bus::device::net::{MAX_LINK_BUDGET, MIN_LINK_BUDGET};
-use crate::config::{Bus, Config, DeviceName, Rs485Mode, ServerAddr, ServerMode};
-use crate::line::Framing;
+use crate::config::UnitSet;
+use crate::config::{Action, Bus, Config, DeviceName, Rs485Mode, Rule, ServerAddr, ServerMode};
+use crate::line::{Framing, BROADCAST};
 use crate::net::tls::TlsServer;
+use crate::routing::Router;
+use crate::rules::Slaves;
 use std::path::Path;
 use std::process::ExitCode;
 use std::time::{Duration, SystemTime};
@@ -170,6 +173,48 @@ fn describe(path: &Path, config: &Config, tls: Option<&TlsServer>, now: SystemTi
     out + "\n" + &config.to_toml()
 }
 
+/// The slaves a rule's `units` hold, whichever unit id a master reaches them by.
+fn describe_slaves(
+    config: &Config,
+    rule: &Rule,
+    slaves: &Slaves,
+    at: usize,
+    units: UnitSet,
+) -> String {
+    let mut held = Vec::new();
+    for (bus, addresses) in slaves.by_bus() {
+        let bus = &config.bus[bus];
+        let broadcasts = bus.framing.broadcasts();
+        let mut slaves = addresses;
+        if broadcasts {
+            slaves.remove(BROADCAST);
+        }
+        match slaves.iter().count() {
+            0 => {}
+            1 => held.push(format!("slave {slaves} of {}", bus.name)),
+            _ => held.push(format!("slaves {slaves} of {}", bus.name)),
+        }
+        let by_broadcast = match rule.action {
+            Action::Allow => addresses.contains(BROADCAST),
+            Action::Deny | Action::Acknowledge => true,
+        };
+        if broadcasts && by_broadcast {
+            held.push(format!("broadcasts on {}", bus.name));
+        }
+    }
+    let name = rule.display_name(at);
+    if held.is_empty() {
+        return format!(
+            "# {name} (units {units}): no slave, since none of these units has a route; it \
+             matches nothing.\n"
+        );
+    }
+    format!(
+        "# {name} (units {units}): {}, whatever unit id a master reaches them by.\n",
+        held.join(", ")
+    )
+}
+
 /// How writes are decided and recorded: the rules in their order, the journal.
 fn describe_writes(config: &Config) -> String {
     let mut out = String::new();
@@ -185,6 +230,12 @@ fn describe_writes(config: &Config) -> String {
              request no rule matches goes on.\n",
             names.join(", ")
         );
+        let router = Router::new(config);
+        for (at, rule) in config.rule.iter().enumerate() {
+            if let Some(units) = rule.units {
+                out += &describe_slaves(config, rule, &Slaves::of(units, &router), at, units);
+            }
+        }
     }
     out +=
         &match &config.audit {
@@ -206,4 +257,60 @@ fn describe_writes(config: &Config) -> String {
             }
         };
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn check_config_says_which_slaves_a_rule_on_units_holds() {
+        let config = Config::from_toml_str(
+            r#"
+            [[bus]]
+            name = "line1"
+            device = "sim"
+            [[bus]]
+            name = "inverter"
+            device = "tcp://127.0.0.1:502"
+            framing = "tcp"
+            [[route]]
+            units = "1-4,200"
+            bus = "line1"
+            [[route]]
+            units = "101-104"
+            bus = "line1"
+            offset = -100
+            [[route]]
+            units = "10"
+            bus = "inverter"
+            address = 0
+            [[rule]]
+            name = "drive parameters"
+            units = "101-104"
+            action = "deny"
+            [[rule]]
+            name = "setpoints"
+            units = "1-2,10"
+            action = "allow"
+            [[rule]]
+            units = "50"
+            action = "deny"
+            "#,
+        )
+        .expect("a valid configuration");
+        let out = describe_writes(&config);
+        let lines: Vec<&str> = out.lines().skip(1).take(3).collect();
+        assert_eq!(
+            lines,
+            [
+                "# drive parameters (units 101-104): slaves 1-4 of line1, broadcasts on line1, \
+                 whatever unit id a master reaches them by.",
+                "# setpoints (units 1-2,10): slaves 1-2 of line1, slave 0 of inverter, whatever \
+                 unit id a master reaches them by.",
+                "# rule 3 (units 50): no slave, since none of these units has a route; it matches \
+                 nothing.",
+            ]
+        );
+    }
 }

@@ -31,7 +31,8 @@ pub struct Rule {
     /// The buses the requests' units route to.
     #[serde(default, with = "text_list", skip_serializing_if = "Vec::is_empty")]
     pub buses: Vec<String>,
-    /// The unit ids the masters address.
+    /// The slaves these unit ids reach through the routes: a request matches by the slave it
+    /// reaches, whatever unit id it names, and a broadcast reaches every slave of its bus.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub units: Option<UnitSet>,
     /// Function codes, or the words `read`, `write`, `diagnostic` of the function-code table.

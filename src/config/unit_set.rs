@@ -13,6 +13,10 @@ impl UnitSet {
         self.0[usize::from(unit / 64)] |= 1 << (unit % 64);
     }
 
+    pub fn remove(&mut self, unit: u8) {
+        self.0[usize::from(unit / 64)] &= !(1 << (unit % 64));
+    }
+
     pub fn contains(&self, unit: u8) -> bool {
         self.0[usize::from(unit / 64)] & (1 << (unit % 64)) != 0
     }

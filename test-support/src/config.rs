@@ -218,6 +218,17 @@ impl GatewayConfig {
         self
     }
 
+    /// One more `[[route]]`: `units` to `bus`, each to the slave of its id plus `offset`.
+    pub fn route_offset(mut self, units: &str, bus: &str, offset: i16) -> Self {
+        let _ = write!(
+            self.tail,
+            "[[route]]\nunits = {}\nbus = {}\noffset = {offset}\n",
+            quoted(units),
+            quoted(bus)
+        );
+        self
+    }
+
     /// The configuration as the gateway reads it.
     pub fn to_toml(&self) -> String {
         let mut out = String::from("[server]\n");
