@@ -96,6 +96,30 @@ pub struct Function {
     pub broadcast: Broadcast,
     /// What a normal reply must look like to answer the request.
     pub(crate) reply_shape: Shape,
+    /// The quantity a multiple write names, which its byte count must agree with.
+    pub(crate) quantity: Option<Quantity>,
+}
+
+/// A multiple write's quantity (a word at `at`) and the byte count (at `count_at`) of the values
+/// after it: the count must be what the quantity gives, the quantity from 1 to `max` (the
+/// Modbus Application Protocol's bounds). A slave may go by either, so a request whose two
+/// disagree would write what its quantity does not say (some firmware writes `count / 2`
+/// registers): the gateway does not send it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Quantity {
+    pub(crate) at: usize,
+    pub(crate) count_at: usize,
+    pub(crate) unit: Unit,
+    pub(crate) max: u16,
+}
+
+impl Quantity {
+    /// The length the request must have by its quantity; `None` when the quantity is out of
+    /// bounds or the bytes too short to hold it.
+    fn request_len(self, pdu: &[u8]) -> Option<usize> {
+        let quantity = word_at(pdu, self.at).filter(|q| (1..=self.max).contains(q))?;
+        Some(self.count_at + 1 + self.unit.bytes(quantity))
+    }
 }
 
 /// How the length of a PDU follows from its first bytes (offsets within the PDU).
@@ -172,6 +196,16 @@ pub enum Unit {
     Words,
 }
 
+impl Unit {
+    /// The bytes `quantity` of them take.
+    pub(crate) fn bytes(self, quantity: u16) -> usize {
+        match self {
+            Unit::Bits => usize::from(quantity).div_ceil(8),
+            Unit::Words => usize::from(quantity) * 2,
+        }
+    }
+}
+
 /// Diagnostics: echo, diagnostic register and the counters read; the rest restart or clear.
 /// Return Query Data (0000H) reads only with one word of data: its length is the master's to
 /// choose, so longer data could hold a whole frame that a slave framing by length would take as
@@ -246,6 +280,17 @@ const fn row(
         access,
         broadcast,
         reply_shape,
+        quantity: None,
+    }
+}
+
+impl Function {
+    /// The row, its requests' byte count checked against their `quantity`.
+    const fn counting(self, quantity: Quantity) -> Function {
+        Function {
+            quantity: Some(quantity),
+            ..self
+        }
     }
 }
 
@@ -300,9 +345,11 @@ pub(crate) const FUNCTIONS: &[Function] = &[
     row(GET_COMM_EVENT_LOG, "Get Comm Event Log",
         BARE, COUNT, Read, Refused, Shape::Any),
     row(WRITE_MULTIPLE_COILS, "Write Multiple Coils",
-        Len::Counted { at: 5, wide: false }, TWO_WORDS, Write, EchoFirst(5), ECHO_ADDRESS_AND_QUANTITY),
+        Len::Counted { at: 5, wide: false }, TWO_WORDS, Write, EchoFirst(5), ECHO_ADDRESS_AND_QUANTITY)
+        .counting(Quantity { at: 3, count_at: 5, unit: Unit::Bits, max: 0x07B0 }),
     row(WRITE_MULTIPLE_REGISTERS, "Write Multiple Registers",
-        Len::Counted { at: 5, wide: false }, TWO_WORDS, Write, EchoFirst(5), ECHO_ADDRESS_AND_QUANTITY),
+        Len::Counted { at: 5, wide: false }, TWO_WORDS, Write, EchoFirst(5), ECHO_ADDRESS_AND_QUANTITY)
+        .counting(Quantity { at: 3, count_at: 5, unit: Unit::Words, max: 0x007B }),
     row(REPORT_SERVER_ID, "Report Server ID",
         BARE, COUNT, Read, Refused, Shape::Any),
     row(READ_FILE_RECORD, "Read File Record",
@@ -312,7 +359,8 @@ pub(crate) const FUNCTIONS: &[Function] = &[
     row(MASK_WRITE_REGISTER, "Mask Write Register",
         Len::Fixed(7), Len::Fixed(7), Write, EchoRequest, Shape::Echo { from: 0, to: 7 }),
     row(READ_WRITE_MULTIPLE_REGISTERS, "Read/Write Multiple Registers",
-        Len::Counted { at: 9, wide: false }, COUNT, Write, Refused, WORDS),
+        Len::Counted { at: 9, wide: false }, COUNT, Write, Refused, WORDS)
+        .counting(Quantity { at: 7, count_at: 9, unit: Unit::Words, max: 0x0079 }),
     row(READ_FIFO_QUEUE, "Read FIFO Queue",
         Len::Fixed(3), Len::Counted { at: 1, wide: true }, Read, Refused, Shape::Any),
     row(ENCAPSULATED_INTERFACE, "Encapsulated Interface Transport",
@@ -431,13 +479,20 @@ pub enum RequestLen {
 /// Check `pdu`, a request, against the length its function code gives it. A longer PDU would
 /// carry bytes after the request that a slave framing by length takes as a request of its own
 /// (a hidden write, or a read whose answer comes late to another master); a shorter one is no
-/// request a slave can answer.
+/// request a slave can answer. A multiple write must also be as long as its quantity says, the
+/// quantity within the spec's bounds: a byte count that disagrees with it is wrong too.
 pub fn request_len(pdu: &[u8]) -> RequestLen {
     let Some(row) = pdu.first().and_then(|&code| function(code)) else {
         return RequestLen::Unchecked;
     };
     match row.request.of(pdu, None) {
-        PduLen::Exact(len) if len == pdu.len() => RequestLen::Fits,
+        PduLen::Exact(len) if len == pdu.len() => match row.quantity {
+            Some(quantity) => match quantity.request_len(pdu) {
+                Some(by_quantity) if by_quantity == len => RequestLen::Fits,
+                expected => RequestLen::Wrong { expected },
+            },
+            None => RequestLen::Fits,
+        },
         PduLen::Exact(len) => RequestLen::Wrong {
             expected: Some(len),
         },
@@ -895,6 +950,55 @@ mod tests {
         assert_eq!(request_len(&[0x2B, 0x0D, 1, 2, 3]), RequestLen::Unchecked);
         // User-defined codes.
         assert_eq!(request_len(&[0x41, 1, 2, 3]), RequestLen::Unchecked);
+    }
+
+    #[test]
+    fn a_multiple_write_whose_byte_count_disagrees_with_its_quantity_is_wrong() {
+        let wrong = |expected| RequestLen::Wrong { expected };
+        // One register by its quantity, two by its byte count: as long as one register says.
+        let one_by_quantity = [0x10, 0x20, 0x01, 0x00, 0x01, 0x04, 0x0D, 0x0D, 0xBE, 0xEF];
+        assert_eq!(request_len(&one_by_quantity), wrong(Some(8)));
+        // Two registers by quantity, one by byte count.
+        let two_by_quantity = [0x10, 0x20, 0x00, 0x00, 0x02, 0x02, 0x0D, 0x0D];
+        assert_eq!(request_len(&two_by_quantity), wrong(Some(10)));
+        // Quantities out of the spec's bounds: 0, and 124 registers (248 bytes fit no PDU).
+        assert_eq!(
+            request_len(&[0x10, 0x20, 0x00, 0x00, 0x00, 0x00]),
+            wrong(None)
+        );
+        let mut many = vec![0x10, 0x00, 0x00, 0x00, 0x7C, 0xF6];
+        many.resize(6 + 0xF6, 0);
+        assert_eq!(request_len(&many), wrong(None));
+        // Coils: nine take two bytes; 1968 is the most, 1969 one too many.
+        assert_eq!(request_len(&[0x0F, 0, 0, 0, 9, 1, 0xFF]), wrong(Some(8)));
+        assert_eq!(
+            request_len(&[0x0F, 0, 0, 0, 9, 2, 0xFF, 0x01]),
+            RequestLen::Fits
+        );
+        let coils = |quantity: u16, count: u8| {
+            let mut pdu = vec![0x0F, 0, 0];
+            pdu.extend_from_slice(&quantity.to_be_bytes());
+            pdu.push(count);
+            pdu.resize(6 + usize::from(count), 0xFF);
+            pdu
+        };
+        assert_eq!(request_len(&coils(1968, 246)), RequestLen::Fits);
+        assert_eq!(request_len(&coils(1969, 247)), wrong(None));
+        // Read/Write Multiple Registers: its write part, 1 to 121 registers.
+        let rw = [
+            0x17, 0x20, 0x00, 0, 1, 0x20, 0x01, 0, 1, 4, 0x0D, 0x0D, 0xBE, 0xEF,
+        ];
+        assert_eq!(request_len(&rw), wrong(Some(12)));
+        let rw = [0x17, 0x20, 0x00, 0, 1, 0x20, 0x01, 0, 1, 2, 0x0D, 0x0D];
+        assert_eq!(request_len(&rw), RequestLen::Fits);
+        // 122 registers to write: past the bounds (and past what a PDU holds).
+        let mut rw_many = vec![0x17, 0, 0, 0, 1, 0, 0, 0, 0x7A, 0xF4];
+        rw_many.resize(10 + 0xF4, 0);
+        assert_eq!(request_len(&rw_many), wrong(None));
+        // What the rules and the journal read is then the quantity every byte agrees with.
+        let agreed = [0x10, 0x20, 0x01, 0x00, 0x02, 0x04, 0x0D, 0x0D, 0xBE, 0xEF];
+        assert_eq!(request_len(&agreed), RequestLen::Fits);
+        assert_eq!(written(&agreed).0.map(|span| span.count()), Some(2));
     }
 
     #[test]

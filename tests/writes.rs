@@ -507,6 +507,58 @@ async fn a_tls_role_rule_on_units_denies_the_role_a_broadcast_that_reaches_them(
 }
 
 #[tokio::test]
+async fn a_multiple_write_whose_byte_count_disagrees_with_its_quantity_gets_0x03() {
+    let journal = dir("miscounted").join("w.jsonl");
+    let toml = format!(
+        "{}{}{}",
+        sim_config_with_server("", ""),
+        "[[rule]]\nregisters = \"0x2000-0x2001\"\naction = \"allow\"\n\
+         [[rule]]\nfunctions = \"write\"\naction = \"deny\"\n",
+        audit_table(&journal)
+    );
+    let gateway = start(&toml).await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    let miscounted: [&[u8]; 5] = [
+        // 2001H for 1 register by its quantity, 2 by its byte count (4): 2002H too, to some.
+        &[0x10, 0x20, 0x01, 0x00, 0x01, 0x04, 0x0D, 0x0D, 0xBE, 0xEF],
+        // 2000H for 2 registers by its quantity, 1 by its byte count.
+        &[0x10, 0x20, 0x00, 0x00, 0x02, 0x02, 0x0D, 0x0D],
+        // A quantity of 0.
+        &[0x10, 0x20, 0x00, 0x00, 0x00, 0x00],
+        // 9 coils from 2000H in one byte (they take two).
+        &[0x0F, 0x20, 0x00, 0x00, 0x09, 0x01, 0xFF],
+        // Read 2000H, write 2001H: 1 register by its quantity, 2 by its byte count.
+        &[
+            0x17, 0x20, 0x00, 0, 1, 0x20, 0x01, 0, 1, 4, 0x0D, 0x0D, 0xBE, 0xEF,
+        ],
+    ];
+    for (tid, pdu) in (1..).zip(miscounted) {
+        let answer = master.call(tid, 1, pdu).await;
+        assert_eq!(answer, [pdu[0] | 0x80, 0x03], "{pdu:02X?}");
+    }
+    // The same write with its byte count agreeing is the rule's to allow.
+    let agreed = [0x10, 0x20, 0x00, 0x00, 0x02, 0x04, 0x0D, 0x0D, 0xBE, 0xEF];
+    assert_eq!(master.call(9, 1, &agreed).await, agreed[..5]);
+    assert_eq!(sent(&gateway, "sim"), [(1, agreed.to_vec())], "none went");
+    let scrape = Scrape::of(&gateway).await;
+    let bad = |function: &str| {
+        scrape.value(&format!(
+            "modbus_gateway_requests_total{{bus=\"sim\",function=\"{function}\",\
+             outcome=\"bad_length\",protocol=\"tcp\",slave=\"1\"}}"
+        ))
+    };
+    assert_eq!((bad("0x10"), bad("0x0F"), bad("0x17")), (3.0, 1.0, 1.0));
+    // Journaled as what the bytes hold, refused by the gateway with 0x03.
+    let ended = ended_writes(&journal, 6).await;
+    assert_eq!(ended[0].0["values"], "0D0DBEEF");
+    for (_, outcome) in &ended[..5] {
+        assert_eq!(outcome["outcome"], "gateway_exception");
+        assert_eq!(outcome["exception"], 3);
+        assert_eq!(outcome["carried_out"], "no");
+    }
+}
+
+#[tokio::test]
 async fn a_tls_role_rule_acknowledges_the_operators_writes_and_the_journal_names_certificate_and_role(
 ) {
     let journal = dir("tls").join("w.jsonl");

@@ -3,7 +3,7 @@
 //! and PDUs, after the framing has checked and unwrapped the frame: knows nothing of CRC, LRC,
 //! frame lengths, ports or time.
 
-use crate::pdu::{self, PduLen, Shape, Unit, EXCEPTION_BIT, EXCEPTION_PDU_LEN};
+use crate::pdu::{self, PduLen, Shape, EXCEPTION_BIT, EXCEPTION_PDU_LEN};
 
 /// How a slave shapes its replies where it departs from the standard.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -53,15 +53,13 @@ pub(crate) fn reply_len(pdu: &[u8], request: Option<&[u8]>, form: ReplyForm) -> 
     pdu::function(function).map_or(PduLen::Unknown, |row| row.reply.of(pdu, request))
 }
 
-fn quantity(request: &[u8], at: usize) -> Option<usize> {
-    Some(usize::from(u16::from_be_bytes([
+fn quantity(request: &[u8], at: usize) -> Option<u16> {
+    Some(u16::from_be_bytes([
         *request.get(at)?,
         *request.get(at + 1)?,
-    ])))
+    ]))
 }
 
-/// True if a normal reply PDU (same function code as the request) has the shape the request asks
-/// for. Requests too short to say what they ask for accept any reply.
 fn fits_request(reply: &[u8], request: &[u8]) -> bool {
     let shape = request
         .first()
@@ -70,13 +68,7 @@ fn fits_request(reply: &[u8], request: &[u8]) -> bool {
     match shape {
         Shape::ByteCount { quantity_at, unit } => {
             let byte_count = reply.get(1).map(|&b| usize::from(b));
-            quantity(request, quantity_at).is_none_or(|q| {
-                let asked = match unit {
-                    Unit::Bits => q.div_ceil(8),
-                    Unit::Words => q * 2,
-                };
-                byte_count == Some(asked)
-            })
+            quantity(request, quantity_at).is_none_or(|q| byte_count == Some(unit.bytes(q)))
         }
         Shape::Echo { from, to } => reply.get(from..to) == request.get(from..to),
         Shape::Any => true,
