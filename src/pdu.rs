@@ -625,12 +625,14 @@ pub fn touches(pdu: &[u8]) -> Touches {
                 _ => Touches::Unknown,
             }
         }
+        // Read Device Identification reads no data address; the other MEI types (CANopen
+        // General Reference, 0DH, reads and writes a device's objects) may touch any.
+        ENCAPSULATED_INTERFACE if mei_reads(pdu) => Touches::Nothing,
         READ_EXCEPTION_STATUS
         | DIAGNOSTICS
         | GET_COMM_EVENT_COUNTER
         | GET_COMM_EVENT_LOG
-        | REPORT_SERVER_ID
-        | ENCAPSULATED_INTERFACE => Touches::Nothing,
+        | REPORT_SERVER_ID => Touches::Nothing,
         _ => Touches::Unknown,
     }
 }
@@ -1058,6 +1060,9 @@ mod tests {
             )
         );
         assert_eq!(touches(&[0x08, 0x00, 0x01, 0x00, 0x00]), Touches::Nothing);
+        // Read Device Identification touches nothing; a CANopen General Reference may touch any.
+        assert_eq!(touches(&[0x2B, 0x0E, 0x01, 0x00]), Touches::Nothing);
+        assert_eq!(touches(&[0x2B, 0x0D, 0x00, 0x20, 0x00]), Touches::Unknown);
         assert_eq!(touches(&[0x41, 0x20, 0x00]), Touches::Unknown);
         assert_eq!(touches(&[0x06, 0x20]), Touches::Unknown);
         assert_eq!(touches(&[]), Touches::Unknown);

@@ -190,6 +190,7 @@ fn function_matches(functions: Functions, pdu: &[u8]) -> bool {
         Functions::Read => pdu::is_read_only(pdu),
         Functions::Write => !pdu::is_read_only(pdu),
         Functions::Diagnostic => pdu::is_diagnostic(code),
+        Functions::DiagnosticWrite => pdu::is_diagnostic(code) && !pdu::is_read_only(pdu),
     }
 }
 
@@ -510,6 +511,24 @@ mod tests {
         let write = [0x06, 0x00, 0x05, 0x00, 0x01];
         // Unit 10 is the device's unit 0, one unit among others: the rule names unit 5 only.
         assert_eq!(deciding(device, &write, &[10, 11]), [None, Some(0)]);
+    }
+
+    #[test]
+    fn diagnostic_write_takes_restarts_and_tunnels_but_not_the_diagnostics_that_read() {
+        let rules = rules("[[rule]]\nfunctions = \"diagnostic_write\"\naction = \"deny\"\n");
+        let denied = |pdu: &[u8]| rules.decide(&asked(pdu)).rule.is_some();
+        // Restart communications, listen only, clear counters; a CANopen General Reference.
+        assert!(denied(&[0x08, 0x00, 0x01, 0x00, 0x00]));
+        assert!(denied(&[0x08, 0x00, 0x04, 0x00, 0x00]));
+        assert!(denied(&[0x08, 0x00, 0x0A, 0x00, 0x00]));
+        assert!(denied(&[0x2B, 0x0D, 0x00, 0x20, 0x00]));
+        // Echo, a counter, Read Device Identification, Report Server ID; a write, a read.
+        assert!(!denied(&[0x08, 0x00, 0x00, 0x12, 0x34]));
+        assert!(!denied(&[0x08, 0x00, 0x0B, 0x00, 0x00]));
+        assert!(!denied(&[0x2B, 0x0E, 0x01, 0x00]));
+        assert!(!denied(&[0x11]));
+        assert!(!denied(&WRITE_2000));
+        assert!(!denied(&READ_2000));
     }
 
     fn rules_with_diagnostic() -> Rules {

@@ -378,15 +378,17 @@ async fn rules_on_buses_and_units_decide_by_where_a_request_goes() {
     assert_eq!(sent(&gateway, "a"), [(2, OTHER_WRITE.to_vec())]);
 }
 
-/// docs/writes.md's "drive parameters" rule: drives 1-4 keep their parameters in 0000H-1FFFH.
-const DRIVE_PARAMETERS: &str = r#"
-[[rule]]
-name = "drive parameters"
-units = "1-4"
-functions = "write"
-registers = ["0x0000-0x1FFF", "0xF000-0xFFFF"]
-action = "deny"
-"#;
+/// docs/writes.md's "Write-protect register ranges" rules, as the page has them: drives 1-4
+/// keep their parameters in 0000H-1FFFH, and none may be restarted.
+fn drive_parameters() -> String {
+    let page = include_str!("../docs/writes.md");
+    let example = page
+        .split_once("#### Write-protect register ranges")
+        .and_then(|(_, after)| after.split_once("```toml\n"))
+        .and_then(|(_, block)| block.split_once("```"))
+        .map(|(toml, _)| toml.to_owned());
+    example.expect("docs/writes.md's drive parameters example")
+}
 
 /// The sim line with drives 1-4, whose unit 200 is the broadcast and units 101-104 the drives.
 fn routed_line() -> GatewayConfig {
@@ -400,8 +402,9 @@ fn routed_line() -> GatewayConfig {
 async fn a_units_deny_rule_holds_its_slaves_against_broadcasts_and_routed_units() {
     let journal = dir("slaves").join("w.jsonl");
     let toml = format!(
-        "{}{DRIVE_PARAMETERS}{}",
+        "{}{}{}",
         routed_line().to_toml(),
+        drive_parameters(),
         audit_table(&journal)
     );
     let gateway = start(&toml).await;
@@ -466,6 +469,42 @@ async fn a_units_deny_rule_holds_its_slaves_against_broadcasts_and_routed_units(
             ),
         ]
     );
+}
+
+#[tokio::test]
+async fn the_drive_parameters_example_keeps_restarts_and_tunnels_off_the_drives() {
+    let gateway = start(&format!(
+        "{}{}",
+        routed_line().to_toml(),
+        drive_parameters()
+    ))
+    .await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    let refused: [(&[u8], u8); 4] = [
+        // Restart Communications Option, Force Listen Only Mode, Clear Counters: 0x01.
+        (&[0x08, 0x00, 0x01, 0x00, 0x00], 0x01),
+        (&[0x08, 0x00, 0x04, 0x00, 0x00], 0x01),
+        (&[0x08, 0x00, 0x0A, 0x00, 0x00], 0x01),
+        // A CANopen General Reference may write any object: refused as the ranges are, 0x02.
+        (&[0x2B, 0x0D, 0x00, 0x20, 0x00, 0x01], 0x02),
+    ];
+    for (tid, (pdu, code)) in (1..).zip(refused) {
+        for unit in [2, 102] {
+            let answer = master.call(tid, unit, pdu).await;
+            assert_eq!(answer, [pdu[0] | 0x80, code], "{pdu:02X?} to unit {unit}");
+        }
+    }
+    // The diagnostics that only read go to the drives: echo, a counter, identification.
+    let reads: [&[u8]; 3] = [
+        &[0x08, 0x00, 0x00, 0x12, 0x34],
+        &[0x08, 0x00, 0x0B, 0x00, 0x00],
+        &[0x2B, 0x0E, 0x01, 0x00],
+    ];
+    for (tid, pdu) in (10..).zip(reads) {
+        master.call(tid, 102, pdu).await;
+    }
+    let expected: Vec<_> = reads.iter().map(|pdu| (2, pdu.to_vec())).collect();
+    assert_eq!(sent(&gateway, "sim"), expected);
 }
 
 #[tokio::test]

@@ -389,6 +389,7 @@ fn rules() -> impl Strategy<Value = Vec<Rule>> {
         Just(Functions::Read),
         Just(Functions::Write),
         Just(Functions::Diagnostic),
+        Just(Functions::DiagnosticWrite),
     ];
     let registers = (any::<u16>(), any::<u16>()).prop_map(|(a, b)| Registers {
         first: a.min(b),

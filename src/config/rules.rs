@@ -108,22 +108,46 @@ pub enum Functions {
     Write,
     /// The Modbus Application Protocol's diagnostics functions (07, 08, 0B, 0C, 11, 2B).
     Diagnostic,
+    /// The diagnostics that may change the slave: restart, listen only, clearing counters,
+    /// every 2B but Read Device Identification.
+    DiagnosticWrite,
 }
 
 impl Functions {
+    /// The classes, by their words.
+    const WORDS: [Functions; 4] = [
+        Functions::Read,
+        Functions::Write,
+        Functions::Diagnostic,
+        Functions::DiagnosticWrite,
+    ];
+
     fn word(self) -> Option<&'static str> {
         match self {
             Functions::Code(_) => None,
             Functions::Read => Some("read"),
             Functions::Write => Some("write"),
             Functions::Diagnostic => Some("diagnostic"),
+            Functions::DiagnosticWrite => Some("diagnostic_write"),
+        }
+    }
+
+    /// The words, as error messages list them: `"read", "write", ... or "diagnostic_write"`.
+    fn words() -> String {
+        let quoted: Vec<String> = Self::WORDS
+            .iter()
+            .filter_map(|w| w.word())
+            .map(|w| format!("\"{w}\""))
+            .collect();
+        match quoted.split_last() {
+            Some((last, rest)) => format!("{} or {last}", rest.join(", ")),
+            None => String::new(),
         }
     }
 
     fn parse(text: &str) -> Result<Functions, String> {
         let text = text.trim();
-        let words = [Functions::Read, Functions::Write, Functions::Diagnostic];
-        if let Some(word) = words.into_iter().find(|w| w.word() == Some(text)) {
+        if let Some(word) = Self::WORDS.into_iter().find(|w| w.word() == Some(text)) {
             return Ok(word);
         }
         let code = match text.strip_prefix("0x").or_else(|| text.strip_prefix("0X")) {
@@ -133,8 +157,8 @@ impl Functions {
         match code {
             Some(code) => Functions::code(i64::from(code)),
             None => Err(format!(
-                "`{text}` is no function code (1-127, or 0x01-0x7F) and not \"read\", \
-                 \"write\" or \"diagnostic\""
+                "`{text}` is no function code (1-127, or 0x01-0x7F) and not {}",
+                Self::words()
             )),
         }
     }
@@ -165,7 +189,7 @@ impl<'de> Deserialize<'de> for Functions {
         impl serde::de::Visitor<'_> for Visitor {
             type Value = Functions;
             fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-                f.write_str("a function code, or \"read\", \"write\" or \"diagnostic\"")
+                write!(f, "a function code, or {}", Functions::words())
             }
             fn visit_i64<E: serde::de::Error>(self, v: i64) -> Result<Functions, E> {
                 Functions::code(v).map_err(E::custom)
@@ -187,7 +211,11 @@ fn one_or_many<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Vec<Functions>,
     impl<'de> serde::de::Visitor<'de> for Visitor {
         type Value = Vec<Functions>;
         fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-            f.write_str("a function code or \"read\", \"write\", \"diagnostic\", or a list of them")
+            write!(
+                f,
+                "a function code or {}, or a list of them",
+                Functions::words()
+            )
         }
         fn visit_i64<E: serde::de::Error>(self, v: i64) -> Result<Self::Value, E> {
             Functions::code(v).map(|f| vec![f]).map_err(E::custom)
