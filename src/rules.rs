@@ -59,17 +59,17 @@ pub(crate) struct Rules {
     list: Vec<Rule>,
     names: Vec<String>,
     /// Each rule's `units` as the slaves they reach; `None` for a rule without `units`.
-    slaves: Vec<Option<Slaves>>,
+    slaves: Vec<Option<Reach>>,
 }
 
 /// The slaves some unit ids reach through the routes: for each bus, by its index, the
 /// addresses there (the broadcast address among them when a unit routes to it).
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
-pub(crate) struct Slaves(Vec<UnitSet>);
+pub(crate) struct Reach(Vec<UnitSet>);
 
-impl Slaves {
+impl Reach {
     /// Where `units` go by `router`: a unit with no route reaches nothing.
-    pub(crate) fn of(units: UnitSet, router: &Router) -> Slaves {
+    pub(crate) fn of(units: UnitSet, router: &Router) -> Reach {
         let mut buses: Vec<UnitSet> = Vec::new();
         for target in units.iter().filter_map(|unit| router.resolve(unit)) {
             if buses.len() <= target.bus {
@@ -77,7 +77,7 @@ impl Slaves {
             }
             buses[target.bus].insert(target.address);
         }
-        Slaves(buses)
+        Reach(buses)
     }
 
     /// The addresses reached on each bus that any are, by bus index.
@@ -115,7 +115,7 @@ impl Rules {
                 .collect(),
             slaves: list
                 .iter()
-                .map(|rule| rule.units.map(|units| Slaves::of(units, router)))
+                .map(|rule| rule.units.map(|units| Reach::of(units, router)))
                 .collect(),
             list: list.to_vec(),
         }
@@ -148,7 +148,7 @@ impl Rules {
 
 fn matches(
     rule: &Rule,
-    slaves: Option<&Slaves>,
+    slaves: Option<&Reach>,
     asked: &Asked<'_>,
     touches: impl FnOnce() -> Touches,
 ) -> bool {

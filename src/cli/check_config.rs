@@ -7,7 +7,7 @@ use crate::config::{Action, Bus, Config, DeviceName, Rs485Mode, Rule, ServerAddr
 use crate::line::{Framing, BROADCAST};
 use crate::net::tls::TlsServer;
 use crate::routing::Router;
-use crate::rules::Slaves;
+use crate::rules::Reach;
 use std::path::Path;
 use std::process::ExitCode;
 use std::time::{Duration, SystemTime};
@@ -177,7 +177,7 @@ fn describe(path: &Path, config: &Config, tls: Option<&TlsServer>, now: SystemTi
 fn describe_slaves(
     config: &Config,
     rule: &Rule,
-    slaves: &Slaves,
+    slaves: &Reach,
     at: usize,
     units: UnitSet,
 ) -> String {
@@ -233,7 +233,7 @@ fn describe_writes(config: &Config) -> String {
         let router = Router::new(config);
         for (at, rule) in config.rule.iter().enumerate() {
             if let Some(units) = rule.units {
-                out += &describe_slaves(config, rule, &Slaves::of(units, &router), at, units);
+                out += &describe_slaves(config, rule, &Reach::of(units, &router), at, units);
             }
         }
     }
