@@ -1,6 +1,6 @@
 //! Modbus UDP masters (`listen_udp`): one MBAP request per datagram, the reply to the source it
 //! came from; the buses, routes and access lists they share with TCP masters; what is dropped;
-//! a flood from many ports of one address.
+//! floods from many ports of one address and from thousands of addresses.
 
 use crate::support::{
     flood_target, frames_from, mbap, polite_reads, start, within, Bus, Flood, GatewayConfig,
@@ -351,6 +351,65 @@ async fn forty_udp_ports_of_one_address_take_one_turn_so_a_polite_master_waits_a
     let between: Vec<usize> = polite.windows(2).map(|w| w[1] - w[0] - 1).collect();
     eprintln!("flood transactions between the polite master's reads: {between:?}");
     assert!(between.iter().all(|&n| n <= 3), "{between:?}");
+}
+
+/// Modbus UDP source addresses flooding the line, one read in flight each.
+const SOURCES: u16 = 2000;
+/// The polite master's reads, one at a time.
+const POLITE_READS: u16 = 100;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_thousand_udp_addresses_one_read_each_leave_a_polite_master_always_answered() {
+    // Far fewer places than sources: every source waiting holds one place, none more than its
+    // share, and each one answered comes back a newcomer, as the polite master does.
+    let gateway = start(&flood_target(115200, 8)).await;
+    let udp = udp_addr(&gateway);
+    let flood = Flood::new();
+    let sources: Vec<_> = (0..SOURCES)
+        .map(|source| tokio::spawn(flood_from_address(udp, source, flood.clone())))
+        .collect();
+    flood.until_refused(usize::from(SOURCES)).await;
+    let answered = polite_reads(gateway.tcp_addrs()[0], 2, POLITE_READS).await;
+    flood.stop();
+    let mut refused = 0;
+    for source in sources {
+        refused += within("a source stops", source).await.expect("source task");
+    }
+    eprintln!("polite master: {answered} of {POLITE_READS} answered; flood: {refused} refused");
+    assert_eq!(answered, POLITE_READS, "the polite master got 0x06");
+}
+
+/// A source address of its own on loopback (127.1.0.0/16; all of 127/8 is loopback on Linux)
+/// with one read of its own input register in flight until the flood stops, sent again when
+/// answered or when no answer came within a pause (a datagram lost). Each answer is its own,
+/// or 0x06; how many were 0x06.
+async fn flood_from_address(udp: SocketAddr, index: u16, flood: Arc<Flood>) -> usize {
+    const PAUSE: Duration = Duration::from_millis(100);
+    let [hi, lo] = index.to_be_bytes();
+    let address = std::net::Ipv4Addr::new(127, 1, hi, lo);
+    let socket = UdpSocket::bind((address, 0)).await.unwrap();
+    let request = [0x04, hi, lo, 0x00, 0x01];
+    let mut refused = 0;
+    for transaction in (0..=u16::MAX).cycle() {
+        if flood.is_stopped() {
+            break;
+        }
+        socket
+            .send_to(&mbap(transaction, 1, &request), udp)
+            .await
+            .unwrap();
+        let Some(reply) = receive(&socket, PAUSE).await else {
+            continue;
+        };
+        let pdu = &reply[7..];
+        if pdu == [0x84, 0x06] {
+            flood.refused();
+            refused += 1;
+        } else {
+            assert_eq!(pdu, [0x04, 0x02, hi, lo], "address {address}: its own");
+        }
+    }
+    refused
 }
 
 /// One source port of 127.0.0.1 keeping 16 reads of its own input register in flight (as many

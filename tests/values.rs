@@ -1,7 +1,8 @@
 //! Plant values for Prometheus (docs/plant-values.md): a drive's values polled by the gateway on
 //! the simulated line and exported in their units, a slave that stops answering losing its
-//! values and getting them back, promtool's verdict on a scrape with values, `GET /values`, and
-//! every bad value or template refused in one run, naming its key. How polls share the line is
+//! values and getting them back, promtool's verdict on a scrape with values, `GET /values` and
+//! its query (percent-encoded too), and every bad value or template refused in one run, naming
+//! its key. How polls share the line is
 //! measured on tokio's paused clock in `src/values/`.
 
 use crate::support::{within, Bus, GatewayConfig, RawMaster, Scrape};
@@ -191,6 +192,57 @@ async fn values_are_listed_as_json_with_their_units_and_when_they_were_read() {
         .is_some_and(|h| !h.is_empty()));
     let (status, _) = crate::support::http_get(gateway.metrics_addr(), "/values?bus=nope").await;
     assert_eq!(status, 404);
+}
+
+/// Which values a `/values` answer lists: (bus, slave, name) of each.
+fn listed(body: &str) -> Vec<(String, u64, String)> {
+    let listing: serde_json::Value = serde_json::from_str(body).unwrap_or_else(|e| {
+        panic!("not JSON ({e}): {body}");
+    });
+    let values = listing["values"].as_array().cloned().unwrap_or_default();
+    values
+        .iter()
+        .map(|v| {
+            let text = |key: &str| v[key].as_str().unwrap_or_default().to_owned();
+            (
+                text("bus"),
+                v["slave"].as_u64().unwrap_or(256),
+                text("name"),
+            )
+        })
+        .collect()
+}
+
+#[tokio::test]
+async fn a_percent_encoded_query_picks_what_its_plain_form_does_and_bad_escapes_get_400() {
+    let gateway = drive_gateway().await;
+    let at = gateway.metrics_addr();
+    let (status, plain) = crate::support::http_get(at, "/values?bus=demo&slave=2").await;
+    assert_eq!(status, 200, "{plain}");
+    assert_eq!(listed(&plain).len(), 3, "{plain}");
+    // Keys and values encoded: `%75` is `u`, `%61` `a`, `%64` `d`, `%32` `2`.
+    let (status, encoded) =
+        crate::support::http_get(at, "/values?b%75s=%64emo&sl%61ve=%32&history=%30").await;
+    assert_eq!(status, 200, "{encoded}");
+    assert_eq!(listed(&encoded), listed(&plain));
+    // An encoded `&` and `=` are the value's own, not separators.
+    let (status, body) = crate::support::http_get(at, "/values?bus=demo%26slave%3D2").await;
+    assert_eq!(status, 404, "{body}");
+    assert!(body.contains("no bus named `demo&slave=2`"), "{body}");
+    // A `%` without two hex digits after it; /trace reads its query the same way.
+    for (path, escape) in [
+        ("/values?bus=%zzdemo", "%zz"),
+        ("/values?slave=%3", "%3"),
+        ("/values?history=1%", "%"),
+        ("/trace?bus=de%6Xmo", "%6X"),
+    ] {
+        let (status, body) = crate::support::http_get(at, path).await;
+        assert_eq!(status, 400, "{path}: {body}");
+        assert!(
+            body.contains(&format!("bad escape `{escape}`")),
+            "{path}: {body}"
+        );
+    }
 }
 
 #[test]

@@ -1,5 +1,6 @@
 //! The bus task on tokio's paused clock over the simulated line: one transaction's result, the
-//! reopen backoff, reconfiguration between transactions, and the slave-state changes it renders.
+//! reopen backoff, reconfiguration between transactions, the slave-state changes it renders,
+//! and the answer of a request a full queue displaces.
 
 use super::transaction::Ran;
 use super::{longest_transaction, BusHandle, BusTask, Device, Job, Reconfigure, Waiter};
@@ -9,7 +10,7 @@ use crate::error::{Answer, Outcome, RequestError};
 use crate::line::{Framing, LineMaster};
 use crate::metrics::Metrics;
 use crate::shutdown::Stopping;
-use crate::sim::{RegisterBank, Scripted, SimLine, Transmission};
+use crate::sim::{RegisterBank, Scripted, SimLine, Source, Transmission};
 use std::time::Duration;
 use tokio::sync::oneshot;
 use tokio::time::{sleep, Instant};
@@ -291,4 +292,53 @@ fn behind_a_device_server_the_longest_transaction_allows_for_the_link_both_ways_
     // Twice on the way (request, reply), and once more as silence a reply may hold.
     let packing = Duration::from_millis(50);
     assert_eq!(longest_transaction(&packed), remote + packing * 3);
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_newcomer_to_a_full_queue_of_ones_gets_in_and_the_newest_job_gets_0x06_once() {
+    let line = SimLine::new(settings("").line_timing());
+    line.add_slave(1, RegisterBank::new(Duration::ZERO));
+    let bus = running(
+        settings("queue_depth = 2"),
+        &line,
+        &Metrics::new(),
+        Stopping::never(),
+    )
+    .await;
+    let read = |bus: &BusHandle, master: u64| {
+        let origin = super::Origin {
+            master,
+            admission: master,
+            protocol: crate::master::Protocol::Tcp,
+            class: crate::master::Class::Normal,
+        };
+        // Input register N reads N; each master a register of its own: none joins another.
+        bus.submit_from(origin, 1, vec![0x04, 0x00, master as u8, 0x00, 0x01])
+    };
+    // Master 1's read takes the line; masters 2 and 3 fill the queue, one each.
+    let first = read(&bus, 1);
+    sleep(Duration::from_millis(1)).await;
+    let (second, mut third) = (read(&bus, 2), read(&bus, 3));
+    assert!(third.try_recv().is_err(), "queued");
+    // Master 4 holds nothing: it gets in, and master 3's read, the newest, is refused at once.
+    let fourth = read(&bus, 4);
+    assert_eq!(
+        third.try_recv().expect("answered at once"),
+        Err(RequestError::QueueFull)
+    );
+    for (master, outcome) in [(1, first), (2, second), (4, fourth)] {
+        let answer = outcome.await.expect("answered");
+        let own = vec![0x04, 0x02, 0x00, master];
+        assert_eq!(
+            answer,
+            Ok(crate::error::Answer::Reply(own)),
+            "master {master}"
+        );
+    }
+    let sent = line
+        .frames()
+        .iter()
+        .filter(|f| f.from == Source::Master)
+        .count();
+    assert_eq!(sent, 3, "master 3's read never reached the line");
 }

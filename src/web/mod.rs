@@ -17,6 +17,7 @@ use crate::bus::BusHandle;
 use crate::config;
 use crate::net::server::Connected;
 use status::{BusStatus, LinkStatus, MasterStatus, SlaveStatus, Status, Utilisation};
+use std::borrow::Cow;
 use std::time::SystemTime;
 use tokio::time::Instant;
 
@@ -34,13 +35,28 @@ pub(crate) trait Inspect: Send + Sync + 'static {
     fn writes(&self) -> Vec<crate::audit::Recent>;
 }
 
-/// The `key=value` pairs of a query string, in order (a key alone has an empty value).
-fn query_pairs(query: Option<&str>) -> impl Iterator<Item = (&str, &str)> {
-    query
-        .unwrap_or_default()
-        .split('&')
-        .filter(|p| !p.is_empty())
-        .map(|pair| pair.split_once('=').unwrap_or((pair, "")))
+/// A query string's `key=value` pairs, decoded, in order (a key alone has an empty value).
+type Pairs<'a> = Vec<(Cow<'a, str>, Cow<'a, str>)>;
+
+/// The pairs of `query`, decoded as the URL standard's `application/x-www-form-urlencoded` (what
+/// an HTML form sends: `%2F` is `/`, `+` a space, bytes that are no UTF-8 become U+FFFD); or the
+/// 400 and message that refuse it, for a `%` that two hex digits do not follow, which the
+/// standard would keep as it is.
+fn query_pairs(query: Option<&str>) -> Result<Pairs<'_>, (hyper::StatusCode, String)> {
+    let query = query.unwrap_or_default();
+    let bytes = query.as_bytes();
+    let escape = |at: usize| bytes.get(at + 1..at + 3);
+    let bad = (0..bytes.len()).find(|&at| {
+        bytes[at] == b'%' && !escape(at).is_some_and(|hex| hex.iter().all(u8::is_ascii_hexdigit))
+    });
+    if let Some(at) = bad {
+        let escape: String = query[at..].chars().take(3).collect();
+        return Err((
+            hyper::StatusCode::BAD_REQUEST,
+            format!("bad escape `{escape}` in the query: a `%` takes two hex digits\n"),
+        ));
+    }
+    Ok(form_urlencoded::parse(bytes).collect())
 }
 
 /// The bus a `bus=` parameter names, or the 404 and message that list the buses there are.

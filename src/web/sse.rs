@@ -42,8 +42,9 @@ struct Filter {
 /// The filter a query string asks for, or the status and message that refuse it.
 fn filter(query: Option<&str>, buses: &[String]) -> Result<Filter, (StatusCode, String)> {
     let mut filter = Filter::default();
-    for (key, value) in super::query_pairs(query) {
-        match key {
+    for (key, value) in super::query_pairs(query)? {
+        let value = value.as_ref();
+        match key.as_ref() {
             "bus" => filter.bus = Some(super::bus_named(value, buses)?),
             "slave" => match value.parse::<u8>() {
                 Ok(slave) if slave <= 247 => filter.slave = Some(slave),

@@ -10,8 +10,9 @@ pub(super) fn filter(
     buses: &[String],
 ) -> Result<Filter, (StatusCode, String)> {
     let mut filter = Filter::default();
-    for (key, value) in super::query_pairs(query) {
-        match key {
+    for (key, value) in super::query_pairs(query)? {
+        let value = value.as_ref();
+        match key.as_ref() {
             "bus" => filter.bus = Some(super::bus_named(value, buses)?),
             "slave" => match value.parse::<u8>() {
                 Ok(slave) => filter.slave = Some(slave),
@@ -66,6 +67,34 @@ mod tests {
         for query in ["slave=256", "slave=x", "history=maybe", "colour=red"] {
             let (status, _) = super::filter(Some(query), &buses).unwrap_err();
             assert_eq!(status, StatusCode::BAD_REQUEST, "{query}");
+        }
+    }
+
+    #[test]
+    fn a_query_is_decoded_as_a_form_is_and_a_percent_without_two_hex_digits_is_refused() {
+        let buses = ["line_1".to_owned(), "line 2".to_owned()];
+        let picked = filter(Some("bus=line%5F1&%73lave=%32%35%35"), &buses).unwrap();
+        assert_eq!(picked.bus.as_deref(), Some("line_1"));
+        assert_eq!(picked.slave, Some(255));
+        // `+` is a space, as in a form; `%2B` a plus.
+        let picked = filter(Some("bus=line+2"), &buses).unwrap();
+        assert_eq!(picked.bus.as_deref(), Some("line 2"));
+        let (status, message) = filter(Some("bus=line%2B2"), &buses).unwrap_err();
+        assert_eq!(status, StatusCode::NOT_FOUND, "{message}");
+        assert!(message.contains("`line+2`"), "{message}");
+        // Bytes that are no UTF-8 cannot name a bus, nor be a number.
+        let (status, _) = filter(Some("bus=%FF"), &buses).unwrap_err();
+        assert_eq!(status, StatusCode::NOT_FOUND);
+        for query in [
+            "bus=%zz",
+            "bus=%",
+            "slave=2%5",
+            "%G1=2",
+            "bus=line_1&slave=%-1",
+        ] {
+            let (status, message) = filter(Some(query), &buses).unwrap_err();
+            assert_eq!(status, StatusCode::BAD_REQUEST, "{query}");
+            assert!(message.starts_with("bad escape `%"), "{query}: {message}");
         }
     }
 }

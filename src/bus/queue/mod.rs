@@ -182,8 +182,9 @@ impl FairQueue {
     /// Queue `job` behind its master's earlier ones, join it to an identical read waiting at the
     /// head of another master's FIFO (if `job.coalesce`), or answer it from the cache if an
     /// answer younger than `cache` is there. A full queue takes it only in place of the newest
-    /// job of a master holding more than its share, which comes back with it, to be refused;
-    /// otherwise a full or closed queue hands `job` back.
+    /// job of another master (`rings`: one holding more than its share, or, each holding one,
+    /// when `job`'s holds nothing), which comes back with it, to be refused; otherwise a full or
+    /// closed queue hands `job` back.
     // The job handed back is moved, not boxed: a box would cost an allocation per request.
     #[allow(clippy::result_large_err)]
     pub fn push(&self, mut job: Job, cache: Duration) -> Result<(Pushed, Option<Job>), Job> {
@@ -198,7 +199,7 @@ impl FairQueue {
                 return Err(job);
             }
             let victim = if inner.len >= capacity {
-                match inner.victim(job.admission(), capacity) {
+                match inner.victim(&job.waiter.origin, capacity) {
                     Some(victim) => Some(victim),
                     None => return Err(job),
                 }
@@ -223,7 +224,7 @@ impl FairQueue {
                 inner.new_epoch(job.slave);
                 job.epoch = inner.epochs[usize::from(job.slave)];
             }
-            inner.hold(job.admission(), job.priority());
+            inner.hold(&job.waiter.origin);
             let pushed = match inner.join(job) {
                 Ok(()) => Pushed::Joined,
                 Err(job) => {
@@ -423,7 +424,7 @@ mod tests {
 
     #[test]
     fn under_random_pushes_pops_and_departures_every_request_is_answered_once_to_its_own_master() {
-        const CAPACITY: usize = 8;
+        const CAPACITY: usize = 6;
         let mut rng = fastrand::Rng::with_seed(25);
         let q = FairQueue::new(CAPACITY);
         // Masters 1-6 connections (1 a priority one), 7-12 ports of two UDP addresses.
@@ -467,15 +468,26 @@ mod tests {
                     }
                     let holding = held.get(&key).copied().unwrap_or(0);
                     let share = (CAPACITY / (held.len() + usize::from(holding == 0))).max(1);
-                    let room = waiting.len() < CAPACITY
-                        || holding < share && held.values().any(|&h| h > share);
+                    let over = held.values().any(|&h| h > share);
+                    // Holding nothing, it gets in if the queue holds a job it may displace:
+                    // the priority master's only for itself.
+                    let displaceable = |k: MasterId| master == 1 || k != 1;
+                    let newcomer = holding == 0 && held.keys().any(|&k| displaceable(k));
+                    let room = waiting.len() < CAPACITY || holding < share && over || newcomer;
                     waiting.push((master, rx));
                     match q.push(j, NONE) {
                         Ok((_, evicted)) => {
                             assert!(room, "admitted without room");
                             if let Some(evicted) = evicted {
-                                assert!(held[&evicted.admission()] > share);
-                                assert_ne!(evicted.admission(), key);
+                                let victim = evicted.admission();
+                                let most = held.values().max().copied().unwrap_or(0);
+                                if over {
+                                    assert!(held[&victim] > share);
+                                } else {
+                                    assert!(newcomer && displaceable(victim));
+                                    assert_eq!(held[&victim], most);
+                                }
+                                assert_ne!(victim, key);
                                 settle(evicted);
                             }
                         }

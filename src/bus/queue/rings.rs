@@ -13,20 +13,26 @@
 //! included) over all masters, and while there is room every request goes in. Once the queue is
 //! full, a request still goes in if its master holds less than its *share* while another holds
 //! more than its own: the share is `queue_depth` divided among the masters with requests
-//! waiting, the newcomer included, rounded down and at least one. The newest request of the
-//! master holding the most is refused (0x06) to make room; a master in `server.priority` loses
-//! one only when no other master holds more than its share. So a master with nothing waiting
-//! gets in whenever another holds more than its share, a master within its share is never
-//! refused for another, and none can win a place back from the one that took it. When more
-//! masters wait than the queue holds, each holds at most one and a newcomer waits for room.
-//! What counts as one master here is a request's [`Origin::admission`]: a connection, or all
-//! the ports of one Modbus UDP source address. A follower counts against its own master; a
-//! refused leader's followers stay queued, the first of them leading in its place.
+//! waiting, the newcomer included, rounded down and at least one. It goes in too if its master
+//! holds nothing, when more masters wait than the queue holds and each holds its one. The
+//! newest request of the master holding the most is refused (0x06) to make room; of masters
+//! holding as many, the gateway's polls give way first, then Modbus UDP sources (a datagram's
+//! source costs nothing, and is new again each time it is answered), then connections, and of
+//! those the newest master (ids are handed out as masters come). A master in `server.priority`
+//! loses one only when no other master holds more than its share, and its only one to no master
+//! outside `server.priority`. So a master with nothing waiting gets in whenever the queue holds
+//! others' requests (all priority masters' only ones excepted), a master within its share is
+//! refused for another only when each holds one, and one that lost a request for holding more
+//! than its share cannot win the place back. When each holds one, a connection waiting keeps
+//! its place while thousands of UDP sources take each other's. What counts as one
+//! master here is a request's [`Origin::admission`]: a connection, or all the ports of one
+//! Modbus UDP source address. A follower counts against its own master; a refused leader's
+//! followers stay queued, the first of them leading in its place.
 //!
 //! [`Origin::admission`]: crate::master::Origin::admission
 
 use super::{Inner, Job};
-use crate::master::{Class, MasterId};
+use crate::master::{Class, MasterId, Origin};
 use std::cmp::Reverse;
 use std::collections::{hash_map, HashMap, VecDeque};
 
@@ -154,21 +160,69 @@ impl Ring {
     }
 }
 
+/// Which of the keys holding as many requests gives up a place first: the gateway's own polls,
+/// then Modbus UDP sources (a datagram's source address is unproven and costs nothing, and it
+/// is a new key each time it has nothing pending), then connections (each proved its address
+/// with a handshake, and `max_connections` bounds them).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord)]
+enum Standing {
+    #[default]
+    Poll,
+    Datagram,
+    Connection,
+}
+
+impl Standing {
+    fn of(origin: &Origin) -> Standing {
+        match (origin.class, origin.protocol.transport().is_stream()) {
+            (Class::Poll, _) => Standing::Poll,
+            (_, false) => Standing::Datagram,
+            (_, true) => Standing::Connection,
+        }
+    }
+}
+
 /// What one admission key has waiting.
 #[derive(Clone, Copy, Default)]
 pub(super) struct Held {
     pub(super) requests: usize,
     /// Of those, from masters in `server.priority`.
     priority: usize,
+    /// The same for every request of a key: one kind of master has it.
+    standing: Standing,
+}
+
+impl Held {
+    /// Which of two keys gives up a place first (the lesser): one outside `server.priority`,
+    /// holding the most, the lowest [`Standing`], the newest (master ids are handed out as
+    /// masters come, so the highest is the newest).
+    fn yields(&self, key: MasterId) -> impl Ord {
+        let priority = self.priority > 0;
+        (
+            priority,
+            Reverse(self.requests),
+            self.standing,
+            Reverse(key),
+        )
+    }
+}
+
+/// Of `keys`, the one that gives up a place first.
+fn first_to_yield<'a>(keys: impl Iterator<Item = (&'a MasterId, &'a Held)>) -> Option<MasterId> {
+    keys.min_by_key(|&(&key, held)| held.yields(key))
+        .map(|(&key, _)| key)
 }
 
 impl Inner {
-    /// One more request waits, counted against `key`.
-    pub(super) fn hold(&mut self, key: MasterId, priority: bool) {
+    /// One more request waits, counted against its origin's admission key.
+    pub(super) fn hold(&mut self, origin: &Origin) {
         self.len += 1;
-        let held = self.held.entry(key).or_default();
+        let held = self.held.entry(origin.admission).or_insert_with(|| Held {
+            standing: Standing::of(origin),
+            ..Held::default()
+        });
         held.requests += 1;
-        held.priority += usize::from(priority);
+        held.priority += usize::from(origin.class == Class::Priority);
     }
 
     /// A request counted against `key` waits no more.
@@ -185,20 +239,29 @@ impl Inner {
     }
 
     /// The key whose newest request a full queue of `capacity` refuses to admit one of
-    /// `newcomer`, if any: `newcomer` holds less than its share and the key more than its own;
-    /// the one holding the most, a priority master's only if no other qualifies.
-    pub(super) fn victim(&self, newcomer: MasterId, capacity: usize) -> Option<MasterId> {
-        let holding = self.held.get(&newcomer).map_or(0, |held| held.requests);
+    /// `newcomer`, if any: `newcomer` holds less than its share and the key more than its own,
+    /// or (every key holding one) `newcomer` holds nothing and the key is not a priority
+    /// master's unless `newcomer` is one too; of those, the first to yield ([`Held::yields`]).
+    pub(super) fn victim(&self, newcomer: &Origin, capacity: usize) -> Option<MasterId> {
+        let holding = self
+            .held
+            .get(&newcomer.admission)
+            .map_or(0, |held| held.requests);
         let sharing = self.held.len() + usize::from(holding == 0);
         let share = (capacity / sharing.max(1)).max(1);
         if holding >= share {
             return None;
         }
-        self.held
-            .iter()
-            .filter(|(_, held)| held.requests > share)
-            .min_by_key(|&(&key, held)| (held.priority > 0, Reverse(held.requests), key))
-            .map(|(&key, _)| key)
+        let over = first_to_yield(self.held.iter().filter(|(_, held)| held.requests > share));
+        if over.is_some() || holding > 0 {
+            return over;
+        }
+        let priority = newcomer.class == Class::Priority;
+        first_to_yield(
+            self.held
+                .iter()
+                .filter(|(_, held)| priority || held.priority == 0),
+        )
     }
 
     /// Take out the newest request counted against `key`, to be refused: the last job of its
@@ -371,7 +434,7 @@ mod tests {
     }
 
     #[test]
-    fn a_full_queue_refuses_a_master_at_its_share_and_one_when_nobody_holds_more_than_theirs() {
+    fn a_full_queue_refuses_a_master_that_holds_its_share() {
         let q = FairQueue::new(4);
         let mut keep = Vec::new();
         for (master, tag) in [(1, 0), (1, 1), (2, 2), (2, 3)] {
@@ -382,16 +445,99 @@ mod tests {
         // Two masters, two each: at their share.
         let (more, _r) = job(2, 4);
         assert_eq!(q.push(more, NONE).unwrap_err().master(), 2);
-        // More masters than places: one each, and a newcomer waits for room.
+        // More masters than places, one each: one holding its one gets no second.
         let q = FairQueue::new(2);
         for master in [1, 2] {
             let (j, rx) = job(master, 0);
             q.push(j, NONE).unwrap();
             keep.push(rx);
         }
-        let (newcomer, _r) = job(3, 0);
-        assert_eq!(q.push(newcomer, NONE).unwrap_err().master(), 3);
+        let (second, _r) = job(1, 1);
+        assert_eq!(q.push(second, NONE).unwrap_err().master(), 1);
         assert_eq!(q.len(), 2);
+    }
+
+    #[test]
+    fn a_newcomer_where_each_master_holds_one_displaces_the_newest_masters_job() {
+        let q = FairQueue::new(3);
+        let mut keep = Vec::new();
+        for master in [1, 2, 3] {
+            let (j, rx) = job(master, master as u8);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        // Master 4 holds nothing: it gets in, and master 3, the newest holding one, gives way.
+        let (newcomer, _r4) = job(4, 4);
+        let (pushed, evicted) = q.push(newcomer, NONE).expect("admitted");
+        assert!(matches!(pushed, Pushed::Queued));
+        let evicted = evicted.expect("one refused for it");
+        assert_eq!((evicted.master(), evicted.pdu[1]), (3, 3));
+        assert_eq!(q.len(), 3, "queue_depth stays the total");
+        // Master 3, holding nothing now, gets back in the same way; masters 1 and 2 keep theirs.
+        let (again, _r3) = job(3, 5);
+        let (_, evicted) = q.push(again, NONE).expect("admitted");
+        assert_eq!(evicted.expect("one refused for it").master(), 4);
+        consistent(&q);
+        assert_eq!(order(&q), [(1, 1), (2, 2), (3, 5)]);
+    }
+
+    #[test]
+    fn of_masters_holding_one_a_poll_gives_way_then_a_udp_source_then_a_connection() {
+        let q = FairQueue::new(4);
+        let mut keep = Vec::new();
+        // An older connection, a UDP source, a newer connection and a poll.
+        let poll = Origin {
+            class: Class::Poll,
+            ..origin(MasterId::MAX, false)
+        };
+        let queued = [
+            job(1, 1),
+            datagram(10, ADDRESS, 2),
+            job(200, 3),
+            request(poll, 1, &[0x04, 4]),
+        ];
+        for (j, rx) in queued {
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        let mut refused = Vec::new();
+        for newcomer in [300, 301, 302] {
+            let (j, rx) = job(newcomer, newcomer as u8);
+            keep.push(rx);
+            let (_, evicted) = q.push(j, NONE).expect("admitted");
+            refused.push(evicted.expect("one refused for it").master());
+        }
+        // The poll, the datagram source, then the newest connection (a newcomer before).
+        assert_eq!(refused, [MasterId::MAX, 10, 301]);
+        consistent(&q);
+        let masters: Vec<MasterId> = order(&q).iter().map(|&(m, _)| m).collect();
+        assert_eq!(masters, [1, 200, 300, 302]);
+    }
+
+    #[test]
+    fn a_priority_masters_only_job_gives_way_to_no_newcomer_outside_server_priority() {
+        let q = FairQueue::new(2);
+        let mut keep = Vec::new();
+        for master in [1, 2] {
+            let (j, rx) = request(origin(master, true), 1, &[0x03, master as u8]);
+            q.push(j, NONE).unwrap();
+            keep.push(rx);
+        }
+        let (normal, _r) = job(3, 3);
+        assert_eq!(q.push(normal, NONE).unwrap_err().master(), 3);
+        // Another priority master holding nothing gets in, in place of the newest.
+        let (priority, _r) = request(origin(4, true), 1, &[0x03, 4]);
+        let (_, evicted) = q.push(priority, NONE).expect("admitted");
+        assert_eq!(evicted.expect("one refused for it").master(), 2);
+        // Beside a normal master holding one, the normal one gives way.
+        let q = FairQueue::new(2);
+        let (j, _r1) = request(origin(1, true), 1, &[0x03, 1]);
+        q.push(j, NONE).unwrap();
+        let (j, _r2) = job(2, 2);
+        q.push(j, NONE).unwrap();
+        let (j, _r3) = request(origin(3, true), 1, &[0x03, 3]);
+        let (_, evicted) = q.push(j, NONE).expect("admitted");
+        assert_eq!(evicted.expect("one refused for it").master(), 2);
     }
 
     #[test]
@@ -448,11 +594,11 @@ mod tests {
         let q = FairQueue::new(2);
         let (a, _ra) = job(1, 0);
         let (b, _rb) = job(2, 1);
-        let (c, _rc) = job(3, 2);
+        let (c, _rc) = job(2, 2);
         q.push(a, NONE).unwrap();
         q.push(b, NONE).unwrap();
         let refused = q.push(c, NONE).unwrap_err();
-        assert_eq!(refused.master(), 3);
+        assert_eq!((refused.master(), refused.pdu[1]), (2, 2));
         assert_eq!(q.len(), 2);
     }
 
