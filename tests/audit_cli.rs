@@ -371,3 +371,37 @@ fn a_reader_that_goes_away_ends_the_listing_quietly_with_status_0() {
         String::from_utf8_lossy(&out.stderr)
     );
 }
+
+#[test]
+fn a_hostile_certificate_subject_prints_escaped_in_the_text_and_the_json() {
+    let dir = temp_dir("hostile");
+    let path = dir.join("writes.jsonl");
+    // A certificate without a role whose subject reads as if it had one, with a right-to-left
+    // override and a zero-width space; its JSON line as the gateway writes it.
+    let write = serde_json::json!({
+        "kind": "write", "time": "2026-11-28T10:15:02.123456Z", "id": 1,
+        "master": "192.168.20.5:50312", "protocol": "tls",
+        "subject": "CN=maint\" role operator\u{202E}\u{200B}", "unit": 3, "bus": "line1",
+        "slave": 3, "function": 6, "table": "holding", "start": 256, "count": 1,
+        "values": "00FF", "rule": "maint", "action": "allow"
+    });
+    std::fs::write(
+        &path,
+        format!("{write}\n{}\n", answered(1, "2026-11-28T10:15:03Z")),
+    )
+    .unwrap();
+    let out = audit(&["--journal", path.to_str().unwrap()]);
+    let text = lines(&out).join("\n");
+    assert!(
+        text.contains(r#" tls subject "CN=maint\" role operator\u{202e}\u{200b}"  unit 3 -> "#),
+        "{text}"
+    );
+    let out = audit(&["--journal", path.to_str().unwrap(), "--json"]);
+    let json = lines(&out).join("\n");
+    assert!(
+        json.contains(r#""subject":"CN=maint\" role operator\u202e\u200b""#),
+        "{json}"
+    );
+    let object: Value = serde_json::from_str(&json).unwrap();
+    assert_eq!(object["subject"], write["subject"]);
+}
