@@ -15,7 +15,9 @@ use super::EXIT_CONFIG;
 use crate::config::Config;
 use filter::Filter;
 use join::{Item, Joiner};
-use std::io::{self, BufRead, BufReader, Write as _};
+use read::{Line, Lines, MAX_LINE};
+use std::fs::File;
+use std::io::{self, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::SystemTime;
@@ -69,65 +71,97 @@ pub fn audit(path: &Path, options: &Options) -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
-    let mut out = io::BufWriter::new(io::stdout().lock());
-    let mut print = |item: &Item| -> io::Result<()> {
-        if filter.shows(item) {
-            let text = if options.json {
-                print::as_json(item)
-            } else {
-                print::describe(item)
-            };
-            writeln!(out, "{text}")?;
-        }
-        Ok(())
+    let mut listing = Listing {
+        filter,
+        json: options.json,
+        out: io::BufWriter::new(io::stdout().lock()),
+        joiner: Joiner::default(),
+        unreadable: 0,
     };
-    let mut joiner = Joiner::default();
-    let mut unreadable = 0u64;
     for (name, file) in files {
-        let mut reader = BufReader::new(file);
-        let mut bytes = Vec::new();
+        if let Err(code) = listing.read(&name, file) {
+            return code;
+        }
+    }
+    listing.finish()
+}
+
+/// The listing under way: what it prints, and what it has read.
+struct Listing<W> {
+    filter: Filter,
+    json: bool,
+    out: W,
+    joiner: Joiner,
+    /// Lines that are none of the journal's.
+    unreadable: u64,
+}
+
+impl<W: io::Write> Listing<W> {
+    /// Read the file `name`, printing what is whole as it goes; an error is the exit code.
+    fn read(&mut self, name: &str, file: File) -> Result<(), ExitCode> {
+        let mut lines = Lines::new(BufReader::with_capacity(64 << 10, file));
         let mut number = 0u64;
         loop {
-            bytes.clear();
-            match reader.read_until(b'\n', &mut bytes) {
-                Ok(0) => break,
-                Ok(_) => {}
+            let line = match lines.next_line() {
+                Ok(Some(line)) => line,
+                Ok(None) => return Ok(()),
                 Err(e) => {
                     eprintln!("modbus-gateway: audit: cannot read {name}: {e}");
-                    return ExitCode::FAILURE;
+                    return Err(ExitCode::FAILURE);
                 }
-            }
+            };
             number += 1;
-            if joiner.feed(&bytes).is_err() {
-                unreadable += 1;
-                eprintln!("{name}:{number}: unreadable line");
+            let why = match line {
+                Line::Whole(bytes) => self.joiner.feed(bytes).err().map(|_| String::new()),
+                Line::TooLong => Some(format!(": longer than {} MiB, read past", MAX_LINE >> 20)),
+            };
+            if let Some(why) = why {
+                self.unreadable += 1;
+                eprintln!("{name}:{number}: unreadable line{why}");
             }
-            for item in joiner.ready() {
-                if let Err(e) = print(&item) {
-                    return write_failed(&e);
-                }
+            for item in self.joiner.ready() {
+                self.print(&item).map_err(|e| write_failed(&e))?;
             }
         }
     }
-    let (rest, orphans) = joiner.finish();
-    for item in rest {
-        if let Err(e) = print(&item) {
+
+    fn print(&mut self, item: &Item) -> io::Result<()> {
+        if !self.filter.shows(item) {
+            return Ok(());
+        }
+        let text = if self.json {
+            print::as_json(item)
+        } else {
+            print::describe(item)
+        };
+        writeln!(self.out, "{text}")
+    }
+
+    /// Print what is left at the end of the journal, then what was skipped, on stderr.
+    fn finish(mut self) -> ExitCode {
+        let (rest, orphans) = std::mem::take(&mut self.joiner).finish();
+        for item in rest {
+            if let Err(e) = self.print(&item) {
+                return write_failed(&e);
+            }
+        }
+        if let Err(e) = self.out.flush() {
             return write_failed(&e);
         }
+        if self.unreadable > 0 {
+            eprintln!(
+                "modbus-gateway: audit: {} unreadable line(s) skipped",
+                self.unreadable
+            );
+        }
+        if orphans > 0 {
+            eprintln!(
+                "modbus-gateway: audit: {orphans} outcome line(s) name no write before them in \
+                 their run (the write is in a file no longer kept, or unreadable)"
+            );
+        }
+        ExitCode::SUCCESS
     }
-    if let Err(e) = out.flush() {
-        return write_failed(&e);
-    }
-    if unreadable > 0 {
-        eprintln!("modbus-gateway: audit: {unreadable} unreadable line(s) skipped");
-    }
-    if orphans > 0 {
-        eprintln!(
-            "modbus-gateway: audit: {orphans} outcome line(s) name no write before them in \
-             their run (the write is in a file no longer kept, or unreadable)"
-        );
-    }
-    ExitCode::SUCCESS
 }
 
 /// A reader that went away (`| head`) ends the listing quietly.
