@@ -520,3 +520,52 @@ fn a_line_of_a_gigabyte_is_skipped_unheld_and_the_lines_after_it_are_read() {
     assert!(rss < MOST_RSS_KIB, "{rss} KiB");
     std::fs::remove_dir_all(dir).unwrap();
 }
+
+#[test]
+fn writes_without_their_outcome_do_not_hold_the_writes_after_them_in_memory() {
+    let dir = temp_dir("lost-outcome");
+    let path = dir.join("writes.jsonl");
+    let at = "2026-11-28T10:15:02.123456Z";
+    let pair =
+        |id| write(id, at, "192.168.20.5:50312", 3, "line1") + "\n" + &answered(id, at) + "\n";
+    let mut text = open("2026-11-28T10:00:00.000000Z", 812) + "\n";
+    // Write 1's outcome line is missing, as a journal cut short leaves it; write 100002's was
+    // lost to a full disk, as its gap says.
+    text += &(write(1, at, "192.168.20.5:50312", 3, "line1") + "\n");
+    (2..=100_001).for_each(|id| text += &pair(id));
+    text += &(write(100_002, at, "192.168.20.5:50312", 3, "line1") + "\n");
+    text += r#"{"kind":"gap","time":"2026-11-28T10:20:00.000000Z","since":"2026-11-28T10:16:00.000000Z","unrecorded":0,"refused":0,"lost_outcomes":1,"error":"No space left on device (os error 28)"}"#;
+    text += "\n";
+    (100_003..=100_010).for_each(|id| text += &pair(id));
+    std::fs::write(&path, text).unwrap();
+    let (out, rss) = audit_measured(&dir, &["--journal", path.to_str().unwrap()]);
+    let printed = lines(&out);
+    assert_eq!(printed.len(), 100_011, "every write and the gap");
+    let pending = "no outcome recorded: may have been carried out";
+    assert!(
+        printed[0].ends_with(&format!("{pending} (no outcome yet)")),
+        "{}",
+        printed[0]
+    );
+    assert!(printed[1..100_001]
+        .iter()
+        .all(|l| l.ends_with("allow  answered")));
+    assert!(
+        printed[100_001].ends_with(&format!(
+            "{pending} (its outcome line was lost: see the gap after it)"
+        )),
+        "{}",
+        printed[100_001]
+    );
+    assert!(printed[100_002].contains("  gap: "));
+    assert!(printed[100_003..]
+        .iter()
+        .all(|l| l.ends_with("allow  answered")));
+    assert!(
+        out.stderr.is_empty(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(rss < MOST_RSS_KIB, "{rss} KiB");
+    std::fs::remove_dir_all(dir).unwrap();
+}

@@ -116,7 +116,7 @@ impl Filter {
                 .as_ref()
                 .is_none_or(|wanted| match &record.end {
                     End::Recorded(ended) => wanted.recorded.contains(&ended.outcome),
-                    End::Stopped | End::Waiting => wanted.pending,
+                    End::Stopped | End::Lost | End::Waiting => wanted.pending,
                 })
             && self
                 .bus

@@ -139,7 +139,7 @@ impl<W: io::Write> Listing<W> {
 
     /// Print what is left at the end of the journal, then what was skipped, on stderr.
     fn finish(mut self) -> ExitCode {
-        let (rest, orphans) = std::mem::take(&mut self.joiner).finish();
+        let (rest, tally) = std::mem::take(&mut self.joiner).finish();
         for item in rest {
             if let Err(e) = self.print(&item) {
                 return write_failed(&e);
@@ -154,10 +154,20 @@ impl<W: io::Write> Listing<W> {
                 self.unreadable
             );
         }
-        if orphans > 0 {
+        if tally.orphans > 0 {
             eprintln!(
-                "modbus-gateway: audit: {orphans} outcome line(s) name no write before them in \
-                 their run (the write is in a file no longer kept, or unreadable)"
+                "modbus-gateway: audit: {} outcome line(s) name no write before them in their \
+                 run (the write is in a file no longer kept, or unreadable)",
+                tally.orphans
+            );
+        }
+        if tally.late > 0 {
+            eprintln!(
+                "modbus-gateway: audit: {} outcome line(s) came after their write was printed \
+                 as pending ({} writes after it, or after a gap that lost outcome lines), and \
+                 were not joined to it",
+                tally.late,
+                join::MAX_HELD
             );
         }
         ExitCode::SUCCESS

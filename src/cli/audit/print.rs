@@ -189,6 +189,7 @@ pub(super) fn ending(record: &Record) -> String {
             return text;
         }
         End::Stopped => "the gateway stopped before its outcome",
+        End::Lost => "its outcome line was lost: see the gap after it",
         End::Waiting => "no outcome yet",
     };
     // A write its rule refused or acknowledged is never sent, outcome or not.
@@ -229,6 +230,7 @@ pub(crate) fn as_json(item: &Item) -> String {
             let (outcome, pending) = match &record.end {
                 End::Recorded(ended) => (Some(ended), None),
                 End::Stopped => (None, Some("gateway_stopped")),
+                End::Lost => (None, Some("outcome_lost")),
                 End::Waiting => (None, Some("no_outcome_yet")),
             };
             let write = WriteJson {
