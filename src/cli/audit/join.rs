@@ -7,7 +7,7 @@ use std::collections::{HashMap, HashSet, VecDeque};
 
 /// How many items (writes and gaps) may wait behind a write whose outcome has not come, before
 /// that write is handed out without it, as pending: the listing goes on, and memory stays
-/// bounded (10,000 writes are some 7 MB), whatever the journal holds. An outcome comes when
+/// bounded (10,000 writes are some 8 MB), whatever the journal holds. An outcome comes when
 /// its write ends: after its `queue_timeout` at most, then its `response_timeout` per attempt,
 /// seconds. Only a flood of thousands of writes a second fits 10,000 in that time: a write
 /// still without its outcome 10,000 writes later has lost it (a journal cut short; a full disk
