@@ -1,9 +1,11 @@
-//! `modbus-gateway audit`: a journal and its rotated files read back as an auditor runs it.
+//! `modbus-gateway audit`: a journal and its rotated files read back as an auditor runs it, and
+//! journals that would make a reader lie, block or grow without end.
 
 use serde_json::Value;
-use std::io::{BufRead, BufReader};
+use std::io::{BufRead, BufReader, Seek, SeekFrom, Write as _};
+use std::os::unix::process::{CommandExt, ExitStatusExt};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
+use std::process::{Command, ExitStatus, Output, Stdio};
 
 const BINARY: &str = env!("CARGO_BIN_EXE_modbus-gateway");
 
@@ -370,4 +372,200 @@ fn a_reader_that_goes_away_ends_the_listing_quietly_with_status_0() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
+}
+
+#[test]
+fn a_hostile_certificate_subject_prints_escaped_in_the_text_and_the_json() {
+    let dir = temp_dir("hostile");
+    let path = dir.join("writes.jsonl");
+    // A certificate without a role whose subject reads as if it had one, with a right-to-left
+    // override and a zero-width space; its JSON line as the gateway writes it.
+    let write = serde_json::json!({
+        "kind": "write", "time": "2026-11-28T10:15:02.123456Z", "id": 1,
+        "master": "192.168.20.5:50312", "protocol": "tls",
+        "subject": "CN=maint\" role operator\u{202E}\u{200B}", "unit": 3, "bus": "line1",
+        "slave": 3, "function": 6, "table": "holding", "start": 256, "count": 1,
+        "values": "00FF", "rule": "maint", "action": "allow"
+    });
+    std::fs::write(
+        &path,
+        format!("{write}\n{}\n", answered(1, "2026-11-28T10:15:03Z")),
+    )
+    .unwrap();
+    let out = audit(&["--journal", path.to_str().unwrap()]);
+    let text = lines(&out).join("\n");
+    assert!(
+        text.contains(r#" tls subject "CN=maint\" role operator\u{202e}\u{200b}"  unit 3 -> "#),
+        "{text}"
+    );
+    let out = audit(&["--journal", path.to_str().unwrap(), "--json"]);
+    let json = lines(&out).join("\n");
+    assert!(
+        json.contains(r#""subject":"CN=maint\" role operator\u202e\u200b""#),
+        "{json}"
+    );
+    let object: Value = serde_json::from_str(&json).unwrap();
+    assert_eq!(object["subject"], write["subject"]);
+}
+
+/// `audit ARGS` run to its end as [`audit`] does, and the most memory it held (its peak
+/// resident set, in KiB, from `wait4`). Bounds, not claims: past 1 GiB of address space or 120
+/// s it is killed, as a reader that grows without end or blocks forever would be.
+fn audit_measured(dir: &Path, args: &[&str]) -> (Output, u64) {
+    let (stdout, stderr) = (dir.join("stdout"), dir.join("stderr"));
+    let mut command = Command::new(BINARY);
+    command
+        .arg("audit")
+        .args(args)
+        .env_remove("RUST_LOG")
+        .stdout(std::fs::File::create(&stdout).unwrap())
+        .stderr(std::fs::File::create(&stderr).unwrap());
+    // SAFETY: setrlimit and alarm are async-signal-safe, as a child between fork and exec
+    // needs.
+    unsafe {
+        command.pre_exec(|| {
+            let most = libc::rlimit {
+                rlim_cur: 1 << 30,
+                rlim_max: 1 << 30,
+            };
+            libc::setrlimit(libc::RLIMIT_AS, &most);
+            libc::alarm(120);
+            Ok(())
+        });
+    }
+    // Waited for by wait4 below, which gives its resource usage too.
+    #[allow(clippy::zombie_processes)]
+    let child = command.spawn().expect("binary runs");
+    let pid = child.id() as libc::pid_t;
+    let mut status = 0;
+    // SAFETY: a zeroed rusage is a valid one; wait4 fills it in.
+    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: the child is ours and waited for once, here.
+    let waited = unsafe { libc::wait4(pid, &mut status, 0, &mut usage) };
+    assert_eq!(waited, pid);
+    let out = Output {
+        status: ExitStatus::from_raw(status),
+        stdout: std::fs::read(stdout).unwrap(),
+        stderr: std::fs::read(stderr).unwrap(),
+    };
+    (out, u64::try_from(usage.ru_maxrss).unwrap())
+}
+
+/// The issue's ceiling for `audit` on any journal.
+const MOST_RSS_KIB: u64 = 50 << 10;
+
+#[test]
+fn a_journal_that_is_not_a_regular_file_exits_1_naming_it() {
+    let dir = temp_dir("not-a-file");
+    let folder = dir.join("folder.jsonl");
+    std::fs::create_dir(&folder).unwrap();
+    let fifo = dir.join("fifo.jsonl");
+    let made = Command::new("mkfifo").arg(&fifo).status().unwrap();
+    assert!(made.success());
+    // The live file is fine, its rotated one is not.
+    let rotated = dir.join("rotated.jsonl");
+    std::fs::write(&rotated, "").unwrap();
+    std::fs::create_dir(dir.join("rotated.jsonl.1")).unwrap();
+    let cases = [
+        (
+            Path::new("/dev/zero").to_owned(),
+            "/dev/zero",
+            "a character device",
+        ),
+        (folder.clone(), folder.to_str().unwrap(), "a directory"),
+        (fifo.clone(), fifo.to_str().unwrap(), "a FIFO"),
+        (
+            rotated.clone(),
+            &format!("{}.1", rotated.display()),
+            "a directory",
+        ),
+    ];
+    for (path, named, kind) in &cases {
+        let (out, _) = audit_measured(&dir, &["--journal", path.to_str().unwrap()]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{named}: {err}");
+        assert!(out.stdout.is_empty());
+        assert_eq!(
+            err,
+            format!("modbus-gateway: audit: {named}: is {kind}, not a journal (a journal is a regular file)\n")
+        );
+    }
+}
+
+#[test]
+fn a_line_of_a_gigabyte_is_skipped_unheld_and_the_lines_after_it_are_read() {
+    let dir = temp_dir("long-line");
+    let path = dir.join("writes.jsonl");
+    let mut file = std::fs::File::create(&path).unwrap();
+    let line = |id| {
+        let at = "2026-11-28T10:15:02.123456Z";
+        write(id, at, "192.168.20.5:50312", 3, "line1") + "\n" + &answered(id, at) + "\n"
+    };
+    file.write_all(line(1).as_bytes()).unwrap();
+    // A line of 1 GiB of zero bytes, a hole in the file: it takes no disk.
+    file.seek(SeekFrom::Current(1 << 30)).unwrap();
+    file.write_all(format!("\n{}", line(2)).as_bytes()).unwrap();
+    drop(file);
+    let (out, rss) = audit_measured(&dir, &["--journal", path.to_str().unwrap()]);
+    assert_eq!(times(&out).len(), 2, "both writes, the one after it too");
+    assert!(lines(&out).iter().all(|l| l.ends_with("allow  answered")));
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert!(
+        err.starts_with(&format!(
+            "{}:3: unreadable line: longer than 1 MiB, read past\n",
+            path.display()
+        )),
+        "{err}"
+    );
+    assert!(rss < MOST_RSS_KIB, "{rss} KiB");
+    std::fs::remove_dir_all(dir).unwrap();
+}
+
+#[test]
+fn writes_without_their_outcome_do_not_hold_the_writes_after_them_in_memory() {
+    let dir = temp_dir("lost-outcome");
+    let path = dir.join("writes.jsonl");
+    let at = "2026-11-28T10:15:02.123456Z";
+    let pair =
+        |id| write(id, at, "192.168.20.5:50312", 3, "line1") + "\n" + &answered(id, at) + "\n";
+    let mut text = open("2026-11-28T10:00:00.000000Z", 812) + "\n";
+    // Write 1's outcome line is missing, as a journal cut short leaves it; write 100002's was
+    // lost to a full disk, as its gap says.
+    text += &(write(1, at, "192.168.20.5:50312", 3, "line1") + "\n");
+    (2..=100_001).for_each(|id| text += &pair(id));
+    text += &(write(100_002, at, "192.168.20.5:50312", 3, "line1") + "\n");
+    text += r#"{"kind":"gap","time":"2026-11-28T10:20:00.000000Z","since":"2026-11-28T10:16:00.000000Z","unrecorded":0,"refused":0,"lost_outcomes":1,"error":"No space left on device (os error 28)"}"#;
+    text += "\n";
+    (100_003..=100_010).for_each(|id| text += &pair(id));
+    std::fs::write(&path, text).unwrap();
+    let (out, rss) = audit_measured(&dir, &["--journal", path.to_str().unwrap()]);
+    let printed = lines(&out);
+    assert_eq!(printed.len(), 100_011, "every write and the gap");
+    let pending = "no outcome recorded: may have been carried out";
+    assert!(
+        printed[0].ends_with(&format!("{pending} (no outcome yet)")),
+        "{}",
+        printed[0]
+    );
+    assert!(printed[1..100_001]
+        .iter()
+        .all(|l| l.ends_with("allow  answered")));
+    assert!(
+        printed[100_001].ends_with(&format!(
+            "{pending} (its outcome line was lost: see the gap after it)"
+        )),
+        "{}",
+        printed[100_001]
+    );
+    assert!(printed[100_002].contains("  gap: "));
+    assert!(printed[100_003..]
+        .iter()
+        .all(|l| l.ends_with("allow  answered")));
+    assert!(
+        out.stderr.is_empty(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(rss < MOST_RSS_KIB, "{rss} KiB");
+    std::fs::remove_dir_all(dir).unwrap();
 }
