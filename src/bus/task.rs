@@ -2,6 +2,7 @@
 //! answer 0x0A while it is down and reopen it with backoff, and once stopped answer whatever is
 //! still queued.
 
+use super::device::net::Dropped;
 use super::device::serial::latency::{self, SYSFS};
 use super::health::Health;
 use super::reconfigure::{Current, Updates};
@@ -165,7 +166,8 @@ impl BusTask {
                     self.set_up(false);
                     match end {
                         Served::Lost(error) => {
-                            metrics.port_lost(&self.current.settings.device, &error);
+                            let dropped = Dropped::of(&error);
+                            metrics.port_lost(&self.current.settings.device, &error, dropped);
                         }
                         Served::Stopped => break,
                         // Straight to the new device, as a first open.

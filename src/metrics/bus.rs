@@ -2,7 +2,7 @@
 //! transaction's round trip and retries, a slave's state as `bus::health` reports it, a port
 //! opened, lost or failing to open, what went over the line.
 
-use super::labels::{decimal, seconds_since_epoch, Fate, OTHER};
+use super::labels::{decimal, seconds_since_epoch, Fate, LinkDrop, OTHER};
 use super::{Definer, RequestCounters, BUS_EVENTS};
 use crate::config;
 use crate::error::{Answer, Outcome, RequestError};
@@ -52,6 +52,7 @@ pub(super) struct PortFamilies {
     port_up: IntGaugeVec,
     port_reopens: IntCounterVec,
     port_open_errors: IntCounterVec,
+    link_dropped: IntCounterVec,
     link_round_trip: GaugeVec,
     link_budget: GaugeVec,
     latency_timer: GaugeVec,
@@ -171,6 +172,12 @@ impl PortFamilies {
                 "Attempts to open the serial port (or connect to the device server) that failed.",
                 bus,
             ),
+            link_dropped: define.int_counter(
+                "modbus_gateway_link_dropped_total",
+                "A line behind a serial device server: connections the gateway closed itself \
+                 because the converter went past a limit, by reason.",
+                &["bus", "reason"],
+            ),
             link_round_trip: define.gauge(
                 "modbus_gateway_link_round_trip_seconds",
                 "A line behind a serial device server: the least round trip the kernel has \
@@ -277,6 +284,7 @@ impl BusFamilies {
             port_up: self.port.port_up.with_label_values(labels),
             port_reopens: self.port.port_reopens.with_label_values(labels),
             port_open_errors: self.port.port_open_errors.with_label_values(labels),
+            link_dropped: self.port.link_dropped.clone(),
             latency_timer: self.port.latency_timer.clone(),
             link_round_trip: self.port.link_round_trip.clone(),
             link_budget: self.port.link_budget.clone(),
@@ -320,6 +328,10 @@ impl BusFamilies {
         let _ = self.port.latency_timer.remove_label_values(labels);
         let _ = self.port.link_round_trip.remove_label_values(labels);
         let _ = self.port.link_budget.remove_label_values(labels);
+        for reason in LinkDrop::ALL {
+            let labels = &[&*bus.name, reason.label()];
+            let _ = self.port.link_dropped.remove_label_values(labels);
+        }
         let _ = self.line.round_trip.remove_label_values(labels);
         for class in Class::ALL {
             let _ = self
@@ -408,6 +420,7 @@ pub struct BusMetrics {
     pub(super) port_up: IntGauge,
     pub(super) port_reopens: IntCounter,
     pub(super) port_open_errors: IntCounter,
+    pub(super) link_dropped: IntCounterVec,
     pub(super) latency_timer: GaugeVec,
     pub(super) link_round_trip: GaugeVec,
     pub(super) link_budget: GaugeVec,
@@ -482,6 +495,13 @@ impl BusMetrics {
         let transport = settings.transport();
         self.network
             .store(transport.is_network(), Ordering::Relaxed);
+        for reason in LinkDrop::ALL
+            .into_iter()
+            .filter(|r| r.transport() == transport)
+        {
+            self.link_dropped
+                .with_label_values(&[&*self.name, reason.label()]);
+        }
         self.set_info(Some([
             settings.framing.name().to_owned(),
             settings.format_label(),
@@ -735,10 +755,17 @@ impl BusMetrics {
         self.port_up.set(1);
     }
 
-    pub(crate) fn port_lost(&self, device: &str, error: &dyn Display) {
+    /// The port is lost with `error`; `dropped` if the gateway closed the connection itself, and
+    /// why.
+    pub(crate) fn port_lost(&self, device: &str, error: &dyn Display, dropped: Option<LinkDrop>) {
         self.port_up.set(0);
         self.link(None);
         let bus = &*self.name;
+        if let Some(reason) = dropped {
+            self.link_dropped
+                .with_label_values(&[bus, reason.label()])
+                .inc();
+        }
         if self.is_network() {
             warn!(target: BUS_EVENTS, bus, device, %error, "device server connection lost; answering 0x0A and reconnecting");
         } else {

@@ -23,6 +23,7 @@ pub use bus::SlaveSnapshot;
 use bus::BusFamilies;
 pub use labels::Closing;
 pub(crate) use labels::Fate;
+pub(crate) use labels::LinkDrop;
 pub use labels::Rejection;
 
 use labels::{hex, OTHER};

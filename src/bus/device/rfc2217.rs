@@ -259,7 +259,9 @@ impl Telnet {
     /// 0xFF), Telnet commands are consumed, answers the protocol owes (agreeing to BINARY, SGA and
     /// COM-PORT-OPTION; refusing every other option with DONT/WONT, once, without loops) are
     /// appended to `answer`, and the server's replies to the settings (codes 101-104, and
-    /// NOTIFY-LINESTATE/MODEMSTATE etc., which are consumed) are recorded.
+    /// NOTIFY-LINESTATE/MODEMSTATE etc., which are consumed) are recorded. `answer` holds only
+    /// answers owed and not yet sent: one that a later command undoes is withdrawn from it, so it
+    /// holds at most one per wanted option and side, and one refusal per other option.
     /// Returns how many data bytes were appended.
     pub(crate) fn receive(
         &mut self,
@@ -364,8 +366,8 @@ impl Telnet {
         };
         let was = std::mem::replace(side, if enable { Side::On } else { Side::Off });
         match (was, enable) {
-            (Side::Off, true) => answer.extend_from_slice(&[IAC, yes, option]),
-            (Side::On, false) => answer.extend_from_slice(&[IAC, no, option]),
+            (Side::Off, true) => owe(answer, [IAC, yes, option], [IAC, no, option]),
+            (Side::On, false) => owe(answer, [IAC, no, option], [IAC, yes, option]),
             _ => {}
         }
     }
@@ -387,6 +389,17 @@ impl Telnet {
             }
         }
         self.sub.clear();
+    }
+}
+
+/// Owe the server `reply`, unless `answer` (the answers owed and not yet sent, three bytes each)
+/// still holds `undone`, the opposite answer about the same option and side: the server has asked
+/// for the state the client was in when it last told it, which is not answered (RFC 854), and
+/// the two are dropped. A server toggling an option leaves at most one answer owed for it.
+fn owe(answer: &mut Vec<u8>, reply: [u8; 3], undone: [u8; 3]) {
+    match answer.chunks_exact(3).rposition(|owed| owed == undone) {
+        Some(at) => drop(answer.drain(at * 3..at * 3 + 3)),
+        None => answer.extend_from_slice(&reply),
     }
 }
 
