@@ -14,9 +14,10 @@
 //! has measured on the socket (`TCP_INFO`'s `min_rtt`: the link's own, where the smoothed RTT
 //! would count the slaves' answering time, since the converter acknowledges a request with its
 //! reply), between [`MIN_LINK_BUDGET`] and [`MAX_LINK_BUDGET`]. The response timeout counts from
-//! there, so the reply's way back is inside the budget too, and as much again for queueing. The gap before a
-//! frame counts from the last byte received, as on a local line: the request then reaches the
-//! far wire at least the gap after the reply left it.
+//! there, so the reply's way back is inside the budget too, and as much again for queueing. The
+//! gap before a frame counts from the last byte received, as on a local line (the request then
+//! reaches the far wire at least the gap after the reply left it), and from the previous frame's
+//! end there unless a reply to it showed it had left: junk that comes back sooner says nothing.
 
 use super::rfc2217::{self, Telnet};
 use super::{Port, TlsDevice};
@@ -203,8 +204,8 @@ impl<S: Link> NetPort<S> {
     }
 }
 
-/// Whatever `stream` holds now, without waiting, appended to `out`, up to [`MAX_DRAIN`] bytes (the
-/// rest stays in it). `Ok(false)` when the peer has closed it.
+/// Whatever `stream` holds now, without waiting, appended to `out`, up to [`MAX_DRAIN`] bytes
+/// (the rest stays in it). `Ok(false)` when the peer has closed it.
 fn drain_now<S: AsyncRead + Unpin>(stream: &mut S, out: &mut Vec<u8>) -> io::Result<bool> {
     let mut chunk = [0u8; READ_CHUNK];
     let mut context = Context::from_waker(Waker::noop());
