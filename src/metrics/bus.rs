@@ -14,12 +14,11 @@ use prometheus::{
     IntGauge, IntGaugeVec,
 };
 use std::collections::{BTreeMap, HashMap, VecDeque};
-use std::fmt::Display;
 use std::io;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
-use tracing::{debug, error, info, warn};
+use tracing::{debug, info, warn};
 
 /// The families of every bus's series, registry-wide; each bus takes its label values.
 pub(super) struct BusFamilies {
@@ -734,46 +733,7 @@ impl BusMetrics {
         self.busy.inc_by(characters as f64 * self.char_time);
     }
 
-    /// The port is open: for the first time (`down` is `None`), or again after `down` (how long,
-    /// and how many opens failed meanwhile).
-    pub(crate) fn port_opened(&self, device: &str, down: Option<(Duration, u32)>) {
-        let bus = &*self.name;
-        let network = self.is_network();
-        match down {
-            None if network => info!(target: BUS_EVENTS, bus, device, "device server connected"),
-            None => info!(target: BUS_EVENTS, bus, device, "serial port open"),
-            Some((down_for, failed_opens)) => {
-                self.port_reopens.inc();
-                let down_s = down_for.as_secs_f64();
-                if network {
-                    info!(target: BUS_EVENTS, bus, device, failed_opens, down_s, "device server reconnected");
-                } else {
-                    info!(target: BUS_EVENTS, bus, device, failed_opens, down_s, "serial port reopened");
-                }
-            }
-        }
-        self.port_up.set(1);
-    }
-
-    /// The port is lost with `error`; `dropped` if the gateway closed the connection itself, and
-    /// why.
-    pub(crate) fn port_lost(&self, device: &str, error: &dyn Display, dropped: Option<LinkDrop>) {
-        self.port_up.set(0);
-        self.link(None);
-        let bus = &*self.name;
-        if let Some(reason) = dropped {
-            self.link_dropped
-                .with_label_values(&[bus, reason.label()])
-                .inc();
-        }
-        if self.is_network() {
-            warn!(target: BUS_EVENTS, bus, device, %error, "device server connection lost; answering 0x0A and reconnecting");
-        } else {
-            warn!(target: BUS_EVENTS, bus, device, %error, "serial port lost; answering 0x0A and reopening");
-        }
-    }
-
-    fn is_network(&self) -> bool {
+    pub(super) fn is_network(&self) -> bool {
         self.network.load(Ordering::Relaxed)
     }
 
@@ -852,29 +812,6 @@ impl BusMetrics {
         self.latency_timer
             .with_label_values(&[bus])
             .set(value.as_secs_f64());
-    }
-
-    /// An open failed; only the first failure of an outage is logged above debug level, at
-    /// error if the device refuses what the configuration asks of it (retrying will not cure
-    /// that), else at warn.
-    pub(crate) fn open_failed(&self, device: &str, error: &io::Error, first: bool) {
-        self.port_open_errors.inc();
-        let bus = &*self.name;
-        let network = self.is_network();
-        let refused = error.kind() == io::ErrorKind::Unsupported;
-        if first && refused && network {
-            error!(target: BUS_EVENTS, bus, device, %error, "the device server refuses the line's settings; answering 0x0A and retrying");
-        } else if first && refused {
-            error!(target: BUS_EVENTS, bus, device, %error, "cannot open serial port; answering 0x0A and retrying");
-        } else if first && network {
-            warn!(target: BUS_EVENTS, bus, device, %error, "cannot connect to the device server; answering 0x0A and retrying");
-        } else if first {
-            warn!(target: BUS_EVENTS, bus, device, %error, "cannot open serial port; answering 0x0A and retrying");
-        } else if network {
-            debug!(target: BUS_EVENTS, bus, device, %error, "device server still cannot be reached");
-        } else {
-            debug!(target: BUS_EVENTS, bus, device, %error, "serial port still cannot be opened");
-        }
     }
 }
 

@@ -10,6 +10,7 @@ mod audit;
 mod bus;
 mod labels;
 mod median;
+mod port;
 mod tcp;
 mod throttle;
 mod tls;
@@ -25,6 +26,7 @@ pub use labels::Closing;
 pub(crate) use labels::Fate;
 pub(crate) use labels::LinkDrop;
 pub use labels::Rejection;
+pub(crate) use port::PortLoss;
 
 use labels::{hex, OTHER};
 pub(crate) use tcp::Refusal;
