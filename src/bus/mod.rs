@@ -1,16 +1,18 @@
 //! One task per RS-485 line, the only owner of its port. Others hold its [`BusHandle`]: they
-//! submit requests to its fair queue (`queue`) and read whether it is up. The task (`task`)
-//! opens the port (`device`: what a line is carried by, a serial port with its RS-485 and USB
-//! adapter settings or the simulated line), answers 0x0A at once while it is down and reopens it
-//! with backoff; while it is open it serves the queue (`serve`), skipping requests whose master
-//! has gone or whose deadline passed, and runs each as one transaction (`transaction`) with the
-//! slave's timeout, the retry policy and broadcast rules. A slave that keeps timing out is left
-//! alone but for probes (`health`, the one place that decides whether a slave is alive). New
-//! settings reach it between transactions (`reconfigure`). Knows nothing of TCP, nor of which
+//! submit requests to its fair queue (`queue`) and read whether it is up. The task (`task`) opens
+//! the port (`device`: what a line is carried by, a serial port with its RS-485 and USB adapter
+//! settings or the simulated line), answers 0x0A at once while it is down and reopens it with
+//! backoff, which only a port that serves resets (`outage`, which also says what each open and
+//! loss is to the log); while it is open it serves the queue (`serve`), skipping requests whose
+//! master has gone or whose deadline passed, and runs each as one transaction (`transaction`)
+//! with the slave's timeout, the retry policy and broadcast rules. A slave that keeps timing out
+//! is left alone but for probes (`health`, the one place that decides whether a slave is alive).
+//! New settings reach it between transactions (`reconfigure`). Knows nothing of TCP, nor of which
 //! transport carries a line.
 
 pub(crate) mod device;
 pub(crate) mod health;
+mod outage;
 mod pipelined;
 pub(crate) mod queue;
 mod reconfigure;
@@ -280,6 +282,8 @@ impl BusHandle {
 
 #[cfg(test)]
 mod exits_tests;
+#[cfg(test)]
+mod outage_tests;
 #[cfg(test)]
 mod pipelined_tests;
 #[cfg(test)]

@@ -58,7 +58,7 @@ impl BusTask {
         let mut draining: Option<Instant> = None;
         let mut quiet_until = Instant::now() + self.current.settings.connect_delay;
         loop {
-            self.handle.beat();
+            self.beat();
             if self.take_update() == Some(true) {
                 return self.lose_flights(flights, Served::Reopen);
             }

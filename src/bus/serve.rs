@@ -56,7 +56,7 @@ impl BusTask {
             take_after: None,
         };
         loop {
-            self.handle.beat();
+            self.beat();
             match self.take_update() {
                 Some(true) => return Served::Reopen,
                 Some(false) => self.current.configure(&mut serving.master),

@@ -1,9 +1,11 @@
 //! The bus task's life: open the port, serve it until it is lost or a new device is configured,
-//! answer 0x0A while it is down and reopen it with backoff, and once stopped answer whatever is
-//! still queued.
+//! answer 0x0A while it is down and reopen it with backoff (`outage` says how long to wait and
+//! what each open and loss is to the log), and once stopped answer whatever is still queued.
 
+use super::device::net::Dropped;
 use super::device::serial::latency::{self, SYSFS};
 use super::health::Health;
+use super::outage::{Ended, Outages};
 use super::reconfigure::{Current, Updates};
 use super::{
     BusHandle, BusUpdates, Device, FairQueue, Heartbeat, Intake, Port, Reconfigure, HEARTBEAT,
@@ -69,6 +71,8 @@ pub struct BusTask {
     /// The late-reply windows open when the port was lost: a reply to a request of before may
     /// still come through the reopened port.
     pub(super) windows_at_loss: Vec<(u8, Instant)>,
+    /// The port's outages, and the wait before its next open.
+    outages: Outages,
 }
 
 impl BusTask {
@@ -98,6 +102,7 @@ impl BusTask {
             poll_time: Arc::default(),
         };
         BusTask {
+            outages: Outages::new(settings.reopen_delay),
             current,
             handle,
             updates: Updates::new(Reconfigure { settings, device }),
@@ -131,10 +136,6 @@ impl BusTask {
     /// Run until `stopping`: open the port, serve it until it is lost, answer 0x0A while it is
     /// down, reopen with backoff. Once stopped, whatever is still queued is answered 0x0A.
     pub async fn run(mut self, mut stopping: Stopping) {
-        let metrics = self.handle.metrics.clone();
-        let mut delay = self.current.settings.reopen_delay;
-        // Since when the port is down, and how many opens have failed since.
-        let mut down_since: Option<(Instant, u32)> = None;
         loop {
             let opened = match self.open(&mut stopping).await {
                 Opening::Done(opened) => opened,
@@ -143,59 +144,92 @@ impl BusTask {
             };
             self.set_up(opened.is_ok());
             self.handle.attempted.notify_one();
-            let device = &self.current.settings.device;
             match opened {
-                Ok(port) => {
-                    let down = down_since
-                        .take()
-                        .map(|(since, failed_opens)| (since.elapsed(), failed_opens));
-                    metrics.port_opened(device, down);
-                    metrics.link(port.link());
-                    self.adjust_latency_timer();
-                    self.told_wrong_mode = false;
-                    self.told_mismatch = false;
-                    delay = self.current.settings.reopen_delay;
-                    let pipelined = self.current.settings.max_in_flight > 1;
-                    let end = if pipelined {
-                        self.serve_pipelined(port, &mut stopping).await
-                    } else {
-                        let master = self.master_on(port);
-                        self.serve(master, &mut stopping).await
-                    };
-                    self.set_up(false);
-                    match end {
-                        Served::Lost(error) => {
-                            metrics.port_lost(&self.current.settings.device, &error);
-                        }
-                        Served::Stopped => break,
-                        // Straight to the new device, as a first open.
-                        Served::Reopen => {
-                            metrics.link(None);
-                            continue;
-                        }
+                Ok(port) => match self.serve_port(port, &mut stopping).await {
+                    Served::Lost(error) => self.lost(&error),
+                    Served::Stopped => break,
+                    // Straight to the new device, as a first open.
+                    Served::Reopen => {
+                        self.handle.metrics.link(None);
+                        self.outages.restart(self.current.settings.reopen_delay);
+                        continue;
                     }
-                    down_since = Some((Instant::now(), 0));
-                }
+                },
                 Err(error) => {
-                    metrics.open_failed(device, &error, down_since.is_none());
-                    let (_, failed_opens) = down_since.get_or_insert((Instant::now(), 0));
-                    *failed_opens += 1;
+                    let first = self.outages.open_failed(Instant::now());
+                    let device = &self.current.settings.device;
+                    self.handle.metrics.open_failed(device, &error, first);
                 }
             }
+            let wait = self
+                .outages
+                .next_wait(self.current.settings.reopen_delay_max);
             match self
-                .refuse_until(Instant::now() + delay, &mut stopping)
+                .refuse_until(Instant::now() + wait, &mut stopping)
                 .await
             {
                 Waited::Stopped => break,
-                Waited::Reopen => {
-                    delay = self.current.settings.reopen_delay;
-                    continue;
-                }
+                Waited::Reopen => self.outages.restart(self.current.settings.reopen_delay),
                 Waited::TryAgain => {}
             }
-            delay = (delay * 2).min(self.current.settings.reopen_delay_max);
         }
         self.finish();
+    }
+
+    /// Serve the freshly opened `port` until it is lost, a stop or a new device.
+    async fn serve_port(&mut self, port: Port, stopping: &mut Stopping) -> Served {
+        let again = self.outages.opened(Instant::now()).is_some();
+        let metrics = &self.handle.metrics;
+        metrics.port_opened(&self.current.settings.device, again);
+        metrics.link(port.link());
+        self.adjust_latency_timer();
+        self.told_wrong_mode = false;
+        self.told_mismatch = false;
+        let end = if self.current.settings.max_in_flight > 1 {
+            self.serve_pipelined(port, stopping).await
+        } else {
+            let master = self.master_on(port);
+            self.serve(master, stopping).await
+        };
+        self.set_up(false);
+        end
+    }
+
+    /// The open port was lost with `error`: the outage it begins or continues, logged and
+    /// counted as such, with why the gateway closed it if it did.
+    fn lost(&mut self, error: &io::Error) {
+        // A port up as long as the longest wait has served, even if no check saw it yet.
+        self.beat();
+        let loss = self.outages.lost(Instant::now());
+        let device = &self.current.settings.device;
+        let metrics = &self.handle.metrics;
+        metrics.port_lost(device, error, loss, Dropped::of(error));
+    }
+
+    /// The open port has served: a request was answered through it. Ends the outage it opened
+    /// in, if any.
+    pub(super) fn served(&mut self) {
+        let ended = self.outages.served(self.current.settings.reopen_delay);
+        self.port_back(ended);
+    }
+
+    /// Show the task is running, and end the outage the open port opened in if it has been up
+    /// as long as the longest wait between opens (`reopen_delay_max`).
+    pub(super) fn beat(&mut self) {
+        self.handle.beat();
+        let settings = &self.current.settings;
+        let (long, first) = (settings.reopen_delay_max, settings.reopen_delay);
+        let ended = self.outages.up_for(Instant::now(), long, first);
+        self.port_back(ended);
+    }
+
+    fn port_back(&self, ended: Option<Ended>) {
+        if let Some(Ended { outage, down_for }) = ended {
+            let device = &self.current.settings.device;
+            let (failed, unserved) = (outage.failed_opens, outage.unserved);
+            let metrics = &self.handle.metrics;
+            metrics.port_back(device, down_for, failed, unserved);
+        }
     }
 
     /// The line's master on a freshly opened `port`, configured. A slave that may still answer a

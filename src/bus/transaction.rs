@@ -215,16 +215,17 @@ impl BusTask {
         }
     }
 
-    /// Tell the slave's health how the request ended, and the metrics what changed.
+    /// Tell the slave's health how the request ended, and the metrics what changed; an answer
+    /// shows the port serves.
     pub(super) fn record(&mut self, job: &Job, outcome: &Outcome) {
         let down = self.current.derived.down;
-        let change = self.health.record(
-            job.slave,
-            job.function(),
-            Response::of(outcome),
-            Instant::now(),
-            down,
-        );
+        let response = Response::of(outcome);
+        if response == Response::Answered {
+            self.served();
+        }
+        let change = self
+            .health
+            .record(job.slave, job.function(), response, Instant::now(), down);
         let metrics = &self.handle.metrics;
         match change {
             Change::None => {}

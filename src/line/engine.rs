@@ -558,7 +558,7 @@ impl<T: Transport> LineMaster<T> {
             let wait_until = match completion {
                 Completion::Whole(n) => {
                     match self.judge(n, slave, request, (form, response_timeout)) {
-                        Some(reply) => return reply,
+                        Some(reply) => return self.ended(reply, last_byte_at),
                         None => {
                             self.rx.drain(..n);
                             continue;
@@ -581,7 +581,9 @@ impl<T: Transport> LineMaster<T> {
                 received = self.port.recv(&mut self.rx) => {
                     self.counters.received_bytes += port_lost(received)? as u64;
                     last_byte_at = Instant::now();
-                    self.quiet_until = last_byte_at + self.timing.gap;
+                    // Never sooner than the request's own end on the wire and its gap: bytes that
+                    // come before it (noise, a converter's junk) say nothing of the request.
+                    self.quiet_until = self.quiet_until.max(last_byte_at + self.timing.gap);
                 }
                 () = self.timer.sleep_until(wait_until) => {
                     if self.rx.is_empty() {
@@ -591,12 +593,27 @@ impl<T: Transport> LineMaster<T> {
                         return self.frame_error();
                     }
                     match self.judge(self.rx.len(), slave, request, (form, response_timeout)) {
-                        Some(reply) => return reply,
+                        Some(reply) => return self.ended(reply, last_byte_at),
                         None => self.rx.clear(),
                     }
                 }
             }
         }
+    }
+
+    /// The try ends as `judged`. A reply that answers the request shows that the slave had the
+    /// whole request, which has then left the wire: the next frame waits for the gap after the
+    /// reply's last byte (`last_byte_at`) alone. Anything else shows nothing, and the next frame
+    /// waits for the request's end on the wire too.
+    fn ended(
+        &mut self,
+        judged: Result<Reply, TxError>,
+        last_byte_at: Instant,
+    ) -> Result<Reply, TxError> {
+        if judged.is_ok() {
+            self.quiet_until = last_byte_at + self.timing.gap;
+        }
+        judged
     }
 }
 

@@ -2,7 +2,7 @@
 //! transaction's round trip and retries, a slave's state as `bus::health` reports it, a port
 //! opened, lost or failing to open, what went over the line.
 
-use super::labels::{decimal, seconds_since_epoch, Fate, OTHER};
+use super::labels::{decimal, seconds_since_epoch, Fate, LinkDrop, OTHER};
 use super::{Definer, RequestCounters, BUS_EVENTS};
 use crate::config;
 use crate::error::{Answer, Outcome, RequestError};
@@ -14,12 +14,11 @@ use prometheus::{
     IntGauge, IntGaugeVec,
 };
 use std::collections::{BTreeMap, HashMap, VecDeque};
-use std::fmt::Display;
 use std::io;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
-use tracing::{debug, error, info, warn};
+use tracing::{debug, info, warn};
 
 /// The families of every bus's series, registry-wide; each bus takes its label values.
 pub(super) struct BusFamilies {
@@ -52,6 +51,7 @@ pub(super) struct PortFamilies {
     port_up: IntGaugeVec,
     port_reopens: IntCounterVec,
     port_open_errors: IntCounterVec,
+    link_dropped: IntCounterVec,
     link_round_trip: GaugeVec,
     link_budget: GaugeVec,
     latency_timer: GaugeVec,
@@ -171,6 +171,12 @@ impl PortFamilies {
                 "Attempts to open the serial port (or connect to the device server) that failed.",
                 bus,
             ),
+            link_dropped: define.int_counter(
+                "modbus_gateway_link_dropped_total",
+                "A line behind a serial device server: connections the gateway closed itself \
+                 because the converter went past a limit, by reason.",
+                &["bus", "reason"],
+            ),
             link_round_trip: define.gauge(
                 "modbus_gateway_link_round_trip_seconds",
                 "A line behind a serial device server: the least round trip the kernel has \
@@ -277,6 +283,7 @@ impl BusFamilies {
             port_up: self.port.port_up.with_label_values(labels),
             port_reopens: self.port.port_reopens.with_label_values(labels),
             port_open_errors: self.port.port_open_errors.with_label_values(labels),
+            link_dropped: self.port.link_dropped.clone(),
             latency_timer: self.port.latency_timer.clone(),
             link_round_trip: self.port.link_round_trip.clone(),
             link_budget: self.port.link_budget.clone(),
@@ -320,6 +327,10 @@ impl BusFamilies {
         let _ = self.port.latency_timer.remove_label_values(labels);
         let _ = self.port.link_round_trip.remove_label_values(labels);
         let _ = self.port.link_budget.remove_label_values(labels);
+        for reason in LinkDrop::ALL {
+            let labels = &[&*bus.name, reason.label()];
+            let _ = self.port.link_dropped.remove_label_values(labels);
+        }
         let _ = self.line.round_trip.remove_label_values(labels);
         for class in Class::ALL {
             let _ = self
@@ -408,6 +419,7 @@ pub struct BusMetrics {
     pub(super) port_up: IntGauge,
     pub(super) port_reopens: IntCounter,
     pub(super) port_open_errors: IntCounter,
+    pub(super) link_dropped: IntCounterVec,
     pub(super) latency_timer: GaugeVec,
     pub(super) link_round_trip: GaugeVec,
     pub(super) link_budget: GaugeVec,
@@ -482,6 +494,13 @@ impl BusMetrics {
         let transport = settings.transport();
         self.network
             .store(transport.is_network(), Ordering::Relaxed);
+        for reason in LinkDrop::ALL
+            .into_iter()
+            .filter(|r| r.transport() == transport)
+        {
+            self.link_dropped
+                .with_label_values(&[&*self.name, reason.label()]);
+        }
         self.set_info(Some([
             settings.framing.name().to_owned(),
             settings.format_label(),
@@ -714,39 +733,7 @@ impl BusMetrics {
         self.busy.inc_by(characters as f64 * self.char_time);
     }
 
-    /// The port is open: for the first time (`down` is `None`), or again after `down` (how long,
-    /// and how many opens failed meanwhile).
-    pub(crate) fn port_opened(&self, device: &str, down: Option<(Duration, u32)>) {
-        let bus = &*self.name;
-        let network = self.is_network();
-        match down {
-            None if network => info!(target: BUS_EVENTS, bus, device, "device server connected"),
-            None => info!(target: BUS_EVENTS, bus, device, "serial port open"),
-            Some((down_for, failed_opens)) => {
-                self.port_reopens.inc();
-                let down_s = down_for.as_secs_f64();
-                if network {
-                    info!(target: BUS_EVENTS, bus, device, failed_opens, down_s, "device server reconnected");
-                } else {
-                    info!(target: BUS_EVENTS, bus, device, failed_opens, down_s, "serial port reopened");
-                }
-            }
-        }
-        self.port_up.set(1);
-    }
-
-    pub(crate) fn port_lost(&self, device: &str, error: &dyn Display) {
-        self.port_up.set(0);
-        self.link(None);
-        let bus = &*self.name;
-        if self.is_network() {
-            warn!(target: BUS_EVENTS, bus, device, %error, "device server connection lost; answering 0x0A and reconnecting");
-        } else {
-            warn!(target: BUS_EVENTS, bus, device, %error, "serial port lost; answering 0x0A and reopening");
-        }
-    }
-
-    fn is_network(&self) -> bool {
+    pub(super) fn is_network(&self) -> bool {
         self.network.load(Ordering::Relaxed)
     }
 
@@ -825,29 +812,6 @@ impl BusMetrics {
         self.latency_timer
             .with_label_values(&[bus])
             .set(value.as_secs_f64());
-    }
-
-    /// An open failed; only the first failure of an outage is logged above debug level, at
-    /// error if the device refuses what the configuration asks of it (retrying will not cure
-    /// that), else at warn.
-    pub(crate) fn open_failed(&self, device: &str, error: &io::Error, first: bool) {
-        self.port_open_errors.inc();
-        let bus = &*self.name;
-        let network = self.is_network();
-        let refused = error.kind() == io::ErrorKind::Unsupported;
-        if first && refused && network {
-            error!(target: BUS_EVENTS, bus, device, %error, "the device server refuses the line's settings; answering 0x0A and retrying");
-        } else if first && refused {
-            error!(target: BUS_EVENTS, bus, device, %error, "cannot open serial port; answering 0x0A and retrying");
-        } else if first && network {
-            warn!(target: BUS_EVENTS, bus, device, %error, "cannot connect to the device server; answering 0x0A and retrying");
-        } else if first {
-            warn!(target: BUS_EVENTS, bus, device, %error, "cannot open serial port; answering 0x0A and retrying");
-        } else if network {
-            debug!(target: BUS_EVENTS, bus, device, %error, "device server still cannot be reached");
-        } else {
-            debug!(target: BUS_EVENTS, bus, device, %error, "serial port still cannot be opened");
-        }
     }
 }
 

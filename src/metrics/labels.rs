@@ -1,8 +1,10 @@
 //! The label values of the gateway's metrics: what became of a request (`outcome`), who made
-//! an exception (`source`), why a connection was refused or ended (`reason`), and the addresses
-//! and codes as strings made once. Bounded sets, all of them; nothing here counts.
+//! an exception (`source`), why a connection was refused or ended (`reason`, a device server's
+//! too), and the addresses and codes as strings made once. Bounded sets, all of them; nothing
+//! here counts.
 
 use crate::error::{Answer, NoReply, Outcome, RequestError};
+use crate::line::framing::TransportKind;
 use crate::line::{Reply, TxError};
 use std::sync::OnceLock;
 use std::time::{SystemTime, UNIX_EPOCH};
@@ -181,6 +183,32 @@ impl ExceptionSource {
         match self {
             ExceptionSource::Slave => "slave",
             ExceptionSource::Gateway => "gateway",
+        }
+    }
+}
+
+/// Why the gateway closed a device server's connection itself: the `reason` label of
+/// `modbus_gateway_link_dropped_total`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum LinkDrop {
+    /// An RFC 2217 converter's option negotiation asked for more Telnet answers between two
+    /// frames than the gateway keeps.
+    TelnetAnswers,
+}
+
+impl LinkDrop {
+    pub(crate) const ALL: [LinkDrop; 1] = [LinkDrop::TelnetAnswers];
+
+    pub(crate) fn label(self) -> &'static str {
+        match self {
+            LinkDrop::TelnetAnswers => "telnet_answers",
+        }
+    }
+
+    /// The transport on which it can happen: its series is there, at zero, from the start.
+    pub(crate) fn transport(self) -> TransportKind {
+        match self {
+            LinkDrop::TelnetAnswers => TransportKind::Rfc2217,
         }
     }
 }

@@ -10,6 +10,7 @@ mod audit;
 mod bus;
 mod labels;
 mod median;
+mod port;
 mod tcp;
 mod throttle;
 mod tls;
@@ -23,7 +24,9 @@ pub use bus::SlaveSnapshot;
 use bus::BusFamilies;
 pub use labels::Closing;
 pub(crate) use labels::Fate;
+pub(crate) use labels::LinkDrop;
 pub use labels::Rejection;
+pub(crate) use port::PortLoss;
 
 use labels::{hex, OTHER};
 pub(crate) use tcp::Refusal;

@@ -3,8 +3,10 @@
 //! far port's format set at every connect (`rfc2217://`, [`rfc2217`](super::rfc2217)).
 //! Connecting (bounded in time, keepalive on, Nagle off so a frame leaves at once), the link's
 //! round trip budgeted on top of every frame's time on the wire, and bytes already in the socket
-//! before a frame drained and handed back to be counted. Knows nothing of framing, transactions
-//! or what the bytes mean.
+//! before a frame drained and handed back to be counted. What a peer can make a port hold is
+//! bounded: one drain reads at most [`MAX_DRAIN`], and an `rfc2217://` line owing its server more
+//! than [`MAX_OWED`] in Telnet answers is lost ([`Dropped`] says why). Knows nothing of framing,
+//! transactions or what the bytes mean.
 //!
 //! The timing rule (docs/device-servers.md): the gateway cannot see the far wire, so a frame
 //! "has left the wire" when it can have crossed the link and left the converter's UART: the
@@ -12,14 +14,16 @@
 //! has measured on the socket (`TCP_INFO`'s `min_rtt`: the link's own, where the smoothed RTT
 //! would count the slaves' answering time, since the converter acknowledges a request with its
 //! reply), between [`MIN_LINK_BUDGET`] and [`MAX_LINK_BUDGET`]. The response timeout counts from
-//! there, so the reply's way back is inside the budget too, and as much again for queueing. The gap before a
-//! frame counts from the last byte received, as on a local line: the request then reaches the
-//! far wire at least the gap after the reply left it.
+//! there, so the reply's way back is inside the budget too, and as much again for queueing. The
+//! gap before a frame counts from the last byte received, as on a local line (the request then
+//! reaches the far wire at least the gap after the reply left it), and from the previous frame's
+//! end there unless a reply to it showed it had left: junk that comes back sooner says nothing.
 
 use super::rfc2217::{self, Telnet};
 use super::{Port, TlsDevice};
 use crate::config::{ServerAddr, ServerMode};
 use crate::line::{SerialFormat, Transport};
+use crate::metrics::LinkDrop;
 use std::io;
 use std::pin::Pin;
 use std::task::{Context, Poll, Waker};
@@ -45,6 +49,31 @@ pub(crate) const KEEPALIVE_IDLE: Duration = Duration::from_secs(10);
 const REMEASURE_EVERY: Duration = Duration::from_secs(1);
 /// Largest read from the socket in one call.
 const READ_CHUNK: usize = 512;
+/// The most one drain of the socket before a frame reads: far more than a line delivers in the
+/// moment between the end of the gap and the drain, at any baud. A peer sending faster leaves
+/// the rest in the socket, read as the stray bytes they are by the next wait for the gap.
+pub(crate) const MAX_DRAIN: usize = 8 * READ_CHUNK;
+/// The most an `rfc2217://` line may owe its server in Telnet answers between two frames. A
+/// server that asks for every option there is once, on both sides, makes it owe 1.5 KiB; real
+/// converters ask for a handful. One past it is closed, and connected again with back-off.
+pub(crate) const MAX_OWED: usize = 1024;
+
+/// Why the gateway closed a device server's connection itself: an error's source, so that the
+/// loss it causes is counted by its reason ([`Dropped::of`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub(crate) enum Dropped {
+    #[error("the device server's Telnet negotiation asked for more than {MAX_OWED} bytes of answers between two frames; closing the connection")]
+    TelnetAnswers,
+}
+
+impl Dropped {
+    /// The reason a port was lost with `error`, if the gateway closed it itself.
+    pub(crate) fn of(error: &io::Error) -> Option<LinkDrop> {
+        match error.get_ref()?.downcast_ref::<Dropped>()? {
+            Dropped::TelnetAnswers => Some(LinkDrop::TelnetAnswers),
+        }
+    }
+}
 
 /// A byte stream to a device server, with the round trip its kernel measures, if it does.
 pub trait Link: AsyncRead + AsyncWrite + Unpin + Send {
@@ -175,20 +204,36 @@ impl<S: Link> NetPort<S> {
     }
 }
 
-/// Whatever `stream` holds now, without waiting, appended to `out`. `Ok(false)` when the peer has
-/// closed it.
+/// Whatever `stream` holds now, without waiting, appended to `out`, up to [`MAX_DRAIN`] bytes
+/// (the rest stays in it). `Ok(false)` when the peer has closed it.
 fn drain_now<S: AsyncRead + Unpin>(stream: &mut S, out: &mut Vec<u8>) -> io::Result<bool> {
     let mut chunk = [0u8; READ_CHUNK];
     let mut context = Context::from_waker(Waker::noop());
-    loop {
-        let mut buf = ReadBuf::new(&mut chunk);
+    let mut left = MAX_DRAIN;
+    while left > 0 {
+        let mut buf = ReadBuf::new(&mut chunk[..left.min(READ_CHUNK)]);
         match Pin::new(&mut *stream).poll_read(&mut context, &mut buf) {
             Poll::Ready(Ok(())) if buf.filled().is_empty() => return Ok(false),
-            Poll::Ready(Ok(())) => out.extend_from_slice(buf.filled()),
+            Poll::Ready(Ok(())) => {
+                left -= buf.filled().len();
+                out.extend_from_slice(buf.filled());
+            }
             Poll::Ready(Err(e)) => return Err(e),
             Poll::Pending => return Ok(true),
         }
     }
+    Ok(true)
+}
+
+/// An `rfc2217://` line now owes `owed`: an error past [`MAX_OWED`], which loses the port.
+fn within_owed(owed: &[u8]) -> io::Result<()> {
+    if owed.len() > MAX_OWED {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidData,
+            Dropped::TelnetAnswers,
+        ));
+    }
+    Ok(())
 }
 
 /// The peer closed the connection: the port is lost.
@@ -231,6 +276,7 @@ impl<S: Link> Transport for NetPort<S> {
                 return Ok(n);
             };
             let data = telnet.receive(&self.chunk[..n], buf, &mut self.owed);
+            within_owed(&self.owed)?;
             if data > 0 {
                 return Ok(data);
             }
@@ -244,6 +290,7 @@ impl<S: Link> Transport for NetPort<S> {
                 let mut raw = Vec::new();
                 let open = drain_now(&mut self.stream, &mut raw)?;
                 telnet.receive(&raw, stale, &mut self.owed);
+                within_owed(&self.owed)?;
                 open
             }
         };
@@ -255,6 +302,8 @@ impl<S: Link> Transport for NetPort<S> {
     }
 }
 
+#[cfg(test)]
+mod limits_tests;
 #[cfg(test)]
 mod link_tests;
 #[cfg(test)]

@@ -172,3 +172,70 @@ async fn a_reply_the_packing_timer_holds_up_mid_way_is_accepted_within_packing_d
     let result = master.transact(1, &[0x41], RESPONSE_TIMEOUT).await;
     assert!(matches!(result, Err(TxError::Check)), "{result:?}");
 }
+
+#[tokio::test(start_paused = true)]
+async fn junk_that_answers_each_request_at_once_never_lets_the_next_go_sooner() {
+    // A converter on a line full of noise: whatever it is sent, it hands back at once a frame
+    // of the reply's length whose CRC fails (01 03 04, four data bytes, a wrong check).
+    const JUNK: [u8; 9] = [0x01, 0x03, 0x04, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00];
+    const REQUESTS: usize = 5;
+    let timing = LineTiming::new(&crate::line::SerialFormat {
+        baud: 19_200,
+        data_bits: 8,
+        parity: Parity::Even,
+        stop_bits: 1,
+    });
+    let (near, mut far) = tokio::io::duplex(4096);
+    let converter = tokio::spawn(async move {
+        let (mut arrivals, mut request) = (Vec::new(), [0u8; 8]);
+        while far.read_exact(&mut request).await.is_ok() {
+            arrivals.push(Instant::now());
+            if far.write_all(&JUNK).await.is_err() {
+                break;
+            }
+        }
+        arrivals
+    });
+    // Loopback: a few microseconds measured, the least budget.
+    let link = Measured {
+        stream: near,
+        round_trip: Some(Duration::from_micros(30)),
+    };
+    let port = NetPort::new(link, "192.0.2.7:4001".into());
+    let master_timing = MasterTiming::new(timing, Duration::ZERO, Duration::ZERO);
+    let mut master = LineMaster::new(port, Framing::Rtu, master_timing);
+    for _ in 0..REQUESTS {
+        let result = master.transact(1, &READ, RESPONSE_TIMEOUT).await;
+        assert!(matches!(result, Err(TxError::Check)), "{result:?}");
+    }
+    drop(master);
+    let arrivals = converter.await.unwrap();
+    assert_eq!(arrivals.len(), REQUESTS);
+    // 8 bytes at 19200 8E1 are 4.58 ms on the far wire, and t3.5 2.005 ms after them.
+    let least = timing.frame_time(8) + timing.t35;
+    for pair in arrivals.windows(2) {
+        let apart = pair[1] - pair[0];
+        assert!(apart >= least, "{apart:?} apart, less than {least:?}");
+    }
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_reply_that_answers_lets_the_next_request_go_without_waiting_the_link_budget() {
+    // A slave answering 5 ms after the request ended on its wire: its reply is back before the
+    // 40 ms budget is over. The reply shows the request had left the wire, so the next request
+    // waits only the gap after it, as on a local line.
+    let requests = 3;
+    let (line, mut master) = over_link(2 * ONE_WAY, Duration::from_millis(5), requests);
+    for _ in 0..requests {
+        let reply = master.transact(1, &READ, RESPONSE_TIMEOUT).await;
+        assert_eq!(reply.unwrap(), Reply::Fits(ANSWER.to_vec()));
+    }
+    // On the far wire: the reply's way back, the gap, the request's way there, and tokio's
+    // millisecond timer; no more.
+    let most = 2 * ONE_WAY + INTER_FRAME_DELAY + 2 * Duration::from_millis(1);
+    let gaps = gaps_before_requests(&line);
+    assert_eq!(gaps.len(), requests - 1);
+    for gap in gaps {
+        assert!(gap >= INTER_FRAME_DELAY && gap <= most, "{gap:?}");
+    }
+}
