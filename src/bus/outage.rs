@@ -36,7 +36,7 @@ impl Outage {
 /// An outage that a port serving has ended: what it was, and how long the line was down (until
 /// that port opened).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(super) struct Ended {
+pub(super) struct Recovery {
     pub(super) outage: Outage,
     pub(super) down_for: Duration,
 }
@@ -79,12 +79,12 @@ impl Outages {
 
     /// The open port served at `now` (a request was answered through it); the next wait is
     /// `first` again. The outage this ends, the first time.
-    pub(super) fn served(&mut self, first: Duration) -> Option<Ended> {
+    pub(super) fn served(&mut self, first: Duration) -> Option<Recovery> {
         let open = self.open.as_mut().filter(|open| !open.served)?;
         open.served = true;
         self.delay = first;
         let outage = self.outage.take()?;
-        Some(Ended {
+        Some(Recovery {
             outage,
             down_for: open.at.saturating_duration_since(outage.since),
         })
@@ -96,7 +96,7 @@ impl Outages {
         now: Instant,
         long: Duration,
         first: Duration,
-    ) -> Option<Ended> {
+    ) -> Option<Recovery> {
         let open = self.open?;
         if open.served || now.saturating_duration_since(open.at) < long {
             return None;
@@ -208,7 +208,7 @@ mod tests {
             unserved: 0,
         };
         let down_for = 2 * MS;
-        assert_eq!(ended, Some(Ended { outage, down_for }));
+        assert_eq!(ended, Some(Recovery { outage, down_for }));
         assert_eq!(outages.next_wait(MAX), FIRST);
     }
 }

@@ -5,7 +5,7 @@
 use super::device::net::Dropped;
 use super::device::serial::latency::{self, SYSFS};
 use super::health::Health;
-use super::outage::{Ended, Outages};
+use super::outage::{Outages, Recovery};
 use super::reconfigure::{Current, Updates};
 use super::{
     BusHandle, BusUpdates, Device, FairQueue, Heartbeat, Intake, Port, Reconfigure, HEARTBEAT,
@@ -223,8 +223,8 @@ impl BusTask {
         self.port_back(ended);
     }
 
-    fn port_back(&self, ended: Option<Ended>) {
-        if let Some(Ended { outage, down_for }) = ended {
+    fn port_back(&self, ended: Option<Recovery>) {
+        if let Some(Recovery { outage, down_for }) = ended {
             let device = &self.current.settings.device;
             let (failed, unserved) = (outage.failed_opens, outage.unserved);
             let metrics = &self.handle.metrics;

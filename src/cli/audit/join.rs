@@ -12,7 +12,7 @@ use std::collections::{HashMap, HashSet, VecDeque};
 /// seconds. Only a flood of thousands of writes a second fits 10,000 in that time: a write
 /// still without its outcome 10,000 writes later has lost it (a journal cut short; a full disk
 /// says so sooner, see [`Gap::lost_outcomes`]). Should it come all the same, it is counted in
-/// [`Tally::late`], not printed twice.
+/// [`Unprinted::late`], not printed twice.
 pub(crate) const MAX_HELD: usize = 10_000;
 
 /// How many bytes of journal lines the items held may take, for a journal of long lines (a
@@ -47,7 +47,7 @@ pub(crate) enum End {
 
 /// What was read but not printed, for the summary.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub(crate) struct Tally {
+pub(crate) struct Unprinted {
     /// Outcome lines that name no write of their run.
     pub(crate) orphans: u64,
     /// Outcome lines of writes already handed out as pending.
@@ -75,7 +75,7 @@ pub(crate) struct Joiner {
     /// an outcome line that comes for one later is counted, not printed again.
     given_up: HashSet<u64>,
     given_up_order: VecDeque<u64>,
-    tally: Tally,
+    tally: Unprinted,
     /// The process of this run, from its `open` line.
     pid: Option<u32>,
     /// The highest write id of this run so far.
@@ -290,7 +290,7 @@ impl Joiner {
 
     /// Every item left, at the end of the journal (writes still waiting have no outcome yet),
     /// and what was read but not printed.
-    pub(crate) fn finish(self) -> (Vec<Item>, Tally) {
+    pub(crate) fn finish(self) -> (Vec<Item>, Unprinted) {
         let items = self.queue.into_iter().map(|held| held.item).collect();
         (items, self.tally)
     }
@@ -411,7 +411,7 @@ mod tests {
         let ready = joiner.ready();
         assert_eq!(ids_and_ends(&ready).len(), 2);
         joiner.feed(outcome(9, "answered").as_bytes()).unwrap();
-        let orphan = Tally {
+        let orphan = Unprinted {
             orphans: 1,
             late: 0,
         };
@@ -519,7 +519,7 @@ mod tests {
         // Its outcome after all: counted, not printed twice.
         joiner.feed(outcome(1, "answered").as_bytes()).unwrap();
         assert!(joiner.ready().is_empty());
-        let late = Tally {
+        let late = Unprinted {
             orphans: 0,
             late: 1,
         };
@@ -600,7 +600,7 @@ mod tests {
         assert!(feed(outcome(4, "answered")).is_empty());
         feed(write(5, "2026-11-28T10:22:00Z"));
         assert!(feed(gap(0)).is_empty(), "lost none: 5 is still under way");
-        let late = Tally {
+        let late = Unprinted {
             orphans: 0,
             late: 1,
         };

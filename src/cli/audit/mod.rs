@@ -15,7 +15,7 @@ use super::EXIT_CONFIG;
 use crate::config::Config;
 use filter::Filter;
 use join::{Item, Joiner};
-use read::{Line, Lines, MAX_LINE};
+use read::{Chunk, Lines, MAX_LINE};
 use std::fs::File;
 use std::io::{self, BufReader};
 use std::path::{Path, PathBuf};
@@ -112,8 +112,8 @@ impl<W: io::Write> Listing<W> {
             };
             number += 1;
             let why = match line {
-                Line::Whole(bytes) => self.joiner.feed(bytes).err().map(|_| String::new()),
-                Line::TooLong => Some(format!(": longer than {} MiB, read past", MAX_LINE >> 20)),
+                Chunk::Whole(bytes) => self.joiner.feed(bytes).err().map(|_| String::new()),
+                Chunk::TooLong => Some(format!(": longer than {} MiB, read past", MAX_LINE >> 20)),
             };
             if let Some(why) = why {
                 self.unreadable += 1;

@@ -87,7 +87,7 @@ fn kind_of(kind: FileType) -> &'static str {
 
 /// One line of a file.
 #[derive(Debug, PartialEq)]
-pub(super) enum Line<'a> {
+pub(super) enum Chunk<'a> {
     /// Its bytes, without the newline.
     Whole(&'a [u8]),
     /// Longer than [`MAX_LINE`]: read past, not held.
@@ -109,7 +109,7 @@ impl<R: BufRead> Lines<R> {
     }
 
     /// The next line (the last may lack its newline), or `None` at the end of the file.
-    pub(super) fn next_line(&mut self) -> io::Result<Option<Line<'_>>> {
+    pub(super) fn next_line(&mut self) -> io::Result<Option<Chunk<'_>>> {
         self.line.clear();
         // The line and its newline.
         let most = MAX_LINE as u64 + 1;
@@ -125,9 +125,9 @@ impl<R: BufRead> Lines<R> {
             // The rest up to the newline, a buffer at a time.
             self.reader.skip_until(b'\n')?;
             self.line.clear();
-            return Ok(Some(Line::TooLong));
+            return Ok(Some(Chunk::TooLong));
         }
-        Ok(Some(Line::Whole(&self.line)))
+        Ok(Some(Chunk::Whole(&self.line)))
     }
 }
 
@@ -141,8 +141,8 @@ mod tests {
         let mut all = Vec::new();
         while let Some(line) = lines.next_line().unwrap() {
             all.push(match line {
-                Line::Whole(bytes) => Ok(bytes.to_vec()),
-                Line::TooLong => Err(()),
+                Chunk::Whole(bytes) => Ok(bytes.to_vec()),
+                Chunk::TooLong => Err(()),
             });
         }
         all
@@ -177,12 +177,12 @@ mod tests {
         let mut text = vec![b'x'; 4 * MAX_LINE];
         text.extend_from_slice(b"\nnext\n");
         let mut lines = Lines::new(io::BufReader::new(text.as_slice()));
-        assert_eq!(lines.next_line().unwrap(), Some(Line::TooLong));
+        assert_eq!(lines.next_line().unwrap(), Some(Chunk::TooLong));
         assert!(
             lines.line.capacity() <= 2 * MAX_LINE,
             "{}",
             lines.line.capacity()
         );
-        assert_eq!(lines.next_line().unwrap(), Some(Line::Whole(b"next")));
+        assert_eq!(lines.next_line().unwrap(), Some(Chunk::Whole(b"next")));
     }
 }
