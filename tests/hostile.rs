@@ -18,7 +18,6 @@ use std::io::{BufRead, BufReader, Write};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::{Child, ChildStdin, Command, Stdio};
-use std::sync::{Arc, Mutex};
 use tokio::io::AsyncWriteExt;
 use tokio::net::{TcpStream, UdpSocket};
 
@@ -129,10 +128,12 @@ async fn a_tls_role_limited_to_one_unit_cannot_reach_another_inside_a_request() 
 /// register N at 1000 + N. Stopped when dropped.
 struct Libmodbus {
     child: Child,
-    _stdin: ChildStdin,
+    stdin: ChildStdin,
     path: String,
-    /// The requests it took whole and acted on, as hex.
-    requests: Arc<Mutex<Vec<String>>>,
+    /// The script's lines after `ready`, as it says them.
+    said: tokio::sync::mpsc::UnboundedReceiver<String>,
+    /// The requests it took whole and acted on, as hex, up to its last `synced`.
+    requests: Vec<String>,
 }
 
 const LIBMODBUS_UNIT: u8 = 10;
@@ -179,28 +180,46 @@ impl Libmodbus {
             .strip_prefix("ready ")
             .unwrap_or_else(|| panic!("unexpected: {first}"))
             .to_owned();
-        let requests = Arc::new(Mutex::new(Vec::new()));
-        let seen = requests.clone();
+        let (say, said) = tokio::sync::mpsc::unbounded_channel();
         std::thread::spawn(move || {
             for line in lines.map_while(Result::ok) {
-                if let Some(hex) = line.strip_prefix("request ") {
-                    seen.lock().unwrap().push(hex.to_owned());
+                if say.send(line).is_err() {
+                    return;
                 }
             }
         });
         Some(Libmodbus {
             child,
-            _stdin: stdin,
+            stdin,
             path,
-            requests,
+            said,
+            requests: Vec::new(),
         })
     }
 
-    /// The function codes of the requests it acted on.
-    fn functions(&self) -> Vec<u8> {
-        self.requests
-            .lock()
-            .unwrap()
+    /// The function codes of every request it acted on before it answered a master that has
+    /// its answer now. Its lines are read on a thread of their own, so an answer can be in
+    /// before the line saying its request is: the script answers "sync" with a line after
+    /// every request it said, and this reads up to that line.
+    async fn functions(&mut self) -> Vec<u8> {
+        self.stdin
+            .write_all(b"sync\n")
+            .expect("the script reads its stdin");
+        self.stdin.flush().expect("the script reads its stdin");
+        let (said, requests) = (&mut self.said, &mut self.requests);
+        within("libmodbus says `synced`", async {
+            loop {
+                let line = said.recv().await.expect("the script runs");
+                if line == "synced" {
+                    return;
+                }
+                if let Some(hex) = line.strip_prefix("request ") {
+                    requests.push(hex.to_owned());
+                }
+            }
+        })
+        .await;
+        requests
             .iter()
             .map(|hex| u8::from_str_radix(&hex[2..4], 16).unwrap())
             .collect()
@@ -260,7 +279,7 @@ async fn no_hidden_frame_reaches_a_slave_that_frames_by_length() {
     simulator.stop().await;
 
     // libmodbus: device 10, register 5 at 1005 (03EDH).
-    let Some(slave) = Libmodbus::start().await else {
+    let Some(mut slave) = Libmodbus::start().await else {
         return;
     };
     let gateway = read_only_gateway_on(&slave.path, "").await;
@@ -275,7 +294,7 @@ async fn no_hidden_frame_reaches_a_slave_that_frames_by_length() {
         [0x03, 0x02, 0x03, 0xED]
     );
     assert_eq!(
-        slave.functions(),
+        slave.functions().await,
         [0x03],
         "libmodbus acted on the read alone"
     );
@@ -284,7 +303,8 @@ async fn no_hidden_frame_reaches_a_slave_that_frames_by_length() {
 /// Masters of a gateway on the slave at `path`: one hides a read of register 9 after its read of
 /// register 0, again and again, while another reads register 2 and must get exactly that.
 async fn no_crossed_replies_with(path: &str, unit: u8) {
-    let gateway = start(&pty_config(path, "response_timeout = \"200ms\"")).await;
+    // A second: a Python slave on a loaded machine can take more than 200 ms to answer.
+    let gateway = start(&pty_config(path, "response_timeout = \"1s\"")).await;
     let addr = gateway.tcp_addrs()[0];
     let mut polite = RawMaster::connect(addr).await;
     // Registers 2 and 9 hold 1002 and 1009 (libmodbus's from the start).
@@ -323,11 +343,11 @@ async fn no_master_gets_another_masters_data_when_one_hides_a_second_read() {
     no_crossed_replies_with(&simulator.path, 1).await;
     simulator.stop().await;
 
-    let Some(slave) = Libmodbus::start().await else {
+    let Some(mut slave) = Libmodbus::start().await else {
         return;
     };
     no_crossed_replies_with(&slave.path, LIBMODBUS_UNIT).await;
-    let functions = slave.functions();
+    let functions = slave.functions().await;
     assert_eq!(functions[..2], [0x06, 0x06]);
     assert_eq!(
         functions[2..],
@@ -342,7 +362,7 @@ async fn no_master_gets_another_masters_data_when_one_hides_a_second_read() {
 async fn stays_up_with(path: &str, unit: u8, register_5: [u8; 4]) {
     let gateway = read_only_gateway_on(
         path,
-        "response_timeout = \"100ms\"\nslave_down_after = 3\nslave_probe_interval = \"10s\"",
+        "response_timeout = \"1s\"\nslave_down_after = 3\nslave_probe_interval = \"10s\"",
     )
     .await;
     let mut attacker = RawMaster::connect(gateway.tcp_addrs()[0]).await;

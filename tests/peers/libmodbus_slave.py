@@ -9,6 +9,8 @@ other.
 Stdout, one line each, flushed:
   ready PATH       libmodbus has its port open; PATH is the gateway's end of the cable
   request HEX      a request libmodbus took whole, its CRC good, before it acted on it
+  synced           the answer to a line "sync" on stdin: every request the slave answered
+                   before that line came is above it
 The slave is device SLAVE_ID (and hears broadcasts) with 16 coils, 16 discrete inputs, and 16
 holding and input registers, each register at 1000 + its address (input: 2000 +). The script
 exits when its stdin closes, so it never outlives its test.
@@ -43,9 +45,13 @@ class Mapping(ctypes.Structure):
     ]
 
 
+SAYING = threading.Lock()
+
+
 def say(line):
-    sys.stdout.write(line + "\n")
-    sys.stdout.flush()
+    with SAYING:
+        sys.stdout.write(line + "\n")
+        sys.stdout.flush()
 
 
 def cable(a, b):
@@ -105,8 +111,11 @@ def main():
 
     threading.Thread(target=serve, daemon=True).start()
     say(f"ready {os.ttyname(gateway_end)}")
-    while os.read(sys.stdin.fileno(), 4096):
-        pass
+    # A request is said before it is answered: once a master has its answer, the line is in the
+    # pipe, and "synced" said now comes after it.
+    for line in iter(sys.stdin.readline, ""):
+        if line.strip() == "sync":
+            say("synced")
 
 
 if __name__ == "__main__":
