@@ -31,8 +31,12 @@ use tracing::{info, warn};
 
 #[derive(Debug, thiserror::Error)]
 pub enum StartError {
-    #[error("cannot listen on {addr}: {source}")]
-    Listen { addr: SocketAddr, source: io::Error },
+    #[error("{key}: cannot listen on {addr}: {source}")]
+    Listen {
+        key: &'static str,
+        addr: SocketAddr,
+        source: io::Error,
+    },
     #[error("{0}")]
     Tls(ConfigErrors),
     #[error("audit.path: cannot open the audit journal `{path}`: {source}")]
@@ -270,9 +274,10 @@ impl Gateway {
         let tls = load_tls(&config.server, &metrics)?;
         let listeners = net::bind_all(&config.server)
             .await
-            .map_err(|(addr, source)| StartError::Listen { addr, source })?;
+            .map_err(|(key, addr, source)| StartError::Listen { key, addr, source })?;
         let metrics_listen = config.metrics.listen;
         let listen_error = |source| StartError::Listen {
+            key: "metrics.listen",
             addr: metrics_listen,
             source,
         };

@@ -216,8 +216,11 @@ fn run_exits_non_zero_naming_an_address_it_cannot_listen_on() {
     let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let taken = taken.local_addr().unwrap().to_string();
     let free = free_addr().to_string();
-    // The Modbus TCP listener, then the metrics endpoint.
-    for (modbus, metrics) in [(&taken, &free), (&free, &taken)] {
+    // The Modbus TCP listener, then the metrics endpoint, each named by its key.
+    for (modbus, metrics, key) in [
+        (&taken, &free, "server.listen"),
+        (&free, &taken, "metrics.listen"),
+    ] {
         let out = gateway(
             &["--config", demo_path(), "run"],
             &[
@@ -227,7 +230,10 @@ fn run_exits_non_zero_naming_an_address_it_cannot_listen_on() {
         );
         assert_eq!(out.status.code(), Some(1));
         let err = String::from_utf8_lossy(&out.stderr);
-        assert!(err.contains(&format!("cannot listen on {taken}")), "{err}");
+        assert!(
+            err.contains(&format!("{key}: cannot listen on {taken}")),
+            "{err}"
+        );
     }
 }
 
@@ -536,4 +542,22 @@ fn the_manual_pages_name_no_page_that_is_not_generated() {
     for name in named {
         assert!(dir.join(format!("{name}.1")).is_file(), "{name}(1)");
     }
+}
+
+#[test]
+fn a_missing_file_or_a_toml_syntax_error_names_the_file_once() {
+    let out = gateway(&["--config", "/nonexistent/mbgw.toml", "check-config"], &[]);
+    assert_eq!(out.status.code(), Some(2));
+    assert_eq!(
+        String::from_utf8_lossy(&out.stderr),
+        "modbus-gateway: /nonexistent/mbgw.toml: not found (`--config FILE` reads another)\n"
+    );
+    let path = temp_config("syntax", "[[bus]\nname = \"a\"\n");
+    let out = gateway(&["--config", path.to_str().unwrap(), "check-config"], &[]);
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    let named = format!("modbus-gateway: {}: TOML parse error at line 1", path.display());
+    assert!(err.starts_with(&named), "{err}");
+    let file_name = path.file_name().unwrap().to_str().unwrap();
+    assert_eq!(err.matches(file_name).count(), 1, "{err}");
 }

@@ -295,7 +295,7 @@ bit = 3
     std::fs::remove_dir_all(&dir).unwrap();
     for expected in [
         "template_dir: ",
-        "mine/pump.toml: value[0].type: `u17` is not u16, i16, u32, i32, u64, i64, f32, f64, bool",
+        "mine/pump.toml: value[0].type: `u17` is not u16, i16, u32, i32, u64, i64, f32, f64 or bool",
         "bus[0].slave[0].value[0].type: `u17` is not u16, i16, u32",
         "bus[0].slave[0].template: no template `nothing-by-this-name`",
         "bus[0].slave[0].value[1].name: `2speed` is no Prometheus metric name",

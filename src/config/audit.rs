@@ -3,6 +3,7 @@
 //! synced to the disk. Values only: writing the journal is `crate::audit`'s business.
 
 use super::defaults;
+use super::serde_adapters::{words, Choice};
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::path::PathBuf;
@@ -29,8 +30,7 @@ pub struct Audit {
 }
 
 /// What writes do while the journal cannot be written.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum OnError {
     /// Refused with exception 0x0A until an entry can be written again: no write goes
     /// unrecorded.
@@ -39,6 +39,15 @@ pub enum OnError {
     /// Sent all the same, the error logged and counted: no write is refused for the journal.
     Allow,
 }
+
+impl Choice for OnError {
+    const ALL: &'static [Self] = &[OnError::DenyWrites, OnError::Allow];
+    fn word(self) -> &'static str {
+        self.label()
+    }
+}
+
+words!(OnError);
 
 impl OnError {
     pub fn label(self) -> &'static str {

@@ -7,6 +7,7 @@ use super::device::DeviceName;
 use super::serde_adapters::{
     duration, is_false, is_zero, is_zero_f64, is_zero_usize, opt_duration,
 };
+use super::serde_adapters::{words, Choice};
 use super::{DeviceTls, Rs485, UnitSet, Value};
 use crate::line::framing::TransportKind;
 use crate::line::{Framing, LineTiming, MasterTiming, Parity, SerialFormat};
@@ -165,8 +166,7 @@ pub struct Slave {
     pub value: Vec<Value>,
 }
 
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum SimModel {
     /// Four plain register banks.
     #[default]
@@ -178,11 +178,35 @@ pub enum SimModel {
     /// INVT Goodrive10.
     Gd10,
     /// The inverter with the Pd communication group (shared/reference/003).
-    #[serde(rename = "pd-inverter")]
     PdInverter,
     /// Eastron SDM120-Modbus single-phase energy meter.
     Sdm120,
 }
+
+impl Choice for SimModel {
+    const ALL: &'static [Self] = &[
+        SimModel::Registers,
+        SimModel::Gd20,
+        SimModel::Gd300,
+        SimModel::Gd10,
+        SimModel::PdInverter,
+        SimModel::Sdm120,
+    ];
+    fn word(self) -> &'static str {
+        self.name()
+    }
+}
+
+words!(SimModel);
+
+impl Choice for Framing {
+    const ALL: &'static [Self] = &[Framing::Rtu, Framing::Ascii, Framing::Tcp];
+    fn word(self) -> &'static str {
+        self.name()
+    }
+}
+
+words!(Framing);
 
 impl SimModel {
     /// A drive of shared/reference: it takes `params` and `trip`, which it checks itself.

@@ -21,9 +21,15 @@ pub struct ConfigError {
     pub reason: String,
 }
 
+/// `key: reason`; the reason alone for a problem of the whole file (its key is empty), which
+/// the caller names by the file.
 impl fmt::Display for ConfigError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{}: {}", self.key, self.reason)
+        if self.key.is_empty() {
+            f.write_str(&self.reason)
+        } else {
+            write!(f, "{}: {}", self.key, self.reason)
+        }
     }
 }
 
@@ -67,6 +73,40 @@ fn env_key_path(rest: &str) -> String {
         }
     }
     path
+}
+
+/// A text that is no TOML: config-rs's reason, a problem of the whole file.
+fn unparsable(e: config::ConfigError) -> ConfigErrors {
+    ConfigErrors::one("", e.to_string().trim_end())
+}
+
+/// Why the override `MBGW__{rest}` cannot be used, if it names an entry of a list that the file
+/// `from_file` does not have (`BUS__0__SLAVE__1__...` with fewer than two `[[bus.slave]]`): it
+/// would make an entry of its own out of that one key, and the entries before it out of nothing.
+fn entry_not_in_file(from_file: &config::Config, rest: &str) -> Option<String> {
+    let mut list = String::new();
+    for part in rest.split(ENV_SEPARATOR) {
+        if part.is_empty() || !part.bytes().all(|b| b.is_ascii_digit()) {
+            if !list.is_empty() {
+                list.push('.');
+            }
+            list.push_str(&part.to_ascii_lowercase());
+            continue;
+        }
+        let entries = from_file
+            .get_array(&list)
+            .map_or(0, |entries| entries.len());
+        if part.parse::<usize>().is_ok_and(|index| index < entries) {
+            list.push_str(&format!("[{part}]"));
+            continue;
+        }
+        let table = without_indices(&list);
+        return Some(format!(
+            "the file has no `{list}[{part}]` (it has {entries} [[{table}]]): an override changes \
+             a key of an entry the file has, it does not add one"
+        ));
+    }
+    None
 }
 
 impl Config {
@@ -113,35 +153,52 @@ impl Config {
         path: &Path,
         env: impl IntoIterator<Item = (String, String)>,
     ) -> Result<config::Config, ConfigErrors> {
-        let file = config::File::from(path)
-            .format(config::FileFormat::Toml)
-            .required(true);
-        let mut builder = config::Config::builder().add_source(file);
+        // Read here, not by config-rs, whose errors name the file again (the caller names it).
+        let text = std::fs::read_to_string(path).map_err(|e| match e.kind() {
+            std::io::ErrorKind::NotFound => {
+                ConfigErrors::one("", "not found (`--config FILE` reads another)")
+            }
+            _ => ConfigErrors::one("", format!("cannot be read: {e}")),
+        })?;
+        let file = || config::File::from_str(&text, config::FileFormat::Toml);
+        let from_file = config::Config::builder()
+            .add_source(file())
+            .build()
+            .map_err(unparsable)?;
+        let mut builder = config::Config::builder().add_source(file());
+        let mut errors = Vec::new();
         for (name, value) in env {
             let Some(rest) = name.strip_prefix(ENV_PREFIX) else {
                 continue;
             };
+            if let Some(reason) = entry_not_in_file(&from_file, rest) {
+                errors.push(ConfigError { key: name, reason });
+                continue;
+            }
             let key = env_key_path(rest);
             builder = builder
                 .set_override(&key, value)
                 .map_err(|e| ConfigErrors::one(&name, format!("cannot be used as `{key}`: {e}")))?;
         }
-        builder
-            .build()
-            .map_err(|e| ConfigErrors::one(path.display().to_string(), e))
+        if !errors.is_empty() {
+            return Err(ConfigErrors(errors));
+        }
+        builder.build().map_err(|e| ConfigErrors::one("", e))
     }
 
     fn parse(text: &str) -> Result<config::Config, ConfigErrors> {
         config::Config::builder()
             .add_source(config::File::from_str(text, config::FileFormat::Toml))
             .build()
-            .map_err(|e| ConfigErrors::one("(config)", e))
+            .map_err(unparsable)
     }
 
     /// Deserialize, check and resolve. A key that cannot be read is reported and taken out, and
     /// the rest read again, so one run names every unknown key and unreadable value (up to
     /// [`MAX_REPORTED`]); the checks run on what remains, and report what the removed keys do not
-    /// explain. A missing required key ends the reading: nothing can stand in for it. The
+    /// explain. A required key missing, or unreadable, takes out what holds it (a `[[rule]]`
+    /// without a readable `action`: the whole `rule` list, which its checks then skip), and the
+    /// reading goes on; one missing at the top level ends it. The
     /// templates are read from `template_dir`, taken from `base` (the file's folder) if relative.
     fn finish(
         raw: config::Config,
@@ -151,7 +208,8 @@ impl Config {
     ) -> Result<Config, ConfigErrors> {
         let mut root: config::Value = raw
             .try_deserialize()
-            .map_err(|e| ConfigErrors::one("(config)", e))?;
+            .map_err(|e| ConfigErrors::one("", e))?;
+        fractions_as_text(&mut root);
         let mut errors = Vec::new();
         let mut removed: Vec<String> = Vec::new();
         loop {
@@ -201,7 +259,13 @@ impl Config {
             let segments: Vec<_> = error.path().iter().cloned().collect();
             let named = named(error);
             if removed.iter().any(|r| under(&named.key, r)) {
-                // Already reported: taking the key out changed nothing that matters.
+                // Already reported. A required key taken out (`action = "block"`) leaves its table
+                // unreadable: take out what holds it (the whole `rule` list), and read on.
+                if let (REQUIRED, Some(key)) = (named.reason.as_str(), remove(&mut root, &segments))
+                {
+                    removed.push(key);
+                    continue;
+                }
                 break;
             }
             errors.push(named);
@@ -219,6 +283,34 @@ impl Config {
         toml::to_string(self).unwrap_or_else(|e| format!("# cannot print the configuration: {e}\n"))
     }
 }
+
+/// Every number with a fraction in `value`, as its text. config-rs rounds a float read as an
+/// integer (`stop_bits = 1.5` would be 2); as text, an integer key refuses it (see
+/// [`whole_number`]) and a float key reads it as before.
+fn fractions_as_text(value: &mut config::Value) {
+    use config::ValueKind;
+    match &mut value.kind {
+        ValueKind::Float(f) if f.fract() != 0.0 => value.kind = ValueKind::String(f.to_string()),
+        ValueKind::Table(table) => table.values_mut().for_each(fractions_as_text),
+        ValueKind::Array(items) => items.iter_mut().for_each(fractions_as_text),
+        _ => {}
+    }
+}
+
+/// config-rs's reason for text that is no integer, when the text is a number with a fraction:
+/// the file's fraction (see [`fractions_as_text`]), or the same written in quotes.
+fn whole_number(reason: &str) -> Option<String> {
+    let text = reason
+        .strip_prefix("invalid type: string \"")?
+        .split_once("\", expected an integer")?
+        .0;
+    text.parse::<f64>()
+        .is_ok_and(f64::is_finite)
+        .then(|| format!("`{text}` is not a whole number"))
+}
+
+/// The reason a missing required key is reported with.
+const REQUIRED: &str = "is required";
 
 /// Most errors one run reports; a file past this is probably not a gateway configuration.
 const MAX_REPORTED: usize = 50;
@@ -306,6 +398,12 @@ fn with_suggestion(reason: String) -> String {
 /// `[[bus.slave]]`): how to write it.
 fn list_of_tables(key: &str) -> Option<String> {
     let field = key.rsplit('.').next()?;
+    let table = without_indices(key);
+    Some(format!("`{field}` is a list of tables: write [[{table}]]"))
+}
+
+/// A key path as its table's header names it: `bus[0].slave` is `bus.slave`.
+fn without_indices(key: &str) -> String {
     let mut table = String::new();
     let mut in_index = false;
     for c in key.chars() {
@@ -316,7 +414,7 @@ fn list_of_tables(key: &str) -> Option<String> {
             _ => {}
         }
     }
-    Some(format!("`{field}` is a list of tables: write [[{table}]]"))
+    table
 }
 
 /// A deserialization error as the key path it happened at and why.
@@ -333,7 +431,7 @@ fn named(e: serde_path_to_error::Error<config::ConfigError>) -> ConfigError {
             let field = missing.rsplit([']', '.']).next().unwrap_or(&missing);
             ConfigError {
                 key: join(field),
-                reason: "is required".to_owned(),
+                reason: REQUIRED.to_owned(),
             }
         }
         other => {
@@ -348,6 +446,8 @@ fn named(e: serde_path_to_error::Error<config::ConfigError>) -> ConfigError {
             };
             let reason = if reason == "invalid type: map, expected a sequence" {
                 list_of_tables(&key).unwrap_or(reason)
+            } else if let Some(fraction) = whole_number(&reason) {
+                fraction
             } else {
                 with_suggestion(reason)
             };
@@ -530,12 +630,98 @@ mod tests {
     }
 
     #[test]
-    fn a_missing_file_is_an_error_naming_it() {
+    fn a_missing_file_says_so_once_for_the_caller_to_name_it() {
         let e = Config::load(Path::new("/nonexistent/gateway.toml"), []).unwrap_err();
-        assert!(
-            e.to_string().starts_with("/nonexistent/gateway.toml:"),
-            "{e}"
+        assert_eq!(e.to_string(), "not found (`--config FILE` reads another)");
+        let e = Config::from_toml_str("[[bus]\n").unwrap_err().to_string();
+        assert!(e.starts_with("TOML parse error at line 1, column 7"), "{e}");
+        assert!(!e.ends_with('\n'), "{e:?}");
+    }
+
+    #[test]
+    fn every_enum_key_names_its_value_and_the_allowed_ones_beside_the_other_errors() {
+        let text = "[server]\nwhen_full = \"wait\"\n[log]\nformat = \"xml\"\n\
+                    [[bus]]\nname = \"a\"\ndevice = \"sim\"\nframing = \"rtux\"\n\
+                    response_timeout = \"0s\"\n[bus.rs485]\nmode = \"auto\"\n\
+                    [[bus.sim_slave]]\naddress = 1\nmodel = \"gd99\"\n\
+                    [[rule]]\naction = \"block\"\n[[rule]]\naction = \"deny\"\n\
+                    [audit]\npath = \"/tmp/j\"\non_error = \"maybe\"\n";
+        assert_eq!(
+            errors(text),
+            [
+                "audit.on_error: `maybe` is not deny_writes or allow",
+                "bus[0].framing: `rtux` is not rtu, ascii or tcp",
+                "bus[0].rs485.mode: `auto` is not off, kernel or rts",
+                "bus[0].sim_slave[0].model: `gd99` is not registers, gd20, gd300, gd10, \
+                 pd-inverter or sdm120",
+                "log.format: `xml` is not text or json",
+                "rule[0].action: `block` is not allow, deny or acknowledge",
+                "server.when_full: `wait` is not close_oldest_idle or refuse",
+                // The checks ran on the rest.
+                "bus[0].response_timeout: must be longer than 0",
+            ]
         );
+    }
+
+    #[test]
+    fn an_integer_key_refuses_a_fraction_and_a_float_key_reads_it() {
+        let text = format!(
+            "{MINIMAL}\nbaud = 9600.7\nstop_bits = 1.5\n[[bus.slave]]\naddress = 2\n\
+             [[bus.slave.value]]\nname = \"speed\"\nregister = 4\nscale = 0.1\n"
+        );
+        assert_eq!(
+            errors(&text),
+            [
+                "bus[0].baud: `9600.7` is not a whole number",
+                "bus[0].stop_bits: `1.5` is not a whole number",
+            ]
+        );
+        let text = format!(
+            "[server]\npriority_share = 0.5\n{MINIMAL}\nbaud = 9600.0\n[[bus.slave]]\n\
+             address = 2\n[[bus.slave.value]]\nname = \"speed\"\nregister = 4\nscale = 0.1\n"
+        );
+        let c = Config::from_toml_str(&text).unwrap();
+        assert_eq!(c.bus[0].baud, 9600);
+        assert_eq!(c.bus[0].slave[0].value[0].scale, 0.1);
+    }
+
+    #[test]
+    fn an_override_of_an_entry_the_file_lacks_is_refused_naming_the_variable() {
+        let dir = std::env::temp_dir().join(format!("mbgw-entries-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("gateway.toml");
+        std::fs::write(&path, format!("{MINIMAL}\n[[bus.slave]]\naddress = 3\n")).unwrap();
+        let env = [
+            ("MBGW__BUS__0__SLAVE__0__RESPONSE_TIMEOUT", "2s"),
+            ("MBGW__BUS__0__SLAVE__1__RESPONSE_TIMEOUT", "2s"),
+            ("MBGW__BUS__1__BAUD", "9600"),
+        ]
+        .map(|(k, v)| (k.to_owned(), v.to_owned()));
+        let e: Vec<String> = Config::load(&path, env)
+            .unwrap_err()
+            .0
+            .iter()
+            .map(ToString::to_string)
+            .collect();
+        let why = "an override changes a key of an entry the file has, it does not add one";
+        assert_eq!(
+            e,
+            [
+                format!(
+                    "MBGW__BUS__0__SLAVE__1__RESPONSE_TIMEOUT: the file has no \
+                     `bus[0].slave[1]` (it has 1 [[bus.slave]]): {why}"
+                ),
+                format!("MBGW__BUS__1__BAUD: the file has no `bus[1]` (it has 1 [[bus]]): {why}"),
+            ]
+        );
+        let env = [("MBGW__BUS__0__SLAVE__0__RESPONSE_TIMEOUT", "2s")]
+            .map(|(k, v)| (k.to_owned(), v.to_owned()));
+        let c = Config::load(&path, env).unwrap();
+        assert_eq!(
+            c.bus[0].slave[0].response_timeout,
+            Some(Duration::from_secs(2))
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]

@@ -1,6 +1,7 @@
 //! The `[log]` section: the log filter and line format, as values. Knows nothing of the logger.
 
 use super::defaults;
+use super::serde_adapters::{words, Choice};
 use serde::{Deserialize, Serialize};
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -12,8 +13,7 @@ pub struct Log {
 }
 
 /// How log lines are written to stderr.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
-#[serde(rename_all = "lowercase")]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum LogFormat {
     /// Human text; under systemd, without timestamps and with the journal's priority prefix.
     #[default]
@@ -22,18 +22,17 @@ pub enum LogFormat {
     Json,
 }
 
-impl<'de> Deserialize<'de> for LogFormat {
-    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
-        let text = String::deserialize(d)?;
-        match text.as_str() {
-            "text" => Ok(LogFormat::Text),
-            "json" => Ok(LogFormat::Json),
-            _ => Err(serde::de::Error::custom(format!(
-                "`{text}` is not text or json"
-            ))),
+impl Choice for LogFormat {
+    const ALL: &'static [Self] = &[LogFormat::Text, LogFormat::Json];
+    fn word(self) -> &'static str {
+        match self {
+            LogFormat::Text => "text",
+            LogFormat::Json => "json",
         }
     }
 }
+
+words!(LogFormat);
 
 impl Default for Log {
     fn default() -> Self {

@@ -3,13 +3,13 @@
 //! every byte sent. Plain values with their effective defaults; knows nothing of ioctls or ports.
 
 use super::serde_adapters::{duration, is_false, is_zero};
+use super::serde_adapters::{words, Choice};
 use crate::line::framing::TransportKind;
 use serde::{Deserialize, Serialize};
 use std::time::Duration;
 
 /// Who switches the transceiver's driver enable.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Rs485Mode {
     /// Nobody: the adapter switches it (USB adapters with automatic direction), or the line is
     /// not RS-485.
@@ -20,6 +20,15 @@ pub enum Rs485Mode {
     /// The gateway, raising RTS before each frame and dropping it once the frame is out.
     Rts,
 }
+
+impl Choice for Rs485Mode {
+    const ALL: &'static [Self] = &[Rs485Mode::Off, Rs485Mode::Kernel, Rs485Mode::Rts];
+    fn word(self) -> &'static str {
+        self.as_str()
+    }
+}
+
+words!(Rs485Mode);
 
 impl Rs485Mode {
     pub fn as_str(self) -> &'static str {

@@ -4,6 +4,7 @@
 //! only: matching a request is `crate::rules`'s business.
 
 use super::serde_adapters::text_list;
+use super::serde_adapters::{words, Choice};
 use super::UnitSet;
 use crate::master::Protocol;
 use ipnet::IpNet;
@@ -51,8 +52,7 @@ pub struct Rule {
 }
 
 /// What a matching rule does with a request.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Action {
     /// Sent to the slave, as with no rule.
     Allow,
@@ -61,6 +61,15 @@ pub enum Action {
     /// A write is answered with its normal reply, unsent; a read goes on.
     Acknowledge,
 }
+
+impl Choice for Action {
+    const ALL: &'static [Self] = &[Action::Allow, Action::Deny, Action::Acknowledge];
+    fn word(self) -> &'static str {
+        self.label()
+    }
+}
+
+words!(Action);
 
 impl Action {
     pub const ALL: [Action; 3] = [Action::Allow, Action::Deny, Action::Acknowledge];

@@ -1,6 +1,7 @@
 //! How values the file writes as text become typed values and back: durations as humantime
-//! strings, lists written as one comma-separated string or as a list, and the `skip_serializing_if`
-//! helpers that keep the printed configuration short. Knows nothing of which key uses what.
+//! strings, lists written as one comma-separated string or as a list, keys whose value is one of
+//! a few words, and the `skip_serializing_if` helpers that keep the printed configuration short.
+//! Knows nothing of which key uses what.
 
 use ipnet::IpNet;
 use std::net::{IpAddr, SocketAddr};
@@ -21,6 +22,52 @@ pub(super) fn is_zero_usize(value: &usize) -> bool {
 pub(super) fn is_zero_f64(value: &f64) -> bool {
     *value == 0.0
 }
+
+/// A key whose value is one of a few words (`action`, `framing`, `on_error`, ...): written as
+/// its word, and a word that is none of them refused naming the word given and every word
+/// allowed, as a reason the key's path goes before (`rule[0].action: `block` is not allow, deny
+/// or acknowledge`). [`words!`] gives such a type its serde.
+pub(crate) trait Choice: Copy + 'static {
+    /// Every value, in the order the error lists them.
+    const ALL: &'static [Self];
+    /// As the file spells it.
+    fn word(self) -> &'static str;
+}
+
+/// The reason a word that is none of `T`'s is refused with.
+pub(crate) fn not_a_choice<T: Choice>(given: &str) -> String {
+    let words: Vec<&str> = T::ALL.iter().map(|c| c.word()).collect();
+    let allowed = match words.split_last() {
+        Some((last, [])) => (*last).to_owned(),
+        Some((last, rest)) => format!("{} or {last}", rest.join(", ")),
+        None => String::new(),
+    };
+    format!("`{given}` is not {allowed}")
+}
+
+/// Serialize and Deserialize for each [`Choice`] type named.
+macro_rules! words {
+    ($($kind:ty),* $(,)?) => {$(
+        impl serde::Serialize for $kind {
+            fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+                s.serialize_str($crate::config::serde_adapters::Choice::word(*self))
+            }
+        }
+
+        impl<'de> serde::Deserialize<'de> for $kind {
+            fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+                use $crate::config::serde_adapters::{not_a_choice, Choice};
+                let text = <String as serde::Deserialize>::deserialize(d)?;
+                <$kind as Choice>::ALL
+                    .iter()
+                    .copied()
+                    .find(|c| c.word() == text)
+                    .ok_or_else(|| serde::de::Error::custom(not_a_choice::<$kind>(&text)))
+            }
+        }
+    )*};
+}
+pub(crate) use words;
 
 /// Durations as humantime strings: "1s", "250ms", "10m".
 pub(super) mod duration {

@@ -3,6 +3,7 @@
 
 use super::defaults;
 use super::serde_adapters::{duration, text_list};
+use super::serde_adapters::{words, Choice};
 use super::Tls;
 use ipnet::IpNet;
 use serde::{Deserialize, Serialize};
@@ -76,8 +77,7 @@ impl Server {
 }
 
 /// What a connection beyond `server.max_connections` does.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub(crate) enum WhenFull {
     /// Close a connection that is not working, then accept: one whose master does not read its
     /// replies, else one that never completed a request, else the one idle longest among those
@@ -88,6 +88,18 @@ pub(crate) enum WhenFull {
     /// Refuse the new connection.
     Refuse,
 }
+
+impl Choice for WhenFull {
+    const ALL: &'static [Self] = &[WhenFull::CloseOldestIdle, WhenFull::Refuse];
+    fn word(self) -> &'static str {
+        match self {
+            WhenFull::CloseOldestIdle => "close_oldest_idle",
+            WhenFull::Refuse => "refuse",
+        }
+    }
+}
+
+words!(WhenFull);
 
 impl Default for Server {
     fn default() -> Self {

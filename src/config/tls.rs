@@ -5,6 +5,7 @@
 
 use super::defaults;
 use super::serde_adapters::duration;
+use super::serde_adapters::{words, Choice};
 use super::UnitSet;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -122,8 +123,7 @@ impl<'de> Deserialize<'de> for Role {
 }
 
 /// What a role allows.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum RoleAccess {
     /// Every request.
     ReadWrite,
@@ -133,6 +133,19 @@ pub enum RoleAccess {
     #[default]
     None,
 }
+
+impl Choice for RoleAccess {
+    const ALL: &'static [Self] = &[
+        RoleAccess::ReadWrite,
+        RoleAccess::ReadOnly,
+        RoleAccess::None,
+    ];
+    fn word(self) -> &'static str {
+        self.name()
+    }
+}
+
+words!(RoleAccess);
 
 impl RoleAccess {
     pub fn name(self) -> &'static str {

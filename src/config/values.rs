@@ -4,7 +4,7 @@
 //! Plain values and the reading of template files; knows nothing of polling or exporting.
 
 use super::load::{ConfigError, ConfigErrors};
-use super::serde_adapters::{is_zero_f64, opt_duration};
+use super::serde_adapters::{is_zero_f64, opt_duration, words, Choice};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -139,29 +139,25 @@ impl Order {
     }
 }
 
-/// Serde for the keys whose values are one of a few words: written as the word, and a word
-/// that is none of them refused with the list (as the other keys of the file are).
-macro_rules! words {
-    ($($kind:ty),*) => {$(
-        impl Serialize for $kind {
-            fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-                s.serialize_str(self.name())
-            }
-        }
+impl Choice for Table {
+    const ALL: &'static [Self] = &Table::ALL;
+    fn word(self) -> &'static str {
+        self.name()
+    }
+}
 
-        impl<'de> Deserialize<'de> for $kind {
-            fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
-                let text = String::deserialize(d)?;
-                <$kind>::ALL.into_iter().find(|k| k.name() == text).ok_or_else(|| {
-                    let names: Vec<&str> = <$kind>::ALL.iter().map(|k| k.name()).collect();
-                    serde::de::Error::custom(format!(
-                        "`{text}` is not {}",
-                        names.join(", ")
-                    ))
-                })
-            }
-        }
-    )*};
+impl Choice for ValueType {
+    const ALL: &'static [Self] = &ValueType::ALL;
+    fn word(self) -> &'static str {
+        self.name()
+    }
+}
+
+impl Choice for Order {
+    const ALL: &'static [Self] = &Order::ALL;
+    fn word(self) -> &'static str {
+        self.name()
+    }
 }
 
 words!(Table, ValueType, Order);

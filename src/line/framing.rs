@@ -14,12 +14,11 @@ use super::mbap;
 use super::reply::ReplyForm;
 use super::rtu::{self, FrameLen};
 use super::timing::LineTiming;
-use serde::{Deserialize, Serialize};
 use std::time::Duration;
 
 /// A line's framing, as `[[bus]] framing` names it.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
+/// Its serde is the configuration's (`config/bus.rs`), by [`Framing::name`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Framing {
     /// Modbus RTU: address, PDU, CRC-16; frames are delimited by silence, and most announce
     /// their length in their first bytes.

@@ -34,7 +34,7 @@ enum Socket {
 }
 
 /// Bind every address for masters of `protocol`, or fail naming the one that could not be bound.
-pub(crate) async fn bind(
+async fn bind(
     addrs: &[SocketAddr],
     protocol: Protocol,
 ) -> Result<Vec<Listener>, (SocketAddr, io::Error)> {
@@ -59,19 +59,25 @@ pub(crate) async fn bind(
     Ok(listeners)
 }
 
+/// A listen address that could not be bound: the key that has it, the address, why.
+pub(crate) type Unbound = (&'static str, SocketAddr, io::Error);
+
 /// Every listener of `server`, in the order of its keys: `listen` (Modbus TCP),
 /// `listen_rtu_over_tcp`, `listen_tls`, `listen_udp`; or the address that could not be bound.
-pub(crate) async fn bind_all(
-    server: &config::Server,
-) -> Result<Vec<Listener>, (SocketAddr, io::Error)> {
+pub(crate) async fn bind_all(server: &config::Server) -> Result<Vec<Listener>, Unbound> {
     let mut listeners = Vec::new();
-    for (addrs, protocol) in [
-        (&server.listen, Protocol::Tcp),
-        (&server.listen_rtu_over_tcp, Protocol::RtuOverTcp),
-        (&server.listen_tls, Protocol::Tls),
-        (&server.listen_udp, Protocol::Udp),
+    for (key, addrs, protocol) in [
+        ("server.listen", &server.listen, Protocol::Tcp),
+        (
+            "server.listen_rtu_over_tcp",
+            &server.listen_rtu_over_tcp,
+            Protocol::RtuOverTcp,
+        ),
+        ("server.listen_tls", &server.listen_tls, Protocol::Tls),
+        ("server.listen_udp", &server.listen_udp, Protocol::Udp),
     ] {
-        listeners.extend(bind(addrs, protocol).await?);
+        let bound = bind(addrs, protocol).await;
+        listeners.extend(bound.map_err(|(addr, e)| (key, addr, e))?);
     }
     Ok(listeners)
 }
