@@ -3,7 +3,9 @@ sees: the bus and the four demo drives in the tables, in the trace panel a reque
 page loaded, its master among the connected ones, and with the slave filter set, that slave's
 frames alone; in the plant values, drive 2's output frequency rising after a run command written
 to the drive, and its plot gaining points; in the last writes, none before the run command, then
-its two writes answered, and a write to drive 4 acknowledged unsent by the check's [[rule]].
+its two writes answered, and a write to drive 4 acknowledged unsent by the check's [[rule]]. At
+1280, 800, 700 and 390 px wide: no sideways scroll of the page, every caption in full view
+outside any scroll box, and each write's outcome in view without scrolling sideways.
 Fails on a script error or a Content-Security-Policy violation in the page.
 
 Chromium is driven over the DevTools protocol on a pipe (--remote-debugging-pipe: JSON messages
@@ -49,10 +51,12 @@ ACKNOWLEDGED_UNIT = 4
 ACKNOWLEDGED_REGISTER = 0x1000
 # The last writes' empty line.
 NO_WRITES = "no writes since the gateway started"
+# Why the rule's write was not sent, in the journal's words, shown under its outcome.
+ACKNOWLEDGED_WHY = "answered by the gateway as the slave would have; not sent"
 
-# A laptop's half screen and a phone: the page must fit; only tables may scroll sideways, inside
-# their own box.
-NARROW_WIDTHS = (700, 390)
+# A laptop, its half screen, a narrower window and a phone: the page must fit; only tables may
+# scroll sideways, inside their own box, their captions outside it.
+WIDTHS = (1280, 800, 700, 390)
 
 # How wide the page is laid out against its viewport (scrollbars are hidden, so clientWidth is the
 # viewport's width); wider means the reader scrolls the whole page sideways.
@@ -64,6 +68,45 @@ PAGE_WIDTH = """JSON.stringify({
     .slice(0, 5).map(e => e.tagName + (e.id ? '#' + e.id : '') + ' ' +
       Math.round(e.getBoundingClientRect().right) + ' px'),
 })"""
+
+# What a reader sees sideways at this width: for every caption (`caption` elements and those the
+# page styles as captions) and every write's outcome cell, why it is not wholly in view, or null.
+# In view: inside the viewport's width, its text not overflowing its box, and inside the box of
+# every ancestor that clips (a scroll box, or paint containment), that box not scrolled; a caption
+# must be in no scroll box at all, so that it never scrolls away with its table.
+LAYOUT = """(() => {
+  const view = document.documentElement.clientWidth;
+  const name = (e) => e.tagName.toLowerCase() + (e.id ? '#' + e.id : '') +
+    (e.className && typeof e.className === 'string' ? '.' + e.className.split(' ').join('.') : '');
+  const hidden = (e, caption) => {
+    const box = e.getBoundingClientRect();
+    if (box.width === 0 || box.height === 0) return 'not shown';
+    if (box.left < -0.5 || box.right > view + 0.5)
+      return `outside the viewport: ${Math.round(box.left)} to ${Math.round(box.right)} of ${view} px`;
+    if (e.scrollWidth > e.clientWidth + 1)
+      return `its text overflows its box: ${e.scrollWidth} > ${e.clientWidth} px`;
+    for (let a = e.parentElement; a && a !== document.documentElement; a = a.parentElement) {
+      const style = getComputedStyle(a);
+      const scrolls = style.overflowX !== 'visible';
+      if (scrolls && caption) return 'inside the scroll box ' + name(a);
+      if (!scrolls && !/paint|strict|content/.test(style.contain) &&
+          style.contentVisibility !== 'auto') continue;
+      if (a.scrollLeft !== 0) return name(a) + ' is scrolled sideways';
+      const outer = a.getBoundingClientRect();
+      if (box.left < outer.left - 0.5 || box.right > outer.right + 0.5)
+        return `cut by ${name(a)}: ${Math.round(box.left)} to ${Math.round(box.right)} px in ` +
+          `${Math.round(outer.left)} to ${Math.round(outer.right)}`;
+    }
+    return null;
+  };
+  return JSON.stringify({
+    captions: [...document.querySelectorAll('caption, .caption')].map(e =>
+      ({text: e.textContent, hidden: hidden(e, true)})),
+    groups: document.querySelectorAll('#values .slave-values').length,
+    outcomes: [...document.querySelectorAll('#writes tr[data-id] td.outcome')].map(e =>
+      ({text: e.textContent, hidden: hidden(e, false)})),
+  });
+})()"""
 
 # What the tables, the trace state and the trace rows hold, as text (nothing yet while the page
 # loads).
@@ -115,6 +158,9 @@ PAGE_FUNCTIONS = {
     'writeOutcome(null).textContent': "pending",
     'writeOutcome({outcome: "slave_exception", carried_out: "no", exception: 2}).textContent':
         "slave_exception, exception 0x02",
+    # Why, in words, shown under it (a phone has no tooltips).
+    'writeOutcome({outcome: "denied", carried_out: "no", exception: 1, detail: "rule 2"})'
+    '.querySelector(".why").textContent': "rule 2",
     '(() => { const td = writeOutcome({outcome: "timeout", carried_out: "maybe", exception: 11}); '
     'return td.firstChild.textContent + " / " + td.querySelector(".note").textContent; })()':
         "timeout, exception 0x0B / may have been carried out",
@@ -365,10 +411,16 @@ def follows_a_write(browser, port):
         time.sleep(0.2)
 
 
+# A write's row: its outcome first (then why, in words, if the journal says), then when, the unit
+# and where it went, the function, registers, values, rule and action, and the master.
+OUTCOME, TIME, TARGET, FUNCTION, REGISTERS, VALUES, RULE_ACTION, MASTER = range(8)
+
+
 def write_row(snapshot, unit, register_text):
     """The newest row of the last writes for `unit` whose registers read `register_text`."""
     return next((w for w in snapshot["writes"]
-                 if w["unit"] == unit and len(w["cells"]) == 8 and w["cells"][4] == register_text),
+                 if w["unit"] == unit and len(w["cells"]) == 8
+                 and w["cells"][REGISTERS] == register_text),
                 None)
 
 
@@ -390,22 +442,42 @@ def shows_writes(browser, port):
     acknowledged, answered = snapshot["writes"][0], write_row(snapshot, FREQUENCY_SLAVE, run)
     wanted = {
         "acknowledged": (acknowledged, {
-            2: f"{ACKNOWLEDGED_UNIT} → {DEMO_BUS} / {ACKNOWLEDGED_UNIT}",
-            3: "Write Single Register", 4: kept, 5: "09C4",
-            6: f"{RULE}: acknowledge", 7: "acknowledged"}),
+            OUTCOME: "acknowledged" + ACKNOWLEDGED_WHY,
+            TARGET: f"{ACKNOWLEDGED_UNIT} → {DEMO_BUS} / {ACKNOWLEDGED_UNIT}",
+            FUNCTION: "Write Single Register", REGISTERS: kept, VALUES: "09C4",
+            RULE_ACTION: f"{RULE}: acknowledge"}),
         "answered": (answered, {
-            2: f"{FREQUENCY_SLAVE} → {DEMO_BUS} / {FREQUENCY_SLAVE}",
-            3: "Write Single Register", 4: run, 5: "0001",
-            6: "no rule: allow", 7: "answered"}),
+            OUTCOME: "answered",
+            TARGET: f"{FREQUENCY_SLAVE} → {DEMO_BUS} / {FREQUENCY_SLAVE}",
+            FUNCTION: "Write Single Register", REGISTERS: run, VALUES: "0001",
+            RULE_ACTION: "no rule: allow"}),
     }
     for what, (row, cells) in wanted.items():
         wrong = {i: row["cells"][i] for i, text in cells.items() if row["cells"][i] != text}
-        if wrong or age(row["cells"][0]) < 0 or "127.0.0.1:" not in row["cells"][1]:
+        if wrong or age(row["cells"][TIME]) < 0 or "127.0.0.1:" not in row["cells"][MASTER]:
             fail(f"the {what} write's row in the last writes", {"row": row, "wanted": cells})
     ids = [w["id"] for w in snapshot["writes"]]
     if ids != sorted(ids, reverse=True) or len(ids) != 3:
         fail("the three writes, newest first", snapshot["writes"])
     return snapshot["writes"]
+
+
+def fits(browser, width):
+    """At `width` px: no sideways scroll of the page, every caption and each write's outcome in
+    full view (LAYOUT). Returns how many captions there are."""
+    browser.resize(width)
+    scroll = browser.wait_for_layout(width)
+    if scroll["page"] > scroll["client"]:
+        fail(f"the page scrolls sideways at {width} px (tables must scroll in their own box)",
+             scroll)
+    layout = json.loads(browser.evaluate(LAYOUT))
+    # Connected masters, last writes, live trace, and one per slave with plant values.
+    if len(layout["captions"]) < 3 + layout["groups"] or len(layout["outcomes"]) != 3:
+        fail(f"the captions and the three writes' outcomes at {width} px", layout)
+    hidden = [c for c in layout["captions"] + layout["outcomes"] if c["hidden"]]
+    if hidden:
+        fail(f"captions or writes' outcomes not wholly in view at {width} px", hidden)
+    return len(layout["captions"])
 
 
 def shows_demo(snapshot):
@@ -479,19 +551,15 @@ def main():
                          lambda s: [w["cells"] for w in s["writes"]] == [[NO_WRITES]])
         readings, points_before, points_after = follows_a_write(browser, modbus_port)
         writes = shows_writes(browser, modbus_port)
-        for width in NARROW_WIDTHS:
-            browser.resize(width)
-            scroll = browser.wait_for_layout(width)
-            if scroll["page"] > scroll["client"]:
-                fail(f"the page scrolls sideways at {width} px (tables must scroll in their own box)",
-                     scroll)
+        captions = [fits(browser, width) for width in WIDTHS][-1]
         browser.resize(1280)
         print(f"status page in {CHROMIUM}: bus {DEMO_BUS}, drives {sorted(DEMO_DRIVES)}, "
               f"the frame {request} in the trace panel ({len(frame['frames'])} frames shown), "
-              f"and with the slave filter only slave 2's; no sideways page scroll at "
-              f"{' and '.join(f'{w} px' for w in NARROW_WIDTHS)}")
+              f"and with the slave filter only slave 2's; at "
+              f"{', '.join(f'{w} px' for w in WIDTHS)} no sideways page scroll, {captions} "
+              "captions and the writes' outcomes in full view")
         print("last writes, newest first: " + "; ".join(
-            " | ".join(w["cells"][2:]) for w in writes))
+            " | ".join(w["cells"][:RULE_ACTION + 1]) for w in writes))
         print(f"plant values: after the run command, drive {FREQUENCY_SLAVE}'s {FREQUENCY} "
               f"shown {' -> '.join(f'{r:g} Hz' for r in readings)}, its plot from "
               f"{points_before} to {points_after} readings")
