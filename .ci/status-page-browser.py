@@ -1,9 +1,14 @@
 """Load the status page of a running demo gateway in headless Chromium and check what a person
 sees: the bus and the four demo drives in the tables, in the trace panel a request sent after the
 page loaded, its master among the connected ones, and with the slave filter set, that slave's
-frames alone; in the plant values, drive 2's output frequency rising after a run command written
-to the drive, and its plot gaining points; in the last writes, none before the run command, then
-its two writes answered, and a write to drive 4 acknowledged unsent by the check's [[rule]].
+frames alone; in the plant values, each labelled by its help text with its metric's name beneath,
+drive 2's output frequency rising after a run command written to the drive, its plot gaining
+points, showing its lowest and highest reading and the time it spans, and under a mouse moved
+over it the reading there; a value whose polls fail (on a slave that is not on the line) marked
+as failed in words and colour; in the last writes, none before the run command, then its two
+writes answered, and a write to drive 4 acknowledged unsent by the check's [[rule]]. At 1280, 800,
+700 and 390 px wide: no sideways scroll of the page, every caption in full view outside any
+scroll box, and each write's outcome in view without scrolling sideways.
 Fails on a script error or a Content-Security-Policy violation in the page.
 
 Chromium is driven over the DevTools protocol on a pipe (--remote-debugging-pipe: JSON messages
@@ -25,6 +30,7 @@ import sys
 import tempfile
 import threading
 import time
+import urllib.request
 
 CHROMIUM = os.environ.get("CHROMIUM", "chromium")
 WAIT = 20.0  # seconds for anything the page should show
@@ -33,9 +39,10 @@ WAIT = 20.0  # seconds for anything the page should show
 DEMO_BUS = "demo"
 DEMO_DRIVES = {1: "gd20", 2: "gd300", 3: "gd10", 4: "pd-inverter"}
 
-# Drive 2's plant value in config/demo.toml (its goodrive300 template: 3000H in 0.01 Hz), polled
-# every 2 s.
+# Drive 2's plant value in config/demo.toml (its goodrive300 template: 3000H in 0.01 Hz, its help
+# text), polled every 2 s.
 FREQUENCY = "drive_output_frequency_hertz"
+FREQUENCY_HELP = "Output frequency"
 FREQUENCY_SLAVE = 2
 # After the run command, the page must show this many successive readings, each higher than the
 # one before (the drive ramps from 0 to 50.00 Hz in 15 s, P00.11), and its plot as many more
@@ -49,10 +56,17 @@ ACKNOWLEDGED_UNIT = 4
 ACKNOWLEDGED_REGISTER = 0x1000
 # The last writes' empty line.
 NO_WRITES = "no writes since the gateway started"
+# Why the rule's write was not sent, in the journal's words, shown under its outcome.
+ACKNOWLEDGED_WHY = "answered by the gateway as the slave would have; not sent"
 
-# A laptop's half screen and a phone: the page must fit; only tables may scroll sideways, inside
-# their own box.
-NARROW_WIDTHS = (700, 390)
+# The slave .ci/status-page-check adds to the demo, which is not on the line: its one value, the
+# same metric as drive 2's (so with the same help), fails its polls as one of these outcomes.
+FAILED_SLAVE = 9
+FAILED_OUTCOMES = ("timeout", "slave_down")
+
+# A laptop, its half screen, a narrower window and a phone: the page must fit; only tables may
+# scroll sideways, inside their own box, their captions outside it.
+WIDTHS = (1280, 800, 700, 390)
 
 # How wide the page is laid out against its viewport (scrollbars are hidden, so clientWidth is the
 # viewport's width); wider means the reader scrolls the whole page sideways.
@@ -64,6 +78,48 @@ PAGE_WIDTH = """JSON.stringify({
     .slice(0, 5).map(e => e.tagName + (e.id ? '#' + e.id : '') + ' ' +
       Math.round(e.getBoundingClientRect().right) + ' px'),
 })"""
+
+# What a reader sees sideways at this width: for every caption (`caption` elements and those the
+# page styles as captions), every write's outcome cell and every failed value's "poll failed",
+# why it is not wholly in view, or null.
+# In view: inside the viewport's width, its text not overflowing its box, and inside the box of
+# every ancestor that clips (a scroll box, or paint containment), that box not scrolled; a caption
+# must be in no scroll box at all, so that it never scrolls away with its table.
+LAYOUT = """(() => {
+  const view = document.documentElement.clientWidth;
+  const name = (e) => e.tagName.toLowerCase() + (e.id ? '#' + e.id : '') +
+    (e.className && typeof e.className === 'string' ? '.' + e.className.split(' ').join('.') : '');
+  const hidden = (e, caption) => {
+    const box = e.getBoundingClientRect();
+    if (box.width === 0 || box.height === 0) return 'not shown';
+    if (box.left < -0.5 || box.right > view + 0.5)
+      return `outside the viewport: ${Math.round(box.left)} to ${Math.round(box.right)} of ${view} px`;
+    if (e.scrollWidth > e.clientWidth + 1)
+      return `its text overflows its box: ${e.scrollWidth} > ${e.clientWidth} px`;
+    for (let a = e.parentElement; a && a !== document.documentElement; a = a.parentElement) {
+      const style = getComputedStyle(a);
+      const scrolls = style.overflowX !== 'visible';
+      if (scrolls && caption) return 'inside the scroll box ' + name(a);
+      if (!scrolls && !/paint|strict|content/.test(style.contain) &&
+          style.contentVisibility !== 'auto') continue;
+      if (a.scrollLeft !== 0) return name(a) + ' is scrolled sideways';
+      const outer = a.getBoundingClientRect();
+      if (box.left < outer.left - 0.5 || box.right > outer.right + 0.5)
+        return `cut by ${name(a)}: ${Math.round(box.left)} to ${Math.round(box.right)} px in ` +
+          `${Math.round(outer.left)} to ${Math.round(outer.right)}`;
+    }
+    return null;
+  };
+  return JSON.stringify({
+    captions: [...document.querySelectorAll('caption, .caption')].map(e =>
+      ({text: e.textContent, hidden: hidden(e, true)})),
+    groups: document.querySelectorAll('#values .slave-values').length,
+    outcomes: [...document.querySelectorAll('#writes tr[data-id] td.outcome')].map(e =>
+      ({text: e.textContent, hidden: hidden(e, false)})),
+    marks: [...document.querySelectorAll('#values tr.failed .failed-mark')].map(e =>
+      ({text: e.textContent, hidden: hidden(e, false)})),
+  });
+})()"""
 
 # What the tables, the trace state and the trace rows hold, as text (nothing yet while the page
 # loads).
@@ -86,11 +142,26 @@ SNAPSHOT = """JSON.stringify({
     ({direction: r.dataset.direction, slave: Number(r.dataset.slave), bus: r.dataset.bus,
       cells: [...r.cells].map(c => c.textContent)})),
   // Each value's row: name, reading, age, last poll; and the readings its plot draws (one "M" or
-  // "L" each in its path).
-  values: [...document.querySelectorAll('#values tr[data-name]')].map(r =>
-    ({bus: r.dataset.bus, slave: Number(r.dataset.slave), name: r.dataset.name,
+  // "L" each in its path). Its label (help) and the metric's name beneath: their text, font size
+  // and where the name's top is against the label's bottom; whether the row is marked failed, and
+  // the colour of its reading. Its plot's scale (max, min, from, to) and the reading under the
+  // pointer, while one points at it.
+  values: [...document.querySelectorAll('#values tr[data-name]')].map(r => {
+    const help = r.querySelector('.help'), metric = r.querySelector('.metric');
+    const text = (selector) => r.querySelector(selector)?.textContent ?? null;
+    return {bus: r.dataset.bus, slave: Number(r.dataset.slave), name: r.dataset.name,
       cells: [...r.cells].slice(0, 4).map(c => c.textContent),
-      points: (r.querySelector('path')?.getAttribute('d') ?? '').split(/[ML]/).length - 1})),
+      points: (r.querySelector('path.line')?.getAttribute('d') ?? '').split(/[ML]/).length - 1,
+      help: help?.textContent ?? null, metric: metric?.textContent ?? null,
+      sizes: [help, metric].map(e => e ? parseFloat(getComputedStyle(e).fontSize) : null),
+      beneath: help && metric && help.getBoundingClientRect().height > 0 ?
+        metric.getBoundingClientRect().top - help.getBoundingClientRect().bottom : null,
+      failed: r.classList.contains('failed'), mark: text('.failed-mark'),
+      colours: [help, r.querySelector('.failed-mark')].map(e => e ? getComputedStyle(e).color : null),
+      max: text('.plot-max'), min: text('.plot-min'), from: text('.plot-from'), to: text('.plot-to'),
+      pointing: r.querySelector('.plot').classList.contains('pointing'),
+      pointer: text('.plot-pointer'), dot: r.querySelector('path.dot')?.getAttribute('d') ?? null};
+  }),
 })"""
 
 # The page's own pure functions, on inputs the demo does not produce: what each must return.
@@ -103,6 +174,14 @@ PAGE_FUNCTIONS = {
     'sparkline([[1000, 7]]).path': "M0.000 50h0",
     'sparkline([[0, 0], [1000, 10], [2000, 5], [9000, 5], [10000, 0]]).path':
         "M0.000 100.00h0L1.000 0.00L2.000 50.00M9.000 50.00h0L10.000 100.00",
+    # The pointer reads the nearest reading within reach, or none.
+    'JSON.stringify(nearest([[0, 1], [1000, 2], [5000, 3]], 1400, 500))': "[1000,2]",
+    'nearest([[0, 1], [1000, 2]], 3000, 1000)': None,
+    'nearest([], 0, Infinity)': None,
+    # A value without help is labelled by its name alone; labels go beneath.
+    'valueName({name: "x_total", help: "x_total", labels: {}}).textContent': "x_total",
+    'valueName({name: "x_total", help: "X", labels: {pump: "2"}}).querySelector(".metric")'
+    '.textContent': "x_total pump=2",
     # A write's cells: registers as a rule names them, values a register to a group, the outcome
     # with its exception and whether it may have been carried out.
     'writeRegisters({table: "holding", start: 8192, count: 2})': "holding 0x2000–0x2001 (2)",
@@ -115,6 +194,9 @@ PAGE_FUNCTIONS = {
     'writeOutcome(null).textContent': "pending",
     'writeOutcome({outcome: "slave_exception", carried_out: "no", exception: 2}).textContent':
         "slave_exception, exception 0x02",
+    # Why, in words, shown under it (a phone has no tooltips).
+    'writeOutcome({outcome: "denied", carried_out: "no", exception: 1, detail: "rule 2"})'
+    '.querySelector(".why").textContent': "rule 2",
     '(() => { const td = writeOutcome({outcome: "timeout", carried_out: "maybe", exception: 11}); '
     'return td.firstChild.textContent + " / " + td.querySelector(".note").textContent; })()':
         "timeout, exception 0x0B / may have been carried out",
@@ -222,6 +304,10 @@ class Browser:
                 return widths
             time.sleep(0.1)
 
+    def mouse(self, x, y):
+        """Move the mouse to (`x`, `y`), CSS pixels of the viewport."""
+        self.call("Input.dispatchMouseEvent", {"type": "mouseMoved", "x": x, "y": y})
+
     def evaluate(self, expression):
         result = self.call("Runtime.evaluate", {"expression": expression, "returnByValue": True})
         if "exceptionDetails" in result:
@@ -318,8 +404,7 @@ def age(text):
 
 def frequency(snapshot):
     """Drive 2's output frequency as the page shows it: its row, or None."""
-    return next((v for v in snapshot["values"] if v["bus"] == DEMO_BUS
-                 and v["slave"] == FREQUENCY_SLAVE and v["name"] == FREQUENCY), None)
+    return value_row(snapshot, FREQUENCY_SLAVE)
 
 
 def hertz(row):
@@ -365,10 +450,16 @@ def follows_a_write(browser, port):
         time.sleep(0.2)
 
 
+# A write's row: its outcome first (then why, in words, if the journal says), then when, the unit
+# and where it went, the function, registers, values, rule and action, and the master.
+OUTCOME, TIME, TARGET, FUNCTION, REGISTERS, VALUES, RULE_ACTION, MASTER = range(8)
+
+
 def write_row(snapshot, unit, register_text):
     """The newest row of the last writes for `unit` whose registers read `register_text`."""
     return next((w for w in snapshot["writes"]
-                 if w["unit"] == unit and len(w["cells"]) == 8 and w["cells"][4] == register_text),
+                 if w["unit"] == unit and len(w["cells"]) == 8
+                 and w["cells"][REGISTERS] == register_text),
                 None)
 
 
@@ -390,22 +481,146 @@ def shows_writes(browser, port):
     acknowledged, answered = snapshot["writes"][0], write_row(snapshot, FREQUENCY_SLAVE, run)
     wanted = {
         "acknowledged": (acknowledged, {
-            2: f"{ACKNOWLEDGED_UNIT} → {DEMO_BUS} / {ACKNOWLEDGED_UNIT}",
-            3: "Write Single Register", 4: kept, 5: "09C4",
-            6: f"{RULE}: acknowledge", 7: "acknowledged"}),
+            OUTCOME: "acknowledged" + ACKNOWLEDGED_WHY,
+            TARGET: f"{ACKNOWLEDGED_UNIT} → {DEMO_BUS} / {ACKNOWLEDGED_UNIT}",
+            FUNCTION: "Write Single Register", REGISTERS: kept, VALUES: "09C4",
+            RULE_ACTION: f"{RULE}: acknowledge"}),
         "answered": (answered, {
-            2: f"{FREQUENCY_SLAVE} → {DEMO_BUS} / {FREQUENCY_SLAVE}",
-            3: "Write Single Register", 4: run, 5: "0001",
-            6: "no rule: allow", 7: "answered"}),
+            OUTCOME: "answered",
+            TARGET: f"{FREQUENCY_SLAVE} → {DEMO_BUS} / {FREQUENCY_SLAVE}",
+            FUNCTION: "Write Single Register", REGISTERS: run, VALUES: "0001",
+            RULE_ACTION: "no rule: allow"}),
     }
     for what, (row, cells) in wanted.items():
         wrong = {i: row["cells"][i] for i, text in cells.items() if row["cells"][i] != text}
-        if wrong or age(row["cells"][0]) < 0 or "127.0.0.1:" not in row["cells"][1]:
+        if wrong or age(row["cells"][TIME]) < 0 or "127.0.0.1:" not in row["cells"][MASTER]:
             fail(f"the {what} write's row in the last writes", {"row": row, "wanted": cells})
     ids = [w["id"] for w in snapshot["writes"]]
     if ids != sorted(ids, reverse=True) or len(ids) != 3:
         fail("the three writes, newest first", snapshot["writes"])
     return snapshot["writes"]
+
+
+# The plot's least width, as the page has it (PLOT_MIN_SECONDS): its time scale starts at least
+# this many seconds ago.
+PLOT_MIN_SECONDS = 60
+
+
+def value_row(snapshot, slave, name=FREQUENCY):
+    """The row of `slave`'s value `name` on the demo bus, or None."""
+    return next((v for v in snapshot["values"] if v["bus"] == DEMO_BUS
+                 and v["slave"] == slave and v["name"] == name), None)
+
+
+def labelled_by_help(browser, metrics_port):
+    """Every value's row labelled by its help as /values gives it, the metric's name (and labels)
+    beneath it in smaller type unless the label is the name itself; drive 2's frequency by its
+    template's help. Returns how many values there are."""
+    url = f"http://127.0.0.1:{metrics_port}/values"
+    with urllib.request.urlopen(url, timeout=10) as answer:
+        values = json.load(answer)["values"]
+    snapshot = browser.wait_for(f"a row for each of the {len(values)} plant values",
+                                lambda s: len(s["values"]) == len(values))
+    wrong = []
+    for value in values:
+        row = value_row(snapshot, value["slave"], value["name"])
+        labels = ", ".join(f"{k}={x}" for k, x in value["labels"].items())
+        name = "" if value["help"] == value["name"] else value["name"]
+        metric = " ".join(filter(None, [name, labels])) or None
+        if row is None or row["help"] != value["help"] or row["metric"] != metric or (
+                metric and not (row["beneath"] is not None and row["beneath"] >= -1
+                                and row["sizes"][1] < row["sizes"][0])):
+            wrong.append({"value": value, "wanted metric": metric, "row": row})
+    if wrong:
+        fail(f"{len(wrong)} plant values not labelled by their help text with the metric's name "
+             "beneath in smaller type", wrong[:5])
+    row = value_row(snapshot, FREQUENCY_SLAVE)
+    if row["help"] != FREQUENCY_HELP or row["metric"] != FREQUENCY:
+        fail(f"drive {FREQUENCY_SLAVE}'s {FREQUENCY} labelled \"{FREQUENCY_HELP}\"", row)
+    return len(values)
+
+
+def shows_scale(snapshot):
+    """Drive 2's frequency plot, after the ramp began, between the drive's 0 Hz before the run
+    command (its lowest) and the reading now (its highest, the drive ramping up), from at least a
+    minute ago to now."""
+    row = value_row(snapshot, FREQUENCY_SLAVE)
+    return row is not None and row["min"] == "min 0 Hz" and hertz(row) \
+        and row["max"] == "max " + row["cells"][1] \
+        and age(row["from"]) >= PLOT_MIN_SECONDS and row["to"] == "now"
+
+
+def marks_failed(snapshot):
+    """The value of the slave that is not on the line marked failed: "poll failed" and the
+    outcome under its label, in another colour than the label's, the outcome as its last poll,
+    no reading, a bar down its row (the class that draws it); and drive 2's value not so
+    marked."""
+    row, good = value_row(snapshot, FAILED_SLAVE), value_row(snapshot, FREQUENCY_SLAVE)
+    return row is not None and good is not None and row["failed"] and not good["failed"] \
+        and not good["mark"] and row["help"] == FREQUENCY_HELP \
+        and row["cells"][3] in FAILED_OUTCOMES and row["mark"] == "poll failed: " + row["cells"][3] \
+        and row["colours"][1] != row["colours"][0] and row["cells"][1] == "–"
+
+
+def fits(browser, width):
+    """At `width` px: no sideways scroll of the page, every caption, each write's outcome and the
+    failed value's mark in full view (LAYOUT). Returns how many captions there are."""
+    browser.resize(width)
+    scroll = browser.wait_for_layout(width)
+    if scroll["page"] > scroll["client"]:
+        fail(f"the page scrolls sideways at {width} px (tables must scroll in their own box)",
+             scroll)
+    layout = json.loads(browser.evaluate(LAYOUT))
+    # Connected masters, last writes, live trace, and one per slave with plant values.
+    if len(layout["captions"]) < 3 + layout["groups"] or len(layout["outcomes"]) != 3 \
+            or len(layout["marks"]) != 1:
+        fail(f"the captions, the three writes' outcomes and the failed value's mark at {width} px",
+             layout)
+    hidden = [c for c in layout["captions"] + layout["outcomes"] + layout["marks"] if c["hidden"]]
+    if hidden:
+        fail(f"captions, writes' outcomes or the failed value's mark not wholly in view at "
+             f"{width} px", hidden)
+    return len(layout["captions"])
+
+
+# Where drive 2's frequency plot's first and last readings are on the screen (CSS pixels), once
+# it is scrolled into view: from the x of each reading in its path and its viewBox.
+PLOT_POINTS = """(() => {
+  const row = [...document.querySelectorAll('#values tr[data-name]')].find(r =>
+    r.dataset.bus === %s && r.dataset.slave === '%d' && r.dataset.name === %s);
+  row.scrollIntoView({block: 'center'});
+  const svg = row.querySelector('svg.spark');
+  const box = svg.getBoundingClientRect();
+  const [start, , width] = svg.getAttribute('viewBox').split(' ').map(Number);
+  const xs = [...svg.querySelector('path.line').getAttribute('d').matchAll(/[ML]([-0-9.]+) /g)]
+    .map(m => Math.min(box.right - 0.5, Math.max(box.left + 0.5,
+      box.left + (Number(m[1]) - start) / width * box.width)));
+  return JSON.stringify({first: xs[0], last: xs[xs.length - 1], y: box.top + box.height / 2});
+})()""" % (json.dumps(DEMO_BUS), FREQUENCY_SLAVE, json.dumps(FREQUENCY))
+
+
+def reads_under_pointer(browser):
+    """With the page offline (its plots hold still), the mouse on drive 2's frequency plot: at its
+    first reading the plot must read 0 Hz (the drive before the run command), at its last the
+    reading shown in its row, each with its age, a dot on it; moved away, no reading. Returns
+    what the plot read."""
+    at = json.loads(browser.evaluate(PLOT_POINTS))
+    read = []
+    for x, what in ((at["first"], "first"), (at["last"], "last")):
+        browser.mouse(x, at["y"])
+        row = value_row(browser.wait_for(
+            f"a reading under the mouse at drive {FREQUENCY_SLAVE}'s plot's {what} reading",
+            lambda s: (value_row(s, FREQUENCY_SLAVE) or {}).get("pointing")), FREQUENCY_SLAVE)
+        wanted = "0 Hz" if what == "first" else row["cells"][1]
+        value, _, ago_text = row["pointer"].partition(", ")
+        if value != wanted or age(ago_text) < 0 or not (row["dot"] or "").endswith("h0"):
+            fail(f"the reading under the mouse at the {what} reading of drive {FREQUENCY_SLAVE}'s "
+                 f"plot: wanted {wanted} and an age, and a dot", row)
+        read.append(row["pointer"])
+    browser.mouse(0, 0)
+    browser.wait_for("no reading once the mouse left the plot",
+                     lambda s: not value_row(s, FREQUENCY_SLAVE)["pointing"])
+    return read
 
 
 def shows_demo(snapshot):
@@ -478,23 +693,28 @@ def main():
         browser.wait_for("no writes yet in the last writes",
                          lambda s: [w["cells"] for w in s["writes"]] == [[NO_WRITES]])
         readings, points_before, points_after = follows_a_write(browser, modbus_port)
+        scale = frequency(browser.wait_for(
+            f"drive {FREQUENCY_SLAVE}'s plot from min 0 Hz to max its reading now, from at least "
+            f"{PLOT_MIN_SECONDS} s ago to now", shows_scale))
         writes = shows_writes(browser, modbus_port)
-        for width in NARROW_WIDTHS:
-            browser.resize(width)
-            scroll = browser.wait_for_layout(width)
-            if scroll["page"] > scroll["client"]:
-                fail(f"the page scrolls sideways at {width} px (tables must scroll in their own box)",
-                     scroll)
+        labelled = labelled_by_help(browser, metrics_port)
+        failed = value_row(browser.wait_for(
+            f"slave {FAILED_SLAVE}'s value marked: poll failed", marks_failed), FAILED_SLAVE)
+        captions = [fits(browser, width) for width in WIDTHS][-1]
         browser.resize(1280)
         print(f"status page in {CHROMIUM}: bus {DEMO_BUS}, drives {sorted(DEMO_DRIVES)}, "
               f"the frame {request} in the trace panel ({len(frame['frames'])} frames shown), "
-              f"and with the slave filter only slave 2's; no sideways page scroll at "
-              f"{' and '.join(f'{w} px' for w in NARROW_WIDTHS)}")
+              f"and with the slave filter only slave 2's; at "
+              f"{', '.join(f'{w} px' for w in WIDTHS)} no sideways page scroll, {captions} "
+              "captions, the writes' outcomes and the failed value's mark in full view")
         print("last writes, newest first: " + "; ".join(
-            " | ".join(w["cells"][2:]) for w in writes))
-        print(f"plant values: after the run command, drive {FREQUENCY_SLAVE}'s {FREQUENCY} "
-              f"shown {' -> '.join(f'{r:g} Hz' for r in readings)}, its plot from "
-              f"{points_before} to {points_after} readings")
+            " | ".join(w["cells"][:RULE_ACTION + 1]) for w in writes))
+        print(f"plant values: {labelled} labelled by their help text; after the run command, "
+              f"drive {FREQUENCY_SLAVE}'s {FREQUENCY} (\"{FREQUENCY_HELP}\") shown "
+              f"{' -> '.join(f'{r:g} Hz' for r in readings)}, its plot from {points_before} to "
+              f"{points_after} readings, scaled \"{scale['max']}\", \"{scale['min']}\", "
+              f"\"{scale['from']}\" to \"{scale['to']}\"; slave {FAILED_SLAVE}'s marked "
+              f"\"{failed['mark']}\"")
         if screenshot:
             stop = threading.Event()
             threads = traffic(modbus_port, stop)
@@ -517,6 +737,8 @@ def main():
             and age(s["drive 3"]) >= 3 and age(frequency(s)["cells"][2]) >= 3)
         print(f"offline: \"updated {lost['updated']}\", drive 3's last answer {lost['drive 3']}, "
               f"drive {FREQUENCY_SLAVE}'s last frequency reading {frequency(lost)['cells'][2]}")
+        read = reads_under_pointer(browser)
+        print(f"under the mouse, drive {FREQUENCY_SLAVE}'s plot read: " + "; then ".join(read))
     finally:
         browser.close()
 

@@ -186,6 +186,10 @@ async fn values_are_listed_as_json_with_their_units_and_when_they_were_read() {
         ]
     );
     assert_eq!(values[0]["unit"], "Hz");
+    assert_eq!(
+        values[0]["help"], "Output frequency",
+        "the status page's label"
+    );
     assert_eq!(values[0]["slave"], 2);
     assert!(values[0]["history"]
         .as_array()

@@ -73,6 +73,8 @@ struct Shown<'a> {
     bus: &'a str,
     slave: u8,
     name: &'a str,
+    /// What the value is, in words: its `help`, or its name if it has none.
+    help: &'a str,
     labels: &'a BTreeMap<String, String>,
     value: Option<f64>,
     unit: Option<&'a str>,
@@ -156,6 +158,7 @@ impl Store {
                     bus: &e.spec.bus,
                     slave: e.spec.slave,
                     name: &e.spec.name,
+                    help: &e.spec.help,
                     labels: &e.spec.labels,
                     value: e.value,
                     unit: e.spec.unit.as_deref(),
@@ -284,6 +287,10 @@ mod tests {
         assert_eq!(listing["values"][1]["error"], "timeout");
         assert_eq!(listing["values"][1]["read_at"], "1970-01-01T00:01:40.000Z");
         assert_eq!(listing["values"][0]["value"], 37.5);
+        assert_eq!(
+            listing["values"][0]["help"],
+            "drive_output_frequency_hertz's help"
+        );
         assert!(listing["values"][0].get("history").is_none());
     }
 

@@ -1,8 +1,9 @@
 //! What the status page shows, as data: the buses, their slaves, the masters connected now and
 //! the last writes, served as JSON at `/status` and rendered by the page at `/` (`status.html`,
-//! compiled in). The values are read from where they are kept (the bus's metrics and handle, the
-//! listener's sessions, the writes' record); this module only holds their shape and the line's recent utilisation, which needs
-//! the busy time of a moment ago.
+//! `status.css` and `status.js`, compiled in). The values are read from where they are kept
+//! (the bus's metrics and handle, the listener's sessions, the writes' record); this module only
+//! holds their shape and the line's recent utilisation, which needs the busy time of a moment
+//! ago.
 
 use serde::Serialize;
 use std::collections::{BTreeMap, HashMap, VecDeque};
@@ -10,8 +11,19 @@ use std::sync::{Mutex, PoisonError};
 use std::time::{Duration, SystemTime};
 use tokio::time::Instant;
 
-/// The page itself: one self-contained HTML file, its script and style inline.
-pub(crate) const PAGE: &str = include_str!("status.html");
+/// The page itself: one self-contained HTML file, its style and script inline, put together when
+/// compiled from `status.css`, `status.html` (the body's markup) and `status.js`.
+pub(crate) const PAGE: &str = concat!(
+    "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n",
+    "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\n",
+    "<title>modbus-gateway status</title>\n<style>\n",
+    include_str!("status.css"),
+    "</style>\n</head>\n<body>\n",
+    include_str!("status.html"),
+    "<script>\n",
+    include_str!("status.js"),
+    "</script>\n</body>\n</html>\n",
+);
 
 /// The utilisation shown is the line's busy time over about this much of the recent past.
 const UTILISATION_WINDOW: Duration = Duration::from_secs(60);
