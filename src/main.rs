@@ -68,8 +68,9 @@ enum Command {
         /// Only this bus's frames.
         #[arg(long)]
         bus: Option<String>,
-        /// Only the frames to and from this slave address (0-247).
-        #[arg(long, value_parser = clap::value_parser!(u8).range(0..=247))]
+        /// Only the frames to and from this slave address (0-255: a Modbus TCP device's units
+        /// go up to 255).
+        #[arg(long)]
         slave: Option<u8>,
         /// The trace's URL (default: `metrics.listen` of the configuration, path /trace).
         #[arg(long)]
