@@ -321,6 +321,52 @@ async fn every_one_of_247_known_slaves_has_its_series_from_the_start() {
     }
 }
 
+#[tokio::test]
+async fn the_bus_info_help_names_every_framing_and_transport_its_labels_take() {
+    use modbus_gateway::line::Framing;
+    let gateway = line().start().await;
+    let scrape = Scrape::of(&gateway).await;
+    let help = scrape
+        .text
+        .lines()
+        .find_map(|line| line.strip_prefix("# HELP modbus_gateway_bus_info "))
+        .expect("a HELP line");
+    // The words in the brackets after `framing` and after `transport`.
+    let listed = |after: &str| -> BTreeSet<&str> {
+        let start = help.find(&format!("{after} (")).expect(after) + after.len() + 2;
+        let end = start + help[start..].find(')').expect("the list ends");
+        help[start..end]
+            .split(|c: char| !c.is_ascii_alphanumeric())
+            .collect()
+    };
+    // Every framing (the match stops compiling when one is added) and every transport label.
+    let framings = [Framing::Rtu, Framing::Ascii, Framing::Tcp].map(|framing| match framing {
+        Framing::Rtu | Framing::Ascii | Framing::Tcp => framing.name(),
+    });
+    let transports = ["serial", "sim", "tcp", "rfc2217", "tls"];
+    let monitoring =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/docs/monitoring.md"))
+            .unwrap();
+    let row = monitoring
+        .lines()
+        .find(|line| line.starts_with("| `modbus_gateway_bus_info` |"))
+        .expect("docs/monitoring.md's row");
+    for (label, list) in framings
+        .iter()
+        .map(|f| (f, "framing"))
+        .chain(transports.iter().map(|t| (t, "transport")))
+    {
+        assert!(
+            listed(list).contains(label),
+            "the HELP names no {list} {label}: {help}"
+        );
+        assert!(
+            row.contains(&format!("`{label}`")),
+            "the docs name no {label}: {row}"
+        );
+    }
+}
+
 /// A gateway that has seen every kind of outcome and event the metrics describe.
 async fn gateway_after_mixed_traffic() -> Gateway {
     let gateway = line().start().await;

@@ -137,8 +137,9 @@ impl QueueFamilies {
             ),
             info: define.int_gauge(
                 "modbus_gateway_bus_info",
-                "The bus's line: its framing (rtu, ascii), serial format and transport (serial, \
-                 sim, tcp, rfc2217); always 1.",
+                "The bus's line: its framing (rtu, ascii, or tcp for a Modbus TCP device), serial \
+                 format (none on a Modbus TCP device) and transport (serial, sim, tcp, rfc2217, \
+                 tls); always 1.",
                 &["bus", "framing", "format", "transport"],
             ),
             queue_capacity: define.int_gauge(
