@@ -322,6 +322,50 @@ async fn every_one_of_247_known_slaves_has_its_series_from_the_start() {
 }
 
 #[tokio::test]
+async fn a_polled_slave_has_a_zero_series_for_every_poll_outcome_before_any_fails() {
+    let gateway = GatewayConfig::new()
+        .bus(sim_line().sim_slaves("1-4").text(
+            "[[bus.slave]]\naddress = 1\npoll_interval = \"1h\"\n\
+             [[bus.slave.value]]\nname = \"register_zero\"\nregister = 0\n",
+        ))
+        .start()
+        .await;
+    let polls = "modbus_gateway_polls_total{bus=\"sim\",slave=\"1\"}";
+    let scrape = within("the first poll", async {
+        loop {
+            let scrape = Scrape::of(&gateway).await;
+            if scrape.get(polls) == Some(1.0) {
+                return scrape;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    // The poll was good: every outcome of a failed one is there all the same, at 0.
+    let failed = scrape.series_of("modbus_gateway_poll_errors_total");
+    let outcomes: BTreeSet<&str> = failed
+        .iter()
+        .map(|(series, value)| {
+            assert_eq!(*value, 0.0, "{series}");
+            assert!(series.contains("bus=\"sim\"") && series.contains("slave=\"1\""));
+            let outcome = series.split("outcome=\"").nth(1).unwrap();
+            &outcome[..outcome.find('"').unwrap()]
+        })
+        .collect();
+    let documented = [
+        "timeout",
+        "exception",
+        "bad_reply",
+        "port_down",
+        "slave_down",
+        "queue_full",
+        "expired",
+    ];
+    assert_eq!(outcomes, BTreeSet::from(documented), "{failed:?}");
+    assert_eq!(failed.len(), documented.len());
+}
+
+#[tokio::test]
 async fn the_bus_info_help_names_every_framing_and_transport_its_labels_take() {
     use modbus_gateway::line::Framing;
     let gateway = line().start().await;
@@ -465,7 +509,7 @@ async fn the_shipped_alerts_and_dashboard_use_only_metrics_the_gateway_exports()
     let scrape = within("a poll times out", async {
         loop {
             let scrape = Scrape::of(&gateway).await;
-            if scrape.get(errors).is_some() {
+            if scrape.get(errors).is_some_and(|n| n >= 1.0) {
                 return scrape;
             }
             tokio::time::sleep(std::time::Duration::from_millis(50)).await;
