@@ -268,6 +268,6 @@ fn every_demo_configuration_is_in_the_package_and_checked_there() {
         );
         demos += 1;
     }
-    // demo, demo-ascii, demo-device-server, demo-tls.
-    assert!(demos >= 4, "only {demos} demos in config/");
+    // demo, demo-ascii, demo-device-server, demo-tls, demo-writes.
+    assert!(demos >= 5, "only {demos} demos in config/");
 }

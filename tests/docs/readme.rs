@@ -1,15 +1,98 @@
-//! The README's walkthroughs, run as a user would: the metric greps of the ASCII and device server
-//! demos. The commands are the README's, with this gateway's ports put in place of the demo's;
-//! what they print must be what the README shows.
+//! The README's walkthroughs, run as a user would: "Writes under control" (config/demo-writes.toml,
+//! mbpoll's writes and `modbus-gateway audit` on the journal) and the metric greps of the ASCII
+//! and device server demos. The commands are the README's, with this gateway's ports, journal and
+//! binary put in place of the demo's; what they print must be what the README shows, but for the
+//! times and the masters' ports, which are the user's own. A missing section or block fails.
 //!
-//! curl comes from the PATH; without it, a test checks nothing and says so, or fails under
-//! `MBGW_REQUIRE_TOOLS=1`.
+//! mbpoll and curl come from the PATH; without one, a test checks nothing and says so, or fails
+//! under `MBGW_REQUIRE_TOOLS=1`.
 
 use crate::simulate::Simulator;
 use crate::support::{start, tool, within, Scrape};
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 const README: &str = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md"));
+const DEMO_WRITES: &str = include_str!(concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/config/demo-writes.toml"
+));
+const BINARY: &str = env!("CARGO_BIN_EXE_modbus-gateway");
+
+/// The README's section under `heading`, to the next `## ` heading.
+fn section(heading: &str) -> &'static str {
+    let marker = format!("\n## {heading}\n");
+    let start = README
+        .find(&marker)
+        .unwrap_or_else(|| panic!("README.md has no section `{heading}`"))
+        + marker.len();
+    let body = &README[start..];
+    &body[..body.find("\n## ").unwrap_or(body.len())]
+}
+
+/// The contents of `text`'s fenced blocks whose info string is `lang`, in order.
+fn blocks(text: &str, lang: &str) -> Vec<String> {
+    let mut found = Vec::new();
+    let mut open: Option<(String, String)> = None;
+    for line in text.lines() {
+        match (open.as_mut(), line.strip_prefix("```")) {
+            (None, Some(info)) => open = Some((info.trim().to_owned(), String::new())),
+            (Some(_), Some("")) => {
+                let (info, body) = open.take().expect("a block is open");
+                if info == lang {
+                    found.push(body);
+                }
+            }
+            (Some((_, body)), _) => {
+                body.push_str(line);
+                body.push('\n');
+            }
+            (None, None) => {}
+        }
+    }
+    assert!(open.is_none(), "a fenced block is never closed");
+    found
+}
+
+/// A `console` block's commands (`$ ...`), each with the lines shown after it.
+fn session(block: &str) -> Vec<(String, Vec<String>)> {
+    let mut steps: Vec<(String, Vec<String>)> = Vec::new();
+    for line in block.lines() {
+        match (line.strip_prefix("$ "), steps.last_mut()) {
+            (Some(command), _) => steps.push((command.to_owned(), Vec::new())),
+            (None, Some((_, shown))) => shown.push(line.to_owned()),
+            (None, None) => panic!("output before any command: {line}"),
+        }
+    }
+    steps
+}
+
+/// `line` with what is the user's own put aside: a leading RFC 3339 time in UTC with
+/// microseconds, and a loopback master's port.
+fn normalised(line: &str) -> String {
+    let bytes = line.as_bytes();
+    let timed = bytes.len() > 27
+        && bytes[4] == b'-'
+        && bytes[10] == b'T'
+        && bytes[26] == b'Z'
+        && bytes[27] == b' ';
+    let mut rest = if timed {
+        format!("TIME{}", &line[27..])
+    } else {
+        line.to_owned()
+    };
+    let master = "127.0.0.1:";
+    let mut out = String::new();
+    while let Some(at) = rest.find(master) {
+        out.push_str(&rest[..at + master.len()]);
+        let tail = &rest[at + master.len()..];
+        let digits = tail.len() - tail.trim_start_matches(|c: char| c.is_ascii_digit()).len();
+        out.push_str(if digits > 0 { "PORT" } else { "" });
+        rest = tail[digits..].to_owned();
+    }
+    out.push_str(&rest);
+    out
+}
 
 /// Run `command` with bash; its output as a terminal shows it (standard output, then standard
 /// error), blank lines left out.
@@ -44,6 +127,88 @@ async fn run(command: &str) -> (Output, Vec<String>) {
 fn put(text: &str, from: &str, to: &str) -> String {
     assert!(text.contains(from), "no {from:?} in {text}");
     text.replace(from, to)
+}
+
+/// A fresh directory for a test's files; removed when dropped.
+struct Dir(PathBuf);
+
+impl Dir {
+    fn new(name: &str) -> Dir {
+        let dir = std::env::temp_dir().join(format!("mbgw-readme-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).expect("a fresh directory");
+        Dir(dir)
+    }
+
+    fn path(&self, name: &str) -> PathBuf {
+        self.0.join(name)
+    }
+}
+
+impl Drop for Dir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// config/demo-writes.toml on loopback ports of the system's choosing, its journal at `journal`.
+fn demo_writes_config(journal: &Path) -> String {
+    let config = put(DEMO_WRITES, "\"127.0.0.1:5023\"", "\"127.0.0.1:0\"");
+    let config = put(&config, "\"127.0.0.1:9023\"", "\"127.0.0.1:0\"");
+    put(
+        &config,
+        "path = \"/tmp/modbus-gateway-demo-writes.jsonl\"",
+        &format!("path = \"{}\"", journal.display()),
+    )
+}
+
+#[tokio::test]
+async fn the_writes_walkthrough_prints_what_the_readme_shows() {
+    let text = section("Writes under control");
+    assert_eq!(
+        blocks(text, "sh"),
+        ["cargo run --release -- --config config/demo-writes.toml\n"]
+    );
+    assert!(text.contains("`/tmp/modbus-gateway-demo-writes.jsonl`"));
+    let steps: Vec<(String, Vec<String>)> = blocks(text, "console")
+        .iter()
+        .flat_map(|block| session(block))
+        .collect();
+    let commands = |program: &str| steps.iter().filter(|(c, _)| c.starts_with(program)).count();
+    assert_eq!(commands("mbpoll "), 5, "{steps:?}");
+    assert_eq!(commands("cargo run --release -- "), 2, "{steps:?}");
+    if tool("mbpoll").is_none() {
+        return;
+    }
+    let dir = Dir::new("writes");
+    let config = demo_writes_config(&dir.path("writes.jsonl"));
+    let config_path = dir.path("demo-writes.toml");
+    std::fs::write(&config_path, &config).unwrap();
+    let gateway = start(&config).await;
+    let port = gateway.tcp_addrs()[0].port();
+    for (command, shown) in &steps {
+        let command = if command.starts_with("mbpoll ") {
+            put(command, "-p 5023 ", &format!("-p {port} "))
+        } else {
+            let command = put(command, "cargo run --release --", BINARY);
+            put(
+                &command,
+                "config/demo-writes.toml",
+                &config_path.display().to_string(),
+            )
+        };
+        let (output, printed) = run(&command).await;
+        let failed = shown.iter().any(|line| line.contains(" failed: "));
+        assert_eq!(output.status.success(), !failed, "{command}: {printed:?}");
+        // mbpoll's banner comes first; the README shows the last lines.
+        let last = &printed[printed.len().saturating_sub(shown.len())..];
+        assert_eq!(
+            last.iter().map(|l| normalised(l)).collect::<Vec<_>>(),
+            shown.iter().map(|l| normalised(l)).collect::<Vec<_>>(),
+            "{command}"
+        );
+    }
+    gateway.shutdown().await;
 }
 
 /// The README's command that greps `port`'s metrics, and the lines it shows after it (each
