@@ -6,7 +6,8 @@
 //! is the command line and the dispatch; each subcommand but those two is in the library's
 //! [`modbus_gateway::cli`].
 
-use clap::{CommandFactory, Parser, Subcommand};
+use clap::{ArgAction, CommandFactory, Parser, Subcommand};
+use clap_mangen::roff::{bold, italic, roman, Inline, Roff};
 use modbus_gateway::cli::{
     self, audit,
     check_config::check_config,
@@ -68,8 +69,9 @@ enum Command {
         /// Only this bus's frames.
         #[arg(long)]
         bus: Option<String>,
-        /// Only the frames to and from this slave address (0-247).
-        #[arg(long, value_parser = clap::value_parser!(u8).range(0..=247))]
+        /// Only the frames to and from this slave address (0-255: a Modbus TCP device's units
+        /// go up to 255).
+        #[arg(long)]
         slave: Option<u8>,
         /// The trace's URL (default: `metrics.listen` of the configuration, path /trace).
         #[arg(long)]
@@ -254,22 +256,147 @@ systemctl(1), journalctl(1), promtool(1)
 "#;
 
 /// The command line as the manual describes it: without clap's `help` subcommand, which would be
-/// listed as a page of its own that `--help` makes needless.
+/// listed as a page of its own that `--help` makes needless. Built, so that each subcommand has
+/// its name on the command line (`modbus-gateway trace`) and its page's (`modbus-gateway-trace`).
 fn man_command() -> clap::Command {
-    Cli::command().disable_help_subcommand(true)
+    let mut command = Cli::command().disable_help_subcommand(true);
+    command.build();
+    command
 }
 
-/// The main page: clap's sections from the command line's definition, then [`MAN_SECTIONS`].
-fn render_main_page(out: &mut dyn std::io::Write) -> std::io::Result<()> {
-    let page = clap_mangen::Man::new(man_command());
+/// One argument as the synopsis writes it: an option with its value (`-c|--config <CONFIG>`), a
+/// flag, or a positional's value (`SHELL`).
+fn synopsis_arg(arg: &clap::Arg) -> Vec<Inline> {
+    let takes_values = arg.get_num_args().is_some_and(|n| n.takes_values());
+    let value = || {
+        let names = arg.get_value_names().map_or_else(
+            || arg.get_id().as_str().to_uppercase(),
+            |names| {
+                names
+                    .iter()
+                    .map(ToString::to_string)
+                    .collect::<Vec<_>>()
+                    .join(" ")
+            },
+        );
+        italic(format!("<{names}>"))
+    };
+    if arg.is_positional() {
+        return vec![value()];
+    }
+    let mut inline = Vec::new();
+    if let Some(short) = arg.get_short() {
+        inline.push(bold(format!("-{short}")));
+    }
+    if let Some(long) = arg.get_long() {
+        if !inline.is_empty() {
+            inline.push(roman("|"));
+        }
+        inline.push(bold(format!("--{long}")));
+    }
+    if takes_values {
+        inline.push(roman(" "));
+        inline.push(value());
+    }
+    inline
+}
+
+/// The SYNOPSIS section of `command`'s page. clap_mangen's (0.3) names each option without its
+/// argument (`[-c|--config]`); this one writes it as `--help` does: `[-c|--config <CONFIG>]`,
+/// `...` after an option that may be repeated, `<--device <DEVICE>|--listen <HOST:PORT>>` for a
+/// group of which one is required.
+fn render_synopsis(command: &clap::Command, out: &mut dyn Write) -> std::io::Result<()> {
+    let name = command.get_bin_name().unwrap_or(command.get_name());
+    let mut line = vec![bold(name)];
+    let groups: Vec<Vec<&clap::Arg>> = command
+        .get_groups()
+        .filter(|group| group.is_required_set())
+        .map(|group| {
+            let members: Vec<&clap::Id> = group.get_args().collect();
+            command
+                .get_arguments()
+                .filter(|arg| members.contains(&arg.get_id()))
+                .collect()
+        })
+        .collect();
+    let grouped = |arg: &clap::Arg| groups.iter().flatten().any(|m| m.get_id() == arg.get_id());
+    let shown = |arg: &&clap::Arg| !arg.is_hide_set() && !grouped(arg);
+    // Options first, then the groups, then the positionals, as clap's usage line has them.
+    let options = command.get_arguments().filter(|a| !a.is_positional());
+    let positionals = command.get_arguments().filter(|a| a.is_positional());
+    for arg in options.filter(shown) {
+        let (open, close) = if arg.is_required_set() {
+            ("<", ">")
+        } else {
+            ("[", "]")
+        };
+        line.push(roman(format!(" {open}")));
+        line.extend(synopsis_arg(arg));
+        line.push(roman(close));
+        if matches!(arg.get_action(), ArgAction::Append | ArgAction::Count) {
+            line.push(roman("..."));
+        }
+    }
+    for members in &groups {
+        line.push(roman(" <"));
+        for (i, arg) in members.iter().enumerate() {
+            if i > 0 {
+                line.push(roman("|"));
+            }
+            line.extend(synopsis_arg(arg));
+        }
+        line.push(roman(">"));
+    }
+    for arg in positionals.filter(shown) {
+        line.push(roman(if arg.is_required_set() { " " } else { " [" }));
+        line.extend(synopsis_arg(arg));
+        line.push(roman(if arg.is_required_set() { "" } else { "]" }));
+    }
+    if command.has_subcommands() {
+        let value = command.get_subcommand_value_name().unwrap_or("COMMAND");
+        line.extend([roman(" ["), italic(value), roman("]")]);
+    }
+    let mut roff = Roff::default();
+    roff.control("SH", ["SYNOPSIS"]);
+    roff.text(line);
+    roff.to_writer(out)
+}
+
+/// A page: clap's sections from the command line's definition, the synopsis of
+/// [`render_synopsis`], and `more` before the version.
+fn render_page(command: &clap::Command, more: &str, out: &mut dyn Write) -> std::io::Result<()> {
+    let page = clap_mangen::Man::new(command.clone());
     page.render_title(out)?;
     page.render_name_section(out)?;
-    page.render_synopsis_section(out)?;
+    render_synopsis(command, out)?;
     page.render_description_section(out)?;
-    page.render_options_section(out)?;
-    page.render_subcommands_section(out)?;
-    out.write_all(MAN_SECTIONS.as_bytes())?;
-    page.render_version_section(out)
+    if command.get_arguments().any(|arg| !arg.is_hide_set()) {
+        page.render_options_section(out)?;
+    }
+    if command.get_subcommands().any(|sub| !sub.is_hide_set()) {
+        page.render_subcommands_section(out)?;
+    }
+    out.write_all(more.as_bytes())?;
+    if command.get_version().is_some() {
+        page.render_version_section(out)?;
+    }
+    Ok(())
+}
+
+/// The main page, with [`MAN_SECTIONS`].
+fn render_main_page(out: &mut dyn Write) -> std::io::Result<()> {
+    render_page(&man_command(), MAN_SECTIONS, out)
+}
+
+/// `command`'s page and its subcommands' pages, each in its file in `dir`.
+fn write_pages(command: &clap::Command, more: &str, dir: &std::path::Path) -> std::io::Result<()> {
+    for sub in command.get_subcommands().filter(|sub| !sub.is_hide_set()) {
+        write_pages(sub, "", dir)?;
+    }
+    let name = clap_mangen::Man::new(command.clone()).get_filename();
+    let mut file = std::io::BufWriter::new(std::fs::File::create(dir.join(name))?);
+    render_page(command, more, &mut file)?;
+    file.flush()
 }
 
 /// The main page on stdout, or every page in `out_dir`.
@@ -277,9 +404,7 @@ fn man_pages(out_dir: Option<&std::path::Path>) -> ExitCode {
     let written = match out_dir {
         None => render_main_page(&mut std::io::stdout()),
         Some(dir) => std::fs::create_dir_all(dir)
-            .and_then(|()| clap_mangen::generate_to(man_command(), dir))
-            .and_then(|()| std::fs::File::create(dir.join("modbus-gateway.1")))
-            .and_then(|mut file| render_main_page(&mut file)),
+            .and_then(|()| write_pages(&man_command(), MAN_SECTIONS, dir)),
     };
     match written {
         Ok(()) => ExitCode::SUCCESS,

@@ -31,7 +31,10 @@ pub enum ExceptionCode {
 }
 
 /// The name the Modbus Application Protocol V1.1b3 gives exception code `code`, if it names it.
-/// Codes it does not name are the vendor's (the reference drives use 05-09 in their own senses).
+/// Codes it does not name are the vendor's own, and are called so wherever the gateway words an
+/// exception (the journal's detail, the status page): 07 among them, Negative Acknowledge in the
+/// older Modicon PI-MBUS-300 (as libmodbus and mbpoll still name it) but not in V1.1b3, and
+/// "written not allowed" on the reference drives, which use 05-09 in their own senses.
 pub(crate) fn exception_name(code: u8) -> Option<&'static str> {
     Some(match code {
         0x01 => "illegal function",

@@ -556,8 +556,76 @@ fn a_missing_file_or_a_toml_syntax_error_names_the_file_once() {
     let out = gateway(&["--config", path.to_str().unwrap(), "check-config"], &[]);
     assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8_lossy(&out.stderr);
-    let named = format!("modbus-gateway: {}: TOML parse error at line 1", path.display());
+    let named = format!(
+        "modbus-gateway: {}: TOML parse error at line 1",
+        path.display()
+    );
     assert!(err.starts_with(&named), "{err}");
     let file_name = path.file_name().unwrap().to_str().unwrap();
     assert_eq!(err.matches(file_name).count(), 1, "{err}");
+}
+
+/// A page's SYNOPSIS line, and the header lines of its OPTIONS entries (`.TP`'s next line).
+fn synopsis_and_options(page: &str) -> (&str, Vec<&str>) {
+    let lines: Vec<&str> = page
+        .lines()
+        .filter(|line| !line.starts_with(".ie") && !line.starts_with(".el"))
+        .collect();
+    let at = lines
+        .iter()
+        .position(|line| *line == ".SH SYNOPSIS")
+        .expect("a SYNOPSIS section");
+    let options = lines
+        .windows(2)
+        .skip_while(|pair| pair[0] != ".SH OPTIONS")
+        .take_while(|pair| !pair[1].starts_with(".SH") || pair[0] == ".SH OPTIONS")
+        .filter(|pair| pair[0] == ".TP")
+        .map(|pair| pair[1])
+        .collect();
+    (lines[at + 1], options)
+}
+
+#[test]
+fn every_manual_pages_synopsis_names_the_argument_of_each_option() {
+    let dir = temp_config("unused", "").with_file_name("man-synopsis");
+    let out = gateway(&["man", "--out-dir", dir.to_str().unwrap()], &[]);
+    assert!(out.status.success());
+    let mut checked = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        let page = std::fs::read_to_string(&path).unwrap();
+        let (synopsis, options) = synopsis_and_options(&page);
+        for header in options {
+            // `\fB\-\-config\fR \fI<CONFIG>\fR [default: ...]`: the option and its argument.
+            let Some(value_at) = header.find(" \\fI<") else {
+                continue;
+            };
+            let long_at = header[..value_at]
+                .rfind("\\fB\\-\\-")
+                .expect("a long option");
+            let value_end = value_at + header[value_at..].find("\\fR").unwrap() + 3;
+            let written = &header[long_at..value_end];
+            assert!(
+                synopsis.contains(written),
+                "{}: the synopsis lacks {written}: {synopsis}",
+                path.display()
+            );
+            checked += 1;
+        }
+    }
+    assert!(checked >= 12, "only {checked} options with an argument");
+    let main = std::fs::read_to_string(dir.join("modbus-gateway.1")).unwrap();
+    assert!(
+        synopsis_and_options(&main)
+            .0
+            .contains("[\\fB\\-c\\fR|\\fB\\-\\-config\\fR \\fI<CONFIG>\\fR]"),
+        "{main}"
+    );
+    let simulate = std::fs::read_to_string(dir.join("modbus-gateway-simulate.1")).unwrap();
+    assert!(
+        synopsis_and_options(&simulate).0.contains(
+            "<\\fB\\-\\-device\\fR \\fI<DEVICE>\\fR|\\fB\\-\\-listen\\fR \\fI<HOST:PORT>\\fR>"
+        ),
+        "one of the two is required: {simulate}"
+    );
 }

@@ -1,6 +1,9 @@
 //! The documentation says what the code has: every configuration key is in the configuration
-//! reference (docs/configuration.md), every metric in docs/monitoring.md; and every link between
-//! the README and the docs/ pages leads to a file and a heading that exist.
+//! reference (docs/configuration.md), every metric in docs/monitoring.md; every link between
+//! the README and the docs/ pages leads to a file and a heading that exist; and every demo the
+//! README runs is in the package. `readme` runs the README's walkthroughs.
+
+mod readme;
 
 use modbus_gateway::Config;
 use std::collections::BTreeSet;
@@ -235,4 +238,36 @@ fn the_security_pages_toml_excerpt_is_a_verbatim_part_of_the_tls_demo() {
             "docs/security.md shows what config/demo-tls.toml does not have:\n{excerpt}"
         );
     }
+}
+
+#[test]
+fn every_demo_configuration_is_in_the_package_and_checked_there() {
+    let manifest: toml::Value = toml::from_str(&page("Cargo.toml")).expect("Cargo.toml");
+    let assets = manifest["package"]["metadata"]["deb"]["assets"]
+        .as_array()
+        .expect("the package's assets");
+    let shipped: BTreeSet<(&str, &str)> = assets
+        .iter()
+        .filter_map(|asset| Some((asset[0].as_str()?, asset[1].as_str()?)))
+        .collect();
+    let check = page(".ci/check-package");
+    let mut demos = 0;
+    for entry in std::fs::read_dir(Path::new(ROOT).join("config")).unwrap() {
+        let name = entry.unwrap().file_name().into_string().unwrap();
+        if !(name.starts_with("demo") && name.ends_with(".toml")) {
+            continue;
+        }
+        let installed = format!("usr/share/doc/modbus-gateway/{name}");
+        assert!(
+            shipped.contains(&(format!("config/{name}").as_str(), installed.as_str())),
+            "Cargo.toml's package assets do not install config/{name} as {installed}"
+        );
+        assert!(
+            check.contains(&format!("expect_file -rw-r--r-- {installed}\n")),
+            ".ci/check-package does not look for {installed}"
+        );
+        demos += 1;
+    }
+    // demo, demo-ascii, demo-device-server, demo-tls, demo-writes.
+    assert!(demos >= 5, "only {demos} demos in config/");
 }

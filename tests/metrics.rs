@@ -321,6 +321,96 @@ async fn every_one_of_247_known_slaves_has_its_series_from_the_start() {
     }
 }
 
+#[tokio::test]
+async fn a_polled_slave_has_a_zero_series_for_every_poll_outcome_before_any_fails() {
+    let gateway = GatewayConfig::new()
+        .bus(sim_line().sim_slaves("1-4").text(
+            "[[bus.slave]]\naddress = 1\npoll_interval = \"1h\"\n\
+             [[bus.slave.value]]\nname = \"register_zero\"\nregister = 0\n",
+        ))
+        .start()
+        .await;
+    let polls = "modbus_gateway_polls_total{bus=\"sim\",slave=\"1\"}";
+    let scrape = within("the first poll", async {
+        loop {
+            let scrape = Scrape::of(&gateway).await;
+            if scrape.get(polls) == Some(1.0) {
+                return scrape;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    // The poll was good: every outcome of a failed one is there all the same, at 0.
+    let failed = scrape.series_of("modbus_gateway_poll_errors_total");
+    let outcomes: BTreeSet<&str> = failed
+        .iter()
+        .map(|(series, value)| {
+            assert_eq!(*value, 0.0, "{series}");
+            assert!(series.contains("bus=\"sim\"") && series.contains("slave=\"1\""));
+            let outcome = series.split("outcome=\"").nth(1).unwrap();
+            &outcome[..outcome.find('"').unwrap()]
+        })
+        .collect();
+    let documented = [
+        "timeout",
+        "exception",
+        "bad_reply",
+        "port_down",
+        "slave_down",
+        "queue_full",
+        "expired",
+    ];
+    assert_eq!(outcomes, BTreeSet::from(documented), "{failed:?}");
+    assert_eq!(failed.len(), documented.len());
+}
+
+#[tokio::test]
+async fn the_bus_info_help_names_every_framing_and_transport_its_labels_take() {
+    use modbus_gateway::line::Framing;
+    let gateway = line().start().await;
+    let scrape = Scrape::of(&gateway).await;
+    let help = scrape
+        .text
+        .lines()
+        .find_map(|line| line.strip_prefix("# HELP modbus_gateway_bus_info "))
+        .expect("a HELP line");
+    // The words in the brackets after `framing` and after `transport`.
+    let listed = |after: &str| -> BTreeSet<&str> {
+        let start = help.find(&format!("{after} (")).expect(after) + after.len() + 2;
+        let end = start + help[start..].find(')').expect("the list ends");
+        help[start..end]
+            .split(|c: char| !c.is_ascii_alphanumeric())
+            .collect()
+    };
+    // Every framing (the match stops compiling when one is added) and every transport label.
+    let framings = [Framing::Rtu, Framing::Ascii, Framing::Tcp].map(|framing| match framing {
+        Framing::Rtu | Framing::Ascii | Framing::Tcp => framing.name(),
+    });
+    let transports = ["serial", "sim", "tcp", "rfc2217", "tls"];
+    let monitoring =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/docs/monitoring.md"))
+            .unwrap();
+    let row = monitoring
+        .lines()
+        .find(|line| line.starts_with("| `modbus_gateway_bus_info` |"))
+        .expect("docs/monitoring.md's row");
+    for (label, list) in framings
+        .iter()
+        .map(|f| (f, "framing"))
+        .chain(transports.iter().map(|t| (t, "transport")))
+    {
+        assert!(
+            listed(list).contains(label),
+            "the HELP names no {list} {label}: {help}"
+        );
+        assert!(
+            row.contains(&format!("`{label}`")),
+            "the docs name no {label}: {row}"
+        );
+    }
+}
+
 /// A gateway that has seen every kind of outcome and event the metrics describe.
 async fn gateway_after_mixed_traffic() -> Gateway {
     let gateway = line().start().await;
@@ -419,7 +509,7 @@ async fn the_shipped_alerts_and_dashboard_use_only_metrics_the_gateway_exports()
     let scrape = within("a poll times out", async {
         loop {
             let scrape = Scrape::of(&gateway).await;
-            if scrape.get(errors).is_some() {
+            if scrape.get(errors).is_some_and(|n| n >= 1.0) {
                 return scrape;
             }
             tokio::time::sleep(std::time::Duration::from_millis(50)).await;

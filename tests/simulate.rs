@@ -330,3 +330,64 @@ async fn simulate_listen_on_an_ascii_bus_carries_ascii_frames_split_across_segme
     drop(client);
     simulator.stop().await;
 }
+
+/// Run `line`, one of docs/command-line.md's mbpoll reads of the pty, on `path` instead of the
+/// page's; whether it succeeded, and the last line it printed.
+async fn mbpoll_read(line: &str, path: &str) -> (bool, String) {
+    let command = line.split('#').next().unwrap().replace("/dev/pts/5", path);
+    let args: Vec<String> = command.split_whitespace().map(str::to_owned).collect();
+    let output = within(
+        "mbpoll reads",
+        tokio::task::spawn_blocking(move || Command::new(&args[0]).args(&args[1..]).output()),
+    )
+    .await
+    .unwrap()
+    .expect("mbpoll runs");
+    let printed = String::from_utf8_lossy(&output.stdout) + String::from_utf8_lossy(&output.stderr);
+    let last = printed
+        .lines()
+        .rfind(|line| !line.trim().is_empty())
+        .unwrap_or_default()
+        .to_owned();
+    (output.status.success(), last)
+}
+
+#[tokio::test]
+async fn mbpoll_on_the_pty_fails_unit_4_as_the_command_line_page_says() {
+    let page = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/docs/command-line.md"));
+    let reads: Vec<&str> = page
+        .lines()
+        .filter(|line| line.starts_with("mbpoll -m rtu ") && line.contains(" /dev/pts/5 "))
+        .collect();
+    assert_eq!(reads.len(), 2, "the page's reads of unit 2 and unit 4");
+    assert!(
+        reads[0].contains("-a 2 ") && reads[1].contains("-a 4 "),
+        "{reads:?}"
+    );
+    if crate::support::tool("mbpoll").is_none() {
+        return;
+    }
+    let simulator = Simulator::start_with(demo_path(), "pty", "9600 baud 8E1").await;
+    let path = &simulator.path;
+    let (ok, last) = mbpoll_read(reads[0], path).await;
+    assert!(ok && last.ends_with("0x010A"), "{last}");
+    // Unit 4's reply read as a standard one: its CRC is wrong, and three bytes stay on the pty.
+    let failed = "Read output (holding) register failed: ";
+    assert_eq!(
+        mbpoll_read(reads[1], path).await,
+        (false, format!("{failed}Invalid CRC"))
+    );
+    // They begin the next reply read, of unit 2; what that leaves spoils unit 4's read again.
+    assert_eq!(
+        mbpoll_read(reads[0], path).await,
+        (false, format!("{failed}Response not from requested slave"))
+    );
+    assert_eq!(
+        mbpoll_read(reads[1], path).await,
+        (false, format!("{failed}Connection timed out"))
+    );
+    // Then nothing is left over, and unit 2 reads again.
+    let (ok, last) = mbpoll_read(reads[0], path).await;
+    assert!(ok && last.ends_with("0x010A"), "{last}");
+    simulator.stop().await;
+}

@@ -3,7 +3,9 @@
 //! stalled reader dropped), a reader that stops reading on the paused clock, the trace's gate
 //! with no reader, and the `trace` subcommand run as the real binary.
 
-use crate::support::{http_get, rtu, sim_bus_counted, start, start_sim, within, RawMaster};
+use crate::support::{
+    http_get, mbap, rtu, sim_bus_counted, start, start_sim, within, Bus, GatewayConfig, RawMaster,
+};
 use bytes::Bytes;
 use http_body_util::{BodyExt, Empty};
 use hyper::body::Incoming;
@@ -17,7 +19,8 @@ use std::net::SocketAddr;
 use std::process::{Command, Stdio};
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::net::TcpStream;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpListener, TcpStream};
 
 const BINARY: &str = env!("CARGO_BIN_EXE_modbus-gateway");
 
@@ -259,8 +262,77 @@ async fn a_trace_filtered_by_bus_and_slave_gets_only_their_frames() {
     let (status, body) = http_get(metrics, "/trace?bus=c").await;
     assert_eq!(status, 404);
     assert!(body.contains("a, b"), "names the known buses: {body}");
-    let (status, _) = http_get(metrics, "/trace?slave=248").await;
+    let (status, _) = http_get(metrics, "/trace?slave=256").await;
     assert_eq!(status, 400);
+    gateway.shutdown().await;
+}
+
+/// A Modbus TCP device on a free loopback port, every unit id 0-255 its own: each request is
+/// answered as a read of one register holding the unit id.
+async fn every_unit_device() -> u16 {
+    let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let port = server.local_addr().unwrap().port();
+    tokio::spawn(async move {
+        while let Ok((mut socket, _)) = server.accept().await {
+            tokio::spawn(async move {
+                // Transaction id, protocol id, length, unit id.
+                let mut header = [0u8; 7];
+                while socket.read_exact(&mut header).await.is_ok() {
+                    let length = usize::from(u16::from_be_bytes([header[4], header[5]]));
+                    let mut pdu = vec![0u8; length.saturating_sub(1)];
+                    if socket.read_exact(&mut pdu).await.is_err() {
+                        return;
+                    }
+                    let transaction = u16::from_be_bytes([header[0], header[1]]);
+                    let reply = mbap(transaction, header[6], &[0x03, 0x02, 0x00, header[6]]);
+                    if socket.write_all(&reply).await.is_err() {
+                        return;
+                    }
+                }
+            });
+        }
+    });
+    port
+}
+
+/// A gateway whose one bus `dev` is [`every_unit_device`]: units 0-255 reach it as they are.
+async fn gateway_on_a_modbus_tcp_device() -> modbus_gateway::Gateway {
+    let port = every_unit_device().await;
+    GatewayConfig::new()
+        .bus(
+            Bus::on("dev", &format!("tcp://127.0.0.1:{port}"))
+                .framing("tcp")
+                .response_timeout("1s"),
+        )
+        .start()
+        .await
+}
+
+const READ_ONE: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x01];
+
+#[tokio::test]
+async fn a_trace_of_slave_255_gets_unit_255_of_a_modbus_tcp_device() {
+    let gateway = gateway_on_a_modbus_tcp_device().await;
+    let mut trace = Trace::open(gateway.metrics_addr(), "?slave=255").await;
+    let mut master = RawMaster::connect(gateway.tcp_addrs()[0]).await;
+    for (transaction, unit) in [(1, 1), (2, 255), (3, 248), (4, 255)] {
+        assert_eq!(
+            master.call(transaction, unit, &READ_ONE).await,
+            [0x03, 0x02, 0x00, unit]
+        );
+    }
+    // Unit 255's two reads and their answers; had unit 1's or 248's passed the filter, they
+    // would have come first.
+    for _ in 0..2 {
+        for (direction, pdu) in [("tx", &READ_ONE[..]), ("rx", &[0x03, 0x02, 0x00, 0xFF][..])] {
+            let frame = trace.frame().await;
+            assert_eq!(frame["slave"], 255, "{frame}");
+            assert_eq!(frame["direction"], direction, "{frame}");
+            assert_eq!(frame["framing"], "tcp", "{frame}");
+            let shown = frame["hex"].as_str().unwrap();
+            assert!(shown.ends_with(&format!("ff {}", hex(pdu))), "{frame}");
+        }
+    }
     gateway.shutdown().await;
 }
 
@@ -430,42 +502,83 @@ async fn with_no_trace_reader_the_bus_publishes_nothing() {
     assert_eq!(metrics.trace.published(), 6);
 }
 
+/// The `trace` subcommand as the real binary, and the lines it prints as they come.
+struct Subcommand {
+    child: std::process::Child,
+    printed: tokio::sync::mpsc::UnboundedReceiver<String>,
+}
+
+impl Subcommand {
+    fn spawn(args: &[&str]) -> Subcommand {
+        let mut child = Command::new(BINARY)
+            .arg("trace")
+            .args(args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let (lines, printed) = tokio::sync::mpsc::unbounded_channel();
+        let stdout = child.stdout.take().unwrap();
+        std::thread::spawn(move || {
+            for line in std::io::BufReader::new(stdout).lines() {
+                if lines.send(line.unwrap()).is_err() {
+                    return;
+                }
+            }
+        });
+        Subcommand { child, printed }
+    }
+
+    /// The first line it prints while `master` sends `pdu` to `unit` again and again (the trace
+    /// is connected once a frame shows), and the line after it.
+    async fn first_two(&mut self, master: &mut RawMaster, unit: u8, pdu: &[u8]) -> [String; 2] {
+        let printed = &mut self.printed;
+        let first = within("the trace prints", async {
+            loop {
+                master.call(1, unit, pdu).await;
+                if let Ok(Some(line)) =
+                    tokio::time::timeout(Duration::from_millis(200), printed.recv()).await
+                {
+                    return line;
+                }
+            }
+        })
+        .await;
+        let second = within("the reply", printed.recv()).await.unwrap();
+        [first, second]
+    }
+
+    /// Ctrl-C ends it, successfully.
+    async fn interrupt(mut self) {
+        let pid = libc::pid_t::try_from(self.child.id()).unwrap();
+        // SAFETY: kill(2) on our own child's pid.
+        assert_eq!(unsafe { libc::kill(pid, libc::SIGINT) }, 0);
+        let status = within("the trace stops", async {
+            loop {
+                if let Some(status) = self.child.try_wait().unwrap() {
+                    return status;
+                }
+                tokio::time::sleep(Duration::from_millis(10)).await;
+            }
+        })
+        .await;
+        assert!(status.success(), "{status}");
+    }
+}
+
+/// A line of the subcommand without its time of day, UTC: `14:00:00.123456 `.
+fn untimed(line: &str) -> &str {
+    line.split_once(' ').unwrap().1
+}
+
 #[tokio::test]
 async fn the_trace_subcommand_prints_each_frame_decoded() {
     let gateway = start_sim("").await;
     let url = format!("http://{}", gateway.metrics_addr());
-    let mut child = Command::new(BINARY)
-        .args(["trace", "--url", &url, "--slave", "2"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let (lines, mut printed) = tokio::sync::mpsc::unbounded_channel();
-    let stdout = child.stdout.take().unwrap();
-    std::thread::spawn(move || {
-        for line in std::io::BufReader::new(stdout).lines() {
-            if lines.send(line.unwrap()).is_err() {
-                return;
-            }
-        }
-    });
+    let mut trace = Subcommand::spawn(&["--url", &url, "--slave", "2"]);
     let mut master = RawMaster::connect(gateway.tcp_addrs()[0]).await;
     let read = [0x04, 0x00, 0x01, 0x00, 0x02];
-    // The trace is connected once a read shows.
-    let first = within("the trace prints", async {
-        loop {
-            master.call(1, 2, &read).await;
-            if let Ok(Some(line)) =
-                tokio::time::timeout(Duration::from_millis(200), printed.recv()).await
-            {
-                return line;
-            }
-        }
-    })
-    .await;
-    let second = within("the reply", printed.recv()).await.unwrap();
-    // Without the time of day, UTC: `14:00:00.123456 `.
-    let untimed = |line: &str| line.split_once(' ').unwrap().1.to_owned();
+    let [first, second] = trace.first_two(&mut master, 2, &read).await;
     assert_eq!(
         untimed(&first),
         "sim tx  slave 2    read input registers 0x04  addr 0x0001 (1) count 2   02 04 00 01 00 02 20 38"
@@ -478,20 +591,46 @@ async fn the_trace_subcommand_prints_each_frame_decoded() {
         first.split(' ').next().unwrap().len(),
         "14:00:00.123456".len()
     );
-    // Ctrl-C ends it, successfully.
-    let pid = libc::pid_t::try_from(child.id()).unwrap();
-    // SAFETY: kill(2) on our own child's pid.
-    assert_eq!(unsafe { libc::kill(pid, libc::SIGINT) }, 0);
-    let status = within("the trace stops", async {
-        loop {
-            if let Some(status) = child.try_wait().unwrap() {
-                return status;
-            }
-            tokio::time::sleep(Duration::from_millis(10)).await;
-        }
-    })
-    .await;
-    assert!(status.success(), "{status}");
+    trace.interrupt().await;
+    gateway.shutdown().await;
+}
+
+#[tokio::test]
+async fn the_trace_subcommand_takes_slave_255_and_refuses_256() {
+    let gateway = gateway_on_a_modbus_tcp_device().await;
+    let url = format!("http://{}", gateway.metrics_addr());
+    let refused = Command::new(BINARY)
+        .args(["trace", "--url", &url, "--slave", "256"])
+        .output()
+        .unwrap();
+    assert_eq!(refused.status.code(), Some(2), "{refused:?}");
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(stderr.contains("--slave"), "{stderr}");
+
+    let mut trace = Subcommand::spawn(&["--url", &url, "--slave", "255"]);
+    let mut master = RawMaster::connect(gateway.tcp_addrs()[0]).await;
+    trace.first_two(&mut master, 255, &READ_ONE).await;
+    // Connected: unit 1's frames are not printed, the next unit 255's are.
+    assert_eq!(master.call(2, 1, &READ_ONE).await, [0x03, 0x02, 0x00, 0x01]);
+    assert_eq!(
+        master.call(3, 255, &READ_ONE).await,
+        [0x03, 0x02, 0x00, 0xFF]
+    );
+    let tx = within("unit 255's request", trace.printed.recv())
+        .await
+        .unwrap();
+    let rx = within("unit 255's answer", trace.printed.recv())
+        .await
+        .unwrap();
+    assert!(
+        untimed(&tx).starts_with("dev tx  slave 255  read holding registers 0x03  addr 0x0000"),
+        "{tx}"
+    );
+    assert!(
+        untimed(&rx).starts_with("dev rx  slave 255  0x03 ok  1 register: 0x00ff"),
+        "{rx}"
+    );
+    trace.interrupt().await;
     gateway.shutdown().await;
 }
 

@@ -3,6 +3,7 @@
 //! opened, lost or failing to open, what went over the line.
 
 use super::labels::{decimal, seconds_since_epoch, Fate, LinkDrop, OTHER};
+use super::polls::POLL_OUTCOMES;
 use super::{Definer, RequestCounters, BUS_EVENTS};
 use crate::config;
 use crate::error::{Answer, Outcome, RequestError};
@@ -68,17 +69,6 @@ pub(super) struct SlaveFamilies {
     poll_errors: IntCounterVec,
 }
 
-/// The `outcome` label of a failed poll of plant values.
-pub(crate) const POLL_OUTCOMES: [&str; 7] = [
-    "timeout",
-    "exception",
-    "bad_reply",
-    "port_down",
-    "slave_down",
-    "queue_full",
-    "expired",
-];
-
 impl LineFamilies {
     fn new(define: &Definer) -> Self {
         let bus = &["bus"];
@@ -137,8 +127,9 @@ impl QueueFamilies {
             ),
             info: define.int_gauge(
                 "modbus_gateway_bus_info",
-                "The bus's line: its framing (rtu, ascii), serial format and transport (serial, \
-                 sim, tcp, rfc2217); always 1.",
+                "The bus's line: its framing (rtu, ascii, or tcp for a Modbus TCP device), serial \
+                 format (none on a Modbus TCP device) and transport (serial, sim, tcp, rfc2217, \
+                 tls); always 1.",
                 &["bus", "framing", "format", "transport"],
             ),
             queue_capacity: define.int_gauge(
@@ -370,7 +361,7 @@ pub(super) struct SlaveMetrics {
     cache_hits: IntCounter,
     round_trips: Mutex<VecDeque<Duration>>,
     /// The gateway's polls of its plant values, for the status page.
-    polls: AtomicU64,
+    pub(super) polls: AtomicU64,
 }
 
 /// What the status page shows of a slave, as its metrics have it.
@@ -466,7 +457,7 @@ impl BusMetrics {
     }
 
     /// The series of `address` if it is a known slave.
-    fn known(&self, address: u8) -> Option<&SlaveMetrics> {
+    pub(super) fn known(&self, address: u8) -> Option<&SlaveMetrics> {
         self.slaves[usize::from(address)].get()
     }
 
@@ -553,20 +544,6 @@ impl BusMetrics {
     pub fn coalesced(&self, slave: u8) {
         if let Some(slave) = self.known(slave) {
             slave.coalesced.inc();
-        }
-    }
-
-    /// The gateway polled `slave`'s plant values; the poll failed as `failed` (one of
-    /// [`POLL_OUTCOMES`]) if it did.
-    pub(crate) fn polled(&self, slave: u8, failed: Option<&'static str>) {
-        let address = decimal(slave);
-        self.polls.with_label_values(&[&*self.name, address]).inc();
-        if let Some(known) = self.known(slave) {
-            known.polls.fetch_add(1, Ordering::Relaxed);
-        }
-        if let Some(outcome) = failed {
-            let labels = &[&*self.name, address, outcome];
-            self.poll_errors.with_label_values(labels).inc();
         }
     }
 

@@ -10,6 +10,7 @@ mod audit;
 mod bus;
 mod labels;
 mod median;
+mod polls;
 mod port;
 mod tcp;
 mod throttle;

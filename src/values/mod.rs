@@ -120,6 +120,9 @@ impl Values {
             if polls.is_empty() {
                 continue;
             }
+            for poll in &polls {
+                bus.metrics().will_poll(poll.read.slave);
+            }
             pollers.push(tokio::spawn(poller::run(
                 bus.clone(),
                 polls,

@@ -46,12 +46,14 @@ fn filter(query: Option<&str>, buses: &[String]) -> Result<Filter, (StatusCode, 
         let value = value.as_ref();
         match key.as_ref() {
             "bus" => filter.bus = Some(super::bus_named(value, buses)?),
+            // Every address byte a frame can carry: a Modbus TCP device's units are 0-255, and
+            // anything on a serial line may answer at 248-255 too.
             "slave" => match value.parse::<u8>() {
-                Ok(slave) if slave <= 247 => filter.slave = Some(slave),
-                _ => {
+                Ok(slave) => filter.slave = Some(slave),
+                Err(_) => {
                     return Err((
                         StatusCode::BAD_REQUEST,
-                        format!("slave must be an address from 0 to 247, not `{value}`\n"),
+                        format!("slave must be an address from 0 to 255, not `{value}`\n"),
                     ))
                 }
             },
@@ -188,6 +190,15 @@ mod tests {
                 slave: Some(247)
             })
         );
+        for slave in [0, 248, 255] {
+            assert_eq!(
+                filter(Some(&format!("slave={slave}")), &buses()),
+                Ok(Filter {
+                    bus: None,
+                    slave: Some(slave)
+                })
+            );
+        }
     }
 
     #[test]
@@ -198,8 +209,8 @@ mod tests {
     }
 
     #[test]
-    fn a_slave_outside_0_to_247_is_a_bad_request() {
-        for query in ["slave=248", "slave=-1", "slave=x", "slave=", "colour=red"] {
+    fn a_slave_outside_0_to_255_is_a_bad_request() {
+        for query in ["slave=256", "slave=-1", "slave=x", "slave=", "colour=red"] {
             let refused = filter(Some(query), &buses());
             assert_eq!(refused.unwrap_err().0, StatusCode::BAD_REQUEST, "{query}");
         }
