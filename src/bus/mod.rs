@@ -15,6 +15,7 @@ pub(crate) mod health;
 mod outage;
 mod pipelined;
 pub(crate) mod queue;
+mod ready;
 mod reconfigure;
 mod serve;
 mod task;

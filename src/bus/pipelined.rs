@@ -3,11 +3,11 @@
 //! transaction id, and each reply, in whatever order the device sends them, answers the request
 //! of its id, unit and function code, and only that one. A request without its reply by its
 //! deadline is retried (a read under `retries`) or answered 0x0B; a reply that answers none in
-//! flight is discarded and counted. Slave health, the cache, coalescing, the metrics and the
-//! trace are the one-at-a-time loop's (`serve`, `transaction`).
+//! flight is discarded and counted. What clears a request for the wire is the one-at-a-time
+//! loop's (`ready`), as are slave health, the cache, coalescing, the metrics and the trace.
 
 use super::device::Linked;
-use super::health::Admission;
+use super::ready::Cleared;
 use super::task::{BusTask, Served};
 use super::{Job, HEARTBEAT};
 use crate::error::{Answer, NoReply, Outcome, RequestError};
@@ -15,7 +15,6 @@ use crate::line::pipeline::{Frame, Pipeline};
 use crate::line::reply::{self, ReplyForm, Verdict};
 use crate::line::{LineCounters, Reply};
 use crate::metrics::Fate;
-use crate::pdu;
 use crate::shutdown::Stopping;
 use crate::trace::{Direction, TraceEvent};
 use std::io;
@@ -100,12 +99,7 @@ impl BusTask {
                 Step::Frame(Err(error)) => Some(error),
                 Step::Deadline => self.expire(&mut pipeline, &mut flights).await.err(),
             };
-            let traffic = pipeline.counters();
-            self.handle.metrics.line(&traffic.since(&counted));
-            counted = traffic;
-            if let Some(link) = pipeline.port().link() {
-                self.handle.metrics.link(Some(link));
-            }
+            self.count_traffic(pipeline.counters(), &mut counted, pipeline.port().link());
             if let Some(error) = lost {
                 return self.lose_flights(flights, Served::Lost(error));
             }
@@ -127,29 +121,10 @@ impl BusTask {
         flights: &mut Vec<Flight>,
         job: Job,
     ) -> io::Result<()> {
-        let Some(job) = self.settle_waiters(job) else {
+        let Some(Cleared { job, retries, .. }) = self.ready(job).await else {
             return Ok(());
         };
-        if !job.waiter.durable().await {
-            let refusal = RequestError::Unrecorded(job.function());
-            self.handle.answer(job, Err(refusal));
-            return Ok(());
-        }
         let now = Instant::now();
-        let admission = self.health.admit(job.slave, now, self.current.derived.down);
-        if let Admission::Skip { timeouts } = admission {
-            self.handle
-                .answer(job, Err(RequestError::SlaveDown { timeouts }));
-            return Ok(());
-        }
-        let settings = &self.current.settings;
-        let retries = if admission == Admission::Probe {
-            0
-        } else if pdu::is_read_only(&job.pdu) || settings.retry_writes {
-            settings.retries
-        } else {
-            0
-        };
         let (transaction, sent) = match pipeline.send(job.slave, &job.pdu).await {
             Ok((transaction, sent)) => (transaction, sent.to_vec()),
             Err(error) => {

@@ -2,12 +2,10 @@
 //! stop, stray bytes on the idle line), drop what nobody waits for any more, refuse what expired
 //! or goes to a slave that is down, and run the rest one transaction at a time.
 
-use super::health::Admission;
 use super::task::{BusTask, Served};
 use super::transaction::Ran;
-use super::{Job, Port, Waiter, HEARTBEAT};
+use super::{Job, Port, HEARTBEAT};
 use crate::error::RequestError;
-use crate::line::BROADCAST;
 use crate::line::{LineCounters, LineMaster};
 use crate::shutdown::Stopping;
 use std::io;
@@ -114,7 +112,7 @@ impl BusTask {
                 Next::Run(job)
             }
             idle = serving.master.watch_idle() => {
-                self.count_traffic(serving);
+                self.count_serving(serving);
                 match idle {
                     Ok(_) => Next::Again,
                     Err(error) => Next::End(Served::Lost(error)),
@@ -128,47 +126,26 @@ impl BusTask {
     }
 
     /// Pass what went over the line since the last look to the metrics.
-    /// A device server's link as now measured goes with it.
-    fn count_traffic(&self, serving: &mut Serving<'_>) {
-        let traffic = serving.master.counters();
-        self.handle.metrics.line(&traffic.since(&serving.counted));
-        serving.counted = traffic;
-        if let Some(link) = serving.master.port().link() {
-            self.handle.metrics.link(Some(link));
-        }
+    fn count_serving(&self, serving: &mut Serving<'_>) {
+        let now = serving.master.counters();
+        self.count_traffic(now, &mut serving.counted, serving.master.port().link());
     }
 
     /// Answer `job`: from the line, or at once if nobody waits for it, it expired or its slave
     /// is down. Returns why serving ends, if it does.
     async fn run_job(&mut self, serving: &mut Serving<'_>, job: Job) -> Option<Served> {
-        let job = self.settle_waiters(job)?;
-        if !job.waiter.durable().await {
-            let refusal = RequestError::Unrecorded(job.function());
-            self.handle.answer(job, Err(refusal));
-            return None;
-        }
-        let broadcast = job.slave == BROADCAST && self.current.derived.framing.broadcasts();
-        let admission = if broadcast {
-            Admission::Send
-        } else {
-            self.health
-                .admit(job.slave, Instant::now(), self.current.derived.down)
-        };
-        if let Admission::Skip { timeouts } = admission {
-            self.handle
-                .answer(job, Err(RequestError::SlaveDown { timeouts }));
-            return None;
-        }
+        let cleared = self.ready(job).await?;
         // The slave's reply to an earlier, timed-out request may still come: let it arrive
         // (and be discarded) before this request goes out.
-        if let Some(until) = serving.master.late_reply_window(job.slave) {
+        if let Some(until) = serving.master.late_reply_window(cleared.job.slave) {
             crate::timer::sleep_until(until).await;
         }
-        let probe = admission == Admission::Probe;
         let ran = self
-            .execute(&mut serving.master, &job, serving.deadline, probe)
+            .execute(&mut serving.master, &cleared, serving.deadline)
             .await;
-        self.count_traffic(serving);
+        let broadcast = cleared.broadcast;
+        let job = cleared.job;
+        self.count_serving(serving);
         match ran {
             Ran::Done(outcome) => {
                 self.remember(&job, &outcome);
@@ -185,7 +162,7 @@ impl BusTask {
             Ran::PortLost(error) => {
                 // The request may have reached the slave, which may still answer.
                 let timeout = self.current.derived.timeouts[usize::from(job.slave)];
-                if job.slave != BROADCAST || !self.current.derived.framing.broadcasts() {
+                if !broadcast {
                     serving
                         .master
                         .expect_late_reply(job.slave, Instant::now() + timeout);
@@ -194,46 +171,6 @@ impl BusTask {
                 Some(Served::Lost(error))
             }
         }
-    }
-
-    /// Answer at once who no longer waits for `job`, or waited too long: its own master and
-    /// each follower. The job, if anyone is left for the line to answer: led by the first
-    /// follower still waiting if its own master is settled.
-    pub(super) fn settle_waiters(&self, mut job: Job) -> Option<Job> {
-        let now = Instant::now();
-        let (slave, function) = (job.slave, job.function());
-        job.followers = std::mem::take(&mut job.followers)
-            .into_iter()
-            .filter_map(|follower| self.settle(follower, now, slave, function))
-            .collect();
-        match self.settle(job.waiter, now, slave, function) {
-            Some(waiter) => Some(Job { waiter, ..job }),
-            None if job.followers.is_empty() => None,
-            None => {
-                let first = job.followers.remove(0);
-                Some(Job {
-                    waiter: first,
-                    ..job
-                })
-            }
-        }
-    }
-
-    /// `waiter`, if it still waits for the line: answered at once if its master left or its
-    /// deadline passed before `now`.
-    fn settle(&self, waiter: Waiter, now: Instant, slave: u8, function: u8) -> Option<Waiter> {
-        let tally = self.handle.tally();
-        if waiter.is_gone() {
-            waiter.left(tally, slave, function);
-            return None;
-        }
-        let metrics = &self.handle.metrics;
-        metrics.dequeued(waiter.queued_at.elapsed(), waiter.origin.class);
-        if now > waiter.deadline {
-            waiter.answer(tally, slave, function, Err(RequestError::Expired));
-            return None;
-        }
-        Some(waiter)
     }
 
     /// Keep a slave's normal reply to a read for its `cache`, if it has one.

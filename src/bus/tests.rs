@@ -69,15 +69,21 @@ async fn a_silent_slave_gets_every_retry_for_a_read_and_one_try_for_a_write() {
     let line = SimLine::new(settings("").line_timing());
     let (mut task, mut master) = task_on(&line, "retries = 2\nresponse_timeout = \"50ms\"");
     let (read, _answer) = job(9, &READ);
-    let ran = task.execute(&mut master, &read, None, false).await;
+    let ran = task
+        .execute(&mut master, &task.clear(read, false), None)
+        .await;
     assert_eq!(attempts(&ran), Some(3));
     let (write, _answer) = job(9, &WRITE);
     sleep(Duration::from_millis(200)).await;
-    let ran = task.execute(&mut master, &write, None, false).await;
+    let ran = task
+        .execute(&mut master, &task.clear(write, false), None)
+        .await;
     assert_eq!(attempts(&ran), Some(1), "a write is not sent twice");
     let (probe, _answer) = job(9, &READ);
     sleep(Duration::from_millis(200)).await;
-    let ran = task.execute(&mut master, &probe, None, true).await;
+    let ran = task
+        .execute(&mut master, &task.clear(probe, true), None)
+        .await;
     assert_eq!(attempts(&ran), Some(1), "a probe is one try");
 }
 
@@ -87,7 +93,9 @@ async fn no_retry_starts_once_the_stop_deadline_has_passed() {
     let (mut task, mut master) = task_on(&line, "retries = 5\nresponse_timeout = \"50ms\"");
     let (read, _answer) = job(9, &READ);
     let stop_at = Some(Instant::now() + Duration::from_millis(10));
-    let ran = task.execute(&mut master, &read, stop_at, false).await;
+    let ran = task
+        .execute(&mut master, &task.clear(read, false), stop_at)
+        .await;
     assert_eq!(attempts(&ran), Some(1));
 }
 
@@ -101,7 +109,9 @@ async fn a_port_lost_during_a_transaction_ends_it_as_port_lost_not_as_a_timeout(
         sleep(Duration::from_millis(100)).await;
         unplug.unplug();
     });
-    let ran = task.execute(&mut master, &read, None, false).await;
+    let ran = task
+        .execute(&mut master, &task.clear(read, false), None)
+        .await;
     assert!(matches!(ran, Ran::PortLost(_)), "not a port loss");
 }
 
@@ -111,12 +121,18 @@ async fn a_broadcast_is_answered_by_the_gateway_and_a_slave_reply_is_passed_on()
     line.add_slave(3, RegisterBank::new(Duration::ZERO));
     let (mut task, mut master) = task_on(&line, "");
     let (broadcast, _answer) = job(0, &WRITE);
-    match task.execute(&mut master, &broadcast, None, false).await {
+    match task
+        .execute(&mut master, &task.clear(broadcast, false), None)
+        .await
+    {
         Ran::Done(Ok(Answer::Reply(pdu))) => assert_eq!(pdu, WRITE),
         _ => panic!("a broadcast write gets its echo from the gateway"),
     }
     let (read, _answer) = job(3, &READ);
-    match task.execute(&mut master, &read, None, false).await {
+    match task
+        .execute(&mut master, &task.clear(read, false), None)
+        .await
+    {
         // The broadcast wrote 0x2A to register 1.
         Ran::Done(Ok(Answer::Reply(pdu))) => assert_eq!(pdu, [0x03, 0x04, 0, 0, 0, 0x2A]),
         _ => panic!("the slave's reply is the answer"),

@@ -1,13 +1,12 @@
-//! One request on the line: a broadcast, or a request to one slave with its timeout and the
-//! retry policy (reads are retried; writes only with `retry_writes`, since a write whose reply
-//! was lost may have been carried out). Its end is counted, and told to the slave's health,
-//! whose changes the metrics and logs render.
+//! One request on the line: a broadcast, or a request to one slave with its timeout and the tries
+//! the pre-send step (`ready`) gave it. Its end is counted, and told to the slave's health, whose
+//! changes the metrics and logs render.
 
 use super::health::{Change, Response};
+use super::ready::Cleared;
 use super::task::BusTask;
 use super::{Job, Port};
 use crate::error::{Answer, NoReply, Outcome, RequestError};
-use crate::line::BROADCAST;
 use crate::line::{LineMaster, Seen};
 use crate::metrics::Fate;
 use crate::pdu;
@@ -47,29 +46,21 @@ impl Response {
 }
 
 impl BusTask {
-    /// Run one request on the line; no retry starts after `stop_at`, none at all for a `probe`
-    /// of a slave that is down.
+    /// Run one request the pre-send step cleared on the line, with the tries it was given; no
+    /// retry starts after `stop_at`.
     pub(super) async fn execute(
         &mut self,
         master: &mut LineMaster<Port>,
-        job: &Job,
+        cleared: &Cleared,
         stop_at: Option<Instant>,
-        probe: bool,
     ) -> Ran {
+        let (job, retries) = (&cleared.job, cleared.retries);
         // The one cost of the trace with nobody watching: this load.
         let tracing = self.trace.hub().active();
         master.record_frames(tracing);
-        if job.slave == BROADCAST && self.current.derived.framing.broadcasts() {
+        if cleared.broadcast {
             return self.broadcast(master, job, tracing).await;
         }
-        let settings = &self.current.settings;
-        let retries = if probe {
-            0
-        } else if pdu::is_read_only(&job.pdu) || settings.retry_writes {
-            settings.retries
-        } else {
-            0
-        };
         let timeout = self.current.derived.timeouts[usize::from(job.slave)];
         let mut attempts = 0;
         let mut first_sent_at = None;
