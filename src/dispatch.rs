@@ -1,18 +1,19 @@
-//! Between the TCP sessions and the buses: each request is refused at once by the gateway (bad
-//! function code, a PDU longer or shorter than its function code says, a write from a read-only
-//! master, no route, a read to the broadcast address, port down, queue full) or queued on the
-//! bus its unit routes to. The length check comes first, for every protocol alike: bytes after
-//! a request are never sent, since a slave framing by length would take them as a request. Either way the session gets a
-//! receiver for its outcome.
-
-use crate::audit::{self, Audit, Pending};
+//! Between the sessions and the buses. Each request is described once, as it enters
+//! ([`Inbound`]), and then refused at once by the gateway (bad function code, a PDU longer or
+//! shorter than its function code says, a write from a read-only master, no route, a read to the
+//! broadcast address) or decided by the first matching `[[rule]]`: sent, refused or acknowledged.
+//! A write's journal entry begins at one place, before any of that is carried out. The length
+//! check comes first, for every protocol alike: bytes after a request are never sent, since a
+//! slave framing by length would take them as a request. Either way the session gets a receiver
+//! for its outcome.
+use crate::audit::{self, Audit, Decided, Pending};
 use crate::bus::{BusHandle, Tally, Waiter};
 use crate::config::{Action, UnitSet};
 use crate::error::{Answer, Outcome, RequestError};
 use crate::master::{Class, MasterId, Origin, Protocol, Rights};
 use crate::metrics::{Metrics, Refusal};
 use crate::pdu::{self, RequestLen};
-use crate::routing::{Router, Target};
+use crate::routing::{Inbound, Router, Target};
 use crate::rules::{self, Rules};
 use std::net::SocketAddr;
 use std::sync::{Arc, PoisonError, RwLock};
@@ -172,7 +173,9 @@ impl Dispatcher {
         self.table().buses.clone()
     }
 
-    /// Route `pdu` from `client` to `unit`.
+    /// Route `pdu` from `client` to `unit`: refused unsent, or decided by the first matching
+    /// `[[rule]]` (sent, refused or acknowledged); a write journaled first, whatever becomes of
+    /// it (refused 0x0A if it cannot be, with `on_error = "deny_writes"`).
     pub fn submit(
         &self,
         client: &mut Client,
@@ -181,171 +184,66 @@ impl Dispatcher {
     ) -> oneshot::Receiver<Outcome> {
         let table = self.table();
         let target = table.router.resolve(unit);
-        let function = pdu.first().copied().unwrap_or(0);
-        // Everything that may change a slave is journaled, whatever becomes of it.
-        let journaled = pdu::is_valid_request_function(function) && !pdu::is_read_only(&pdu);
-        match admit(client, unit, &pdu, target) {
-            Ok(target) => self.ruled(client, &table, target, unit, pdu, journaled),
-            Err(refusal) => {
-                // Refused before any rule: journaled with the setting that refused it.
-                let access = matches!(
-                    refusal,
-                    RequestError::ReadOnly(_)
-                        | RequestError::NoAccess(_)
-                        | RequestError::UnitNotPermitted(_)
-                        | RequestError::Unverifiable(_)
-                );
-                let (rule, action) = match &client.limited_by {
-                    Some(by) if access => (Some(&**by), Action::Deny),
-                    _ => (None, Action::Allow),
-                };
-                let pending = journaled
-                    .then(|| {
-                        let asked = self.asked(client, &table, unit, target, &pdu);
-                        let asked = audit::Asked {
-                            rule,
-                            action,
-                            ..asked
-                        };
-                        let begun = self.audit.begin(&asked);
-                        if begun.is_err() {
-                            self.audit.unjournaled(&asked, refusal);
-                        }
-                        begun.ok()
-                    })
-                    .flatten();
-                self.refuse(client, &table, target, unit, function, refusal, pending)
-            }
-        }
-    }
-
-    /// A request the master may make, as the first matching `[[rule]]` decides: sent, refused
-    /// or acknowledged; a write journaled first (refused 0x0A if it cannot be, with
-    /// `on_error = "deny_writes"`).
-    fn ruled(
-        &self,
-        client: &Client,
-        table: &Table,
-        target: Target,
-        unit: u8,
-        pdu: Vec<u8>,
-        journaled: bool,
-    ) -> oneshot::Receiver<Outcome> {
-        let function = pdu.first().copied().unwrap_or(0);
-        let bus = &table.buses[target.bus];
-        let decision = table.rules.decide(&rules::Asked {
-            peer: client.peer.ip(),
-            role: client.role(),
-            protocol: client.protocol,
-            bus: Some(bus.name()),
-            target: Some(target),
-            pdu: &pdu,
-        });
-        let rule = decision.rule.map(|at| table.rules.name(at));
-        let mut pending = None;
-        if journaled {
-            let asked = audit::Asked {
-                rule,
-                action: decision.action,
-                ..self.asked(client, table, unit, Some(target), &pdu)
-            };
-            match self.audit.begin(&asked) {
-                Ok(entry) => pending = Some(entry),
-                Err(audit::Refused) => {
-                    let refusal = RequestError::Unrecorded(function);
-                    self.audit.unjournaled(&asked, refusal);
-                    let target = Some(target);
-                    return self.refuse(client, table, target, unit, function, refusal, None);
-                }
-            }
-        }
-        let rule = rule.unwrap_or("a rule");
-        let refusal = match (decision.action, pending) {
-            (Action::Allow, pending) => return self.send(client, bus, target, pdu, pending),
-            // A read under an `acknowledge` rule goes on: only writes are kept back.
-            (Action::Acknowledge, None) => return self.send(client, bus, target, pdu, None),
-            (Action::Acknowledge, Some(pending)) => match acknowledgement(&pdu, target, bus) {
-                Some(answer) => {
-                    pending.acknowledged();
-                    let (waiter, receiver) = Waiter::new(origin_of(client), Instant::now());
-                    waiter.answer(bus.tally(), target.address, function, Ok(answer));
-                    return receiver;
-                }
-                None => {
-                    let refusal = RequestError::Denied {
-                        function,
-                        registers: false,
-                    };
-                    let detail = format!(
-                        "{rule}: acknowledge; its normal reply is the slave's to make, so \
-                             it cannot be acknowledged unsent"
-                    );
-                    pending.denied(refusal.exception_code() as u8, detail);
-                    refusal
-                }
-            },
-            (Action::Deny, pending) => {
-                let registers =
-                    decision.exception(&table.rules) == pdu::ExceptionCode::IllegalDataAddress;
-                let refusal = RequestError::Denied {
-                    function,
-                    registers,
-                };
-                if let Some(pending) = pending {
-                    pending.denied(refusal.exception_code() as u8, format!("{rule}: deny"));
-                }
-                refusal
-            }
-        };
-        self.refuse(client, table, Some(target), unit, function, refusal, None)
-    }
-
-    /// `pdu` on its way to `target` on `bus`, with its journal entry if it has one.
-    fn send(
-        &self,
-        client: &Client,
-        bus: &BusHandle,
-        target: Target,
-        pdu: Vec<u8>,
-        pending: Option<Pending>,
-    ) -> oneshot::Receiver<Outcome> {
-        bus.submit_journaled(origin_of(client), target.address, pdu, pending)
-    }
-
-    /// What the journal needs of a request from `client`, before the rules decide.
-    fn asked<'a>(
-        &self,
-        client: &'a Client,
-        table: &'a Table,
-        unit: u8,
-        target: Option<Target>,
-        pdu: &'a [u8],
-    ) -> audit::Asked<'a> {
-        let bus = target.map(|t| table.buses[t.bus].name());
-        audit::Asked {
-            master: client.peer,
+        let inbound = Inbound {
+            peer: client.peer,
             protocol: client.protocol,
             subject: client.identity.as_ref().map(|i| i.subject.as_str()),
             role: client.role(),
             unit,
-            bus,
-            slave: target.map(|t| t.address),
-            broadcast: target.is_some_and(|t| t.broadcast),
-            pdu,
-            rule: None,
-            action: Action::Allow,
+            bus: target.map(|t| table.buses[t.bus].name()),
+            target,
+            pdu: &pdu,
+        };
+        let function = pdu.first().copied().unwrap_or(0);
+        let (by, admitted) = match admit(client, unit, &pdu, target) {
+            Ok(target) => {
+                let decision = table.rules.decide(&inbound);
+                let by = Decided {
+                    rule: decision.rule.map(|at| table.rules.name(at)),
+                    action: decision.action,
+                };
+                (by, Ok((target, decision)))
+            }
+            // Refused before any rule: journaled with the setting that refused it.
+            Err(refusal) => (refused_by(client, refusal), Err(refusal)),
+        };
+        // Everything that may change a slave is journaled: its entry begins here, and only here.
+        let journaled = pdu::is_valid_request_function(function) && !pdu::is_read_only(&pdu);
+        let pending = match journaled.then(|| self.audit.begin(&inbound, by)) {
+            None => None,
+            Some(Ok(pending)) => Some(pending),
+            Some(Err(audit::Refused)) => {
+                let refusal = admitted.err().unwrap_or(RequestError::Unrecorded(function));
+                self.audit.unjournaled(&inbound, by, refusal);
+                return self.refuse(client, &table, &inbound, refusal, None);
+            }
+        };
+        let (target, decision) = match admitted {
+            Ok(admitted) => admitted,
+            Err(refusal) => return self.refuse(client, &table, &inbound, refusal, pending),
+        };
+        let bus = &table.buses[target.bus];
+        let rule = by.rule.unwrap_or("a rule");
+        match ruling(&table.rules, decision, rule, &pdu, target, bus, pending) {
+            Ruling::Send(pending) => {
+                bus.submit_journaled(origin_of(client), target.address, pdu, pending)
+            }
+            Ruling::Acknowledge(answer) => {
+                let (waiter, receiver) = Waiter::new(origin_of(client), Instant::now());
+                waiter.answer(bus.tally(), target.address, function, Ok(answer));
+                receiver
+            }
+            Ruling::Refuse(refusal) => self.refuse(client, &table, &inbound, refusal, None),
         }
     }
 
-    /// Answer `refusal` to `client` at once, unsent; a journaled write's outcome with it.
-    #[allow(clippy::too_many_arguments)]
+    /// Answer `refusal` to `client`'s request `inbound` at once, unsent; a journaled write's
+    /// outcome with it.
     fn refuse(
         &self,
         client: &Client,
         table: &Table,
-        target: Option<Target>,
-        unit: u8,
-        function: u8,
+        inbound: &Inbound<'_>,
         refusal: RequestError,
         pending: Option<Pending>,
     ) -> oneshot::Receiver<Outcome> {
@@ -353,10 +251,11 @@ impl Dispatcher {
         let origin = origin_of(client);
         // Counted against the bus and slave the unit routes to, if any; without a route, with
         // no bus and no slave (the unit id is the master's to choose).
-        let (tally, slave) = match target {
+        let (tally, slave) = match inbound.target {
             Some(target) => (table.buses[target.bus].tally(), target.address),
-            None => (Tally::Unrouted(&self.metrics), unit),
+            None => (Tally::Unrouted(&self.metrics), inbound.unit),
         };
+        let function = inbound.pdu.first().copied().unwrap_or(0);
         let (waiter, receiver) = Waiter::new(origin, Instant::now());
         let waiter = waiter.journaled(pending);
         waiter.answer(tally, slave, function, Err(refusal));
@@ -396,6 +295,85 @@ impl Dispatcher {
         for bus in &self.table().buses {
             bus.forget(master);
         }
+    }
+}
+
+/// What a rule's `decision` makes of a request the master may make.
+enum Ruling {
+    /// On to the line, with its journal entry if it has one.
+    Send(Option<Pending>),
+    /// Answered with its normal reply, unsent.
+    Acknowledge(Answer),
+    Refuse(RequestError),
+}
+
+/// What `decision` (by the rule named `rule`) makes of `pdu` to `target` on `bus`, whose journal
+/// entry is `pending` if it is a write; that entry is told of a refusal or an acknowledgement.
+fn ruling(
+    rules: &Rules,
+    decision: rules::Decision,
+    rule: &str,
+    pdu: &[u8],
+    target: Target,
+    bus: &BusHandle,
+    pending: Option<Pending>,
+) -> Ruling {
+    let function = pdu.first().copied().unwrap_or(0);
+    match (decision.action, pending) {
+        (Action::Allow, pending) => Ruling::Send(pending),
+        // A read under an `acknowledge` rule goes on: only writes are kept back.
+        (Action::Acknowledge, None) => Ruling::Send(None),
+        (Action::Acknowledge, Some(pending)) => match acknowledgement(pdu, target, bus) {
+            Some(answer) => {
+                pending.acknowledged();
+                Ruling::Acknowledge(answer)
+            }
+            None => {
+                let refusal = RequestError::Denied {
+                    function,
+                    registers: false,
+                };
+                let detail = format!(
+                    "{rule}: acknowledge; its normal reply is the slave's to make, so it cannot \
+                     be acknowledged unsent"
+                );
+                pending.denied(refusal.exception_code() as u8, detail);
+                Ruling::Refuse(refusal)
+            }
+        },
+        (Action::Deny, pending) => {
+            let registers = decision.exception(rules) == pdu::ExceptionCode::IllegalDataAddress;
+            let refusal = RequestError::Denied {
+                function,
+                registers,
+            };
+            if let Some(pending) = pending {
+                pending.denied(refusal.exception_code() as u8, format!("{rule}: deny"));
+            }
+            Ruling::Refuse(refusal)
+        }
+    }
+}
+
+/// Who a request `client` may not make was refused by, for its journal entry: the setting that
+/// limits the master's access, for a refusal of access; nobody for any other.
+fn refused_by(client: &Client, refusal: RequestError) -> Decided<'_> {
+    let access = matches!(
+        refusal,
+        RequestError::ReadOnly(_)
+            | RequestError::NoAccess(_)
+            | RequestError::UnitNotPermitted(_)
+            | RequestError::Unverifiable(_)
+    );
+    match &client.limited_by {
+        Some(by) if access => Decided {
+            rule: Some(by),
+            action: Action::Deny,
+        },
+        _ => Decided {
+            rule: None,
+            action: Action::Allow,
+        },
     }
 }
 

@@ -3,10 +3,13 @@
 //! nothing). A pure table built once. The
 //! rule that turns a routed unit into an address is the config's
 //! [`Route::target`](crate::config::Route::target), which the config's check uses too: routing
-//! reads the config, never the other way round.
+//! reads the config, never the other way round. Also [`Inbound`], a request as it entered, with
+//! where it routes: what the rules decide by and the journal records.
 
 use crate::config::Config;
 use crate::line::BROADCAST;
+use crate::master::Protocol;
+use std::net::SocketAddr;
 
 /// Where a unit's requests go.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -17,6 +20,23 @@ pub(crate) struct Target {
     pub address: u8,
     /// The address is every slave's: 0 on a serial line (not on a Modbus TCP device).
     pub broadcast: bool,
+}
+
+/// A request as it entered the gateway, described once where it enters (the dispatcher): who
+/// sent it and how, the unit it names and where that routes, its PDU. The rules decide by it and
+/// the journal records it.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Inbound<'a> {
+    pub(crate) peer: SocketAddr,
+    pub(crate) protocol: Protocol,
+    /// A TLS master's certificate subject, and the role it carries, as written.
+    pub(crate) subject: Option<&'a str>,
+    pub(crate) role: Option<&'a str>,
+    pub(crate) unit: u8,
+    /// The bus its unit routes to, and where on it; `None` without a route.
+    pub(crate) bus: Option<&'a str>,
+    pub(crate) target: Option<Target>,
+    pub(crate) pdu: &'a [u8],
 }
 
 impl Target {

@@ -15,24 +15,8 @@
 
 use crate::config::{Action, Functions, Registers, Rule, UnitSet};
 use crate::line::BROADCAST;
-use crate::master::Protocol;
 use crate::pdu::{self, ExceptionCode, Span, Touches};
-use crate::routing::{Router, Target};
-use std::net::IpAddr;
-
-/// A request as the rules see it.
-#[derive(Clone, Copy, Debug)]
-pub(crate) struct Asked<'a> {
-    pub(crate) peer: IpAddr,
-    /// The role its TLS master's certificate carries, as written.
-    pub(crate) role: Option<&'a str>,
-    pub(crate) protocol: Protocol,
-    /// The bus its unit routes to; `None` without a route.
-    pub(crate) bus: Option<&'a str>,
-    /// Where its unit routes to; `None` without a route.
-    pub(crate) target: Option<Target>,
-    pub(crate) pdu: &'a [u8],
-}
+use crate::routing::{Inbound, Router, Target};
 
 /// What the rules decide for a request.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -127,7 +111,7 @@ impl Rules {
     }
 
     /// The first rule that matches `asked`, and its action; none: allowed.
-    pub(crate) fn decide(&self, asked: &Asked<'_>) -> Decision {
+    pub(crate) fn decide(&self, asked: &Inbound<'_>) -> Decision {
         // What the request touches is read once, and only if a rule asks.
         let mut touches = None;
         let found = self
@@ -149,11 +133,11 @@ impl Rules {
 fn matches(
     rule: &Rule,
     slaves: Option<&Reach>,
-    asked: &Asked<'_>,
+    asked: &Inbound<'_>,
     touches: impl FnOnce() -> Touches,
 ) -> bool {
     // A dual-stack listener sees IPv4 masters as ::ffff:a.b.c.d; rules name them as IPv4.
-    let peer = asked.peer.to_canonical();
+    let peer = asked.peer.ip().to_canonical();
     let any = |empty: bool, found: bool| empty || found;
     any(
         rule.masters.is_empty(),
@@ -235,6 +219,7 @@ fn within(ranges: &[Registers], span: Span) -> bool {
 mod tests {
     use super::*;
     use crate::config::{Config, UnitSet};
+    use crate::master::Protocol;
 
     const LINE1: &str = "[[bus]]\nname = \"line1\"\ndevice = \"sim\"\n";
 
@@ -256,11 +241,13 @@ mod tests {
         })
     }
 
-    fn asked(pdu: &[u8]) -> Asked<'_> {
-        Asked {
-            peer: "192.168.20.5".parse().unwrap(),
-            role: None,
+    fn asked(pdu: &[u8]) -> Inbound<'_> {
+        Inbound {
+            peer: "192.168.20.5:40000".parse().unwrap(),
             protocol: Protocol::Tcp,
+            subject: None,
+            role: None,
+            unit: 3,
             bus: Some("line1"),
             target: slave(3),
             pdu,
@@ -342,26 +329,26 @@ mod tests {
             action = "deny"
             "#,
         );
-        let base = Asked {
+        let base = Inbound {
             protocol: Protocol::Udp,
             ..asked(&WRITE_2000)
         };
         assert_eq!(rules.decide(&base).rule, Some(0));
         let misses = [
-            Asked {
-                peer: "192.168.21.5".parse().unwrap(),
+            Inbound {
+                peer: "192.168.21.5:40000".parse().unwrap(),
                 ..base
             },
-            Asked {
+            Inbound {
                 protocol: Protocol::Tcp,
                 ..base
             },
-            Asked { bus: None, ..base },
-            Asked {
+            Inbound { bus: None, ..base },
+            Inbound {
                 target: slave(5),
                 ..base
             },
-            Asked {
+            Inbound {
                 pdu: &WRITE_1FFF_2001,
                 ..base
             },
@@ -369,8 +356,8 @@ mod tests {
         for miss in misses {
             assert_eq!(rules.decide(&miss).rule, None, "{miss:?}");
         }
-        let mapped = Asked {
-            peer: "::ffff:192.168.20.5".parse().unwrap(),
+        let mapped = Inbound {
+            peer: "[::ffff:192.168.20.5]:40000".parse().unwrap(),
             ..base
         };
         assert_eq!(
@@ -394,7 +381,7 @@ mod tests {
             action: Action::Acknowledge,
         }];
         let rules = Rules::new(&list, &Router::new(&config("")));
-        let operator = Asked {
+        let operator = Inbound {
             role: Some("operator"),
             target: slave(12),
             ..asked(&WRITE_2000)
@@ -402,7 +389,7 @@ mod tests {
         assert_eq!(rules.decide(&operator).action, Action::Acknowledge);
         assert_eq!(
             rules
-                .decide(&Asked {
+                .decide(&Inbound {
                     role: None,
                     ..operator
                 })
@@ -411,7 +398,7 @@ mod tests {
         );
         assert_eq!(
             rules
-                .decide(&Asked {
+                .decide(&Inbound {
                     pdu: &READ_2000,
                     ..operator
                 })
@@ -441,7 +428,7 @@ mod tests {
         let config = config(toml);
         let router = Router::new(&config);
         let rules = Rules::new(&config.rule, &router);
-        let to = |&unit: &u8| Asked {
+        let to = |&unit: &u8| Inbound {
             target: router.resolve(unit),
             ..asked(pdu)
         };

@@ -25,13 +25,13 @@ pub(crate) struct Journal {
 
 /// The thread that syncs the journal to the disk, and how far it has.
 pub(crate) struct Syncer {
-    asked: Mutex<Asked>,
+    asked: Mutex<SyncOrders>,
     wake: Condvar,
     synced: tokio::sync::watch::Sender<Synced>,
 }
 
 /// What the syncing thread is asked to do.
-struct Asked {
+struct SyncOrders {
     /// The live file (a second handle on it).
     file: Option<File>,
     /// Entries written that must reach the disk, counted since the journal opened.
@@ -73,7 +73,7 @@ impl Ticket {
 impl Syncer {
     fn start(path: &Path) -> Arc<Syncer> {
         let syncer = Arc::new(Syncer {
-            asked: Mutex::new(Asked {
+            asked: Mutex::new(SyncOrders {
                 file: None,
                 upto: 0,
                 stop: false,
@@ -97,7 +97,7 @@ impl Syncer {
         syncer
     }
 
-    fn asked(&self) -> std::sync::MutexGuard<'_, Asked> {
+    fn asked(&self) -> std::sync::MutexGuard<'_, SyncOrders> {
         self.asked.lock().unwrap_or_else(PoisonError::into_inner)
     }
 

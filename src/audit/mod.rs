@@ -13,13 +13,13 @@ use crate::error::{Answer, Outcome as Ended, RequestError};
 use crate::master::Protocol;
 use crate::metrics::Metrics;
 use crate::pdu::{self, EXCEPTION_BIT};
+use crate::routing::Inbound;
 use entry::{Carried, Line, Outcome, Write};
 pub(crate) use journal::rotated;
 use journal::{Journal, Ticket};
 use serde::Serialize;
 use std::collections::VecDeque;
 use std::io;
-use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError, RwLock};
 
@@ -42,22 +42,10 @@ pub(crate) struct Recent {
     pub(crate) outcome: Option<entry::Ended>,
 }
 
-/// A write-class request, as the dispatcher knows it when it decides.
+/// Who decided a write, for its entry: the deciding rule's name (or the setting that refused
+/// it), `None` when nothing did, and what it decided.
 #[derive(Clone, Copy, Debug)]
-pub(crate) struct Asked<'a> {
-    pub(crate) master: SocketAddr,
-    pub(crate) protocol: Protocol,
-    /// A TLS master's certificate subject and role.
-    pub(crate) subject: Option<&'a str>,
-    pub(crate) role: Option<&'a str>,
-    pub(crate) unit: u8,
-    /// The bus and slave address its unit routes to, if any.
-    pub(crate) bus: Option<&'a str>,
-    pub(crate) slave: Option<u8>,
-    /// Its unit routes to address 0 of a line where that is every slave.
-    pub(crate) broadcast: bool,
-    pub(crate) pdu: &'a [u8],
-    /// The deciding rule's name; `None`: no rule matched.
+pub(crate) struct Decided<'a> {
     pub(crate) rule: Option<&'a str>,
     pub(crate) action: Action,
 }
@@ -131,26 +119,30 @@ impl Audit {
 
     /// Journal `asked` before anything of it is sent. `Err(Refused)`: its entry could not be
     /// written and `on_error = "deny_writes"`.
-    pub(crate) fn begin(self: &Arc<Self>, asked: &Asked<'_>) -> Result<Pending, Refused> {
+    pub(crate) fn begin(
+        self: &Arc<Self>,
+        asked: &Inbound<'_>,
+        by: Decided<'_>,
+    ) -> Result<Pending, Refused> {
         let id = self.next_id.fetch_add(1, Ordering::Relaxed);
         let (span, values) = pdu::written(asked.pdu);
         let write = Write {
             time: entry::now(),
             id,
-            master: asked.master.to_string(),
+            master: asked.peer.to_string(),
             protocol: asked.protocol.label().to_owned(),
             subject: asked.subject.map(str::to_owned),
             role: asked.role.map(str::to_owned),
             unit: asked.unit,
             bus: asked.bus.map(str::to_owned),
-            slave: asked.slave,
+            slave: asked.target.map(|t| t.address),
             function: asked.pdu.first().copied().unwrap_or(0),
             table: span.map(|s| s.table.word().to_owned()),
             start: span.map(|s| s.first),
             count: span.map(|s| s.count()),
             values: entry::hex(values),
-            rule: asked.rule.map(str::to_owned),
-            action: asked.action.label().to_owned(),
+            rule: by.rule.map(str::to_owned),
+            action: by.action.label().to_owned(),
         };
         let journal = self.journal();
         let mut recorded = None;
@@ -172,16 +164,16 @@ impl Audit {
             ticket,
             id,
             protocol: asked.protocol,
-            action: asked.action,
-            broadcast: asked.broadcast,
+            action: by.action,
+            broadcast: asked.target.is_some_and(|t| t.broadcast),
         })
     }
 
     /// `asked`, whose entry could not be written, ended unsent in `refusal`: counted, as
     /// every write is, by how it ended.
-    pub(crate) fn unjournaled(&self, asked: &Asked<'_>, refusal: RequestError) {
+    pub(crate) fn unjournaled(&self, asked: &Inbound<'_>, by: Decided<'_>, refusal: RequestError) {
         let (outcome, ..) = judge_error(refusal);
-        let (protocol, action) = (asked.protocol.label(), asked.action.label());
+        let (protocol, action) = (asked.protocol.label(), by.action.label());
         self.metrics
             .audit
             .write_ended(protocol, action, outcome.label());
