@@ -6,6 +6,7 @@
 //! check comes first, for every protocol alike: bytes after a request are never sent, since a
 //! slave framing by length would take them as a request. Either way the session gets a receiver
 //! for its outcome.
+
 use crate::audit::{self, Audit, Decided, Pending};
 use crate::bus::{BusHandle, Tally, Waiter};
 use crate::config::{Action, UnitSet};
