@@ -99,7 +99,7 @@ impl Functions {
 }
 
 #[derive(Clone, Copy, Debug, Default)]
-struct Slave {
+struct SlaveHealth {
     timeouts: u32,
     next_probe: Option<Instant>,
     /// Function codes it has answered, normally or with an exception.
@@ -108,19 +108,19 @@ struct Slave {
 }
 
 pub(crate) struct Health {
-    slaves: Box<[Slave; 256]>,
+    slaves: Box<[SlaveHealth; 256]>,
 }
 
 impl Default for Health {
     fn default() -> Self {
         Health {
-            slaves: Box::new([Slave::default(); 256]),
+            slaves: Box::new([SlaveHealth::default(); 256]),
         }
     }
 }
 
 impl Health {
-    fn is_down(slave: &Slave, policy: DownPolicy) -> bool {
+    fn is_down(slave: &SlaveHealth, policy: DownPolicy) -> bool {
         policy.after > 0 && slave.timeouts >= policy.after
     }
 

@@ -5,7 +5,7 @@
 //! comes after the door is the transport's: [`server`] for streams, [`udp`] for datagrams.
 //! Knows nothing of framing or sessions.
 
-use super::access::Access;
+use super::access::NetworkRights;
 use super::server::{self, Shared};
 use super::session::SessionLimits;
 use super::tls::TlsServer;
@@ -122,7 +122,7 @@ impl ListenAddrs {
 #[derive(Clone, Debug)]
 pub(crate) struct Policy {
     pub limits: SessionLimits,
-    pub access: Access,
+    pub access: NetworkRights,
     pub when_full: WhenFull,
     /// Connections one address may hold; `None`: no limit.
     pub per_address: Option<usize>,
@@ -141,7 +141,7 @@ impl Policy {
                 idle_timeout: Some(server.idle_timeout).filter(|t| !t.is_zero()),
                 frame_timeout: server.frame_timeout,
             },
-            access: Access::new(server.allow.clone(), server.read_only.clone())
+            access: NetworkRights::new(server.allow.clone(), server.read_only.clone())
                 .with_priority(server.priority.clone()),
             when_full: server.when_full,
             per_address: server.connections_per_address(),
@@ -153,7 +153,7 @@ impl Policy {
 
 /// A master let in at a listener's door, with what its address gives it.
 #[derive(Clone, Copy, Debug)]
-pub(crate) struct Admission {
+pub(crate) struct Admitted {
     pub protocol: Protocol,
     pub peer: SocketAddr,
     /// What its address allows (a TLS master's role may narrow it).
@@ -162,7 +162,7 @@ pub(crate) struct Admission {
     pub priority: bool,
 }
 
-impl Admission {
+impl Admitted {
     /// The client of the master so admitted, under the id `master`.
     pub(crate) fn client(&self, master: MasterId) -> Client {
         Client::new(master, self.peer, self.rights)
@@ -180,7 +180,7 @@ pub(crate) fn admit(
     protocol: Protocol,
     listen: SocketAddr,
     peer: SocketAddr,
-) -> Option<Admission> {
+) -> Option<Admitted> {
     let Some(rights) = policy.access.admit(peer.ip()) else {
         if protocol.transport().is_stream() {
             metrics
@@ -191,7 +191,7 @@ pub(crate) fn admit(
         }
         return None;
     };
-    Some(Admission {
+    Some(Admitted {
         protocol,
         peer,
         rights,

@@ -9,9 +9,9 @@
 //! who it is never closes an authenticated master's connection), and the certificate's role
 //! narrows the rights.
 
-use super::listener::{self, Admission, Policy};
-use super::session::{self, Activity, Seen};
-use super::tls::Identity;
+use super::listener::{self, Admitted, Policy};
+use super::session::{self, Activity, SessionView};
+use super::tls::Certified;
 use crate::config::{WhenFull, OTHER_ROLE};
 use crate::dispatch::Dispatcher;
 use crate::master::{MasterId, Protocol, Rights, Transport};
@@ -227,7 +227,7 @@ enum NotWorking {
 /// Where a session stands in the line to make room for a new master at `now`: why it may go,
 /// and since when (the longest first); `None`: it is working and stays (a request in flight, or
 /// one answered within [`RECENTLY_ANSWERED`]).
-fn room_order(seen: &Seen, now: Instant) -> Option<(NotWorking, Instant)> {
+fn room_order(seen: &SessionView, now: Instant) -> Option<(NotWorking, Instant)> {
     if let Some(since) = seen.blocked {
         return Some((NotWorking::Unread, since));
     }
@@ -350,7 +350,7 @@ pub(crate) async fn serve(
 /// A connection accepted on a listener, not yet served.
 struct Master {
     listen: SocketAddr,
-    admission: Admission,
+    admission: Admitted,
     /// Its place in its address's count, held until the connection ends.
     ticket: Ticket,
 }
@@ -424,12 +424,12 @@ async fn first_bytes(stream: &TcpStream) -> io::Result<()> {
 async fn admit<S: AsyncRead + AsyncWrite + Unpin>(
     stream: S,
     master: Master,
-    identity: Option<Identity>,
+    identity: Option<Certified>,
     policy: &Policy,
     shared: &Shared,
 ) {
     let Some(permit) = shared.slot(policy.when_full).await else {
-        let Admission { protocol, peer, .. } = master.admission;
+        let Admitted { protocol, peer, .. } = master.admission;
         shared
             .metrics
             .tcp
@@ -443,7 +443,7 @@ async fn admit<S: AsyncRead + AsyncWrite + Unpin>(
 async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
     mut stream: S,
     master: Master,
-    identity: Option<Identity>,
+    identity: Option<Certified>,
     policy: &Policy,
     shared: &Shared,
 ) {
@@ -452,7 +452,7 @@ async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
         ticket: _ticket,
         ..
     } = master;
-    let Admission {
+    let Admitted {
         protocol,
         peer,
         priority,
@@ -524,8 +524,8 @@ async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
 mod tests {
     use super::*;
 
-    fn seen(last: Instant) -> Seen {
-        Seen {
+    fn seen(last: Instant) -> SessionView {
+        SessionView {
             last,
             busy: false,
             answered: None,
@@ -538,22 +538,22 @@ mod tests {
         let start = Instant::now();
         let now = start + RECENTLY_ANSWERED * 3;
         let at = |secs| start + Duration::from_secs(secs);
-        let unread = Seen {
+        let unread = SessionView {
             busy: true,
             answered: Some(now),
             blocked: Some(at(150)),
             ..seen(now)
         };
         let unproven = seen(at(170));
-        let quiet = Seen {
+        let quiet = SessionView {
             answered: Some(at(10)),
             ..seen(at(10))
         };
-        let polling = Seen {
+        let polling = SessionView {
             answered: Some(now - RECENTLY_ANSWERED + Duration::from_millis(1)),
             ..seen(at(0))
         };
-        let in_flight = Seen {
+        let in_flight = SessionView {
             busy: true,
             ..seen(at(0))
         };

@@ -38,19 +38,19 @@ pub struct SessionLimits {
     pub frame_timeout: Duration,
 }
 
-/// What the listener sees of a session ([`Seen`]), how many requests it has had, and a way to
-/// ask it to close: at once if it is waiting for its master to read a reply, else once it has
-/// nothing in flight.
+/// What the listener sees of a session ([`SessionView`]), how many requests it has had, and a
+/// way to ask it to close: at once if it is waiting for its master to read a reply, else once it
+/// has nothing in flight.
 #[derive(Debug)]
 pub struct Activity {
-    seen: Mutex<Seen>,
+    seen: Mutex<SessionView>,
     requests: AtomicU64,
     close: Notify,
 }
 
 /// A session at one moment, for choosing which connection makes room for a new master.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) struct Seen {
+pub(crate) struct SessionView {
     /// When it last had a request or sent an answer; its accept, before either.
     pub last: Instant,
     /// Requests in flight.
@@ -64,7 +64,7 @@ pub(crate) struct Seen {
 impl Default for Activity {
     fn default() -> Self {
         Activity {
-            seen: Mutex::new(Seen {
+            seen: Mutex::new(SessionView {
                 last: Instant::now(),
                 busy: false,
                 answered: None,
@@ -77,7 +77,7 @@ impl Default for Activity {
 }
 
 impl Activity {
-    fn update(&self, change: impl FnOnce(&mut Seen)) {
+    fn update(&self, change: impl FnOnce(&mut SessionView)) {
         change(&mut self.seen.lock().unwrap_or_else(PoisonError::into_inner));
     }
 
@@ -110,7 +110,7 @@ impl Activity {
         self.requests.load(Ordering::Relaxed)
     }
 
-    pub(crate) fn seen(&self) -> Seen {
+    pub(crate) fn seen(&self) -> SessionView {
         *self.seen.lock().unwrap_or_else(PoisonError::into_inner)
     }
 

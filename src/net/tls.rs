@@ -94,7 +94,7 @@ impl CertificateInfo {
 
 /// Who a master is, from its verified certificate.
 #[derive(Clone, Debug, PartialEq, Eq)]
-pub(crate) struct Identity {
+pub(crate) struct Certified {
     /// The `role` label: the role when `server.tls.roles` names it, else `other`.
     pub(crate) role_label: String,
     /// The role the certificate carries, if any, as written.
@@ -256,7 +256,7 @@ impl TlsServer {
     }
 
     /// Who the master with this verified certificate chain is, and what its role allows.
-    pub(crate) fn identify(&self, chain: Option<&[CertificateDer<'_>]>) -> Identity {
+    pub(crate) fn identify(&self, chain: Option<&[CertificateDer<'_>]>) -> Certified {
         let end_entity = chain.and_then(<[_]>::first).map(|der| parse(der));
         let (role, subject) = match &end_entity {
             Some(Ok(certificate)) => (role_of(certificate), certificate.subject().to_string()),
@@ -273,7 +273,7 @@ impl TlsServer {
             Some((name, granted)) => (name.clone(), *granted),
             None => (OTHER_ROLE.to_owned(), Role::from(self.default_access)),
         };
-        Identity {
+        Certified {
             role_label,
             role,
             role_problem,

@@ -11,18 +11,18 @@ mod plan;
 mod poller;
 mod store;
 
-pub(crate) use store::{Exported, Filter, Store};
+pub(crate) use store::{Exported, Store, ValueQuery};
 
 use crate::bus::BusHandle;
 use crate::config::{defaults, Config, Value, MAX_READ_REGISTERS};
 use poller::Poll;
 use std::sync::{Arc, Mutex, PoisonError};
-use store::Spec;
+use store::ValueSpec;
 use tokio::task::JoinHandle;
 
 /// What a configuration asks to poll: every value's entry, and per bus its reads and share.
 struct Layout {
-    specs: Vec<Spec>,
+    specs: Vec<ValueSpec>,
     /// By bus name: its polls and `poll_share`.
     buses: Vec<(String, Vec<Poll>, f64)>,
 }
@@ -55,7 +55,7 @@ fn layout(config: &Config) -> Layout {
                 .enumerate()
                 .map(|(i, v)| (first + i, *v, v.poll_interval.unwrap_or(interval)))
                 .collect();
-            specs.extend(values.iter().map(|v| Spec {
+            specs.extend(values.iter().map(|v| ValueSpec {
                 bus: name.clone(),
                 slave: slave.address,
                 name: v.name.clone(),

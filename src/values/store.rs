@@ -18,7 +18,7 @@ const HISTORY_POINTS: usize = 120;
 
 /// What a value is, as configured: whose, what it is called and how it is shown.
 #[derive(Clone, Debug, PartialEq)]
-pub(crate) struct Spec {
+pub(crate) struct ValueSpec {
     pub(crate) bus: Arc<str>,
     pub(crate) slave: u8,
     pub(crate) name: String,
@@ -30,7 +30,7 @@ pub(crate) struct Spec {
 /// A value's entry: what it is, and what its polls found.
 #[derive(Debug)]
 struct Entry {
-    spec: Spec,
+    spec: ValueSpec,
     /// The last good reading, if the last poll was good.
     value: Option<f64>,
     /// When the last good poll was, even if a later one failed.
@@ -42,7 +42,7 @@ struct Entry {
 }
 
 impl Entry {
-    fn new(spec: Spec) -> Entry {
+    fn new(spec: ValueSpec) -> Entry {
         Entry {
             spec,
             value: None,
@@ -61,7 +61,7 @@ pub(crate) struct Store {
 
 /// Which values `GET /values` asks for.
 #[derive(Clone, Debug, Default, PartialEq)]
-pub(crate) struct Filter {
+pub(crate) struct ValueQuery {
     pub(crate) bus: Option<String>,
     pub(crate) slave: Option<u8>,
     pub(crate) history: bool,
@@ -103,7 +103,7 @@ impl Store {
     /// Configure the values anew as `specs` (a reload): an entry that stays the same keeps what
     /// was read of it; the others start unread. Returns nothing: entries are addressed by their
     /// place in `specs` from now on.
-    pub(crate) fn configure(&self, specs: Vec<Spec>) {
+    pub(crate) fn configure(&self, specs: Vec<ValueSpec>) {
         let mut entries = self.lock();
         let mut old: Vec<Option<Entry>> = entries.drain(..).map(Some).collect();
         for spec in specs {
@@ -146,7 +146,7 @@ impl Store {
 
     /// The values `filter` asks for, in configuration order, as `GET /values`'s JSON: written
     /// from the entries themselves, so a listing with every value's history copies none of it.
-    pub(crate) fn listing(&self, filter: &Filter) -> serde_json::Result<String> {
+    pub(crate) fn listing(&self, filter: &ValueQuery) -> serde_json::Result<String> {
         let entries = self.lock();
         let chosen = entries.iter().filter(|e| {
             filter.bus.as_deref().is_none_or(|bus| *e.spec.bus == *bus)
@@ -244,8 +244,8 @@ impl Collector for Store {
 mod tests {
     use super::*;
 
-    fn spec(slave: u8, name: &str) -> Spec {
-        Spec {
+    fn spec(slave: u8, name: &str) -> ValueSpec {
+        ValueSpec {
             bus: "line".into(),
             slave,
             name: name.to_owned(),
@@ -255,7 +255,7 @@ mod tests {
         }
     }
 
-    fn listed(store: &Store, filter: &Filter) -> serde_json::Value {
+    fn listed(store: &Store, filter: &ValueQuery) -> serde_json::Value {
         serde_json::from_str(&store.listing(filter).unwrap()).unwrap()
     }
 
@@ -282,7 +282,7 @@ mod tests {
             1,
             "slave 2's series goes stale"
         );
-        let listing = listed(&store, &Filter::default());
+        let listing = listed(&store, &ValueQuery::default());
         assert_eq!(listing["values"][1]["value"], serde_json::Value::Null);
         assert_eq!(listing["values"][1]["error"], "timeout");
         assert_eq!(listing["values"][1]["read_at"], "1970-01-01T00:01:40.000Z");
@@ -301,9 +301,9 @@ mod tests {
         for s in 0..700u32 {
             store.read(0, f64::from(s), at(1000 + u64::from(s) * 10));
         }
-        let filter = Filter {
+        let filter = ValueQuery {
             history: true,
-            ..Filter::default()
+            ..ValueQuery::default()
         };
         let listing = listed(&store, &filter);
         let history = listing["values"][0]["history"].as_array().unwrap().clone();
@@ -326,7 +326,7 @@ mod tests {
         store.configure(vec![spec(1, "a"), spec(1, "b")]);
         store.read(1, 2.0, at(5));
         store.configure(vec![spec(1, "b"), spec(1, "c")]);
-        let listing = listed(&store, &Filter::default());
+        let listing = listed(&store, &ValueQuery::default());
         assert_eq!(listing["values"][0]["value"], 2.0);
         assert_eq!(listing["values"][1]["value"], serde_json::Value::Null);
         assert_eq!(store.len(), 2);

@@ -5,7 +5,7 @@
 
 use super::plan::Read;
 use super::poller::{self, Poll};
-use super::store::{Spec, Store};
+use super::store::{Store, ValueSpec};
 use crate::bus::{BusHandle, BusTask, Device};
 use crate::config::{self, Config, Table, Value};
 use crate::error::Answer;
@@ -53,7 +53,7 @@ fn start_polling(bus: &BusHandle, polls: u16, share: f64) -> tokio::task::JoinHa
     let mut specs = Vec::new();
     let mut list = Vec::new();
     for n in 0..polls {
-        specs.push(Spec {
+        specs.push(ValueSpec {
             bus: "line".into(),
             slave: POLLED,
             name: format!("v{n}"),

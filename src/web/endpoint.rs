@@ -91,7 +91,7 @@ enum Phase {
 
 /// What to do with a newly accepted connection.
 #[derive(Debug, PartialEq, Eq)]
-enum Admission {
+enum Arrival {
     Admit,
     /// Admit it in the place of this connection, which is closed.
     Replace(u64),
@@ -117,9 +117,9 @@ impl Connections {
     /// that has waited longest among the silent ones, then among those still sending their
     /// request, then among those whose answer has been going out for over [`ANSWER_GRACE`].
     /// Trace streams and fresh answers keep theirs.
-    fn admit(&self, now: Instant) -> Admission {
+    fn admit(&self, now: Instant) -> Arrival {
         if self.open.len() < MAX_CONNECTIONS {
-            return Admission::Admit;
+            return Arrival::Admit;
         }
         self.open
             .iter()
@@ -129,7 +129,7 @@ impl Connections {
                 Phase::Streaming => false,
             })
             .min_by_key(|(id, open)| (open.phase, open.since, **id))
-            .map_or(Admission::Refuse, |(id, _)| Admission::Replace(*id))
+            .map_or(Arrival::Refuse, |(id, _)| Arrival::Replace(*id))
     }
 
     fn add(&mut self, phase: Phase, now: Instant) -> (u64, Arc<Notify>) {
@@ -196,14 +196,14 @@ pub(crate) async fn serve(listener: TcpListener, metrics: Arc<Metrics>, gateway:
             let mut connections = state.connections();
             let now = Instant::now();
             match connections.admit(now) {
-                Admission::Admit => {}
-                Admission::Replace(old) => {
+                Arrival::Admit => {}
+                Arrival::Replace(old) => {
                     debug!(%peer, "metrics endpoint: full, closing the connection waiting longest");
                     if let Some(close) = connections.remove(old) {
                         close.notify_one();
                     }
                 }
-                Admission::Refuse => {
+                Arrival::Refuse => {
                     debug!(%peer, "metrics endpoint: too many connections, closing");
                     continue;
                 }
@@ -460,18 +460,18 @@ mod tests {
         let start = Instant::now();
         let mut connections = Connections::default();
         connections.add(Phase::Silent, start);
-        assert_eq!(connections.admit(start), Admission::Admit);
+        assert_eq!(connections.admit(start), Arrival::Admit);
         // Ids 8-15: an answer going out for long, an unfinished head, then silent ones.
         let mut phases = vec![Phase::Answering, Phase::Asking];
         phases.extend([Phase::Silent; 6]);
         let now = start + Duration::from_secs(60);
-        assert_eq!(full(start, &phases).admit(now), Admission::Replace(10));
+        assert_eq!(full(start, &phases).admit(now), Arrival::Replace(10));
         // No silent one: the unfinished head, then the answer that takes too long.
         phases.truncate(2);
         phases.extend([Phase::Streaming; 6]);
-        assert_eq!(full(start, &phases).admit(now), Admission::Replace(9));
+        assert_eq!(full(start, &phases).admit(now), Arrival::Replace(9));
         phases[1] = Phase::Streaming;
-        assert_eq!(full(start, &phases).admit(now), Admission::Replace(8));
+        assert_eq!(full(start, &phases).admit(now), Arrival::Replace(8));
     }
 
     #[test]
@@ -480,13 +480,13 @@ mod tests {
         let connections = full(start, &[Phase::Answering; 8]);
         // The last answer began 7 s after `start`.
         let within_grace = start + Duration::from_secs(7) + ANSWER_GRACE;
-        assert_eq!(connections.admit(within_grace), Admission::Replace(8));
+        assert_eq!(connections.admit(within_grace), Arrival::Replace(8));
         let connections = full(start + Duration::from_secs(60), &[Phase::Answering; 8]);
-        assert_eq!(connections.admit(start), Admission::Refuse);
+        assert_eq!(connections.admit(start), Arrival::Refuse);
         let connections = full(start, &[Phase::Streaming; 8]);
         assert_eq!(
             connections.admit(start + Duration::from_secs(3600)),
-            Admission::Refuse
+            Arrival::Refuse
         );
     }
 

@@ -34,14 +34,14 @@ const STILL_HERE: &str = ": keepalive\n\n";
 
 /// Which frames a reader wants.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
-struct Filter {
+struct Wanted {
     bus: Option<String>,
     slave: Option<u8>,
 }
 
 /// The filter a query string asks for, or the status and message that refuse it.
-fn filter(query: Option<&str>, buses: &[String]) -> Result<Filter, (StatusCode, String)> {
-    let mut filter = Filter::default();
+fn filter(query: Option<&str>, buses: &[String]) -> Result<Wanted, (StatusCode, String)> {
+    let mut filter = Wanted::default();
     for (key, value) in super::query_pairs(query)? {
         let value = value.as_ref();
         match key.as_ref() {
@@ -68,7 +68,7 @@ fn filter(query: Option<&str>, buses: &[String]) -> Result<Filter, (StatusCode, 
     Ok(filter)
 }
 
-impl Filter {
+impl Wanted {
     fn admits(&self, event: &crate::trace::TraceEvent) -> bool {
         self.bus.as_deref().is_none_or(|bus| *event.bus == *bus)
             && self.slave.is_none_or(|slave| event.slave == slave)
@@ -136,7 +136,7 @@ async fn send(body: &mut Sender<Bytes>, chunk: Bytes) -> Result<(), Ended> {
 }
 
 /// Write what `reader` gets and `filter` admits into `body` until the reader leaves or stalls.
-async fn pump(mut reader: TraceReader, filter: Filter, mut body: Sender<Bytes>) -> Ended {
+async fn pump(mut reader: TraceReader, filter: Wanted, mut body: Sender<Bytes>) -> Ended {
     if let Err(ended) = send(&mut body, Bytes::from_static(OPENED.as_bytes())).await {
         return ended;
     }
@@ -182,10 +182,10 @@ mod tests {
 
     #[test]
     fn the_query_filters_by_bus_and_slave() {
-        assert_eq!(filter(None, &buses()), Ok(Filter::default()));
+        assert_eq!(filter(None, &buses()), Ok(Wanted::default()));
         assert_eq!(
             filter(Some("bus=line1&slave=247"), &buses()),
-            Ok(Filter {
+            Ok(Wanted {
                 bus: Some("line1".into()),
                 slave: Some(247)
             })
@@ -193,7 +193,7 @@ mod tests {
         for slave in [0, 248, 255] {
             assert_eq!(
                 filter(Some(&format!("slave={slave}")), &buses()),
-                Ok(Filter {
+                Ok(Wanted {
                     bus: None,
                     slave: Some(slave)
                 })
@@ -244,7 +244,7 @@ mod tests {
     async fn the_stream_opens_with_a_comment_filters_frames_and_keeps_alive() {
         let hub = Arc::new(TraceHub::new());
         let (sender, mut body) = Channel::new(BUFFERED);
-        let filter = Filter {
+        let filter = Wanted {
             bus: None,
             slave: Some(2),
         };
@@ -262,7 +262,7 @@ mod tests {
     async fn a_stream_that_takes_nothing_for_two_keepalives_ends_stalled_and_a_dropped_one_gone() {
         let hub = Arc::new(TraceHub::new());
         let (sender, body) = Channel::new(BUFFERED);
-        let stalled = tokio::spawn(pump(hub.subscribe().unwrap(), Filter::default(), sender));
+        let stalled = tokio::spawn(pump(hub.subscribe().unwrap(), Wanted::default(), sender));
         tokio::task::yield_now().await;
         // Nobody reads the body: the opening comment and the events fill it.
         for _ in 0..BUFFERED {
@@ -278,7 +278,7 @@ mod tests {
         drop(body);
 
         let (sender, body) = Channel::new(BUFFERED);
-        let gone = tokio::spawn(pump(hub.subscribe().unwrap(), Filter::default(), sender));
+        let gone = tokio::spawn(pump(hub.subscribe().unwrap(), Wanted::default(), sender));
         drop(body);
         tokio::time::sleep(KEEPALIVE).await;
         assert!(gone.is_finished(), "gone at the next keepalive");
@@ -289,7 +289,7 @@ mod tests {
     async fn a_reader_that_stops_reading_is_told_how_many_events_it_lost() {
         let hub = Arc::new(TraceHub::new());
         let (sender, mut body) = Channel::new(BUFFERED);
-        tokio::spawn(pump(hub.subscribe().unwrap(), Filter::default(), sender));
+        tokio::spawn(pump(hub.subscribe().unwrap(), Wanted::default(), sender));
         tokio::task::yield_now().await;
         // Nobody reads the body: the pump fills it and stops taking events.
         for _ in 0..5000 {

@@ -1,15 +1,15 @@
 //! `GET /values`: which plant values a query string asks for (`bus`, `slave`, `history`), or why
 //! it is refused. The listing itself is the values' store's.
 
-use crate::values::Filter;
+use crate::values::ValueQuery;
 use hyper::StatusCode;
 
 /// The filter `query` asks for, or the status and message that refuse it.
 pub(super) fn filter(
     query: Option<&str>,
     buses: &[String],
-) -> Result<Filter, (StatusCode, String)> {
-    let mut filter = Filter::default();
+) -> Result<ValueQuery, (StatusCode, String)> {
+    let mut filter = ValueQuery::default();
     for (key, value) in super::query_pairs(query)? {
         let value = value.as_ref();
         match key.as_ref() {
@@ -54,13 +54,13 @@ mod tests {
         let picked = filter(Some("bus=line2&slave=255&history=1"), &buses).unwrap();
         assert_eq!(
             picked,
-            Filter {
+            ValueQuery {
                 bus: Some("line2".to_owned()),
                 slave: Some(255),
                 history: true
             }
         );
-        assert_eq!(filter(None, &buses).unwrap(), Filter::default());
+        assert_eq!(filter(None, &buses).unwrap(), ValueQuery::default());
         let (status, message) = super::filter(Some("bus=line9"), &buses).unwrap_err();
         assert_eq!(status, StatusCode::NOT_FOUND);
         assert!(message.contains("line1, line2"), "{message}");
