@@ -8,6 +8,9 @@
 //! runtime thread directly, with no other thread to wake and switch to. Knows nothing of what it
 //! times.
 
+// Unsafe blocks, each with its SAFETY comment: the timerfd's calls and its registration.
+#![allow(unsafe_code)]
+
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 use std::future::Future;

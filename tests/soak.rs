@@ -18,6 +18,8 @@
 // Test code may be long and cast freely; the workspace lint table is for the product.
 #![allow(
     unreachable_pub,
+    // The counting allocator is an `unsafe impl GlobalAlloc` (each fn with its SAFETY comment).
+    unsafe_code,
     clippy::too_many_lines,
     clippy::cast_possible_truncation
 )]
