@@ -2,6 +2,9 @@
 //! (device servers) alike: keepalive with a bound on unacknowledged data, and the least round
 //! trip the kernel has measured. Knows nothing of what the sockets carry.
 
+// Unsafe blocks, each with its SAFETY comment: getsockopt(TCP_INFO) on a connected socket.
+#![allow(unsafe_code)]
+
 use socket2::{SockRef, TcpKeepalive};
 use std::io;
 use std::os::fd::AsRawFd;

@@ -6,7 +6,14 @@
 //! instead. A task that sleeps again and again (the RTU master, once per frame) keeps a
 //! `LineTimer` instead: on Linux its own timerfd in the runtime's epoll set, which wakes the
 //! runtime thread directly, with no other thread to wake and switch to. Knows nothing of what it
-//! times.
+//! times. The one module that reads `std::time::Instant` and tokio's raw `sleep_until`
+//! (clippy.toml bans them elsewhere): the rest of the crate chooses a sleep's precision here, by
+//! name, and reads the real clock through [`RealInstant`].
+
+// Unsafe blocks, each with its SAFETY comment: the timerfd's calls and its registration.
+#![allow(unsafe_code)]
+// The clock and the sleeps the rest of the crate is to reach only through this module.
+#![allow(clippy::disallowed_types, clippy::disallowed_methods)]
 
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
@@ -40,6 +47,43 @@ pub async fn sleep_until(deadline: tokio::time::Instant) {
         }
     }
     precise_sleep_until(deadline).await;
+}
+
+/// Sleep until `deadline` on tokio's timer alone, whatever [`use_precise_timer`] says, so up to
+/// a millisecond or so late: for deadlines no frame's timing hangs on (a port's reopen, an idle
+/// connection, a poll's schedule, a test's wait). Cancel-safe.
+pub(crate) fn coarse_sleep_until(deadline: tokio::time::Instant) -> tokio::time::Sleep {
+    tokio::time::sleep_until(deadline)
+}
+
+/// A moment of the system's monotonic clock, which tokio's paused clock does not hold still:
+/// for what is measured in real time whatever clock the runtime keeps (how long since a warning
+/// was last logged).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub(crate) struct RealInstant(Instant);
+
+impl RealInstant {
+    pub(crate) fn now() -> RealInstant {
+        RealInstant(Instant::now())
+    }
+
+    /// The time since this moment.
+    pub(crate) fn elapsed(self) -> Duration {
+        self.0.elapsed()
+    }
+
+    /// The time from `earlier` to this moment; zero if `earlier` is later.
+    pub(crate) fn duration_since(self, earlier: RealInstant) -> Duration {
+        self.0.saturating_duration_since(earlier.0)
+    }
+}
+
+impl std::ops::Add<Duration> for RealInstant {
+    type Output = RealInstant;
+
+    fn add(self, duration: Duration) -> RealInstant {
+        RealInstant(self.0 + duration)
+    }
 }
 
 /// The sleeps of one task, one at a time. With precise timing on Linux they end on a timerfd of

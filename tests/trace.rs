@@ -3,6 +3,9 @@
 //! stalled reader dropped), a reader that stops reading on the paused clock, the trace's gate
 //! with no reader, and the `trace` subcommand run as the real binary.
 
+// Unsafe blocks, each with its SAFETY comment: signalling the daemon under test.
+#![allow(unsafe_code)]
+
 use crate::support::{
     http_get, mbap, rtu, sim_bus_counted, start, start_sim, within, Bus, GatewayConfig, RawMaster,
 };

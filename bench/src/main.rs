@@ -26,6 +26,10 @@
 //! scraper, pages), `run` (one scenario's warm-up and window), `report` (the figures and their
 //! tables).
 
+// The harness times other processes on the real clock, and paces its masters on tokio's
+// timer; it has no paused clock to keep, nor the product's choice of precision to make.
+#![allow(clippy::disallowed_types, clippy::disallowed_methods)]
+
 mod beside;
 mod device_server;
 mod gateway;

@@ -15,6 +15,7 @@ use crate::error::RequestError;
 use crate::line::LineMaster;
 use crate::metrics::Metrics;
 use crate::shutdown::Stopping;
+use crate::timer::coarse_sleep_until;
 use crate::trace::BusTap;
 use std::io;
 use std::path::Path;
@@ -22,7 +23,7 @@ use std::pin::pin;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 use std::time::Duration;
-use tokio::time::{sleep, sleep_until, Instant};
+use tokio::time::{sleep, Instant};
 use tracing::info;
 
 /// Why the bus task stopped serving an open port.
@@ -328,7 +329,7 @@ impl BusTask {
                 job = self.handle.queue.pop() => {
                     self.handle.answer(job, Err(RequestError::PortDown));
                 }
-                () = sleep_until(until) => return Waited::TryAgain,
+                () = coarse_sleep_until(until) => return Waited::TryAgain,
                 () = sleep(HEARTBEAT) => {}
             }
         }

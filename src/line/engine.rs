@@ -937,7 +937,7 @@ mod tests {
         let until = master
             .late_reply_window(1)
             .expect("the retry's own reply may come");
-        tokio::time::sleep_until(until).await;
+        crate::timer::coarse_sleep_until(until).await;
         let frames = line.frames();
         let own = frames.last().unwrap();
         assert_eq!(own.from, crate::sim::Source::Slave(1));

@@ -6,6 +6,7 @@ use super::labels::{hex, Closing, Rejection};
 use super::throttle::PeerThrottle;
 use super::{Definer, TCP_EVENTS};
 use crate::master::Protocol;
+use crate::timer::RealInstant;
 use prometheus::{IntCounter, IntCounterVec, IntGaugeVec};
 use std::fmt::Display;
 use std::net::SocketAddr;
@@ -24,9 +25,9 @@ pub struct TcpMetrics {
     /// Whether connections are being refused for `max_connections`, so a storm logs once.
     refusing: AtomicBool,
     /// When a refusal for `server.allow` was last logged at warn, so a scan logs little.
-    not_allowed_logged: Mutex<Option<std::time::Instant>>,
+    not_allowed_logged: Mutex<Option<RealInstant>>,
     /// The same for `server.max_connections_per_address`.
-    per_address_logged: Mutex<Option<std::time::Instant>>,
+    per_address_logged: Mutex<Option<RealInstant>>,
     /// Connections closed for breaking the framing or for a request that never arrived whole.
     protocol_errors: PeerThrottle,
     /// Requests refused for what the master may do.
@@ -169,7 +170,7 @@ impl TcpMetrics {
                     .unwrap_or_else(PoisonError::into_inner);
                 let due = logged.is_none_or(|at| at.elapsed() >= NOT_ALLOWED_LOG_INTERVAL);
                 if due {
-                    *logged = Some(std::time::Instant::now());
+                    *logged = Some(RealInstant::now());
                 }
                 (due, "refusing a master outside server.allow")
             }
@@ -277,11 +278,11 @@ impl TcpMetrics {
 }
 
 /// Whether a warning last logged at `logged` may be logged again; if so, now is the last time.
-fn due(logged: &Mutex<Option<std::time::Instant>>) -> bool {
+fn due(logged: &Mutex<Option<RealInstant>>) -> bool {
     let mut logged = logged.lock().unwrap_or_else(PoisonError::into_inner);
     let due = logged.is_none_or(|at| at.elapsed() >= NOT_ALLOWED_LOG_INTERVAL);
     if due {
-        *logged = Some(std::time::Instant::now());
+        *logged = Some(RealInstant::now());
     }
     due
 }

@@ -4,10 +4,11 @@
 //! the gateway's own lines ("slave down", "port lost"). What is held back is still counted, and
 //! logged at debug.
 
+use crate::timer::RealInstant;
 use std::collections::HashMap;
 use std::net::IpAddr;
 use std::sync::{Mutex, PoisonError};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 /// At most one warn line per source address and kind of event per this interval.
 pub(super) const INTERVAL: Duration = Duration::from_secs(60);
@@ -16,7 +17,7 @@ pub(super) const INTERVAL: Duration = Duration::from_secs(60);
 const PEERS: usize = 1024;
 
 struct Logged {
-    at: Instant,
+    at: RealInstant,
     /// Events held back since `at`.
     held_back: u64,
 }
@@ -36,10 +37,10 @@ impl PeerThrottle {
     /// Whether an event from `peer` now gets its warn line: `Some(n)`, `n` being how many of
     /// its events were held back since its last one; `None`: log it at debug.
     pub(super) fn due(&self, peer: IpAddr) -> Option<u64> {
-        self.due_at(peer.to_canonical(), Instant::now())
+        self.due_at(peer.to_canonical(), RealInstant::now())
     }
 
-    fn due_at(&self, peer: IpAddr, now: Instant) -> Option<u64> {
+    fn due_at(&self, peer: IpAddr, now: RealInstant) -> Option<u64> {
         let mut logged = self.logged.lock().unwrap_or_else(PoisonError::into_inner);
         if let Some(last) = logged.get_mut(&peer) {
             if now.duration_since(last.at) < INTERVAL {
@@ -77,7 +78,7 @@ mod tests {
     #[test]
     fn one_line_per_address_per_interval_and_the_next_says_how_many_were_held_back() {
         let throttle = PeerThrottle::new();
-        let start = Instant::now();
+        let start = RealInstant::now();
         let a: IpAddr = "192.0.2.1".parse().unwrap();
         let b: IpAddr = "192.0.2.2".parse().unwrap();
         assert_eq!(throttle.due_at(a, start), Some(0));
@@ -92,7 +93,7 @@ mod tests {
     #[test]
     fn a_scan_of_many_addresses_does_not_grow_the_map_past_its_bound() {
         let throttle = PeerThrottle::new();
-        let start = Instant::now();
+        let start = RealInstant::now();
         for n in 0..(PEERS as u32 + 100) {
             let peer = IpAddr::from(std::net::Ipv4Addr::from(0x0A00_0000 + n));
             let due = throttle.due_at(peer, start);

@@ -12,6 +12,7 @@ use crate::error::{Outcome, RequestError};
 use crate::metrics::Closing;
 use crate::pdu::exception_pdu;
 use crate::shutdown::Stopping;
+use crate::timer::coarse_sleep_until;
 use bytes::BytesMut;
 use std::collections::VecDeque;
 use std::future::Future;
@@ -22,7 +23,7 @@ use std::task::Poll;
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::sync::{oneshot, Notify};
-use tokio::time::{sleep_until, Instant};
+use tokio::time::Instant;
 
 /// Longest a TLS session's close_notify may take to send.
 const CLOSE_NOTIFY_WAIT: Duration = Duration::from_secs(1);
@@ -319,10 +320,10 @@ async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
                 Ok(_) => {}
                 Err(error) => return error.into(),
             },
-            () = sleep_until(frame_due.unwrap_or(last_activity)), if frame_due.is_some() => {
+            () = coarse_sleep_until(frame_due.unwrap_or(last_activity)), if frame_due.is_some() => {
                 return SessionError::FrameTimeout(limits.frame_timeout);
             }
-            () = sleep_until(idle_at.unwrap_or(last_activity)), if idle_at.is_some() => {
+            () = coarse_sleep_until(idle_at.unwrap_or(last_activity)), if idle_at.is_some() => {
                 return SessionError::Idle(limits.idle_timeout.unwrap_or_default());
             }
             () = activity.close.notified(), if in_flight.is_empty() => {

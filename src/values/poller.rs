@@ -11,11 +11,12 @@ use crate::bus::BusHandle;
 use crate::config::Value;
 use crate::error::{Answer, NoReply, Outcome, RequestError};
 use crate::master::{Class, MasterId, Origin, Protocol};
+use crate::timer::coarse_sleep_until;
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 use std::sync::Arc;
 use std::time::{Duration, SystemTime};
-use tokio::time::{sleep_until, Instant};
+use tokio::time::Instant;
 
 /// The poller's id among a bus's masters: no connection ever has it.
 const POLLER: MasterId = MasterId::MAX;
@@ -43,7 +44,7 @@ pub(crate) async fn run(bus: BusHandle, polls: Vec<Poll>, store: Arc<Store>, sha
         (0..polls.len()).map(|i| Reverse((start, i))).collect();
     let mut not_before = start;
     while let Some(Reverse((at, i))) = due.pop() {
-        sleep_until(at.max(not_before)).await;
+        coarse_sleep_until(at.max(not_before)).await;
         let poll = &polls[i];
         let read = &poll.read;
         let pdu = decode::request(read.table, read.first, read.count);

@@ -4,6 +4,9 @@
 //! never by tcdrain), and a USB adapter's latency timer ([`latency`]). Knows nothing of framing,
 //! transactions or the other transports.
 
+// Unsafe blocks, each with its SAFETY comment: registering the port's fd with the runtime.
+#![allow(unsafe_code)]
+
 pub(crate) mod latency;
 pub(crate) mod rs485;
 

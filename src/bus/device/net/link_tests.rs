@@ -36,7 +36,7 @@ where
     });
     tokio::spawn(async move {
         while let Some((at, bytes)) = due.recv().await {
-            tokio::time::sleep_until(at).await;
+            crate::timer::coarse_sleep_until(at).await;
             if to.write_all(&bytes).await.is_err() {
                 break;
             }

@@ -4,6 +4,9 @@
 //! when a frame has left the wire is the serial port's ([`super::SerialFd`]). Knows nothing of
 //! frames or time.
 
+// Unsafe blocks, each with its SAFETY comment: the RS-485 and modem-line ioctls.
+#![allow(unsafe_code)]
+
 use crate::config::{Rs485, Rs485Mode};
 use std::io;
 use std::os::fd::{AsRawFd, BorrowedFd};
