@@ -96,7 +96,7 @@ pub use gateway::Gateway;
 #[cfg(feature = "test-util")]
 pub mod testing {
     pub use crate::dispatch::{Client, Dispatcher};
-    pub use crate::master::Framing;
+    pub use crate::master::UpstreamFraming;
     pub use crate::master::{Protocol, Rights};
     pub use crate::net::server::RECENTLY_ANSWERED;
     pub use crate::net::session::SessionLimits;

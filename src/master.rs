@@ -77,7 +77,7 @@ pub enum Protocol {
 
 /// How a master's bytes travel: on a stream, plain or in TLS, or in datagrams.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Transport {
+pub enum UpstreamTransport {
     /// A TCP connection.
     Tcp,
     /// A TLS session on a TCP connection, the master authenticated by its certificate.
@@ -86,16 +86,16 @@ pub enum Transport {
     Udp,
 }
 
-impl Transport {
+impl UpstreamTransport {
     /// A connection (TCP or TLS) rather than datagrams.
     pub(crate) fn is_stream(self) -> bool {
-        self != Transport::Udp
+        self != UpstreamTransport::Udp
     }
 }
 
 /// How a master delimits and addresses its requests (the codec is the network side's).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Framing {
+pub enum UpstreamFraming {
     /// An MBAP header (transaction id, protocol id, length, unit id) before each PDU.
     Mbap,
     /// As on a serial line: address, PDU, CRC-16, no header; replies the same way.
@@ -105,8 +105,8 @@ pub enum Framing {
 /// What a protocol is, in one row.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Spec {
-    pub transport: Transport,
-    pub framing: Framing,
+    pub transport: UpstreamTransport,
+    pub framing: UpstreamFraming,
     /// What the logs and `accepting ... masters` call it.
     pub name: &'static str,
     /// The `protocol` label.
@@ -124,10 +124,30 @@ impl Protocol {
     /// The one table of the protocols: their transport, framing, name and label.
     pub const fn spec(self) -> Spec {
         let (transport, framing, name, label) = match self {
-            Protocol::Tcp => (Transport::Tcp, Framing::Mbap, "Modbus TCP", "tcp"),
-            Protocol::RtuOverTcp => (Transport::Tcp, Framing::Rtu, "RTU over TCP", "rtu_over_tcp"),
-            Protocol::Udp => (Transport::Udp, Framing::Mbap, "Modbus UDP", "udp"),
-            Protocol::Tls => (Transport::Tls, Framing::Mbap, "Modbus/TCP Security", "tls"),
+            Protocol::Tcp => (
+                UpstreamTransport::Tcp,
+                UpstreamFraming::Mbap,
+                "Modbus TCP",
+                "tcp",
+            ),
+            Protocol::RtuOverTcp => (
+                UpstreamTransport::Tcp,
+                UpstreamFraming::Rtu,
+                "RTU over TCP",
+                "rtu_over_tcp",
+            ),
+            Protocol::Udp => (
+                UpstreamTransport::Udp,
+                UpstreamFraming::Mbap,
+                "Modbus UDP",
+                "udp",
+            ),
+            Protocol::Tls => (
+                UpstreamTransport::Tls,
+                UpstreamFraming::Mbap,
+                "Modbus/TCP Security",
+                "tls",
+            ),
         };
         Spec {
             transport,
@@ -139,16 +159,16 @@ impl Protocol {
 
     /// The protocol of `framing` over `transport`; `None` for a pair the gateway does not offer
     /// (RTU in TLS or in UDP datagrams).
-    pub fn of(transport: Transport, framing: Framing) -> Option<Protocol> {
+    pub fn of(transport: UpstreamTransport, framing: UpstreamFraming) -> Option<Protocol> {
         let offered = |p: &Protocol| (p.transport(), p.framing()) == (transport, framing);
         Protocol::ALL.into_iter().find(offered)
     }
 
-    pub fn transport(self) -> Transport {
+    pub fn transport(self) -> UpstreamTransport {
         self.spec().transport
     }
 
-    pub fn framing(self) -> Framing {
+    pub fn framing(self) -> UpstreamFraming {
         self.spec().framing
     }
 
@@ -196,8 +216,14 @@ mod tests {
                 Some(protocol)
             );
         }
-        assert_eq!(Protocol::of(Transport::Tls, Framing::Rtu), None);
-        assert_eq!(Protocol::of(Transport::Udp, Framing::Rtu), None);
+        assert_eq!(
+            Protocol::of(UpstreamTransport::Tls, UpstreamFraming::Rtu),
+            None
+        );
+        assert_eq!(
+            Protocol::of(UpstreamTransport::Udp, UpstreamFraming::Rtu),
+            None
+        );
         let names: Vec<&str> = Protocol::ALL.iter().map(|p| p.name()).collect();
         assert_eq!(
             names,

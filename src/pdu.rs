@@ -10,8 +10,8 @@ pub(crate) const MAX_PDU_LEN: usize = 253;
 pub(crate) const EXCEPTION_BIT: u8 = 0x80;
 
 use code::*;
-use Access::{Read, ReadIf, Write};
 use Broadcast::{EchoFirst, EchoRequest, Refused};
+use Effect::{Read, ReadIf, Write};
 
 /// Exception replies: function | 0x80, exception code.
 pub(crate) const EXCEPTION_PDU_LEN: usize = 2;
@@ -94,7 +94,7 @@ pub struct Function {
     pub request: Len,
     /// How long a normal reply PDU is (an exception is always `EXCEPTION_PDU_LEN`).
     pub reply: Len,
-    pub access: Access,
+    pub access: Effect,
     /// What a broadcast of it is answered with, by the gateway since no slave answers.
     pub broadcast: Broadcast,
     /// What a normal reply must look like to answer the request.
@@ -161,7 +161,7 @@ pub enum PduLen {
 
 /// Whether a request changes anything on the slave.
 #[derive(Clone, Copy, Debug)]
-pub enum Access {
+pub enum Effect {
     Read,
     Write,
     /// Reads when the PDU says so (a sub-function or MEI type), writes otherwise.
@@ -271,7 +271,7 @@ const fn row(
     name: &'static str,
     request: Len,
     reply: Len,
-    access: Access,
+    access: Effect,
     broadcast: Broadcast,
     reply_shape: Shape,
 ) -> Function {
@@ -511,9 +511,9 @@ pub(crate) fn is_read_only(pdu: &[u8]) -> bool {
         return false;
     };
     match row.access {
-        Access::Read => true,
-        Access::Write => false,
-        Access::ReadIf(reads) => reads(pdu),
+        Effect::Read => true,
+        Effect::Write => false,
+        Effect::ReadIf(reads) => reads(pdu),
     }
 }
 

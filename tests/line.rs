@@ -4,7 +4,7 @@
 use modbus_gateway::bus::BusHandle;
 use modbus_gateway::error::{Answer, NoReply, Outcome, RequestError};
 use modbus_gateway::metrics::Metrics;
-use modbus_gateway::sim::{RegisterBank, Scripted, SimLine, Slave, Source, Transmission};
+use modbus_gateway::sim::{RegisterBank, Scripted, SimLine, Simulated, Source, Transmission};
 
 use crate::support::{bus_call as call, settle, sim_bus_filled, sim_bus_settings};
 use std::time::Duration;
@@ -454,7 +454,7 @@ struct SilentFor {
     inner: RegisterBank,
 }
 
-impl Slave for SilentFor {
+impl Simulated for SilentFor {
     fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission> {
         if request.first() == Some(&self.function) {
             return None;

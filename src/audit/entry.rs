@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 pub(crate) enum Line {
     Open(Opened),
     Write(Write),
-    Outcome(Ended),
+    WriteOutcome(Ended),
     Gap(Gap),
 }
 
@@ -73,7 +73,7 @@ pub(crate) struct Write {
 pub(crate) struct Ended {
     pub(crate) time: String,
     pub(crate) id: u64,
-    pub(crate) outcome: Outcome,
+    pub(crate) outcome: WriteOutcome,
     /// Whether the slave did it: `yes`, `no`, or `maybe` (sent, and no reply says).
     pub(crate) carried_out: Carried,
     /// The exception code the master got (the slave's, the gateway's or the rule's).
@@ -104,7 +104,7 @@ pub(crate) struct Gap {
 /// How a write ended; the `outcome` label of `modbus_gateway_writes_total`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
-pub(crate) enum Outcome {
+pub(crate) enum WriteOutcome {
     /// The slave's normal reply.
     Answered,
     /// The slave's exception.
@@ -124,28 +124,28 @@ pub(crate) enum Outcome {
     Cancelled,
 }
 
-impl Outcome {
-    pub(crate) const ALL: [Outcome; 8] = [
-        Outcome::Answered,
-        Outcome::SlaveException,
-        Outcome::GatewayException,
-        Outcome::Denied,
-        Outcome::Acknowledged,
-        Outcome::Timeout,
-        Outcome::Broadcast,
-        Outcome::Cancelled,
+impl WriteOutcome {
+    pub(crate) const ALL: [WriteOutcome; 8] = [
+        WriteOutcome::Answered,
+        WriteOutcome::SlaveException,
+        WriteOutcome::GatewayException,
+        WriteOutcome::Denied,
+        WriteOutcome::Acknowledged,
+        WriteOutcome::Timeout,
+        WriteOutcome::Broadcast,
+        WriteOutcome::Cancelled,
     ];
 
     pub(crate) fn label(self) -> &'static str {
         match self {
-            Outcome::Answered => "answered",
-            Outcome::SlaveException => "slave_exception",
-            Outcome::GatewayException => "gateway_exception",
-            Outcome::Denied => "denied",
-            Outcome::Acknowledged => "acknowledged",
-            Outcome::Timeout => "timeout",
-            Outcome::Broadcast => "broadcast",
-            Outcome::Cancelled => "cancelled",
+            WriteOutcome::Answered => "answered",
+            WriteOutcome::SlaveException => "slave_exception",
+            WriteOutcome::GatewayException => "gateway_exception",
+            WriteOutcome::Denied => "denied",
+            WriteOutcome::Acknowledged => "acknowledged",
+            WriteOutcome::Timeout => "timeout",
+            WriteOutcome::Broadcast => "broadcast",
+            WriteOutcome::Cancelled => "cancelled",
         }
     }
 }
@@ -207,10 +207,10 @@ mod tests {
         assert!(text.contains(r#""values":"13880032""#), "{text}");
         assert!(!text.contains('\n'));
         assert_eq!(serde_json::from_str::<Line>(&text).unwrap(), write);
-        let ended = Line::Outcome(Ended {
+        let ended = Line::WriteOutcome(Ended {
             time: now(),
             id: 7,
-            outcome: Outcome::Timeout,
+            outcome: WriteOutcome::Timeout,
             carried_out: Carried::Maybe,
             exception: Some(0x0B),
             detail: Some("no valid reply after 1 attempt(s): no reply".into()),

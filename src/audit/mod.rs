@@ -14,7 +14,7 @@ use crate::master::Protocol;
 use crate::metrics::Metrics;
 use crate::pdu::{self, EXCEPTION_BIT};
 use crate::routing::Inbound;
-use entry::{Carried, Line, Outcome, Write};
+use entry::{Carried, Line, Write, WriteOutcome};
 pub(crate) use journal::rotated;
 use journal::{Journal, Ticket};
 use serde::Serialize;
@@ -208,7 +208,7 @@ impl Audit {
             .audit
             .write_ended(protocol, action, ended.outcome.label());
         if let Some(journal) = &pending.journal {
-            journal.note(&Line::Outcome(ended));
+            journal.note(&Line::WriteOutcome(ended));
         }
     }
 }
@@ -254,7 +254,7 @@ impl Pending {
     pub(crate) fn end(self, outcome: Option<&Ended>) {
         let (outcome, carried, exception, detail) = match outcome {
             None => (
-                Outcome::Cancelled,
+                WriteOutcome::Cancelled,
                 Carried::No,
                 None,
                 Some("the master left before it was sent".to_owned()),
@@ -266,18 +266,23 @@ impl Pending {
 
     /// Refused unsent by a rule, `server.read_only` or a role, with `exception`.
     pub(crate) fn denied(self, exception: u8, detail: String) {
-        self.finish(Outcome::Denied, Carried::No, Some(exception), Some(detail));
+        self.finish(
+            WriteOutcome::Denied,
+            Carried::No,
+            Some(exception),
+            Some(detail),
+        );
     }
 
     /// Answered with its normal reply by an `acknowledge` rule, unsent.
     pub(crate) fn acknowledged(self) {
         let detail = "answered by the gateway as the slave would have; not sent".to_owned();
-        self.finish(Outcome::Acknowledged, Carried::No, None, Some(detail));
+        self.finish(WriteOutcome::Acknowledged, Carried::No, None, Some(detail));
     }
 
     fn finish(
         self,
-        outcome: Outcome,
+        outcome: WriteOutcome,
         carried: Carried,
         exception: Option<u8>,
         detail: Option<String>,
@@ -293,7 +298,7 @@ impl Pending {
         self.audit.ended(&self, ended);
     }
 
-    fn judge(&self, outcome: &Ended) -> (Outcome, Carried, Option<u8>, Option<String>) {
+    fn judge(&self, outcome: &Ended) -> (WriteOutcome, Carried, Option<u8>, Option<String>) {
         let reply = match outcome {
             Ok(Answer::Reply(pdu) | Answer::Malformed(pdu) | Answer::Acknowledged(pdu)) => {
                 Some(pdu.as_slice())
@@ -303,35 +308,35 @@ impl Pending {
         };
         if self.broadcast {
             let detail = "sent to every slave; none answers a broadcast".to_owned();
-            return (Outcome::Broadcast, Carried::Maybe, None, Some(detail));
+            return (WriteOutcome::Broadcast, Carried::Maybe, None, Some(detail));
         }
         match reply {
             Some([function, code, ..]) if function & EXCEPTION_BIT != 0 => {
                 let name = pdu::exception_name(*code).unwrap_or("the vendor's own code");
                 let detail = format!("the slave refused it: {name}");
                 (
-                    Outcome::SlaveException,
+                    WriteOutcome::SlaveException,
                     Carried::No,
                     Some(*code),
                     Some(detail),
                 )
             }
-            _ => (Outcome::Answered, Carried::Yes, None, None),
+            _ => (WriteOutcome::Answered, Carried::Yes, None, None),
         }
     }
 }
 
-fn judge_error(error: RequestError) -> (Outcome, Carried, Option<u8>, Option<String>) {
+fn judge_error(error: RequestError) -> (WriteOutcome, Carried, Option<u8>, Option<String>) {
     let code = error.exception_code() as u8;
     match error {
         RequestError::NoResponse { .. } => (
-            Outcome::Timeout,
+            WriteOutcome::Timeout,
             Carried::Maybe,
             Some(code),
             Some(format!("{error}; may have been carried out")),
         ),
         RequestError::PortLost => (
-            Outcome::GatewayException,
+            WriteOutcome::GatewayException,
             Carried::Maybe,
             Some(code),
             Some(format!("{error}; may have been carried out")),
@@ -341,13 +346,13 @@ fn judge_error(error: RequestError) -> (Outcome, Carried, Option<u8>, Option<Str
         | RequestError::NoAccess(_)
         | RequestError::UnitNotPermitted(_)
         | RequestError::Unverifiable(_) => (
-            Outcome::Denied,
+            WriteOutcome::Denied,
             Carried::No,
             Some(code),
             Some(error.to_string()),
         ),
         _ => (
-            Outcome::GatewayException,
+            WriteOutcome::GatewayException,
             Carried::No,
             Some(code),
             Some(format!("{error}; not sent")),

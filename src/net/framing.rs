@@ -6,7 +6,7 @@
 
 use super::mbap::{self, FrameError, Header, Request};
 use crate::line::rtu::{self, FrameLen};
-pub(crate) use crate::master::Framing;
+pub(crate) use crate::master::UpstreamFraming;
 use bytes::BytesMut;
 
 /// What the front of a connection's buffer holds.
@@ -17,13 +17,13 @@ pub(crate) enum Decoded {
     BadCrc,
 }
 
-impl Framing {
+impl UpstreamFraming {
     /// Take one request (or one bad frame) off the front of `buf`: `Ok(None)` until a whole one
     /// is in. An error closes the connection.
     pub(crate) fn decode(self, buf: &mut BytesMut) -> Result<Option<Decoded>, FrameError> {
         match self {
-            Framing::Mbap => Ok(mbap::decode(buf)?.map(Decoded::Request)),
-            Framing::Rtu => decode_rtu(buf),
+            UpstreamFraming::Mbap => Ok(mbap::decode(buf)?.map(Decoded::Request)),
+            UpstreamFraming::Rtu => decode_rtu(buf),
         }
     }
 
@@ -31,8 +31,8 @@ impl Framing {
     pub(crate) fn encode(self, header: Header, pdu: &[u8], out: &mut Vec<u8>) {
         out.clear();
         match self {
-            Framing::Mbap => mbap::encode(header, pdu, out),
-            Framing::Rtu => rtu::encode_into(out, header.unit, pdu),
+            UpstreamFraming::Mbap => mbap::encode(header, pdu, out),
+            UpstreamFraming::Rtu => rtu::encode_into(out, header.unit, pdu),
         }
     }
 }
@@ -72,7 +72,7 @@ mod tests {
     const READ: [u8; 8] = [0x01, 0x03, 0x00, 0x04, 0x00, 0x02, 0x85, 0xCA];
 
     fn rtu(bytes: &[u8]) -> Result<Option<Decoded>, FrameError> {
-        Framing::Rtu.decode(&mut BytesMut::from(bytes))
+        UpstreamFraming::Rtu.decode(&mut BytesMut::from(bytes))
     }
 
     fn request(unit: u8, pdu: &[u8]) -> Option<Decoded> {
@@ -96,7 +96,7 @@ mod tests {
     #[test]
     fn two_rtu_requests_in_one_buffer_come_out_one_after_the_other() {
         let mut buf = BytesMut::from(&[READ, READ][..].concat()[..]);
-        let framing = Framing::Rtu;
+        let framing = UpstreamFraming::Rtu;
         assert_eq!(framing.decode(&mut buf), Ok(request(1, &READ[1..6])));
         assert_eq!(framing.decode(&mut buf), Ok(request(1, &READ[1..6])));
         assert_eq!(framing.decode(&mut buf), Ok(None));
@@ -107,7 +107,7 @@ mod tests {
         let mut bad = READ;
         bad[7] ^= 0x01;
         let mut buf = BytesMut::from(&[bad, READ][..].concat()[..]);
-        let framing = Framing::Rtu;
+        let framing = UpstreamFraming::Rtu;
         assert_eq!(framing.decode(&mut buf), Ok(Some(Decoded::BadCrc)));
         assert_eq!(framing.decode(&mut buf), Ok(request(1, &READ[1..6])));
     }
@@ -138,9 +138,9 @@ mod tests {
             unit: 1,
         };
         let mut out = vec![0xAA];
-        Framing::Rtu.encode(header, &[0x83, 0x0A], &mut out);
+        UpstreamFraming::Rtu.encode(header, &[0x83, 0x0A], &mut out);
         assert_eq!(out, rtu::encode(1, &[0x83, 0x0A]));
-        Framing::Mbap.encode(header, &[0x83, 0x0A], &mut out);
+        UpstreamFraming::Mbap.encode(header, &[0x83, 0x0A], &mut out);
         assert_eq!(out, [0, 7, 0, 0, 0, 3, 1, 0x83, 0x0A]);
     }
 }

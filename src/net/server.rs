@@ -14,7 +14,7 @@ use super::session::{self, Activity, SessionView};
 use super::tls::Certified;
 use crate::config::{WhenFull, OTHER_ROLE};
 use crate::dispatch::Dispatcher;
-use crate::master::{MasterId, Protocol, Rights, Transport};
+use crate::master::{MasterId, Protocol, Rights, UpstreamTransport};
 use crate::metrics::{Metrics, Rejection, TcpMetrics, TlsMaster};
 use crate::shutdown::Stopping;
 use crate::socket::set_keepalive;
@@ -338,7 +338,7 @@ pub(crate) async fn serve(
         };
         let shared = shared.clone();
         tokio::spawn(async move {
-            if protocol.transport() == Transport::Tls {
+            if protocol.transport() == UpstreamTransport::Tls {
                 accept_tls(stream, master, &policy, &shared).await;
             } else {
                 admit(stream, master, None, &policy, &shared).await;
@@ -511,7 +511,7 @@ async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
         shared.stopping.clone(),
     )
     .await;
-    let tls = protocol.transport() == Transport::Tls;
+    let tls = protocol.transport() == UpstreamTransport::Tls;
     if tls && session::close_notify_due(&error, &activity) {
         session::close_notify(&mut stream).await;
     }

@@ -5,7 +5,7 @@
 //! as long, a connection idle for `idle_timeout`, or the listener making room for a new master.
 //! When the master goes, its queued requests go too.
 
-use super::framing::{Decoded, Framing};
+use super::framing::{Decoded, UpstreamFraming};
 use super::mbap::{self, FrameError, Header};
 use crate::dispatch::{Client, Dispatcher};
 use crate::error::{Outcome, RequestError};
@@ -211,7 +211,7 @@ async fn send<S: AsyncWrite + Unpin>(
 /// close_notify, when `close_notify_due`) is the caller's.
 pub async fn run<S: AsyncRead + AsyncWrite + Unpin>(
     mut stream: S,
-    framing: Framing,
+    framing: UpstreamFraming,
     mut client: Client,
     activity: &Activity,
     dispatcher: &Dispatcher,
@@ -251,7 +251,7 @@ pub(crate) async fn close_notify<S: AsyncWrite + Unpin>(stream: &mut S) {
 
 async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
     stream: &mut S,
-    framing: Framing,
+    framing: UpstreamFraming,
     client: &mut Client,
     activity: &Activity,
     dispatcher: &Dispatcher,

@@ -7,7 +7,7 @@
 //! cuts count characters. Random choices come from a generator seeded by the slave's address, so
 //! a run repeats exactly.
 
-use super::{Pause, Slave, Transmission};
+use super::{Pause, Simulated, Transmission};
 use crate::config;
 use crate::line::{ascii, Framing, BROADCAST};
 use crate::pdu::EXCEPTION_BIT;
@@ -76,7 +76,7 @@ pub struct Faulty<S> {
     rng: fastrand::Rng,
 }
 
-impl<S: Slave> Faulty<S> {
+impl<S: Simulated> Faulty<S> {
     /// `inner` with `faults` on an RTU line.
     pub fn new(inner: S, faults: Faults, address: u8) -> Self {
         Self::framed(inner, faults, address, Framing::Rtu)
@@ -109,7 +109,7 @@ impl<S: Slave> Faulty<S> {
     }
 }
 
-impl<S: Slave> Slave for Faulty<S> {
+impl<S: Simulated> Simulated for Faulty<S> {
     fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission> {
         if self.faults.offline {
             return None;

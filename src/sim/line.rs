@@ -8,7 +8,7 @@
 //! and the recent frames with their times, for tests and benchmarks.
 
 use super::slaves::{Heard, Slaves};
-use super::{Slave, Transmission};
+use super::{Simulated, Transmission};
 use crate::line::framing::{Completion, Silence};
 use crate::line::{Framing, LineTiming, Transport};
 use crate::timer::sleep_until;
@@ -130,7 +130,7 @@ impl SimLine {
     }
 
     /// Put a slave on the line at `address`, replacing any slave there.
-    pub fn add_slave(&self, address: u8, slave: impl Slave + 'static) {
+    pub fn add_slave(&self, address: u8, slave: impl Simulated + 'static) {
         self.shared.lock().slaves.insert(address, Box::new(slave));
     }
 
@@ -440,7 +440,7 @@ mod tests {
         delay: Duration,
     }
 
-    impl Slave for Echo {
+    impl Simulated for Echo {
         fn handle(&mut self, address: u8, request: &[u8], _at: Instant) -> Option<Transmission> {
             Some(Transmission {
                 bytes: rtu::encode(address, request),
@@ -505,7 +505,7 @@ mod tests {
         gap: Duration,
     }
 
-    impl Slave for Stutter {
+    impl Simulated for Stutter {
         fn handle(&mut self, address: u8, request: &[u8], _at: Instant) -> Option<Transmission> {
             Some(Transmission {
                 bytes: rtu::encode(address, request),

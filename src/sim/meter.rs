@@ -18,7 +18,7 @@
 //!   and all of them start at their power-on value: 230 V, 5 A, 1150 W, power factor 1, 50 Hz,
 //!   no energy. Export energies stay 0; the totals are import plus export.
 
-use super::{Slave, Transmission};
+use super::{Simulated, Transmission};
 use crate::pdu::code;
 use crate::pdu::exception_pdu;
 use crate::pdu::ExceptionCode::{self, IllegalDataAddress, IllegalDataValue, IllegalFunction};
@@ -261,7 +261,7 @@ impl Sdm120 {
     }
 }
 
-impl Slave for Sdm120 {
+impl Simulated for Sdm120 {
     fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission> {
         if address == crate::line::BROADCAST {
             // Nothing the model serves is a write: a broadcast changes nothing.

@@ -43,7 +43,7 @@ pub fn build(
     address: u8,
     format: SerialFormat,
     framing: Framing,
-) -> Result<Box<dyn Slave>, SetupError> {
+) -> Result<Box<dyn Simulated>, SetupError> {
     let now = Instant::now();
     let settings = DriveSettings {
         address,
@@ -112,12 +112,12 @@ impl config::DriveCheck for Drives {
 
 /// `slave` as it answers on a line of `framing` with `faults`: as it is on an RTU line without
 /// faults, framed and bent by [`Faulty`] otherwise.
-fn with_faults<S: Slave + 'static>(
+fn with_faults<S: Simulated + 'static>(
     slave: S,
     faults: Faults,
     address: u8,
     framing: Framing,
-) -> Box<dyn Slave> {
+) -> Box<dyn Simulated> {
     if faults.is_none() && framing == Framing::Rtu {
         Box::new(slave)
     } else {
@@ -157,13 +157,13 @@ impl Transmission {
 
 /// A device on the simulated line. It sees every intact request frame addressed to it, and every
 /// broadcast.
-pub trait Slave: Send {
+pub trait Simulated: Send {
     /// Act on `request` (a PDU) that ended on the wire at `at`. `address` is the frame's address:
     /// the slave's own, or 0 for a broadcast, whose answer the line never sends.
     fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission>;
 }
 
-impl<S: Slave + ?Sized> Slave for Box<S> {
+impl<S: Simulated + ?Sized> Simulated for Box<S> {
     fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission> {
         (**self).handle(address, request, at)
     }

@@ -5,7 +5,7 @@
 //! Contents: coils and holding registers start at 0 and keep what is written. Input register `a`
 //! reads `a`, and discrete input `a` is on when `a` is odd, so tests know what to expect.
 
-use super::{Slave, Transmission};
+use super::{Simulated, Transmission};
 use crate::pdu::code;
 use crate::pdu::exception_pdu;
 use crate::pdu::ExceptionCode::{self, IllegalDataAddress, IllegalDataValue, IllegalFunction};
@@ -284,7 +284,7 @@ impl RegisterBank {
     }
 }
 
-impl Slave for RegisterBank {
+impl Simulated for RegisterBank {
     fn handle(&mut self, address: u8, request: &[u8], _at: Instant) -> Option<Transmission> {
         let reply = self.respond(address, request);
         if address == crate::line::BROADCAST {

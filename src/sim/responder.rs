@@ -6,7 +6,7 @@
 //! and answered by none. Knows nothing of TCP or the gateway's bus.
 
 use super::slaves::{Heard, Slaves};
-use super::Slave;
+use super::Simulated;
 use crate::line::framing::{Completion, Silence};
 use crate::line::{Framing, LineTiming, Transport};
 use crate::timer::sleep_until;
@@ -54,7 +54,7 @@ impl Responder {
         }
     }
 
-    pub fn add_slave(&mut self, address: u8, slave: Box<dyn Slave>) {
+    pub fn add_slave(&mut self, address: u8, slave: Box<dyn Simulated>) {
         self.slaves.insert(address, slave);
     }
 

@@ -2,7 +2,7 @@
 //! transmission, or silence. For tests of what the master does with late, foreign, corrupt and
 //! missing replies; broadcasts use up no step of the script.
 
-use super::{Slave, Transmission};
+use super::{Simulated, Transmission};
 use crate::line::BROADCAST;
 use std::collections::VecDeque;
 use tokio::time::Instant;
@@ -20,7 +20,7 @@ impl Scripted {
     }
 }
 
-impl Slave for Scripted {
+impl Simulated for Scripted {
     fn handle(&mut self, address: u8, _: &[u8], _: Instant) -> Option<Transmission> {
         if address == BROADCAST {
             return None;

@@ -5,7 +5,7 @@
 //! none; any other frame goes to the slave at its address, whose answer, if any, the caller puts
 //! on its wire. The slaves answer in the line's framing (see [`super::faults::Faulty`]).
 
-use super::{Slave, Transmission};
+use super::{Simulated, Transmission};
 use crate::line::{Framing, BROADCAST};
 use std::collections::BTreeMap;
 use tokio::time::Instant;
@@ -32,7 +32,7 @@ pub(crate) enum Heard {
 /// The slaves on one line, by address, and the line's framing.
 #[derive(Default)]
 pub struct Slaves {
-    slaves: BTreeMap<u8, Box<dyn Slave>>,
+    slaves: BTreeMap<u8, Box<dyn Simulated>>,
     framing: Framing,
     /// The PDU of the frame being heard.
     pdu: Vec<u8>,
@@ -52,7 +52,7 @@ impl Slaves {
     }
 
     /// Put `slave` at `address`, replacing any slave there.
-    pub fn insert(&mut self, address: u8, slave: Box<dyn Slave>) {
+    pub fn insert(&mut self, address: u8, slave: Box<dyn Simulated>) {
         self.slaves.insert(address, slave);
     }
 

@@ -6,7 +6,7 @@ use crate::config::{Order, Table, Value, ValueType};
 
 /// Why a reply is not the block's registers.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum Unreadable {
+pub(crate) enum BadBlock {
     /// The slave answered with this exception code.
     Exception(u8),
     /// Not the reply to the read: another function, or a byte count that is not the block's.
@@ -21,13 +21,13 @@ pub(crate) fn request(table: Table, first: u16, count: u16) -> Vec<u8> {
 }
 
 /// The `count` registers of `table` from the read's reply `pdu`, or coils and inputs as 0 and 1.
-pub(crate) fn words(table: Table, count: u16, pdu: &[u8]) -> Result<Vec<u16>, Unreadable> {
+pub(crate) fn words(table: Table, count: u16, pdu: &[u8]) -> Result<Vec<u16>, BadBlock> {
     let function = table.function();
     match pdu {
         [f, code] if *f == function | crate::pdu::EXCEPTION_BIT => {
-            return Err(Unreadable::Exception(*code))
+            return Err(BadBlock::Exception(*code))
         }
-        [f, ..] if *f != function => return Err(Unreadable::BadReply),
+        [f, ..] if *f != function => return Err(BadBlock::BadReply),
         _ => {}
     }
     let count = usize::from(count);
@@ -38,7 +38,7 @@ pub(crate) fn words(table: Table, count: u16, pdu: &[u8]) -> Result<Vec<u16>, Un
     };
     let data = match pdu {
         [_, n, data @ ..] if usize::from(*n) == expected && data.len() == expected => data,
-        _ => return Err(Unreadable::BadReply),
+        _ => return Err(BadBlock::BadReply),
     };
     Ok(if table.is_bits() {
         (0..count)
@@ -230,16 +230,16 @@ mod tests {
         assert_eq!(coils, [1, 0, 1, 1, 0, 0, 1, 1, 1, 0]);
         assert_eq!(
             words(Table::Input, 1, &[0x84, 0x02]),
-            Err(Unreadable::Exception(2))
+            Err(BadBlock::Exception(2))
         );
         assert_eq!(
             words(Table::Holding, 2, &[0x03, 0x02, 0, 1]),
-            Err(Unreadable::BadReply),
+            Err(BadBlock::BadReply),
             "one register where two were asked for"
         );
         assert_eq!(
             words(Table::Holding, 1, &[0x04, 0x02, 0, 1]),
-            Err(Unreadable::BadReply)
+            Err(BadBlock::BadReply)
         );
     }
 }

@@ -4,7 +4,7 @@
 //! `poll_share`: after a poll that took the line *t*, the next waits *t* x (1 - share) / share.
 //! What a reply holds goes to the store, what a poll came to to the bus's metrics.
 
-use super::decode::{self, Unreadable};
+use super::decode::{self, BadBlock};
 use super::plan::Read;
 use super::store::Store;
 use crate::bus::BusHandle;
@@ -72,7 +72,7 @@ fn take(poll: &Poll, outcome: Result<Outcome, impl Sized>, store: &Store) -> Opt
     let words = match outcome {
         Ok(Ok(Answer::Reply(pdu))) => decode::words(read.table, read.count, &pdu),
         Ok(Ok(Answer::Malformed(_) | Answer::Nothing | Answer::Acknowledged(_))) | Err(_) => {
-            Err(Unreadable::BadReply)
+            Err(BadBlock::BadReply)
         }
         Ok(Err(error)) => {
             let outcome = failure(&error);
@@ -86,8 +86,8 @@ fn take(poll: &Poll, outcome: Result<Outcome, impl Sized>, store: &Store) -> Opt
         Ok(words) => words,
         Err(unreadable) => {
             let outcome = match unreadable {
-                Unreadable::Exception(_) => "exception",
-                Unreadable::BadReply => "bad_reply",
+                BadBlock::Exception(_) => "exception",
+                BadBlock::BadReply => "bad_reply",
             };
             for &(entry, _, _) in &poll.values {
                 store.failed(entry, outcome);

@@ -1,9 +1,9 @@
 //! The filters of the command line (`--since`, `--master`, `--outcome`...), checked, and which
 //! items they select.
 
-use super::join::{End, Item, Record};
+use super::join::{End, Listed, Record};
 use super::Options;
-use crate::audit::entry::{Outcome, Write};
+use crate::audit::entry::{Write, WriteOutcome};
 use crate::config::UnitSet;
 use ipnet::IpNet;
 use std::net::{IpAddr, SocketAddr};
@@ -12,7 +12,7 @@ use std::time::SystemTime;
 /// Which outcomes `--outcome` selects.
 #[derive(Clone, Debug, Default, PartialEq)]
 struct Outcomes {
-    recorded: Vec<Outcome>,
+    recorded: Vec<WriteOutcome>,
     /// Writes without a recorded outcome.
     pending: bool,
 }
@@ -78,10 +78,10 @@ impl Filter {
 
     /// Whether to print `item`. A gap is printed when its time overlaps `--since`/`--until`,
     /// whatever the other filters: the writes it stands for could have matched them.
-    pub(crate) fn shows(&self, item: &Item) -> bool {
+    pub(crate) fn shows(&self, item: &Listed) -> bool {
         match item {
-            Item::Write(record) => self.matches(record),
-            Item::Gap(gap) => {
+            Listed::Write(record) => self.matches(record),
+            Listed::Gap(gap) => {
                 let began = humantime::parse_rfc3339_weak(&gap.since).ok();
                 let ended = humantime::parse_rfc3339_weak(&gap.time).ok();
                 let after_since = match (self.since, ended) {
@@ -226,10 +226,10 @@ fn parse_outcomes(values: &[String]) -> Result<Outcomes, String> {
         let word = word.to_ascii_lowercase();
         if word == PENDING {
             outcomes.pending = true;
-        } else if let Some(outcome) = Outcome::ALL.into_iter().find(|o| o.label() == word) {
+        } else if let Some(outcome) = WriteOutcome::ALL.into_iter().find(|o| o.label() == word) {
             outcomes.recorded.push(outcome);
         } else {
-            let valid: Vec<&str> = Outcome::ALL.iter().map(|o| o.label()).collect();
+            let valid: Vec<&str> = WriteOutcome::ALL.iter().map(|o| o.label()).collect();
             return Err(format!(
                 "`{word}` is not an outcome; the outcomes are {}, {PENDING}",
                 valid.join(", ")

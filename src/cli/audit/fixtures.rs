@@ -2,10 +2,10 @@
 //! routed Write Multiple Registers and its outcome, and the filters of a command line.
 
 use super::filter::Filter;
-use super::join::{End, Item, Joiner, Record, Unreadable};
+use super::join::{End, Joiner, Listed, Record, Unreadable};
 use super::print::ending;
 use super::Options;
-use crate::audit::entry::{Carried, Ended, Line, Outcome, Write};
+use crate::audit::entry::{Carried, Ended, Line, Write, WriteOutcome};
 use std::time::SystemTime;
 
 pub(super) const OPEN: &str =
@@ -32,7 +32,7 @@ pub(super) fn outcome(id: u64, outcome: &str) -> String {
 }
 
 /// Every item of `files` (oldest first), and the `file:line` of each unreadable line.
-pub(super) fn join(files: &[&str]) -> (Vec<Item>, Vec<String>) {
+pub(super) fn join(files: &[&str]) -> (Vec<Listed>, Vec<String>) {
     let mut joiner = Joiner::default();
     let (mut items, mut unreadable) = (Vec::new(), Vec::new());
     for (n, text) in files.iter().enumerate() {
@@ -48,12 +48,12 @@ pub(super) fn join(files: &[&str]) -> (Vec<Item>, Vec<String>) {
     (items, unreadable)
 }
 
-pub(super) fn ids_and_ends(items: &[Item]) -> Vec<(u64, String)> {
+pub(super) fn ids_and_ends(items: &[Listed]) -> Vec<(u64, String)> {
     items
         .iter()
         .filter_map(|item| match item {
-            Item::Write(record) => Some((record.write.id, ending(record))),
-            Item::Gap(_) => None,
+            Listed::Write(record) => Some((record.write.id, ending(record))),
+            Listed::Gap(_) => None,
         })
         .collect()
 }
@@ -72,7 +72,7 @@ pub(super) fn record(line: &str) -> Record {
         end: End::Recorded(Ended {
             time: "2026-11-28T10:15:02.200000Z".into(),
             id: 1,
-            outcome: Outcome::Answered,
+            outcome: WriteOutcome::Answered,
             carried_out: Carried::Yes,
             exception: None,
             detail: None,

@@ -21,7 +21,7 @@ pub(crate) const MAX_HELD_BYTES: usize = 8 << 20;
 
 /// One thing to print, in the journal's order: a write, or a gap in the journal.
 #[derive(Clone, Debug, PartialEq)]
-pub(crate) enum Item {
+pub(crate) enum Listed {
     Write(Box<Record>),
     Gap(Gap),
 }
@@ -88,7 +88,7 @@ pub(crate) struct Joiner {
 
 /// An item in the queue, and the length of its line.
 struct Held {
-    item: Item,
+    item: Listed,
     bytes: usize,
 }
 
@@ -120,7 +120,7 @@ impl Joiner {
                 self.pid = Some(opened.pid);
             }
             Line::Write(write) => self.write(write, bytes.len()),
-            Line::Outcome(ended) => match self.waiting.remove(&ended.id) {
+            Line::WriteOutcome(ended) => match self.waiting.remove(&ended.id) {
                 Some(waiting) => {
                     self.end(waiting.number, End::Recorded(ended));
                     if waiting.before_gap {
@@ -133,7 +133,7 @@ impl Joiner {
             },
             Line::Gap(gap) => {
                 let lost = gap.lost_outcomes;
-                self.push(Item::Gap(gap), bytes.len());
+                self.push(Listed::Gap(gap), bytes.len());
                 if lost > 0 {
                     self.outcomes_lost(lost);
                 }
@@ -164,10 +164,10 @@ impl Joiner {
             write,
             end: End::Waiting,
         };
-        self.push(Item::Write(Box::new(record)), bytes);
+        self.push(Listed::Write(Box::new(record)), bytes);
     }
 
-    fn push(&mut self, item: Item, bytes: usize) {
+    fn push(&mut self, item: Listed, bytes: usize) {
         self.held_bytes += bytes;
         self.queue.push_back(Held { item, bytes });
     }
@@ -244,7 +244,7 @@ impl Joiner {
             .and_then(|place| usize::try_from(place).ok());
         let held = place.and_then(|place| self.queue.get_mut(place));
         if let Some(Held {
-            item: Item::Write(record),
+            item: Listed::Write(record),
             ..
         }) = held
         {
@@ -254,7 +254,7 @@ impl Joiner {
 
     /// The id of the write at the front of the queue if it still waits for its outcome.
     fn front_waiting(&self) -> Option<u64> {
-        let Item::Write(record) = &self.queue.front()?.item else {
+        let Listed::Write(record) = &self.queue.front()?.item else {
             return None;
         };
         let id = record.write.id;
@@ -264,7 +264,7 @@ impl Joiner {
 
     /// The items that are whole, from the front of the queue; and the write at its front
     /// without its outcome, if too much waits behind it.
-    pub(crate) fn ready(&mut self) -> Vec<Item> {
+    pub(crate) fn ready(&mut self) -> Vec<Listed> {
         let mut ready = Vec::new();
         while !self.queue.is_empty() {
             if let Some(id) = self.front_waiting() {
@@ -290,7 +290,7 @@ impl Joiner {
 
     /// Every item left, at the end of the journal (writes still waiting have no outcome yet),
     /// and what was read but not printed.
-    pub(crate) fn finish(self) -> (Vec<Item>, Unprinted) {
+    pub(crate) fn finish(self) -> (Vec<Listed>, Unprinted) {
         let items = self.queue.into_iter().map(|held| held.item).collect();
         (items, self.tally)
     }
@@ -474,13 +474,13 @@ mod tests {
     }
 
     /// The ids of the writes in `items`, each with whether it had its outcome.
-    fn ids_answered(items: &[Item]) -> Vec<(u64, bool)> {
+    fn ids_answered(items: &[Listed]) -> Vec<(u64, bool)> {
         let answered = |end: &End| matches!(end, End::Recorded(_));
         items
             .iter()
             .filter_map(|item| match item {
-                Item::Write(record) => Some((record.write.id, answered(&record.end))),
-                Item::Gap(_) => None,
+                Listed::Write(record) => Some((record.write.id, answered(&record.end))),
+                Listed::Gap(_) => None,
             })
             .collect()
     }
@@ -553,10 +553,10 @@ mod tests {
     }
 
     /// What `ending` says of the write `item`.
-    fn ending(item: &Item) -> String {
+    fn ending(item: &Listed) -> String {
         match item {
-            Item::Write(record) => crate::cli::audit::print::ending(record),
-            Item::Gap(_) => panic!("a gap"),
+            Listed::Write(record) => crate::cli::audit::print::ending(record),
+            Listed::Gap(_) => panic!("a gap"),
         }
     }
 
@@ -587,7 +587,7 @@ mod tests {
             "no outcome recorded: may have been carried out (its outcome line was lost: see \
              the gap after it)"
         );
-        assert!(matches!(out[2], Item::Gap(_)));
+        assert!(matches!(out[2], Listed::Gap(_)));
         let json: serde_json::Value =
             serde_json::from_str(&crate::cli::audit::print::as_json(&out[0])).unwrap();
         assert_eq!(json["pending"], "outcome_lost");

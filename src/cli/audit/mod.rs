@@ -14,7 +14,7 @@ mod read;
 use super::EXIT_CONFIG;
 use crate::config::Config;
 use filter::Filter;
-use join::{Item, Joiner};
+use join::{Joiner, Listed};
 use read::{Chunk, Lines, MAX_LINE};
 use std::fs::File;
 use std::io::{self, BufReader};
@@ -125,7 +125,7 @@ impl<W: io::Write> Listing<W> {
         }
     }
 
-    fn print(&mut self, item: &Item) -> io::Result<()> {
+    fn print(&mut self, item: &Listed) -> io::Result<()> {
         if !self.filter.shows(item) {
             return Ok(());
         }

@@ -4,7 +4,7 @@
 //! as anything but text, nor pass for another field of the line.
 
 use super::filter::span;
-use super::join::{End, Item, Record};
+use super::join::{End, Listed, Record};
 use crate::audit::entry::{Carried, Ended, Gap, Write};
 use crate::pdu;
 use serde::Serialize;
@@ -47,10 +47,10 @@ fn hidden(c: char) -> bool {
 }
 
 /// One line for a terminal.
-pub(crate) fn describe(item: &Item) -> String {
+pub(crate) fn describe(item: &Listed) -> String {
     match item {
-        Item::Write(record) => describe_write(record),
-        Item::Gap(gap) => describe_gap(gap),
+        Listed::Write(record) => describe_write(record),
+        Listed::Gap(gap) => describe_gap(gap),
     }
 }
 
@@ -222,11 +222,11 @@ struct GapJson<'a> {
 /// One JSON object. Its strings read back as the journal has them; the characters [`field`]
 /// escapes are written as JSON escapes (`\u202e`), so that the line too is harmless on a
 /// terminal.
-pub(crate) fn as_json(item: &Item) -> String {
+pub(crate) fn as_json(item: &Listed) -> String {
     let mut bytes = Vec::new();
     let mut out = serde_json::Serializer::with_formatter(&mut bytes, Harmless);
     let done = match item {
-        Item::Write(record) => {
+        Listed::Write(record) => {
             let (outcome, pending) = match &record.end {
                 End::Recorded(ended) => (Some(ended), None),
                 End::Stopped => (None, Some("gateway_stopped")),
@@ -241,7 +241,7 @@ pub(crate) fn as_json(item: &Item) -> String {
             };
             write.serialize(&mut out)
         }
-        Item::Gap(gap) => GapJson { kind: "gap", gap }.serialize(&mut out),
+        Listed::Gap(gap) => GapJson { kind: "gap", gap }.serialize(&mut out),
     };
     let text = done
         .map_err(|e| e.to_string())
@@ -276,7 +276,7 @@ impl serde_json::ser::Formatter for Harmless {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::audit::entry::Outcome;
+    use crate::audit::entry::WriteOutcome;
     use crate::cli::audit::fixtures::*;
 
     #[test]
@@ -288,12 +288,12 @@ mod tests {
         tls.end = End::Recorded(Ended {
             time: "2026-11-28T10:15:03.123456Z".into(),
             id: 4,
-            outcome: Outcome::Timeout,
+            outcome: WriteOutcome::Timeout,
             carried_out: Carried::Maybe,
             exception: Some(0x0B),
             detail: None,
         });
-        let line = describe(&Item::Write(Box::new(tls.clone())));
+        let line = describe(&Listed::Write(Box::new(tls.clone())));
         assert!(
             line.contains(
                 "192.168.20.5:50312 tls subject \"CN=hmi-1, O=Plant\" role operator  unit 3"
@@ -307,13 +307,13 @@ mod tests {
         tls.end = End::Recorded(Ended {
             time: "2026-11-28T10:15:03.123456Z".into(),
             id: 4,
-            outcome: Outcome::SlaveException,
+            outcome: WriteOutcome::SlaveException,
             carried_out: Carried::No,
             exception: Some(0x02),
             detail: Some("the slave refused it: illegal data address".into()),
         });
         tls.write.role = Some("op\u{1b}[2J".into());
-        let line = describe(&Item::Write(Box::new(tls)));
+        let line = describe(&Listed::Write(Box::new(tls)));
         assert!(
             line.ends_with("  slave_exception (0x02): the slave refused it: illegal data address"),
             "{line}"
@@ -323,7 +323,7 @@ mod tests {
             r#"{"kind":"write","time":"2026-11-28T10:15:02Z","id":5,"master":"10.0.0.1:40000","protocol":"udp","unit":7,"bus":null,"slave":null,"function":65,"values":"0102A0","rule":null,"action":"deny"}"#,
         );
         assert_eq!(
-            describe(&Item::Write(Box::new(Record {
+            describe(&Listed::Write(Box::new(Record {
                 end: End::Waiting,
                 ..custom
             }))),
@@ -343,13 +343,13 @@ mod tests {
     #[test]
     fn a_subject_with_a_quote_cannot_pass_for_a_role_it_does_not_have() {
         let record = tls_write(|w| w.subject = Some("CN=maint\" role operator".into()));
-        let line = describe(&Item::Write(Box::new(record)));
+        let line = describe(&Listed::Write(Box::new(record)));
         assert!(
             line.contains(r#" tls subject "CN=maint\" role operator"  unit 3 -> line1"#),
             "{line}"
         );
         let spaced = tls_write(|w| w.role = Some("operator  unit 9".into()));
-        let line = describe(&Item::Write(Box::new(spaced)));
+        let line = describe(&Listed::Write(Box::new(spaced)));
         assert!(
             line.contains(r#" tls role "operator  unit 9"  unit 3 -> "#),
             "a role with spaces is quoted: {line}"
@@ -368,12 +368,12 @@ mod tests {
         record.end = End::Recorded(Ended {
             time: "2026-11-28T10:15:03Z".into(),
             id: 4,
-            outcome: Outcome::Denied,
+            outcome: WriteOutcome::Denied,
             carried_out: Carried::No,
             exception: Some(0x01),
             detail: Some("rule \"wall\u{202E}box\" denies it".into()),
         });
-        let line = describe(&Item::Write(Box::new(record)));
+        let line = describe(&Listed::Write(Box::new(record)));
         assert!(!line.contains(hidden), "{line:?}");
         assert!(
             line.contains(
@@ -395,7 +395,7 @@ mod tests {
             lost_outcomes: 0,
             error: "disk\u{2067} full\n".into(),
         };
-        let line = describe(&Item::Gap(gap));
+        let line = describe(&Listed::Gap(gap));
         assert!(
             line.contains(r#"10:16:00Z: disk\u{2067} full\n; 1 write went"#),
             "{line}"
@@ -408,7 +408,7 @@ mod tests {
             w.subject = Some("CN=\u{202E}nimda \u{1F600} caf\u{E9}".into());
             w.role = Some("op\u{E0041}\u{7F}\u{85}".into());
         });
-        let text = as_json(&Item::Write(Box::new(record.clone())));
+        let text = as_json(&Listed::Write(Box::new(record.clone())));
         assert!(!text.contains(hidden), "{text:?}");
         let printable = "\"subject\":\"CN=\\u202enimda \u{1F600} caf\u{E9}\"";
         assert!(text.contains(printable), "printable stays as it is: {text}");

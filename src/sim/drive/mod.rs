@@ -14,10 +14,10 @@ pub(crate) mod pd_inverter;
 pub(crate) mod ramp;
 
 pub(crate) use motor::Motor;
-pub(crate) use params::{Limit, Modify, ParamSpec, Params, Refusal};
+pub(crate) use params::{Limit, Modify, ParamRefusal, ParamSpec, Params};
 pub(crate) use ramp::{Ramp, Rates};
 
-use super::{Slave, Transmission};
+use super::{Simulated, Transmission};
 use crate::line::{Parity, SerialFormat};
 use crate::pdu::{code, ExceptionCode, EXCEPTION_BIT};
 use std::collections::BTreeMap;
@@ -88,7 +88,7 @@ impl From<ExceptionCode> for Exception {
 
 /// What a model's manual says about requests as such, whatever their registers.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) struct Protocol {
+pub(crate) struct DriveProtocol {
     /// Most words one read, or one write of several, may carry.
     pub(crate) max_words: u16,
     /// Whether the drive serves FC 08 (return query data only) and FC 10 besides FC 03 and 06.
@@ -200,7 +200,7 @@ pub(crate) fn power_on_trip(
 
 /// What a drive model decides; [`Drive`] does the rest.
 pub(crate) trait Model: Clone + Send {
-    const PROTOCOL: Protocol;
+    const PROTOCOL: DriveProtocol;
 
     /// The word at `address`, or why it cannot be read.
     fn read(&self, address: u16) -> Result<u16, Exception>;
@@ -359,7 +359,7 @@ fn diagnostics<M: Model>(request: &[u8]) -> Reply {
     }
 }
 
-impl<M: Model> Slave for Drive<M> {
+impl<M: Model> Simulated for Drive<M> {
     fn handle(&mut self, address: u8, request: &[u8], at: Instant) -> Option<Transmission> {
         if let Some(expired) = self.timeout_expiry(at) {
             self.model.communication_lost(expired);

@@ -36,7 +36,7 @@ pub(crate) struct ParamSpec {
 
 /// Why a parameter write is refused; each model maps these to its manual's exception codes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum Refusal {
+pub(crate) enum ParamRefusal {
     /// No parameter at this address.
     NoSuchAddress,
     /// The parameter can never be written.
@@ -100,22 +100,32 @@ impl Params {
     }
 
     /// Whether writing `value` to `address` is allowed, without writing it.
-    pub(crate) fn check(&self, address: u16, value: u16, running: bool) -> Result<(), Refusal> {
-        let spec = self.spec(address).ok_or(Refusal::NoSuchAddress)?;
+    pub(crate) fn check(
+        &self,
+        address: u16,
+        value: u16,
+        running: bool,
+    ) -> Result<(), ParamRefusal> {
+        let spec = self.spec(address).ok_or(ParamRefusal::NoSuchAddress)?;
         match spec.modify {
-            Modify::Never => return Err(Refusal::ReadOnly),
-            Modify::Stopped if running => return Err(Refusal::WhileRunning),
+            Modify::Never => return Err(ParamRefusal::ReadOnly),
+            Modify::Stopped if running => return Err(ParamRefusal::WhileRunning),
             _ => {}
         }
         let (min, max) = self.range(spec);
         if value < min || value > max {
-            return Err(Refusal::OutOfRange);
+            return Err(ParamRefusal::OutOfRange);
         }
         Ok(())
     }
 
     /// Check and write.
-    pub(crate) fn write(&mut self, address: u16, value: u16, running: bool) -> Result<(), Refusal> {
+    pub(crate) fn write(
+        &mut self,
+        address: u16,
+        value: u16,
+        running: bool,
+    ) -> Result<(), ParamRefusal> {
         self.check(address, value, running)?;
         self.values.insert(address, value);
         Ok(())
@@ -123,11 +133,11 @@ impl Params {
 
     /// Set a value with no modify rule applied (power-on settings, records the drive keeps
     /// itself). Only the range is checked.
-    pub(crate) fn force(&mut self, address: u16, value: u16) -> Result<(), Refusal> {
-        let spec = self.spec(address).ok_or(Refusal::NoSuchAddress)?;
+    pub(crate) fn force(&mut self, address: u16, value: u16) -> Result<(), ParamRefusal> {
+        let spec = self.spec(address).ok_or(ParamRefusal::NoSuchAddress)?;
         let (min, max) = self.range(spec);
         if value < min || value > max {
-            return Err(Refusal::OutOfRange);
+            return Err(ParamRefusal::OutOfRange);
         }
         self.values.insert(address, value);
         Ok(())
@@ -193,15 +203,21 @@ mod tests {
     #[test]
     fn parameter_writes_follow_the_modify_marks_and_ranges_that_name_other_parameters() {
         let mut params = Params::new(TABLE);
-        assert_eq!(params.write(0x0004, 5001, false), Err(Refusal::OutOfRange));
+        assert_eq!(
+            params.write(0x0004, 5001, false),
+            Err(ParamRefusal::OutOfRange)
+        );
         assert_eq!(
             params.write(0x0003, 10000, true),
-            Err(Refusal::WhileRunning)
+            Err(ParamRefusal::WhileRunning)
         );
         assert_eq!(params.write(0x0003, 10000, false), Ok(()));
         assert_eq!(params.write(0x0004, 9000, false), Ok(()));
-        assert_eq!(params.write(0x071B, 1, false), Err(Refusal::ReadOnly));
-        assert_eq!(params.write(0x0005, 1, false), Err(Refusal::NoSuchAddress));
+        assert_eq!(params.write(0x071B, 1, false), Err(ParamRefusal::ReadOnly));
+        assert_eq!(
+            params.write(0x0005, 1, false),
+            Err(ParamRefusal::NoSuchAddress)
+        );
         params.restore_defaults();
         assert_eq!(params.value(0x0003), 5000);
     }

@@ -32,8 +32,8 @@
 use super::Limit::{Param, Value};
 use super::Modify::{Always, Never, Stopped};
 use super::{
-    power_on_trip, Drive, DriveSettings, Exception, Limit, LineIndices, LineParams, Model, Modify,
-    Motor, ParamSpec, Params, Protocol, Ramp, Rates, Refusal, SetupError,
+    power_on_trip, Drive, DriveProtocol, DriveSettings, Exception, Limit, LineIndices, LineParams,
+    Model, Modify, Motor, ParamRefusal, ParamSpec, Params, Ramp, Rates, SetupError,
 };
 use crate::line::Parity;
 use crate::pdu::ExceptionCode::{self, IllegalDataAddress, ServerDeviceFailure};
@@ -41,7 +41,7 @@ use std::time::Duration;
 use tokio::time::Instant;
 
 /// Only FC 03 and 06; a malformed request is an illegal data value.
-const REQUESTS: Protocol = Protocol {
+const REQUESTS: DriveProtocol = DriveProtocol {
     // The manual's limit on one read.
     max_words: 12,
     diagnostics: false,
@@ -298,10 +298,10 @@ static RUNNING_VALUES: [(u16, Actual); 16] = [
     (0x101F, Actual::MainFrequency),
 ];
 
-fn refusal_code(refusal: Refusal) -> ExceptionCode {
+fn refusal_code(refusal: ParamRefusal) -> ExceptionCode {
     match refusal {
-        Refusal::NoSuchAddress | Refusal::ReadOnly => IllegalDataAddress,
-        Refusal::OutOfRange | Refusal::WhileRunning => ServerDeviceFailure,
+        ParamRefusal::NoSuchAddress | ParamRefusal::ReadOnly => IllegalDataAddress,
+        ParamRefusal::OutOfRange | ParamRefusal::WhileRunning => ServerDeviceFailure,
     }
 }
 
@@ -616,7 +616,7 @@ impl PdInverter {
 }
 
 impl Model for PdInverter {
-    const PROTOCOL: Protocol = REQUESTS;
+    const PROTOCOL: DriveProtocol = REQUESTS;
 
     fn read(&self, address: u16) -> Result<u16, Exception> {
         Ok(self.read_word(address)?)
@@ -660,7 +660,7 @@ mod tests {
     use crate::line::SerialFormat;
     use crate::pdu::code::{READ_HOLDING_REGISTERS, WRITE_SINGLE_REGISTER};
     use crate::pdu::ExceptionCode::{IllegalDataValue, IllegalFunction};
-    use crate::sim::Slave;
+    use crate::sim::Simulated;
 
     const LINE: SerialFormat = SerialFormat {
         baud: 9600,

@@ -31,8 +31,8 @@
 //! - 2100H reads 0002H for reverse running; the manuals misprint it as forward.
 
 use super::{
-    power_on_trip, Drive, DriveSettings, Exception, Model, Motor, Params, Protocol, Ramp, Rates,
-    Refusal, SetupError,
+    power_on_trip, Drive, DriveProtocol, DriveSettings, Exception, Model, Motor, ParamRefusal,
+    Params, Ramp, Rates, SetupError,
 };
 use crate::pdu::ExceptionCode::{IllegalDataAddress, IllegalFunction, ServerDeviceFailure};
 use std::time::Duration;
@@ -46,7 +46,7 @@ const WRITE_NOT_ALLOWED: Exception = Exception(0x07);
 /// 08H: the parameter cannot be modified during running.
 const NOT_WHILE_RUNNING: Exception = Exception(0x08);
 
-const REQUESTS: Protocol = Protocol {
+const REQUESTS: DriveProtocol = DriveProtocol {
     // The manuals' limit for one read or write.
     max_words: 16,
     diagnostics: true,
@@ -81,12 +81,12 @@ pub(crate) struct Goodrive {
     fault: u16,
 }
 
-fn refusal_code(refusal: Refusal) -> Exception {
+fn refusal_code(refusal: ParamRefusal) -> Exception {
     match refusal {
-        Refusal::NoSuchAddress => IllegalDataAddress.into(),
-        Refusal::ReadOnly => WRITE_NOT_ALLOWED,
-        Refusal::WhileRunning => NOT_WHILE_RUNNING,
-        Refusal::OutOfRange => ServerDeviceFailure.into(),
+        ParamRefusal::NoSuchAddress => IllegalDataAddress.into(),
+        ParamRefusal::ReadOnly => WRITE_NOT_ALLOWED,
+        ParamRefusal::WhileRunning => NOT_WHILE_RUNNING,
+        ParamRefusal::OutOfRange => ServerDeviceFailure.into(),
     }
 }
 
@@ -364,7 +364,7 @@ impl Goodrive {
 }
 
 impl Model for Goodrive {
-    const PROTOCOL: Protocol = REQUESTS;
+    const PROTOCOL: DriveProtocol = REQUESTS;
 
     fn read(&self, address: u16) -> Result<u16, Exception> {
         match address {
@@ -431,7 +431,7 @@ mod tests {
     use super::*;
     use crate::line::rtu::{crc_ok, encode, pdu_of};
     use crate::line::{Parity, SerialFormat};
-    use crate::sim::Slave;
+    use crate::sim::Simulated;
 
     fn line(baud: u32, parity: Parity, stop_bits: u8) -> SerialFormat {
         SerialFormat {
