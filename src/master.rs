@@ -208,8 +208,9 @@ impl Rights {
 mod tests {
     use super::*;
 
+    /// Each offered pair is one protocol; RTU framing goes on plain TCP only.
     #[test]
-    fn each_offered_pair_of_transport_and_framing_is_one_protocol_and_rtu_goes_on_plain_tcp_only() {
+    fn each_transport_and_framing_pair_is_one_protocol_and_rtu_is_plain_tcp_only() {
         for protocol in Protocol::ALL {
             assert_eq!(
                 Protocol::of(protocol.transport(), protocol.framing()),

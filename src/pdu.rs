@@ -900,8 +900,9 @@ mod tests {
         }
     }
 
+    /// Wrong: longer or shorter than its function code says.
     #[test]
-    fn a_request_longer_or_shorter_than_its_function_says_is_wrong_and_unknown_lengths_pass() {
+    fn a_request_of_the_wrong_length_is_wrong_and_unknown_lengths_pass() {
         // The hidden write of issue 25: a read, the CRC a slave expects, then a whole write frame.
         let smuggled = [
             0x03, 0x00, 0x00, 0x00, 0x01, // read 1 register from 0000H

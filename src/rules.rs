@@ -284,8 +284,9 @@ mod tests {
         assert_eq!((decided.rule, decided.action), (None, Action::Allow));
     }
 
+    /// An allow rule covers only requests within its registers; a deny rule any that overlaps.
     #[test]
-    fn an_allow_rule_covers_only_requests_within_its_registers_and_a_deny_any_that_overlaps() {
+    fn an_allow_covers_requests_within_its_registers_a_deny_any_that_overlaps() {
         let rules = rules(
             r#"
             [[rule]]

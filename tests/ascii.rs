@@ -193,8 +193,9 @@ async fn the_bus_info_metric_names_the_framing_and_bytes_count_characters_on_the
     );
 }
 
+/// The reload reopens that bus, which then speaks the new framing.
 #[tokio::test]
-async fn a_reload_that_changes_a_bus_framing_reopens_that_bus_and_it_speaks_the_new_framing() {
+async fn a_reload_changing_a_bus_framing_reopens_it_speaking_the_new_framing() {
     // A second bus on a serial device that is not there: the same device and format in both
     // configurations, so only the framing can make it reopen.
     let config = |framing: &str| {
@@ -253,9 +254,9 @@ async fn the_ascii_demo_serves_the_drives_of_the_rtu_demo_over_a_7e1_ascii_line(
     assert_eq!(config.bus[0].format().to_string(), "9600 baud 7E1");
 }
 
+/// Garbage around a reply, and a pause within the byte timeout.
 #[tokio::test]
-async fn on_an_ascii_line_garbage_around_a_reply_and_a_pause_within_the_byte_timeout_leave_it_whole(
-) {
+async fn on_an_ascii_line_noise_around_a_reply_and_a_short_pause_leave_it_whole() {
     let gateway = start(
         &(ascii_config("response_timeout = \"300ms\"\nbyte_timeout = \"200ms\"")
             + "[[bus.sim_slave]]\naddress = 7\ngarbage_before = 3\n\
@@ -284,8 +285,9 @@ async fn on_an_ascii_line_garbage_around_a_reply_and_a_pause_within_the_byte_tim
     );
 }
 
+/// A pause longer than the byte timeout.
 #[tokio::test]
-async fn on_an_ascii_line_a_pause_longer_than_the_byte_timeout_splits_the_reply_and_gets_0x0b() {
+async fn on_an_ascii_line_a_pause_past_byte_timeout_splits_the_reply_giving_0x0b() {
     let gateway = start(
         &(ascii_config("response_timeout = \"300ms\"\nbyte_timeout = \"50ms\"")
             + "[[bus.sim_slave]]\naddress = 9\nreply_gap = \"150ms\"\nreply_gap_after = 5\n"),

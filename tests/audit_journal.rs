@@ -275,8 +275,9 @@ fn burst_write(m: u16, k: u16) -> (u16, u16) {
     (PER_MASTER * m + k, 0x1000 * (m + 1) + k + 1)
 }
 
+/// Every write the slave carried out before a kill -9 has its write line.
 #[tokio::test]
-async fn every_write_the_slave_carried_out_before_a_kill_9_has_its_write_line_in_the_journal() {
+async fn every_write_carried_out_before_a_kill_9_has_its_line_in_the_journal() {
     let dir = TempDir::new("kill");
     // The line outlives the gateway: `simulate --listen` serves it in a process of its own. The
     // slave carries a write out as it hears it and answers 20 ms later, so a kill most likely
@@ -435,8 +436,9 @@ async fn every_write_the_slave_carried_out_before_a_kill_9_has_its_write_line_in
     simulator.stop().await;
 }
 
+/// A full file system; the gap is journaled after there is room again.
 #[tokio::test]
-async fn a_full_file_system_refuses_writes_with_0x0a_serves_reads_and_journals_the_gap_after() {
+async fn a_full_disk_refuses_writes_with_0x0a_serves_reads_and_journals_the_gap() {
     let Some(tmpfs) = Tmpfs::mount("deny", "64k") else {
         return;
     };
@@ -569,9 +571,9 @@ async fn a_full_file_system_under_allow_lets_writes_go_on_unrecorded_and_counts_
     gateway.shutdown().await;
 }
 
+/// A file system full at start; the journal's open line leads once there is room.
 #[tokio::test]
-async fn a_file_system_full_at_start_lets_the_gateway_run_and_its_open_line_leads_once_there_is_room(
-) {
+async fn a_disk_full_at_start_lets_the_gateway_run_and_its_open_line_leads_later() {
     let Some(tmpfs) = Tmpfs::mount("start", "64k") else {
         return;
     };
@@ -627,8 +629,9 @@ async fn a_journal_on_dev_full_lets_writes_go_on_under_allow_and_counts_every_er
     gateway.shutdown().await;
 }
 
+/// Under `deny_writes`.
 #[tokio::test]
-async fn a_journal_on_dev_full_refuses_writes_with_0x0a_under_deny_writes_and_serves_reads() {
+async fn a_journal_on_dev_full_refuses_writes_with_0x0a_and_serves_reads() {
     let gateway = journaled_sim(Path::new("/dev/full"), "deny_writes", vec![]).await;
     let mut ctx = master(&gateway).await;
     for k in 0..3 {
@@ -677,8 +680,9 @@ async fn a_journal_in_a_missing_folder_stops_the_start_with_an_error_naming_audi
     assert!(!journal.exists());
 }
 
+/// The files hold whole lines; the oldest writes are dropped.
 #[tokio::test]
-async fn rotation_keeps_keep_files_of_at_most_max_size_whole_lines_dropping_the_oldest_writes() {
+async fn rotation_keeps_keep_files_of_at_most_max_size_dropping_the_oldest() {
     const MAX_SIZE: u64 = 4096;
     const WRITES: u16 = 80;
     let dir = TempDir::new("rotate");

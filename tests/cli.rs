@@ -497,8 +497,9 @@ fn every_subcommand_writing_to_stdout_exits_0_quietly_when_its_reader_is_gone() 
     }
 }
 
+/// A TLS certificate that cannot be read is reported in the same run as the other errors.
 #[test]
-fn a_tls_certificate_that_cannot_be_read_is_reported_in_the_same_run_as_the_other_errors() {
+fn an_unreadable_tls_certificate_is_reported_beside_the_other_errors() {
     let path = temp_config(
         "tls-and-parity.toml",
         "[server]\nlisten_tls = \"127.0.0.1:0\"\n\

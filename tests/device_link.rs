@@ -73,8 +73,9 @@ async fn the_gateway_connects_to_the_device_server_at_start_before_any_request()
     crate::metrics::assert_promtool_finds_nothing_to_lint(&scrape.text).await;
 }
 
+/// Bytes left in the socket before a request.
 #[tokio::test]
-async fn bytes_left_in_the_socket_before_a_request_are_discarded_counted_and_never_an_answer() {
+async fn stale_bytes_before_a_request_are_discarded_counted_and_never_an_answer() {
     let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
     let port = server.local_addr().unwrap().port();
     let gateway = gateway_on(port, "").await;
@@ -209,9 +210,9 @@ pub(crate) async fn pymodbus_tcp_server_with(args: &[&str]) -> Option<(std::proc
     Some((child, port))
 }
 
+/// A Modbus TCP server where the converter should be; the one error names the fix.
 #[tokio::test]
-async fn a_modbus_tcp_server_where_the_converter_should_be_gets_one_error_naming_the_fix_and_0x0b()
-{
+async fn a_modbus_tcp_server_in_the_converters_place_gets_one_error_and_0x0b() {
     let Some((_server, port)) = pymodbus_tcp_server().await else {
         return;
     };
@@ -327,8 +328,9 @@ async fn a_reload_reconnects_only_for_another_device_server_and_other_keys_apply
     assert_eq!((connections(&to_first), connections(&to_second)), (1, 1));
 }
 
+/// By host name or IPv6 address.
 #[tokio::test]
-async fn a_device_server_is_reached_by_host_name_or_ipv6_address_and_its_echo_is_taken_off() {
+async fn a_device_server_is_reached_by_host_name_or_ipv6_and_its_echo_taken_off() {
     // A converter whose transceiver hands back every frame sent, before the slave's reply.
     let echoing = |server: TcpListener| {
         tokio::spawn(async move {
@@ -368,8 +370,9 @@ async fn a_device_server_is_reached_by_host_name_or_ipv6_address_and_its_echo_is
     }
 }
 
+/// A reply to a request cut off by a lost connection never answers a request after the reconnect.
 #[tokio::test]
-async fn a_reply_to_a_request_cut_off_by_a_lost_connection_never_answers_one_after_the_reconnect() {
+async fn a_reply_cut_off_by_a_lost_connection_never_answers_after_the_reconnect() {
     let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
     let port = server.local_addr().unwrap().port();
     let gateway = GatewayConfig::new()

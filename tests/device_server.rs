@@ -518,8 +518,9 @@ async fn rfc2217_bus_sets_ser2nets_line_to_its_own_format_and_0xff_crosses_both_
     );
 }
 
+/// A master cannot reset the converter's line with a telnet command hidden in its data.
 #[tokio::test]
-async fn a_master_cannot_reset_the_converters_line_with_a_telnet_command_hidden_in_its_data() {
+async fn a_telnet_command_hidden_in_a_masters_data_cannot_reset_the_converter() {
     let Some((slave, _ser2net, gateway)) = rtu_slave_behind_ser2net(Accepter::Rfc2217, |bus| {
         bus.baud(19_200)
             .parity("none")
@@ -615,8 +616,9 @@ async fn rfc2217_bus_sets_the_line_again_when_it_reconnects_to_a_restarted_ser2n
     );
 }
 
+/// A reply left in the pty while ser2net was down.
 #[tokio::test]
-async fn a_reply_left_in_the_pty_while_ser2net_was_down_is_not_the_answer_after_the_reconnect() {
+async fn a_reply_left_while_ser2net_was_down_is_not_the_answer_after_reconnect() {
     use std::io::Write;
     use std::os::unix::fs::OpenOptionsExt;
     let Some((slave, mut ser2net, gateway)) = rtu_slave_behind_ser2net(Accepter::Raw, |bus| {
@@ -764,9 +766,9 @@ fn write_9(n: u16) -> Vec<u8> {
     vec![0x06, 0x00, 0x09, hi, lo]
 }
 
+/// The gateway reconnects with back-off.
 #[tokio::test]
-async fn ser2net_restarted_mid_traffic_gives_0x0a_then_the_gateway_reconnects_with_back_off_and_no_write_twice(
-) {
+async fn ser2net_restarted_mid_traffic_gives_0x0a_then_reconnects_and_no_write_twice() {
     let Some((slave, mut ser2net, gateway)) = rtu_slave_behind_ser2net(Accepter::Raw, |bus| {
         bus.baud(115_200)
             .parity("none")

@@ -74,8 +74,9 @@ const PIPELINE: u16 = 16;
 /// The polite master's reads, one at a time.
 const POLITE_READS: u16 = 20;
 
+/// Forty connections each pipelining sixteen reads.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn forty_connections_pipelining_sixteen_reads_leave_a_polite_master_95_percent_answered() {
+async fn forty_pipelining_connections_leave_a_polite_master_95_percent_answered() {
     // Room for more requests than there are masters, for far fewer than the attackers send.
     let gateway = start(&flood_target(115200, 64)).await;
     let at = addr(&gateway);

@@ -499,8 +499,9 @@ fn replies_that_do_not_fit() -> [(&'static str, Vec<u8>, Vec<u8>); 3] {
     ]
 }
 
+/// A reply that does not fit the request is counted with outcome `malformed_reply`.
 #[tokio::test(start_paused = true)]
-async fn a_reply_that_does_not_fit_the_request_is_forwarded_at_once_and_counted_malformed_reply() {
+async fn a_reply_not_fitting_the_request_is_forwarded_at_once_counted_malformed() {
     for (what, request, reply) in replies_that_do_not_fit() {
         let (line, bus, metrics) = counted_line_with_faulty_slave_2("", "");
         line.add_slave(
@@ -531,9 +532,9 @@ async fn a_reply_that_does_not_fit_the_request_is_forwarded_at_once_and_counted_
     }
 }
 
+/// A reply that does not fit while a late reply may come is discarded; 0x0B follows the timeout.
 #[tokio::test(start_paused = true)]
-async fn a_reply_that_does_not_fit_while_a_late_reply_may_come_is_discarded_and_0x0b_follows_the_timeout(
-) {
+async fn a_reply_not_fitting_while_a_late_one_may_come_is_dropped_then_0x0b() {
     for (what, request, reply) in replies_that_do_not_fit() {
         // The first try is met with silence, so its reply may still come during the retry: the
         // frame that does not fit may be that reply, and is not taken for the retry's answer.

@@ -594,8 +594,9 @@ fn series_count(text: &str) -> usize {
         .count()
 }
 
+/// Every unit with every function code, over each protocol.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn every_unit_with_every_function_code_over_each_protocol_leaves_series_and_memory_flat() {
+async fn every_unit_function_and_protocol_leaves_series_and_memory_flat() {
     // Slaves 1-4 on one simulated line; a second bus whose device never opens, so that units
     // without a route are refused (no_route) instead of timing out on the line.
     let buses = "[[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\

@@ -502,8 +502,9 @@ async fn requests_a_slave_ignores_do_not_change_what_another_master_gets_from_it
     assert_eq!(line.stats().master_frames, sent_before + 1);
 }
 
+/// A slave that answered and then answers nothing.
 #[tokio::test(start_paused = true)]
-async fn a_slave_that_answered_and_then_answers_nothing_is_down_after_slave_down_after_timeouts() {
+async fn a_slave_that_falls_silent_is_down_after_slave_down_after_timeouts() {
     let keys = "baud = 19200\nresponse_timeout = \"100ms\"";
     let (line, bus) = sim_bus(keys, |line| {
         line.add_slave(1, RegisterBank::new(Duration::ZERO));
@@ -533,9 +534,10 @@ async fn a_slave_that_answered_and_then_answers_nothing_is_down_after_slave_down
     assert_eq!(line.stats().master_frames, sent);
 }
 
+/// After a bad CRC or a malformed reply the next request goes out after t3.5; after silence, only
+/// after the window.
 #[tokio::test(start_paused = true)]
-async fn after_a_bad_crc_or_a_malformed_reply_the_next_request_goes_out_after_t35_and_after_silence_only_after_the_window(
-) {
+async fn after_a_bad_crc_or_malformed_reply_the_next_request_waits_t35_or_the_window() {
     let timeout = Duration::from_millis(200);
     let read_one = [0x03, 0x00, 0x00, 0x00, 0x01];
     let mut bad_crc = modbus_gateway::line::rtu::encode(1, &[0x03, 0x02, 0x00, 0x07]);

@@ -544,9 +544,9 @@ async fn the_shipped_alerts_and_dashboard_use_only_metrics_the_gateway_exports()
     assert!(checked > 10, "the shipped files name the gateway's metrics");
 }
 
+/// While eight stalled trace readers and silent sockets hold the endpoint.
 #[tokio::test]
-async fn every_scrape_succeeds_while_eight_stalled_trace_readers_and_silent_sockets_hold_the_endpoint(
-) {
+async fn every_scrape_succeeds_beside_stalled_trace_readers_and_silent_sockets() {
     use crate::support::{
         fast_sim_config, fill_trace_with_stalled_readers, keep_line_busy, silent_socket,
         stalled_trace_reader, try_http_get,

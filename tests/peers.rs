@@ -419,8 +419,9 @@ fn the_ascii_wire_check_reads_the_manuals_worked_frames_and_refuses_any_other_by
     }
 }
 
+/// Through the gateway.
 #[tokio::test]
-async fn pymodbus_ascii_serial_server_answers_every_function_through_the_gateway_byte_for_byte() {
+async fn pymodbus_ascii_serial_server_answers_every_function_byte_for_byte() {
     let Some(slave) = Pymodbus::start("ascii").await else {
         return;
     };
@@ -501,8 +502,9 @@ async fn pymodbus_ascii_serial_server_answers_every_function_through_the_gateway
     );
 }
 
+/// An ASCII slave answering in lower-case hex.
 #[tokio::test]
-async fn an_ascii_slave_answering_in_lower_case_hex_is_understood_and_its_replies_pass_unchanged() {
+async fn a_lower_case_hex_ascii_slave_is_understood_and_its_replies_pass_unchanged() {
     let Some(slave) = Pymodbus::start("ascii-lower").await else {
         return;
     };
@@ -697,8 +699,9 @@ async fn net_master(
         .collect()
 }
 
+/// Through the gateway.
 #[tokio::test]
-async fn pymodbus_rtu_over_tcp_and_udp_masters_write_and_read_the_sim_line_through_the_gateway() {
+async fn pymodbus_rtu_over_tcp_and_udp_masters_write_and_read_the_sim_line() {
     let Some(python) = python_with_pymodbus() else {
         return;
     };
@@ -729,9 +732,9 @@ async fn pymodbus_rtu_over_tcp_and_udp_masters_write_and_read_the_sim_line_throu
     }
 }
 
+/// Through the gateway.
 #[tokio::test]
-async fn pymodbus_rtu_over_tcp_and_udp_masters_reach_pymodbus_rtu_slave_on_a_pty_through_the_gateway(
-) {
+async fn pymodbus_rtu_over_tcp_and_udp_masters_reach_pymodbus_rtu_slave_on_a_pty() {
     let Some(python) = python_with_pymodbus() else {
         return;
     };

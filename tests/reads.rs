@@ -60,9 +60,10 @@ fn write_block(first: u16) -> Vec<u8> {
     pdu
 }
 
+/// A hundred masters polling the same registers are answered correctly, by at most two transactions
+/// per hundred reads.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_hundred_masters_polling_the_same_registers_are_answered_correctly_by_at_most_two_transactions_per_hundred_reads(
-) {
+async fn a_hundred_masters_polling_alike_cost_at_most_2_transactions_per_100_reads() {
     const MASTERS: usize = 100;
     const ROUNDS: usize = 5;
     let gateway = gateway_9600("").await;
@@ -110,9 +111,9 @@ async fn a_hundred_masters_polling_the_same_registers_are_answered_correctly_by_
     assert_eq!(coalesced as usize, answered - transactions);
 }
 
+/// While others coalesce; no read gets data from before it arrived.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_master_reads_back_its_own_write_while_others_coalesce_and_no_read_gets_data_from_before_it_arrived(
-) {
+async fn a_master_reads_back_its_write_amid_coalescing_and_no_read_gets_older_data() {
     const READERS: usize = 99;
     const WRITES: u16 = 15;
     let gateway = gateway_9600("").await;
@@ -246,9 +247,10 @@ async fn read(bus: &BusHandle, master: u64, slave: u8, pdu: &[u8]) -> Answer {
         .expect("an answer")
 }
 
+/// A cached answer serves within its age without the line; a write drops it; exceptions are not
+/// cached.
 #[tokio::test(start_paused = true)]
-async fn a_cached_answer_serves_within_its_age_without_the_line_a_write_drops_it_and_exceptions_are_not_cached(
-) {
+async fn the_cache_answers_within_its_age_drops_on_a_write_and_keeps_no_exceptions() {
     let metrics = Metrics::new();
     let (line, bus) = sim_bus_counted(
         bus_settings("[[bus.slave]]\naddress = 1\ncache = \"500ms\""),

@@ -99,8 +99,9 @@ async fn tokio_modbus_rtu_client_on_a_tcp_stream_reads_what_a_modbus_tcp_master_
     );
 }
 
+/// A request with a bad CRC gets no answer and is counted.
 #[tokio::test]
-async fn a_request_with_a_bad_crc_gets_no_answer_and_is_counted_and_the_next_one_is_answered() {
+async fn a_request_with_a_bad_crc_is_counted_unanswered_and_the_next_is_answered() {
     let gateway = gateway("").await;
     let mut master = TcpStream::connect(rtu_addr(&gateway)).await.unwrap();
     let mut bad = rtu::encode(1, &[0x03, 0x00, 0x00, 0x00, 0x01]);

@@ -324,9 +324,9 @@ fn save(path: &std::path::Path, text: &str) {
 /// Wait until the gateway's log (in `path`) says `what`.
 const READ: [u8; 5] = [0x03, 0x00, 0x04, 0x00, 0x01];
 
+/// On an open connection; a broken file keeps the timeout and route as they were.
 #[tokio::test]
-async fn sighup_applies_a_new_timeout_and_route_on_an_open_connection_and_keeps_them_on_a_broken_file(
-) {
+async fn sighup_applies_a_new_timeout_and_route_live_and_keeps_them_on_a_broken_file() {
     let (listen, metrics) = (free_addr(), free_addr());
     // Slave 1 takes 200 ms to answer; its 100 ms timeout is too short. Unit 100 goes to slave
     // 100, which does not exist.

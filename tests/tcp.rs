@@ -126,9 +126,9 @@ async fn random_bytes_never_take_the_gateway_down() {
     assert_eq!(panics_on_this_thread(), panics, "no session panicked");
 }
 
+/// With `when_full = "refuse"`, connections beyond `max_connections` are refused.
 #[tokio::test]
-async fn with_when_full_refuse_connections_beyond_max_connections_are_refused_and_a_freed_slot_is_reused(
-) {
+async fn when_full_refuse_refuses_beyond_max_connections_and_reuses_a_freed_slot() {
     let keys = "max_connections = 3\nmax_connections_per_address = 0\nwhen_full = \"refuse\"";
     let gateway = start(&sim_config_with_server(keys, "")).await;
     let mut open = Vec::new();
@@ -540,8 +540,9 @@ async fn a_plc_polling_every_second_is_never_evicted_by_a_burst_of_newcomers() {
     );
 }
 
+/// By an attacker keeping its connections fresh.
 #[tokio::test(start_paused = true)]
-async fn a_plc_polling_every_second_is_never_evicted_by_an_attacker_keeping_connections_fresh() {
+async fn a_plc_polling_every_second_is_never_evicted_by_fresh_attacker_connections() {
     let keys = "max_connections = 20\nmax_connections_per_address = 0";
     let gateway = start(&sim_config_with_server(keys, "")).await;
     let plc = plc_polling_every_second(&gateway, 15).await;
@@ -647,9 +648,9 @@ async fn never_reading(source: [u8; 4], gateway: &Gateway) -> tokio::task::JoinH
     })
 }
 
+/// A master that never reads its replies.
 #[tokio::test(start_paused = true)]
-async fn a_master_that_never_reads_its_replies_is_closed_after_frame_timeout_and_newcomers_are_admitted(
-) {
+async fn a_non_reading_master_is_closed_after_frame_timeout_and_newcomers_are_admitted() {
     let frame_timeout = Duration::from_secs(10);
     let keys = "max_connections = 4\nmax_connections_per_address = 0\nframe_timeout = \"10s\"";
     let cached = "[[bus.slave]]\naddress = 1\ncache = \"1h\"";

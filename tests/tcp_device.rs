@@ -142,8 +142,9 @@ async fn one_connection_device() -> (u16, Arc<AtomicUsize>) {
     (port, refused)
 }
 
+/// A device that accepts one connection.
 #[tokio::test]
-async fn a_device_that_accepts_one_connection_serves_every_master_through_the_gateways_one() {
+async fn a_one_connection_device_serves_every_master_through_the_gateways_one() {
     let (port, refused) = one_connection_device().await;
     let gateway = gateway_on(port, "").await;
     let mut masters = Vec::new();
@@ -252,8 +253,9 @@ async fn a_reply_with_another_transaction_id_never_answers_and_the_request_gets_
     device.abort();
 }
 
+/// A device that ignores requests right after a connect.
 #[tokio::test]
-async fn a_device_that_ignores_requests_right_after_a_connect_is_served_with_connect_delay() {
+async fn a_device_deaf_right_after_a_connect_is_served_with_connect_delay() {
     let ignoring = |server: TcpListener| {
         tokio::spawn(async move {
             let (mut socket, _) = server.accept().await.unwrap();
@@ -284,7 +286,7 @@ async fn a_device_that_ignores_requests_right_after_a_connect_is_served_with_con
 }
 
 #[tokio::test]
-async fn a_device_restarted_mid_traffic_gives_0x0a_and_is_served_again_after_the_reconnect() {
+async fn a_device_restarted_mid_traffic_gives_0x0a_then_is_served_after_reconnect() {
     let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
     let port = server.local_addr().unwrap().port();
     let gateway = gateway_on(port, "reopen_delay = \"50ms\"\n").await;
@@ -347,8 +349,9 @@ async fn pymodbus_tcp_server_answers_masters_through_the_gateway_byte_for_byte()
     answers_as_pymodbus_device_1(&gateway).await;
 }
 
+/// The log names it with the key that helps.
 #[tokio::test]
-async fn a_device_that_always_answers_transaction_0_is_named_in_the_log_with_the_key_that_helps() {
+async fn a_device_always_answering_transaction_0_is_logged_with_the_key_that_helps() {
     use crate::support::{connect_when_listening, exit_status, free_addr, signal};
     let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
     let port = server.local_addr().unwrap().port();
@@ -448,9 +451,9 @@ async fn matched_by_order_such_a_device_is_served_and_a_timeout_resets_its_conne
     device.abort();
 }
 
+/// Each answer carries its master's own id.
 #[tokio::test]
-async fn masters_that_choose_the_same_transaction_ids_each_get_their_own_answer_with_their_own_id()
-{
+async fn masters_choosing_the_same_transaction_ids_each_get_their_own_answer() {
     let (port, _) = answering_device().await;
     let gateway = gateway_on(port, "").await;
     let addr = addr(&gateway);
@@ -568,9 +571,9 @@ async fn gateway_on_tls(
         .await
 }
 
+/// A TLS device is served with the gateway's certificate; its role is the device's to apply.
 #[tokio::test]
-async fn a_tls_device_is_served_with_the_gateways_certificate_and_its_role_is_the_devices_to_apply()
-{
+async fn a_tls_device_gets_the_gateways_certificate_and_applies_its_role_itself() {
     use crate::support::tls::Role;
     let (pki, device) = tls_device("roles = { viewer = \"read_only\" }").await;
     let port = device.tls_addrs()[0].port();
@@ -694,8 +697,9 @@ fn logging_device(
     })
 }
 
+/// Restarted under traffic.
 #[tokio::test]
-async fn a_device_restarted_under_traffic_gives_0x0a_never_a_wrong_answer_and_no_write_twice() {
+async fn a_restarted_device_gives_0x0a_never_a_wrong_answer_and_no_write_twice() {
     let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
     let port = server.local_addr().unwrap().port();
     let writes = Arc::new(std::sync::Mutex::new(Vec::new()));
@@ -819,9 +823,9 @@ async fn slow_device(delay: Duration) -> (u16, Arc<AtomicUsize>) {
     (port, most)
 }
 
+/// A device slower than one unit's timeout gets 0x0B for that unit.
 #[tokio::test]
-async fn a_device_slower_than_one_units_timeout_gets_0x0b_there_and_its_late_answers_never_reach_another_unit(
-) {
+async fn a_slow_unit_gets_0x0b_and_its_late_answers_never_reach_another_unit() {
     // Every reply 150 ms after its request: within unit 2's 300 ms, past the bus's 100 ms.
     let (port, _) = slow_device(Duration::from_millis(150)).await;
     let gateway = GatewayConfig::new()
@@ -854,8 +858,9 @@ async fn a_device_slower_than_one_units_timeout_gets_0x0b_there_and_its_late_ans
     );
 }
 
+/// With `max_in_flight`, requests overlap at the device up to it.
 #[tokio::test]
-async fn with_max_in_flight_requests_overlap_at_the_device_up_to_it_and_each_master_gets_its_own() {
+async fn max_in_flight_lets_requests_overlap_up_to_it_and_each_master_gets_its_own() {
     for in_flight in [1usize, 4] {
         let (port, most) = slow_device(Duration::from_millis(5)).await;
         let gateway = gateway_on(port, &format!("max_in_flight = {in_flight}\n")).await;
@@ -945,8 +950,9 @@ async fn counting_relay(target: u16) -> (u16, Arc<AtomicUsize>) {
     (port, count)
 }
 
+/// At once.
 #[tokio::test]
-async fn pymodbus_and_mbpoll_masters_reach_pymodbus_tcp_server_at_once_over_one_connection() {
+async fn pymodbus_and_mbpoll_masters_share_one_connection_to_a_pymodbus_tcp_server() {
     let Some((_server, device)) = crate::device_link::pymodbus_tcp_server().await else {
         return;
     };
@@ -1025,9 +1031,9 @@ async fn pymodbus_and_mbpoll_masters_reach_pymodbus_tcp_server_at_once_over_one_
     );
 }
 
+/// A device that closes the connection every five requests is reconnected.
 #[tokio::test]
-async fn a_device_that_closes_the_connection_every_five_requests_is_reconnected_and_never_crosses_replies(
-) {
+async fn a_device_hanging_up_every_five_requests_never_crosses_replies() {
     let server = TcpListener::bind("127.0.0.1:0").await.unwrap();
     let port = server.local_addr().unwrap().port();
     tokio::spawn(async move {

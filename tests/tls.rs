@@ -134,8 +134,9 @@ async fn a_viewer_reads_and_gets_exception_01_for_writes_which_never_reach_the_l
     assert_eq!(scrape.value(&accepted("viewer")), 1.0);
 }
 
+/// Without a role, or with one not listed.
 #[tokio::test]
-async fn a_certificate_without_a_role_or_with_an_unlisted_one_gets_the_default_role_access() {
+async fn a_certificate_without_a_listed_role_gets_the_default_role_access() {
     // By default: nothing, not even reads.
     let (pki, _server, gateway) = tls_gateway(ROLES).await;
     let line = gateway.sim_line("sim").expect("sim line");
@@ -195,9 +196,9 @@ async fn refused(mut master: RawMaster) -> bool {
     master.is_closed().await
 }
 
+/// A foreign CA, an expired certificate, no certificate and plain TCP are each refused.
 #[tokio::test]
-async fn a_foreign_ca_an_expired_certificate_no_certificate_and_plain_tcp_are_each_refused_while_other_masters_are_served(
-) {
+async fn bad_certificates_and_plain_tcp_are_refused_while_other_masters_are_served() {
     let panics = panics_on_this_thread();
     let (pki, _server, gateway) = tls_gateway(ROLES).await;
     let at = tls_addr(&gateway);
@@ -388,9 +389,9 @@ async fn tls_session_when_listening(
     .await
 }
 
+/// Open connections keep theirs; a broken key is refused by name.
 #[tokio::test]
-async fn sighup_serves_a_rotated_certificate_to_new_masters_keeps_open_ones_and_refuses_a_broken_key_by_name(
-) {
+async fn sighup_rotates_the_certificate_for_new_masters_and_names_a_broken_key() {
     let pki = Pki::new("plant-ca");
     let first = pki.server("gateway", "gateway-2026", 365);
     let (listen, tls, metrics) = (free_addr(), free_addr(), free_addr());
@@ -572,9 +573,9 @@ async fn an_idle_tls_session_ends_with_close_notify_not_a_cut() {
     assert!(matches!(end, Ok(0)), "a clean TLS close: {end:?}");
 }
 
+/// A TLS master's handshake, under a trickle of silent connections.
 #[tokio::test]
-async fn a_tls_master_completes_its_handshake_within_a_second_under_a_trickle_of_silent_connections(
-) {
+async fn a_tls_handshake_completes_within_a_second_amid_a_trickle_of_silent_sockets() {
     let (pki, _server, gateway) = tls_gateway_with("", ROLES).await;
     let operator = pki.master("operator", Role::Named("operator"));
     let connector = pki.connector(Some(&operator));
@@ -604,9 +605,9 @@ async fn a_tls_master_completes_its_handshake_within_a_second_under_a_trickle_of
     drop(silent);
 }
 
+/// Peers of one address; the others are served at once.
 #[tokio::test(start_paused = true)]
-async fn peers_of_one_address_stalling_mid_handshake_hold_at_most_eight_turns_and_others_are_served_at_once(
-) {
+async fn peers_stalling_mid_handshake_hold_eight_turns_at_most_and_others_are_served() {
     let (pki, _server, gateway) = tls_gateway_with("", ROLES).await;
     let operator = pki.master("operator", Role::Named("operator"));
     // 40 peers of one host send the first byte of a ClientHello (a handshake record) and stall:

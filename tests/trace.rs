@@ -156,9 +156,9 @@ fn hex(bytes: &[u8]) -> String {
     pairs.join(" ")
 }
 
+/// Each frame with its hex, direction and outcome.
 #[tokio::test]
-async fn after_three_requests_a_trace_reader_receives_six_frames_with_their_hex_direction_and_outcome(
-) {
+async fn a_trace_reader_gets_six_frames_for_three_requests_with_hex_and_outcome() {
     let gateway = start_sim("").await;
     let mut trace = Trace::open(gateway.metrics_addr(), "").await;
     let mut master = RawMaster::connect(gateway.tcp_addrs()[0]).await;
@@ -397,8 +397,9 @@ async fn more_trace_readers_than_eight_are_refused_and_metrics_are_still_served(
     gateway.shutdown().await;
 }
 
+/// A trace reader whose stream stays blocked.
 #[tokio::test]
-async fn a_trace_reader_whose_stream_stays_blocked_is_dropped_and_its_place_goes_to_a_new_reader() {
+async fn a_blocked_trace_reader_is_dropped_and_its_place_goes_to_a_new_reader() {
     use crate::support::{
         fast_sim_config, fill_trace_with_stalled_readers, keep_line_busy, status_line, PATIENCE,
     };
@@ -638,7 +639,7 @@ async fn the_trace_subcommand_takes_slave_255_and_refuses_256() {
 }
 
 #[test]
-fn the_trace_subcommand_exits_non_zero_saying_why_when_the_endpoint_cannot_be_reached() {
+fn the_trace_subcommand_exits_non_zero_saying_why_on_an_unreachable_endpoint() {
     // A port that was free a moment ago: nothing listens on it.
     let port = std::net::TcpListener::bind("127.0.0.1:0")
         .unwrap()

@@ -144,7 +144,7 @@ async fn a_malformed_datagram_is_dropped_and_counted_and_the_next_one_is_answere
 }
 
 #[tokio::test]
-async fn a_flood_from_one_source_is_cut_at_pipeline_depth_and_another_source_is_still_served() {
+async fn a_flood_from_one_source_is_cut_at_pipeline_depth_and_others_are_served() {
     let gateway = gateway(vec![("pipeline_depth", 4.into())]).await;
     let flooder = master().await;
     for id in 0..200u16 {
@@ -294,8 +294,9 @@ async fn masters_of_all_three_kinds_polling_one_bus_are_all_answered_and_share_i
     );
 }
 
+/// Forty UDP ports of one address.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn forty_udp_ports_of_one_address_flooding_leave_a_polite_master_95_percent_answered() {
+async fn forty_udp_ports_flooding_leave_a_polite_master_95_percent_answered() {
     // Fewer places than ports: were each port a master of its own, they would hold one place
     // each and a newcomer would wait for room.
     let gateway = start(&flood_target(115200, 32)).await;
@@ -315,9 +316,9 @@ async fn forty_udp_ports_of_one_address_flooding_leave_a_polite_master_95_percen
     assert!(answered >= 19, "polite master: {answered} of 20 answered");
 }
 
+/// They take one turn between them.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn forty_udp_ports_of_one_address_take_one_turn_so_a_polite_master_waits_at_most_one_of_their_transactions(
-) {
+async fn forty_udp_ports_of_one_address_delay_a_polite_master_one_transaction_at_most() {
     // Slow enough that the polite master's next read is queued well within one transaction of
     // the flood, so what it waits for is the queue's order, not the scheduler's.
     let gateway = start(&flood_target(19200, 64)).await;

@@ -79,8 +79,9 @@ async fn watch(
 
 const FREQUENCY: &str = "drive_output_frequency_hertz{bus=\"demo\",slave=\"2\"}";
 
+/// Set to 50 Hz and run; the output frequency reads in Hz.
 #[tokio::test]
-async fn the_demos_unit_2_set_to_50_hz_and_run_shows_its_output_frequency_ramping_to_50_hz_in_hz() {
+async fn the_demos_unit_2_run_at_50_hz_shows_its_output_frequency_ramping_to_50_hz() {
     // The demo as shipped, its Goodrive300 exporting its template's values, but read every
     // 300 ms and ramping in 3.0 s (P00.11) rather than 15: the test's patience is shorter.
     let mut config = crate::support::demo_config();
@@ -128,8 +129,9 @@ async fn the_demos_unit_2_set_to_50_hz_and_run_shows_its_output_frequency_rampin
     crate::metrics::assert_promtool_finds_nothing_to_lint(&scrape.text).await;
 }
 
+/// The timeouts are counted.
 #[tokio::test]
-async fn a_slave_that_stops_answering_loses_its_values_counts_the_timeouts_and_gets_them_back() {
+async fn a_slave_that_stops_answering_loses_its_values_and_gets_them_back() {
     let gateway = drive_gateway().await;
     watch(&gateway, FREQUENCY, |_| true).await;
     let line = gateway.sim_line("demo").expect("a simulated line");

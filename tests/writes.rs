@@ -82,8 +82,9 @@ fn sent(gateway: &Gateway, bus: &str) -> Vec<(u8, Vec<u8>)> {
         .collect()
 }
 
+/// A read-only house lets only the wallbox setpoint be written.
 #[tokio::test]
-async fn a_read_only_house_lets_only_the_wallbox_setpoint_be_written_and_journals_every_write() {
+async fn a_read_only_house_admits_only_the_wallbox_setpoint_journaling_every_write() {
     let journal = dir("wallbox").join("writes.jsonl");
     let toml = format!(
         "{}\n{}\n{}",
@@ -597,9 +598,9 @@ async fn a_multiple_write_whose_byte_count_disagrees_with_its_quantity_gets_0x03
     }
 }
 
+/// The writes are acknowledged; the journal names the certificate and the role.
 #[tokio::test]
-async fn a_tls_role_rule_acknowledges_the_operators_writes_and_the_journal_names_certificate_and_role(
-) {
+async fn a_tls_role_rule_admits_the_operators_writes_and_journals_their_role() {
     let journal = dir("tls").join("w.jsonl");
     let pki = Pki::new("plant-ca");
     let server = pki.server("gateway", "gateway", 365);
@@ -658,9 +659,9 @@ async fn a_tls_role_rule_acknowledges_the_operators_writes_and_the_journal_names
     assert_eq!(ended[2].1["outcome"], "denied");
 }
 
+/// A timeout, a slave exception, a broadcast and read-only refusals.
 #[tokio::test]
-async fn the_journal_records_a_timeout_a_slave_exception_a_broadcast_and_read_only_refusals_but_no_read(
-) {
+async fn the_journal_records_timeouts_exceptions_broadcasts_and_refusals_but_no_read() {
     let journal = dir("outcomes").join("w.jsonl");
     // With fsync: each write waits for its entry to reach the disk, then goes on.
     let toml = format!(

@@ -203,7 +203,7 @@ mod tests {
     use test_support::{Bus, GatewayConfig};
 
     #[test]
-    fn every_slave_lists_the_plant_values_in_a_block_of_its_own_that_the_gateway_accepts() {
+    fn each_slaves_plant_values_are_a_block_of_their_own_the_gateway_accepts() {
         let config = GatewayConfig::new()
             .bus(Bus::sim("bench").text(&slaves()))
             .load();

@@ -87,8 +87,9 @@ fn the_bench_reports_every_field_never_beats_physics_and_drives_the_pty_slave() 
     assert!(reports[2]["rss_mb"].as_f64().unwrap() > 0.0);
 }
 
+/// The bench reports the TLS masters' handshakes.
 #[test]
-fn tls_masters_present_a_certificate_with_a_role_and_the_bench_reports_their_handshakes() {
+fn tls_masters_present_a_role_certificate_and_handshakes_are_reported() {
     let scenario = "sim-115200-8N1-tls-read-1";
     let mut pki = PathBuf::new();
     let tls = bench_json(&[scenario], |id| {
@@ -172,8 +173,9 @@ fn the_device_server_line_is_measured_as_the_sim_line_and_its_simulate_is_stoppe
     assert!(left.is_empty(), "still running: {left:?}");
 }
 
+/// modbus-proxy only if it is installed.
 #[test]
-fn the_tcp_device_line_is_measured_beside_a_direct_client_and_modbus_proxy_if_installed() {
+fn the_tcp_device_line_is_measured_beside_a_direct_client_and_modbus_proxy() {
     let scenario = "tcp-device-read-1";
     let tcp = bench_json(&[scenario], |_| {}).remove(0);
     assert_eq!(tcp["scenario"], scenario);
@@ -209,8 +211,9 @@ fn the_tcp_device_line_is_measured_beside_a_direct_client_and_modbus_proxy_if_in
     }
 }
 
+/// The scenario waits until every plant value is read before it measures.
 #[test]
-fn the_values_scenario_waits_until_every_plant_value_is_read_then_measures_polling_and_each_page() {
+fn the_values_scenario_measures_polling_and_each_page_once_every_value_is_read() {
     let scenario = "values-247x20";
     let values = bench_json(&[scenario], |_| {}).remove(0);
     assert_eq!(values["scenario"], scenario);
@@ -254,8 +257,9 @@ fn the_values_scenario_waits_until_every_plant_value_is_read_then_measures_polli
     assert!(values["simulate_poll_cpu_ms_per_s"].is_null(), "{values}");
 }
 
+/// Each journal scenario is measured against the one with the journal off.
 #[test]
-fn the_journal_scenarios_journal_every_write_and_are_measured_against_the_journal_off_one() {
+fn the_journal_scenarios_journal_every_write_and_compare_with_journal_off() {
     let mut dirs = Vec::new();
     let reports = bench_json(&["pty-115200-untimed-mix-100-journal"], |id| {
         dirs = ["on", "fsync"]

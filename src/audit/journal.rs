@@ -548,8 +548,9 @@ mod tests {
         })
     }
 
+    /// An outcome the file refuses is counted in the gap, and the journal reads writable again.
     #[test]
-    fn an_outcome_the_file_refuses_is_counted_in_the_gap_and_the_journal_reads_writable_again() {
+    fn a_refused_outcome_is_counted_in_the_gap_and_the_journal_recovers() {
         let path = temp("outcome");
         let metrics = Arc::new(crate::metrics::Metrics::new());
         let writable = || {

@@ -718,8 +718,9 @@ mod tests {
         assert!(c.is_ok(), "0s turns keepalive off");
     }
 
+    /// A line behind a device server takes its framing and packing delay.
     #[test]
-    fn a_line_behind_a_device_server_takes_its_framing_and_packing_delay_but_no_local_driver() {
+    fn a_device_server_line_takes_framing_and_packing_delay_but_no_local_driver() {
         let ok = Config::from_toml_str(
             "[[bus]]\nname = \"a\"\ndevice = \"tcp://nport:4001\"\nframing = \"ascii\"\n\
              packing_delay = \"40ms\"\n[bus.rs485]\necho = true\n\
@@ -851,8 +852,9 @@ mod tests {
         );
     }
 
+    /// UDP may share an address with TCP.
     #[test]
-    fn an_address_listened_on_twice_by_tcp_is_refused_naming_both_keys_but_udp_may_share_it() {
+    fn a_tcp_address_listened_on_twice_is_refused_naming_both_keys() {
         let e = errors(&format!(
             "[server]\nlisten = [\"0.0.0.0:502\", \"127.0.0.1:5020\"]\n\
              listen_rtu_over_tcp = \"127.0.0.1:5020\"\nlisten_udp = [\"0.0.0.0:502\", \

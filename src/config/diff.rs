@@ -266,8 +266,9 @@ mod tests {
         assert!(ConfigDiff::new(&old, &new).routes);
     }
 
+    /// Such a change leaves the bus as it was.
     #[test]
-    fn only_a_change_of_what_is_polled_changes_the_values_and_it_leaves_the_bus_as_it_was() {
+    fn only_a_change_of_what_is_polled_changes_the_values_and_not_the_bus() {
         let value = "[[bus.slave]]\naddress = 1\n[[bus.slave.value]]\nname = \"v\"\nregister = 0\n";
         let old = config(&format!("{}{value}", buses(&["a"])));
         // Another bus, with nothing to poll: the values stay as they are.

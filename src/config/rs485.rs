@@ -232,8 +232,9 @@ mod tests {
         );
     }
 
+    /// Echo is allowed without direction control; mode `rts` defaults to RTS high on send.
     #[test]
-    fn echo_is_allowed_without_direction_control_and_rts_mode_defaults_to_rts_high_on_send() {
+    fn echo_needs_no_direction_control_and_rts_mode_defaults_to_high_on_send() {
         let c = Config::from_toml_str(&format!(
             "{MINIMAL}\n[bus.rs485]\necho = true\n\
              [[bus]]\nname = \"b\"\ndevice = \"/dev/ttyS1\"\n[bus.rs485]\nmode = \"rts\""

@@ -314,8 +314,9 @@ mod tests {
 
     use super::*;
 
+    /// Every match key, in its short and its long form.
     #[test]
-    fn a_rule_takes_every_match_key_in_its_short_and_long_forms_and_prints_back_the_same() {
+    fn a_rule_takes_short_and_long_match_keys_and_prints_back_the_same() {
         let c = Config::from_toml_str(&format!(
             r#"{MINIMAL}
             [[rule]]

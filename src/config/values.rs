@@ -695,8 +695,9 @@ mod tests {
         }
     }
 
+    /// A range past 65535, a bit of a 32-bit type and a type a coil cannot have are each refused.
     #[test]
-    fn a_range_past_65535_a_bit_of_a_32_bit_type_and_a_type_a_coil_cannot_have_are_refused() {
+    fn out_of_range_addresses_bits_of_wide_types_and_coil_types_are_refused() {
         // An f32 in the last two registers ends at 65535: it fits.
         let last = value("name = \"a\"\nregister = 65534\ntype = \"f32\"\n");
         assert!(problems(&last).is_empty());

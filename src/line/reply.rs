@@ -162,8 +162,9 @@ mod tests {
         assert_eq!(judge(1, &[], 1, &READ, standard), Verdict::Foreign);
     }
 
+    /// The count is measured only for such a reply too.
     #[test]
-    fn a_wide_read_count_is_measured_and_answered_only_for_a_reply_that_claims_the_request() {
+    fn a_wide_read_count_is_answered_only_for_a_reply_that_claims_the_request() {
         let wide = [0x03, 0x00, 0x04, 0x13, 0x88, 0x00, 0x00];
         let form = ReplyForm::WideReadCount;
         assert_eq!(reply_len(&wide, Some(&READ), form), PduLen::Exact(7));

@@ -392,9 +392,9 @@ mod tests {
         assert_eq!(text.matches("modbus_gateway_exceptions_total{").count(), 2);
     }
 
+    /// Requests to every unit with every function code.
     #[test]
-    fn requests_to_every_unit_with_every_function_code_make_series_only_for_known_slaves_and_codes()
-    {
+    fn every_unit_and_function_code_makes_series_only_for_known_slaves_and_codes() {
         let metrics = Metrics::new();
         // Slave 3 is configured; nobody else has answered.
         let line1 = metrics.bus(&bus("[[bus.slave]]\naddress = 3\n"));
@@ -465,9 +465,9 @@ mod tests {
         );
     }
 
+    /// `slave_up` follows the changes health reports.
     #[test]
-    fn slave_up_follows_the_changes_health_reports_and_transactions_count_retries_and_round_trips()
-    {
+    fn slave_up_follows_health_and_transactions_count_retries_and_round_trips() {
         let metrics = Metrics::new();
         let line1 = metrics.bus(&bus(""));
         let up = "modbus_gateway_slave_up{bus=\"line1\",slave=\"5\"}";

@@ -223,7 +223,7 @@ mod tests {
     }
 
     #[test]
-    fn the_ports_of_one_address_share_one_admission_id_while_any_of_them_has_requests_pending() {
+    fn ports_of_one_address_share_an_admission_id_while_any_has_requests_pending() {
         let pending = Pending::default();
         let mut next = 0;
         let port = |ip: &str, port: u16| SocketAddr::new(ip.parse().unwrap(), port);

@@ -312,8 +312,9 @@ mod tests {
         read(meter, start, 1, at)[0]
     }
 
+    /// 230 volts, 5 amperes, 1150 watts at power factor 1, and 50 hertz.
     #[test]
-    fn at_power_on_the_meter_reads_230_volts_5_amperes_1150_watts_at_power_factor_1_and_50_hertz() {
+    fn at_power_on_the_meter_reads_230_v_5_a_1150_w_power_factor_1_and_50_hz() {
         let t0 = Instant::now();
         let mut meter = Sdm120::new(Duration::ZERO, t0);
         let expected = [
@@ -352,8 +353,9 @@ mod tests {
         );
     }
 
+    /// After whole periods of the load, the import energy is the mean power times the time.
     #[test]
-    fn after_whole_periods_of_the_load_the_import_energy_is_the_mean_power_times_the_time() {
+    fn over_whole_load_periods_import_energy_is_mean_power_times_time() {
         let t0 = Instant::now();
         let mut meter = Sdm120::new(Duration::ZERO, t0);
         // One hour is six periods of the active power and a whole number of the other swings but
@@ -472,8 +474,9 @@ mod tests {
         }
     }
 
+    /// No registers, more than 40 parameters, or a malformed read.
     #[test]
-    fn no_registers_more_than_40_parameters_or_a_malformed_read_is_an_illegal_data_value() {
+    fn an_empty_oversized_or_malformed_read_is_an_illegal_data_value() {
         let t0 = Instant::now();
         let mut meter = Sdm120::new(Duration::ZERO, t0);
         for request in [

@@ -109,8 +109,9 @@ fn p99(latencies: &mut [Duration]) -> Duration {
     latencies[latencies.len() * 99 / 100]
 }
 
+/// Polls hold each master up by one transaction at most.
 #[tokio::test(start_paused = true)]
-async fn ten_masters_saturating_the_line_are_each_held_up_by_one_transaction_at_most_by_polls() {
+async fn ten_masters_saturating_the_line_wait_at_most_one_poll_transaction_each() {
     let (_, quiet) = bus().await;
     let mut alone = saturate(&quiet).await;
     let (line, busy) = bus().await;
@@ -136,8 +137,9 @@ async fn ten_masters_saturating_the_line_are_each_held_up_by_one_transaction_at_
     }
 }
 
+/// With nobody else on the line.
 #[tokio::test(start_paused = true)]
-async fn with_nobody_else_on_the_line_polling_takes_at_most_its_share_and_nearly_all_of_it() {
+async fn on_an_idle_line_polling_takes_at_most_its_share_and_nearly_all_of_it() {
     for share in [0.2, 0.5] {
         let (line, bus) = bus().await;
         let started = Instant::now();

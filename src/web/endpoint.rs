@@ -455,8 +455,9 @@ mod tests {
         connections
     }
 
+    /// The place of the silent connection waiting longest.
     #[test]
-    fn a_newcomer_gets_a_free_place_or_the_place_of_the_silent_connection_waiting_longest() {
+    fn a_newcomer_gets_a_free_place_or_that_of_the_longest_silent_connection() {
         let start = Instant::now();
         let mut connections = Connections::default();
         connections.add(Phase::Silent, start);

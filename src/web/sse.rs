@@ -258,8 +258,9 @@ mod tests {
         assert_eq!(ready_chunks(&mut body).await, STILL_HERE);
     }
 
+    /// A stream that takes nothing for two keepalives.
     #[tokio::test(start_paused = true)]
-    async fn a_stream_that_takes_nothing_for_two_keepalives_ends_stalled_and_a_dropped_one_gone() {
+    async fn a_stream_unread_for_two_keepalives_ends_stalled_and_a_dropped_one_gone() {
         let hub = Arc::new(TraceHub::new());
         let (sender, body) = Channel::new(BUFFERED);
         let stalled = tokio::spawn(pump(hub.subscribe().unwrap(), Wanted::default(), sender));

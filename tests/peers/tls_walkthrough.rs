@@ -229,9 +229,10 @@ fn the_walkthrough_has_its_commands_its_python_and_the_output_it_shows() {
     );
 }
 
+/// A pymodbus TLS master with the README's viewer certificate reads the sim line and is refused a
+/// write.
 #[tokio::test]
-async fn a_pymodbus_tls_master_with_the_readmes_viewer_certificate_reads_the_sim_line_and_is_refused_a_write(
-) {
+async fn the_readmes_viewer_certificate_lets_pymodbus_read_over_tls_but_not_write() {
     let Some(python) = python_with_pymodbus() else {
         return;
     };

@@ -1005,8 +1005,9 @@ mod tests {
         assert_eq!(delay(&mut drive), Duration::from_millis(30));
     }
 
+    /// A run started over communication.
     #[test]
-    fn a_communication_run_reaches_full_reference_in_the_acceleration_time_and_no_sooner() {
+    fn a_run_reaches_full_reference_in_the_acceleration_time_and_no_sooner() {
         let (mut drive, t0) = on_the_bus(&[]);
         assert_eq!(write(&mut drive, COMM_SETTING, 10000, t0), Ok(()));
         assert_eq!(write(&mut drive, CONTROL, 1, t0), Ok(()));

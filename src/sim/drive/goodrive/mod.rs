@@ -510,8 +510,9 @@ mod tests {
         vec![0x86, code]
     }
 
+    /// The read, write and echo frames of the GD20 and GD300 manuals.
     #[test]
-    fn the_read_write_and_echo_frames_of_the_gd20_and_gd300_manuals_come_out_byte_for_byte() {
+    fn the_gd20_and_gd300_manual_frames_come_out_byte_for_byte() {
         let t0 = Instant::now();
         for variant in [Variant::Gd20, Variant::Gd300] {
             let mut one = power_on(variant, 1, &[], t0);
