@@ -600,7 +600,7 @@ async fn a_multiple_write_whose_byte_count_disagrees_with_its_quantity_gets_0x03
 
 /// The writes are acknowledged; the journal names the certificate and the role.
 #[tokio::test]
-async fn a_tls_role_rule_admits_the_operators_writes_and_journals_their_role() {
+async fn a_tls_role_rule_acknowledges_operator_writes_and_journals_their_role() {
     let journal = dir("tls").join("w.jsonl");
     let pki = Pki::new("plant-ca");
     let server = pki.server("gateway", "gateway", 365);
