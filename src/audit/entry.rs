@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 pub(crate) enum Line {
     Open(Opened),
     Write(Write),
-    WriteOutcome(Ended),
+    Outcome(Ended),
     Gap(Gap),
 }
 
@@ -207,7 +207,7 @@ mod tests {
         assert!(text.contains(r#""values":"13880032""#), "{text}");
         assert!(!text.contains('\n'));
         assert_eq!(serde_json::from_str::<Line>(&text).unwrap(), write);
-        let ended = Line::WriteOutcome(Ended {
+        let ended = Line::Outcome(Ended {
             time: now(),
             id: 7,
             outcome: WriteOutcome::Timeout,

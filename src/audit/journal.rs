@@ -562,7 +562,7 @@ mod tests {
         assert_eq!(writable(), Some(1.0));
         // The file refuses the outcome (its disk full for a moment): lost, and not writable.
         journal.state().file = Some(OpenOptions::new().append(true).open("/dev/full").unwrap());
-        journal.note(&Line::WriteOutcome(entry::Ended {
+        journal.note(&Line::Outcome(entry::Ended {
             time: entry::now(),
             id: 1,
             outcome: entry::WriteOutcome::Answered,

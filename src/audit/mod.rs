@@ -208,7 +208,7 @@ impl Audit {
             .audit
             .write_ended(protocol, action, ended.outcome.label());
         if let Some(journal) = &pending.journal {
-            journal.note(&Line::WriteOutcome(ended));
+            journal.note(&Line::Outcome(ended));
         }
     }
 }

@@ -120,7 +120,7 @@ impl Joiner {
                 self.pid = Some(opened.pid);
             }
             Line::Write(write) => self.write(write, bytes.len()),
-            Line::WriteOutcome(ended) => match self.waiting.remove(&ended.id) {
+            Line::Outcome(ended) => match self.waiting.remove(&ended.id) {
                 Some(waiting) => {
                     self.end(waiting.number, End::Recorded(ended));
                     if waiting.before_gap {
