@@ -68,8 +68,21 @@ fn every_configuration_key_is_documented_in_the_configuration_reference() {
 fn every_metric_is_documented_in_the_monitoring_page() {
     let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/src/metrics");
     let mut names = BTreeSet::new();
-    for entry in std::fs::read_dir(dir).unwrap() {
-        let source = std::fs::read_to_string(entry.unwrap().path()).unwrap();
+    // Every source file under src/metrics, its folders' too.
+    let mut files = Vec::new();
+    let mut folders = vec![std::path::PathBuf::from(dir)];
+    while let Some(folder) = folders.pop() {
+        for entry in std::fs::read_dir(folder).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                folders.push(path);
+            } else if path.extension().is_some_and(|e| e == "rs") {
+                files.push(path);
+            }
+        }
+    }
+    for path in files {
+        let source = std::fs::read_to_string(path).unwrap();
         for piece in source.split('"').skip(1).step_by(2) {
             if piece.starts_with("modbus_gateway_")
                 && piece
