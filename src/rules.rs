@@ -2,16 +2,17 @@
 //! from the configuration and replaced whole on a reload. Knows who sent a request, where it
 //! goes and what its bytes ask; knows nothing of sessions, queues or the journal.
 //!
-//! A rule matches when every match key it gives matches. `units` names slaves, not unit ids:
-//! the unit ids it lists are resolved through the routes once, when the table is built, and a
-//! request matches by the slave it reaches, whichever unit id it used; a broadcast reaches every
-//! slave of its bus. `units` and `registers` are the keys whose meaning follows the action: a `deny` or `acknowledge` rule matches a request that touches
-//! any of its addresses (overlapping is enough), while an `allow` rule matches only a request
-//! that touches none but its addresses, so that a write running past an allowed range is not let
-//! through by it. A request whose addresses its bytes cannot tell (a user-defined code, a file
-//! record) may touch any: it matches every `deny` and `acknowledge` rule with registers and no
-//! `allow` rule with registers. Likewise a broadcast matches every `deny` and `acknowledge` rule
-//! naming a slave of its bus, and only the `allow` rules naming the broadcast itself.
+//! A rule matches when every match key it gives matches. `units` names slaves, not unit ids: the
+//! unit ids it lists are resolved through the routes once, when the table is built, and a request
+//! matches by the slave it reaches, whichever unit id it used; a broadcast reaches every slave of
+//! its bus. `units` and `registers` are the keys whose meaning follows the action: a `deny` or
+//! `acknowledge` rule matches a request that touches any of its addresses (overlapping is enough),
+//! while an `allow` rule matches only a request that touches none but its addresses, so that a
+//! write running past an allowed range is not let through by it. A request whose addresses its
+//! bytes cannot tell (a user-defined code, a file record) may touch any: it matches every `deny`
+//! and `acknowledge` rule with registers and no `allow` rule with registers. Likewise a broadcast
+//! matches every `deny` and `acknowledge` rule naming a slave of its bus, and only the `allow`
+//! rules naming the broadcast itself.
 
 use crate::config::{Action, Functions, Registers, Rule, UnitSet};
 use crate::line::BROADCAST;

@@ -1,8 +1,8 @@
 //! The far end of the tcp-device line: a Modbus TCP device in the bench's process that answers
-//! every read of holding registers and every write of one register at once, or a fixed time after each request came (several
-//! outstanding at once if they come so, each answered on time by the precise timer), on a
-//! loopback port, each connection in a task of its own, stopped when dropped. Knows nothing of
-//! the gateway or of whoever else connects to it.
+//! every read of holding registers and every write of one register at once, or a fixed time after
+//! each request came (several outstanding at once if they come so, each answered on time by the
+//! precise timer), on a loopback port, each connection in a task of its own, stopped when dropped.
+//! Knows nothing of the gateway or of whoever else connects to it.
 
 use std::net::SocketAddr;
 use std::time::Duration;

@@ -1,12 +1,11 @@
 //! The simulated RS-485 line (`device = "sim"`) and the slaves on it, so the whole gateway runs and
-//! is tested with no hardware: `line` times every frame at the configured baud and
-//! checks the gaps; `registers` holds plain register-bank slaves; `drive` models the drives of
-//! the reference manuals on one shared request pipeline; `meter` an Eastron SDM120 energy meter;
-//! [`faults`] bends any slave's replies;
-//! `scripted` plays a script for tests; [`responder`] serves the slaves on a real serial port
-//! (`modbus-gateway simulate`) and `device_server` the line on a byte stream, as a serial device
-//! server does (`simulate --listen`). Knows nothing of TCP or the bus queue; the bus opens the line like
-//! any port.
+//! is tested with no hardware: `line` times every frame at the configured baud and checks the gaps;
+//! `registers` holds plain register-bank slaves; `drive` models the drives of the reference manuals
+//! on one shared request pipeline; `meter` an Eastron SDM120 energy meter; [`faults`] bends any
+//! slave's replies; `scripted` plays a script for tests; [`responder`] serves the slaves on a real
+//! serial port (`modbus-gateway simulate`) and `device_server` the line on a byte stream, as a
+//! serial device server does (`simulate --listen`). Knows nothing of TCP or the bus queue; the bus
+//! opens the line like any port.
 
 pub(crate) mod device_server;
 pub(crate) mod drive;
