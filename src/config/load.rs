@@ -160,12 +160,12 @@ impl Config {
             }
             _ => ConfigErrors::one("", format!("cannot be read: {e}")),
         })?;
-        let file = || config::File::from_str(&text, config::FileFormat::Toml);
         let from_file = config::Config::builder()
-            .add_source(file())
+            .add_source(config::File::from_str(&text, config::FileFormat::Toml))
             .build()
             .map_err(unparsable)?;
-        let mut builder = config::Config::builder().add_source(file());
+        // The file as parsed, once: its entries are what the overrides are checked against.
+        let mut builder = config::Config::builder().add_source(from_file.clone());
         let mut errors = Vec::new();
         for (name, value) in env {
             let Some(rest) = name.strip_prefix(ENV_PREFIX) else {

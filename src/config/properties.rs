@@ -214,14 +214,8 @@ fn slaves() -> impl Strategy<Value = Vec<Slave>> {
 }
 
 fn sim_slaves() -> impl Strategy<Value = Vec<SimSlave>> {
-    let models = [
-        SimModel::Registers,
-        SimModel::Gd20,
-        SimModel::Gd300,
-        SimModel::Gd10,
-        SimModel::PdInverter,
-        SimModel::Sdm120,
-    ];
+    // Every model the file may name, as its key reads them.
+    let models = <SimModel as super::serde_adapters::Choice>::ALL;
     let knobs = (
         prop::sample::select(models.to_vec()),
         prop_oneof![Just(Duration::ZERO), duration()],
