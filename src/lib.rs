@@ -11,129 +11,77 @@
 //! - `rules`: which `[[rule]]` decides a request (allow, deny, acknowledge), a pure table.
 //! - `audit`: every write-class request as it was decided and as it ended: the journal
 //!   (`[audit]`), written before a write goes to its bus, the last writes, the writes' metrics.
-//! - [`bus`]: one task per line, the only owner of its port: the fair queue (rings and shares,
+//! - `bus`: one task per line, the only owner of its port: the fair queue (rings and shares,
 //!   coalescing, the cache), reopen, one transaction at a time with retries and broadcast rules,
 //!   reconfiguration between transactions, the one state machine that says whether a slave is
-//!   alive, the [`Waiter`](bus::Waiter) through which every request is counted and answered
+//!   alive, the `Waiter` through which every request is counted and answered
 //!   exactly once, and the seam a line's transport plugs into (`bus::device`: a serial port or
 //!   the simulated line today).
-//! - [`line`](mod@line): the master side of a serial line: the transaction engine (gap, deadlines,
+//! - `line`: the master side of a serial line: the transaction engine (gap, deadlines,
 //!   validation, late replies, broadcast turnaround) on a transport, given the line's framing
-//!   (RTU, [`line::rtu`], or ASCII), and which framing runs over which transport; the line's
+//!   (RTU, `line::rtu`, or ASCII), and which framing runs over which transport; the line's
 //!   timing.
-//! - [`sim`]: the simulated RS-485 line and its slaves (`device = "sim"`): register banks and the
+//! - `sim`: the simulated RS-485 line and its slaves (`device = "sim"`): register banks and the
 //!   reference manuals' drives on one drive pipeline.
 //! - `values`: the plant's values for Prometheus: each slave's listed values and its device
 //!   template's, polled by the gateway itself through the bus's queue below every master, kept
 //!   for `/metrics`, `/values` and the status page.
-//! - [`metrics`]: what all of the above count and log, from plain values (it imports no runtime
+//! - `metrics`: what all of the above count and log, from plain values (it imports no runtime
 //!   module).
 //! - `web`: the operator's HTTP surface on `metrics.listen`: the status page and `/status`, the
 //!   live trace (`/trace`), `/metrics` and the health checks; it reads the gateway through one
 //!   narrow trait.
 //!
-//! Below every other module, shared by all: [`master`] (who a request comes from: the master's
-//! id, its protocol as a transport and framing, its rights), [`pdu`] (the one table of function
-//! codes, and exception codes) and [`error`] (what fails a request, and the one place that turns
-//! it into an exception), [`shutdown`] (the stop signal, and how a stopped task's end is logged),
-//! [`timer`] (sleeps precise to well under a millisecond for the line's timing), `socket` (TCP
-//! keepalive and the kernel's round trip, for masters' and device servers' sockets), [`trace`] (the
+//! Below every other module, shared by all: `master` (who a request comes from: the master's
+//! id, its protocol as a transport and framing, its rights), `pdu` (the one table of function
+//! codes, and exception codes) and `error` (what fails a request, and the one place that turns
+//! it into an exception), `shutdown` (the stop signal, and how a stopped task's end is logged),
+//! `timer` (sleeps precise to well under a millisecond for the line's timing), `socket` (TCP
+//! keepalive and the kernel's round trip, for masters' and device servers' sockets), `trace` (the
 //! live trace of the frames on the lines). [`gateway`] wires the parts together; [`cli`] is the
 //! command's subcommands (run the gateway, check the configuration, `simulate`: serve the
 //! simulated slaves on a real serial port instead); `logging` sets up the daemon's log output.
 //! The modules form layers: `tests/layers.rs` fails on any cycle among them.
 //!
-//! `pub` is what the daemon's `main`, the bench and the tests use, nothing more (the workspace
-//! lints deny unreachable `pub`). What the integration tests drive beyond it (the session, the
-//! dispatcher, the routing table, the operator's endpoint on its own) is in `testing`, compiled
-//! only with the `test-util` feature, which the tests turn on and the shipped daemon does not.
+//! `pub` is the daemon's API and nothing more: [`cli`] (what `main` runs), [`config`] and
+//! [`gateway`] (a configuration, and the gateway started on it); the workspace lints deny any
+//! other `pub` the API cannot reach. What the tests, test-support and the bench drive beyond it
+//! (the simulated line, a bus task on its own, the session, the dispatcher, the line's framing)
+//! is re-exported in `testing`, under each part's module name, compiled only with the
+//! `test-util` feature, which they turn on and the shipped daemon does not.
 
 // Unit tests may be long and cast freely; the product code may not (Cargo.toml's lint table).
 #![cfg_attr(test, allow(clippy::too_many_lines, clippy::cast_possible_truncation))]
+// What `testing` re-exports is `pub` for the build that has it (feature `test-util`: the tests,
+// test-support and the bench; `clippy --workspace --all-targets` checks that build) and
+// unreachable in the daemon's, which has no `testing`: the lint is for the build with the hooks.
+#![cfg_attr(not(feature = "test-util"), allow(unreachable_pub))]
 
 mod audit;
-pub mod bus;
+mod bus;
 pub mod cli;
 pub mod config;
-// What `testing` re-exports is `pub` for the tests' build (feature `test-util`) and unreachable
-// in the daemon's: the lint is for the build that has the hooks (clippy --all-targets).
-#[cfg_attr(not(feature = "test-util"), allow(unreachable_pub))]
 mod dispatch;
-pub mod error;
+mod error;
 pub mod gateway;
-pub mod line;
+mod line;
 mod logging;
-pub mod master;
-pub mod metrics;
-// What `testing` re-exports is `pub` for the tests' build (feature `test-util`) and unreachable
-// in the daemon's: the lint is for the build that has the hooks (clippy --all-targets).
-#[cfg_attr(not(feature = "test-util"), allow(unreachable_pub))]
+mod master;
+mod metrics;
 mod net;
-pub mod pdu;
+mod pdu;
 mod pem;
-// What `testing` re-exports is `pub` for the tests' build (feature `test-util`) and unreachable
-// in the daemon's: the lint is for the build that has the hooks (clippy --all-targets).
-#[cfg_attr(not(feature = "test-util"), allow(unreachable_pub))]
 mod routing;
 mod rules;
-pub mod shutdown;
-pub mod sim;
-// What `testing` re-exports is `pub` for the tests' build (feature `test-util`) and unreachable
-// in the daemon's: the lint is for the build that has the hooks (clippy --all-targets).
-#[cfg_attr(not(feature = "test-util"), allow(unreachable_pub))]
+mod shutdown;
+mod sim;
 mod socket;
-pub mod timer;
-pub mod trace;
+#[cfg(feature = "test-util")]
+pub mod testing;
+mod timer;
+mod trace;
 mod values;
 mod web;
 
 pub use config::Config;
 pub use gateway::Gateway;
-
-/// What the integration tests drive directly beyond the public modules: the TCP session, the
-/// dispatcher and the routing table, which the gateway otherwise wires up itself. Only with the
-/// `test-util` feature, which the tests turn on and the shipped daemon does not.
-#[cfg(feature = "test-util")]
-pub mod testing {
-    pub use crate::dispatch::{Client, Dispatcher};
-    pub use crate::master::UpstreamFraming;
-    pub use crate::master::{Protocol, Rights};
-    pub use crate::net::server::RECENTLY_ANSWERED;
-    pub use crate::net::session::SessionLimits;
-    pub use crate::net::session::{self, Activity, SessionError};
-    pub use crate::routing::Router;
-    pub use crate::socket::set_keepalive;
-
-    use crate::metrics::Metrics;
-    use std::sync::Arc;
-
-    /// The operator's HTTP endpoint on `listener`, for a gateway with no bus and no master.
-    pub async fn serve_web(listener: tokio::net::TcpListener, metrics: Arc<Metrics>) {
-        crate::web::serve(listener, metrics, Arc::new(Empty::default())).await;
-    }
-
-    #[derive(Default)]
-    struct Empty(crate::values::Store);
-
-    impl crate::web::Inspect for Empty {
-        fn buses(&self) -> Vec<crate::bus::BusHandle> {
-            Vec::new()
-        }
-
-        fn settings(&self, _: &str) -> Option<crate::config::Bus> {
-            None
-        }
-
-        fn masters(&self) -> Vec<crate::net::server::Connected> {
-            Vec::new()
-        }
-
-        fn values(&self) -> &crate::values::Store {
-            &self.0
-        }
-
-        fn writes(&self) -> Vec<crate::audit::Recent> {
-            Vec::new()
-        }
-    }
-}

@@ -24,7 +24,6 @@ pub enum ExceptionCode {
     IllegalDataAddress = 0x02,
     IllegalDataValue = 0x03,
     ServerDeviceFailure = 0x04,
-    Acknowledge = 0x05,
     ServerDeviceBusy = 0x06,
     GatewayPathUnavailable = 0x0A,
     GatewayTargetFailedToRespond = 0x0B,
@@ -192,7 +191,7 @@ pub(crate) enum Shape {
 
 /// What a read quantity counts.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Unit {
+pub(crate) enum Unit {
     /// Coils and inputs, eight to a byte.
     Bits,
     /// Registers, two bytes each.
@@ -469,7 +468,7 @@ fn objects(pdu: &[u8], count_at: usize) -> PduLen {
 
 /// How a request PDU's length compares with what its function code says.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum RequestLen {
+pub(crate) enum RequestLen {
     /// Exactly as long as its function says.
     Fits,
     /// Its bytes cannot tell how long it should be (a user-defined function code, a sub-function
@@ -484,7 +483,7 @@ pub enum RequestLen {
 /// (a hidden write, or a read whose answer comes late to another master); a shorter one is no
 /// request a slave can answer. A multiple write must also be as long as its quantity says, the
 /// quantity within the spec's bounds: a byte count that disagrees with it is wrong too.
-pub fn request_len(pdu: &[u8]) -> RequestLen {
+pub(crate) fn request_len(pdu: &[u8]) -> RequestLen {
     let Some(row) = pdu.first().and_then(|&code| function(code)) else {
         return RequestLen::Unchecked;
     };
@@ -529,7 +528,7 @@ pub(crate) fn broadcast_response(pdu: &[u8]) -> Option<Vec<u8>> {
 
 /// The data tables of the Modbus data model, as the journal names them.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum DataTable {
+pub(crate) enum DataTable {
     Coils,
     DiscreteInputs,
     HoldingRegisters,
@@ -538,7 +537,7 @@ pub enum DataTable {
 
 impl DataTable {
     /// The word the journal and `[[bus.slave.value]]`'s `table` use.
-    pub fn word(self) -> &'static str {
+    pub(crate) fn word(self) -> &'static str {
         match self {
             DataTable::Coils => "coil",
             DataTable::DiscreteInputs => "discrete",
@@ -551,7 +550,7 @@ impl DataTable {
 /// Data addresses `first` to `last` of one table that a request touches. `last` may run past
 /// 65535 when a request asks for more than the table holds: such a span is seen whole.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Span {
+pub(crate) struct Span {
     pub table: DataTable,
     pub first: u16,
     pub last: u32,
@@ -569,14 +568,14 @@ impl Span {
     }
 
     /// How many addresses it spans.
-    pub fn count(&self) -> u32 {
+    pub(crate) fn count(&self) -> u32 {
         self.last - u32::from(self.first) + 1
     }
 }
 
 /// The data addresses a request touches, as far as its bytes tell.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Touches {
+pub(crate) enum Touches {
     /// No data address: diagnostics, identification, event counters.
     Nothing,
     /// One span, or two (Read/Write Multiple Registers reads one and writes another).
@@ -591,7 +590,7 @@ fn word_at(pdu: &[u8], at: usize) -> Option<u16> {
 }
 
 /// The data addresses `pdu`, a request, touches.
-pub fn touches(pdu: &[u8]) -> Touches {
+pub(crate) fn touches(pdu: &[u8]) -> Touches {
     use DataTable::{Coils, DiscreteInputs, HoldingRegisters, InputRegisters};
     let Some(&function) = pdu.first() else {
         return Touches::Unknown;
@@ -642,7 +641,7 @@ pub fn touches(pdu: &[u8]) -> Touches {
 
 /// What a write request sets: the span it writes, if its bytes say, and the bytes of the values
 /// (for a write the table does not know, everything after the function code).
-pub fn written(pdu: &[u8]) -> (Option<Span>, &[u8]) {
+pub(crate) fn written(pdu: &[u8]) -> (Option<Span>, &[u8]) {
     let after = |at: usize| pdu.get(at..).unwrap_or_default();
     let span = match touches(pdu) {
         Touches::Spans(_, Some(write)) => Some(write),

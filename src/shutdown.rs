@@ -8,25 +8,26 @@ use tokio::task::JoinError;
 use tokio::time::Instant;
 
 /// The sending side, held by whoever decides to stop.
-pub struct Stop(watch::Sender<Option<Instant>>);
+pub(crate) struct Stop(watch::Sender<Option<Instant>>);
 
 /// The receiving side, one clone per task.
 #[derive(Clone)]
 pub struct Stopping(watch::Receiver<Option<Instant>>);
 
-pub fn channel() -> (Stop, Stopping) {
+pub(crate) fn channel() -> (Stop, Stopping) {
     let (sender, receiver) = watch::channel(None);
     (Stop(sender), Stopping(receiver))
 }
 
 impl Stop {
     /// Ask every task to stop, serving queued work until `deadline`.
-    pub fn stop(&self, deadline: Instant) {
+    pub(crate) fn stop(&self, deadline: Instant) {
         self.0.send_replace(Some(deadline));
     }
 }
 
 impl Stopping {
+    #[cfg(any(test, feature = "test-util"))]
     /// A signal that never comes, for tasks run outside a gateway (tests, tools).
     pub fn never() -> Self {
         channel().1

@@ -71,7 +71,7 @@ struct Wire<'a> {
 }
 
 /// `bytes` as lowercase hex pairs separated by spaces: `01 03 00 00`.
-pub fn hex(bytes: &[u8]) -> String {
+pub(crate) fn hex(bytes: &[u8]) -> String {
     let mut text = String::with_capacity(bytes.len() * 3);
     for (i, byte) in bytes.iter().enumerate() {
         if i > 0 {
@@ -149,6 +149,7 @@ impl TraceHub {
         let _ = self.sender.send(Arc::new(event));
     }
 
+    #[cfg(any(test, feature = "test-util"))]
     /// Events published so far.
     pub fn published(&self) -> u64 {
         self.published.load(Ordering::Relaxed)

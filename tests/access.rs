@@ -2,7 +2,7 @@
 //! writes off the line. Both logged and counted.
 
 use crate::support::{addr, sim_config_with_server, start, RawMaster, Scrape};
-use modbus_gateway::sim::Source;
+use modbus_gateway::testing::sim::Source;
 
 const READ_1: [u8; 5] = [0x03, 0x00, 0x01, 0x00, 0x01];
 

@@ -255,7 +255,10 @@ async fn read_over_rtu(addr: &str, start: u16, count: u16) -> Vec<u16> {
         }
     })
     .await;
-    assert!(modbus_gateway::line::rtu::crc_ok(&reply), "{reply:02X?}");
+    assert!(
+        modbus_gateway::testing::line::rtu::crc_ok(&reply),
+        "{reply:02X?}"
+    );
     assert_eq!(reply[..3], [SLAVE, 0x03, (2 * count) as u8], "{reply:02X?}");
     reply[3..reply.len() - 2]
         .chunks(2)

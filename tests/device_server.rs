@@ -27,7 +27,7 @@ use crate::peers::{python_with_pymodbus, Pymodbus as Slave, Wire};
 use crate::support::{
     tool, wait_for_bus, within, Accepter, Bus, GatewayConfig, RawMaster, Scrape, Ser2net, PATIENCE,
 };
-use modbus_gateway::line::rtu;
+use modbus_gateway::testing::line::rtu;
 use modbus_gateway::Gateway;
 use std::ffi::OsString;
 use std::process::{Command, Stdio};

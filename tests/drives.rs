@@ -2,7 +2,7 @@
 //! they answer, and at the bus on tokio's paused clock for what takes time (ramps, the wire).
 
 use crate::support::{addr, bus_call, demo_bus, demo_config, settle, RawMaster};
-use modbus_gateway::error::Answer;
+use modbus_gateway::testing::error::Answer;
 use modbus_gateway::Gateway;
 use std::time::Duration;
 
@@ -153,7 +153,7 @@ async fn without_the_wide_read_count_option_the_non_standard_reply_is_never_pass
 }
 
 /// The bus's answer to `pdu` as a PDU, or the exception code the gateway made.
-async fn ask(bus: &modbus_gateway::bus::BusHandle, unit: u8, pdu: &[u8]) -> Vec<u8> {
+async fn ask(bus: &modbus_gateway::testing::bus::BusHandle, unit: u8, pdu: &[u8]) -> Vec<u8> {
     match bus_call(bus, unit, pdu).await.0 {
         Ok(Answer::Reply(reply)) => reply,
         other => panic!("unit {unit} {pdu:02X?}: {other:?}"),

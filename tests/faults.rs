@@ -5,13 +5,13 @@
 use crate::support::{
     addr, bus_call, frames_from, settle, sim_bus_counted, start, RawMaster, Scrape,
 };
-use modbus_gateway::bus::BusHandle;
-use modbus_gateway::error::{Answer, Outcome};
 use modbus_gateway::gateway::config_from_toml;
-use modbus_gateway::line::rtu::encode;
-use modbus_gateway::metrics::Metrics;
-use modbus_gateway::sim::faults::{Faults, Faulty};
-use modbus_gateway::sim::{Pause, Scripted, SimLine, Source, Transmission};
+use modbus_gateway::testing::bus::BusHandle;
+use modbus_gateway::testing::error::{Answer, Outcome};
+use modbus_gateway::testing::line::rtu::encode;
+use modbus_gateway::testing::metrics::Metrics;
+use modbus_gateway::testing::sim::faults::{Faults, Faulty};
+use modbus_gateway::testing::sim::{Pause, Scripted, SimLine, Source, Transmission};
 use std::time::Duration;
 
 const TIMEOUT: Duration = Duration::from_millis(200);
@@ -49,7 +49,7 @@ fn scrape(metrics: &Metrics) -> Scrape {
 /// Requests to `slave` with `function` that the bus counted under `outcome` (function codes
 /// the gateway does not know are all counted as `other`).
 fn counted(metrics: &Metrics, slave: u8, function: u8, outcome: &str) -> f64 {
-    let function = modbus_gateway::pdu::function(function)
+    let function = modbus_gateway::testing::pdu::function(function)
         .map_or_else(|| "other".to_owned(), |row| format!("0x{:02X}", row.code));
     scrape(metrics)
         .get(&format!(

@@ -11,8 +11,8 @@ use crate::support::{
     frames_from, free_addr, http_get, pty_config, pty_line, sim_config_with_server, start, within,
     GatewayConfig, RawMaster, Scrape,
 };
-use modbus_gateway::line::rtu;
-use modbus_gateway::sim::Source;
+use modbus_gateway::testing::line::rtu;
+use modbus_gateway::testing::sim::Source;
 use std::ffi::OsString;
 use std::io::{BufRead, BufReader, Write};
 use std::net::SocketAddr;
@@ -400,13 +400,13 @@ async fn over_long_reads_from_a_read_only_master_do_not_put_a_healthy_slave_down
 /// zero count), or five bytes where the table cannot tell: so that every protocol's framing,
 /// RTU over TCP's too, takes it whole.
 fn well_formed(function: u8) -> Vec<u8> {
-    use modbus_gateway::pdu::PduLen;
+    use modbus_gateway::testing::pdu::PduLen;
     if function == 0x2B {
         // Read Device Identification, basic.
         return vec![0x2B, 0x0E, 0x01, 0x00];
     }
     let mut pdu = vec![function, 0x00, 0x00, 0x00, 0x01];
-    let Some(row) = modbus_gateway::pdu::function(function) else {
+    let Some(row) = modbus_gateway::testing::pdu::function(function) else {
         return pdu;
     };
     loop {
@@ -424,12 +424,12 @@ fn well_formed(function: u8) -> Vec<u8> {
 
 /// How long the RTU reply at the front of `inbound` to `request` is, once that can be told.
 fn rtu_reply_len(inbound: &[u8], request: &[u8]) -> Option<usize> {
-    use modbus_gateway::pdu::PduLen;
+    use modbus_gateway::testing::pdu::PduLen;
     let function = *inbound.get(1)?;
     let pdu_len = if function & 0x80 != 0 {
         2
     } else {
-        match modbus_gateway::pdu::function(function)?
+        match modbus_gateway::testing::pdu::function(function)?
             .reply
             .of(&inbound[1..], Some(request))
         {
@@ -515,8 +515,9 @@ async fn sweep_tcp(addr: SocketAddr, rtu_framing: bool) {
     let mut batches: Vec<Vec<u8>> = vec![Vec::new()];
     for function in 1..=u8::MAX {
         let pdu = well_formed(function);
-        let unchecked = modbus_gateway::pdu::function(function)
-            .is_none_or(|row| row.request.of(&pdu, None) == modbus_gateway::pdu::PduLen::Unknown);
+        let unchecked = modbus_gateway::testing::pdu::function(function).is_none_or(|row| {
+            row.request.of(&pdu, None) == modbus_gateway::testing::pdu::PduLen::Unknown
+        });
         if rtu_framing && unchecked {
             batches.push(vec![function]);
             batches.push(Vec::new());

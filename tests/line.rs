@@ -1,10 +1,12 @@
 //! The serial line discipline, driven at the bus (no TCP) on tokio's paused clock, against the
 //! simulated line's own record of what went on the wire and when.
 
-use modbus_gateway::bus::BusHandle;
-use modbus_gateway::error::{Answer, NoReply, Outcome, RequestError};
-use modbus_gateway::metrics::Metrics;
-use modbus_gateway::sim::{RegisterBank, Scripted, SimLine, Simulated, Source, Transmission};
+use modbus_gateway::testing::bus::BusHandle;
+use modbus_gateway::testing::error::{Answer, NoReply, Outcome, RequestError};
+use modbus_gateway::testing::metrics::Metrics;
+use modbus_gateway::testing::sim::{
+    RegisterBank, Scripted, SimLine, Simulated, Source, Transmission,
+};
 
 use crate::support::{bus_call as call, settle, sim_bus_filled, sim_bus_settings};
 use std::time::Duration;
@@ -415,7 +417,7 @@ async fn a_down_slave_that_answers_its_probe_is_served_normally_again() {
 
 #[tokio::test(start_paused = true)]
 async fn a_late_reply_never_answers_the_next_masters_request_of_the_same_form() {
-    use modbus_gateway::sim::faults::{Faults, Faulty};
+    use modbus_gateway::testing::sim::faults::{Faults, Faulty};
     // Slave 1 always answers 80 ms after a request: 30 ms after its 50 ms timeout.
     let late = Faults {
         late_reply: Some(Duration::from_millis(80)),
@@ -540,7 +542,7 @@ async fn a_slave_that_falls_silent_is_down_after_slave_down_after_timeouts() {
 async fn after_a_bad_crc_or_malformed_reply_the_next_request_waits_t35_or_the_window() {
     let timeout = Duration::from_millis(200);
     let read_one = [0x03, 0x00, 0x00, 0x00, 0x01];
-    let mut bad_crc = modbus_gateway::line::rtu::encode(1, &[0x03, 0x02, 0x00, 0x07]);
+    let mut bad_crc = modbus_gateway::testing::line::rtu::encode(1, &[0x03, 0x02, 0x00, 0x07]);
     *bad_crc.last_mut().unwrap() ^= 0x01;
     let first_replies = [
         (

@@ -4,7 +4,7 @@
 //! succeed while stalled trace readers and silent sockets hold the endpoint.
 
 use crate::support::{addr, http_get, sim_line, start, within, GatewayConfig, RawMaster, Scrape};
-use modbus_gateway::sim::Source;
+use modbus_gateway::testing::sim::Source;
 use modbus_gateway::Gateway;
 use std::collections::BTreeSet;
 use std::time::Duration;
@@ -367,7 +367,7 @@ async fn a_polled_slave_has_a_zero_series_for_every_poll_outcome_before_any_fail
 
 #[tokio::test]
 async fn the_bus_info_help_names_every_framing_and_transport_its_labels_take() {
-    use modbus_gateway::line::Framing;
+    use modbus_gateway::testing::line::Framing;
     let gateway = line().start().await;
     let scrape = Scrape::of(&gateway).await;
     let help = scrape

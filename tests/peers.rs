@@ -15,7 +15,7 @@
 mod tls_walkthrough;
 
 use crate::support::{addr, pty_config, pty_line, start, within, GatewayConfig, RawMaster, Scrape};
-use modbus_gateway::line::rtu;
+use modbus_gateway::testing::line::rtu;
 use std::ffi::OsString;
 use std::io::{BufRead, BufReader, Read};
 use std::process::{Child, Command, Stdio};

@@ -3,12 +3,12 @@
 //! masters served first up to their share of the line.
 
 use crate::support::{addr, settle, sim_bus_counted, start, within, RawMaster, Scrape};
-use modbus_gateway::bus::BusHandle;
 use modbus_gateway::config::Config;
-use modbus_gateway::error::Answer;
-use modbus_gateway::master::{Origin, Protocol};
-use modbus_gateway::metrics::Metrics;
-use modbus_gateway::sim::{SimLine, Source};
+use modbus_gateway::testing::bus::BusHandle;
+use modbus_gateway::testing::error::Answer;
+use modbus_gateway::testing::master::{Origin, Protocol};
+use modbus_gateway::testing::metrics::Metrics;
+use modbus_gateway::testing::sim::{SimLine, Source};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::sync::Barrier;
@@ -236,7 +236,7 @@ fn origin(master: u64, priority: bool) -> Origin {
         master,
         admission: master,
         protocol: Protocol::Tcp,
-        class: modbus_gateway::master::Class::of_master(priority),
+        class: modbus_gateway::testing::master::Class::of_master(priority),
     }
 }
 

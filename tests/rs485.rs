@@ -6,9 +6,9 @@ use crate::support::{
     addr, exit_status, free_addr, http_get, pty_config, pty_line, signal, start, within,
     GatewayConfig, PtySlave, RawMaster, Scrape,
 };
-use modbus_gateway::bus::{Device, SerialDriver};
 use modbus_gateway::config::{Rs485, Rs485Mode};
-use modbus_gateway::line::{rtu, Parity, SerialFormat};
+use modbus_gateway::testing::bus::{Device, SerialDriver};
+use modbus_gateway::testing::line::{rtu, Parity, SerialFormat};
 use std::process::{Command, Stdio};
 
 const BINARY: &str = env!("CARGO_BIN_EXE_modbus-gateway");

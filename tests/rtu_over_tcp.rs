@@ -3,7 +3,7 @@
 //! exceptions included, comes back as an RTU frame with the master's unit id.
 
 use crate::support::{start, Scrape, PATIENCE};
-use modbus_gateway::line::rtu;
+use modbus_gateway::testing::line::rtu;
 use modbus_gateway::Gateway;
 use std::net::SocketAddr;
 use std::time::Duration;

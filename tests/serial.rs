@@ -2,7 +2,7 @@
 //! client (tokio-modbus) on the other side.
 
 use crate::support::{addr, pty_config, start, start_sim, wait_for_bus, PtySlave, RawMaster};
-use modbus_gateway::line::rtu;
+use modbus_gateway::testing::line::rtu;
 use std::path::PathBuf;
 use tokio_modbus::client::{tcp, Reader, Writer};
 use tokio_modbus::Slave;

@@ -28,7 +28,7 @@
     clippy::disallowed_methods
 )]
 
-use modbus_gateway::sim::{SimLine, Source};
+use modbus_gateway::testing::sim::{SimLine, Source};
 use modbus_gateway::Gateway;
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::net::SocketAddr;
@@ -931,7 +931,7 @@ async fn a_hundred_masters_on_faulty_slaves_get_one_answer_each_and_leak_nothing
     let began = std::time::Instant::now();
     println!("soak: {MASTERS} masters, {soak:?} after the warm-up");
     // As the daemon does: the line keeps its timing to well under a millisecond.
-    modbus_gateway::timer::use_precise_timer();
+    modbus_gateway::testing::timer::use_precise_timer();
     let gateway = start(&config()).await;
     let at = test_support::addr(&gateway);
     let line = gateway.sim_line("soak").expect("a simulated line");

@@ -8,10 +8,10 @@ use crate::support::{
     within, RawMaster, Scrape,
 };
 use modbus_gateway::gateway::config_from_toml;
-use modbus_gateway::metrics::Metrics;
-use modbus_gateway::shutdown::Stopping;
-use modbus_gateway::sim::RegisterBank;
+use modbus_gateway::testing::metrics::Metrics;
 use modbus_gateway::testing::session::{self, Activity, SessionError};
+use modbus_gateway::testing::shutdown::Stopping;
+use modbus_gateway::testing::sim::RegisterBank;
 use modbus_gateway::testing::{Client, Dispatcher, Rights};
 use modbus_gateway::testing::{Router, RECENTLY_ANSWERED};
 use modbus_gateway::testing::{SessionLimits, UpstreamFraming as Upstream};

@@ -12,9 +12,9 @@ use crate::support::{
 use bytes::Bytes;
 use http_body_util::{BodyExt, Empty};
 use hyper::body::Incoming;
-use modbus_gateway::metrics::Metrics;
-use modbus_gateway::sim::Source;
-use modbus_gateway::trace::Traced;
+use modbus_gateway::testing::metrics::Metrics;
+use modbus_gateway::testing::sim::Source;
+use modbus_gateway::testing::trace::Traced;
 use modbus_gateway::Config;
 use serde_json::Value;
 use std::io::BufRead;
@@ -364,7 +364,7 @@ async fn more_trace_readers_than_eight_are_refused_and_metrics_are_still_served(
     let gateway = start_sim("").await;
     let metrics = gateway.metrics_addr();
     let mut readers = Vec::new();
-    for _ in 0..modbus_gateway::trace::MAX_READERS {
+    for _ in 0..modbus_gateway::testing::trace::MAX_READERS {
         readers.push(Trace::open(metrics, "").await);
     }
     let (status, body) = http_get(metrics, "/trace").await;
@@ -447,7 +447,7 @@ async fn a_trace_stream_outlives_the_endpoints_connection_lifetime_with_keepaliv
 
 /// A bus on the simulated line at 9600 8E1, slaves 1-4, its task running, counting into
 /// `metrics` (whose trace hub it publishes to).
-fn sim_bus(metrics: &Metrics) -> modbus_gateway::bus::BusHandle {
+fn sim_bus(metrics: &Metrics) -> modbus_gateway::testing::bus::BusHandle {
     let settings = Config::from_toml_str(
         "[[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 9600\nparity = \"even\"\n\
          [[bus.sim_slave]]\naddress = \"1-4\"\n",
@@ -459,7 +459,7 @@ fn sim_bus(metrics: &Metrics) -> modbus_gateway::bus::BusHandle {
 }
 
 /// `n` reads one after the other; how long they took on the paused clock.
-async fn reads(bus: &modbus_gateway::bus::BusHandle, n: usize) -> Duration {
+async fn reads(bus: &modbus_gateway::testing::bus::BusHandle, n: usize) -> Duration {
     let started = tokio::time::Instant::now();
     for _ in 0..n {
         let (outcome, _) = crate::support::bus_call(bus, 1, &[0x03, 0x00, 0x00, 0x00, 0x02]).await;

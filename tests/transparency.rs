@@ -3,8 +3,8 @@
 //! code the issue names and a user-defined one.
 
 use crate::support::{addr, pty_config, start, start_sim, PtySlave, RawMaster};
-use modbus_gateway::line::rtu;
-use modbus_gateway::sim::Source;
+use modbus_gateway::testing::line::rtu;
+use modbus_gateway::testing::sim::Source;
 
 /// (request PDU, the slave's reply PDU), mostly the examples of the Modbus Application Protocol
 /// specification V1.1b3 chapter 6.

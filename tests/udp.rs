@@ -6,7 +6,7 @@ use crate::support::{
     flood_target, frames_from, mbap, polite_reads, start, within, Bus, Flood, GatewayConfig,
     Scrape, Value, PATIENCE,
 };
-use modbus_gateway::sim::Source;
+use modbus_gateway::testing::sim::Source;
 use modbus_gateway::Gateway;
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -212,7 +212,7 @@ async fn two_thousand_random_datagrams_leave_the_gateway_serving_and_the_line_un
 
 #[tokio::test]
 async fn masters_of_all_three_kinds_polling_one_bus_are_all_answered_and_share_it_fairly() {
-    use modbus_gateway::line::rtu;
+    use modbus_gateway::testing::line::rtu;
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let gateway = start(
         "[server]\nlisten = \"127.0.0.1:0\"\nlisten_rtu_over_tcp = \"127.0.0.1:0\"\n\

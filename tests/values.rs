@@ -6,7 +6,7 @@
 //! measured on tokio's paused clock in `src/values/`.
 
 use crate::support::{within, Bus, GatewayConfig, RawMaster, Scrape};
-use modbus_gateway::sim::{RegisterBank, Scripted};
+use modbus_gateway::testing::sim::{RegisterBank, Scripted};
 use std::time::Duration;
 
 /// The demo's Goodrive300 at unit 2, taking run commands and its reference from the bus, with

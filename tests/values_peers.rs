@@ -15,7 +15,7 @@
 
 use crate::peers::{Pymodbus, Wire};
 use crate::support::{http_get, pty_line, within, GatewayConfig, Scrape, PATIENCE};
-use modbus_gateway::line::rtu;
+use modbus_gateway::testing::line::rtu;
 use std::collections::BTreeMap;
 use std::time::Duration;
 

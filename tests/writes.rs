@@ -8,7 +8,7 @@ use crate::support::{
     addr, connect_from, frames_from, mbap, rtu, sim_config_with_server, sim_line, start, Bus,
     GatewayConfig, RawMaster, Scrape,
 };
-use modbus_gateway::sim::Source;
+use modbus_gateway::testing::sim::Source;
 use modbus_gateway::Gateway;
 use serde_json::Value;
 use std::path::{Path, PathBuf};

@@ -114,7 +114,7 @@ fn main() -> ExitCode {
 async fn bench(cli: Cli) -> ExitCode {
     // As in the daemon: the untimed slave's replies are due at once, and tokio's timer would
     // hold each one to the next whole millisecond.
-    modbus_gateway::timer::use_precise_timer();
+    modbus_gateway::testing::timer::use_precise_timer();
     let all = scenarios::scenarios();
     if cli.list {
         for s in &all {

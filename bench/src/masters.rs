@@ -4,10 +4,10 @@
 use crate::gateway::{tls_connect, Gateway};
 use crate::scenarios::{Kind, Load, PRIORITY_IP, READ_10, SLAVES, WRITE_1};
 use mio_serial::SerialPort;
-use modbus_gateway::bus::Port;
-use modbus_gateway::line::{rtu, LineTiming, SerialFormat};
-use modbus_gateway::sim::responder::Responder;
-use modbus_gateway::sim::RegisterBank;
+use modbus_gateway::testing::bus::Port;
+use modbus_gateway::testing::line::{rtu, LineTiming, SerialFormat};
+use modbus_gateway::testing::sim::responder::Responder;
+use modbus_gateway::testing::sim::RegisterBank;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;

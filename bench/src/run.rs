@@ -15,7 +15,7 @@ use crate::scenarios::{Journal, Line, Load, Scenario, READ_10, WRITE_1};
 use crate::tcp_device::TcpDevice;
 use crate::watch::{scrape, watch_trace, Scraped, Scraper};
 use crate::Cli;
-use modbus_gateway::line::LineTiming;
+use modbus_gateway::testing::line::LineTiming;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;

@@ -1,6 +1,6 @@
 //! The scenarios: which line, which masters, which load, by name. Data only; `run` acts on them.
 
-use modbus_gateway::line::{Framing, Parity, SerialFormat};
+use modbus_gateway::testing::line::{Framing, Parity, SerialFormat};
 use std::net::Ipv4Addr;
 use std::time::Duration;
 

@@ -119,7 +119,7 @@ async fn serve_after(stream: TcpStream, delay: Duration) {
             start += used;
             let due = due.clone();
             tokio::spawn(async move {
-                modbus_gateway::timer::sleep_until(came + delay).await;
+                modbus_gateway::testing::timer::sleep_until(came + delay).await;
                 let _ = due.send(reply);
             });
         }

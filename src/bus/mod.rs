@@ -22,16 +22,17 @@ mod task;
 mod transaction;
 mod waiter;
 
-pub use device::{Device, Port, SerialDriver, TlsDevice};
-pub use queue::{FairQueue, Job, Pushed};
+pub(crate) use device::TlsDevice;
+pub use device::{Device, Port, SerialDriver};
+pub(crate) use queue::{FairQueue, Job, Pushed};
 pub(crate) use reconfigure::{longest_transaction, BusUpdates, Reconfigure};
 pub use task::BusTask;
-pub use waiter::Tally;
-pub use waiter::Waiter;
+pub(crate) use waiter::Tally;
+pub(crate) use waiter::Waiter;
 
 use crate::config;
 use crate::error::{Answer, Outcome, RequestError};
-use crate::master::{Class, MasterId, Origin, Protocol};
+use crate::master::{Class, MasterId, Origin};
 use crate::metrics::BusMetrics;
 use crate::pdu;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -161,13 +162,14 @@ impl BusHandle {
             .unwrap_or_else(PoisonError::into_inner) = Instant::now();
     }
 
+    #[cfg(any(test, feature = "test-util"))]
     /// Queue `pdu` for `slave` from a Modbus TCP master. The receiver yields the outcome;
     /// refusals (port down, queue full) are in it at once.
     pub fn submit(&self, master: MasterId, slave: u8, pdu: Vec<u8>) -> oneshot::Receiver<Outcome> {
         let origin = Origin {
             master,
             admission: master,
-            protocol: Protocol::Tcp,
+            protocol: crate::master::Protocol::Tcp,
             class: Class::Normal,
         };
         self.submit_from(origin, slave, pdu)

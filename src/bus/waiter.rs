@@ -13,7 +13,7 @@ use tokio::time::Instant;
 /// Where a request's end is counted: the bus and slave its unit routes to, or, for a unit with
 /// no route, no bus and no slave (the unit id is the master's to choose).
 #[derive(Clone, Copy)]
-pub enum Tally<'a> {
+pub(crate) enum Tally<'a> {
     Bus(&'a BusMetrics),
     Unrouted(&'a Metrics),
 }
@@ -33,7 +33,7 @@ impl Tally<'_> {
 
 /// One master waiting for one request's outcome. Moved, never copied: ending it consumes it.
 #[derive(Debug)]
-pub struct Waiter {
+pub(crate) struct Waiter {
     pub origin: Origin,
     /// When the request arrived.
     pub(crate) queued_at: Instant,
@@ -46,7 +46,7 @@ pub struct Waiter {
 
 impl Waiter {
     /// A master of `origin` waiting from now until `deadline`, and where its outcome comes.
-    pub fn new(origin: Origin, deadline: Instant) -> (Waiter, oneshot::Receiver<Outcome>) {
+    pub(crate) fn new(origin: Origin, deadline: Instant) -> (Waiter, oneshot::Receiver<Outcome>) {
         let (reply, outcome) = oneshot::channel();
         let waiter = Waiter {
             origin,
@@ -82,12 +82,12 @@ impl Waiter {
 
     /// The request (`function` to `slave`) ended in `outcome`: counted in `tally`, and sent to
     /// the master.
-    pub fn answer(self, tally: Tally<'_>, slave: u8, function: u8, outcome: Outcome) {
+    pub(crate) fn answer(self, tally: Tally<'_>, slave: u8, function: u8, outcome: Outcome) {
         self.end(tally, slave, function, Some(outcome));
     }
 
     /// The request ended unsent because its master left: counted as such, answered to nobody.
-    pub fn left(self, tally: Tally<'_>, slave: u8, function: u8) {
+    pub(crate) fn left(self, tally: Tally<'_>, slave: u8, function: u8) {
         self.end(tally, slave, function, None);
     }
 

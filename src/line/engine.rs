@@ -24,7 +24,7 @@ use std::time::Duration;
 use tokio::time::Instant;
 
 mod record;
-pub use record::LineCounters;
+pub(crate) use record::LineCounters;
 pub(crate) use record::{RecordedFrame, Seen};
 
 /// The times the master keeps on its line.
@@ -616,6 +616,7 @@ impl<T> LineMaster<T> {
                 self.counters.foreign_frames += 1;
                 None
             }
+            #[cfg(test)]
             Verdict::Corrupt => Some(Err(TxError::Check)),
         };
         if self.recording {

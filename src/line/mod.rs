@@ -13,13 +13,16 @@ pub(crate) mod reply;
 pub mod rtu;
 pub(crate) mod timing;
 
-pub use engine::{NoReply, Reply, TxError};
+pub use engine::NoReply;
+pub(crate) use engine::{Reply, TxError};
 
-pub use engine::LineCounters;
+pub(crate) use engine::LineCounters;
 
 pub(crate) use engine::{LineMaster, MasterTiming, Seen};
 pub use framing::Framing;
-pub use reply::{ReplyForm, Verdict};
+pub(crate) use reply::ReplyForm;
+#[cfg(test)]
+pub(crate) use reply::Verdict;
 pub use timing::{LineTiming, Parity, SerialFormat};
 
 use std::future::Future;

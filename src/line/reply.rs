@@ -17,7 +17,7 @@ pub enum ReplyForm {
 
 /// What a received frame is to the request that is waiting for its answer.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Verdict {
+pub(crate) enum Verdict {
     /// It answers the request (normally or with an exception).
     Answer,
     /// Intact, from the slave asked, with the request's function code, but not the shape the
@@ -28,7 +28,9 @@ pub enum Verdict {
     /// Never delivered to anyone.
     Foreign,
     /// The frame's check (CRC, LRC) fails: noise, a collision, or a frame cut short. Only the
-    /// framing can tell; `judge` never says it.
+    /// tests' whole-frame check (`rtu::check_reply`) says it: the framing drops such a frame
+    /// before anything is judged, and `judge` never says it.
+    #[cfg(test)]
     Corrupt,
 }
 

@@ -6,7 +6,7 @@
 #[cfg(test)]
 use super::reply::Verdict;
 use super::reply::{self, ReplyForm};
-use crate::pdu::{self, PduLen, EXCEPTION_PDU_LEN};
+use crate::pdu::{self, PduLen};
 use crc::{Crc, CRC_16_MODBUS};
 
 const CRC: Crc<u16> = Crc::<u16>::new(&CRC_16_MODBUS);
@@ -18,7 +18,8 @@ pub const MAX_FRAME_LEN: usize = pdu::MAX_PDU_LEN + OVERHEAD;
 /// Address, function code and CRC: nothing shorter is a frame.
 pub const MIN_FRAME_LEN: usize = 1 + OVERHEAD;
 /// Exception replies: address, function | 0x80, exception code, CRC.
-pub const EXCEPTION_FRAME_LEN: usize = EXCEPTION_PDU_LEN + OVERHEAD;
+#[cfg(any(test, feature = "test-util"))]
+pub const EXCEPTION_FRAME_LEN: usize = pdu::EXCEPTION_PDU_LEN + OVERHEAD;
 
 pub fn crc16(bytes: &[u8]) -> u16 {
     CRC.checksum(bytes)
@@ -80,6 +81,7 @@ fn frame_len(len: PduLen) -> FrameLen {
 /// Length of a reply frame starting at `buf[0]`, as far as its bytes tell. `slave` and `request`
 /// (the PDU sent) settle the lengths that only the request knows, and only for a frame that
 /// claims to answer it.
+#[cfg(any(test, feature = "test-util"))]
 pub fn reply_len(buf: &[u8], slave: u8, request: &[u8]) -> FrameLen {
     reply_len_as(buf, slave, request, ReplyForm::Standard)
 }

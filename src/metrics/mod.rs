@@ -17,25 +17,23 @@ mod throttle;
 mod tls;
 mod udp;
 
-pub use audit::AuditMetrics;
-pub use bus::BusMetrics;
-
-pub use bus::SlaveSnapshot;
+pub(crate) use audit::AuditMetrics;
+pub(crate) use bus::BusMetrics;
 
 use bus::BusFamilies;
-pub use labels::Closing;
+pub(crate) use labels::Closing;
 pub(crate) use labels::Fate;
 pub(crate) use labels::LinkDrop;
-pub use labels::Rejection;
+pub(crate) use labels::Rejection;
 pub(crate) use port::PortLoss;
 
 use labels::{hex, OTHER};
 pub(crate) use tcp::Refusal;
-pub use tcp::TcpMetrics;
-pub use tls::TlsMaster;
-pub use tls::TlsMetrics;
-pub use udp::UdpDrop;
-pub use udp::UdpMetrics;
+pub(crate) use tcp::TcpMetrics;
+pub(crate) use tls::TlsMaster;
+pub(crate) use tls::TlsMetrics;
+pub(crate) use udp::UdpDrop;
+pub(crate) use udp::UdpMetrics;
 
 use crate::config;
 use crate::error::{Answer, Outcome};

@@ -78,6 +78,7 @@ pub struct Faulty<S> {
 
 impl<S: Simulated> Faulty<S> {
     /// `inner` with `faults` on an RTU line.
+    #[cfg(any(test, feature = "test-util"))]
     pub fn new(inner: S, faults: Faults, address: u8) -> Self {
         Self::framed(inner, faults, address, Framing::Rtu)
     }

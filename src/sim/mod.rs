@@ -14,15 +14,18 @@ pub(crate) mod line;
 pub(crate) mod meter;
 pub(crate) mod registers;
 pub mod responder;
+#[cfg(any(test, feature = "test-util"))]
 pub(crate) mod scripted;
 pub(crate) mod slaves;
 
-pub use line::{SimLine, Source};
+pub use line::SimLine;
+#[cfg(any(test, feature = "test-util"))]
+pub use line::Source;
 
-pub use line::{LineStats, SimPort, WireFrame};
+pub(crate) use line::SimPort;
 pub use registers::RegisterBank;
+#[cfg(any(test, feature = "test-util"))]
 pub use scripted::Scripted;
-pub use slaves::Slaves;
 
 use crate::config::{self, SimModel};
 use crate::line::rtu;
@@ -37,7 +40,7 @@ use tokio::time::Instant;
 
 /// Power on the slave `spec` describes, at `address` on a line of `format`, with its fault knobs.
 /// Fails if the drive model refuses a configured parameter or trip.
-pub fn build(
+pub(crate) fn build(
     spec: &config::SimSlave,
     address: u8,
     format: SerialFormat,

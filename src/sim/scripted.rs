@@ -7,6 +7,7 @@ use crate::line::BROADCAST;
 use std::collections::VecDeque;
 use tokio::time::Instant;
 
+/// A slave that answers from a script: one planned transmission (or silence) per request heard.
 pub struct Scripted {
     plan: VecDeque<Option<Transmission>>,
 }

@@ -31,7 +31,7 @@ pub(crate) enum Heard {
 
 /// The slaves on one line, by address, and the line's framing.
 #[derive(Default)]
-pub struct Slaves {
+pub(crate) struct Slaves {
     slaves: BTreeMap<u8, Box<dyn Simulated>>,
     framing: Framing,
     /// The PDU of the frame being heard.
@@ -40,19 +40,19 @@ pub struct Slaves {
 
 impl Slaves {
     /// No slaves yet, on a line of `framing`.
-    pub fn new(framing: Framing) -> Self {
+    pub(crate) fn new(framing: Framing) -> Self {
         Slaves {
             framing,
             ..Slaves::default()
         }
     }
 
-    pub fn framing(&self) -> Framing {
+    pub(crate) fn framing(&self) -> Framing {
         self.framing
     }
 
     /// Put `slave` at `address`, replacing any slave there.
-    pub fn insert(&mut self, address: u8, slave: Box<dyn Simulated>) {
+    pub(crate) fn insert(&mut self, address: u8, slave: Box<dyn Simulated>) {
         self.slaves.insert(address, slave);
     }
 

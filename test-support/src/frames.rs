@@ -2,7 +2,7 @@
 //! an RTU frame (address, PDU, CRC-16). The RTU frame is the product's own encoder, so a test
 //! checks the gateway against the codec it ships, whose CRC the worked frames of the spec pin.
 
-use modbus_gateway::line::rtu;
+use modbus_gateway::testing::line::rtu;
 
 /// The Modbus TCP ADU carrying `pdu` to `unit`: transaction id, protocol id 0, the length of
 /// what follows (unit id and PDU), the unit id, the PDU.

@@ -104,7 +104,7 @@ pub async fn stalled_trace_reader(metrics: SocketAddr) -> TcpStream {
 /// further reader is refused (503). Keep them to keep them connected.
 pub async fn fill_trace_with_stalled_readers(metrics: SocketAddr) -> Vec<TcpStream> {
     let mut stalled = Vec::new();
-    for _ in 0..modbus_gateway::trace::MAX_READERS {
+    for _ in 0..modbus_gateway::testing::trace::MAX_READERS {
         stalled.push(stalled_trace_reader(metrics).await);
     }
     within("the stalled readers hold every place of the trace", async {

@@ -1,7 +1,7 @@
 //! An RTU slave on a pty pair: the real serial path, with no hardware.
 
-use modbus_gateway::line::rtu::{self, FrameLen};
-use modbus_gateway::sim::{RegisterBank, Simulated};
+use modbus_gateway::testing::line::rtu::{self, FrameLen};
+use modbus_gateway::testing::sim::{RegisterBank, Simulated};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};

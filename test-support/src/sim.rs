@@ -2,12 +2,12 @@
 //! configuration it is usually made from.
 
 use crate::config::{Bus, GatewayConfig};
-use modbus_gateway::bus::{BusHandle, BusTask, Device};
-use modbus_gateway::error::Outcome;
 use modbus_gateway::gateway::load_config;
-use modbus_gateway::metrics::Metrics;
-use modbus_gateway::shutdown::Stopping;
-use modbus_gateway::sim::SimLine;
+use modbus_gateway::testing::bus::{BusHandle, BusTask, Device};
+use modbus_gateway::testing::error::Outcome;
+use modbus_gateway::testing::metrics::Metrics;
+use modbus_gateway::testing::shutdown::Stopping;
+use modbus_gateway::testing::sim::SimLine;
 use modbus_gateway::Config;
 use std::path::Path;
 use std::time::Duration;
@@ -93,7 +93,7 @@ pub fn sim_bus_settings(keys: &str) -> modbus_gateway::config::Bus {
 }
 
 /// The frames `from` put on the simulated line so far, in order.
-pub fn frames_from(line: &SimLine, from: modbus_gateway::sim::Source) -> Vec<Vec<u8>> {
+pub fn frames_from(line: &SimLine, from: modbus_gateway::testing::sim::Source) -> Vec<Vec<u8>> {
     line.frames()
         .into_iter()
         .filter(|f| f.from == from)

@@ -18,7 +18,7 @@ mod sim;
 pub(crate) mod tls;
 
 pub use serial::SerialDriver;
-pub use tls::TlsDevice;
+pub(crate) use tls::TlsDevice;
 
 pub(crate) use serial::SerialFd;
 

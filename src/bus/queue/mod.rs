@@ -31,7 +31,7 @@ use tokio::sync::Notify;
 
 /// A request waiting for the line: its own master's, and the identical reads that joined it.
 #[derive(Debug)]
-pub struct Job {
+pub(crate) struct Job {
     /// Its own master.
     pub waiter: Waiter,
     pub slave: u8,
@@ -47,7 +47,7 @@ pub struct Job {
 
 impl Job {
     /// `waiter`'s request of `pdu` for `slave`.
-    pub fn new(waiter: Waiter, slave: u8, pdu: Vec<u8>) -> Job {
+    pub(crate) fn new(waiter: Waiter, slave: u8, pdu: Vec<u8>) -> Job {
         Job {
             waiter,
             slave,
@@ -58,36 +58,36 @@ impl Job {
         }
     }
 
-    pub fn master(&self) -> MasterId {
+    pub(crate) fn master(&self) -> MasterId {
         self.waiter.origin.master
     }
 
     /// Whose share and turn it takes ([`Origin::admission`](crate::master::Origin::admission)).
-    pub fn admission(&self) -> MasterId {
+    pub(crate) fn admission(&self) -> MasterId {
         self.waiter.origin.admission
     }
 
     /// From a master in `server.priority`.
-    pub fn priority(&self) -> bool {
+    pub(crate) fn priority(&self) -> bool {
         self.waiter.origin.class == Class::Priority
     }
 
     /// Which ring it waits in.
-    pub fn class(&self) -> Class {
+    pub(crate) fn class(&self) -> Class {
         self.waiter.origin.class
     }
 
     /// Nobody waits for its answer any more: its master and every follower left.
-    pub fn abandoned(&self) -> bool {
+    pub(crate) fn abandoned(&self) -> bool {
         self.waiter.is_gone() && self.followers.iter().all(Waiter::is_gone)
     }
 
-    pub fn function(&self) -> u8 {
+    pub(crate) fn function(&self) -> u8 {
         self.pdu.first().copied().unwrap_or(0)
     }
 
     /// The same request for `waiter`, one of its followers, to lead in its place.
-    pub fn led_by(&self, waiter: Waiter) -> Job {
+    pub(crate) fn led_by(&self, waiter: Waiter) -> Job {
         Job {
             waiter,
             slave: self.slave,
@@ -101,7 +101,7 @@ impl Job {
 
 /// What became of a pushed job.
 #[derive(Debug)]
-pub enum Pushed {
+pub(crate) enum Pushed {
     /// In its master's FIFO.
     Queued,
     /// Joined an identical read of another master.
@@ -117,7 +117,7 @@ struct Fifo {
     key: MasterId,
 }
 
-pub struct FairQueue {
+pub(crate) struct FairQueue {
     inner: Mutex<Inner>,
     ready: Notify,
     capacity: AtomicUsize,
@@ -150,7 +150,7 @@ struct Inner {
 }
 
 impl FairQueue {
-    pub fn new(capacity: usize) -> Self {
+    pub(crate) fn new(capacity: usize) -> Self {
         FairQueue {
             inner: Mutex::new(Inner {
                 queues: HashMap::new(),
@@ -175,7 +175,7 @@ impl FairQueue {
     }
 
     /// The most share of the line priority masters get while others wait (`priority_share`).
-    pub fn set_priority_share(&self, share: f64) {
+    pub(crate) fn set_priority_share(&self, share: f64) {
         self.lock().share.priority = share;
     }
 
@@ -187,7 +187,7 @@ impl FairQueue {
     /// closed queue hands `job` back.
     // The job handed back is moved, not boxed: a box would cost an allocation per request.
     #[allow(clippy::result_large_err)]
-    pub fn push(&self, mut job: Job, cache: Duration) -> Result<(Pushed, Option<Job>), Job> {
+    pub(crate) fn push(&self, mut job: Job, cache: Duration) -> Result<(Pushed, Option<Job>), Job> {
         let (pushed, evicted) = {
             let mut inner = self.lock();
             if inner.closed {
@@ -244,7 +244,7 @@ impl FairQueue {
     /// wait, then round robin across admission keys within a ring, and across a key's masters
     /// within its turns; a poll when no master waits, or when each master waiting has had its
     /// turn since the last poll. Its followers come with it; from now on nothing joins it.
-    pub fn try_pop(&self) -> Option<Job> {
+    pub(crate) fn try_pop(&self) -> Option<Job> {
         let mut inner = self.lock();
         let next = [0, 1, POLLS].map(|r| inner.ready_master(r));
         let inner = &mut *inner;
@@ -294,7 +294,7 @@ impl FairQueue {
     }
 
     /// Wait for the next job. Cancel-safe.
-    pub async fn pop(&self) -> Job {
+    pub(crate) async fn pop(&self) -> Job {
         loop {
             let ready = self.ready.notified();
             if let Some(job) = self.try_pop() {
@@ -305,7 +305,7 @@ impl FairQueue {
     }
 
     /// Take every queued job (with its followers).
-    pub fn drain(&self) -> Vec<Job> {
+    pub(crate) fn drain(&self) -> Vec<Job> {
         let mut inner = self.lock();
         let jobs = inner.queues.drain().flat_map(|(_, q)| q.jobs).collect();
         inner.turn = Default::default();
@@ -317,23 +317,23 @@ impl FairQueue {
     }
 
     /// Hold up to `capacity` jobs from now on; jobs already queued stay.
-    pub fn set_capacity(&self, capacity: usize) {
+    pub(crate) fn set_capacity(&self, capacity: usize) {
         self.capacity.store(capacity, Ordering::Relaxed);
     }
 
     /// Refuse every later push, and take every queued job.
-    pub fn close(&self) -> Vec<Job> {
+    pub(crate) fn close(&self) -> Vec<Job> {
         self.lock().closed = true;
         self.drain()
     }
 
-    pub fn is_closed(&self) -> bool {
+    pub(crate) fn is_closed(&self) -> bool {
         self.lock().closed
     }
 
     /// Take out the jobs of a master that has gone, and the reads it had following others'.
     /// Reads of others that followed its jobs stay queued, the first of them in its place.
-    pub fn forget(&self, master: MasterId) -> Vec<Job> {
+    pub(crate) fn forget(&self, master: MasterId) -> Vec<Job> {
         let mut inner = self.lock();
         let mut gone = Vec::new();
         if let Some(queue) = inner.queues.remove(&master) {
@@ -371,11 +371,11 @@ impl FairQueue {
     }
 
     /// Requests waiting, followers included.
-    pub fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         self.lock().len
     }
 
-    pub fn is_empty(&self) -> bool {
+    pub(crate) fn is_empty(&self) -> bool {
         self.len() == 0
     }
 }

@@ -59,7 +59,7 @@ impl DriveSettings {
 /// A setting a drive model cannot accept, named by the parameter (or `trip`).
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
 #[error("{param}: {reason}")]
-pub struct SetupError {
+pub(crate) struct SetupError {
     pub param: String,
     pub reason: String,
 }
