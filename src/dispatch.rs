@@ -1,7 +1,8 @@
 //! Between the sessions and the buses. Each request is described once, as it enters
 //! ([`Inbound`]), and then refused at once by the gateway (bad function code, a PDU longer or
 //! shorter than its function code says, a write from a read-only master, no route, a read to the
-//! broadcast address) or decided by the first matching `[[rule]]`: sent, refused or acknowledged.
+//! broadcast address) or decided by the first matching `[[rule]]`: sent, refused or acknowledged
+//! (its [`Ruling`]).
 //! A write's journal entry begins at one place, before any of that is carried out. The length
 //! check comes first, for every protocol alike: bytes after a request are never sent, since a
 //! slave framing by length would take them as a request. Either way the session gets a receiver

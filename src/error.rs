@@ -1,5 +1,5 @@
-//! What fails one request (session-level failures live in `tcp`), and the one place such a
-//! failure becomes the exception code the master sees.
+//! What fails one request (a connection's own failures are `net::session`'s), what answers it,
+//! and the one place such a failure becomes the exception code the master sees.
 
 pub use crate::line::NoReply;
 use crate::line::Reply;

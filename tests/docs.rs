@@ -3,6 +3,7 @@
 //! the README and the docs/ pages leads to a file and a heading that exist; and every demo the
 //! README runs is in the package. `readme` runs the README's walkthroughs.
 
+mod paths;
 mod readme;
 
 use modbus_gateway::Config;

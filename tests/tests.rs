@@ -8,7 +8,9 @@
 //!   mid-traffic, a stale reply it forwards on the reconnect.
 //! - `docs`: the reference pages (docs/) name every configuration key and every metric, and
 //!   every link between them and the README leads somewhere; the package ships every demo;
-//!   `docs::readme` runs the README's walkthroughs (writes and the journal, metric greps).
+//!   `docs::readme` runs the README's walkthroughs (writes and the journal, metric greps);
+//!   `docs::paths`: every path the code's maps (docs/architecture.md, docs/development.md) name
+//!   exists.
 //! - `layers`: the crate's modules have no cycle, and `metrics` imports no runtime part.
 //! - `cli`: the binary: check-config, config errors, environment, run and stop, logs. (The bench's
 //!   test is in `bench/tests/`.)

@@ -1,9 +1,10 @@
 //! Every write-class request, as it was decided and as it ended: the journal (`[audit]`), the
 //! last writes for the status page, and the writes' metrics. A write's entry is handed to the
-//! kernel (and with `fsync`, synced) before the dispatcher lets it go to its bus, so no write a
-//! slave carried out is missing from the journal after the gateway is killed; its outcome is
-//! written when its [`Pending`] ends, which the bus's `Waiter` does wherever the request ends.
-//! Knows nothing of sessions, queues or lines.
+//! kernel before the dispatcher lets it go to its bus (begun at one site, [`Audit::begin`], with
+//! who decided it, [`Decided`]), and with `fsync` the bus's pre-send step waits for it to be on
+//! the disk ([`Pending::durable`]), so no write a slave carried out is missing from the journal
+//! after the gateway is killed; its outcome is written when its [`Pending`] ends, which the bus's
+//! `Waiter` does wherever the request ends. Knows nothing of sessions, queues or lines.
 
 pub(crate) mod entry;
 mod journal;

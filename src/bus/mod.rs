@@ -1,14 +1,17 @@
-//! One task per RS-485 line, the only owner of its port. Others hold its [`BusHandle`]: they
-//! submit requests to its fair queue (`queue`) and read whether it is up. The task (`task`) opens
-//! the port (`device`: what a line is carried by, a serial port with its RS-485 and USB adapter
-//! settings or the simulated line), answers 0x0A at once while it is down and reopens it with
-//! backoff, which only a port that serves resets (`outage`, which also says what each open and
-//! loss is to the log); while it is open it serves the queue (`serve`), skipping requests whose
-//! master has gone or whose deadline passed, and runs each as one transaction (`transaction`)
-//! with the slave's timeout, the retry policy and broadcast rules. A slave that keeps timing out
-//! is left alone but for probes (`health`, the one place that decides whether a slave is alive).
-//! New settings reach it between transactions (`reconfigure`). Knows nothing of TCP, nor of which
-//! transport carries a line.
+//! One task per line (an RS-485 line, or a Modbus TCP device's connection), the only owner of its
+//! port. Others hold its [`BusHandle`]: they submit requests to its fair queue (`queue`) and read
+//! whether it is up. The task (`task`) opens the port (`device`: a serial port with its RS-485 and
+//! USB adapter settings, a device server's or Modbus TCP device's socket, or the simulated line),
+//! answers 0x0A at once while it is down and reopens it with backoff, which only a port that
+//! serves resets (`outage`, which also says what each open and loss is to the log). While it is
+//! open one of two loops serves the queue: `serve`, one request at a time, or `pipelined`, several
+//! in flight on a Modbus TCP device. Both take every request through the one pre-send step
+//! (`ready`: who still waits, a write's journal entry on record, the slave's health, its tries),
+//! then run it as one transaction (`transaction`: the slave's timeout, retries, broadcasts). A
+//! slave that keeps timing out is left alone but for probes (`health`, the one place that decides
+//! whether a slave is alive). Every request ends through its [`Waiter`] (`waiter`), counted and
+//! answered once. New settings reach the task between transactions (`reconfigure`). Knows nothing
+//! of TCP masters, nor of which transport carries a line.
 
 pub(crate) mod device;
 pub(crate) mod health;

@@ -3,8 +3,9 @@
 //! transaction id, and each reply, in whatever order the device sends them, answers the request
 //! of its id, unit and function code, and only that one. A request without its reply by its
 //! deadline is retried (a read under `retries`) or answered 0x0B; a reply that answers none in
-//! flight is discarded and counted. What clears a request for the wire is the one-at-a-time
-//! loop's (`ready`), as are slave health, the cache, coalescing, the metrics and the trace.
+//! flight is discarded and counted. What clears a request for the wire is the pre-send step both
+//! loops take (`ready`); slave health, the cache, coalescing, the metrics and the trace are those
+//! of the one-at-a-time loop.
 
 use super::device::Linked;
 use super::ready::Cleared;

@@ -1,7 +1,7 @@
 //! A running bus's settings and how new ones reach it: the gateway sends a [`Reconfigure`]
 //! through [`BusUpdates`]; the task takes it between transactions, reopening the port only when
-//! the device or its serial format changed. Also what the task derives from its settings, the
-//! longest one transaction can take among them.
+//! the device or its serial format, the framing or `max_in_flight` changed. Also what the task
+//! derives from its settings, the longest one transaction can take among them.
 
 use super::device::net::MAX_LINK_BUDGET;
 use super::device::{Device, Port};

@@ -1,6 +1,7 @@
-//! Serving an open port: take the next request from the fair queue (or a new configuration, a
-//! stop, stray bytes on the idle line), drop what nobody waits for any more, refuse what expired
-//! or goes to a slave that is down, and run the rest one transaction at a time.
+//! Serving an open port one request at a time: take the next request from the fair queue once
+//! the line is ready for its frame (or a new configuration, a stop, stray bytes on the idle line),
+//! clear it through the pre-send step (`ready`: who no longer waits, expiry, the journal, a slave
+//! that is down), wait out its slave's late-reply window, and run it as one transaction.
 
 use super::task::{BusTask, Served};
 use super::transaction::Ran;

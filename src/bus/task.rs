@@ -1,6 +1,7 @@
-//! The bus task's life: open the port, serve it until it is lost or a new device is configured,
-//! answer 0x0A while it is down and reopen it with backoff (`outage` says how long to wait and
-//! what each open and loss is to the log), and once stopped answer whatever is still queued.
+//! The bus task's life: open the port, serve it (`serve`, or `pipelined` with `max_in_flight`
+//! above 1) until it is lost or a new device is configured, answer 0x0A while it is down and
+//! reopen it with backoff (`outage` says how long to wait and what each open and loss is to the
+//! log), and once stopped answer whatever is still queued.
 
 use super::device::net::Dropped;
 use super::device::serial::latency::{self, SYSFS};

@@ -1,6 +1,7 @@
-//! The `simulate` subcommand: the simulated slaves of one bus, served as RTU slaves on a real
-//! serial device or on a fresh pty, at the bus's baud and format, until stopped. Picks the bus,
-//! powers the slaves on and reopens a lost device; the serving itself is [`crate::sim::responder`].
+//! The `simulate` subcommand: the simulated slaves of one bus, served as RTU (or ASCII) slaves on
+//! a real serial device or on a fresh pty, at the bus's baud and format, until stopped. Picks the
+//! bus, powers the slaves on and reopens a lost device; the serving itself is
+//! [`crate::sim::responder`].
 //! With `--listen`, the simulated line on a TCP socket instead ([`listen`]).
 
 mod listen;

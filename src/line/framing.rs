@@ -5,9 +5,9 @@
 //! bytes; knows nothing of ports, time or what a reply means. Also the one table of which
 //! framing may run over which kind of transport ([`Framing::runs_over`]).
 //!
-//! An enum rather than a trait: the spec defines exactly two serial framings, a line's framing is
-//! chosen by its configuration at run time, and the master stays one type (`LineMaster<Port>`)
-//! whichever framing its line uses.
+//! An enum rather than a trait: the spec defines exactly two serial framings, and MBAP is the
+//! third a line can have; a line's framing is chosen by its configuration at run time, and the
+//! master stays one type (`LineMaster<Port>`) whichever framing its line uses.
 
 use super::ascii;
 use super::mbap;

@@ -1,8 +1,9 @@
-//! The master side of a serial line: one transaction at a time (`engine`) on whatever carries
-//! the bytes (a serial port or the simulated line, both behind [`Transport`]), framed as the line
-//! is (`framing`: [`rtu`] today), with the spec's timing (`timing`) and the PDU-level judgement
-//! of replies (`reply`). Knows nothing of TCP, masters, queues or routing; what a frame looks
-//! like on the wire belongs to the framing alone.
+//! The master side of a line: one transaction at a time (`engine`) on whatever carries the bytes
+//! (a serial port, a device server's or Modbus TCP device's socket, the simulated line, all behind
+//! [`Transport`]), framed as the line is (`framing`: [`rtu`], `ascii`, or MBAP to a Modbus TCP
+//! device), with the spec's timing (`timing`) and the PDU-level judgement of replies (`reply`);
+//! several requests in flight on a Modbus TCP device (`pipeline`). Knows nothing of the masters'
+//! side, queues or routing; what a frame looks like on the wire belongs to the framing alone.
 
 pub(crate) mod ascii;
 pub(crate) mod engine;

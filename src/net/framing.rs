@@ -1,6 +1,6 @@
-//! The codec of a listener's [`Framing`]: MBAP (Modbus TCP, `server.listen`; the same inside
-//! TLS, `server.listen_tls`, and in datagrams, `server.listen_udp`) or plain RTU frames on the
-//! stream (RTU over TCP, `server.listen_rtu_over_tcp`, as serial device servers and mbpoll's
+//! The codec of a listener's [`UpstreamFraming`]: MBAP (Modbus TCP, `server.listen`; the same
+//! inside TLS, `server.listen_tls`, and in datagrams, `server.listen_udp`) or plain RTU frames on
+//! the stream (RTU over TCP, `server.listen_rtu_over_tcp`, as serial device servers and mbpoll's
 //! `-m enc` send them). The session is the same for all; only the framing of requests and
 //! replies differs. Pure functions over buffers; knows nothing of the transport.
 

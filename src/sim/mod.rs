@@ -1,5 +1,6 @@
 //! The simulated RS-485 line (`device = "sim"`) and the slaves on it, so the whole gateway runs and
 //! is tested with no hardware: `line` times every frame at the configured baud and checks the gaps;
+//! `slaves` is where a request frame reaches the slave at its address, each a [`Simulated`];
 //! `registers` holds plain register-bank slaves; `drive` models the drives of the reference manuals
 //! on one shared request pipeline; `meter` an Eastron SDM120 energy meter; [`faults`] bends any
 //! slave's replies; `scripted` plays a script for tests; [`responder`] serves the slaves on a real

@@ -1,9 +1,10 @@
-//! Simulated slaves served as RTU slaves on a real serial port (the `simulate` subcommand), so a
-//! SCADA set-up or another gateway can be tried against them. A request frame is complete by its
-//! length, or by silence for function codes whose length the bytes cannot tell; a frame with a bad
-//! CRC is ignored, as a slave must. The slave at the frame's address acts on it and its reply goes
-//! out after the t3.5 gap plus the slave's own delay. Broadcasts are carried out by every slave
-//! and answered by none. Knows nothing of TCP or the gateway's bus.
+//! Simulated slaves served as RTU or ASCII slaves on a real serial port (the `simulate`
+//! subcommand), so a SCADA set-up or another gateway can be tried against them. A request frame is
+//! complete by its length (ASCII: its CR LF), or by silence for function codes whose length the
+//! bytes cannot tell; a frame with a bad CRC (LRC) is ignored, as a slave must. The slave at the
+//! frame's address acts on it and its reply goes out the slave's own delay after the request is
+//! over (on RTU, t3.5 after its last byte; on ASCII, at its LF). Broadcasts are carried out by
+//! every slave and answered by none. Knows nothing of TCP or the gateway's bus.
 
 use super::slaves::{Heard, Slaves};
 use super::Simulated;

@@ -1,7 +1,7 @@
 //! The HTTP endpoint on `metrics.listen`: `/` (the status page), `/status` (its data, JSON),
-//! `/metrics` (Prometheus text format), `/healthz` (the process answers), `/readyz` (every bus
-//! has its port open, else 503 naming those that have not) and `/trace` (the live trace of the
-//! lines, `sse`). HTTP/1.1 by hyper.
+//! `/values` (the plant values, JSON), `/metrics` (Prometheus text format), `/healthz` (the
+//! process answers), `/readyz` (every bus has its port open, else 503 naming those that have not)
+//! and `/trace` (the live trace of the lines, `sse`). HTTP/1.1 by hyper.
 //!
 //! The endpoint keeps room for Prometheus whatever the other clients do. It holds
 //! [`MAX_CONNECTIONS`] connections; at most [`MAX_READERS`] of them stream the trace (a stream

@@ -1,9 +1,10 @@
 //! What a bus opens: its line's transport. A [`Device`] says what to open (a serial device in its
-//! format with its driver settings, a serial device server on the network, or the simulated line);
-//! opened, it is a [`Port`], which the line's master drives through [`Transport`]. This file only
-//! dispatches: each transport lives in its own file ([`serial`]: tokio-serial, RS-485 direction
-//! control, a USB adapter's latency timer; `net`: a device server's socket, its link budget and,
-//! for `rfc2217://`, Telnet; `sim`: the simulated line's glue). Which framing may run over which
+//! format with its driver settings, a peer on the network: a serial device server or a Modbus TCP
+//! device, or the simulated line); opened, it is a [`Port`], which the line's master drives
+//! through [`Transport`]. This file only dispatches: each transport lives in its own file
+//! ([`serial`]: tokio-serial, RS-485 direction control, a USB adapter's latency timer; `net`: a
+//! peer's socket, its link budget and, for `rfc2217://`, Telnet (`rfc2217`); [`tls`]: a `tls://`
+//! device's client side; `sim`: the simulated line's glue). Which framing may run over which
 //! transport is not decided here but in one table of the line's, [`Framing::runs_over`], which
 //! [`Device::open_for`] consults. Knows nothing of queues, transactions or what the bytes mean.
 //!

@@ -1,6 +1,8 @@
 //! A serial device server's socket as a bus's transport: the line's bytes carried over TCP to a
 //! converter's UART, as they are (`tcp://`, raw or "transparent" mode) or inside Telnet with the
-//! far port's format set at every connect (`rfc2217://`, [`rfc2217`](super::rfc2217)).
+//! far port's format set at every connect (`rfc2217://`, [`rfc2217`](super::rfc2217)). A Modbus
+//! TCP device's connection is the same socket, plain (`tcp://` with `framing = "tcp"`) or in TLS
+//! (`tls://`, [`tls`](super::tls)), carrying MBAP frames.
 //! Connecting (bounded in time, keepalive on, Nagle off so a frame leaves at once), the link's
 //! round trip budgeted on top of every frame's time on the wire, and bytes already in the socket
 //! before a frame drained and handed back to be counted. What a peer can make a port hold is

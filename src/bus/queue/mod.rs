@@ -1,9 +1,9 @@
-//! The bounded, fair queue in front of one serial line. Each master (connection) has its own
-//! FIFO and the line serves them in turn, so a master that pipelines many requests cannot starve
-//! one that sends a request at a time; masters in `server.priority` have a ring of their own,
-//! served first up to `priority_share` of the line. A master that leaves takes its queued
-//! requests with it. Knows nothing of lines or metrics: what it takes out or hands back, the
-//! bus answers.
+//! The bounded, fair queue in front of one line. Each master (a connection, or a Modbus UDP
+//! source) has its own FIFO and the line serves them in turn, so a master that pipelines many
+//! requests cannot starve one that sends a request at a time; masters in `server.priority` have a
+//! ring of their own, served first up to `priority_share` of the line, and the gateway's own polls
+//! of plant values the last one. A master that leaves takes its queued requests with it. Knows
+//! nothing of lines or metrics: what it takes out or hands back, the bus answers.
 //!
 //! Here: the [`FairQueue`] and its state; by concern, `rings` (turns, the priority share,
 //! admission to a full queue), `coalesce` (reads joining an identical one) and `cache` (write
