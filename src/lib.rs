@@ -1,6 +1,7 @@
-//! modbus-gateway: many Modbus TCP masters share RS-485 lines of Modbus RTU slaves.
+//! modbus-gateway: many Modbus masters (TCP, TLS, UDP, RTU over TCP) share lines of Modbus
+//! slaves: RS-485 on a UART or behind a serial device server, or a Modbus TCP/TLS device.
 //!
-//! Modules in the order a request flows through them:
+//! Modules in the order a request flows through them (docs/architecture.md walks through them):
 //! - [`config`]: the TOML file and `MBGW__` environment: loaded, checked per section, resolved
 //!   (derived values); diffed on reload. Imports no runtime module.
 //! - `net`: the listeners, each a transport (TCP, TLS with Modbus/TCP Security's certificate
@@ -12,15 +13,16 @@
 //! - `audit`: every write-class request as it was decided and as it ended: the journal
 //!   (`[audit]`), written before a write goes to its bus, the last writes, the writes' metrics.
 //! - `bus`: one task per line, the only owner of its port: the fair queue (rings and shares,
-//!   coalescing, the cache), reopen, one transaction at a time with retries and broadcast rules,
-//!   reconfiguration between transactions, the one state machine that says whether a slave is
-//!   alive, the `Waiter` through which every request is counted and answered
-//!   exactly once, and the seam a line's transport plugs into (`bus::device`: a serial port or
-//!   the simulated line today).
-//! - `line`: the master side of a serial line: the transaction engine (gap, deadlines,
-//!   validation, late replies, broadcast turnaround) on a transport, given the line's framing
-//!   (RTU, `line::rtu`, or ASCII), and which framing runs over which transport; the line's
-//!   timing.
+//!   coalescing, the cache), reopen, the one pre-send step (`bus::ready`) before either serving
+//!   loop (one transaction at a time, or pipelined to a Modbus TCP device) with retries and
+//!   broadcast rules, reconfiguration between transactions, the one state machine that says
+//!   whether a slave is alive, the `Waiter` through which every request is counted and answered
+//!   exactly once, and the seam a line's transport plugs into (`bus::device`: a serial port, a
+//!   device server over TCP or RFC 2217, a Modbus TCP/TLS device, the simulated line).
+//! - `line`: the master side of a line: the transaction engine (gap, deadlines, validation,
+//!   late replies, broadcast turnaround) on a transport, given the line's framing (RTU,
+//!   `line::rtu`, ASCII, or MBAP toward a Modbus TCP device), and which framing runs over which
+//!   transport; the line's timing.
 //! - `sim`: the simulated RS-485 line and its slaves (`device = "sim"`): register banks and the
 //!   reference manuals' drives on one drive pipeline.
 //! - `values`: the plant's values for Prometheus: each slave's listed values and its device
