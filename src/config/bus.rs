@@ -5,12 +5,12 @@
 use super::defaults;
 use super::device::DeviceName;
 use super::serde_adapters::{
-    duration, is_false, is_zero, is_zero_f64, is_zero_usize, opt_duration,
+    duration, is_false, is_true, is_zero, is_zero_f64, is_zero_usize, opt_duration,
 };
 use super::serde_adapters::{words, Choice};
 use super::{DeviceTls, Rs485, UnitSet, Value};
 use crate::line::framing::TransportKind;
-use crate::line::{Framing, LineTiming, MasterTiming, Parity, SerialFormat};
+use crate::line::{Framing, LineTiming, Parity};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::time::Duration;
@@ -291,12 +291,6 @@ pub struct SimSlave {
     pub(crate) reply_gap_after: Option<usize>,
 }
 
-/// For serde: a key whose default is `true` is left out when it has it.
-#[allow(clippy::trivially_copy_pass_by_ref)] // serde's signature
-fn is_true(value: &bool) -> bool {
-    *value
-}
-
 /// For serde: `max_in_flight` at its default is left out.
 #[allow(clippy::trivially_copy_pass_by_ref)] // serde's signature
 fn is_one(value: &usize) -> bool {
@@ -327,66 +321,12 @@ impl Bus {
         }
     }
 
-    /// The gaps the master keeps. RTU: t3.5, raised by `inter_frame_delay` and `byte_timeout`
-    /// (whose default behind a device server allows for the link's jitter). ASCII has no t3.5:
-    /// `inter_frame_delay` before a frame (default 1.5 characters of quiet, so the master never
-    /// talks over a slave still sending), and `byte_timeout` (default 1 s) between the characters
-    /// of a reply. A device server's `packing_delay` is silence a reply may hold on top, and
-    /// comes on top of every reply's deadline.
-    pub(crate) fn master_timing(&self) -> MasterTiming {
-        let line = self.line_timing();
-        let network = self.transport().is_network();
-        let timing = match self.framing {
-            Framing::Rtu => MasterTiming::new(
-                line,
-                self.inter_frame_delay.unwrap_or_default(),
-                self.byte_timeout.unwrap_or(if network {
-                    defaults::NETWORK_BYTE_TIMEOUT
-                } else {
-                    Duration::ZERO
-                }),
-            ),
-            Framing::Ascii => MasterTiming {
-                line,
-                gap: self
-                    .inter_frame_delay
-                    .unwrap_or_else(|| defaults::ascii_gap(&line)),
-                silence: self
-                    .byte_timeout
-                    .unwrap_or_else(defaults::ascii_byte_timeout),
-                packing: Duration::ZERO,
-            },
-            // No wire of the gateway's and no silence rules: a request waits only for
-            // `inter_frame_delay` after the last reply, and a reply's length is in its header.
-            Framing::Tcp => MasterTiming {
-                line,
-                gap: self.inter_frame_delay.unwrap_or_default(),
-                silence: self.byte_timeout.unwrap_or(defaults::NETWORK_BYTE_TIMEOUT),
-                packing: Duration::ZERO,
-            },
-        };
-        timing.with_packing(self.packing_delay)
-    }
-
     /// The serial format as the metrics and the status page show it: `none` on a Modbus TCP
     /// device, which has no serial line of the gateway's.
     pub fn format_label(&self) -> String {
         match self.framing {
             Framing::Tcp => "none".to_owned(),
             Framing::Rtu | Framing::Ascii => self.format().to_string(),
-        }
-    }
-
-    pub fn format(&self) -> SerialFormat {
-        SerialFormat {
-            baud: self.baud,
-            data_bits: self
-                .data_bits
-                .unwrap_or_else(|| defaults::data_bits(self.framing)),
-            parity: self.parity,
-            stop_bits: self
-                .stop_bits
-                .unwrap_or_else(|| SerialFormat::default_stop_bits(self.parity)),
         }
     }
 }

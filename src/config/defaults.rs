@@ -41,6 +41,18 @@ pub(crate) fn data_bits(framing: Framing) -> u8 {
         Framing::Ascii => 7,
     }
 }
+/// 1 with parity, 2 without, so that every character is 11 bits long, as the spec asks.
+pub(crate) fn stop_bits(parity: Parity) -> u8 {
+    if parity == Parity::None {
+        2
+    } else {
+        1
+    }
+}
+/// RTS is asserted while the gateway sends, as most transceivers' driver enable wants.
+pub(crate) fn rts_on_send() -> bool {
+    true
+}
 /// Quiet before an ASCII frame: the spec asks for none, but a master that waits a character and a
 /// half after the last one it heard never talks over a slave that is still sending.
 pub(crate) fn ascii_gap(line: &LineTiming) -> Duration {
@@ -111,4 +123,16 @@ pub(crate) fn audit_max_size() -> super::audit::ByteSize {
 /// Rotated journal files kept.
 pub(crate) fn audit_keep() -> u32 {
     5
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn default_stop_bits_keep_characters_at_11_bits() {
+        assert_eq!(stop_bits(Parity::None), 2);
+        assert_eq!(stop_bits(Parity::Even), 1);
+        assert_eq!(stop_bits(Parity::Odd), 1);
+    }
 }

@@ -1,26 +1,39 @@
-//! Derives the values that depend on other keys, once the configuration has passed its check:
-//! a bus's data bits follow its framing, and its stop bits its parity, unless given; the
-//! connections one address may hold follow `max_connections`. The printed configuration shows
-//! them, so what `check-config` prints is what runs. Knows nothing of how the values are used.
+//! Every value that depends on other keys, derived here and nowhere else, once the configuration
+//! has passed its check: a bus's data bits follow its framing and its stop bits its parity, its
+//! gaps its format and where its line ends; the connections one address may hold follow
+//! `max_connections`; a slave's poll interval is the default unless given. [`Config::resolve`]
+//! writes the printable ones into the configuration, so what `check-config` prints is what runs,
+//! and the rest of the gateway reads them through the methods below. Knows nothing of how the
+//! values are used.
 
-use super::{defaults, Config};
-use crate::line::SerialFormat;
+use super::{defaults, Bus, Config, Server, Slave, Template, Value, ValueType, MAX_READ_REGISTERS};
+use crate::line::{Framing, MasterTiming, SerialFormat};
+use std::time::Duration;
 
 impl Config {
     /// Fill in what the file may leave to other keys.
     pub(crate) fn resolve(&mut self) {
         let server = &mut self.server;
-        if server.max_connections_per_address.is_none() {
-            server.max_connections_per_address = Some(defaults::max_connections_per_address(
-                server.max_connections,
-            ));
+        server.max_connections_per_address = Some(server.connections_per_address_setting());
+        for route in &mut self.route {
+            if route.address.is_none() {
+                route.offset = Some(route.offset.unwrap_or(0));
+            }
         }
         for bus in &mut self.bus {
-            if bus.data_bits.is_none() {
-                bus.data_bits = Some(defaults::data_bits(bus.framing));
-            }
-            if bus.stop_bits.is_none() {
-                bus.stop_bits = Some(SerialFormat::default_stop_bits(bus.parity));
+            let format = bus.format();
+            bus.data_bits = Some(format.data_bits);
+            bus.stop_bits = Some(format.stop_bits);
+            for slave in &mut bus.slave {
+                let template = slave
+                    .template
+                    .as_deref()
+                    .and_then(|t| self.templates.get(t));
+                slave.poll_interval = Some(slave.poll_interval());
+                slave.max_read_registers = Some(slave.read_limit(template));
+                for value in &mut slave.value {
+                    value.kind = Some(value.kind());
+                }
             }
         }
     }
@@ -32,6 +45,108 @@ impl Config {
         self.check(None)?;
         self.resolve();
         Ok(())
+    }
+}
+
+impl Server {
+    /// `max_connections_per_address` as given, else all but a few of `max_connections`.
+    fn connections_per_address_setting(&self) -> usize {
+        self.max_connections_per_address
+            .unwrap_or_else(|| defaults::max_connections_per_address(self.max_connections))
+    }
+
+    /// Connections one address may hold; `None`: no limit but `max_connections` (one that
+    /// allows every slot is none: at `max_connections`, `when_full` decides).
+    pub(crate) fn connections_per_address(&self) -> Option<usize> {
+        let limit = self.connections_per_address_setting();
+        (limit > 0 && limit < self.max_connections).then_some(limit)
+    }
+}
+
+impl Bus {
+    /// The gaps the master keeps. RTU: t3.5, raised by `inter_frame_delay` and `byte_timeout`
+    /// (whose default behind a device server allows for the link's jitter). ASCII has no t3.5:
+    /// `inter_frame_delay` before a frame (default 1.5 characters of quiet, so the master never
+    /// talks over a slave still sending), and `byte_timeout` (default 1 s) between the characters
+    /// of a reply. A device server's `packing_delay` is silence a reply may hold on top, and
+    /// comes on top of every reply's deadline.
+    pub(crate) fn master_timing(&self) -> MasterTiming {
+        let line = self.line_timing();
+        let network = self.transport().is_network();
+        let timing = match self.framing {
+            Framing::Rtu => MasterTiming::new(
+                line,
+                self.inter_frame_delay.unwrap_or_default(),
+                self.byte_timeout.unwrap_or(if network {
+                    defaults::NETWORK_BYTE_TIMEOUT
+                } else {
+                    Duration::ZERO
+                }),
+            ),
+            Framing::Ascii => MasterTiming {
+                line,
+                gap: self
+                    .inter_frame_delay
+                    .unwrap_or_else(|| defaults::ascii_gap(&line)),
+                silence: self
+                    .byte_timeout
+                    .unwrap_or_else(defaults::ascii_byte_timeout),
+                packing: Duration::ZERO,
+            },
+            // No wire of the gateway's and no silence rules: a request waits only for
+            // `inter_frame_delay` after the last reply, and a reply's length is in its header.
+            Framing::Tcp => MasterTiming {
+                line,
+                gap: self.inter_frame_delay.unwrap_or_default(),
+                silence: self.byte_timeout.unwrap_or(defaults::NETWORK_BYTE_TIMEOUT),
+                packing: Duration::ZERO,
+            },
+        };
+        timing.with_packing(self.packing_delay)
+    }
+
+    pub fn format(&self) -> SerialFormat {
+        SerialFormat {
+            baud: self.baud,
+            data_bits: self
+                .data_bits
+                .unwrap_or_else(|| defaults::data_bits(self.framing)),
+            parity: self.parity,
+            stop_bits: self
+                .stop_bits
+                .unwrap_or_else(|| defaults::stop_bits(self.parity)),
+        }
+    }
+}
+
+impl Slave {
+    /// How often the slave's plant values are read, unless a value gives its own.
+    pub(crate) fn poll_interval(&self) -> Duration {
+        self.poll_interval.unwrap_or(defaults::POLL_INTERVAL)
+    }
+
+    /// The most registers one poll of the slave reads: its own `max_read_registers`, else its
+    /// template's, else a read's.
+    pub(crate) fn read_limit(&self, template: Option<&Template>) -> u16 {
+        self.max_read_registers
+            .or(template.and_then(|t| t.max_read_registers))
+            .unwrap_or(MAX_READ_REGISTERS)
+    }
+}
+
+impl Value {
+    /// Its type: as given, or the table's default.
+    pub fn kind(&self) -> ValueType {
+        self.kind.unwrap_or(if self.table.is_bits() {
+            ValueType::Bool
+        } else {
+            ValueType::U16
+        })
+    }
+
+    /// Its HELP text: as given, or its name.
+    pub fn help_text(&self) -> &str {
+        self.help.as_deref().unwrap_or(&self.name)
     }
 }
 

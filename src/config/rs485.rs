@@ -2,7 +2,8 @@
 //! the kernel's RS-485 mode, or by switching RTS around each frame), and whether the line echoes
 //! every byte sent. Plain values with their effective defaults; knows nothing of ioctls or ports.
 
-use super::serde_adapters::{duration, is_false, is_zero};
+use super::defaults;
+use super::serde_adapters::{duration, is_false, is_true, is_zero};
 use super::serde_adapters::{words, Choice};
 use crate::line::framing::TransportKind;
 use serde::{Deserialize, Serialize};
@@ -40,17 +41,17 @@ impl Rs485Mode {
     }
 }
 
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Rs485 {
     #[serde(default)]
     pub mode: Rs485Mode,
     /// RTS level while sending (default on); `kernel` and `rts` modes.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub rts_on_send: Option<bool>,
+    #[serde(default = "defaults::rts_on_send", skip_serializing_if = "is_true")]
+    pub rts_on_send: bool,
     /// RTS level once the frame is sent (default off); `kernel` and `rts` modes.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub rts_after_send: Option<bool>,
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub rts_after_send: bool,
     /// From raising RTS to the first byte.
     #[serde(default, with = "duration", skip_serializing_if = "is_zero")]
     pub delay_before_send: Duration,
@@ -65,19 +66,23 @@ pub struct Rs485 {
     pub echo: bool,
 }
 
+impl Default for Rs485 {
+    fn default() -> Rs485 {
+        Rs485 {
+            mode: Rs485Mode::default(),
+            rts_on_send: defaults::rts_on_send(),
+            rts_after_send: false,
+            delay_before_send: Duration::ZERO,
+            delay_after_send: Duration::ZERO,
+            rx_during_tx: false,
+            echo: false,
+        }
+    }
+}
+
 impl Rs485 {
     pub(crate) fn is_default(&self) -> bool {
         *self == Rs485::default()
-    }
-
-    /// RTS level while sending.
-    pub(crate) fn rts_level_on_send(&self) -> bool {
-        self.rts_on_send.unwrap_or(true)
-    }
-
-    /// RTS level between frames.
-    pub(crate) fn rts_level_after_send(&self) -> bool {
-        self.rts_after_send.unwrap_or(false)
     }
 }
 
@@ -110,8 +115,8 @@ impl Rs485 {
         // A key left at its default changes nothing, so it is accepted in any mode: every
         // commented default of config/gateway.toml can be uncommented.
         for (key, set) in [
-            ("rts_on_send", self.rts_on_send == Some(false)),
-            ("rts_after_send", self.rts_after_send == Some(true)),
+            ("rts_on_send", !self.rts_on_send),
+            ("rts_after_send", self.rts_after_send),
             ("delay_before_send", !self.delay_before_send.is_zero()),
             ("delay_after_send", !self.delay_after_send.is_zero()),
             ("rx_during_tx", self.rx_during_tx),
@@ -123,7 +128,7 @@ impl Rs485 {
         if self.rx_during_tx && self.mode == Rs485Mode::Rts {
             fail("rx_during_tx", "only with mode = \"kernel\"");
         }
-        if driven && self.rts_level_on_send() == self.rts_level_after_send() {
+        if driven && self.rts_on_send == self.rts_after_send {
             fail(
                 "rts_after_send",
                 "must differ from rts_on_send, or RTS never switches the driver",
@@ -244,7 +249,7 @@ mod tests {
         assert_eq!(c.bus[0].rs485.mode, Rs485Mode::Off);
         let rts = &c.bus[1].rs485;
         assert_eq!(rts.mode, Rs485Mode::Rts);
-        assert!(rts.rts_level_on_send() && !rts.rts_level_after_send());
+        assert!(rts.rts_on_send && !rts.rts_after_send);
         assert!(
             c.to_toml().contains("[bus.rs485]\nmode = \"rts\""),
             "{}",

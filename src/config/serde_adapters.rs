@@ -11,6 +11,12 @@ pub(super) fn is_false(value: &bool) -> bool {
     !value
 }
 
+/// For serde: a key whose default is `true` is left out when it has it.
+#[allow(clippy::trivially_copy_pass_by_ref)] // serde's signature
+pub(super) fn is_true(value: &bool) -> bool {
+    *value
+}
+
 pub(super) fn is_zero(value: &Duration) -> bool {
     value.is_zero()
 }

@@ -65,17 +65,6 @@ pub struct Server {
     pub tls: Option<Tls>,
 }
 
-impl Server {
-    /// Connections one address may hold, once resolved; `None`: no limit but `max_connections`
-    /// (one that allows every slot is none: at `max_connections`, `when_full` decides).
-    pub(crate) fn connections_per_address(&self) -> Option<usize> {
-        let limit = self
-            .max_connections_per_address
-            .unwrap_or_else(|| defaults::max_connections_per_address(self.max_connections));
-        (limit > 0 && limit < self.max_connections).then_some(limit)
-    }
-}
-
 /// What a connection beyond `server.max_connections` does.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub(crate) enum WhenFull {

@@ -212,23 +212,9 @@ fn is_one(value: &f64) -> bool {
 }
 
 impl Value {
-    /// Its type: as given, or the table's default.
-    pub fn kind(&self) -> ValueType {
-        self.kind.unwrap_or(if self.table.is_bits() {
-            ValueType::Bool
-        } else {
-            ValueType::U16
-        })
-    }
-
     /// How many registers (coils, inputs) it takes from `register` on.
     pub fn width(&self) -> u16 {
         self.kind().registers()
-    }
-
-    /// Its HELP text: as given, or its name.
-    pub fn help_text(&self) -> &str {
-        self.help.as_deref().unwrap_or(&self.name)
     }
 
     /// Every problem with it, each with its key under `at` (`bus[0].slave[1].value[2]`).
@@ -364,28 +350,22 @@ pub struct Template {
     pub value: Vec<Value>,
 }
 
-/// The shipped templates (config/templates/), built in: name and text.
-const SHIPPED: &[(&str, &str)] = &[
-    (
-        "goodrive20",
-        include_str!("../../config/templates/goodrive20.toml"),
-    ),
-    (
-        "goodrive300",
-        include_str!("../../config/templates/goodrive300.toml"),
-    ),
-    (
-        "goodrive10",
-        include_str!("../../config/templates/goodrive10.toml"),
-    ),
-    (
-        "pd-inverter",
-        include_str!("../../config/templates/pd-inverter.toml"),
-    ),
-    (
-        "eastron-sdm120",
-        include_str!("../../config/templates/eastron-sdm120.toml"),
-    ),
+/// `(NAME, text of config/templates/NAME.toml)` for each name: the file is named once, by the
+/// template's name.
+macro_rules! shipped {
+    ($($name:literal),* $(,)?) => {
+        &[$(($name, include_str!(concat!("../../config/templates/", $name, ".toml")))),*]
+    };
+}
+
+/// The shipped templates (config/templates/), built in: name and text. A test checks that the
+/// list is the folder's.
+const SHIPPED: &[(&str, &str)] = shipped![
+    "goodrive20",
+    "goodrive300",
+    "goodrive10",
+    "pd-inverter",
+    "eastron-sdm120",
 ];
 
 /// The templates a configuration may name: the shipped ones, and those of `template_dir`, which
@@ -527,34 +507,52 @@ pub(crate) fn check_slave(
     templates: &Templates,
     errors: &mut Vec<ConfigError>,
 ) {
-    let mut fail = |key: String, reason: String| errors.push(ConfigError { key, reason });
-    let template = match &slave.template {
-        Some(name) => match templates.get(name) {
-            Some(template) => Some(template),
-            None => {
-                let known: Vec<&str> = templates.names().collect();
-                let known = if known.is_empty() {
-                    "there are none".to_owned()
-                } else {
-                    format!("there are {}", known.join(", "))
-                };
-                fail(
-                    format!("{at}.template"),
-                    format!("no template `{name}`: {known} (shipped, and in template_dir)"),
-                );
-                None
-            }
-        },
-        None => None,
-    };
-    let mut inner = Vec::new();
+    let template = slave_template(at, slave, templates, errors);
     for (i, value) in slave.value.iter().enumerate() {
-        value.check(&format!("{at}.value[{i}]"), &mut inner);
+        value.check(&format!("{at}.value[{i}]"), errors);
     }
-    for e in inner {
-        fail(e.key, e.reason);
+    check_series_once(at, slave, template, errors);
+    check_read_limit(at, slave, template, errors);
+    if slave.poll_interval.is_some_and(|d| d.is_zero()) {
+        errors.push(ConfigError {
+            key: format!("{at}.poll_interval"),
+            reason: "must be longer than 0".to_owned(),
+        });
     }
-    // One series per name and label set: a template's values and the slave's own together.
+}
+
+/// The template the slave at `at` names, if it names one that exists; one it does not find is
+/// an error listing those there are.
+fn slave_template<'t>(
+    at: &str,
+    slave: &super::Slave,
+    templates: &'t Templates,
+    errors: &mut Vec<ConfigError>,
+) -> Option<&'t Template> {
+    let name = slave.template.as_ref()?;
+    let found = templates.get(name);
+    if found.is_none() {
+        let known: Vec<&str> = templates.names().collect();
+        let known = if known.is_empty() {
+            "there are none".to_owned()
+        } else {
+            format!("there are {}", known.join(", "))
+        };
+        errors.push(ConfigError {
+            key: format!("{at}.template"),
+            reason: format!("no template `{name}`: {known} (shipped, and in template_dir)"),
+        });
+    }
+    found
+}
+
+/// One series per name and label set: a template's values and the slave's own together.
+fn check_series_once(
+    at: &str,
+    slave: &super::Slave,
+    template: Option<&Template>,
+    errors: &mut Vec<ConfigError>,
+) {
     let mut seen: BTreeMap<(&str, &BTreeMap<String, String>), String> = BTreeMap::new();
     let from_template = template
         .into_iter()
@@ -567,27 +565,35 @@ pub(crate) fn check_slave(
         .map(|(i, v)| (v, format!("{at}.value[{i}]")));
     for (value, key) in from_template.chain(own) {
         if let Some(first) = seen.insert((value.name.as_str(), &value.labels), key.clone()) {
-            fail(
-                format!("{key}.name"),
-                format!(
+            errors.push(ConfigError {
+                key: format!("{key}.name"),
+                reason: format!(
                     "`{}` is already a value of this slave ({first}): a series once",
                     value.name
                 ),
-            );
+            });
         }
     }
+}
+
+/// `max_read_registers` is a read's, and no fewer registers than the widest value takes.
+fn check_read_limit(
+    at: &str,
+    slave: &super::Slave,
+    template: Option<&Template>,
+    errors: &mut Vec<ConfigError>,
+) {
+    let key = format!("{at}.max_read_registers");
     if let Some(max) = slave.max_read_registers {
         if !(1..=MAX_READ_REGISTERS).contains(&max) {
-            fail(
-                format!("{at}.max_read_registers"),
-                format!("{max} must be 1 to {MAX_READ_REGISTERS}"),
-            );
+            let reason = format!("{max} must be 1 to {MAX_READ_REGISTERS}");
+            errors.push(ConfigError {
+                key: key.clone(),
+                reason,
+            });
         }
     }
-    let most = slave
-        .max_read_registers
-        .or(template.and_then(|t| t.max_read_registers))
-        .unwrap_or(MAX_READ_REGISTERS);
+    let most = slave.read_limit(template);
     let widest = template
         .into_iter()
         .flat_map(|t| &t.value)
@@ -597,16 +603,9 @@ pub(crate) fn check_slave(
         .max()
         .unwrap_or(0);
     if widest > most {
-        fail(
-            format!("{at}.max_read_registers"),
-            format!("{most} is fewer registers than a value of this slave takes ({widest})"),
-        );
-    }
-    if slave.poll_interval.is_some_and(|d| d.is_zero()) {
-        fail(
-            format!("{at}.poll_interval"),
-            "must be longer than 0".to_owned(),
-        );
+        let reason =
+            format!("{most} is fewer registers than a value of this slave takes ({widest})");
+        errors.push(ConfigError { key, reason });
     }
 }
 
@@ -659,6 +658,22 @@ mod tests {
         let mut errors = Vec::new();
         v.check("v", &mut errors);
         errors.iter().map(ToString::to_string).collect()
+    }
+
+    #[test]
+    fn the_shipped_templates_are_the_files_of_config_templates() {
+        let folder = concat!(env!("CARGO_MANIFEST_DIR"), "/config/templates");
+        let mut files: Vec<String> = std::fs::read_dir(folder)
+            .expect("config/templates")
+            .filter_map(|entry| {
+                let name = entry.ok()?.file_name().into_string().ok()?;
+                name.strip_suffix(".toml").map(str::to_owned)
+            })
+            .collect();
+        files.sort();
+        let mut shipped: Vec<String> = SHIPPED.iter().map(|(n, _)| (*n).to_owned()).collect();
+        shipped.sort();
+        assert_eq!(shipped, files, "SHIPPED and config/templates/ differ");
     }
 
     #[test]

@@ -81,16 +81,6 @@ impl std::fmt::Display for SerialFormat {
 }
 
 impl SerialFormat {
-    /// The spec's default when stop bits are not given: 1 with parity, 2 without, so that every
-    /// character is 11 bits long.
-    pub(crate) fn default_stop_bits(parity: Parity) -> u8 {
-        if parity == Parity::None {
-            2
-        } else {
-            1
-        }
-    }
-
     /// Start bit, data bits, parity bit if any, stop bits.
     pub(crate) fn bits_per_char(&self) -> u32 {
         1 + u32::from(self.data_bits)
@@ -232,12 +222,5 @@ mod tests {
     fn at_exactly_19200_baud_the_gaps_still_scale() {
         let t = LineTiming::new(&format(19_200, Parity::Even, 1));
         assert!(t.t35 > Duration::from_micros(1_750));
-    }
-
-    #[test]
-    fn default_stop_bits_keep_characters_at_11_bits() {
-        assert_eq!(SerialFormat::default_stop_bits(Parity::None), 2);
-        assert_eq!(SerialFormat::default_stop_bits(Parity::Even), 1);
-        assert_eq!(SerialFormat::default_stop_bits(Parity::Odd), 1);
     }
 }

@@ -14,7 +14,7 @@ mod store;
 pub(crate) use store::{Exported, Store, ValueQuery};
 
 use crate::bus::BusHandle;
-use crate::config::{defaults, Config, Value, MAX_READ_REGISTERS};
+use crate::config::{Config, Value};
 use poller::Poll;
 use std::sync::{Arc, Mutex, PoisonError};
 use store::ValueSpec;
@@ -40,7 +40,7 @@ fn layout(config: &Config) -> Layout {
                 .template
                 .as_deref()
                 .and_then(|t| config.templates.get(t));
-            let interval = slave.poll_interval.unwrap_or(defaults::POLL_INTERVAL);
+            let interval = slave.poll_interval();
             let values: Vec<&Value> = template
                 .into_iter()
                 .flat_map(|t| &t.value)
@@ -63,10 +63,7 @@ fn layout(config: &Config) -> Layout {
                 unit: v.unit.clone(),
                 labels: v.labels.clone(),
             }));
-            let max = slave
-                .max_read_registers
-                .or(template.and_then(|t| t.max_read_registers))
-                .unwrap_or(MAX_READ_REGISTERS);
+            let max = slave.read_limit(template);
             polls.extend(
                 plan::plan(slave.address, &listed, max)
                     .into_iter()

@@ -96,11 +96,11 @@ fn drive_transceiver(
             Ok(port)
         }
         Rs485Mode::Rts => {
-            let idle = settings.rts_level_after_send();
+            let idle = settings.rts_after_send;
             rs485::set_rts(port.fd.as_fd(), idle)
                 .map_err(|e| refused("RTS control (TIOCMBIC/TIOCMBIS)", &e))?;
             let rts = RtsSwitch {
-                on_send: settings.rts_level_on_send(),
+                on_send: settings.rts_on_send,
                 after_send: idle,
                 before: settings.delay_before_send,
                 after: settings.delay_after_send,

@@ -38,8 +38,8 @@ impl SerialRs485 {
     pub(crate) fn of(settings: &Rs485) -> SerialRs485 {
         let mut flags = SER_RS485_ENABLED;
         for (set, flag) in [
-            (settings.rts_level_on_send(), SER_RS485_RTS_ON_SEND),
-            (settings.rts_level_after_send(), SER_RS485_RTS_AFTER_SEND),
+            (settings.rts_on_send, SER_RS485_RTS_ON_SEND),
+            (settings.rts_after_send, SER_RS485_RTS_AFTER_SEND),
             (settings.rx_during_tx, SER_RS485_RX_DURING_TX),
         ] {
             if set {
