@@ -3,6 +3,7 @@
 //! the README and the docs/ pages leads to a file and a heading that exist; and every demo the
 //! README runs is in the package. `readme` runs the README's walkthroughs.
 
+mod defaults;
 mod paths;
 mod readme;
 
@@ -29,7 +30,7 @@ fn every_configuration_key_is_documented_in_the_configuration_reference() {
          [[bus.slave]]\naddress = 1\ncoalesce_reads = false\ncache = \"1s\"\n\
          [[bus.sim_slave]]\naddress = 1\n\
          [[bus]]\nname = \"b\"\ndevice = \"/dev/ttyS1\"\nlatency_timer = \"1ms\"\n\
-         [bus.rs485]\nmode = \"kernel\"\nrts_on_send = true\nrts_after_send = false\n\
+         [bus.rs485]\nmode = \"kernel\"\nrts_on_send = false\nrts_after_send = true\n\
          delay_before_send = \"1ms\"\ndelay_after_send = \"1ms\"\nrx_during_tx = true\n\
          echo = true\n\
          [[bus]]\nname = \"c\"\ndevice = \"tcp://h:1\"\npacking_delay = \"10ms\"\n\
