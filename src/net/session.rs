@@ -5,10 +5,10 @@
 //! as long, a connection idle for `idle_timeout`, or the listener making room for a new master.
 //! When the master goes, its queued requests go too.
 
-use super::framing::{Decoded, UpstreamFraming};
-use super::mbap::{self, FrameError, Header};
+use super::framing::{Decoded, FrameError, UpstreamFraming};
 use crate::dispatch::{Client, Dispatcher};
 use crate::error::{Outcome, RequestError};
+use crate::mbap::{self, Header};
 use crate::metrics::Closing;
 use crate::pdu::exception_pdu;
 use crate::shutdown::Stopping;
@@ -259,7 +259,7 @@ async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
     mut stopping: Stopping,
 ) -> SessionError {
     let mut inbound = BytesMut::with_capacity(READ_BUFFER);
-    let mut outbound = Vec::with_capacity(mbap::HEADER_LEN + crate::pdu::MAX_PDU_LEN);
+    let mut outbound = Vec::with_capacity(mbap::MAX_FRAME_LEN);
     let mut in_flight: VecDeque<InFlight> = VecDeque::with_capacity(limits.pipeline_depth);
     let mut last_activity = Instant::now();
     // Since when the start of a request has been waiting for the rest of it.
