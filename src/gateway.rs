@@ -191,6 +191,28 @@ fn load_tls(
     Ok(Some(Arc::new(tls)))
 }
 
+/// The operator's HTTP listener on `metrics.listen`, and the address it got.
+async fn bind_metrics(listen: SocketAddr) -> Result<(TcpListener, SocketAddr), StartError> {
+    let listen_error = |source| StartError::Listen {
+        key: "metrics.listen",
+        addr: listen,
+        source,
+    };
+    let listener = TcpListener::bind(listen).await.map_err(listen_error)?;
+    let addr = listener.local_addr().map_err(listen_error)?;
+    Ok((listener, addr))
+}
+
+/// One task per bound listener, accepting masters.
+fn serve_listeners(listeners: Vec<net::listener::Listener>, shared: &Arc<Shared>) -> JoinSet<()> {
+    let mut tasks = JoinSet::new();
+    for listener in listeners {
+        info!(listen = %listener.addr, protocol = listener.protocol.name(), "accepting masters");
+        tasks.spawn(net::serve(listener, shared.clone()));
+    }
+    tasks
+}
+
 /// The writes' record, with the journal of `[audit]` open; one that cannot be opened is a start
 /// error naming `audit.path`.
 fn open_audit(config: &Config, metrics: &Arc<Metrics>) -> Result<Arc<Audit>, StartError> {
@@ -275,28 +297,8 @@ impl Gateway {
         let listeners = net::bind_all(&config.server)
             .await
             .map_err(|(key, addr, source)| StartError::Listen { key, addr, source })?;
-        let metrics_listen = config.metrics.listen;
-        let listen_error = |source| StartError::Listen {
-            key: "metrics.listen",
-            addr: metrics_listen,
-            source,
-        };
-        let metrics_listener = TcpListener::bind(metrics_listen)
-            .await
-            .map_err(listen_error)?;
-        let metrics_addr = metrics_listener.local_addr().map_err(listen_error)?;
-        let mut buses = Vec::with_capacity(config.bus.len());
-        for (index, settings) in config.bus.iter().enumerate() {
-            let device = device_for(index, settings, None)?;
-            buses.push(Self::start_bus(settings, device, &metrics));
-        }
-        // Started means each bus has tried its port once, so what is reported next is true.
-        for bus in &buses {
-            bus.handle.first_open_attempt().await;
-        }
-        for bus in &buses {
-            bus.handle.set_priority_share(config.server.priority_share);
-        }
+        let (metrics_listener, metrics_addr) = bind_metrics(config.metrics.listen).await?;
+        let buses = Self::start_buses(config, &metrics).await?;
         let handles: Vec<BusHandle> = buses.iter().map(|b| b.handle.clone()).collect();
         let values = Values::new();
         metrics.collect_also(Box::new(Exported(values.store().clone())));
@@ -313,13 +315,13 @@ impl Gateway {
             metrics.clone(),
             stopping,
         ));
-        let mut tasks = JoinSet::new();
         let config = Arc::new(Mutex::new(config.clone()));
         let inspected = Inspected {
             shared: shared.clone(),
             config: config.clone(),
             values: values.store().clone(),
         };
+        let mut tasks = JoinSet::new();
         info!(listen = %metrics_addr, "serving the status page (/), /status, /values, /trace, /metrics, /healthz and /readyz");
         tasks.spawn(web::serve(
             metrics_listener,
@@ -327,11 +329,7 @@ impl Gateway {
             Arc::new(inspected),
         ));
         let listen_addrs = ListenAddrs::of(&listeners);
-        let mut listener_tasks = JoinSet::new();
-        for listener in listeners {
-            info!(listen = %listener.addr, protocol = listener.protocol.name(), "accepting masters");
-            listener_tasks.spawn(net::serve(listener, shared.clone()));
-        }
+        let listener_tasks = serve_listeners(listeners, &shared);
         Ok(Gateway {
             listen_addrs,
             metrics_addr,
@@ -345,6 +343,23 @@ impl Gateway {
             values,
             tasks,
         })
+    }
+
+    /// Every configured bus started, each having tried its port once: so what is reported
+    /// next is true.
+    async fn start_buses(config: &Config, metrics: &Metrics) -> Result<Vec<Running>, StartError> {
+        let mut buses = Vec::with_capacity(config.bus.len());
+        for (index, settings) in config.bus.iter().enumerate() {
+            let device = device_for(index, settings, None)?;
+            buses.push(Self::start_bus(settings, device, metrics));
+        }
+        for bus in &buses {
+            bus.handle.first_open_attempt().await;
+        }
+        for bus in &buses {
+            bus.handle.set_priority_share(config.server.priority_share);
+        }
+        Ok(buses)
     }
 
     fn start_bus(settings: &config::Bus, device: Device, metrics: &Metrics) -> Running {
@@ -384,10 +399,33 @@ impl Gateway {
             })
             .collect::<Result<Vec<_>, _>>()?;
         let mut done = Reloaded::default();
-        let mut old: Vec<Running> = running.drain(..).collect();
+        self.reload_buses(new, &diff, &mut running, devices, &mut done);
+        let handles: Vec<BusHandle> = running.iter().map(|r| r.handle.clone()).collect();
+        self.reload_requests(new, &config, &diff, handles, &mut done);
+        self.reload_server(new, &diff, tls, &mut done);
+        done.need_restart = diff
+            .need_restart
+            .iter()
+            .map(|&key| key.to_owned())
+            .collect();
+        *config = new.clone();
+        Ok(done)
+    }
+
+    /// The buses `new` lists, each updated, added or kept, in `running`; the removed ones
+    /// retired, serving what they had queued until `shutdown_timeout`.
+    fn reload_buses(
+        &self,
+        new: &Config,
+        diff: &ConfigDiff,
+        running: &mut Vec<Running>,
+        devices: Vec<Device>,
+        done: &mut Reloaded,
+    ) {
+        let mut old = std::mem::take(running);
         for ((settings, (_, change)), device) in new.bus.iter().zip(&diff.buses).zip(devices) {
             let bus = match take(&mut old, &settings.name) {
-                Some(bus) => Self::update_bus(bus, *change, settings, device, &mut done),
+                Some(bus) => Self::update_bus(bus, *change, settings, device, done),
                 None => {
                     done.applied.push(format!("bus {}: added", settings.name));
                     Self::start_bus(settings, device, &self.metrics)
@@ -405,13 +443,23 @@ impl Gateway {
         done.applied
             .extend(names.map(|name| format!("bus {name}: removed")));
         self.retire(removed, deadline);
-        if diff.routes {
-            done.applied.push("routes".to_owned());
-        }
         for bus in running.iter() {
             bus.handle.set_priority_share(new.server.priority_share);
         }
-        let handles: Vec<BusHandle> = running.iter().map(|r| r.handle.clone()).collect();
+    }
+
+    /// What decides a request from `new`: routes, plant values, rules, the journal.
+    fn reload_requests(
+        &self,
+        new: &Config,
+        old: &Config,
+        diff: &ConfigDiff,
+        handles: Vec<BusHandle>,
+        done: &mut Reloaded,
+    ) {
+        if diff.routes {
+            done.applied.push("routes".to_owned());
+        }
         self.values.apply(new, &handles);
         if diff.values {
             done.applied.push("plant values".to_owned());
@@ -420,7 +468,7 @@ impl Gateway {
         let router = Router::new(new);
         let rules = Rules::new(&new.rule, &router);
         self.shared.dispatcher.replace(router, handles, rules);
-        if new.rule != config.rule {
+        if new.rule != old.rule {
             done.applied.push("rules".to_owned());
         }
         match self.shared.dispatcher.audit().apply(new.audit.as_ref()) {
@@ -428,6 +476,16 @@ impl Gateway {
             Ok(None) => {}
             Err(why) => done.kept.push(why),
         }
+    }
+
+    /// The listeners' policy and TLS files from `new`, for new connections.
+    fn reload_server(
+        &self,
+        new: &Config,
+        diff: &ConfigDiff,
+        tls: Option<Arc<TlsServer>>,
+        done: &mut Reloaded,
+    ) {
         if diff.connection_policy {
             done.applied
                 .push("connection limits and access (for new connections)".to_owned());
@@ -441,13 +499,6 @@ impl Gateway {
         if diff.shutdown_timeout {
             done.applied.push("server.shutdown_timeout".to_owned());
         }
-        done.need_restart = diff
-            .need_restart
-            .iter()
-            .map(|&key| key.to_owned())
-            .collect();
-        *config = new.clone();
-        Ok(done)
     }
 
     /// A running bus as a reload leaves it: told its new settings if they `change`d.

@@ -34,16 +34,17 @@
 //!   live trace (`/trace`), `/metrics` and the health checks; it reads the gateway through one
 //!   narrow trait.
 //!
-//! Below every other module, shared by all: `master` (who a request comes from: the master's
-//! id, its protocol as a transport and framing, its rights), `pdu` (the one table of function
-//! codes, and exception codes) and `error` (what fails a request, and the one place that turns
-//! it into an exception), `shutdown` (the stop signal, and how a stopped task's end is logged),
+//! Below every other module, shared by all: `master` (who a request comes from: the master's id,
+//! its protocol as a transport and framing, its rights), `pdu` (the one table of function codes,
+//! and exception codes), `mbap` (Modbus TCP's frame header, for the listeners and the lines to
+//! Modbus TCP devices alike) and `error` (what fails a request, and the one place that turns it
+//! into an exception), `shutdown` (the stop signal, and how a stopped task's end is logged),
 //! `timer` (sleeps precise to well under a millisecond for the line's timing), `socket` (TCP
 //! keepalive and the kernel's round trip, for masters' and device servers' sockets), `trace` (the
 //! live trace of the frames on the lines). [`gateway`] wires the parts together; [`cli`] is the
-//! command's subcommands (run the gateway, check the configuration, `simulate`: serve the
-//! simulated slaves on a real serial port instead); `logging` sets up the daemon's log output.
-//! The modules form layers: `tests/layers.rs` fails on any cycle among them.
+//! command's subcommands (run the gateway, check the configuration, `simulate`: serve the simulated
+//! slaves on a real serial port instead); `logging` sets up the daemon's log output. The modules
+//! form layers: `tests/layers.rs` fails on any cycle among them.
 //!
 //! `pub` is the daemon's API and nothing more: [`cli`] (what `main` runs), [`config`] and
 //! [`gateway`] (a configuration, and the gateway started on it); the workspace lints deny any
@@ -69,6 +70,7 @@ pub mod gateway;
 mod line;
 mod logging;
 mod master;
+mod mbap;
 mod metrics;
 mod net;
 mod pdu;

@@ -1,6 +1,7 @@
 //! The crate's modules form layers: no module reaches, through `crate::` paths in its product
 //! code, a module that reaches it back, and `metrics` imports no runtime part. Read from the
-//! sources, so a new edge that closes a cycle fails here before review has to notice it.
+//! sources, so a new edge that closes a cycle fails here before review has to notice it; `mbap`,
+//! the one MBAP codec below `net` and `line`, imports nothing of the crate.
 //! Test code (`#[cfg(test)]` modules, inline or in their own files) may reach anywhere.
 
 use std::collections::{BTreeMap, BTreeSet};
@@ -43,6 +44,17 @@ fn metrics_imports_no_runtime_module() {
         })
         .unwrap_or_default();
     assert!(imported.is_empty(), "metrics imports {imported:?}");
+}
+
+#[test]
+fn the_mbap_codec_imports_no_other_module() {
+    // Below both sides that use it (`net`, `line`): a pure codec over bytes.
+    let edges = edges_of(&source_files());
+    let imported: Vec<&String> = edges
+        .get("mbap")
+        .map(|to| to.keys().collect())
+        .unwrap_or_default();
+    assert!(imported.is_empty(), "mbap imports {imported:?}");
 }
 
 #[test]

@@ -47,23 +47,60 @@ pub(crate) struct Window {
     pub(crate) journal_bytes: Option<u64>,
 }
 
+impl Minimum {
+    fn of(s: &Scenario, timing: &LineTiming) -> Minimum {
+        Minimum {
+            read: s.framing.transaction_minimum(timing, READ_10.len(), 2 + 20),
+            write: s
+                .framing
+                .transaction_minimum(timing, WRITE_1.len(), WRITE_1.len()),
+        }
+    }
+}
+
+/// What the scenario's line is, beyond the gateway: its `device` setting and what serves it.
+struct FarEnd {
+    device: String,
+    /// The pty's slave, on that line.
+    slave: Option<tokio::task::JoinHandle<()>>,
+    far: Option<DeviceServer>,
+    tcp: Option<TcpDevice>,
+}
+
+impl FarEnd {
+    async fn start(binary: &Path, s: &Scenario) -> Result<FarEnd, String> {
+        let (mut slave, mut far, mut tcp) = (None, None, None);
+        let device = match s.line {
+            Line::Sim => "sim".to_owned(),
+            Line::Pty => {
+                let (path, task) = untimed_slave(&s.format)?;
+                slave = Some(task);
+                path
+            }
+            Line::DeviceServer => far
+                .insert(DeviceServer::start(binary, s).await?)
+                .device
+                .clone(),
+            Line::TcpDevice => tcp.insert(TcpDevice::start(s.device_delay).await?).device(),
+        };
+        Ok(FarEnd {
+            device,
+            slave,
+            far,
+            tcp,
+        })
+    }
+}
+
 /// Run scenario `s` on the gateway binary at `binary`.
 pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report, String> {
     let timing = LineTiming::new(&s.format);
-    let (mut slave, mut far, mut tcp) = (None, None, None);
-    let device = match s.line {
-        Line::Sim => "sim".to_owned(),
-        Line::Pty => {
-            let (path, task) = untimed_slave(&s.format)?;
-            slave = Some(task);
-            path
-        }
-        Line::DeviceServer => far
-            .insert(DeviceServer::start(binary, s).await?)
-            .device
-            .clone(),
-        Line::TcpDevice => tcp.insert(TcpDevice::start(s.device_delay).await?).device(),
-    };
+    let FarEnd {
+        device,
+        slave,
+        far,
+        tcp,
+    } = FarEnd::start(binary, s).await?;
     // The direct client first, on the device alone; it and modbus-proxy's masters read, so
     // they are the yardstick of reads only.
     let direct = match &tcp {
@@ -103,14 +140,7 @@ pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report
         }
         return Ok(report);
     }
-    let minimum = Minimum {
-        read: s
-            .framing
-            .transaction_minimum(&timing, READ_10.len(), 2 + 20),
-        write: s
-            .framing
-            .transaction_minimum(&timing, WRITE_1.len(), WRITE_1.len()),
-    };
+    let minimum = Minimum::of(s, &timing);
     // Long enough for every master to complete `rounds` requests at the line's pace.
     let pace = if s.line.timed() {
         minimum.read

@@ -268,12 +268,13 @@ impl BusTask {
         if !hub.active() {
             return;
         }
+        let (slave, function) = crate::line::Framing::Tcp.header(bytes);
         hub.publish(TraceEvent {
             time,
             bus: self.trace.bus().clone(),
             direction,
-            slave: bytes.get(6).copied().unwrap_or(0),
-            function: bytes.get(7).copied().unwrap_or(0),
+            slave: slave.unwrap_or(0),
+            function: function.unwrap_or(0),
             bytes: bytes.to_vec(),
             framing: crate::line::Framing::Tcp.name(),
             outcome,

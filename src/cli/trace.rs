@@ -5,6 +5,7 @@
 
 use super::stop_signal;
 use crate::line::{ascii, rtu};
+use crate::mbap;
 use crate::pdu::{self, code};
 use bytes::Bytes;
 use http_body_util::{BodyExt, Empty};
@@ -280,7 +281,7 @@ fn registers(bytes: &[u8]) -> String {
 /// if it is one, else an RTU frame's (whether or not its check passes: the outcome says that).
 fn pdu_of(framing: &str, frame: &[u8]) -> Option<Vec<u8>> {
     if framing == "tcp" {
-        return frame.get(7..).map(<[u8]>::to_vec);
+        return mbap::pdu(frame).map(<[u8]>::to_vec);
     }
     let mut pdu = Vec::new();
     if frame.first() == Some(&b':') && ascii::decode_into(frame, &mut pdu).is_some() {

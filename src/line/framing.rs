@@ -10,10 +10,10 @@
 //! master stays one type (`LineMaster<Port>`) whichever framing its line uses.
 
 use super::ascii;
-use super::mbap;
 use super::reply::ReplyForm;
 use super::rtu::{self, FrameLen};
 use super::timing::LineTiming;
+use crate::mbap::{self, Header};
 use std::time::Duration;
 
 /// A line's framing, as `[[bus]] framing` names it.
@@ -72,7 +72,14 @@ impl Framing {
         match self {
             Framing::Rtu => rtu::encode_into(out, address, pdu),
             Framing::Ascii => ascii::encode_into(out, address, pdu),
-            Framing::Tcp => mbap::encode_into(out, transaction, address, pdu),
+            Framing::Tcp => {
+                out.clear();
+                let header = Header {
+                    transaction,
+                    unit: address,
+                };
+                mbap::encode(header, pdu, out);
+            }
         }
     }
 
@@ -80,7 +87,7 @@ impl Framing {
     pub(crate) fn transaction(self, whole: &[u8]) -> Option<u16> {
         match self {
             Framing::Rtu | Framing::Ascii => None,
-            Framing::Tcp => Some(u16::from_be_bytes([*whole.first()?, *whole.get(1)?])),
+            Framing::Tcp => mbap::transaction(whole),
         }
     }
 
@@ -116,7 +123,7 @@ impl Framing {
             },
             // CR LF ends a frame whatever it holds, so no length rule is needed.
             Framing::Ascii => Self::ascii_completion(received),
-            Framing::Tcp => mbap::completion(received),
+            Framing::Tcp => Self::mbap_completion(received),
         }
     }
 
@@ -130,7 +137,18 @@ impl Framing {
                 FrameLen::Invalid => Completion::Invalid,
             },
             Framing::Ascii => Self::ascii_completion(received),
-            Framing::Tcp => mbap::completion(received),
+            Framing::Tcp => Self::mbap_completion(received),
+        }
+    }
+
+    /// How far `received` makes an MBAP frame (either way): whole at the header's length,
+    /// invalid with a protocol id other than Modbus's or a length no frame has.
+    pub(crate) fn mbap_completion(received: &[u8]) -> Completion {
+        match mbap::frame_len(received) {
+            Err(_) => Completion::Invalid,
+            Ok(None) => Completion::AtLeast(mbap::HEADER_LEN + 1),
+            Ok(Some(whole)) if received.len() >= whole => Completion::Whole(whole),
+            Ok(Some(whole)) => Completion::AtLeast(whole),
         }
     }
 
@@ -151,7 +169,12 @@ impl Framing {
                 whole[0]
             }),
             Framing::Ascii => ascii::decode_into(whole, pdu),
-            Framing::Tcp => mbap::decode_into(whole, pdu),
+            Framing::Tcp => {
+                let (header, data) = mbap::split(whole)?;
+                pdu.clear();
+                pdu.extend_from_slice(data);
+                Some(header.unit)
+            }
         }
     }
 
@@ -167,7 +190,10 @@ impl Framing {
                 };
                 (pair(1), pair(3))
             }
-            Framing::Tcp => (frame.get(6).copied(), frame.get(7).copied()),
+            Framing::Tcp => (
+                mbap::unit(frame),
+                mbap::pdu(frame).and_then(|pdu| pdu.first().copied()),
+            ),
         }
     }
 
@@ -177,7 +203,7 @@ impl Framing {
         match self {
             Framing::Rtu => pdu_len + 3,
             Framing::Ascii => 2 * (pdu_len + 2) + 3,
-            Framing::Tcp => pdu_len + 7,
+            Framing::Tcp => pdu_len + mbap::HEADER_LEN,
         }
     }
 
@@ -311,6 +337,32 @@ mod tests {
                 matches!(transport, TransportKind::Tcp | TransportKind::Tls)
             );
         }
+    }
+
+    #[test]
+    fn a_frame_is_whole_at_its_length_and_a_foreign_protocol_or_length_is_no_frame() {
+        let completion = Framing::mbap_completion;
+        let mut frame = Vec::new();
+        Framing::Tcp.encode_into(&mut frame, 0x1234, 0xFF, &[0x03, 0x00, 0x00, 0x00, 0x02]);
+        assert_eq!(
+            frame,
+            [0x12, 0x34, 0, 0, 0, 6, 0xFF, 0x03, 0x00, 0x00, 0x00, 0x02]
+        );
+        assert_eq!(completion(&frame[..3]), Completion::AtLeast(8));
+        assert_eq!(completion(&frame[..9]), Completion::AtLeast(12));
+        assert_eq!(completion(&frame), Completion::Whole(12));
+        let mut two = frame.clone();
+        two.extend_from_slice(&frame);
+        assert_eq!(completion(&two), Completion::Whole(12));
+        let mut pdu = Vec::new();
+        assert_eq!(Framing::Tcp.decode_into(&frame, &mut pdu), Some(0xFF));
+        assert_eq!(pdu, [0x03, 0x00, 0x00, 0x00, 0x02]);
+        let mut other_protocol = frame.clone();
+        other_protocol[3] = 1;
+        assert_eq!(completion(&other_protocol), Completion::Invalid);
+        let mut too_short = frame;
+        too_short[5] = 1;
+        assert_eq!(completion(&too_short), Completion::Invalid);
     }
 
     /// Goodrive300 manual 10.4.1: slave 01H's reply with 0004H = 1388H, 0005H = 0000H.

@@ -8,7 +8,6 @@
 pub(crate) mod ascii;
 pub(crate) mod engine;
 pub(crate) mod framing;
-pub(crate) mod mbap;
 pub(crate) mod pipeline;
 pub(crate) mod reply;
 pub mod rtu;

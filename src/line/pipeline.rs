@@ -6,7 +6,8 @@
 
 use super::engine::LineCounters;
 use super::framing::{Completion, Framing};
-use super::{mbap, Transport};
+use super::Transport;
+use crate::mbap;
 use std::io;
 
 /// One whole frame from the device.
@@ -50,15 +51,15 @@ impl<T: Transport> Pipeline<T> {
     /// The next whole frame from the device. Cancel-safe: bytes read stay for the next call.
     pub(crate) async fn next_frame(&mut self) -> io::Result<Frame> {
         loop {
-            match mbap::completion(&self.rx) {
+            match Framing::mbap_completion(&self.rx) {
                 Completion::Whole(len) => {
                     let bytes: Vec<u8> = self.rx.drain(..len).collect();
-                    let mut pdu = Vec::new();
-                    let unit = mbap::decode_into(&bytes, &mut pdu).unwrap_or(0);
-                    let transaction = u16::from_be_bytes([bytes[0], bytes[1]]);
+                    // Whole: its header and PDU are in.
+                    let (header, pdu) = mbap::split(&bytes).unwrap_or_default();
+                    let pdu = pdu.to_vec();
                     return Ok(Frame {
-                        transaction,
-                        unit,
+                        transaction: header.transaction,
+                        unit: header.unit,
                         pdu,
                         bytes,
                     });

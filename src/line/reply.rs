@@ -3,6 +3,7 @@
 //! and PDUs, after the framing has checked and unwrapped the frame: knows nothing of CRC, LRC,
 //! frame lengths, ports or time.
 
+use crate::mbap;
 use crate::pdu::{self, PduLen, Shape, EXCEPTION_BIT, EXCEPTION_PDU_LEN};
 
 /// How a slave shapes its replies where it departs from the standard.
@@ -129,16 +130,20 @@ pub(crate) fn answer_pdu(pdu: &[u8], form: ReplyForm) -> Vec<u8> {
 /// and function code), its protocol id (0, or the frame's next two bytes echoed), and a length
 /// the bytes after it fill.
 pub(crate) fn is_mbap_reply(received: &[u8], frame: &[u8]) -> bool {
-    const HEADER: usize = 6;
-    if received.len() < HEADER + 2 || frame.len() < 4 {
+    if received.len() < mbap::HEADER_LEN + 1 || frame.len() < 4 {
         return false;
     }
-    let length = usize::from(u16::from_be_bytes([received[4], received[5]]));
-    let protocol = &received[2..4];
-    received[..2] == frame[..2]
-        && (protocol == [0, 0] || protocol == &frame[2..4])
+    let field = |bytes: &[u8]| mbap::transaction(bytes).zip(mbap::protocol(bytes));
+    let (Some((transaction, protocol)), Some((address_function, next))) =
+        (field(received), field(frame))
+    else {
+        return false;
+    };
+    let length = mbap::length(received).map_or(0, usize::from);
+    transaction == address_function
+        && (protocol == 0 || protocol == next)
         && length >= 2
-        && received.len() == HEADER + length
+        && received.len() == mbap::HEADER_LEN - 1 + length
 }
 
 #[cfg(test)]

@@ -4,10 +4,19 @@
 //! `-m enc` send them). The session is the same for all; only the framing of requests and
 //! replies differs. Pure functions over buffers; knows nothing of the transport.
 
-use super::mbap::{self, FrameError, Header, Request};
 use crate::line::rtu::{self, FrameLen};
 pub(crate) use crate::master::UpstreamFraming;
+use crate::mbap::{self, Header, HeaderError, Request};
 use bytes::BytesMut;
+
+/// A stream that is not Modbus TCP (or not RTU over TCP); the connection is closed.
+#[derive(Debug, PartialEq, Eq, thiserror::Error)]
+pub enum FrameError {
+    #[error(transparent)]
+    Mbap(#[from] HeaderError),
+    #[error("RTU over TCP: bytes that are no request frame, longer than a frame")]
+    RtuTooLong,
+}
 
 /// What the front of a connection's buffer holds.
 #[derive(Debug, PartialEq, Eq)]

@@ -3,13 +3,12 @@
 //! shares, binding, the admission policy and the door ([`listener`]), who may connect and write
 //! ([`access`]); streams (TCP, and TLS with Modbus/TCP Security's roles, [`tls`]): the accept
 //! loop and connection limits ([`server`]) and one task per master ([`session`]); datagrams:
-//! Modbus UDP ([`udp`]); the framings' codecs ([`framing`]: MBAP ([`mbap`]) or RTU). Knows
+//! Modbus UDP ([`udp`]); the framings' codecs ([`framing`]: MBAP ([`crate::mbap`]) or RTU). Knows
 //! nothing of serial timing or ports.
 
 pub(crate) mod access;
 pub(crate) mod framing;
 pub(crate) mod listener;
-pub(crate) mod mbap;
 pub(crate) mod server;
 pub mod session;
 pub(crate) mod tls;

@@ -13,7 +13,7 @@ use super::listener::{self, Admitted, Policy};
 use super::session::{self, Activity, SessionView};
 use super::tls::Certified;
 use crate::config::{WhenFull, OTHER_ROLE};
-use crate::dispatch::Dispatcher;
+use crate::dispatch::{Client, Dispatcher};
 use crate::master::{MasterId, Protocol, Rights, UpstreamTransport};
 use crate::metrics::{Metrics, Rejection, TcpMetrics, TlsMaster};
 use crate::shutdown::Stopping;
@@ -440,6 +440,40 @@ async fn admit<S: AsyncRead + AsyncWrite + Unpin>(
     drop(permit);
 }
 
+/// `client` as its TLS certificate identifies it: the role's rights and units, and the key that
+/// granted them.
+fn identified(client: Client, identity: &Certified) -> Client {
+    let role_key = if identity.role_label == OTHER_ROLE {
+        "server.tls.default_role_access".to_owned()
+    } else {
+        format!("server.tls.roles.{}", identity.role_label)
+    };
+    let who = crate::dispatch::Identity {
+        subject: identity.subject.clone(),
+        role: identity.role.clone(),
+    };
+    client.identified(who, identity.rights, role_key, identity.units.is_some())
+}
+
+/// A TLS master's certificate and role, counted and logged as it is accepted.
+fn tls_accepted(
+    metrics: &Metrics,
+    master: MasterId,
+    peer: SocketAddr,
+    rights: Rights,
+    identity: &Certified,
+) {
+    metrics.tls.accepted(&TlsMaster {
+        master,
+        peer,
+        role_label: &identity.role_label,
+        role: identity.role.as_deref(),
+        access: rights.name(),
+        role_problem: identity.role_problem,
+        subject: &identity.subject,
+    });
+}
+
 async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
     mut stream: S,
     master: Master,
@@ -462,31 +496,14 @@ async fn run_session<S: AsyncRead + AsyncWrite + Unpin>(
     let units = identity.as_ref().and_then(|identity| identity.units);
     let mut client = admission.client(id).addressing(units);
     if let Some(identity) = &identity {
-        let role_key = if identity.role_label == OTHER_ROLE {
-            "server.tls.default_role_access".to_owned()
-        } else {
-            format!("server.tls.roles.{}", identity.role_label)
-        };
-        let who = crate::dispatch::Identity {
-            subject: identity.subject.clone(),
-            role: identity.role.clone(),
-        };
-        client = client.identified(who, identity.rights, role_key, units.is_some());
+        client = identified(client, identity);
     }
     // Its address's rights, narrowed by its certificate's role.
     let rights = client.rights;
     let tcp = &shared.metrics.tcp;
     tcp.accepted(protocol, id, &peer, rights == Rights::ReadOnly);
     if let Some(identity) = &identity {
-        shared.metrics.tls.accepted(&TlsMaster {
-            master: id,
-            peer,
-            role_label: &identity.role_label,
-            role: identity.role.as_deref(),
-            access: rights.name(),
-            role_problem: identity.role_problem,
-            subject: &identity.subject,
-        });
+        tls_accepted(&shared.metrics, id, peer, rights, identity);
     }
     let activity = Arc::new(Activity::default());
     shared.sessions().insert(

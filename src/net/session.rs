@@ -5,10 +5,10 @@
 //! as long, a connection idle for `idle_timeout`, or the listener making room for a new master.
 //! When the master goes, its queued requests go too.
 
-use super::framing::{Decoded, UpstreamFraming};
-use super::mbap::{self, FrameError, Header};
+use super::framing::{Decoded, FrameError, UpstreamFraming};
 use crate::dispatch::{Client, Dispatcher};
 use crate::error::{Outcome, RequestError};
+use crate::mbap::{self, Header};
 use crate::metrics::Closing;
 use crate::pdu::exception_pdu;
 use crate::shutdown::Stopping;
@@ -249,6 +249,60 @@ pub(crate) async fn close_notify<S: AsyncWrite + Unpin>(stream: &mut S) {
     let _ = tokio::time::timeout(CLOSE_NOTIFY_WAIT, stream.shutdown()).await;
 }
 
+/// What taking requests off a session's buffer found.
+#[derive(Default)]
+struct Taken {
+    /// A whole frame came off the buffer (a request, or one dropped for its CRC).
+    frame: bool,
+    /// When the last request was handed to the dispatcher.
+    request_at: Option<Instant>,
+}
+
+/// Where a session's requests come from and go to.
+struct Requests<'a> {
+    framing: UpstreamFraming,
+    dispatcher: &'a Dispatcher,
+    activity: &'a Activity,
+}
+
+impl Requests<'_> {
+    /// Hand each whole request `inbound` holds to the dispatcher while fewer than `depth` are
+    /// in flight. An error is a stream that is no request: it closes the session.
+    fn take(
+        &self,
+        inbound: &mut BytesMut,
+        in_flight: &mut VecDeque<InFlight>,
+        depth: usize,
+        client: &mut Client,
+    ) -> Result<Taken, SessionError> {
+        let mut taken = Taken::default();
+        while in_flight.len() < depth {
+            match self.framing.decode(inbound)? {
+                Some(Decoded::BadCrc) => {
+                    taken.frame = true;
+                    self.dispatcher.bad_frame(client);
+                }
+                Some(Decoded::Request(request)) => {
+                    taken.frame = true;
+                    taken.request_at = Some(Instant::now());
+                    let function = request.pdu[0];
+                    let outcome = self
+                        .dispatcher
+                        .submit(client, request.header.unit, request.pdu);
+                    in_flight.push_back(InFlight {
+                        header: request.header,
+                        function,
+                        outcome,
+                    });
+                    self.activity.requested();
+                }
+                None => break,
+            }
+        }
+        Ok(taken)
+    }
+}
+
 async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
     stream: &mut S,
     framing: UpstreamFraming,
@@ -259,33 +313,27 @@ async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
     mut stopping: Stopping,
 ) -> SessionError {
     let mut inbound = BytesMut::with_capacity(READ_BUFFER);
-    let mut outbound = Vec::with_capacity(mbap::HEADER_LEN + crate::pdu::MAX_PDU_LEN);
+    let mut outbound = Vec::with_capacity(mbap::MAX_FRAME_LEN);
     let mut in_flight: VecDeque<InFlight> = VecDeque::with_capacity(limits.pipeline_depth);
     let mut last_activity = Instant::now();
     // Since when the start of a request has been waiting for the rest of it.
     let mut partial_since: Option<Instant> = None;
     let mut stopped = stopping.deadline().is_some();
     loop {
-        while in_flight.len() < limits.pipeline_depth {
-            match framing.decode(&mut inbound) {
-                Ok(Some(Decoded::BadCrc)) => {
+        let depth = limits.pipeline_depth;
+        let requests = Requests {
+            framing,
+            dispatcher,
+            activity,
+        };
+        match requests.take(&mut inbound, &mut in_flight, depth, client) {
+            Ok(taken) => {
+                if taken.frame {
                     partial_since = None;
-                    dispatcher.bad_frame(client);
                 }
-                Ok(Some(Decoded::Request(request))) => {
-                    last_activity = Instant::now();
-                    partial_since = None;
-                    let function = request.pdu[0];
-                    in_flight.push_back(InFlight {
-                        header: request.header,
-                        function,
-                        outcome: dispatcher.submit(client, request.header.unit, request.pdu),
-                    });
-                    activity.requested();
-                }
-                Ok(None) => break,
-                Err(error) => return error.into(),
+                last_activity = taken.request_at.unwrap_or(last_activity);
             }
+            Err(error) => return error,
         }
         if stopped && in_flight.is_empty() {
             return SessionError::Shutdown;

@@ -7,10 +7,10 @@
 //! `pipeline_depth` pending for one source are dropped and counted, never queued without bound.
 
 use super::listener;
-use super::mbap;
 use super::server::Shared;
 use crate::dispatch::Client;
 use crate::master::{MasterId, Protocol};
+use crate::mbap;
 use crate::metrics::{UdpDrop, UdpMetrics};
 use bytes::BytesMut;
 use std::collections::{hash_map, HashMap};
@@ -21,7 +21,7 @@ use tokio::net::UdpSocket;
 use tracing::warn;
 
 /// A datagram holds one ADU: the MBAP header and at most a 253-byte PDU.
-const MAX_DATAGRAM: usize = mbap::HEADER_LEN + crate::pdu::MAX_PDU_LEN;
+const MAX_DATAGRAM: usize = mbap::MAX_FRAME_LEN;
 /// Pause after a receive error, so the loop does not spin.
 const RECV_ERROR_PAUSE: Duration = Duration::from_millis(100);
 

@@ -212,31 +212,7 @@ impl LineState {
         let end = start + timing.frame_time(bytes.len());
         self.master_busy_until = Some(end);
         self.stats.master_frames += 1;
-
-        let mut finished = None;
-        self.slave_tx.retain(|&(_, slave_end)| {
-            let over = slave_end <= start;
-            if over {
-                finished = finished.max(Some(slave_end));
-            }
-            !over
-        });
-        if let Some(slave_end) = finished {
-            self.extend_wire_end(slave_end);
-        }
-        let collided = self
-            .slave_tx
-            .iter()
-            .any(|&(slave_start, _)| slave_start < end);
-        if collided {
-            self.stats.collisions += 1;
-            let char_time = timing.char_time;
-            for (at, byte) in self.inbound.iter_mut() {
-                if *at > start && *at - char_time < end {
-                    *byte ^= COLLISION_NOISE;
-                }
-            }
-        }
+        let collided = self.collides(start, end);
         let gap = self
             .last_wire_end
             .filter(|_| !collided)
@@ -263,6 +239,44 @@ impl LineState {
             self.stats.unread_frames += 1;
             return;
         }
+        self.slaves_hear(bytes, end);
+    }
+
+    /// Whether the master's frame on the wire from `start` to `end` runs into a slave's reply
+    /// still being sent; the slaves' bytes it overlaps are garbled. Replies that are over end
+    /// the wire's last frame.
+    fn collides(&mut self, start: Instant, end: Instant) -> bool {
+        let timing = self.timing;
+        let mut finished = None;
+        self.slave_tx.retain(|&(_, slave_end)| {
+            let over = slave_end <= start;
+            if over {
+                finished = finished.max(Some(slave_end));
+            }
+            !over
+        });
+        if let Some(slave_end) = finished {
+            self.extend_wire_end(slave_end);
+        }
+        let collided = self
+            .slave_tx
+            .iter()
+            .any(|&(slave_start, _)| slave_start < end);
+        if collided {
+            self.stats.collisions += 1;
+            let char_time = timing.char_time;
+            for (at, byte) in self.inbound.iter_mut() {
+                if *at > start && *at - char_time < end {
+                    *byte ^= COLLISION_NOISE;
+                }
+            }
+        }
+        collided
+    }
+
+    /// The slaves hear the master's `bytes`, which left the wire at `end`, and answer.
+    fn slaves_hear(&mut self, bytes: &[u8], end: Instant) {
+        let timing = self.timing;
         // A slave finds a request's end by its function's length, as libmodbus does, or by
         // silence where the bytes cannot tell: bytes after that length are a request of their
         // own, heard after the first is answered.

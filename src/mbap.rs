@@ -1,65 +1,123 @@
-//! MBAP framing (Modbus Messaging on TCP/IP Implementation Guide V1.0b, 3.1.3), written here
-//! rather than taken from tokio-modbus: the gateway forwards raw PDU bytes for every function code
-//! (user-defined ones included), and tokio-modbus's server decodes requests into typed values and
-//! does not hand back the bytes. Pure functions over buffers.
+//! MBAP, the framing of Modbus TCP (Modbus Messaging on TCP/IP Implementation Guide V1.0b,
+//! 3.1.3), both ways: masters' requests in and replies out (`net`), and the gateway's requests
+//! to a Modbus TCP device and its replies (`line`). The 7-byte header (transaction id, protocol
+//! id 0, length, unit id) before the PDU: each field read in one place, one encoder, one length
+//! rule. Pure functions over bytes; knows nothing of sockets, sessions or lines.
+//!
+//! Written here rather than taken from tokio-modbus: the gateway forwards raw PDU bytes for
+//! every function code (user-defined ones included), and tokio-modbus's server decodes requests
+//! into typed values and does not hand back the bytes.
 
 use bytes::{Buf, BytesMut};
 
-/// The header's size and the length field's bounds are the same both ways.
-pub(crate) use crate::line::mbap::{HEADER_LEN, MAX_LENGTH, MIN_LENGTH};
+/// The header's bytes: transaction id, protocol id, length, unit id.
+pub(crate) const HEADER_LEN: usize = 7;
+/// The length field counts the unit id and the PDU: at least a function code.
+pub(crate) const MIN_LENGTH: u16 = 2;
+/// The unit id and the longest PDU (253 bytes).
+pub(crate) const MAX_LENGTH: u16 = 254;
+/// The longest frame: the header's first six bytes and the longest length.
+pub(crate) const MAX_FRAME_LEN: usize = HEADER_LEN - 1 + MAX_LENGTH as usize;
 const MODBUS_PROTOCOL: u16 = 0;
 
 /// What a reply must echo.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub(crate) struct Header {
     pub transaction: u16,
     pub unit: u8,
 }
 
+/// A whole frame, taken off a stream.
 #[derive(Debug, PartialEq, Eq)]
 pub(crate) struct Request {
     pub header: Header,
     pub pdu: Vec<u8>,
 }
 
-/// A stream that is not Modbus TCP (or not RTU over TCP); the connection is closed.
+/// A header that is not Modbus TCP's: the stream cannot be followed.
 #[derive(Debug, PartialEq, Eq, thiserror::Error)]
-pub enum FrameError {
+pub enum HeaderError {
     #[error("protocol id {0} is not 0 (Modbus)")]
     Protocol(u16),
     #[error("length field {0} is outside {MIN_LENGTH}-{MAX_LENGTH}")]
     Length(u16),
-    #[error("RTU over TCP: bytes that are no request frame, longer than a frame")]
-    RtuTooLong,
 }
 
-/// Take one request off the front of `buf`: `Ok(None)` until a whole one is in.
-pub(crate) fn decode(buf: &mut BytesMut) -> Result<Option<Request>, FrameError> {
+fn field(frame: &[u8], at: usize) -> Option<u16> {
+    Some(u16::from_be_bytes([*frame.get(at)?, *frame.get(at + 1)?]))
+}
+
+/// The transaction id, once its two bytes are in.
+pub(crate) fn transaction(frame: &[u8]) -> Option<u16> {
+    field(frame, 0)
+}
+
+/// The protocol id, once its two bytes are in.
+pub(crate) fn protocol(frame: &[u8]) -> Option<u16> {
+    field(frame, 2)
+}
+
+/// The length field (unit id and PDU), once its two bytes are in.
+pub(crate) fn length(frame: &[u8]) -> Option<u16> {
+    field(frame, 4)
+}
+
+/// The unit id, once it is in.
+pub(crate) fn unit(frame: &[u8]) -> Option<u8> {
+    frame.get(HEADER_LEN - 1).copied()
+}
+
+/// The PDU's bytes so far: all after the header.
+pub(crate) fn pdu(frame: &[u8]) -> Option<&[u8]> {
+    frame.get(HEADER_LEN..)
+}
+
+/// How long the frame at the front of `received` is, once its length field is in (`Ok(None)`
+/// before). The protocol id is judged as soon as its bytes are in, the length when it is.
+pub(crate) fn frame_len(received: &[u8]) -> Result<Option<usize>, HeaderError> {
+    match protocol(received) {
+        Some(id) if id != MODBUS_PROTOCOL => return Err(HeaderError::Protocol(id)),
+        _ => {}
+    }
+    let Some(length) = length(received) else {
+        return Ok(None);
+    };
+    if !(MIN_LENGTH..=MAX_LENGTH).contains(&length) {
+        return Err(HeaderError::Length(length));
+    }
+    Ok(Some(HEADER_LEN - 1 + usize::from(length)))
+}
+
+/// The header and the PDU of a whole frame.
+pub(crate) fn split(whole: &[u8]) -> Option<(Header, &[u8])> {
+    let header = Header {
+        transaction: transaction(whole)?,
+        unit: unit(whole)?,
+    };
+    Some((header, pdu(whole)?))
+}
+
+/// Take one frame off the front of a master's stream in `buf`: `Ok(None)` until a whole one is
+/// in. Its header is judged once the length field is in, protocol id and length together.
+pub(crate) fn decode(buf: &mut BytesMut) -> Result<Option<Request>, HeaderError> {
     if buf.len() < HEADER_LEN - 1 {
         return Ok(None);
     }
-    let protocol = u16::from_be_bytes([buf[2], buf[3]]);
-    if protocol != MODBUS_PROTOCOL {
-        return Err(FrameError::Protocol(protocol));
-    }
-    let length = u16::from_be_bytes([buf[4], buf[5]]);
-    if !(MIN_LENGTH..=MAX_LENGTH).contains(&length) {
-        return Err(FrameError::Length(length));
-    }
-    let total = HEADER_LEN - 1 + usize::from(length);
-    if buf.len() < total {
+    let Some(total) = frame_len(buf)? else {
         return Ok(None);
-    }
-    let header = Header {
-        transaction: u16::from_be_bytes([buf[0], buf[1]]),
-        unit: buf[6],
     };
-    let pdu = buf[HEADER_LEN..total].to_vec();
+    let Some((header, pdu)) = buf.get(..total).and_then(split) else {
+        return Ok(None);
+    };
+    let request = Request {
+        header,
+        pdu: pdu.to_vec(),
+    };
     buf.advance(total);
-    Ok(Some(Request { header, pdu }))
+    Ok(Some(request))
 }
 
-/// Append the reply ADU for `pdu` to `out`.
+/// Append the frame carrying `pdu` under `header` to `out`.
 pub(crate) fn encode(header: Header, pdu: &[u8], out: &mut Vec<u8>) {
     out.extend_from_slice(&header.transaction.to_be_bytes());
     out.extend_from_slice(&MODBUS_PROTOCOL.to_be_bytes());
@@ -137,14 +195,14 @@ mod tests {
         bad[3] = 1;
         assert_eq!(
             decode(&mut BytesMut::from(&bad[..])),
-            Err(FrameError::Protocol(1))
+            Err(HeaderError::Protocol(1))
         );
         for length in [0u16, 1, 255, 0xFFFF] {
             let mut bad = READ;
             bad[4..6].copy_from_slice(&length.to_be_bytes());
             assert_eq!(
                 decode(&mut BytesMut::from(&bad[..])),
-                Err(FrameError::Length(length))
+                Err(HeaderError::Length(length))
             );
         }
     }
@@ -241,16 +299,15 @@ mod tests {
                             prop_assert!(bytes.len() < HEADER_LEN - 1 + usize::from(length));
                         }
                     }
-                    Err(FrameError::Protocol(id)) => {
+                    Err(HeaderError::Protocol(id)) => {
                         prop_assert_ne!(id, 0);
                         prop_assert_eq!(id, u16::from_be_bytes([bytes[2], bytes[3]]));
                     }
-                    Err(FrameError::Length(length)) => {
+                    Err(HeaderError::Length(length)) => {
                         prop_assert_eq!(&bytes[2..4], &[0, 0]);
                         prop_assert_eq!(length, u16::from_be_bytes([bytes[4], bytes[5]]));
                         prop_assert!(!(MIN_LENGTH..=MAX_LENGTH).contains(&length));
                     }
-                    Err(FrameError::RtuTooLong) => prop_assert!(false, "MBAP never reads RTU"),
                 }
             }
 
@@ -312,7 +369,7 @@ mod tests {
                 frame[2..4].copy_from_slice(&protocol.to_be_bytes());
                 frame.truncate(keep);
                 let mut buf = BytesMut::from(&frame[..]);
-                prop_assert_eq!(decode(&mut buf), Err(FrameError::Protocol(protocol)));
+                prop_assert_eq!(decode(&mut buf), Err(HeaderError::Protocol(protocol)));
             }
 
             #[test]
@@ -326,7 +383,7 @@ mod tests {
                 frame[4..6].copy_from_slice(&length.to_be_bytes());
                 frame.truncate(keep);
                 let mut buf = BytesMut::from(&frame[..]);
-                prop_assert_eq!(decode(&mut buf), Err(FrameError::Length(length)));
+                prop_assert_eq!(decode(&mut buf), Err(HeaderError::Length(length)));
             }
         }
     }
