@@ -12,6 +12,8 @@
 //!   `docs::paths`: every path the code's maps (docs/architecture.md, docs/development.md) name
 //!   exists.
 //! - `layers`: the crate's modules have no cycle, and `metrics` imports no runtime part.
+//! - `clock`: no test sleeps on the real clock and then asserts, or bounds an elapsed time by
+//!   the wall clock (read from the sources of tests/ and test-support/).
 //! - `cli`: the binary: check-config, config errors, environment, run and stop, logs. (The bench's
 //!   test is in `bench/tests/`.)
 //! - `audit_cli`: the `audit` subcommand on a journal and its rotated files: writes joined to
@@ -84,6 +86,7 @@ mod ascii;
 mod audit_cli;
 mod audit_journal;
 mod cli;
+mod clock;
 mod device_link;
 mod device_server;
 mod docs;
