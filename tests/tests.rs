@@ -39,7 +39,8 @@
 //!   key), a line that echoes.
 //! - `peers`: third-party peers on the serial path: pymodbus's RTU and ASCII servers behind the
 //!   gateway, its ASCII client on `simulate`, its RTU-over-TCP and UDP clients on the gateway;
-//!   `peers::tls_walkthrough` runs the TLS walkthrough of docs/security.md (openssl) and its TLS client.
+//!   `peers::tls_walkthrough` runs the TLS walkthrough of docs/security.md (openssl) and its TLS
+//!   client.
 //! - `values_peers`: plant values of every type and layout polled from pymodbus's RTU server on a
 //!   pty, exact on `/values` and `/metrics`, in the plan's reads.
 //! - `reads`: many masters, one read: coalescing and its freshness, `coalesce_reads = false`,
