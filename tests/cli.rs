@@ -1,4 +1,7 @@
-//! The `modbus-gateway` binary as a user runs it.
+//! The `modbus-gateway` binary as a user runs it: `check-config` prints the resolved config, a
+//! bad one exits 2 naming each key and why, the environment overrides the file, `run` serves
+//! the demo line and stops cleanly on SIGTERM, and each log line is one JSON object or carries
+//! the journal's priority.
 
 use crate::support::{connect_when_listening, demo_path, exit_status, free_addr, signal, within};
 use std::path::PathBuf;

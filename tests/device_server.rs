@@ -24,6 +24,7 @@
 //! a test checks nothing and says so, or fails under `MBGW_REQUIRE_TOOLS=1`.
 
 use crate::peers::{python_with_pymodbus, Pymodbus as Slave, Wire};
+use crate::support::cases::WRITES_READ_BACK;
 use crate::support::{
     tool, wait_for_bus, within, Accepter, Bus, GatewayConfig, RawMaster, Scrape, Ser2net, PATIENCE,
 };
@@ -286,23 +287,12 @@ const CASES: [(&[u8], &[u8]); 9] = [
         &[0x05, 0x00, 0x01, 0xFF, 0x00],
         &[0x05, 0x00, 0x01, 0xFF, 0x00],
     ),
-    // 06 write register 1 = 0x1234: echo.
-    (
-        &[0x06, 0x00, 0x01, 0x12, 0x34],
-        &[0x06, 0x00, 0x01, 0x12, 0x34],
-    ),
-    // 10 write registers 2-3 = 7, 8: start and count.
-    (
-        &[0x10, 0x00, 0x02, 0x00, 0x02, 0x04, 0x00, 0x07, 0x00, 0x08],
-        &[0x10, 0x00, 0x02, 0x00, 0x02],
-    ),
-    // 03 read registers 0-3 back: 1000 and both writes; 01 would show coil 1 (next case).
-    (
-        &[0x03, 0x00, 0x00, 0x00, 0x04],
-        &[0x03, 0x08, 0x03, 0xE8, 0x12, 0x34, 0x00, 0x07, 0x00, 0x08],
-    ),
-    // 03 read register 0x20, which the slave does not have: exception 02.
-    (&[0x03, 0x00, 0x20, 0x00, 0x01], &[0x83, 0x02]),
+    // 06 and 10 writes of registers 1-3, the read of registers 0-3 that shows them, and a read
+    // of register 0x20, which the slave does not have: exception 02.
+    WRITES_READ_BACK[0],
+    WRITES_READ_BACK[1],
+    WRITES_READ_BACK[2],
+    WRITES_READ_BACK[3],
 ];
 
 #[tokio::test]

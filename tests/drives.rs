@@ -1,5 +1,6 @@
-//! The simulated drives of config/demo.toml as a master sees them: over a real TCP socket for what
-//! they answer, and at the bus on tokio's paused clock for what takes time (ramps, the wire).
+//! The simulated drives of config/demo.toml as a master sees them: their identifying codes, the
+//! manuals' exceptions for misuse, a trip and its reset, ramps in their acceleration time. Over a
+//! real TCP socket for what they answer, at the bus on tokio's paused clock for what takes time.
 
 use crate::support::{addr, bus_call, demo_bus, demo_config, settle, RawMaster};
 use modbus_gateway::testing::error::Answer;

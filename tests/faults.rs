@@ -1,6 +1,7 @@
-//! Each fault knob of a simulated slave, and what the gateway makes of it: at the bus on tokio's
-//! paused clock, against the line's record of the wire and the metrics it counts, and once over a
-//! real TCP socket.
+//! Each fault knob of a simulated slave (offline, late, corrupted, truncated, garbage, wrong
+//! address or function) and what a master gets for it: a slower answer, 0x0B or the slave's own
+//! bytes, never another request's answer or part of one, each counted under its outcome. At the
+//! bus on tokio's paused clock, against the line's record of the wire, and over real TCP.
 
 use crate::support::{
     addr, bus_call, frames_from, settle, sim_bus_counted, start, RawMaster, Scrape,

@@ -1,5 +1,7 @@
-//! The serial line discipline, driven at the bus (no TCP) on tokio's paused clock, against the
-//! simulated line's own record of what went on the wire and when.
+//! The serial line discipline as a master notices it: a silent slave gets 0x0B after its own
+//! timeout, a late reply never answers a later request, frames keep t3.5 apart, retries, a lost
+//! port answers 0x0A at once, a dead slave does not take the line. Driven at the bus (no TCP) on
+//! tokio's paused clock, against the simulated line's own record of the wire and when.
 
 use modbus_gateway::testing::bus::BusHandle;
 use modbus_gateway::testing::error::{Answer, NoReply, Outcome, RequestError};

@@ -14,6 +14,7 @@
 
 mod tls_walkthrough;
 
+use crate::support::cases::{FIVE_TRANSACTIONS, READ_HOLDING_0_2, WRITES_READ_BACK};
 use crate::support::{addr, pty_config, pty_line, start, within, GatewayConfig, RawMaster, Scrape};
 use modbus_gateway::testing::line::rtu;
 use std::ffi::OsString;
@@ -230,32 +231,7 @@ async fn pymodbus_serial_server_answers_pass_through_the_gateway_byte_for_byte()
     };
     let gateway = start(&pty_config(&slave.path, RESPONSE_TIMEOUT)).await;
     let mut master = RawMaster::connect(addr(&gateway)).await;
-    // (request PDU, pymodbus's reply PDU)
-    let cases: [(&[u8], &[u8]); 5] = [
-        // 03 read holding registers 0-2: 1000, 1001, 1002.
-        (
-            &[0x03, 0x00, 0x00, 0x00, 0x03],
-            &[0x03, 0x06, 0x03, 0xE8, 0x03, 0xE9, 0x03, 0xEA],
-        ),
-        // 06 write register 1 = 0x1234: echo.
-        (
-            &[0x06, 0x00, 0x01, 0x12, 0x34],
-            &[0x06, 0x00, 0x01, 0x12, 0x34],
-        ),
-        // 10 write registers 2-3 = 7, 8: start and count.
-        (
-            &[0x10, 0x00, 0x02, 0x00, 0x02, 0x04, 0x00, 0x07, 0x00, 0x08],
-            &[0x10, 0x00, 0x02, 0x00, 0x02],
-        ),
-        // 03 read registers 0-3 back: 1000 and both writes.
-        (
-            &[0x03, 0x00, 0x00, 0x00, 0x04],
-            &[0x03, 0x08, 0x03, 0xE8, 0x12, 0x34, 0x00, 0x07, 0x00, 0x08],
-        ),
-        // 03 read register 0x20, which the slave does not have: exception 02, illegal address.
-        (&[0x03, 0x00, 0x20, 0x00, 0x01], &[0x83, 0x02]),
-    ];
-    let (requests, replies) = call_each(&mut master, &cases, "five transactions").await;
+    let (requests, replies) = call_each(&mut master, &FIVE_TRANSACTIONS, "five transactions").await;
     let (to_slave, to_gateway) = slave
         .wire(frames(&requests).len(), frames(&replies).len())
         .await;
@@ -444,11 +420,7 @@ async fn pymodbus_ascii_serial_server_answers_every_function_byte_for_byte() {
             &[0x04, 0x00, 0x00, 0x00, 0x02],
             &[0x04, 0x04, 0x07, 0xD0, 0x07, 0xD1],
         ),
-        // 03 read holding registers 0-2: 1000, 1001, 1002.
-        (
-            &[0x03, 0x00, 0x00, 0x00, 0x03],
-            &[0x03, 0x06, 0x03, 0xE8, 0x03, 0xE9, 0x03, 0xEA],
-        ),
+        READ_HOLDING_0_2,
         // 05 write coil 1 on: echo.
         (
             &[0x05, 0x00, 0x01, 0xFF, 0x00],
@@ -466,23 +438,10 @@ async fn pymodbus_ascii_serial_server_answers_every_function_byte_for_byte() {
         ),
         // 01 read coils 0-9 back: 0, 1, 4, 6 (3 is off now) and 9.
         (&[0x01, 0x00, 0x00, 0x00, 0x0A], &[0x01, 0x02, 0x53, 0x02]),
-        // 06 write register 1 = 0x1234: echo.
-        (
-            &[0x06, 0x00, 0x01, 0x12, 0x34],
-            &[0x06, 0x00, 0x01, 0x12, 0x34],
-        ),
-        // 10 write registers 2-3 = 7, 8: start and count.
-        (
-            &[0x10, 0x00, 0x02, 0x00, 0x02, 0x04, 0x00, 0x07, 0x00, 0x08],
-            &[0x10, 0x00, 0x02, 0x00, 0x02],
-        ),
-        // 03 read registers 0-3 back: 1000 and both writes.
-        (
-            &[0x03, 0x00, 0x00, 0x00, 0x04],
-            &[0x03, 0x08, 0x03, 0xE8, 0x12, 0x34, 0x00, 0x07, 0x00, 0x08],
-        ),
-        // 03 read register 0x20, which the slave does not have: exception 02, illegal address.
-        (&[0x03, 0x00, 0x20, 0x00, 0x01], &[0x83, 0x02]),
+        WRITES_READ_BACK[0],
+        WRITES_READ_BACK[1],
+        WRITES_READ_BACK[2],
+        WRITES_READ_BACK[3],
     ];
     let (requests, replies) = call_each(&mut master, &cases, "twelve transactions").await;
     let (requests, requests_len) = ascii_expected(UNIT, &requests);

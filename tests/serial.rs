@@ -1,5 +1,6 @@
-//! The real serial path: the gateway opens a pty like a serial device; a third-party Modbus TCP
-//! client (tokio-modbus) on the other side.
+//! The real serial path: the gateway opens a pty like a serial device, and a third-party Modbus
+//! TCP client (tokio-modbus) reads and writes the slave behind it; a reply with a bad CRC or from
+//! another address is never forwarded, and a port that vanishes gives 0x0A until it is back.
 
 use crate::support::{addr, pty_config, start, start_sim, wait_for_bus, PtySlave, RawMaster};
 use modbus_gateway::testing::line::rtu;

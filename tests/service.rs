@@ -9,7 +9,7 @@ use crate::support::{
     within, RawMaster, Scrape,
 };
 use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 const BINARY: &str = env!("CARGO_BIN_EXE_modbus-gateway");
 
@@ -103,7 +103,8 @@ async fn a_stop_serves_the_queue_until_the_timeout_then_answers_0x0a_and_closes(
 async fn sigterm_while_a_write_is_on_the_wire_still_delivers_the_slaves_reply_and_exits_0() {
     let path = std::env::temp_dir().join(format!("mbgw-stop-{}.toml", std::process::id()));
     let (listen_addr, metrics_addr) = (free_addr(), free_addr());
-    let config = slow_line("1s", "3s")
+    // A shutdown timeout far past `exit_status`'s patience: an exit that waited for it fails.
+    let config = slow_line("1s", "10m")
         .replacen("127.0.0.1:0", &listen_addr.to_string(), 1)
         .replacen("127.0.0.1:0", &metrics_addr.to_string(), 1);
     std::fs::write(&path, config).unwrap();
@@ -117,18 +118,12 @@ async fn sigterm_while_a_write_is_on_the_wire_still_delivers_the_slaves_reply_an
     let mut master = connect_when_listening(listen_addr).await;
     master.send(1, 1, &WRITE).await;
     until_taken(metrics_addr, 1.0).await;
-    let sent_term = Instant::now();
     signal(&child, "TERM");
     assert_eq!(master.recv().await.pdu, WRITE, "the slave's own reply");
     assert!(master.is_closed().await);
     let status = exit_status(child).await;
     let _ = std::fs::remove_file(&path);
     assert_eq!(status.code(), Some(0));
-    assert!(
-        sent_term.elapsed() < Duration::from_secs(3),
-        "exited {:?} after SIGTERM, past the 3 s shutdown timeout",
-        sent_term.elapsed()
-    );
 }
 
 /// A notify socket like systemd's, bound at a fresh path.

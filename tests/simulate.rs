@@ -252,6 +252,7 @@ async fn simulate_listen_serves_the_line_raw_on_tcp_one_client_at_a_time_with_st
     assert!(sent.elapsed() >= Duration::from_micros(17 * 11 * 1_000_000 / 9600));
     // Split mid-frame into two TCP segments, it is still one request and one reply.
     client.write_all(&READ_P00_04[..3]).await.unwrap();
+    // scenario: a gap between the two segments, so they are not sent as one.
     tokio::time::sleep(Duration::from_millis(20)).await;
     assert_eq!(
         exchange(&mut client, &READ_P00_04[3..], 9).await,
@@ -324,6 +325,7 @@ async fn simulate_listen_on_an_ascii_bus_carries_ascii_frames_split_across_segme
     let mut client = connect(&simulator).await;
     // Goodrive manuals, ASCII mode: read 0004H-0005H of slave 01H, its LF in the second segment.
     client.write_all(b":010300040002").await.unwrap();
+    // scenario: a gap between the two segments, so they are not sent as one.
     tokio::time::sleep(Duration::from_millis(20)).await;
     let reply = b":010304138800005D\r\n";
     assert_eq!(exchange(&mut client, b"F6\r\n", reply.len()).await, reply);

@@ -1,6 +1,7 @@
-//! The status page: `/status` (JSON) after known traffic through a real gateway on the simulated
-//! line, and `/` (the page), read over a real HTTP connection. `.ci/status-page-check` loads the
-//! page in a real browser.
+//! The status page as an operator reads it after known traffic: each bus, each slave's answers
+//! and errors, the connected masters and their rights, the last writes and how each ended; `/`
+//! is one page loading nothing from elsewhere. Over real HTTP from a gateway on the simulated
+//! line; `.ci/status-page-check` loads the page in a real browser.
 
 use crate::support::{addr, http_get, sim_line, start, within, GatewayConfig, RawMaster};
 use serde_json::Value;

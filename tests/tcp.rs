@@ -1,7 +1,7 @@
-//! The Modbus TCP side, and masters that abuse it: pipelining and pipelined floods, malformed
-//! and lying MBAP headers, garbage, half-sent requests, the connection limit and its policies
-//! (which connections make room, the limit per address), masters that never read their
-//! replies, the idle timeout, keepalive.
+//! The Modbus TCP side, and masters that abuse it: pipelined requests come back in order, and a
+//! malformed or lying MBAP header, garbage, a half-sent request or a master that never reads
+//! closes that connection only; at the connection limit the one idle longest makes room (or the
+//! newcomer is refused), a PLC polling every second is never the one; idle timeout, keepalive.
 
 use crate::support::{
     addr, panics_on_this_thread, sim_bus_filled, sim_config_with_server, start, start_sim, tool,

@@ -4,6 +4,7 @@
 //! answer, a device that ignores requests right after a connect, wrong transaction ids, a
 //! restart, a close every few requests.
 
+use crate::support::device::{answer_each_after, answer_to, read};
 use crate::support::{addr, within, Bus, GatewayConfig, RawMaster, Scrape};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
@@ -28,17 +29,6 @@ async fn next_request(socket: &mut TcpStream) -> Option<Request> {
 /// The MBAP frame of `pdu` from `unit` in transaction `transaction`.
 fn reply(transaction: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {
     crate::support::mbap(transaction, unit, pdu)
-}
-
-/// Read holding register `register`, one of them.
-fn read(register: u16) -> Vec<u8> {
-    let [hi, lo] = register.to_be_bytes();
-    vec![0x03, hi, lo, 0x00, 0x01]
-}
-
-/// The device's answer to [`read`]: the register's own number as its value.
-fn answer_to(request: &[u8]) -> Vec<u8> {
-    vec![0x03, 0x02, request[1], request[2]]
 }
 
 /// Answer every read `socket` brings with [`answer_to`], until it closes.
@@ -795,30 +785,7 @@ async fn slow_device(delay: Duration) -> (u16, Arc<AtomicUsize>) {
     let most_seen = most.clone();
     tokio::spawn(async move {
         let (socket, _) = server.accept().await.unwrap();
-        let (mut reader, writer) = socket.into_split();
-        let writer = Arc::new(tokio::sync::Mutex::new(writer));
-        let pending = Arc::new(AtomicUsize::new(0));
-        loop {
-            let mut header = [0u8; 7];
-            if reader.read_exact(&mut header).await.is_err() {
-                return;
-            }
-            let length = usize::from(u16::from_be_bytes([header[4], header[5]]));
-            let mut pdu = vec![0u8; length - 1];
-            if reader.read_exact(&mut pdu).await.is_err() {
-                return;
-            }
-            let now = pending.fetch_add(1, Ordering::SeqCst) + 1;
-            most_seen.fetch_max(now, Ordering::SeqCst);
-            let (writer, pending) = (writer.clone(), pending.clone());
-            tokio::spawn(async move {
-                tokio::time::sleep(delay).await;
-                let transaction = u16::from_be_bytes([header[0], header[1]]);
-                let frame = reply(transaction, header[6], &answer_to(&pdu));
-                pending.fetch_sub(1, Ordering::SeqCst);
-                let _ = writer.lock().await.write_all(&frame).await;
-            });
-        }
+        answer_each_after(socket, delay, most_seen).await;
     });
     (port, most)
 }

@@ -12,6 +12,8 @@
 //!   `docs::paths`: every path the code's maps (docs/architecture.md, docs/development.md) name
 //!   exists.
 //! - `layers`: the crate's modules have no cycle, and `metrics` imports no runtime part.
+//! - `clock`: no test sleeps on the real clock and then asserts, or bounds an elapsed time by
+//!   the wall clock (read from the sources of tests/ and test-support/).
 //! - `cli`: the binary: check-config, config errors, environment, run and stop, logs. (The bench's
 //!   test is in `bench/tests/`.)
 //! - `audit_cli`: the `audit` subcommand on a journal and its rotated files: writes joined to
@@ -37,7 +39,8 @@
 //!   key), a line that echoes.
 //! - `peers`: third-party peers on the serial path: pymodbus's RTU and ASCII servers behind the
 //!   gateway, its ASCII client on `simulate`, its RTU-over-TCP and UDP clients on the gateway;
-//!   `peers::tls_walkthrough` runs the TLS walkthrough of docs/security.md (openssl) and its TLS client.
+//!   `peers::tls_walkthrough` runs the TLS walkthrough of docs/security.md (openssl) and its TLS
+//!   client.
 //! - `values_peers`: plant values of every type and layout polled from pymodbus's RTU server on a
 //!   pty, exact on `/values` and `/metrics`, in the plan's reads.
 //! - `reads`: many masters, one read: coalescing and its freshness, `coalesce_reads = false`,
@@ -84,6 +87,7 @@ mod ascii;
 mod audit_cli;
 mod audit_journal;
 mod cli;
+mod clock;
 mod device_link;
 mod device_server;
 mod docs;

@@ -8,14 +8,14 @@ use super::device::net::{tests::Measured, NetPort};
 use super::{BusTask, Device};
 use crate::config::{self, Config};
 use crate::error::Answer;
-use crate::line::Framing;
 use crate::metrics::Metrics;
 use crate::shutdown::Stopping;
 use crate::sim::SimLine;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::io::{AsyncReadExt, AsyncWriteExt, DuplexStream};
+use test_support::device::{answer_each_after, answer_to, read};
+use tokio::io::DuplexStream;
 use tokio::time::Instant;
 
 /// How long the device takes to answer each request.
@@ -34,50 +34,12 @@ fn settings(in_flight: usize) -> config::Bus {
         .remove(0)
 }
 
-/// Read holding register `register`, one of them.
-fn read(register: u16) -> Vec<u8> {
-    let [hi, lo] = register.to_be_bytes();
-    vec![0x03, hi, lo, 0x00, 0x01]
-}
-
-/// The device's answer to [`read`]: the register's own number as its value.
-fn answer_to(request: &[u8]) -> Vec<u8> {
-    vec![0x03, 0x02, request[1], request[2]]
-}
-
 /// A device on `far` that answers every read [`DEVICE_DELAY`] after it came, several at once
 /// if they come so, echoing the transaction and unit ids. Returns the most requests it ever
 /// held unanswered at once.
 fn device(far: DuplexStream) -> Arc<AtomicUsize> {
     let most = Arc::new(AtomicUsize::new(0));
-    let most_seen = most.clone();
-    let (mut reader, writer) = tokio::io::split(far);
-    let writer = Arc::new(tokio::sync::Mutex::new(writer));
-    let pending = Arc::new(AtomicUsize::new(0));
-    tokio::spawn(async move {
-        loop {
-            let mut header = [0u8; 7];
-            if reader.read_exact(&mut header).await.is_err() {
-                return;
-            }
-            let length = usize::from(u16::from_be_bytes([header[4], header[5]]));
-            let mut pdu = vec![0u8; length - 1];
-            if reader.read_exact(&mut pdu).await.is_err() {
-                return;
-            }
-            let now = pending.fetch_add(1, Ordering::SeqCst) + 1;
-            most_seen.fetch_max(now, Ordering::SeqCst);
-            let (writer, pending) = (writer.clone(), pending.clone());
-            tokio::spawn(async move {
-                tokio::time::sleep(DEVICE_DELAY).await;
-                let transaction = u16::from_be_bytes([header[0], header[1]]);
-                let mut frame = Vec::new();
-                Framing::Tcp.encode_into(&mut frame, transaction, header[6], &answer_to(&pdu));
-                pending.fetch_sub(1, Ordering::SeqCst);
-                let _ = writer.lock().await.write_all(&frame).await;
-            });
-        }
-    });
+    tokio::spawn(answer_each_after(far, DEVICE_DELAY, most.clone()));
     most
 }
 

@@ -4,6 +4,8 @@
 //! - `gateway`: a gateway started in the test's process; `sim`: a bus on the simulated line
 //!   started by hand, with no gateway around it.
 //! - `frames`: a Modbus TCP ADU (MBAP) and an RTU frame; `master`: a raw Modbus TCP master.
+//! - `device`: a fake Modbus TCP device that answers pipelined reads after a delay; `cases`: the
+//!   transactions with tests/peers/pymodbus_slave.py's slave that several tests make.
 //! - `pty`: an RTU slave on a pty pair (the real serial path).
 //! - `ser2net`: ser2net as a serial device server in front of a pty (a `tcp://` or `rfc2217://`
 //!   bus's far side).
@@ -14,12 +16,15 @@
 //! - `load`: many masters: rotation and fairness, floods.
 //! - `wait`: every wait bounded; panics counted.
 //!
-//! Everything but `tls` is also at the crate's root. It uses the library's `testing`-grade
-//! items (`bus::BusTask`, `gateway::power_on_line`, `sim::*`...), so it is a dev-dependency:
-//! unit tests inside `src/` cannot use it (they would see two copies of the library's types).
+//! Everything but `tls`, `device` and `cases` is also at the crate's root. It uses the
+//! library's `testing`-grade items (`bus::BusTask`, `gateway::power_on_line`, `sim::*`...), so
+//! it is a dev-dependency: unit tests inside `src/` may use only what names none of the
+//! library's types (`device`), or they would see two copies of them.
 
+pub mod cases;
 pub mod config;
 pub mod configs;
+pub mod device;
 pub mod frames;
 pub mod gateway;
 pub mod http;

@@ -1,5 +1,5 @@
-//! The walkthrough "Modbus/TCP Security (TLS)" (docs/security.md), run as a user would: its shell blocks
-//! (openssl) make a CA, the gateway's certificate and the operator's and viewer's in a fresh
+//! The walkthrough "Modbus/TCP Security (TLS)" (docs/security.md), run as a user would: its shell
+//! blocks (openssl) make a CA, the gateway's certificate and the operator's and viewer's in a fresh
 //! directory, `config/demo-tls.toml` serves them, and pymodbus's TLS client
 //! (`tests/peers/pymodbus_tls_master.py`, and the README's own Python) is the master. The
 //! section's blocks are found by its heading; a missing section or block fails the test.
