@@ -2,7 +2,7 @@
 //! reads refused at the broadcast address (0x01), a full queue (0x06), a port that is down (0x0A
 //! at once) and back.
 
-use crate::support::{addr, start, start_sim, wait_for_bus, RawMaster};
+use crate::support::{addr, start_sim, wait_for_bus, Bus, GatewayConfig, RawMaster};
 
 const READ: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x01];
 
@@ -18,15 +18,14 @@ async fn a_unit_with_no_route_gets_0x0a() {
 
 #[tokio::test]
 async fn with_two_buses_units_go_where_their_routes_say() {
-    let gateway = start(
-        "[server]\nlisten = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"a\"\ndevice = \"sim\"\nbaud = 115200\n[[bus.sim_slave]]\naddress = 1\n\
-         [[bus]]\nname = \"b\"\ndevice = \"sim\"\nbaud = 115200\n[[bus.sim_slave]]\naddress = 1\n\
-         [[route]]\nunits = \"1\"\nbus = \"a\"\n\
-         [[route]]\nunits = \"101\"\nbus = \"b\"\noffset = -100\n\
-         [[route]]\nunits = \"255\"\nbus = \"b\"\naddress = 1\n",
-    )
-    .await;
+    let gateway = GatewayConfig::new()
+        .bus(Bus::sim("a").baud(115_200).sim_slaves("1"))
+        .bus(Bus::sim("b").baud(115_200).sim_slaves("1"))
+        .route("1", "a", None)
+        .route_offset("101", "b", -100)
+        .route("255", "b", 1)
+        .start()
+        .await;
     let mut master = RawMaster::connect(addr(&gateway)).await;
     assert_eq!(
         master.call(1, 1, &[0x06, 0x00, 0x00, 0x00, 0x0A]).await[0],
@@ -160,15 +159,18 @@ async fn an_unplugged_adapter_gets_0x0a_at_once_and_is_served_again_when_back() 
 
 #[tokio::test]
 async fn a_lost_port_leaves_the_other_buses_serving() {
-    let gateway = start(
-        "[server]\nlisten = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"a\"\ndevice = \"sim\"\nbaud = 115200\nresponse_timeout = \"1h\"\n\
-         [[bus.sim_slave]]\naddress = 1\n\
-         [[bus]]\nname = \"b\"\ndevice = \"sim\"\nbaud = 115200\n[[bus.sim_slave]]\naddress = 1\n\
-         [[route]]\nunits = \"1\"\nbus = \"a\"\n\
-         [[route]]\nunits = \"2\"\nbus = \"b\"\naddress = 1\n",
-    )
-    .await;
+    let gateway = GatewayConfig::new()
+        .bus(
+            Bus::sim("a")
+                .baud(115_200)
+                .response_timeout("1h")
+                .sim_slaves("1"),
+        )
+        .bus(Bus::sim("b").baud(115_200).sim_slaves("1"))
+        .route("1", "a", None)
+        .route("2", "b", 1)
+        .start()
+        .await;
     gateway.sim_line("a").unwrap().unplug();
     wait_for_bus(&gateway, "a", false).await;
     let mut master = RawMaster::connect(addr(&gateway)).await;

@@ -4,6 +4,7 @@
 // Unsafe blocks, each with its SAFETY comment: the child's limits before exec, wait4.
 #![allow(unsafe_code)]
 
+use crate::support::{Bus, GatewayConfig};
 use serde_json::Value;
 use std::io::{BufRead, BufReader, Seek, SeekFrom, Write as _};
 use std::os::unix::process::{CommandExt, ExitStatusExt};
@@ -268,12 +269,13 @@ fn the_configured_journal_is_read_without_journal_and_a_config_without_one_exits
     let dir = temp_dir("config");
     let path = journal(&dir);
     let config = dir.join("gateway.toml");
+    let line1 = GatewayConfig::new().default_listen().bus(Bus::sim("line1"));
     std::fs::write(
         &config,
-        format!(
-            "[[bus]]\nname = \"line1\"\ndevice = \"sim\"\n[audit]\npath = \"{}\"\n",
-            path.display()
-        ),
+        line1
+            .clone()
+            .table("audit", &[("path", path.display().to_string().into())])
+            .to_toml(),
     )
     .unwrap();
     let out = audit(&["--config", config.to_str().unwrap(), "--unit", "5"]);
@@ -288,7 +290,7 @@ fn the_configured_journal_is_read_without_journal_and_a_config_without_one_exits
     assert_eq!(out.status.code(), Some(0), "--config before the subcommand");
 
     let bare = dir.join("no-audit.toml");
-    std::fs::write(&bare, "[[bus]]\nname = \"line1\"\ndevice = \"sim\"\n").unwrap();
+    std::fs::write(&bare, line1.to_toml()).unwrap();
     let out = audit(&["--config", bare.to_str().unwrap()]);
     assert_eq!(out.status.code(), Some(2));
     let err = String::from_utf8(out.stderr).unwrap();

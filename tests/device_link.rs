@@ -218,11 +218,17 @@ async fn a_modbus_tcp_server_in_the_converters_place_gets_one_error_and_0x0b() {
     };
     let (listen, metrics) = (free_addr(), free_addr());
     let device = format!("tcp://127.0.0.1:{port}");
-    let config = format!(
-        "[server]\nlisten = \"{listen}\"\n[metrics]\nlisten = \"{metrics}\"\n\
-         [[bus]]\nname = \"remote\"\ndevice = \"{device}\"\nbaud = 115200\nparity = \"none\"\n\
-         response_timeout = \"200ms\"\nretries = 2\n"
-    );
+    let config = GatewayConfig::new()
+        .listen(listen)
+        .metrics_listen(metrics)
+        .bus(
+            Bus::on("remote", &device)
+                .baud(115_200)
+                .parity("none")
+                .response_timeout("200ms")
+                .retries(2),
+        )
+        .to_toml();
     let dir = std::env::temp_dir();
     let path = dir.join(format!("mbgw-wrong-mode-{}.toml", std::process::id()));
     let log = dir.join(format!("mbgw-wrong-mode-{}.log", std::process::id()));

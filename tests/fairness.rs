@@ -3,7 +3,8 @@
 //! master that asks politely gets in however many others flood it.
 
 use crate::support::{
-    addr, assert_fair, flood_target, polite_reads, start, within, Flood, RawMaster, Rotation,
+    addr, assert_fair, flood_target, polite_reads, start, within, Bus, Flood, GatewayConfig,
+    RawMaster, Rotation,
 };
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -15,13 +16,17 @@ const GREEDY_PIPELINE: usize = 8;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn two_hundred_masters_are_all_served_correctly_and_fairly() {
-    let gateway = start(
-        "[server]\nlisten = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"fast\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\
-         queue_depth = 2048\nqueue_timeout = \"60s\"\n\
-         [[bus.sim_slave]]\naddress = \"1-4\"\n",
-    )
-    .await;
+    let gateway = GatewayConfig::new()
+        .bus(
+            Bus::sim("fast")
+                .baud(115_200)
+                .parity("none")
+                .queue_depth(2048)
+                .queue_timeout("60s")
+                .sim_slaves("1-4"),
+        )
+        .start()
+        .await;
     let at = addr(&gateway);
     let barrier = Arc::new(Barrier::new(MASTERS));
     let rotation = Rotation::new(MASTERS);

@@ -4,9 +4,9 @@
 //! bus on tokio's paused clock, against the line's record of the wire, and over real TCP.
 
 use crate::support::{
-    addr, bus_call, frames_from, settle, sim_bus_counted, start, RawMaster, Scrape,
+    addr, bus_call, frames_from, settle, sim_bus_counted, Bus, GatewayConfig, RawMaster, Scrape,
+    Value,
 };
-use modbus_gateway::gateway::config_from_toml;
 use modbus_gateway::testing::bus::BusHandle;
 use modbus_gateway::testing::error::{Answer, Outcome};
 use modbus_gateway::testing::line::rtu::encode;
@@ -23,21 +23,24 @@ const ANSWER: [u8; 4] = [0x03, 0x02, 0x00, 0x00];
 const READ_2: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x02];
 const ANSWER_2: [u8; 6] = [0x03, 0x04, 0x00, 0x00, 0x00, 0x00];
 
+/// The sim bus named "line" at 9600 baud with a 200 ms response timeout, with no slaves yet.
+fn line_9600() -> Bus {
+    Bus::sim("line").baud(9600).response_timeout("200ms")
+}
+
 /// A 9600 8E1 sim line with a healthy register slave at 1 and one with `knobs` at 2.
-fn line_with_faulty_slave_2(bus_keys: &str, knobs: &str) -> (SimLine, BusHandle) {
-    let (line, bus, _) = counted_line_with_faulty_slave_2(bus_keys, knobs);
+fn line_with_faulty_slave_2(line: Bus, knobs: &[(&str, Value)]) -> (SimLine, BusHandle) {
+    let (line, bus, _) = counted_line_with_faulty_slave_2(line, knobs);
     (line, bus)
 }
 
 /// [`line_with_faulty_slave_2`], with the metrics its bus counts into.
-fn counted_line_with_faulty_slave_2(bus_keys: &str, knobs: &str) -> (SimLine, BusHandle, Metrics) {
-    let text = format!(
-        "[[bus]]\nname = \"line\"\ndevice = \"sim\"\nbaud = 9600\nresponse_timeout = \"200ms\"\n{bus_keys}\n\
-         [[bus.sim_slave]]\naddress = 1\n\
-         [[bus.sim_slave]]\naddress = 2\n{knobs}\n\
-         [[bus.slave]]\naddress = 3\n"
-    );
-    let config = config_from_toml(&text).expect("test config");
+fn counted_line_with_faulty_slave_2(
+    line: Bus,
+    knobs: &[(&str, Value)],
+) -> (SimLine, BusHandle, Metrics) {
+    let line = line.sim_slaves("1").sim_slave("2", knobs).slave(3, &[]);
+    let config = GatewayConfig::new().bus(line).load();
     let metrics = Metrics::new();
     let (line, bus) = sim_bus_counted(config.bus.into_iter().next().expect("one bus"), &metrics);
     (line, bus, metrics)
@@ -73,7 +76,7 @@ fn is_0x0b(outcome: &Outcome) -> bool {
 
 #[tokio::test(start_paused = true)]
 async fn an_offline_slave_gets_0x0b_after_the_timeout_and_nothing_on_the_wire() {
-    let (line, bus) = line_with_faulty_slave_2("", "offline = true");
+    let (line, bus) = line_with_faulty_slave_2(line_9600(), &[("offline", true.into())]);
     settle(&bus).await;
     let (outcome, elapsed) = bus_call(&bus, 2, &READ).await;
     assert!(is_0x0b(&outcome), "{outcome:?}");
@@ -83,7 +86,7 @@ async fn an_offline_slave_gets_0x0b_after_the_timeout_and_nothing_on_the_wire() 
 
 #[tokio::test(start_paused = true)]
 async fn an_extra_delay_within_the_timeout_only_slows_the_answer() {
-    let (_line, bus) = line_with_faulty_slave_2("", "extra_delay = \"80ms\"");
+    let (_line, bus) = line_with_faulty_slave_2(line_9600(), &[("extra_delay", "80ms".into())]);
     settle(&bus).await;
     // Each timed call follows another, so each waits the same gap first.
     assert!(bus_call(&bus, 1, &READ).await.0.is_ok());
@@ -114,7 +117,7 @@ async fn reads_spoiled(bus: &BusHandle, pdu: &[u8], answer: &[u8], times: usize)
 
 #[tokio::test(start_paused = true)]
 async fn a_late_reply_gets_0x0b_and_never_answers_a_later_request() {
-    let (line, bus) = line_with_faulty_slave_2("", "late_reply = \"300ms\"");
+    let (line, bus) = line_with_faulty_slave_2(line_9600(), &[("late_reply", "300ms".into())]);
     settle(&bus).await;
     // Slave 2 is asked for two registers, slave 1 for one: a crossed reply would show.
     let (outcome, _) = bus_call(&bus, 2, &[0x03, 0x00, 0x00, 0x00, 0x02]).await;
@@ -132,7 +135,8 @@ async fn a_late_reply_gets_0x0b_and_never_answers_a_later_request() {
 
 #[tokio::test(start_paused = true)]
 async fn corrupted_crcs_get_0x0b_after_every_retry_failed() {
-    let (line, bus) = line_with_faulty_slave_2("retries = 2", "crc_error_rate = 1.0");
+    let (line, bus) =
+        line_with_faulty_slave_2(line_9600().retries(2), &[("crc_error_rate", 1.0.into())]);
     settle(&bus).await;
     let (outcome, _) = bus_call(&bus, 2, &READ).await;
     assert!(is_0x0b(&outcome), "{outcome:?}");
@@ -148,7 +152,7 @@ async fn corrupted_crcs_get_0x0b_after_every_retry_failed() {
 
 #[tokio::test(start_paused = true)]
 async fn garbage_after_a_reply_is_ignored_and_the_next_frame_waits_for_silence() {
-    let (line, bus) = line_with_faulty_slave_2("", "garbage_after = 6");
+    let (line, bus) = line_with_faulty_slave_2(line_9600(), &[("garbage_after", 6.into())]);
     settle(&bus).await;
     for _ in 0..5 {
         let (outcome, _) = bus_call(&bus, 2, &READ).await;
@@ -162,7 +166,7 @@ async fn garbage_after_a_reply_is_ignored_and_the_next_frame_waits_for_silence()
 
 #[tokio::test(start_paused = true)]
 async fn garbage_before_a_reply_makes_it_unreadable_so_0x0b() {
-    let (_line, bus) = line_with_faulty_slave_2("", "garbage_before = 4");
+    let (_line, bus) = line_with_faulty_slave_2(line_9600(), &[("garbage_before", 4.into())]);
     settle(&bus).await;
     let (outcome, _) = bus_call(&bus, 2, &READ).await;
     assert!(is_0x0b(&outcome), "{outcome:?}");
@@ -172,7 +176,7 @@ async fn garbage_before_a_reply_makes_it_unreadable_so_0x0b() {
 
 #[tokio::test(start_paused = true)]
 async fn a_reply_from_the_wrong_address_is_dropped_so_0x0b() {
-    let (line, bus) = line_with_faulty_slave_2("", "reply_address = 9");
+    let (line, bus) = line_with_faulty_slave_2(line_9600(), &[("reply_address", 9.into())]);
     settle(&bus).await;
     let (outcome, elapsed) = bus_call(&bus, 2, &READ).await;
     assert!(is_0x0b(&outcome), "{outcome:?}");
@@ -190,8 +194,10 @@ async fn a_reply_that_pauses_but_ends_before_the_deadline_is_still_the_answer() 
     // A reply whose length its bytes tell (here 7 bytes) is judged by length, not by silence:
     // it may pause anywhere, since USB adapters deliver in bursts, as long as its last byte is
     // in by the response timeout plus its own time on the wire plus t3.5 (`byte_timeout`).
-    let (line, bus, metrics) =
-        counted_line_with_faulty_slave_2("", "reply_gap = \"150ms\"\nreply_gap_after = 3");
+    let (line, bus, metrics) = counted_line_with_faulty_slave_2(
+        line_9600(),
+        &[("reply_gap", "150ms".into()), ("reply_gap_after", 3.into())],
+    );
     settle(&bus).await;
     let (outcome, elapsed) = bus_call(&bus, 2, &READ).await;
     assert_eq!(outcome.unwrap(), Answer::Reply(ANSWER.to_vec()));
@@ -204,8 +210,10 @@ async fn a_reply_that_pauses_but_ends_before_the_deadline_is_still_the_answer() 
 
 #[tokio::test(start_paused = true)]
 async fn a_reply_that_pauses_past_the_deadline_gets_0x0b_and_its_rest_answers_nothing() {
-    let (line, bus, metrics) =
-        counted_line_with_faulty_slave_2("", "reply_gap = \"250ms\"\nreply_gap_after = 3");
+    let (line, bus, metrics) = counted_line_with_faulty_slave_2(
+        line_9600(),
+        &[("reply_gap", "250ms".into()), ("reply_gap_after", 3.into())],
+    );
     settle(&bus).await;
     let (outcome, elapsed) = bus_call(&bus, 2, &READ).await;
     assert!(is_0x0b(&outcome), "{outcome:?}");
@@ -228,7 +236,7 @@ async fn a_reply_judged_by_silence_ends_at_the_pause_fails_its_crc_and_gets_0x0b
     // silence ends it. A pause longer than that cuts the frame in two; the first part fails its
     // CRC, and a write (anything user-defined is one) is tried again only with retry_writes.
     let (line, bus, metrics) =
-        counted_line_with_faulty_slave_2("retries = 1\nretry_writes = true", "");
+        counted_line_with_faulty_slave_2(line_9600().retries(1).key("retry_writes", true), &[]);
     let reply = [0x41, 0xDE, 0xAD, 0xBE, 0xEF];
     let pause = Pause {
         after: 3,
@@ -265,7 +273,7 @@ async fn a_reply_judged_by_silence_ends_at_the_pause_fails_its_crc_and_gets_0x0b
 #[tokio::test(start_paused = true)]
 async fn a_reply_to_the_wrong_function_is_never_forwarded_and_reads_are_retried() {
     let (line, bus, metrics) =
-        counted_line_with_faulty_slave_2("retries = 2", "reply_function = 4");
+        counted_line_with_faulty_slave_2(line_9600().retries(2), &[("reply_function", 4.into())]);
     settle(&bus).await;
     let (outcome, elapsed) = bus_call(&bus, 2, &READ).await;
     assert!(is_0x0b(&outcome), "{outcome:?}");
@@ -291,7 +299,8 @@ async fn a_reply_to_the_wrong_function_is_never_forwarded_and_reads_are_retried(
 
 #[tokio::test(start_paused = true)]
 async fn a_truncated_reply_gets_0x0b_after_the_deadline_and_never_a_partial_answer() {
-    let (line, bus, metrics) = counted_line_with_faulty_slave_2("", "truncate_reply = 5");
+    let (line, bus, metrics) =
+        counted_line_with_faulty_slave_2(line_9600(), &[("truncate_reply", 5.into())]);
     settle(&bus).await;
     let (outcome, elapsed) = bus_call(&bus, 2, &READ).await;
     assert!(is_0x0b(&outcome), "{outcome:?}");
@@ -315,7 +324,7 @@ async fn a_truncated_reply_gets_0x0b_after_the_deadline_and_never_a_partial_answ
 #[tokio::test(start_paused = true)]
 async fn during_a_retry_a_late_reply_is_taken_only_if_it_has_the_retried_requests_form() {
     let (line, bus, metrics) =
-        counted_line_with_faulty_slave_2("retries = 1", "late_reply = \"300ms\"");
+        counted_line_with_faulty_slave_2(line_9600().retries(1), &[("late_reply", "300ms".into())]);
     settle(&bus).await;
     // A write, not retried, times out; its reply comes 100 ms into the next request's wait.
     let write = [0x06, 0x00, 0x00, 0x00, 0x07];
@@ -347,7 +356,8 @@ async fn during_a_retry_a_late_reply_is_taken_only_if_it_has_the_retried_request
 async fn a_line_that_does_not_fall_silent_within_the_timeout_gets_0x0b_until_it_does() {
     // 256 bytes of noise after slave 2's reply keep the line busy for 293 ms at 9600 baud, longer
     // than the 200 ms a frame may wait for its gap.
-    let (_line, bus, metrics) = counted_line_with_faulty_slave_2("", "garbage_after = 256");
+    let (_line, bus, metrics) =
+        counted_line_with_faulty_slave_2(line_9600(), &[("garbage_after", 256.into())]);
     settle(&bus).await;
     let (outcome, _) = bus_call(&bus, 2, &READ).await;
     assert_eq!(
@@ -373,8 +383,8 @@ async fn a_line_that_does_not_fall_silent_within_the_timeout_gets_0x0b_until_it_
 #[tokio::test(start_paused = true)]
 async fn a_port_lost_in_the_middle_of_a_reply_answers_0x0a_and_the_rest_never_arrives() {
     let (line, bus, metrics) = counted_line_with_faulty_slave_2(
-        "reopen_delay = \"50ms\"",
-        "reply_gap = \"100ms\"\nreply_gap_after = 3",
+        line_9600().key("reopen_delay", "50ms"),
+        &[("reply_gap", "100ms".into()), ("reply_gap_after", 3.into())],
     );
     settle(&bus).await;
     let waiting = bus.submit(1, 2, READ.to_vec());
@@ -405,15 +415,14 @@ async fn a_port_lost_in_the_middle_of_a_reply_answers_0x0a_and_the_rest_never_ar
 
 #[tokio::test(start_paused = true)]
 async fn each_older_fault_is_counted_under_its_outcome() {
-    let text =
-        "[[bus]]\nname = \"line\"\ndevice = \"sim\"\nbaud = 9600\nresponse_timeout = \"200ms\"\n\
-         [[bus.sim_slave]]\naddress = 2\noffline = true\n\
-         [[bus.sim_slave]]\naddress = 3\ncrc_error_rate = 1.0\n\
-         [[bus.sim_slave]]\naddress = 4\ngarbage_before = 4\n\
-         [[bus.sim_slave]]\naddress = 5\nreply_address = 9\n\
-         [[bus.sim_slave]]\naddress = 6\ngarbage_after = 6\n\
-         [[bus.sim_slave]]\naddress = 7\nextra_delay = \"300ms\"\n";
-    let config = config_from_toml(text).expect("test config");
+    let line = line_9600()
+        .sim_slave("2", &[("offline", true.into())])
+        .sim_slave("3", &[("crc_error_rate", 1.0.into())])
+        .sim_slave("4", &[("garbage_before", 4.into())])
+        .sim_slave("5", &[("reply_address", 9.into())])
+        .sim_slave("6", &[("garbage_after", 6.into())])
+        .sim_slave("7", &[("extra_delay", "300ms".into())]);
+    let config = GatewayConfig::new().bus(line).load();
     let metrics = Metrics::new();
     let (_line, bus) = sim_bus_counted(config.bus.into_iter().next().expect("one bus"), &metrics);
     settle(&bus).await;
@@ -450,16 +459,19 @@ async fn each_older_fault_is_counted_under_its_outcome() {
 
 #[tokio::test]
 async fn over_tcp_each_broken_slave_gets_0x0b_while_the_healthy_one_answers() {
-    let gateway = start(
-        "[server]\nlisten = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"line\"\ndevice = \"sim\"\nbaud = 19200\nresponse_timeout = \"100ms\"\n\
-         [[bus.sim_slave]]\naddress = 1\n\
-         [[bus.sim_slave]]\naddress = 2\noffline = true\n\
-         [[bus.sim_slave]]\naddress = 3\nreply_address = 30\n\
-         [[bus.sim_slave]]\naddress = 4\ncrc_error_rate = 1.0\n\
-         [[bus.sim_slave]]\naddress = 5\nlate_reply = \"400ms\"\n",
-    )
-    .await;
+    let gateway = GatewayConfig::new()
+        .bus(
+            Bus::sim("line")
+                .baud(19_200)
+                .response_timeout("100ms")
+                .sim_slaves("1")
+                .sim_slave("2", &[("offline", true.into())])
+                .sim_slave("3", &[("reply_address", 30.into())])
+                .sim_slave("4", &[("crc_error_rate", 1.0.into())])
+                .sim_slave("5", &[("late_reply", "400ms".into())]),
+        )
+        .start()
+        .await;
     let mut master = RawMaster::connect(addr(&gateway)).await;
     for unit in 2..=5 {
         assert_eq!(
@@ -504,7 +516,7 @@ fn replies_that_do_not_fit() -> [(&'static str, Vec<u8>, Vec<u8>); 3] {
 #[tokio::test(start_paused = true)]
 async fn a_reply_not_fitting_the_request_is_forwarded_at_once_counted_malformed() {
     for (what, request, reply) in replies_that_do_not_fit() {
-        let (line, bus, metrics) = counted_line_with_faulty_slave_2("", "");
+        let (line, bus, metrics) = counted_line_with_faulty_slave_2(line_9600(), &[]);
         line.add_slave(
             3,
             Scripted::new([Some(Transmission::frame(3, &reply, Duration::ZERO))]),
@@ -540,7 +552,7 @@ async fn a_reply_not_fitting_while_a_late_one_may_come_is_dropped_then_0x0b() {
         // The first try is met with silence, so its reply may still come during the retry: the
         // frame that does not fit may be that reply, and is not taken for the retry's answer.
         let (line, bus, metrics) =
-            counted_line_with_faulty_slave_2("retries = 1\nretry_writes = true", "");
+            counted_line_with_faulty_slave_2(line_9600().retries(1).key("retry_writes", true), &[]);
         let plan = [None, Some(Transmission::frame(3, &reply, Duration::ZERO))];
         line.add_slave(3, Scripted::new(plan));
         settle(&bus).await;
@@ -564,11 +576,10 @@ async fn a_reply_not_fitting_while_a_late_one_may_come_is_dropped_then_0x0b() {
 
 #[tokio::test]
 async fn over_tcp_a_master_gets_the_slaves_malformed_reply_byte_for_byte() {
-    let gateway = start(
-        "[server]\nlisten = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"line\"\ndevice = \"sim\"\nbaud = 19200\nresponse_timeout = \"1s\"\n",
-    )
-    .await;
+    let gateway = GatewayConfig::new()
+        .bus(Bus::sim("line").baud(19_200).response_timeout("1s"))
+        .start()
+        .await;
     let line = gateway.sim_line("line").expect("a simulated line");
     let plan = replies_that_do_not_fit()
         .map(|(_, _, reply)| Some(Transmission::frame(4, &reply, Duration::ZERO)));

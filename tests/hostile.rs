@@ -9,7 +9,7 @@ use crate::simulate::Simulator;
 use crate::support::tls::{tls_master, Pki, Role};
 use crate::support::{
     frames_from, free_addr, http_get, pty_config, pty_line, sim_config_with_server, start, within,
-    GatewayConfig, RawMaster, Scrape,
+    Bus, GatewayConfig, RawMaster, Scrape,
 };
 use modbus_gateway::testing::line::rtu;
 use modbus_gateway::testing::sim::Source;
@@ -241,10 +241,13 @@ fn simulate_config() -> PathBuf {
     let dir = std::env::temp_dir().join(format!("mbgw-hostile-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join(format!("slaves-{n}.toml"));
+    let slaves = Bus::sim("slaves")
+        .baud(115_200)
+        .parity("none")
+        .sim_slaves("1-4");
     std::fs::write(
         &path,
-        "[[bus]]\nname = \"slaves\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\
-         [[bus.sim_slave]]\naddress = \"1-4\"\n",
+        GatewayConfig::new().default_listen().bus(slaves).to_toml(),
     )
     .unwrap();
     path
@@ -470,8 +473,9 @@ struct Addrs {
     metrics: SocketAddr,
 }
 
-/// Run the binary on `bus_and_routes` with read-only masters, its log (warn and up) in `log`.
-async fn run_binary(name: &str, bus_and_routes: &str, log: Option<&PathBuf>) -> (Process, Addrs) {
+/// Run the binary on `buses` (their buses and routes) with read-only masters, its log (warn and
+/// up) in `log`.
+async fn run_binary(name: &str, buses: GatewayConfig, log: Option<&PathBuf>) -> (Process, Addrs) {
     let addrs = Addrs {
         tcp: free_addr(),
         udp: free_addr(),
@@ -481,16 +485,15 @@ async fn run_binary(name: &str, bus_and_routes: &str, log: Option<&PathBuf>) -> 
     let dir = std::env::temp_dir().join(format!("mbgw-hostile-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let config = dir.join(format!("{name}.toml"));
-    std::fs::write(
-        &config,
-        format!(
-            "[server]\nlisten = \"{}\"\nlisten_udp = \"{}\"\nlisten_rtu_over_tcp = \"{}\"\n\
-             read_only = [\"127.0.0.0/8\"]\n[metrics]\nlisten = \"{}\"\n[log]\nlevel = \"warn\"\n\
-             {bus_and_routes}",
-            addrs.tcp, addrs.udp, addrs.rtu, addrs.metrics
-        ),
-    )
-    .unwrap();
+    let text = buses
+        .listen(addrs.tcp)
+        .listen_udp(addrs.udp)
+        .listen_rtu_over_tcp(addrs.rtu)
+        .read_only(&["127.0.0.0/8"])
+        .metrics_listen(addrs.metrics)
+        .table("log", &[("level", "warn".into())])
+        .to_toml();
+    std::fs::write(&config, text).unwrap();
     let stderr = match log {
         Some(path) => Stdio::from(std::fs::File::create(path).unwrap()),
         None => Stdio::null(),
@@ -600,10 +603,16 @@ fn series_count(text: &str) -> usize {
 async fn every_unit_function_and_protocol_leaves_series_and_memory_flat() {
     // Slaves 1-4 on one simulated line; a second bus whose device never opens, so that units
     // without a route are refused (no_route) instead of timing out on the line.
-    let buses = "[[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\
-                 response_timeout = \"20ms\"\n[[bus.sim_slave]]\naddress = \"1-4\"\n\
-                 [[bus]]\nname = \"absent\"\ndevice = \"/dev/mbgw-hostile-absent\"\n\
-                 [[route]]\nunits = \"1-4\"\nbus = \"sim\"\n";
+    let buses = GatewayConfig::new()
+        .bus(
+            Bus::sim("sim")
+                .baud(115_200)
+                .parity("none")
+                .response_timeout("20ms")
+                .sim_slaves("1-4"),
+        )
+        .bus(Bus::on("absent", "/dev/mbgw-hostile-absent"))
+        .route("1-4", "sim", None);
     let (gateway, addrs) = run_binary("sweep", buses, None).await;
     let (_, before) = http_get(addrs.metrics, "/metrics").await;
     sweep_tcp(addrs.tcp, false).await;
@@ -641,8 +650,12 @@ async fn a_flood_of_protocol_errors_and_refusals_gets_one_warn_line_per_address_
     let dir = std::env::temp_dir().join(format!("mbgw-hostile-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let log = dir.join("flood.log");
-    let bus = "[[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\
-               [[bus.sim_slave]]\naddress = \"1-4\"\n";
+    let bus = GatewayConfig::new().bus(
+        Bus::sim("sim")
+            .baud(115_200)
+            .parity("none")
+            .sim_slaves("1-4"),
+    );
     let (_gateway, addrs) = run_binary("flood", bus, Some(&log)).await;
     for n in 0..50u16 {
         // A broken MBAP header (protocol id 1): the connection is closed.

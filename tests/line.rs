@@ -18,7 +18,7 @@ use tokio::time::Instant;
 const TICK: Duration = Duration::from_millis(1);
 const READ_10: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x0A];
 
-/// A sim bus from `[[bus]]` keys, its line populated by `fill`, its task running.
+/// A sim bus from its keys as TOML text, its line populated by `fill`, its task running.
 fn sim_bus(keys: &str, fill: impl FnOnce(&SimLine)) -> (SimLine, BusHandle) {
     sim_bus_filled(sim_bus_settings(keys), &Metrics::new(), fill)
 }

@@ -3,7 +3,9 @@
 //! shipped alert rules and dashboard naming only metrics the gateway exports; and scrapes that
 //! succeed while stalled trace readers and silent sockets hold the endpoint.
 
-use crate::support::{addr, http_get, sim_line, start, within, GatewayConfig, RawMaster, Scrape};
+use crate::support::{
+    addr, http_get, sim_line, start, within, Bus, GatewayConfig, RawMaster, Scrape,
+};
 use modbus_gateway::testing::sim::Source;
 use modbus_gateway::Gateway;
 use std::collections::BTreeSet;
@@ -215,12 +217,14 @@ async fn readyz_turns_503_while_a_port_is_lost_and_200_when_it_is_back() {
 
 #[tokio::test]
 async fn requests_of_a_master_that_left_are_counted_dropped_and_never_sent() {
-    let gateway = start(
-        "[server]\nlisten = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 9600\n\
-         [[bus.sim_slave]]\naddress = 1\nprocessing_delay = \"300ms\"\n",
-    )
-    .await;
+    let gateway = GatewayConfig::new()
+        .bus(
+            Bus::sim("sim")
+                .baud(9600)
+                .sim_slave("1", &[("processing_delay", "300ms".into())]),
+        )
+        .start()
+        .await;
     let line = gateway.sim_line("sim").unwrap().clone();
     let mut master = RawMaster::connect(addr(&gateway)).await;
     for tid in 0..5 {
@@ -303,12 +307,10 @@ async fn refused_and_broken_connections_are_counted_by_reason() {
 
 #[tokio::test]
 async fn every_one_of_247_known_slaves_has_its_series_from_the_start() {
-    let gateway = start(
-        "[server]\nlisten = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\n\
-         [[bus.sim_slave]]\naddress = \"1-247\"\n",
-    )
-    .await;
+    let gateway = GatewayConfig::new()
+        .bus(Bus::sim("sim").sim_slaves("1-247"))
+        .start()
+        .await;
     let scrape = Scrape::of(&gateway).await;
     for name in [
         "modbus_gateway_slave_up",

@@ -15,7 +15,9 @@
 mod tls_walkthrough;
 
 use crate::support::cases::{FIVE_TRANSACTIONS, READ_HOLDING_0_2, WRITES_READ_BACK};
-use crate::support::{addr, pty_config, pty_line, start, within, GatewayConfig, RawMaster, Scrape};
+use crate::support::{
+    addr, pty_config, pty_line, start, within, Bus, GatewayConfig, RawMaster, Scrape,
+};
 use modbus_gateway::testing::line::rtu;
 use std::ffi::OsString;
 use std::io::{BufRead, BufReader, Read};
@@ -664,13 +666,12 @@ async fn pymodbus_rtu_over_tcp_and_udp_masters_write_and_read_the_sim_line() {
     let Some(python) = python_with_pymodbus() else {
         return;
     };
-    let gateway = crate::support::start(
-        "[server]\nlisten = \"127.0.0.1:0\"\nlisten_rtu_over_tcp = \"127.0.0.1:0\"\n\
-         listen_udp = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\n\
-         [[bus.sim_slave]]\naddress = \"1-2\"\n",
-    )
-    .await;
+    let gateway = GatewayConfig::new()
+        .listen_rtu_over_tcp("127.0.0.1:0")
+        .listen_udp("127.0.0.1:0")
+        .bus(Bus::sim("sim").baud(115_200).sim_slaves("1-2"))
+        .start()
+        .await;
     let rtu_over_tcp = gateway.rtu_over_tcp_addrs()[0];
     let udp = gateway.udp_addrs()[0];
     for (kind, addr, unit) in [("rtu-over-tcp", rtu_over_tcp, 1), ("udp", udp, 2)] {
@@ -779,12 +780,10 @@ async fn mbpoll_writes_and_reads_the_sim_line_over_modbus_tcp_beside_the_other_k
     let Some(tool) = crate::support::tool("mbpoll") else {
         return;
     };
-    let gateway = crate::support::start(
-        "[server]\nlisten = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\n\
-         [[bus.sim_slave]]\naddress = \"1-2\"\n",
-    )
-    .await;
+    let gateway = GatewayConfig::new()
+        .bus(Bus::sim("sim").baud(115_200).sim_slaves("1-2"))
+        .start()
+        .await;
     let port = gateway.tcp_addrs()[0].port().to_string();
     let common = |extra: &[&str]| -> Vec<String> {
         let mut args: Vec<String> = ["-m", "tcp", "-p", &port, "-a", "2", "-0", "-1"]

@@ -2,8 +2,9 @@
 //! with data older than the request), `coalesce_reads = false`, the opt-in cache, and priority
 //! masters served first up to their share of the line.
 
-use crate::support::{addr, settle, sim_bus_counted, start, within, RawMaster, Scrape};
-use modbus_gateway::config::Config;
+use crate::support::{
+    addr, settle, sim_bus_counted, sim_line, within, Bus, GatewayConfig, RawMaster, Scrape,
+};
 use modbus_gateway::testing::bus::BusHandle;
 use modbus_gateway::testing::error::Answer;
 use modbus_gateway::testing::master::{Origin, Protocol};
@@ -17,15 +18,17 @@ use tokio::time::Instant;
 /// Read holding registers 0x0010-0x0019 (ten words).
 const READ_BLOCK: [u8; 5] = [0x03, 0x00, 0x10, 0x00, 0x0A];
 
-/// A gateway on a 9600 8E1 sim line with register-bank slaves 1-4 and `bus` keys.
-async fn gateway_9600(bus: &str) -> modbus_gateway::Gateway {
-    start(&format!(
-        "[server]\nlisten = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 9600\nparity = \"even\"\n\
-         queue_depth = 1024\nqueue_timeout = \"30s\"\n{bus}\n\
-         [[bus.sim_slave]]\naddress = \"1-4\"\n"
-    ))
-    .await
+/// The 9600 8E1 sim line named "sim" with room for many readers in its queue, no slaves yet.
+fn line_9600() -> Bus {
+    sim_line().queue_depth(1024).queue_timeout("30s")
+}
+
+/// A gateway on `line` ([`line_9600`] and what the test adds) with register-bank slaves 1-4.
+async fn gateway_9600(line: Bus) -> modbus_gateway::Gateway {
+    GatewayConfig::new()
+        .bus(line.sim_slaves("1-4"))
+        .start()
+        .await
 }
 
 fn master_frames(line: &SimLine) -> usize {
@@ -66,7 +69,7 @@ fn write_block(first: u16) -> Vec<u8> {
 async fn a_hundred_masters_polling_alike_cost_at_most_2_transactions_per_100_reads() {
     const MASTERS: usize = 100;
     const ROUNDS: usize = 5;
-    let gateway = gateway_9600("").await;
+    let gateway = gateway_9600(line_9600()).await;
     let at = addr(&gateway);
     let line = gateway.sim_line("sim").expect("sim line");
     let mut writer = RawMaster::connect(at).await;
@@ -116,7 +119,7 @@ async fn a_hundred_masters_polling_alike_cost_at_most_2_transactions_per_100_rea
 async fn a_master_reads_back_its_write_amid_coalescing_and_no_read_gets_older_data() {
     const READERS: usize = 99;
     const WRITES: u16 = 15;
-    let gateway = gateway_9600("").await;
+    let gateway = gateway_9600(line_9600()).await;
     let at = addr(&gateway);
     let line = gateway.sim_line("sim").expect("sim line");
     let done = Arc::new(std::sync::atomic::AtomicBool::new(false));
@@ -193,7 +196,7 @@ async fn a_master_reads_back_its_write_amid_coalescing_and_no_read_gets_older_da
 
 #[tokio::test]
 async fn with_coalesce_reads_off_on_a_slave_each_read_is_a_transaction_of_its_own() {
-    let gateway = gateway_9600("[[bus.slave]]\naddress = 2\ncoalesce_reads = false").await;
+    let gateway = gateway_9600(line_9600().slave(2, &[("coalesce_reads", false.into())])).await;
     let at = addr(&gateway);
     let line = gateway.sim_line("sim").expect("sim line");
     for (slave, most) in [(2u8, 10usize), (1, 2)] {
@@ -220,15 +223,22 @@ async fn with_coalesce_reads_off_on_a_slave_each_read_is_a_transaction_of_its_ow
     }
 }
 
-fn bus_settings(keys: &str) -> modbus_gateway::config::Bus {
-    Config::from_toml_str(&format!(
-        "[[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 9600\nparity = \"even\"\n\
-         queue_depth = 4096\nqueue_timeout = \"600s\"\nresponse_timeout = \"200ms\"\n{keys}\n\
-         [[bus.sim_slave]]\naddress = \"1-4\"\n"
-    ))
-    .expect("test config")
-    .bus
-    .remove(0)
+/// A 9600 8E1 sim line named "sim" whose queue neither fills nor times out, no slaves yet.
+fn patient_line() -> Bus {
+    sim_line()
+        .queue_depth(4096)
+        .queue_timeout("600s")
+        .response_timeout("200ms")
+}
+
+/// The settings of `line` ([`patient_line`] and what the test adds) with register-bank slaves
+/// 1-4.
+fn bus_settings(line: Bus) -> modbus_gateway::config::Bus {
+    GatewayConfig::new()
+        .bus(line.sim_slaves("1-4"))
+        .load()
+        .bus
+        .remove(0)
 }
 
 fn origin(master: u64, priority: bool) -> Origin {
@@ -253,7 +263,7 @@ async fn read(bus: &BusHandle, master: u64, slave: u8, pdu: &[u8]) -> Answer {
 async fn the_cache_answers_within_its_age_drops_on_a_write_and_keeps_no_exceptions() {
     let metrics = Metrics::new();
     let (line, bus) = sim_bus_counted(
-        bus_settings("[[bus.slave]]\naddress = 1\ncache = \"500ms\""),
+        bus_settings(patient_line().slave(1, &[("cache", "500ms".into())])),
         &metrics,
     );
     settle(&bus).await;
@@ -303,7 +313,7 @@ fn transaction_time(line: &SimLine) -> Duration {
 
 #[tokio::test(start_paused = true)]
 async fn a_priority_master_among_a_hundred_saturating_ones_waits_at_most_two_transactions() {
-    let (line, bus) = sim_bus_counted(bus_settings(""), &Metrics::new());
+    let (line, bus) = sim_bus_counted(bus_settings(patient_line()), &Metrics::new());
     settle(&bus).await;
     // A hundred masters, each keeping five distinct reads queued, of slaves 1, 3 and 4: slave 2
     // is the priority master's.
@@ -353,7 +363,7 @@ async fn a_priority_master_among_a_hundred_saturating_ones_waits_at_most_two_tra
 
 #[tokio::test(start_paused = true)]
 async fn a_saturating_priority_master_leaves_the_others_their_share_of_the_line() {
-    let (line, bus) = sim_bus_counted(bus_settings(""), &Metrics::new());
+    let (line, bus) = sim_bus_counted(bus_settings(patient_line()), &Metrics::new());
     bus.set_priority_share(0.9);
     settle(&bus).await;
     let mut answers = Vec::new();

@@ -3,7 +3,7 @@
 //! request before the slave answers still gives the master the slave's answer.
 
 use crate::support::{
-    addr, exit_status, free_addr, http_get, pty_config, pty_line, signal, start, within,
+    addr, exit_status, free_addr, http_get, pty_config, pty_line, signal, start, within, Bus,
     GatewayConfig, PtySlave, RawMaster, Scrape,
 };
 use modbus_gateway::config::{Rs485, Rs485Mode};
@@ -208,14 +208,19 @@ fn check_config_prints_each_serial_buss_rs485_mode_and_latency_timer() {
     let dir = std::env::temp_dir().join(format!("mbgw-rs485-check-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let config = dir.join("gateway.toml");
-    std::fs::write(
-        &config,
-        "[[bus]]\nname = \"usb\"\ndevice = \"/dev/ttyUSB0\"\nlatency_timer = \"1ms\"\n\
-         [bus.rs485]\necho = true\n\
-         [[bus]]\nname = \"uart\"\ndevice = \"/dev/ttyS1\"\n\
-         [bus.rs485]\nmode = \"rts\"\ndelay_after_send = \"2ms\"\n",
-    )
-    .unwrap();
+    let text = GatewayConfig::new()
+        .default_listen()
+        .bus(
+            Bus::on("usb", "/dev/ttyUSB0")
+                .key("latency_timer", "1ms")
+                .rs485(&[("echo", true.into())]),
+        )
+        .bus(
+            Bus::on("uart", "/dev/ttyS1")
+                .rs485(&[("mode", "rts".into()), ("delay_after_send", "2ms".into())]),
+        )
+        .to_toml();
+    std::fs::write(&config, text).unwrap();
     let out = Command::new(BINARY)
         .args(["--config", config.to_str().unwrap(), "check-config"])
         .env_remove("RUST_LOG")

@@ -2,7 +2,7 @@
 //! served by the same dispatcher and buses as Modbus TCP masters; every answer, the gateway's own
 //! exceptions included, comes back as an RTU frame with the master's unit id.
 
-use crate::support::{start, Scrape, PATIENCE};
+use crate::support::{Bus, GatewayConfig, Scrape, Value, PATIENCE};
 use modbus_gateway::testing::line::rtu;
 use modbus_gateway::Gateway;
 use std::net::SocketAddr;
@@ -12,15 +12,21 @@ use tokio::net::TcpStream;
 use tokio_modbus::client::{rtu as rtu_client, Reader, Writer};
 use tokio_modbus::Slave;
 
-/// A gateway with a Modbus TCP and an RTU over TCP listener, in front of a simulated line with
-/// register slaves at 1-4.
-async fn gateway(extra_server: &str) -> Gateway {
-    start(&format!(
-        "[server]\nlisten = \"127.0.0.1:0\"\nlisten_rtu_over_tcp = \"127.0.0.1:0\"\n{extra_server}\n\
-         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nresponse_timeout = \"200ms\"\n\
-         [[bus.sim_slave]]\naddress = \"1-4\"\n"
-    ))
-    .await
+/// The simulated line at 115200 named "sim", with no slaves yet.
+fn sim_line() -> Bus {
+    Bus::sim("sim").baud(115_200).response_timeout("200ms")
+}
+
+/// A gateway with a Modbus TCP and an RTU over TCP listener and `server` keys besides, in front
+/// of a simulated line with register slaves at 1-4.
+async fn gateway(server: Vec<(&str, Value)>) -> Gateway {
+    let config = GatewayConfig::new()
+        .listen_rtu_over_tcp("127.0.0.1:0")
+        .bus(sim_line().sim_slaves("1-4"));
+    let config = server
+        .into_iter()
+        .fold(config, |config, (key, value)| config.server(key, value));
+    config.start().await
 }
 
 /// The RTU over TCP listener's address: it comes after the Modbus TCP one.
@@ -53,7 +59,7 @@ async fn silent_for(stream: &mut TcpStream, wait: Duration) -> bool {
 
 #[tokio::test]
 async fn an_rtu_over_tcp_master_writes_and_reads_the_line_and_gets_rtu_frames_back() {
-    let gateway = gateway("").await;
+    let gateway = gateway(vec![]).await;
     let mut master = TcpStream::connect(rtu_addr(&gateway)).await.unwrap();
     let write = rtu::encode(2, &[0x06, 0x00, 0x04, 0x13, 0x88]);
     assert_eq!(exchange(&mut master, &write, 8).await, write, "the echo");
@@ -66,7 +72,7 @@ async fn an_rtu_over_tcp_master_writes_and_reads_the_line_and_gets_rtu_frames_ba
 
 #[tokio::test]
 async fn tokio_modbus_rtu_client_on_a_tcp_stream_reads_what_a_modbus_tcp_master_wrote() {
-    let gateway = gateway("").await;
+    let gateway = gateway(vec![]).await;
     // A third-party RTU client on the TCP stream, and a Modbus TCP master on the other listener:
     // a write from one kind is read back by the other.
     let stream = TcpStream::connect(rtu_addr(&gateway)).await.unwrap();
@@ -102,7 +108,7 @@ async fn tokio_modbus_rtu_client_on_a_tcp_stream_reads_what_a_modbus_tcp_master_
 /// A request with a bad CRC gets no answer and is counted.
 #[tokio::test]
 async fn a_request_with_a_bad_crc_is_counted_unanswered_and_the_next_is_answered() {
-    let gateway = gateway("").await;
+    let gateway = gateway(vec![]).await;
     let mut master = TcpStream::connect(rtu_addr(&gateway)).await.unwrap();
     let mut bad = rtu::encode(1, &[0x03, 0x00, 0x00, 0x00, 0x01]);
     bad[6] ^= 0x01;
@@ -124,7 +130,7 @@ async fn a_request_with_a_bad_crc_is_counted_unanswered_and_the_next_is_answered
 
 #[tokio::test]
 async fn a_request_split_across_segments_is_answered_once_whole() {
-    let gateway = gateway("").await;
+    let gateway = gateway(vec![]).await;
     let mut master = TcpStream::connect(rtu_addr(&gateway)).await.unwrap();
     master.set_nodelay(true).unwrap();
     let read = rtu::encode(4, &[0x03, 0x00, 0x00, 0x00, 0x01]);
@@ -139,7 +145,7 @@ async fn a_request_split_across_segments_is_answered_once_whole() {
 
 #[tokio::test]
 async fn two_requests_in_one_segment_are_answered_in_order() {
-    let gateway = gateway("").await;
+    let gateway = gateway(vec![]).await;
     let mut master = TcpStream::connect(rtu_addr(&gateway)).await.unwrap();
     let write = rtu::encode(1, &[0x06, 0x00, 0x01, 0x00, 0x05]);
     let read = rtu::encode(1, &[0x03, 0x00, 0x01, 0x00, 0x01]);
@@ -151,7 +157,7 @@ async fn two_requests_in_one_segment_are_answered_in_order() {
 
 #[tokio::test]
 async fn an_unknown_function_code_reaches_the_slave_and_its_exception_comes_back() {
-    let gateway = gateway("").await;
+    let gateway = gateway(vec![]).await;
     let mut master = TcpStream::connect(rtu_addr(&gateway)).await.unwrap();
     let request = rtu::encode(1, &[0x41, 0x01, 0x02]);
     assert_eq!(
@@ -167,7 +173,7 @@ async fn an_unknown_function_code_reaches_the_slave_and_its_exception_comes_back
 
 #[tokio::test]
 async fn the_gateways_own_exceptions_come_back_as_rtu_frames_with_the_masters_unit() {
-    let gateway = gateway("read_only = \"127.0.0.1\"").await;
+    let gateway = gateway(vec![("read_only", "127.0.0.1".into())]).await;
     let mut master = TcpStream::connect(rtu_addr(&gateway)).await.unwrap();
     let read = [0x03, 0x00, 0x00, 0x00, 0x01];
     // No route for unit 250: 0x0A.
@@ -190,7 +196,7 @@ async fn the_gateways_own_exceptions_come_back_as_rtu_frames_with_the_masters_un
 
 #[tokio::test]
 async fn bytes_that_cannot_be_an_rtu_request_close_the_connection() {
-    let gateway = gateway("").await;
+    let gateway = gateway(vec![]).await;
     // A header announcing more data than a frame holds: closed at once.
     let mut master = TcpStream::connect(rtu_addr(&gateway)).await.unwrap();
     master
@@ -216,12 +222,11 @@ async fn bytes_that_cannot_be_an_rtu_request_close_the_connection() {
 
 #[tokio::test]
 async fn a_full_queue_answers_0x06_as_an_rtu_frame_after_the_requests_before_it() {
-    let gateway = start(
-        "[server]\nlisten = \"127.0.0.1:0\"\nlisten_rtu_over_tcp = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nresponse_timeout = \"200ms\"\n\
-         queue_depth = 1\n[[bus.sim_slave]]\naddress = 1\n",
-    )
-    .await;
+    let gateway = GatewayConfig::new()
+        .listen_rtu_over_tcp("127.0.0.1:0")
+        .bus(sim_line().queue_depth(1).sim_slaves("1"))
+        .start()
+        .await;
     let mut master = TcpStream::connect(rtu_addr(&gateway)).await.unwrap();
     // Three reads of silent unit 9 at once: the queue holds one, so at least one is refused
     // (which depends on whether the line has taken the first yet); all come back in order.
@@ -244,7 +249,7 @@ async fn a_full_queue_answers_0x06_as_an_rtu_frame_after_the_requests_before_it(
 
 #[tokio::test]
 async fn two_user_defined_requests_sent_together_never_frame_and_close_at_frame_timeout() {
-    let gateway = gateway("frame_timeout = \"300ms\"").await;
+    let gateway = gateway(vec![("frame_timeout", "300ms".into())]).await;
     let mut master = TcpStream::connect(rtu_addr(&gateway)).await.unwrap();
     let request = rtu::encode(1, &[0x41, 0x01, 0x02]);
     master

@@ -5,8 +5,8 @@
 //! broken file; `check-config --quiet`.
 
 use crate::support::{
-    addr, connect_when_listening, exit_status, free_addr, http_get, signal, start, until_logged,
-    within, RawMaster, Scrape,
+    addr, connect_when_listening, exit_status, free_addr, http_get, signal, until_logged, within,
+    Bus, GatewayConfig, RawMaster, Scrape, Value,
 };
 use std::process::{Command, Stdio};
 use std::time::Duration;
@@ -17,14 +17,17 @@ const BINARY: &str = env!("CARGO_BIN_EXE_modbus-gateway");
 const WRITE: [u8; 5] = [0x06, 0x00, 0x04, 0x13, 0x88];
 
 /// One 115200 baud simulated line whose slave 1 takes `delay` to answer.
-fn slow_line(delay: &str, shutdown_timeout: &str) -> String {
-    format!(
-        "[server]\nlisten = \"127.0.0.1:0\"\nshutdown_timeout = \"{shutdown_timeout}\"\n\
-         [metrics]\nlisten = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nresponse_timeout = \"5s\"\n\
-         queue_timeout = \"30s\"\n\
-         [[bus.sim_slave]]\naddress = 1\nprocessing_delay = \"{delay}\"\n"
-    )
+fn slow_line(delay: &str, shutdown_timeout: &str) -> GatewayConfig {
+    GatewayConfig::new()
+        .server("shutdown_timeout", shutdown_timeout)
+        .metrics_listen("127.0.0.1:0")
+        .bus(
+            Bus::sim("sim")
+                .baud(115_200)
+                .response_timeout("5s")
+                .queue_timeout("30s")
+                .sim_slave("1", &[("processing_delay", delay.into())]),
+        )
 }
 
 /// Wait until the bus has taken `n` requests off its queue (the last one is on the wire).
@@ -48,7 +51,7 @@ async fn until_taken(metrics: std::net::SocketAddr, n: f64) {
 async fn a_stop_serves_the_queue_until_the_timeout_then_answers_0x0a_and_closes() {
     // Each answer takes 1 s; the stop allows 1.5 s: the request on the wire and the next one
     // are served, the third would start after the deadline.
-    let gateway = start(&slow_line("1s", "1500ms")).await;
+    let gateway = slow_line("1s", "1500ms").start().await;
     let metrics = gateway.metrics_addr();
     let modbus = addr(&gateway);
     let mut masters = Vec::new();
@@ -105,8 +108,9 @@ async fn sigterm_while_a_write_is_on_the_wire_still_delivers_the_slaves_reply_an
     let (listen_addr, metrics_addr) = (free_addr(), free_addr());
     // A shutdown timeout far past `exit_status`'s patience: an exit that waited for it fails.
     let config = slow_line("1s", "10m")
-        .replacen("127.0.0.1:0", &listen_addr.to_string(), 1)
-        .replacen("127.0.0.1:0", &metrics_addr.to_string(), 1);
+        .listen(listen_addr)
+        .metrics_listen(metrics_addr)
+        .to_toml();
     std::fs::write(&path, config).unwrap();
     let child = Command::new(BINARY)
         .args(["--config", path.to_str().unwrap(), "run"])
@@ -232,13 +236,19 @@ async fn a_bus_task_stuck_on_its_port_stops_the_watchdog_pings_until_it_moves_ag
     let device = tty.name().expect("pty path");
     let (listen, metrics) = (free_addr(), free_addr());
     let path = std::env::temp_dir().join(format!("mbgw-stuck-{}.toml", std::process::id()));
+    let pty = Bus::on("pty", &device)
+        .baud(921_600)
+        .parity("none")
+        .response_timeout("1ms")
+        .queue_timeout("60s")
+        .key("slave_down_after", 0);
     std::fs::write(
         &path,
-        format!(
-            "[server]\nlisten = \"{listen}\"\n[metrics]\nlisten = \"{metrics}\"\n\
-             [[bus]]\nname = \"pty\"\ndevice = \"{device}\"\nbaud = 921600\nparity = \"none\"\n\
-             response_timeout = \"1ms\"\nqueue_timeout = \"60s\"\nslave_down_after = 0\n"
-        ),
+        GatewayConfig::new()
+            .listen(listen)
+            .metrics_listen(metrics)
+            .bus(pty)
+            .to_toml(),
     )
     .unwrap();
     let notify = NotifySocket::bind("stuck");
@@ -325,17 +335,25 @@ async fn sighup_applies_a_new_timeout_and_route_live_and_keeps_them_on_a_broken_
     let (listen, metrics) = (free_addr(), free_addr());
     // Slave 1 takes 200 ms to answer; its 100 ms timeout is too short. Unit 100 goes to slave
     // 100, which does not exist.
-    let before = format!(
-        "[server]\nlisten = \"{listen}\"\n[metrics]\nlisten = \"{metrics}\"\n\
-         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nresponse_timeout = \"100ms\"\n\
-         [[bus.slave]]\naddress = 1\nresponse_timeout = \"100ms\"\n\
-         [[bus.sim_slave]]\naddress = 1\nprocessing_delay = \"200ms\"\n"
-    );
+    let config = |baud: Value, slave_timeout: &str| {
+        GatewayConfig::new()
+            .listen(listen)
+            .metrics_listen(metrics)
+            .bus(
+                Bus::sim("sim")
+                    .key("baud", baud)
+                    .response_timeout("100ms")
+                    .slave(1, &[("response_timeout", slave_timeout.into())])
+                    .sim_slave("1", &[("processing_delay", "200ms".into())]),
+            )
+    };
+    let before = config(115_200.into(), "100ms").to_toml();
     // Slave 1 gets 1 s; unit 100 is routed to slave 1.
-    let after = before.replace(
-        "address = 1\nresponse_timeout = \"100ms\"",
-        "address = 1\nresponse_timeout = \"1s\"",
-    ) + "[[route]]\nunits = \"100\"\nbus = \"sim\"\naddress = 1\n";
+    let after = config(115_200.into(), "1s")
+        .route("100", "sim", 1)
+        .to_toml();
+    // The same with a baud rate that is not a number.
+    let broken = config("fast".into(), "1s").route("100", "sim", 1).to_toml();
     assert_ne!(before, after);
     let path = std::env::temp_dir().join(format!("mbgw-reload-{}.toml", std::process::id()));
     let log = std::env::temp_dir().join(format!("mbgw-reload-{}.log", std::process::id()));
@@ -374,7 +392,7 @@ async fn sighup_applies_a_new_timeout_and_route_live_and_keeps_them_on_a_broken_
     );
 
     // A broken file: the running configuration stays, and so does the connection.
-    save(&path, &after.replace("baud = 115200", "baud = \"fast\""));
+    save(&path, &broken);
     signal(&child, "HUP");
     until_logged(&log, "configuration not reloaded").await;
     assert_eq!(master.call(5, 1, &READ).await, answer);
@@ -391,14 +409,13 @@ async fn sighup_applies_a_new_timeout_and_route_live_and_keeps_them_on_a_broken_
 
 #[tokio::test]
 async fn a_reload_reopens_only_a_changed_line_starts_added_buses_and_retires_removed_ones() {
-    let two_buses = "[server]\nlisten = \"127.0.0.1:0\"\n\
-        [[bus]]\nname = \"a\"\ndevice = \"sim\"\nbaud = 9600\n\
-        [[bus.sim_slave]]\naddress = 1\n\
-        [[bus]]\nname = \"b\"\ndevice = \"sim\"\nbaud = 9600\n\
-        [[bus.sim_slave]]\naddress = 1\n\
-        [[route]]\nunits = \"1\"\nbus = \"a\"\naddress = 1\n\
-        [[route]]\nunits = \"2\"\nbus = \"b\"\naddress = 1\n";
-    let gateway = start(two_buses).await;
+    let a = Bus::sim("a").baud(9600).sim_slaves("1");
+    let two_buses = GatewayConfig::new()
+        .bus(a.clone())
+        .bus(Bus::sim("b").baud(9600).sim_slaves("1"))
+        .route("1", "a", 1)
+        .route("2", "b", 1);
+    let gateway = two_buses.start().await;
     let mut master = RawMaster::connect(addr(&gateway)).await;
     let answer = [0x03, 0x02, 0x00, 0x00];
     assert_eq!(master.call(1, 1, &READ).await, answer);
@@ -409,25 +426,20 @@ async fn a_reload_reopens_only_a_changed_line_starts_added_buses_and_retires_rem
     );
 
     // a: a new timeout (same line); b: a new baud rate (a new line); c: added, for unit 3.
-    let config = |text: &str| {
-        let mut config = modbus_gateway::gateway::config_from_toml(text).unwrap();
+    let config = |config: GatewayConfig| {
+        let mut config = config.load();
         config.metrics.listen = ([127, 0, 0, 1], 0).into();
         config
     };
-    let changed = two_buses
-        .replacen(
-            "baud = 9600\n",
-            "baud = 9600\nresponse_timeout = \"2s\"\n",
-            1,
-        )
-        .replacen(
-            "name = \"b\"\ndevice = \"sim\"\nbaud = 9600",
-            "name = \"b\"\ndevice = \"sim\"\nbaud = 19200",
-            1,
-        )
-        + "[[bus]]\nname = \"c\"\ndevice = \"sim\"\n[[bus.sim_slave]]\naddress = 1\n\
-           [[route]]\nunits = \"3\"\nbus = \"c\"\naddress = 1\n";
-    let done = gateway.reload(&config(&changed)).unwrap();
+    let (a, c) = (a.response_timeout("2s"), Bus::sim("c").sim_slaves("1"));
+    let changed = GatewayConfig::new()
+        .bus(a.clone())
+        .bus(Bus::sim("b").baud(19_200).sim_slaves("1"))
+        .bus(c.clone())
+        .route("1", "a", 1)
+        .route("2", "b", 1)
+        .route("3", "c", 1);
+    let done = gateway.reload(&config(changed)).unwrap();
     assert_eq!(
         done.applied,
         [
@@ -455,11 +467,12 @@ async fn a_reload_reopens_only_a_changed_line_starts_added_buses_and_retires_rem
     }
 
     // b removed: unit 2 has no route; its series go once it has stopped.
-    let without_b = changed.replace(
-        "[[bus]]\nname = \"b\"\ndevice = \"sim\"\nbaud = 19200\n[[bus.sim_slave]]\naddress = 1\n",
-        "",
-    ).replace("[[route]]\nunits = \"2\"\nbus = \"b\"\naddress = 1\n", "");
-    let done = gateway.reload(&config(&without_b)).unwrap();
+    let without_b = GatewayConfig::new()
+        .bus(a)
+        .bus(c)
+        .route("1", "a", 1)
+        .route("3", "c", 1);
+    let done = gateway.reload(&config(without_b)).unwrap();
     assert_eq!(done.applied, ["bus b: removed", "routes"]);
     assert_eq!(master.call(4, 2, &READ).await, [0x83, 0x0A]);
     assert_eq!(master.call(5, 3, &READ).await, answer, "same connection");
@@ -479,11 +492,12 @@ async fn a_reload_reopens_only_a_changed_line_starts_added_buses_and_retires_rem
 async fn a_reload_changes_the_log_level_of_the_running_gateway() {
     let listen = free_addr();
     let config = |level: &str| {
-        format!(
-            "[server]\nlisten = \"{listen}\"\n[metrics]\nlisten = \"{}\"\n[log]\nlevel = \"{level}\"\n\
-             [[bus]]\nname = \"sim\"\ndevice = \"sim\"\n[[bus.sim_slave]]\naddress = 1\n",
-            free_addr()
-        )
+        GatewayConfig::new()
+            .listen(listen)
+            .metrics_listen(free_addr())
+            .table("log", &[("level", level.into())])
+            .bus(Bus::sim("sim").sim_slaves("1"))
+            .to_toml()
     };
     let path = std::env::temp_dir().join(format!("mbgw-level-{}.toml", std::process::id()));
     let log = std::env::temp_dir().join(format!("mbgw-level-{}.log", std::process::id()));

@@ -35,7 +35,7 @@ use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, Once, PoisonError};
 use std::time::Duration;
-use test_support::{start, wait_for_bus, Scrape};
+use test_support::{wait_for_bus, Bus, GatewayConfig, Scrape};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 use tokio::time::{timeout, Instant};
@@ -157,26 +157,32 @@ const WRITTEN: [u8; 9] = [
     SLOW,
 ];
 
-fn config() -> String {
-    let mut text = format!(
-        "[server]\nlisten = \"127.0.0.1:0\"\npipeline_depth = {PIPELINE_DEPTH}\n\
-         [[bus]]\nname = \"soak\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\
-         stop_bits = 1\nresponse_timeout = \"50ms\"\nretries = 1\nqueue_depth = 512\n\
-         queue_timeout = \"3s\"\nreopen_delay = \"100ms\"\nreopen_delay_max = \"400ms\"\n\
-         [[bus.sim_slave]]\naddress = \"1-3\"\n"
-    );
+fn config() -> GatewayConfig {
+    let mut soak = Bus::sim("soak")
+        .baud(115_200)
+        .parity("none")
+        .key("stop_bits", 1)
+        .response_timeout("50ms")
+        .retries(1)
+        .queue_depth(512)
+        .queue_timeout("3s")
+        .key("reopen_delay", "100ms")
+        .key("reopen_delay_max", "400ms")
+        .sim_slaves("1-3");
     for (address, knob) in [
-        (OFFLINE, "offline = true"),
-        (CRC_ERRORS, "crc_error_rate = 0.3"),
-        (GARBAGE_BEFORE, "garbage_before = 3"),
-        (GARBAGE_AFTER, "garbage_after = 5"),
-        (LATE, "late_reply = \"80ms\""),
-        (WRONG_ADDRESS, "reply_address = 1"),
-        (SLOW, "extra_delay = \"20ms\""),
+        (OFFLINE, ("offline", true.into())),
+        (CRC_ERRORS, ("crc_error_rate", 0.3.into())),
+        (GARBAGE_BEFORE, ("garbage_before", 3.into())),
+        (GARBAGE_AFTER, ("garbage_after", 5.into())),
+        (LATE, ("late_reply", "80ms".into())),
+        (WRONG_ADDRESS, ("reply_address", 1.into())),
+        (SLOW, ("extra_delay", "20ms".into())),
     ] {
-        text += &format!("[[bus.sim_slave]]\naddress = {address}\n{knob}\n");
+        soak = soak.sim_slave(&address.to_string(), &[knob]);
     }
-    text
+    GatewayConfig::new()
+        .pipeline_depth(PIPELINE_DEPTH)
+        .bus(soak)
 }
 
 fn slave_index(slave: u8) -> usize {
@@ -932,7 +938,7 @@ async fn a_hundred_masters_on_faulty_slaves_get_one_answer_each_and_leak_nothing
     println!("soak: {MASTERS} masters, {soak:?} after the warm-up");
     // As the daemon does: the line keeps its timing to well under a millisecond.
     modbus_gateway::testing::timer::use_precise_timer();
-    let gateway = start(&config()).await;
+    let gateway = config().start().await;
     let at = test_support::addr(&gateway);
     let line = gateway.sim_line("soak").expect("a simulated line");
     let wire = Arc::new(Mutex::new(WireWrites::new()));

@@ -5,9 +5,8 @@
 
 use crate::support::{
     addr, panics_on_this_thread, sim_bus_filled, sim_config_with_server, start, start_sim, tool,
-    within, RawMaster, Scrape,
+    within, Bus, GatewayConfig, RawMaster, Scrape,
 };
-use modbus_gateway::gateway::config_from_toml;
 use modbus_gateway::testing::metrics::Metrics;
 use modbus_gateway::testing::session::{self, Activity, SessionError};
 use modbus_gateway::testing::shutdown::Stopping;
@@ -165,8 +164,7 @@ async fn session_on_pipe(
     tokio::io::DuplexStream,
     tokio::task::JoinHandle<SessionError>,
 ) {
-    let config =
-        config_from_toml("[[bus]]\nname = \"line\"\ndevice = \"sim\"\nbaud = 9600\n").unwrap();
+    let config = GatewayConfig::new().bus(Bus::sim("line").baud(9600)).load();
     let metrics = Arc::new(Metrics::new());
     let (_, bus) = sim_bus_filled(config.bus[0].clone(), &metrics, |line| {
         line.add_slave(1, RegisterBank::new(slave_delay));
@@ -399,13 +397,18 @@ async fn an_mbap_length_shorter_than_the_request_answers_the_cut_request_then_cl
 #[tokio::test]
 async fn a_flood_of_pipelined_requests_is_read_a_pipeline_at_a_time_and_answered_in_order() {
     // A queue shorter than the flood: were the flood read at once, masters would get 0x06.
-    let gateway = start(
-        "[server]\nlisten = \"127.0.0.1:0\"\npipeline_depth = 8\n\
-         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\
-         queue_depth = 32\nqueue_timeout = \"1h\"\n\
-         [[bus.sim_slave]]\naddress = \"1-2\"\n",
-    )
-    .await;
+    let gateway = GatewayConfig::new()
+        .pipeline_depth(8)
+        .bus(
+            Bus::sim("sim")
+                .baud(115_200)
+                .parity("none")
+                .queue_depth(32)
+                .queue_timeout("1h")
+                .sim_slaves("1-2"),
+        )
+        .start()
+        .await;
     let mut flooder = RawMaster::connect(addr(&gateway)).await;
     let flood: Vec<u8> = (0..400u16)
         .flat_map(|tid| RawMaster::adu(tid, 1, &[0x04, 0x00, tid as u8, 0x00, 0x01]))

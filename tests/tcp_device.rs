@@ -355,11 +355,15 @@ async fn a_device_always_answering_transaction_0_is_logged_with_the_key_that_hel
         }
     });
     let (listen, metrics) = (free_addr(), free_addr());
-    let config = format!(
-        "[server]\nlisten = \"{listen}\"\n[metrics]\nlisten = \"{metrics}\"\n\
-         [[bus]]\nname = \"dev\"\ndevice = \"tcp://127.0.0.1:{port}\"\nframing = \"tcp\"\n\
-         response_timeout = \"200ms\"\n"
-    );
+    let config = GatewayConfig::new()
+        .listen(listen)
+        .metrics_listen(metrics)
+        .bus(
+            Bus::on("dev", &format!("tcp://127.0.0.1:{port}"))
+                .framing("tcp")
+                .response_timeout("200ms"),
+        )
+        .to_toml();
     let dir = std::env::temp_dir();
     let path = dir.join(format!("mbgw-tid0-{}.toml", std::process::id()));
     let log = dir.join(format!("mbgw-tid0-{}.log", std::process::id()));

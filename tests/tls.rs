@@ -7,7 +7,8 @@ use crate::support::tls::{
 };
 use crate::support::{
     assert_fair, connect_from, exit_status, free_addr, panics_on_this_thread, signal,
-    sim_config_with_server, start, until_logged, within, RawMaster, Rotation, Scrape,
+    sim_config_with_server, start, until_logged, within, Bus, GatewayConfig, RawMaster, Rotation,
+    Scrape,
 };
 use modbus_gateway::Gateway;
 use std::net::SocketAddr;
@@ -319,14 +320,19 @@ const MASTERS: usize = 200;
 async fn two_hundred_tls_masters_polling_at_once_are_answered_correctly_and_fairly() {
     let pki = Pki::new("plant-ca");
     let server = pki.server("gateway", "gateway", 365);
-    let gateway = start(&format!(
-        "[server]\nlisten = \"127.0.0.1:0\"\nlisten_tls = \"127.0.0.1:0\"\n{}\
-         [[bus]]\nname = \"fast\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\
-         queue_depth = 2048\nqueue_timeout = \"60s\"\n\
-         [[bus.sim_slave]]\naddress = \"1-4\"\n",
-        pki.tls_table(&server, "roles = { viewer = \"read_only\" }")
-    ))
-    .await;
+    let gateway = GatewayConfig::new()
+        .listen_tls("127.0.0.1:0")
+        .server_table(&pki.tls_table(&server, "roles = { viewer = \"read_only\" }"))
+        .bus(
+            Bus::sim("fast")
+                .baud(115_200)
+                .parity("none")
+                .queue_depth(2048)
+                .queue_timeout("60s")
+                .sim_slaves("1-4"),
+        )
+        .start()
+        .await;
     let at = tls_addr(&gateway);
     let viewer = pki.master("viewer", Role::Named("viewer"));
     let connector = pki.connector(Some(&viewer));
@@ -397,17 +403,14 @@ async fn sighup_rotates_the_certificate_for_new_masters_and_names_a_broken_key()
     let (listen, tls, metrics) = (free_addr(), free_addr(), free_addr());
     let config = pki.dir.join("gateway.toml");
     let log = pki.dir.join("gateway.log");
-    std::fs::write(
-        &config,
-        format!(
-            "[server]\nlisten = \"{listen}\"\nlisten_tls = \"{tls}\"\n{}\
-             [metrics]\nlisten = \"{metrics}\"\n\
-             [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\n\
-             [[bus.sim_slave]]\naddress = 1\n",
-            pki.tls_table(&first, ROLES)
-        ),
-    )
-    .unwrap();
+    let text = GatewayConfig::new()
+        .listen(listen)
+        .listen_tls(tls)
+        .server_table(&pki.tls_table(&first, ROLES))
+        .metrics_listen(metrics)
+        .bus(Bus::sim("sim").baud(115_200).sim_slaves("1"))
+        .to_toml();
+    std::fs::write(&config, text).unwrap();
     let child = Command::new(BINARY)
         .args(["--config", config.to_str().unwrap(), "run"])
         .env("RUST_LOG", "info")
@@ -477,15 +480,13 @@ async fn sighup_rotates_the_certificate_for_new_masters_and_names_a_broken_key()
 /// `check-config` on a configuration with a TLS table for `server`: its exit code, stdout, stderr.
 fn check_config(pki: &Pki, server: &Issued) -> (Option<i32>, String, String) {
     let config = pki.dir.join("check.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "[server]\nlisten_tls = \"127.0.0.1:802\"\n{}\
-             [[bus]]\nname = \"sim\"\ndevice = \"sim\"\n",
-            pki.tls_table(server, ROLES)
-        ),
-    )
-    .unwrap();
+    let text = GatewayConfig::new()
+        .default_listen()
+        .listen_tls("127.0.0.1:802")
+        .server_table(&pki.tls_table(server, ROLES))
+        .bus(Bus::sim("sim"))
+        .to_toml();
+    std::fs::write(&config, text).unwrap();
     let output = Command::new(BINARY)
         .args(["--config", config.to_str().unwrap(), "check-config"])
         .output()

@@ -7,7 +7,8 @@
 #![allow(unsafe_code)]
 
 use crate::support::{
-    http_get, mbap, rtu, sim_bus_counted, start, start_sim, within, Bus, GatewayConfig, RawMaster,
+    http_get, mbap, rtu, sim_bus_counted, sim_line, start, start_sim, within, Bus, GatewayConfig,
+    RawMaster,
 };
 use bytes::Bytes;
 use http_body_util::{BodyExt, Empty};
@@ -15,7 +16,6 @@ use hyper::body::Incoming;
 use modbus_gateway::testing::metrics::Metrics;
 use modbus_gateway::testing::sim::Source;
 use modbus_gateway::testing::trace::Traced;
-use modbus_gateway::Config;
 use serde_json::Value;
 use std::io::BufRead;
 use std::net::SocketAddr;
@@ -202,12 +202,15 @@ async fn a_trace_reader_gets_six_frames_for_three_requests_with_hex_and_outcome(
 
 #[tokio::test]
 async fn on_an_ascii_line_the_trace_shows_the_ascii_frames_characters() {
-    let gateway = start(
-        "[server]\nlisten = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nframing = \"ascii\"\nbaud = 9600\n\
-         [[bus.sim_slave]]\naddress = \"1-4\"\n",
-    )
-    .await;
+    let gateway = GatewayConfig::new()
+        .bus(
+            Bus::sim("sim")
+                .framing("ascii")
+                .baud(9600)
+                .sim_slaves("1-4"),
+        )
+        .start()
+        .await;
     let mut trace = Trace::open(gateway.metrics_addr(), "").await;
     let mut master = RawMaster::connect(gateway.tcp_addrs()[0]).await;
     master.call(1, 1, &[0x03, 0x00, 0x00, 0x00, 0x02]).await;
@@ -225,17 +228,18 @@ async fn on_an_ascii_line_the_trace_shows_the_ascii_frames_characters() {
 }
 
 /// Buses `a` and `b` with register slaves 1 and 2 each: units 1-2 on `a`, 11-12 on `b`.
-const TWO_BUSES: &str = "[server]\nlisten = \"127.0.0.1:0\"\n\
-    [[bus]]\nname = \"a\"\ndevice = \"sim\"\nbaud = 19200\nparity = \"even\"\n\
-    [[bus.sim_slave]]\naddress = \"1-2\"\n\
-    [[bus]]\nname = \"b\"\ndevice = \"sim\"\nbaud = 19200\nparity = \"even\"\n\
-    [[bus.sim_slave]]\naddress = \"1-2\"\n\
-    [[route]]\nunits = \"1-2\"\nbus = \"a\"\n\
-    [[route]]\nunits = \"11-12\"\nbus = \"b\"\noffset = -10\n";
+fn two_buses() -> GatewayConfig {
+    let line = |name: &str| Bus::sim(name).baud(19_200).parity("even").sim_slaves("1-2");
+    GatewayConfig::new()
+        .bus(line("a"))
+        .bus(line("b"))
+        .route("1-2", "a", None)
+        .route_offset("11-12", "b", -10)
+}
 
 #[tokio::test]
 async fn a_trace_filtered_by_bus_and_slave_gets_only_their_frames() {
-    let gateway = start(TWO_BUSES).await;
+    let gateway = two_buses().start().await;
     let metrics = gateway.metrics_addr();
     let mut trace = Trace::open(metrics, "?bus=b&slave=2").await;
     let mut master = RawMaster::connect(gateway.tcp_addrs()[0]).await;
@@ -448,13 +452,11 @@ async fn a_trace_stream_outlives_the_endpoints_connection_lifetime_with_keepaliv
 /// A bus on the simulated line at 9600 8E1, slaves 1-4, its task running, counting into
 /// `metrics` (whose trace hub it publishes to).
 fn sim_bus(metrics: &Metrics) -> modbus_gateway::testing::bus::BusHandle {
-    let settings = Config::from_toml_str(
-        "[[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 9600\nparity = \"even\"\n\
-         [[bus.sim_slave]]\naddress = \"1-4\"\n",
-    )
-    .expect("test config")
-    .bus
-    .remove(0);
+    let settings = GatewayConfig::new()
+        .bus(sim_line().sim_slaves("1-4"))
+        .load()
+        .bus
+        .remove(0);
     sim_bus_counted(settings, metrics).1
 }
 

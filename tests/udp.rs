@@ -217,13 +217,12 @@ async fn two_thousand_random_datagrams_leave_the_gateway_serving_and_the_line_un
 async fn masters_of_all_three_kinds_polling_one_bus_are_all_answered_and_share_it_fairly() {
     use modbus_gateway::testing::line::rtu;
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let gateway = start(
-        "[server]\nlisten = \"127.0.0.1:0\"\nlisten_rtu_over_tcp = \"127.0.0.1:0\"\n\
-         listen_udp = \"127.0.0.1:0\"\n\
-         [[bus]]\nname = \"sim\"\ndevice = \"sim\"\nbaud = 115200\n\
-         [[bus.sim_slave]]\naddress = \"1-3\"\n",
-    )
-    .await;
+    let gateway = GatewayConfig::new()
+        .listen_rtu_over_tcp("127.0.0.1:0")
+        .listen_udp("127.0.0.1:0")
+        .bus(Bus::sim("sim").baud(115_200).sim_slaves("1-3"))
+        .start()
+        .await;
     let run_for = Duration::from_secs(2);
     let read = [0x03, 0x00, 0x00, 0x00, 0x0A];
     let answer_len = 2 + 20;

@@ -501,7 +501,6 @@ fn parse(text: &str, source: &str, key: &str) -> Result<Template, Vec<ConfigErro
 /// Check the values of the slave at `at` (`bus[0].slave[1]`): its own, each under
 /// `at.value[N]`, and with its template's (named by `template`, reported under `at.template`),
 /// that no two share a name and labels, and that `max_read_registers` is a read's.
-#[allow(clippy::too_many_lines)] // TODO(lead): split
 pub(crate) fn check_slave(
     at: &str,
     slave: &super::Slave,

@@ -18,6 +18,7 @@ use modbus_gateway::{Config, Gateway};
 use std::fmt::Write as _;
 
 /// A TOML value: a string (quoted), a number, a boolean, or an array of strings.
+#[derive(Clone)]
 pub struct Value(String);
 
 impl From<&str> for Value {
@@ -62,6 +63,13 @@ macro_rules! number_values {
 }
 number_values!(u8, u16, u32, u64, usize, i32, i64);
 
+impl From<f64> for Value {
+    /// With its decimal point (`1.0`), so that it stays a TOML float.
+    fn from(x: f64) -> Value {
+        Value(format!("{x:?}"))
+    }
+}
+
 /// `text` as a TOML basic string.
 fn quoted(text: &str) -> String {
     let mut out = String::with_capacity(text.len() + 2);
@@ -91,6 +99,10 @@ impl Keys {
             keys.set(key, Value(value.0.clone()));
         }
         keys
+    }
+
+    fn remove(&mut self, key: &str) {
+        self.0.retain(|(k, _)| k != key);
     }
 
     fn set(&mut self, key: &str, value: Value) {
@@ -155,6 +167,19 @@ impl GatewayConfig {
         self.server("listen_udp", addr.to_string())
     }
 
+    /// `server.listen_tls`: the Modbus/TCP Security listener (its `[server.tls]` table from
+    /// [`crate::tls::Pki::tls_table`], given to [`GatewayConfig::server_table`]).
+    pub fn listen_tls(self, addr: impl ToString) -> Self {
+        self.server("listen_tls", addr.to_string())
+    }
+
+    /// No `server.listen` key: the gateway's default, as in a file an operator starts from (for a
+    /// configuration that is checked or read, never run).
+    pub fn default_listen(mut self) -> Self {
+        self.server.remove("listen");
+        self
+    }
+
     /// `server.read_only`: masters (addresses or networks) that may only read.
     pub fn read_only(self, masters: &[&str]) -> Self {
         self.server("read_only", masters)
@@ -163,6 +188,11 @@ impl GatewayConfig {
     /// `server.max_connections`.
     pub fn max_connections(self, n: usize) -> Self {
         self.server("max_connections", n)
+    }
+
+    /// `server.pipeline_depth`: requests read ahead from one connection.
+    pub fn pipeline_depth(self, n: usize) -> Self {
+        self.server("pipeline_depth", n)
     }
 
     /// Any other `[server]` key.
@@ -231,9 +261,12 @@ impl GatewayConfig {
 
     /// The configuration as the gateway reads it.
     pub fn to_toml(&self) -> String {
-        let mut out = String::from("[server]\n");
-        self.server.write(&mut out);
-        out.push_str(&self.server_tables);
+        let mut out = String::new();
+        if !self.server.0.is_empty() || !self.server_tables.is_empty() {
+            out.push_str("[server]\n");
+            self.server.write(&mut out);
+            out.push_str(&self.server_tables);
+        }
         if !self.metrics.0.is_empty() {
             out.push_str("[metrics]\n");
             self.metrics.write(&mut out);
@@ -312,6 +345,21 @@ impl Bus {
         self.key("response_timeout", timeout)
     }
 
+    /// `retries`: how many times a request that timed out is sent again.
+    pub fn retries(self, n: u32) -> Self {
+        self.key("retries", n)
+    }
+
+    /// `queue_depth`: requests waiting for the line.
+    pub fn queue_depth(self, n: usize) -> Self {
+        self.key("queue_depth", n)
+    }
+
+    /// `queue_timeout`, a humantime string: how long a request may wait for the line.
+    pub fn queue_timeout(self, timeout: &str) -> Self {
+        self.key("queue_timeout", timeout)
+    }
+
     /// Any other bus key.
     pub fn key(mut self, key: &str, value: impl Into<Value>) -> Self {
         self.keys.set(key, value.into());
@@ -326,6 +374,15 @@ impl Bus {
             self.tables.push('\n');
         }
         self
+    }
+
+    /// The `[bus.rs485]` table: how the transceiver is switched (`mode`, `echo`, delays).
+    pub fn rs485(self, keys: &[(&str, Value)]) -> Self {
+        let mut toml = String::from("[bus.rs485]\n");
+        for (key, value) in keys {
+            let _ = writeln!(toml, "{key} = {}", value.0);
+        }
+        self.text(&toml)
     }
 
     /// A `[[bus.slave]]`: per-slave settings for slave `address` (`response_timeout`...).
@@ -384,6 +441,23 @@ mod tests {
              [[bus]]\nname = \"line1\"\ndevice = \"sim\"\nbaud = 115200\nparity = \"none\"\n\
              [[bus.sim_slave]]\naddress = \"1-4\"\n\
              [[route]]\nunits = \"255\"\nbus = \"line1\"\naddress = 17\n"
+        );
+    }
+
+    #[test]
+    fn without_listen_there_is_no_server_table_and_a_float_keeps_its_point() {
+        let toml = GatewayConfig::new()
+            .default_listen()
+            .bus(
+                Bus::on("usb", "/dev/ttyUSB0")
+                    .rs485(&[("echo", true.into())])
+                    .sim_slave("2", &[("crc_error_rate", 1.0.into())]),
+            )
+            .to_toml();
+        assert_eq!(
+            toml,
+            "[[bus]]\nname = \"usb\"\ndevice = \"/dev/ttyUSB0\"\n[bus.rs485]\necho = true\n\
+             [[bus.sim_slave]]\naddress = \"2\"\ncrc_error_rate = 1.0\n"
         );
     }
 
