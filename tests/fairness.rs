@@ -3,8 +3,8 @@
 //! master that asks politely gets in however many others flood it.
 
 use crate::support::{
-    addr, assert_fair, flood_target, polite_reads, start, within, Bus, Flood, GatewayConfig,
-    RawMaster, Rotation,
+    addr, assert_fair, crowded_line, flood_target, polite_reads, start, within, Flood,
+    GatewayConfig, RawMaster, Rotation,
 };
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -16,17 +16,7 @@ const GREEDY_PIPELINE: usize = 8;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn two_hundred_masters_are_all_served_correctly_and_fairly() {
-    let gateway = GatewayConfig::new()
-        .bus(
-            Bus::sim("fast")
-                .baud(115_200)
-                .parity("none")
-                .queue_depth(2048)
-                .queue_timeout("60s")
-                .sim_slaves("1-4"),
-        )
-        .start()
-        .await;
+    let gateway = GatewayConfig::new().bus(crowded_line()).start().await;
     let at = addr(&gateway);
     let barrier = Arc::new(Barrier::new(MASTERS));
     let rotation = Rotation::new(MASTERS);

@@ -6,7 +6,7 @@ use crate::support::tls::{
     connector_with, days_from_now, tls_connect, tls_connect_from, tls_master, Issued, Pki, Role,
 };
 use crate::support::{
-    assert_fair, connect_from, exit_status, free_addr, panics_on_this_thread, signal,
+    assert_fair, connect_from, crowded_line, exit_status, free_addr, panics_on_this_thread, signal,
     sim_config_with_server, start, until_logged, within, Bus, GatewayConfig, RawMaster, Rotation,
     Scrape,
 };
@@ -323,14 +323,7 @@ async fn two_hundred_tls_masters_polling_at_once_are_answered_correctly_and_fair
     let gateway = GatewayConfig::new()
         .listen_tls("127.0.0.1:0")
         .server_table(&pki.tls_table(&server, "roles = { viewer = \"read_only\" }"))
-        .bus(
-            Bus::sim("fast")
-                .baud(115_200)
-                .parity("none")
-                .queue_depth(2048)
-                .queue_timeout("60s")
-                .sim_slaves("1-4"),
-        )
+        .bus(crowded_line())
         .start()
         .await;
     let at = tls_addr(&gateway);

@@ -59,6 +59,17 @@ pub fn fast_sim_config() -> String {
         .to_toml()
 }
 
+/// The line two hundred masters share at once: simulated, 115200 8N1, register slaves 1-4, with
+/// room in its queue for every master's pipeline and a queue timeout no request reaches.
+pub fn crowded_line() -> Bus {
+    Bus::sim("fast")
+        .baud(115_200)
+        .parity("none")
+        .queue_depth(2048)
+        .queue_timeout("60s")
+        .sim_slaves("1-4")
+}
+
 /// A gateway configuration for floods: Modbus TCP and UDP listeners, one simulated line at `baud`
 /// with register slaves 1 and 2, `queue_depth` places and a queue timeout no read reaches.
 pub fn flood_target(baud: u32, queue_depth: usize) -> String {
