@@ -6,7 +6,9 @@
 //! and the rest of the gateway reads them through the methods below. Knows nothing of how the
 //! values are used.
 
-use super::{defaults, Bus, Config, Server, Slave, Template, Value, ValueType, MAX_READ_REGISTERS};
+use super::{
+    defaults, Bus, Config, Route, Server, Slave, Template, Value, ValueType, MAX_READ_REGISTERS,
+};
 use crate::line::{Framing, MasterTiming, SerialFormat};
 use std::time::Duration;
 
@@ -17,7 +19,7 @@ impl Config {
         server.max_connections_per_address = Some(server.connections_per_address_setting());
         for route in &mut self.route {
             if route.address.is_none() {
-                route.offset = Some(route.offset.unwrap_or(0));
+                route.offset = Some(route.unit_offset());
             }
         }
         for bus in &mut self.bus {
@@ -116,6 +118,13 @@ impl Bus {
                 .stop_bits
                 .unwrap_or_else(|| defaults::stop_bits(self.parity)),
         }
+    }
+}
+
+impl Route {
+    /// What a route without `address` adds to a unit id: its `offset`, else 0.
+    pub(crate) fn unit_offset(&self) -> i32 {
+        self.offset.unwrap_or(0)
     }
 }
 

@@ -22,7 +22,7 @@ impl Route {
     pub fn target(&self, unit: u8, highest: u8) -> Option<u8> {
         let address = match (self.address, self.offset) {
             (Some(address), _) => i64::from(address),
-            (None, offset) => i64::from(unit) + i64::from(offset.unwrap_or(0)),
+            (None, _) => i64::from(unit) + i64::from(self.unit_offset()),
         };
         u8::try_from(address).ok().filter(|&a| a <= highest)
     }

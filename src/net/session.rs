@@ -319,13 +319,13 @@ async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
     // Since when the start of a request has been waiting for the rest of it.
     let mut partial_since: Option<Instant> = None;
     let mut stopped = stopping.deadline().is_some();
+    let requests = Requests {
+        framing,
+        dispatcher,
+        activity,
+    };
+    let depth = limits.pipeline_depth;
     loop {
-        let depth = limits.pipeline_depth;
-        let requests = Requests {
-            framing,
-            dispatcher,
-            activity,
-        };
         match requests.take(&mut inbound, &mut in_flight, depth, client) {
             Ok(taken) => {
                 if taken.frame {
