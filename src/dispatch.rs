@@ -12,7 +12,7 @@ use crate::audit::{self, Audit, Decided, Pending};
 use crate::bus::{BusHandle, Tally, Waiter};
 use crate::config::{Action, UnitSet};
 use crate::error::{Answer, Outcome, RequestError};
-use crate::master::{Class, MasterId, Origin, Protocol, Rights};
+use crate::master::{Class, MasterId, Origin, Peer, Protocol, Rights};
 use crate::metrics::{Metrics, Refusal};
 use crate::pdu::{self, RequestLen};
 use crate::routing::{Inbound, Router, Target};
@@ -26,7 +26,7 @@ use tokio::time::Instant;
 #[derive(Debug)]
 pub struct Client {
     pub master: MasterId,
-    pub peer: SocketAddr,
+    pub peer: Peer,
     pub rights: Rights,
     /// The unit ids it may address (its TLS role's `units`); `None`: any.
     pub units: Option<UnitSet>,
@@ -54,6 +54,11 @@ pub struct Identity {
 
 impl Client {
     pub fn new(master: MasterId, peer: SocketAddr, rights: Rights) -> Self {
+        Self::at(master, Peer::Net(peer), rights)
+    }
+
+    /// A master at `peer`, a socket address or a serial master port.
+    pub(crate) fn at(master: MasterId, peer: Peer, rights: Rights) -> Self {
         Client {
             master,
             peer,
@@ -187,7 +192,7 @@ impl Dispatcher {
         let table = self.table();
         let target = table.router.resolve(unit);
         let inbound = Inbound {
-            peer: client.peer,
+            peer: &client.peer,
             protocol: client.protocol,
             subject: client.identity.as_ref().map(|i| i.subject.as_str()),
             role: client.role(),

@@ -141,6 +141,7 @@ pub fn config_from_toml(text: &str) -> Result<Config, ConfigErrors> {
 /// the configuration in force, the masters the listeners serve.
 struct Inspected {
     shared: Arc<Shared>,
+    ports: Vec<Arc<crate::port::PortView>>,
     config: Arc<Mutex<Config>>,
     values: Arc<Store>,
 }
@@ -156,7 +157,13 @@ impl web::Inspect for Inspected {
     }
 
     fn masters(&self) -> Vec<net::server::Connected> {
-        self.shared.masters()
+        let mut masters = self.shared.masters();
+        masters.extend(self.ports.iter().filter_map(|port| port.master()));
+        masters
+    }
+
+    fn ports(&self) -> &[Arc<crate::port::PortView>] {
+        &self.ports
     }
 
     fn values(&self) -> &Store {
@@ -203,14 +210,16 @@ async fn bind_metrics(listen: SocketAddr) -> Result<(TcpListener, SocketAddr), S
     Ok((listener, addr))
 }
 
-/// One task per bound listener, accepting masters.
-fn serve_listeners(listeners: Vec<net::listener::Listener>, shared: &Arc<Shared>) -> JoinSet<()> {
-    let mut tasks = JoinSet::new();
+/// One task per bound listener in `tasks`, accepting masters.
+fn serve_listeners(
+    listeners: Vec<net::listener::Listener>,
+    shared: &Arc<Shared>,
+    tasks: &mut JoinSet<()>,
+) {
     for listener in listeners {
         info!(listen = %listener.addr, protocol = listener.protocol.name(), "accepting masters");
         tasks.spawn(net::serve(listener, shared.clone()));
     }
-    tasks
 }
 
 /// The writes' record, with the journal of `[audit]` open; one that cannot be opened is a start
@@ -315,9 +324,12 @@ impl Gateway {
             metrics.clone(),
             stopping,
         ));
+        let mut listener_tasks = JoinSet::new();
+        let ports = crate::port::start(&config.server.serial, &shared, &mut listener_tasks);
         let config = Arc::new(Mutex::new(config.clone()));
         let inspected = Inspected {
             shared: shared.clone(),
+            ports,
             config: config.clone(),
             values: values.store().clone(),
         };
@@ -329,7 +341,7 @@ impl Gateway {
             Arc::new(inspected),
         ));
         let listen_addrs = ListenAddrs::of(&listeners);
-        let listener_tasks = serve_listeners(listeners, &shared);
+        serve_listeners(listeners, &shared, &mut listener_tasks);
         Ok(Gateway {
             listen_addrs,
             metrics_addr,

@@ -75,6 +75,7 @@ mod metrics;
 mod net;
 mod pdu;
 mod pem;
+mod port;
 mod routing;
 mod rules;
 mod shutdown;

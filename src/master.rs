@@ -2,6 +2,10 @@
 //! the gateway, what it may ask for, whose turn and share it takes). Plain values; imports
 //! nothing from the crate, so every module may use it.
 
+use std::fmt;
+use std::net::{IpAddr, SocketAddr};
+use std::sync::Arc;
+
 /// One master: a connection, or one source port of a Modbus UDP address.
 pub(crate) type MasterId = u64;
 
@@ -73,6 +77,65 @@ pub enum Protocol {
     Udp,
     /// Modbus/TCP Security: Modbus TCP in TLS (`server.listen_tls`).
     Tls,
+    /// A master on a serial line, the gateway its slave (`[[server.serial]]`), in RTU or ASCII.
+    Serial,
+}
+
+/// Where a master is: a socket address on the network, or a serial master port of the gateway's.
+/// What the journal, the status page and the logs call it ([`fmt::Display`]: the address, or
+/// `serial:NAME`).
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub enum Peer {
+    Net(SocketAddr),
+    /// `[[server.serial]]`'s `name`.
+    Port(Arc<str>),
+}
+
+impl Peer {
+    /// The network address, canonical (an IPv4 address mapped into IPv6 as IPv4); `None` for a
+    /// serial port's master, which no address rule (`masters`, `allow`) matches.
+    pub fn ip(&self) -> Option<IpAddr> {
+        match self {
+            Peer::Net(addr) => Some(addr.ip().to_canonical()),
+            Peer::Port(_) => None,
+        }
+    }
+
+    /// Where the logs' throttles count a peer's refusals: its host, or its port.
+    pub(crate) fn host(&self) -> Host {
+        match self {
+            Peer::Net(addr) => Host::Ip(addr.ip()),
+            Peer::Port(name) => Host::Port(name.clone()),
+        }
+    }
+}
+
+impl From<SocketAddr> for Peer {
+    fn from(addr: SocketAddr) -> Peer {
+        Peer::Net(addr)
+    }
+}
+
+impl fmt::Display for Peer {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Peer::Net(addr) => addr.fmt(f),
+            Peer::Port(name) => write!(f, "serial:{name}"),
+        }
+    }
+}
+
+/// A peer's host, without its source port: what one sender is, for the logs' throttles.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub(crate) enum Host {
+    Ip(IpAddr),
+    Port(Arc<str>),
+}
+
+impl From<IpAddr> for Host {
+    fn from(ip: IpAddr) -> Host {
+        Host::Ip(ip)
+    }
 }
 
 /// How a master's bytes travel: on a stream, plain or in TLS, or in datagrams.
@@ -84,10 +147,13 @@ pub enum UpstreamTransport {
     Tls,
     /// UDP datagrams, one request each.
     Udp,
+    /// A serial line (a UART, a pty, or one behind a serial device server) to one master.
+    Serial,
 }
 
 impl UpstreamTransport {
-    /// A connection (TCP or TLS) rather than datagrams.
+    /// A connection (TCP or TLS, or a serial master port's line, which one master holds)
+    /// rather than datagrams.
     pub(crate) fn is_stream(self) -> bool {
         self != UpstreamTransport::Udp
     }
@@ -114,11 +180,12 @@ pub struct Spec {
 }
 
 impl Protocol {
-    pub(crate) const ALL: [Protocol; 4] = [
+    pub(crate) const ALL: [Protocol; 5] = [
         Protocol::Tcp,
         Protocol::RtuOverTcp,
         Protocol::Udp,
         Protocol::Tls,
+        Protocol::Serial,
     ];
 
     /// The one table of the protocols: their transport, framing, name and label.
@@ -147,6 +214,13 @@ impl Protocol {
                 UpstreamFraming::Mbap,
                 "Modbus/TCP Security",
                 "tls",
+            ),
+            // A port's framing is its own (`framing`, RTU or ASCII); RTU is the table's.
+            Protocol::Serial => (
+                UpstreamTransport::Serial,
+                UpstreamFraming::Rtu,
+                "serial master port",
+                "serial",
             ),
         };
         Spec {
@@ -232,7 +306,8 @@ mod tests {
                 "Modbus TCP",
                 "RTU over TCP",
                 "Modbus UDP",
-                "Modbus/TCP Security"
+                "Modbus/TCP Security",
+                "serial master port"
             ]
         );
     }

@@ -8,8 +8,7 @@
 
 use crate::config::Config;
 use crate::line::BROADCAST;
-use crate::master::Protocol;
-use std::net::SocketAddr;
+use crate::master::{Peer, Protocol};
 
 /// Where a unit's requests go.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -27,7 +26,7 @@ pub(crate) struct Target {
 /// the journal records it.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Inbound<'a> {
-    pub(crate) peer: SocketAddr,
+    pub(crate) peer: &'a Peer,
     pub(crate) protocol: Protocol,
     /// A TLS master's certificate subject, and the role it carries, as written.
     pub(crate) subject: Option<&'a str>,

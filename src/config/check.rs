@@ -104,6 +104,7 @@ impl Config {
         check_devices_once(&self.bus, &mut report);
         check_routes(&self.route, &self.bus, &names, &mut report);
         check_rules(&self.rule, &self.server, &names, &mut report);
+        super::serial_port::check(&self.server.serial, &self.bus, &mut report.0);
         if let Some(audit) = &self.audit {
             check_audit(audit, &mut report);
         }

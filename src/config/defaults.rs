@@ -83,6 +83,17 @@ pub(crate) fn queue_depth() -> usize {
 pub(crate) fn queue_timeout() -> Duration {
     Duration::from_secs(1)
 }
+/// A serial master port answers every address a slave may have.
+pub(crate) fn port_units() -> super::UnitSet {
+    let mut units = super::UnitSet::default();
+    (1..=crate::line::MAX_SERIAL_ADDRESS).for_each(|u| units.insert(u));
+    units
+}
+/// Below the 1 s response timeout most masters default to, with room for the reply's own time
+/// on the wire.
+pub(crate) fn answer_within() -> Duration {
+    Duration::from_millis(800)
+}
 pub(crate) fn reopen_delay() -> Duration {
     Duration::from_millis(250)
 }

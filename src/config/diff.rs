@@ -74,6 +74,9 @@ impl ConfigDiff {
         if new.server.listen_tls != old.server.listen_tls {
             need_restart.push("server.listen_tls");
         }
+        if new.server.serial != old.server.serial {
+            need_restart.push("server.serial");
+        }
         if new.metrics != old.metrics {
             need_restart.push("metrics.listen");
         }
@@ -153,6 +156,7 @@ fn policy(server: &Server) -> Server {
     server.listen_rtu_over_tcp.clear();
     server.listen_udp.clear();
     server.listen_tls.clear();
+    server.serial.clear();
     server.shutdown_timeout = Duration::ZERO;
     server
 }

@@ -85,6 +85,7 @@ fn server() -> impl Strategy<Value = Server> {
             priority,
             priority_share,
             tls,
+            serial: Vec::new(),
         },
     )
 }

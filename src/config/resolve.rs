@@ -17,6 +17,11 @@ impl Config {
     pub(crate) fn resolve(&mut self) {
         let server = &mut self.server;
         server.max_connections_per_address = Some(server.connections_per_address_setting());
+        for port in &mut server.serial {
+            let format = port.format();
+            port.data_bits = Some(format.data_bits);
+            port.stop_bits = Some(format.stop_bits);
+        }
         for route in &mut self.route {
             if route.address.is_none() {
                 route.offset = Some(route.unit_offset());

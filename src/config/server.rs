@@ -4,7 +4,7 @@
 use super::defaults;
 use super::serde_adapters::{duration, text_list};
 use super::serde_adapters::{words, Choice};
-use super::Tls;
+use super::{ServerSerial, Tls};
 use ipnet::IpNet;
 use serde::{Deserialize, Serialize};
 use std::net::SocketAddr;
@@ -63,6 +63,9 @@ pub struct Server {
     /// The certificates and roles of the `listen_tls` listeners.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub tls: Option<Tls>,
+    /// Serial master ports: masters on serial lines, the gateway their slave.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub serial: Vec<ServerSerial>,
 }
 
 /// What a connection beyond `server.max_connections` does.
@@ -110,6 +113,7 @@ impl Default for Server {
             priority: Vec::new(),
             priority_share: defaults::PRIORITY_SHARE,
             tls: None,
+            serial: Vec::new(),
         }
     }
 }

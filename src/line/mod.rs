@@ -8,6 +8,7 @@
 pub(crate) mod ascii;
 pub(crate) mod engine;
 pub(crate) mod framing;
+pub(crate) mod inbound;
 pub(crate) mod pipeline;
 pub(crate) mod reply;
 pub mod rtu;

@@ -12,6 +12,7 @@ mod labels;
 mod median;
 mod polls;
 mod port;
+mod serial;
 mod tcp;
 mod throttle;
 mod tls;
@@ -26,6 +27,7 @@ pub(crate) use labels::Fate;
 pub(crate) use labels::LinkDrop;
 pub(crate) use labels::Rejection;
 pub(crate) use port::PortLoss;
+pub(crate) use serial::{PortMetrics, PortOutcome, SerialMetrics};
 
 use labels::{hex, OTHER};
 pub(crate) use tcp::Refusal;
@@ -144,6 +146,8 @@ pub struct Metrics {
     pub tcp: TcpMetrics,
     pub udp: UdpMetrics,
     pub tls: TlsMetrics,
+    /// The serial master ports.
+    pub serial: SerialMetrics,
     /// The writes, and the audit journal.
     pub audit: AuditMetrics,
     /// The live trace of the lines' frames (`GET /trace`).
@@ -180,6 +184,7 @@ impl Metrics {
             tcp: TcpMetrics::new(&define),
             udp: UdpMetrics::new(&define),
             tls: TlsMetrics::new(&define),
+            serial: SerialMetrics::new(&define),
             audit: AuditMetrics::new(&define),
             trace: Arc::new(crate::trace::TraceHub::new()),
             scrape_hooks: Mutex::new(Vec::new()),

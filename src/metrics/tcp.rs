@@ -5,7 +5,7 @@
 use super::labels::{hex, Closing, Rejection};
 use super::throttle::PeerThrottle;
 use super::{Definer, TCP_EVENTS};
-use crate::master::Protocol;
+use crate::master::{Peer, Protocol};
 use crate::timer::RealInstant;
 use prometheus::{IntCounter, IntCounterVec, IntGaugeVec};
 use std::fmt::Display;
@@ -197,8 +197,8 @@ impl TcpMetrics {
 
     /// A master whose role names the units it may address asked for another (counted with the
     /// request, as `no_access`). Logged at warn at most once a minute per source address.
-    pub(crate) fn unit_refused(&self, master: u64, peer: &SocketAddr, unit: u8) {
-        match self.refusals.due(peer.ip()) {
+    pub(crate) fn unit_refused(&self, master: u64, peer: &Peer, unit: u8) {
+        match self.refusals.due(peer.host()) {
             Some(held_back) => {
                 warn!(target: TCP_EVENTS, master, %peer, unit, held_back, "refusing a unit the master's role may not address (0x01)");
             }
@@ -209,16 +209,10 @@ impl TcpMetrics {
     /// A master asked for something it may not (counted with the request, as `read_only` or
     /// `no_access`). Logged at warn at most once a minute per source address, with how many
     /// were held back since the last.
-    pub(crate) fn request_refused(
-        &self,
-        master: u64,
-        peer: &SocketAddr,
-        function: u8,
-        refusal: Refusal,
-    ) {
+    pub(crate) fn request_refused(&self, master: u64, peer: &Peer, function: u8, refusal: Refusal) {
         let function = hex(function);
         let access = refusal.access();
-        match self.refusals.due(peer.ip()) {
+        match self.refusals.due(peer.host()) {
             Some(held_back) => {
                 warn!(target: TCP_EVENTS, master, %peer, function, access, held_back, "{}", refusal.event());
             }
@@ -229,9 +223,9 @@ impl TcpMetrics {
     /// A request longer or shorter than its function code says was refused with 0x03, unsent
     /// (counted with the request, as `bad_length`). Logged at warn at most once a minute per
     /// source address.
-    pub fn bad_length(&self, master: u64, peer: &SocketAddr, function: u8, len: usize) {
+    pub fn bad_length(&self, master: u64, peer: &Peer, function: u8, len: usize) {
         let function = hex(function);
-        match self.bad_lengths.due(peer.ip()) {
+        match self.bad_lengths.due(peer.host()) {
             Some(held_back) => {
                 warn!(target: TCP_EVENTS, master, %peer, function, len, held_back, "refusing a request not as long as its function code says (0x03); nothing sent");
             }

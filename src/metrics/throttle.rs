@@ -4,9 +4,9 @@
 //! the gateway's own lines ("slave down", "port lost"). What is held back is still counted, and
 //! logged at debug.
 
+use crate::master::Host;
 use crate::timer::RealInstant;
 use std::collections::HashMap;
-use std::net::IpAddr;
 use std::sync::{Mutex, PoisonError};
 use std::time::Duration;
 
@@ -24,7 +24,7 @@ struct Logged {
 
 /// One kind of event's last warn line per source address.
 pub(super) struct PeerThrottle {
-    logged: Mutex<HashMap<IpAddr, Logged>>,
+    logged: Mutex<HashMap<Host, Logged>>,
 }
 
 impl PeerThrottle {
@@ -36,11 +36,15 @@ impl PeerThrottle {
 
     /// Whether an event from `peer` now gets its warn line: `Some(n)`, `n` being how many of
     /// its events were held back since its last one; `None`: log it at debug.
-    pub(super) fn due(&self, peer: IpAddr) -> Option<u64> {
-        self.due_at(peer.to_canonical(), RealInstant::now())
+    pub(super) fn due(&self, peer: impl Into<Host>) -> Option<u64> {
+        let host = match peer.into() {
+            Host::Ip(ip) => Host::Ip(ip.to_canonical()),
+            port => port,
+        };
+        self.due_at(host, RealInstant::now())
     }
 
-    fn due_at(&self, peer: IpAddr, now: RealInstant) -> Option<u64> {
+    fn due_at(&self, peer: Host, now: RealInstant) -> Option<u64> {
         let mut logged = self.logged.lock().unwrap_or_else(PoisonError::into_inner);
         if let Some(last) = logged.get_mut(&peer) {
             if now.duration_since(last.at) < INTERVAL {
@@ -74,6 +78,7 @@ impl PeerThrottle {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::net::IpAddr;
 
     #[test]
     fn one_line_per_address_per_interval_and_the_next_says_how_many_were_held_back() {
@@ -81,13 +86,16 @@ mod tests {
         let start = RealInstant::now();
         let a: IpAddr = "192.0.2.1".parse().unwrap();
         let b: IpAddr = "192.0.2.2".parse().unwrap();
-        assert_eq!(throttle.due_at(a, start), Some(0));
+        assert_eq!(throttle.due_at(a.into(), start), Some(0));
         for _ in 0..5 {
-            assert_eq!(throttle.due_at(a, start + Duration::from_secs(1)), None);
+            assert_eq!(
+                throttle.due_at(a.into(), start + Duration::from_secs(1)),
+                None
+            );
         }
-        assert_eq!(throttle.due_at(b, start), Some(0), "another address");
-        assert_eq!(throttle.due_at(a, start + INTERVAL), Some(5));
-        assert_eq!(throttle.due_at(a, start + INTERVAL), None);
+        assert_eq!(throttle.due_at(b.into(), start), Some(0), "another address");
+        assert_eq!(throttle.due_at(a.into(), start + INTERVAL), Some(5));
+        assert_eq!(throttle.due_at(a.into(), start + INTERVAL), None);
     }
 
     #[test]
@@ -96,7 +104,7 @@ mod tests {
         let start = RealInstant::now();
         for n in 0..(PEERS as u32 + 100) {
             let peer = IpAddr::from(std::net::Ipv4Addr::from(0x0A00_0000 + n));
-            let due = throttle.due_at(peer, start);
+            let due = throttle.due_at(peer.into(), start);
             assert_eq!(due.is_some(), (n as usize) < PEERS, "{n}");
         }
         let logged = throttle.logged.lock().unwrap();
@@ -104,6 +112,6 @@ mod tests {
         drop(logged);
         // An interval later the old ones make room.
         let late = IpAddr::from(std::net::Ipv4Addr::new(192, 0, 2, 9));
-        assert_eq!(throttle.due_at(late, start + INTERVAL), Some(0));
+        assert_eq!(throttle.due_at(late.into(), start + INTERVAL), Some(0));
     }
 }

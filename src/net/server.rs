@@ -14,7 +14,7 @@ use super::session::{self, Activity, SessionView};
 use super::tls::Certified;
 use crate::config::{WhenFull, OTHER_ROLE};
 use crate::dispatch::{Client, Dispatcher};
-use crate::master::{MasterId, Protocol, Rights, UpstreamTransport};
+use crate::master::{MasterId, Peer, Protocol, Rights, UpstreamTransport};
 use crate::metrics::{Metrics, Rejection, TcpMetrics, TlsMaster};
 use crate::shutdown::Stopping;
 use crate::socket::set_keepalive;
@@ -80,7 +80,7 @@ struct Session {
 /// A master connected now, as the operator's pages list it.
 #[derive(Clone, Debug)]
 pub(crate) struct Connected {
-    pub(crate) peer: SocketAddr,
+    pub(crate) peer: Peer,
     pub(crate) protocol: Protocol,
     pub(crate) rights: Rights,
     /// The role of its certificate, on a TLS connection that has one.
@@ -176,7 +176,7 @@ impl Shared {
         masters
             .into_iter()
             .map(|(_, session)| Connected {
-                peer: session.peer,
+                peer: Peer::Net(session.peer),
                 protocol: session.protocol,
                 rights: session.rights,
                 role: session.role.clone(),

@@ -8,12 +8,12 @@
 
 use super::slaves::{Heard, Slaves};
 use super::Simulated;
-use crate::line::framing::{Completion, Silence};
+use crate::line::inbound::{Received, RequestReader};
 use crate::line::{Framing, LineTiming, Transport};
 use crate::timer::sleep_until;
 use std::io;
 use std::time::Duration;
-use tokio::time::{timeout, Instant};
+use tokio::time::Instant;
 use tracing::debug;
 
 /// What the responder has seen, for its log line.
@@ -65,56 +65,15 @@ impl Responder {
 
     /// Answer requests on `port` until it fails; returns why.
     pub async fn serve<T: Transport>(&mut self, port: &mut T) -> io::Error {
-        let framing = self.slaves.framing();
-        let mut buf = Vec::with_capacity(framing.max_frame_len());
+        let mut reader = RequestReader::new(self.slaves.framing(), self.silence);
         loop {
-            let completion = framing.request_completion(&buf);
-            match completion {
-                Completion::Whole(n) => {
-                    let request: Vec<u8> = buf.drain(..n).collect();
+            match reader.next(port).await {
+                Ok(Received::Frame(request)) => {
                     if let Err(e) = self.answer(port, &request).await {
                         return e;
                     }
-                    continue;
                 }
-                Completion::Invalid => {
-                    self.stats.bad_frames += 1;
-                    buf.clear();
-                }
-                _ if buf.len() > framing.max_frame_len() => {
-                    self.stats.bad_frames += 1;
-                    buf.clear();
-                }
-                _ => {}
-            }
-            let received = if buf.is_empty() {
-                port.recv(&mut buf).await
-            } else {
-                match timeout(self.silence, port.recv(&mut buf)).await {
-                    Ok(received) => received,
-                    Err(_) => {
-                        // Silence ends the frame: whole if only silence could tell its length,
-                        // otherwise cut short.
-                        let request = std::mem::take(&mut buf);
-                        if completion == Completion::Open(Silence::EndsFrame) {
-                            if let Err(e) = self.answer(port, &request).await {
-                                return e;
-                            }
-                        } else {
-                            self.stats.bad_frames += 1;
-                        }
-                        continue;
-                    }
-                }
-            };
-            match received {
-                Ok(0) => {
-                    return io::Error::new(
-                        io::ErrorKind::UnexpectedEof,
-                        "the port reads 0 bytes (device gone)",
-                    )
-                }
-                Ok(_) => {}
+                Ok(Received::Broken) => self.stats.bad_frames += 1,
                 Err(e) => return e,
             }
         }

@@ -29,6 +29,10 @@ pub(crate) trait Inspect: Send + Sync + 'static {
     fn settings(&self, name: &str) -> Option<config::Bus>;
     /// The masters connected now, longest connected first.
     fn masters(&self) -> Vec<Connected>;
+    /// The serial master ports.
+    fn ports(&self) -> &[std::sync::Arc<crate::port::PortView>] {
+        &[]
+    }
     /// The plant values as last read.
     fn values(&self) -> &crate::values::Store;
     /// The last writes, newest last.
@@ -121,8 +125,24 @@ impl StatusSource {
                 .iter()
                 .map(|m| master_status(m, wall))
                 .collect(),
+            serial_ports: gateway.ports().iter().map(|p| port_status(p)).collect(),
             writes: gateway.writes(),
         }
+    }
+}
+
+/// One serial master port on the status page.
+fn port_status(port: &crate::port::PortView) -> status::SerialPortStatus {
+    status::SerialPortStatus {
+        name: port.name.to_string(),
+        device: port.device.clone(),
+        format: port.format.clone(),
+        framing: port.framing,
+        up: port.metrics.is_up(),
+        requests: crate::metrics::PortOutcome::ALL
+            .iter()
+            .map(|&o| (o.label(), port.metrics.counted(o)))
+            .collect(),
     }
 }
 

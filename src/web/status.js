@@ -175,6 +175,14 @@ function renderMasters(masters) {
   ])), "no master connected", 6);
 }
 
+function renderPorts(ports) {
+  fill($("ports"), ports.map((p) => row([
+    p.name, p.device, p.format + " " + p.framing.toUpperCase(), p.up ? "open" : "not open",
+    ...["answered", "exception", "broadcast", "not_addressed", "bad_frame", "too_late"]
+      .map((k) => cell(p.requests[k], "num")),
+  ])), "no serial master port configured", 10);
+}
+
 // The public function codes a write may carry, named as the Modbus Application Protocol names
 // them; any other code shows in hex.
 const FUNCTION_NAMES = new Map([
@@ -551,6 +559,7 @@ async function poll() {
     renderBuses(s.buses);
     renderSlaves(s.buses);
     renderMasters(s.masters);
+    renderPorts(s.serial_ports || []);
     renderWrites(s.writes || [], Date.parse(s.time));
     renderValues(v.values, s.buses, Date.parse(s.time));
     $("problem").textContent = "";

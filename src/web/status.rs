@@ -38,9 +38,12 @@ pub(crate) struct Status {
     pub(crate) time: String,
     pub(crate) uptime_seconds: f64,
     pub(crate) buses: Vec<BusStatus>,
-    /// The masters connected now over TCP (Modbus TCP, RTU over TCP, TLS); UDP masters have no
-    /// connection and are not listed.
+    /// The masters connected now over TCP (Modbus TCP, RTU over TCP, TLS), and those of the
+    /// serial master ports whose device is open (`serial:NAME`); UDP masters have no connection
+    /// and are not listed.
     pub(crate) masters: Vec<MasterStatus>,
+    /// The serial master ports (`[[server.serial]]`) and their masters' traffic.
+    pub(crate) serial_ports: Vec<SerialPortStatus>,
     /// The last writes (every function that may change a slave), newest last, each with its
     /// outcome once it has one: the journal's lines (docs/writes.md).
     pub(crate) writes: Vec<crate::audit::Recent>,
@@ -101,11 +104,27 @@ pub(crate) struct SlaveStatus {
     pub(crate) polls: u64,
 }
 
+/// A serial master port.
+#[derive(Clone, Debug, Serialize)]
+pub(crate) struct SerialPortStatus {
+    pub(crate) name: String,
+    pub(crate) device: String,
+    /// `19200 8E1`.
+    pub(crate) format: String,
+    /// `rtu` or `ascii`.
+    pub(crate) framing: &'static str,
+    /// Whether its device is open.
+    pub(crate) up: bool,
+    /// Its master's frames by how they ended, as `modbus_gateway_serial_requests_total`'s
+    /// `outcome` label says.
+    pub(crate) requests: BTreeMap<&'static str, u64>,
+}
+
 #[derive(Clone, Debug, Serialize)]
 pub(crate) struct MasterStatus {
-    /// The peer's `ip:port`.
+    /// The peer's `ip:port`, or `serial:NAME` for a serial master port's master.
     pub(crate) address: String,
-    /// `tcp`, `rtu_over_tcp` or `tls`.
+    /// `tcp`, `rtu_over_tcp`, `tls` or `serial`.
     pub(crate) protocol: &'static str,
     /// `read_write`, `read_only` or `none`.
     pub(crate) rights: &'static str,
