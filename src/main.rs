@@ -25,8 +25,8 @@ use std::process::ExitCode;
     version,
     about = "Modbus TCP to Modbus RTU (RS-485) gateway",
     long_about = "Modbus TCP to Modbus RTU (RS-485) gateway. Masters on Ethernet (Modbus TCP, RTU \
-                  over TCP, UDP, Modbus/TCP Security) share RS-485 lines of Modbus RTU or ASCII \
-                  slaves: the gateway is the one master of each line, with the serial line \
+                  over TCP, UDP, Modbus/TCP Security) and on serial master ports share RS-485 \
+                  lines of Modbus RTU or ASCII slaves: the gateway is the one master of each line, with the serial line \
                   spec's timing, fair sharing between masters, its own exceptions (0x0A, 0x0B, \
                   0x06) and Prometheus metrics. Without a subcommand it runs the gateway."
 )]

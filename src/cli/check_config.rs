@@ -166,11 +166,45 @@ fn describe(path: &Path, config: &Config, tls: Option<&TlsServer>, now: SystemTi
             DeviceName::Server(addr) => out += &describe_link(&bus.name, &addr, master.packing),
         }
     }
+    out += &describe_ports(config);
     if let Some(tls) = tls {
         out += &describe_tls(config, tls, now);
     }
     out += &describe_writes(config);
     out + "\n" + &config.to_toml()
+}
+
+/// What each serial master port answers, and when (docs/serial-ports.md).
+fn describe_ports(config: &Config) -> String {
+    let mut out = String::new();
+    for port in &config.server.serial {
+        let format = port.format();
+        let line = crate::line::LineTiming::new(&format);
+        let when = match port.framing {
+            Framing::Ascii => "at the request's LF".to_owned(),
+            Framing::Rtu | Framing::Tcp => format!("t3.5 ({}) after the request", ms(line.t35)),
+        };
+        let mut rights = String::new();
+        if port.read_only {
+            rights += ", read only";
+        }
+        if port.priority {
+            rights += ", served before the other masters";
+        }
+        out += &format!(
+            "# serial port {}: the gateway is the slave of units {} on {} at {format} ({}); it \
+             answers no sooner than {when} and never later than {} after it; unit 0 is a \
+             broadcast, forwarded and never answered; its master is serial:{} (protocol \
+             serial{rights}).\n",
+            port.name,
+            port.units,
+            port.device,
+            port.framing.name().to_ascii_uppercase(),
+            ms(port.answer_within),
+            port.name,
+        );
+    }
+    out
 }
 
 /// The slaves a rule's `units` hold, whichever unit id a master reaches them by.

@@ -85,11 +85,17 @@ fn plan(index: usize, port: &ServerSerial, master: MasterId, metrics: &Metrics) 
     client.limited_by = port
         .read_only
         .then(|| Arc::from(format!("{key}.read_only").as_str()));
+    // Behind a device server, a frame may come in segments a network's jitter apart: t3.5
+    // is no silence there, as for a bus's replies.
+    let floor = match device {
+        PortDevice::Server(_) => crate::config::defaults::NETWORK_BYTE_TIMEOUT,
+        PortDevice::Uart(_) | PortDevice::Pty(_) => timing.t35,
+    };
     let silence = match framing {
         Framing::Ascii => port
             .byte_timeout
             .unwrap_or_else(crate::config::defaults::ascii_byte_timeout),
-        Framing::Rtu | Framing::Tcp => port.byte_timeout.unwrap_or_default().max(timing.t35),
+        Framing::Rtu | Framing::Tcp => port.byte_timeout.unwrap_or(floor).max(timing.t35),
     };
     let view = Arc::new(PortView {
         name,
@@ -259,3 +265,6 @@ mod pty {
         Port::serial(near)
     }
 }
+
+#[cfg(test)]
+mod tests;
