@@ -279,6 +279,61 @@ fn check_driver(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::Config;
+
+    /// The keys `text` fails on, in the order reported.
+    fn failing(text: &str) -> Vec<String> {
+        match Config::from_toml_str(text) {
+            Ok(_) => Vec::new(),
+            Err(errors) => errors.0.into_iter().map(|e| e.key).collect(),
+        }
+    }
+
+    #[test]
+    fn every_bad_port_key_is_named_in_one_run() {
+        let text = "[[bus]]\nname = \"line\"\ndevice = \"/dev/ttyS3\"\n\
+                    [[server.serial]]\nname = \"a\"\nbaud = 0\nframing = \"tcp\"\n\
+                    [[server.serial]]\nname = \"a\"\ndevice = \"/dev/ttyS2\"\nunits = \"1-250\"\n\
+                    [[server.serial]]\nname = \"b\"\ndevice = \"/dev/ttyS3\"\n\
+                    answer_within = \"0s\"\n";
+        assert_eq!(
+            failing(text),
+            [
+                "server.serial[0].device",
+                "server.serial[0].baud",
+                "server.serial[0].framing",
+                "server.serial[1].name",
+                "server.serial[1].units",
+                "server.serial[2].device",
+                "server.serial[2].answer_within",
+            ]
+        );
+    }
+
+    #[test]
+    fn a_port_on_another_ports_pty_link_or_a_bus_device_server_is_a_loop() {
+        let text = "[[bus]]\nname = \"line\"\ndevice = \"tcp://Conv:4001\"\n\
+                    [[server.serial]]\nname = \"a\"\ndevice = \"rfc2217://conv:4001\"\n\
+                    [[server.serial]]\nname = \"b\"\ndevice = \"pty:/run/x\"\n\
+                    [[server.serial]]\nname = \"c\"\ndevice = \"/run/x\"\n";
+        assert_eq!(
+            failing(text),
+            ["server.serial[0].device", "server.serial[2].device"]
+        );
+    }
+
+    #[test]
+    fn a_port_left_to_its_defaults_is_19200_8e1_rtu_for_units_1_to_247_within_800_ms() {
+        let text = "[[bus]]\nname = \"line\"\ndevice = \"sim\"\n\
+                    [[server.serial]]\nname = \"p\"\ndevice = \"/dev/ttyS1\"\n";
+        let config = Config::from_toml_str(text).expect("valid");
+        let port = &config.server.serial[0];
+        assert_eq!(port.format().to_string(), "19200 baud 8E1");
+        assert_eq!(port.framing, Framing::Rtu);
+        assert_eq!(port.units.to_string(), "1-247");
+        assert_eq!(port.answer_within, Duration::from_millis(800));
+        assert!(!port.read_only && !port.priority);
+    }
 
     #[test]
     fn a_port_device_is_a_path_a_pty_or_a_device_server_and_nothing_else() {

@@ -277,3 +277,17 @@ async fn a_priority_port_master_waits_at_most_one_other_transaction_while_20_mas
         "{frames} transactions of {one:?}"
     );
 }
+
+#[tokio::test(start_paused = true)]
+async fn an_ascii_master_reaches_an_rtu_line_and_gets_its_reply_in_ascii() {
+    let rig = Rig::new("framing = \"ascii\"", Duration::from_millis(5)).await;
+    let mut request = Vec::new();
+    crate::line::ascii::encode_into(&mut request, 1, &[0x03, 0x00, 0x00, 0x00, 0x01]);
+    assert_eq!(request, b":010300000001FB\r\n");
+    rig.send(&request);
+    sleep(Duration::from_millis(200)).await;
+    let sent: Vec<Vec<u8>> = rig.sent().into_iter().map(|(_, b)| b).collect();
+    assert_eq!(sent, [b":0103020000FA\r\n".to_vec()]);
+    // On the line, the same PDU in RTU.
+    assert_eq!(rig.on_the_line(), [read(1)]);
+}
