@@ -35,6 +35,8 @@
 //! - `drives`: the simulated drives of config/demo.toml: registers, exceptions, ramps, timing.
 //! - `faults`: each fault knob of a simulated slave and what the gateway makes of it.
 //! - `serial`: the real serial path on pty pairs, with a third-party client.
+//! - `serial_port_life`: a serial master port in a running gateway: opened when its UART
+//!   appears, on `/status`, its `pty:` link there while the gateway runs.
 //! - `rs485`: `[bus.rs485]` on ptys: a refused direction control (0x0A, the error naming the
 //!   key), a line that echoes.
 //! - `peers`: third-party peers on the serial path: pymodbus's RTU and ASCII servers behind the
@@ -103,6 +105,7 @@ mod reads;
 mod rs485;
 mod rtu_over_tcp;
 mod serial;
+mod serial_port_life;
 mod service;
 mod simulate;
 mod status;

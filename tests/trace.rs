@@ -659,3 +659,60 @@ fn the_trace_subcommand_exits_non_zero_saying_why_on_an_unreachable_endpoint() {
         "{stderr}"
     );
 }
+
+/// A serial master port's frames: the master's request (`rx`) and the gateway's reply (`tx`),
+/// under bus `serial:NAME`, each with how the request ended.
+#[tokio::test]
+async fn a_serial_master_ports_request_and_reply_are_on_the_trace_as_its_bus() {
+    let link = std::env::temp_dir().join(format!("mbgw-trace-port-{}", std::process::id()));
+    let port = format!(
+        "[[server.serial]]\nname = \"scada\"\ndevice = \"pty:{}\"\nparity = \"none\"\n",
+        link.display()
+    );
+    let gateway = start(
+        &GatewayConfig::new()
+            .listen("127.0.0.1:0")
+            .server_table(&port)
+            .bus(sim_line().sim_slaves("1-4"))
+            .to_toml(),
+    )
+    .await;
+    let mut trace = Trace::open(gateway.metrics_addr(), "?bus=serial:scada").await;
+    let mut master = within("the port's pty", async {
+        loop {
+            if let Ok(port) = tokio_serial::SerialPortBuilderExt::open_native_async(
+                tokio_serial::new(link.to_str().unwrap(), 19_200),
+            ) {
+                return port;
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    })
+    .await;
+    master
+        .write_all(&[0x01, 0x03, 0x00, 0x00, 0x00, 0x02, 0xc4, 0x0b])
+        .await
+        .unwrap();
+    assert_eq!(
+        trace.fields_of_next(2).await,
+        [
+            expect(
+                "serial:scada",
+                "rx",
+                1,
+                3,
+                "01 03 00 00 00 02 c4 0b",
+                "answered"
+            ),
+            expect(
+                "serial:scada",
+                "tx",
+                1,
+                3,
+                "01 03 04 00 00 00 00 fa 33",
+                "answered"
+            ),
+        ]
+    );
+    gateway.shutdown().await;
+}

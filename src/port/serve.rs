@@ -49,6 +49,8 @@ struct Pending {
     function: u8,
     /// When the request was whole.
     at: Instant,
+    /// The request as it came, for the trace once it has ended.
+    frame: Vec<u8>,
 }
 
 impl Pending {
@@ -112,7 +114,7 @@ pub(super) async fn serve<T: Transport>(
                 };
                 // The master has sent its next frame: it no longer waits for this reply.
                 if let Some(abandoned) = pending.take() {
-                    port.count(PortOutcome::TooLate, abandoned.unit, abandoned.function);
+                    port.too_late(&abandoned);
                 }
                 pending = port.heard(received);
             }
@@ -129,7 +131,7 @@ pub(super) async fn serve<T: Transport>(
             }
             () = sleep_until(due.unwrap_or_else(Instant::now)), if due.is_some() => {
                 if let Some(late) = pending.take() {
-                    port.count(PortOutcome::TooLate, late.unit, late.function);
+                    port.too_late(&late);
                 }
             }
         }
@@ -137,6 +139,12 @@ pub(super) async fn serve<T: Transport>(
 }
 
 impl<T: Transport> Port<'_, T> {
+    /// `pending`'s reply is not sent: counted, and traced.
+    fn too_late(&self, pending: &Pending) {
+        self.count(PortOutcome::TooLate, pending.unit, pending.function);
+        self.trace(Direction::Rx, &pending.frame, PortOutcome::TooLate);
+    }
+
     fn count(&self, outcome: PortOutcome, unit: u8, function: u8) {
         self.view.metrics.count(outcome, Some(unit), Some(function));
     }
@@ -202,12 +210,12 @@ impl<T: Transport> Port<'_, T> {
             self.hold_broadcast(outcome);
             return None;
         }
-        self.trace(Direction::Rx, &frame, PortOutcome::Answered);
         Some(Pending {
             outcome,
             unit,
             function,
             at,
+            frame,
         })
     }
 
@@ -229,6 +237,7 @@ impl<T: Transport> Port<'_, T> {
             // No reply to give (a broadcast unit's routed request): silence, as for a
             // broadcast.
             self.count(PortOutcome::Broadcast, done.unit, done.function);
+            self.trace(Direction::Rx, &done.frame, PortOutcome::Broadcast);
             return Ok(());
         };
         let earliest = match self.settings.framing {
@@ -239,7 +248,7 @@ impl<T: Transport> Port<'_, T> {
             sleep_until(earliest).await;
         }
         if Instant::now() > done.due(self.settings) {
-            self.count(PortOutcome::TooLate, done.unit, done.function);
+            self.too_late(&done);
             return Ok(());
         }
         self.settings
@@ -252,6 +261,7 @@ impl<T: Transport> Port<'_, T> {
             PortOutcome::Answered
         };
         self.count(outcome, done.unit, done.function);
+        self.trace(Direction::Rx, &done.frame, outcome);
         self.trace(Direction::Tx, &self.out, outcome);
         Ok(())
     }
