@@ -3,7 +3,9 @@
 //! `/status` and its frames on the trace; a `pty:` port's link is there while the gateway runs
 //! and gone once it stops.
 
-use crate::support::{http_get, rtu, sim_line, start, within, GatewayConfig, Scrape};
+use crate::support::{
+    http_get, rtu, sim_line, start, within, Accepter, GatewayConfig, Scrape, Ser2net,
+};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -125,4 +127,33 @@ async fn a_pty_port_is_linked_while_the_gateway_runs_and_unlinked_when_it_stops(
         "{} outlived the gateway",
         link.display()
     );
+}
+
+/// The master sits behind a serial device server (ser2net on the far end of its pty): the port
+/// connects to it as a bus connects to one, raw or RFC 2217, and serves the master through it.
+#[tokio::test]
+async fn a_master_behind_a_device_server_is_served_over_raw_tcp_and_rfc_2217() {
+    for accepter in [Accepter::Raw, Accepter::Rfc2217] {
+        let (mut master, tty) = SerialStream::pair().expect("pty pair");
+        let device = tty.name().unwrap();
+        let Some(ser2net) = Ser2net::start(&device, "19200n82", accepter).await else {
+            return;
+        };
+        let gateway = gateway_with_port(&ser2net.device()).await;
+        within("the port connects", async {
+            while port_up(&gateway).await != 1.0 {
+                tokio::time::sleep(Duration::from_millis(10)).await;
+            }
+        })
+        .await;
+        let reply = exchange(&mut master, &rtu(3, &READ), 9).await;
+        assert_eq!(
+            reply,
+            rtu(3, &[0x03, 0x04, 0, 0, 0, 0]),
+            "{}",
+            ser2net.device()
+        );
+        gateway.shutdown().await;
+        drop(tty);
+    }
 }
