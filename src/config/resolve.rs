@@ -7,7 +7,8 @@
 //! values are used.
 
 use super::{
-    defaults, Bus, Config, Route, Server, Slave, Template, Value, ValueType, MAX_READ_REGISTERS,
+    defaults, Bus, Config, Route, Server, ServerSerial, Slave, Template, Value, ValueType,
+    MAX_READ_REGISTERS,
 };
 use crate::line::{Framing, MasterTiming, SerialFormat};
 use std::time::Duration;
@@ -122,6 +123,40 @@ impl Bus {
             stop_bits: self
                 .stop_bits
                 .unwrap_or_else(|| defaults::stop_bits(self.parity)),
+        }
+    }
+}
+
+impl ServerSerial {
+    /// The port's line format, its defaults as a bus's.
+    pub fn format(&self) -> SerialFormat {
+        SerialFormat {
+            baud: self.baud,
+            data_bits: self
+                .data_bits
+                .unwrap_or_else(|| defaults::data_bits(self.framing)),
+            parity: self.parity,
+            stop_bits: self
+                .stop_bits
+                .unwrap_or_else(|| defaults::stop_bits(self.parity)),
+        }
+    }
+
+    /// RTU: the silence that breaks a request mid-frame or ends one of unknown length,
+    /// `byte_timeout` if longer than t3.5; left out, t3.5, or behind a device server a network's
+    /// jitter (a frame may come in segments). ASCII: the inter-character timeout.
+    pub(crate) fn silence(&self, behind_a_server: bool) -> std::time::Duration {
+        let t35 = crate::line::LineTiming::new(&self.format()).t35;
+        let floor = if behind_a_server {
+            defaults::NETWORK_BYTE_TIMEOUT
+        } else {
+            t35
+        };
+        match self.framing {
+            Framing::Ascii => self
+                .byte_timeout
+                .unwrap_or_else(defaults::ascii_byte_timeout),
+            Framing::Rtu | Framing::Tcp => self.byte_timeout.unwrap_or(floor).max(t35),
         }
     }
 }

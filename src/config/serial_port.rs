@@ -8,7 +8,7 @@ use super::device::{DeviceName, ServerAddr};
 use super::serde_adapters::{duration, opt_duration};
 use super::{Bus, ConfigError, Rs485, UnitSet};
 use crate::line::framing::TransportKind;
-use crate::line::{Framing, Parity, SerialFormat, MAX_SERIAL_ADDRESS};
+use crate::line::{Framing, Parity, MAX_SERIAL_ADDRESS};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::time::Duration;
@@ -124,22 +124,6 @@ impl PortDevice {
             PortDevice::Server(addr) => {
                 format!("{}:{}", addr.host.to_ascii_lowercase(), addr.port)
             }
-        }
-    }
-}
-
-impl ServerSerial {
-    /// The line's format, its defaults as a bus's.
-    pub fn format(&self) -> SerialFormat {
-        SerialFormat {
-            baud: self.baud,
-            data_bits: self
-                .data_bits
-                .unwrap_or_else(|| defaults::data_bits(self.framing)),
-            parity: self.parity,
-            stop_bits: self
-                .stop_bits
-                .unwrap_or_else(|| defaults::stop_bits(self.parity)),
         }
     }
 }

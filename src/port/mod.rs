@@ -11,7 +11,7 @@ mod serve;
 use crate::bus::device::{Device, Port, SerialDriver};
 use crate::config::{PortDevice, ServerSerial};
 use crate::dispatch::Client;
-use crate::line::{Framing, LineTiming, SerialFormat};
+use crate::line::{LineTiming, SerialFormat};
 use crate::master::{MasterId, Peer, Protocol, Rights};
 use crate::metrics::{Metrics, PortMetrics};
 use crate::net::server::{Connected, Shared};
@@ -85,18 +85,7 @@ fn plan(index: usize, port: &ServerSerial, master: MasterId, metrics: &Metrics) 
     client.limited_by = port
         .read_only
         .then(|| Arc::from(format!("{key}.read_only").as_str()));
-    // Behind a device server, a frame may come in segments a network's jitter apart: t3.5
-    // is no silence there, as for a bus's replies.
-    let floor = match device {
-        PortDevice::Server(_) => crate::config::defaults::NETWORK_BYTE_TIMEOUT,
-        PortDevice::Uart(_) | PortDevice::Pty(_) => timing.t35,
-    };
-    let silence = match framing {
-        Framing::Ascii => port
-            .byte_timeout
-            .unwrap_or_else(crate::config::defaults::ascii_byte_timeout),
-        Framing::Rtu | Framing::Tcp => port.byte_timeout.unwrap_or(floor).max(timing.t35),
-    };
+    let silence = port.silence(matches!(device, PortDevice::Server(_)));
     let view = Arc::new(PortView {
         name,
         device: port.device.clone(),
