@@ -114,32 +114,42 @@ impl Bus {
     }
 
     pub fn format(&self) -> SerialFormat {
-        SerialFormat {
-            baud: self.baud,
-            data_bits: self
-                .data_bits
-                .unwrap_or_else(|| defaults::data_bits(self.framing)),
-            parity: self.parity,
-            stop_bits: self
-                .stop_bits
-                .unwrap_or_else(|| defaults::stop_bits(self.parity)),
-        }
+        line_format(
+            self.baud,
+            self.framing,
+            self.data_bits,
+            self.parity,
+            self.stop_bits,
+        )
+    }
+}
+
+/// A line's format from its keys: data bits left out follow the framing, stop bits the parity.
+fn line_format(
+    baud: u32,
+    framing: Framing,
+    data_bits: Option<u8>,
+    parity: crate::line::Parity,
+    stop_bits: Option<u8>,
+) -> SerialFormat {
+    SerialFormat {
+        baud,
+        data_bits: data_bits.unwrap_or_else(|| defaults::data_bits(framing)),
+        parity,
+        stop_bits: stop_bits.unwrap_or_else(|| defaults::stop_bits(parity)),
     }
 }
 
 impl ServerSerial {
     /// The port's line format, its defaults as a bus's.
     pub fn format(&self) -> SerialFormat {
-        SerialFormat {
-            baud: self.baud,
-            data_bits: self
-                .data_bits
-                .unwrap_or_else(|| defaults::data_bits(self.framing)),
-            parity: self.parity,
-            stop_bits: self
-                .stop_bits
-                .unwrap_or_else(|| defaults::stop_bits(self.parity)),
-        }
+        line_format(
+            self.baud,
+            self.framing,
+            self.data_bits,
+            self.parity,
+            self.stop_bits,
+        )
     }
 
     /// RTU: the silence that breaks a request mid-frame or ends one of unknown length,
