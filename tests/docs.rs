@@ -26,6 +26,8 @@ fn every_configuration_key_is_documented_in_the_configuration_reference() {
          priority = \"10.2.0.0/16\"\n\
          [server.tls]\ncertificate = \"a\"\nprivate_key = \"b\"\nclient_ca = \"c\"\ncrl = \"d\"\n\
          roles = { viewer = \"read_only\" }\n\
+         [[server.serial]]\nname = \"p\"\ndevice = \"/dev/ttyS9\"\nbyte_timeout = \"5ms\"\n\
+         latency_timer = \"1ms\"\n\
          [[bus]]\nname = \"a\"\ndevice = \"sim\"\n\
          [[bus.slave]]\naddress = 1\ncoalesce_reads = false\ncache = \"1s\"\n\
          [[bus.sim_slave]]\naddress = 1\n\
@@ -283,6 +285,36 @@ fn every_demo_configuration_is_in_the_package_and_checked_there() {
         );
         demos += 1;
     }
-    // demo, demo-ascii, demo-device-server, demo-tls, demo-writes.
-    assert!(demos >= 5, "only {demos} demos in config/");
+    // demo, demo-ascii, demo-device-server, demo-serial, demo-tls, demo-writes.
+    assert!(demos >= 6, "only {demos} demos in config/");
+}
+
+/// The `toml` blocks of `text`, in order.
+fn toml_blocks(text: &str) -> Vec<String> {
+    let mut blocks = Vec::new();
+    let mut lines = text.lines();
+    while lines.by_ref().any(|line| line == "```toml") {
+        let block: Vec<&str> = lines.by_ref().take_while(|line| *line != "```").collect();
+        blocks.push(block.join("\n") + "\n");
+    }
+    blocks
+}
+
+#[test]
+fn the_serial_ports_pages_split_bus_and_its_rules_load_as_written() {
+    let text = page("docs/serial-ports.md");
+    let blocks = toml_blocks(&text);
+    assert_eq!(blocks.len(), 3, "{blocks:?}");
+    // The split bus, with the page's two rules for the port's master.
+    let config = format!("{}\n{}", blocks[1], blocks[2]);
+    let config =
+        Config::from_toml_str(&config).unwrap_or_else(|errors| panic!("{errors:?}\n{config}"));
+    assert_eq!(config.server.serial.len(), 1);
+    assert!(config.server.serial[0].priority);
+    // The page's opening example is a port's whole section.
+    let port = format!(
+        "{}\n[[bus]]\nname = \"line\"\ndevice = \"sim\"\n",
+        blocks[0]
+    );
+    Config::from_toml_str(&port).unwrap_or_else(|errors| panic!("{errors:?}\n{port}"));
 }

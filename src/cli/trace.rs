@@ -310,19 +310,25 @@ impl Frame {
             self.bus, self.direction, self.slave
         );
         let function = self.function;
-        if self.direction == "tx" {
+        // On a serial master port (bus `serial:NAME`; a bus's name has no colon) the gateway
+        // is the slave: there `rx` is the master's request and `tx` the reply.
+        let request = (self.direction == "tx") != self.bus.starts_with("serial:");
+        if request {
             let name = pdu::function(function).map_or("function", |f| f.name);
             let _ = write!(line, "{} 0x{function:02x}", name.to_lowercase());
             if let Some(pdu) = &pdu {
                 push_fields(&mut line, &request_fields(pdu));
             }
             // An answer's outcome is on its own line; a try that got none says so here.
-            if !matches!(self.outcome.as_str(), "ok" | "exception") {
+            if !matches!(self.outcome.as_str(), "ok" | "exception" | "answered") {
                 let _ = write!(line, "  ({})", self.outcome);
             }
         } else {
             let _ = write!(line, "0x{function:02x} ");
-            let readable = matches!(self.outcome.as_str(), "ok" | "foreign" | "malformed_reply");
+            let readable = matches!(
+                self.outcome.as_str(),
+                "ok" | "foreign" | "malformed_reply" | "answered"
+            );
             match &pdu {
                 Some(pdu) if function & pdu::EXCEPTION_BIT != 0 && pdu.len() > 1 => {
                     let code = pdu[1];
@@ -394,6 +400,32 @@ mod tests {
         assert_eq!(
             events.feed("event: lost\ndata: {\"lost\":1}\n\n"),
             ["lost 1 event"]
+        );
+    }
+
+    #[test]
+    fn on_a_serial_master_port_the_masters_rx_is_the_request_and_the_gateways_tx_the_reply() {
+        let mut rx = frame("rx", "01 03 21 03 00 01 7e 36", "answered");
+        rx.bus = "serial:scada".into();
+        assert_eq!(
+            rx.describe(),
+            "14:00:00.123456 serial:scada rx  slave 1    read holding registers 0x03  addr 0x2103 \
+             (8451) count 1   01 03 21 03 00 01 7e 36"
+        );
+        let mut tx = frame("tx", "01 03 02 01 06 39 d6", "answered");
+        tx.bus = "serial:scada".into();
+        assert_eq!(
+            tx.describe(),
+            "14:00:00.123456 serial:scada tx  slave 1    0x03 answered  1 register: 0x0106   \
+             01 03 02 01 06 39 d6"
+        );
+        // A request to a unit the port does not answer: the master's frame alone, and why.
+        let mut rx = frame("rx", "09 03 00 00 00 01 85 42", "not_addressed");
+        rx.bus = "serial:scada".into();
+        assert!(
+            rx.describe().contains("count 1  (not_addressed)   09 03"),
+            "{}",
+            rx.describe()
         );
     }
 

@@ -22,6 +22,11 @@ const BARE: &[(&str, &str, &[&str])] = &[
             "client_ca = \"masters-ca.crt\"",
         ],
     ),
+    (
+        "server.serial",
+        "[[server.serial]]",
+        &["name = \"scada\"", "device = \"/dev/ttyS1\""],
+    ),
     ("metrics", "[metrics]", &[]),
     ("log", "[log]", &[]),
     (
@@ -182,6 +187,8 @@ const EXAMPLES: &[(&str, &str, &str, &[&str])] = &[
 /// must be in the reference's words, and writing it must change nothing.
 const DERIVED: &[(&str, &str, &str)] = &[
     ("server", "max_connections_per_address", "1016"),
+    ("server.serial", "data_bits", "8"),
+    ("server.serial", "stop_bits", "1"),
     ("bus", "data_bits", "8"),
     ("bus", "stop_bits", "1"),
     ("bus.slave", "max_read_registers", "125"),

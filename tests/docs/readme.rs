@@ -1,6 +1,7 @@
 //! The README's walkthroughs, run as a user would: "Writes under control" (config/demo-writes.toml,
-//! mbpoll's writes and `modbus-gateway audit` on the journal) and the metric greps of the ASCII
-//! and device server demos. The commands are the README's, with this gateway's ports, journal and
+//! mbpoll's writes and `modbus-gateway audit` on the journal), "A master on a serial line"
+//! (config/demo-serial.toml, mbpoll's RTU mode on the port's pty) and the metric greps of the
+//! ASCII and device server demos. The commands are the README's, with this gateway's ports, journal and
 //! binary put in place of the demo's; what they print must be what the README shows, but for the
 //! times and the masters' ports, which are the user's own. A missing section or block fails.
 //!
@@ -320,4 +321,58 @@ async fn the_device_server_demos_grep_prints_the_series_the_readme_shows() {
     assert_eq!(printed[0], shown[0]);
     gateway.shutdown().await;
     simulator.stop().await;
+}
+
+#[tokio::test]
+async fn the_serial_port_walkthrough_prints_what_the_readme_shows() {
+    let text = section("A master on a serial line");
+    assert_eq!(
+        blocks(text, "sh")[0],
+        "cargo run --release -- --config config/demo-serial.toml\n"
+    );
+    let steps: Vec<(String, Vec<String>)> = blocks(text, "console")
+        .iter()
+        .flat_map(|block| session(block))
+        .collect();
+    let rtu = steps.iter().filter(|(c, _)| c.contains(" -m rtu ")).count();
+    assert_eq!((steps.len(), rtu), (3, 2), "{steps:?}");
+    let (grep, counted) = metrics_grep(9024);
+    assert_eq!(counted.len(), 2, "{counted:?}");
+    if tool("mbpoll").is_none() || tool("curl").is_none() {
+        return;
+    }
+    let dir = Dir::new("serial");
+    let link = dir.path("scada").display().to_string();
+    let demo = include_str!(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/config/demo-serial.toml"
+    ));
+    let config = put(demo, "\"127.0.0.1:5024\"", "\"127.0.0.1:0\"");
+    let config = put(&config, "\"127.0.0.1:9024\"", "\"127.0.0.1:0\"");
+    let config = put(
+        &config,
+        "\"pty:/tmp/modbus-gateway-scada\"",
+        &format!("\"pty:{link}\""),
+    );
+    let gateway = start(&config).await;
+    within("the port's pty is linked", async {
+        while !Path::new(&link).exists() {
+            tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+        }
+    })
+    .await;
+    let port = gateway.tcp_addrs()[0].port();
+    for (command, shown) in &steps {
+        let command = if command.contains(" -m rtu ") {
+            put(command, "/tmp/modbus-gateway-scada", &link)
+        } else {
+            put(command, "-p 5024 ", &format!("-p {port} "))
+        };
+        let (output, printed) = run(&command).await;
+        assert!(output.status.success(), "{command}: {printed:?}");
+        let last = &printed[printed.len().saturating_sub(shown.len())..];
+        assert_eq!(last, &shown[..], "{command}");
+    }
+    assert_eq!(grep_of(&grep, 9024, gateway.metrics_addr()).await, counted);
+    gateway.shutdown().await;
 }
