@@ -4,6 +4,8 @@
 //! metrics grow without end; protocol errors and refusals in a flood, to drown the log. The
 //! slaves that matter here frame requests by their function's length and take what follows as
 //! the next request: the simulated line, the `simulate` subcommand on a pty, and libmodbus.
+//! And a master on a serial master port (issue 41) that sends noise, frames one byte short,
+//! requests to units the port does not answer and writes its rule forbids.
 
 use crate::simulate::Simulator;
 use crate::support::tls::{tls_master, Pki, Role};
@@ -696,4 +698,232 @@ async fn a_flood_of_protocol_errors_and_refusals_gets_one_warn_line_per_address_
         "{}",
         std::fs::read_to_string(&log).unwrap()
     );
+}
+
+/// Holding register `register` of `unit`, read by a Modbus TCP master.
+async fn register_over_tcp(addr: SocketAddr, unit: u8, register: u16) -> Vec<u8> {
+    let mut master = RawMaster::connect(addr).await;
+    let [hi, lo] = register.to_be_bytes();
+    master.call(1, unit, &[0x03, hi, lo, 0x00, 0x01]).await
+}
+
+/// The port's count of `outcome` in `text`, a scrape.
+fn port_count(text: &str, outcome: &str) -> f64 {
+    Scrape::parse(text.to_owned()).value(&format!(
+        "modbus_gateway_serial_requests_total{{outcome=\"{outcome}\",port=\"hostile\"}}"
+    ))
+}
+
+/// Scrape `metrics` until the port's count of `outcome` is at least `n`; that scrape.
+async fn port_counted(metrics: SocketAddr, outcome: &str, n: f64) -> String {
+    within(&format!("{n} {outcome} frames counted"), async {
+        loop {
+            let (_, text) = http_get(metrics, "/metrics").await;
+            if port_count(&text, outcome) >= n {
+                return text;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(5)).await;
+        }
+    })
+    .await
+}
+
+/// A master on a serial master port that means harm: garbage at the pty's full speed, frames one
+/// byte short, 10,000 requests to units the port does not answer, and a thousand writes to a
+/// slave its rule forbids, a broadcast among them. The port keeps answering, the bus keeps
+/// serving the network, nothing of it reaches the line (the line's sent bytes are only the good
+/// reads'), the forbidden slave's register is as it was, and memory and series stay flat.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_hostile_master_on_a_serial_port_takes_nothing_down_and_reaches_no_forbidden_slave() {
+    use tokio::io::AsyncReadExt;
+    let dir = std::env::temp_dir().join(format!("mbgw-hostile-port-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let link = dir.join("port");
+    let (tcp, metrics) = (free_addr(), free_addr());
+    let port = format!(
+        "[[server.serial]]\nname = \"hostile\"\ndevice = \"pty:{}\"\nbaud = 115200\n\
+         parity = \"none\"\nunits = \"1-2\"\n",
+        link.display()
+    );
+    let mut text = GatewayConfig::new()
+        .listen(tcp)
+        .server_table(&port)
+        .metrics_listen(metrics)
+        .table("log", &[("level", "error".into())])
+        .bus(
+            Bus::sim("sim")
+                .baud(115_200)
+                .parity("none")
+                .sim_slaves("1-4"),
+        )
+        .to_toml();
+    text.push_str(
+        "\n[[rule]]\nname = \"nothing from the port writes unit 2\"\nprotocols = [\"serial\"]\n\
+         units = 2\nfunctions = \"write\"\naction = \"deny\"\n",
+    );
+    let config = dir.join("hostile-port.toml");
+    std::fs::write(&config, text).unwrap();
+    let gateway = Process(
+        Command::new(BINARY)
+            .args(["--config", config.to_str().unwrap(), "run"])
+            .env_remove("RUST_LOG")
+            .stdout(Stdio::null())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("binary runs"),
+    );
+    crate::support::connect_when_listening(tcp).await;
+    let mut master = within("the port's pty is linked", async {
+        loop {
+            let opened = tokio_serial::SerialPortBuilderExt::open_native_async(tokio_serial::new(
+                link.to_str().unwrap(),
+                115_200,
+            ));
+            if let Ok(port) = opened {
+                return port;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+        }
+    })
+    .await;
+    let read_1 = rtu::encode(1, &READ_0);
+    let mut reply = vec![0u8; 7];
+    // A good read of unit 1, asked again as a master would while the port may still be reading
+    // noise (a request that came amid noise is part of it): each try waits longer than
+    // `answer_within`, so no late reply to an earlier try can follow.
+    let mut answered = async |master: &mut tokio_serial::SerialStream, after: &str| {
+        within(&format!("the port answers after {after}"), async {
+            loop {
+                AsyncWriteExt::write_all(master, &read_1).await.unwrap();
+                let wait = std::time::Duration::from_secs(1);
+                if tokio::time::timeout(wait, master.read_exact(&mut reply))
+                    .await
+                    .is_ok()
+                {
+                    return reply.clone();
+                }
+            }
+        })
+        .await
+    };
+    let first = answered(&mut master, "nothing").await;
+    assert_eq!(&first[..3], [0x01, 0x03, 0x02], "{first:02X?}");
+    let register_2 = register_over_tcp(tcp, 2, 0).await;
+    let (_, before) = http_get(metrics, "/metrics").await;
+    let rss_before = gateway.rss_kib();
+
+    // 256 KiB of noise as fast as the pty takes it; no byte is 0, 1 or 2, so that no frame it
+    // happens to hold is for a unit the port answers, or a broadcast.
+    let mut state = 0x9E37_79B9_7F4A_7C15u64;
+    let noise: Vec<u8> = (0..256 * 1024)
+        .map(|_| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 24) as u8 | 0x03
+        })
+        .collect();
+    AsyncWriteExt::write_all(&mut master, &noise).await.unwrap();
+    port_counted(metrics, "bad_frame", port_count(&before, "bad_frame") + 1.0).await;
+    assert_eq!(answered(&mut master, "the noise").await, first);
+
+    // Frames one byte short, to units 1 and 2: a read, a write, a write of two registers.
+    let shorts = [
+        rtu::encode(1, &READ_0),
+        rtu::encode(2, &WRITE_5),
+        rtu::encode(
+            2,
+            &[0x10, 0x00, 0x05, 0x00, 0x02, 0x04, 0xBE, 0xEF, 0xBE, 0xEF],
+        ),
+    ];
+    let bad = port_count(&http_get(metrics, "/metrics").await.1, "bad_frame");
+    for (n, short) in (1..).zip(shorts.iter().cycle().take(60)) {
+        AsyncWriteExt::write_all(&mut master, &short[..short.len() - 1])
+            .await
+            .unwrap();
+        // Each is broken by the silence after it, before the next comes.
+        port_counted(metrics, "bad_frame", bad + f64::from(n)).await;
+    }
+    assert_eq!(answered(&mut master, "the short frames").await, first);
+
+    // 10,000 reads and writes to units the port does not answer, 100 frames to a write.
+    let not_addressed = port_count(&http_get(metrics, "/metrics").await.1, "not_addressed");
+    let mut units = (3..=247u8).cycle();
+    for batch in 1..=100u32 {
+        let mut out = Vec::new();
+        for _ in 0..100 {
+            let unit = units.next().unwrap();
+            let pdu: &[u8] = if unit.is_multiple_of(2) { &READ_0 } else { &WRITE_5 };
+            out.extend(rtu::encode(unit, pdu));
+        }
+        AsyncWriteExt::write_all(&mut master, &out).await.unwrap();
+        port_counted(
+            metrics,
+            "not_addressed",
+            not_addressed + f64::from(batch * 100),
+        )
+        .await;
+    }
+    assert_eq!(
+        answered(&mut master, "the units it does not answer").await,
+        first
+    );
+
+    // A thousand writes to unit 2, which its rule forbids: each refused (0x01), unsent; and
+    // broadcasts, which reach unit 2 too, refused and silent.
+    for n in 0..1000u16 {
+        let [hi, lo] = n.to_be_bytes();
+        AsyncWriteExt::write_all(&mut master, &rtu::encode(2, &[0x06, 0x00, 0x00, hi, lo]))
+            .await
+            .unwrap();
+        let mut refused = [0u8; 5];
+        within("a refused write", master.read_exact(&mut refused))
+            .await
+            .unwrap();
+        assert_eq!(refused, rtu::encode(2, &[0x86, 0x01])[..], "write {n}");
+        if n.is_multiple_of(100) {
+            AsyncWriteExt::write_all(&mut master, &rtu::encode(0, &[0x06, 0x00, 0x00, hi, lo]))
+                .await
+                .unwrap();
+        }
+    }
+    // The next answer is the read's: nothing else was sent back meanwhile.
+    assert_eq!(answered(&mut master, "the forbidden writes").await, first);
+
+    let (_, after) = http_get(metrics, "/metrics").await;
+    let rss = gateway.rss_kib();
+    let scrape = Scrape::parse(after.clone());
+    let before = Scrape::parse(before);
+    // Only the good reads went on the line, 8 bytes each: the port's answered requests (the
+    // refused writes are its exceptions).
+    let port = |outcome: &str| {
+        format!("modbus_gateway_serial_requests_total{{outcome=\"{outcome}\",port=\"hostile\"}}")
+    };
+    let answered_reads = scrape.delta(&before, &port("answered"));
+    assert!(answered_reads >= 4.0, "{answered_reads} reads answered");
+    assert_eq!(
+        scrape.delta(&before, "modbus_gateway_line_sent_bytes_total{bus=\"sim\"}"),
+        8.0 * answered_reads,
+        "bytes on the line beyond the good reads'"
+    );
+    assert_eq!(scrape.delta(&before, &port("exception")), 1000.0);
+    assert_eq!(
+        register_over_tcp(tcp, 2, 0).await,
+        register_2,
+        "unit 2 written"
+    );
+    assert_eq!(
+        scrape.value("modbus_gateway_serial_port_up{port=\"hostile\"}"),
+        1.0
+    );
+    let grown = series_count(&after) - series_count(&before.text);
+    eprintln!(
+        "the hostile port: {grown} new series, resident memory {rss_before} KiB before, {rss} KiB after"
+    );
+    assert!(grown < 60, "{grown} new series:\n{after}");
+    assert!(
+        rss < rss_before + 8 * 1024,
+        "resident memory grew from {rss_before} KiB to {rss} KiB"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -3,7 +3,8 @@
 //! and pymodbus's ASCII client (`tests/peers/pymodbus_ascii_master.py`) as the master of the
 //! `simulate` subcommand's drives; its RTU-over-TCP, UDP and TLS clients as masters of the
 //! gateway (the TLS ones in `tls_walkthrough`, with the walkthrough's certificates) and of
-//! `simulate --listen` directly. The scripts log
+//! `simulate --listen` directly; in `serial_port`, pymodbus's serial client and libmodbus's RTU
+//! master on a serial master port of the gateway. The scripts log
 //! every byte either way, so these tests check the line as well as the masters; ASCII frames are
 //! read by a decoder of this file's own, not the gateway's codec, so the check is independent of
 //! the code under test.
@@ -12,6 +13,7 @@
 //! a `python3` on the PATH that has pymodbus; without one a test checks nothing and says so, or
 //! fails under `MBGW_REQUIRE_TOOLS=1`, as for the other external tools.
 
+mod serial_port;
 mod tls_walkthrough;
 
 use crate::support::cases::{FIVE_TRANSACTIONS, READ_HOLDING_0_2, WRITES_READ_BACK};

@@ -25,7 +25,8 @@
 //!   keepalive, garbage.
 //! - `access`: `server.allow` and `server.read_only`.
 //! - `hostile`: masters that break the rules on purpose: frames hidden after a request, every
-//!   unit and function code to swell the metrics, floods of errors to drown the log.
+//!   unit and function code to swell the metrics, floods of errors to drown the log, a serial
+//!   master port's master sending noise, short frames and forbidden requests.
 //! - `answers`: what the gateway answers itself: no route, broadcast, queue full, port down/back.
 //! - `ascii`: Modbus ASCII on the line, end to end: the manuals' frames, every function code, the
 //!   fault knobs in ASCII, metrics, reload.
@@ -42,7 +43,8 @@
 //! - `peers`: third-party peers on the serial path: pymodbus's RTU and ASCII servers behind the
 //!   gateway, its ASCII client on `simulate`, its RTU-over-TCP and UDP clients on the gateway;
 //!   `peers::tls_walkthrough` runs the TLS walkthrough of docs/security.md (openssl) and its TLS
-//!   client.
+//!   client; `peers::serial_port`: pymodbus's serial client (RTU, ASCII) and libmodbus's RTU
+//!   master as the master of a serial master port, in front of the sim line and pymodbus's server.
 //! - `values_peers`: plant values of every type and layout polled from pymodbus's RTU server on a
 //!   pty, exact on `/values` and `/metrics`, in the plan's reads.
 //! - `reads`: many masters, one read: coalescing and its freshness, `coalesce_reads = false`,
