@@ -853,7 +853,11 @@ async fn a_hostile_master_on_a_serial_port_takes_nothing_down_and_reaches_no_for
         let mut out = Vec::new();
         for _ in 0..100 {
             let unit = units.next().unwrap();
-            let pdu: &[u8] = if unit.is_multiple_of(2) { &READ_0 } else { &WRITE_5 };
+            let pdu: &[u8] = if unit.is_multiple_of(2) {
+                &READ_0
+            } else {
+                &WRITE_5
+            };
             out.extend(rtu::encode(unit, pdu));
         }
         AsyncWriteExt::write_all(&mut master, &out).await.unwrap();

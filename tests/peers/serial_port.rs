@@ -387,3 +387,69 @@ async fn libmodbus_rtu_master_on_a_port_reaches_both_lines_byte_for_byte() {
     check_counts_and_journal(&gateway, &dir).await;
     gateway.shutdown().await;
 }
+
+#[tokio::test]
+async fn a_reply_later_than_answer_within_never_reaches_a_pymodbus_master() {
+    let Some(python) = python_with_pymodbus() else {
+        return;
+    };
+    let dir = Dir::new("port-peers-late");
+    let link = dir.0.join("late");
+    // A drive that takes 400 ms to answer, behind a port that must answer within 100 ms.
+    let config = format!(
+        r#"
+[server]
+listen = ["127.0.0.1:0"]
+
+[[server.serial]]
+name = "late"
+device = "pty:{}"
+parity = "none"
+answer_within = "100ms"
+
+[[bus]]
+name = "drives"
+device = "sim"
+baud = 115200
+parity = "none"
+
+[[bus.sim_slave]]
+address = 1
+model = "gd20"
+processing_delay = "400ms"
+
+[[bus.sim_slave]]
+address = 2
+model = "gd300"
+"#,
+        link.display()
+    );
+    let gateway = start(&config).await;
+    within("the port's pty is linked", async {
+        while !link.exists() {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    })
+    .await;
+    let args: Vec<String> = [
+        "rtu",
+        &link.display().to_string(),
+        "read:1:8451:1",
+        "read:2:8451:1",
+    ]
+    .iter()
+    .map(|s| (*s).to_owned())
+    .collect();
+    let ops = master(&python, PYMODBUS_MASTER, &args).await;
+    let results: Vec<&str> = ops.iter().map(|op| op.result.as_str()).collect();
+    // The slow drive's reply came 400 ms after the request, past the master's 100 ms budget:
+    // never sent, though pymodbus waited 1.5 s for it. The next request is answered as usual.
+    assert_eq!(results, ["none", "266"], "{ops:#?}");
+    assert_eq!(ops[0].received, b"", "a late reply reached the master");
+    let scrape = Scrape::of(&gateway).await;
+    assert_eq!(
+        scrape.value("modbus_gateway_serial_requests_total{outcome=\"too_late\",port=\"late\"}"),
+        1.0
+    );
+    gateway.shutdown().await;
+}
