@@ -40,6 +40,9 @@ pub(crate) struct Gateway {
     pub(crate) tls: Option<Tls>,
     /// The audit journal's directory, if it keeps one; removed after the gateway is stopped.
     pub(crate) journal: Option<JournalDir>,
+    /// The link to the pty of its serial master port (`priority_on_port` scenarios), which the
+    /// priority master opens; removed when dropped, as a killed gateway leaves it.
+    pub(crate) port: Option<TempPath>,
     _config: TempPath,
 }
 
@@ -57,6 +60,27 @@ impl Drop for TempPath {
     fn drop(&mut self) {
         let _ = std::fs::remove_file(&self.0);
     }
+}
+
+/// `config` with the scenario's serial master port, if its priority master sits on one: a
+/// `pty:` port with `priority = true` at the bus's baud rate (a pty takes no parity), and its
+/// link.
+fn serial_port(scenario: &Scenario, config: GatewayConfig) -> (GatewayConfig, Option<TempPath>) {
+    if !scenario.priority_on_port {
+        return (config, None);
+    }
+    let link = TempPath(std::env::temp_dir().join(format!(
+        "mbgw-bench-port-{}-{}",
+        std::process::id(),
+        scenario.name
+    )));
+    let config = config.server_table(&format!(
+        "[[server.serial]]\nname = \"bench\"\ndevice = \"pty:{}\"\nbaud = {}\n\
+         parity = \"none\"\nstop_bits = 1\npriority = true\nanswer_within = \"1s\"\n",
+        link.0.display(),
+        scenario.format.baud
+    ));
+    (config, Some(link))
 }
 
 pub(crate) fn free_addr() -> std::io::Result<SocketAddr> {
@@ -154,6 +178,8 @@ impl Gateway {
         } else {
             None
         };
+        let (config, port) = serial_port(scenario, config);
+        let mut config = config;
         if let Some(journal) = &journal {
             let path = journal.file().to_string_lossy().into_owned();
             let fsync = scenario.journal == Journal::Fsync;
@@ -183,6 +209,7 @@ impl Gateway {
             metrics,
             tls,
             journal,
+            port,
             _config: TempPath(path),
         };
         gateway.until_listening().await?;
@@ -198,6 +225,14 @@ impl Gateway {
                 return Err("the gateway did not start listening within 10 s".into());
             }
             tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        if let Some(link) = &self.port {
+            while !link.0.exists() {
+                if started.elapsed() > START_LIMIT {
+                    return Err("the gateway did not link its serial port's pty within 10 s".into());
+                }
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
         }
         // The TLS listener may come up later: a whole handshake, as a bare connection closed
         // at once would be logged as a failed one.

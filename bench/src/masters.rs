@@ -53,6 +53,26 @@ pub(crate) enum Conn {
     RtuOverTcp(TcpStream),
     Udp(UdpSocket),
     Tls(Box<TlsStream<TcpStream>>),
+    /// RTU frames on the pty of a serial master port: a master on a serial line.
+    Port(tokio_serial::SerialStream),
+}
+
+/// One RTU transaction on `stream`: the frame, then the reply by its own length.
+async fn rtu_exchange<S: AsyncRead + AsyncWrite + Unpin>(
+    stream: &mut S,
+    slave: u8,
+    pdu: &[u8],
+    reply: &mut [u8],
+) -> std::io::Result<bool> {
+    stream.write_all(&rtu::encode(slave, pdu)).await?;
+    // Address and function, then the rest by the reply's own length.
+    stream.read_exact(&mut reply[..3]).await?;
+    let len = match rtu::reply_len(&reply[..3], slave, pdu) {
+        rtu::FrameLen::Exact(n) => n,
+        _ => return Ok(false),
+    };
+    stream.read_exact(&mut reply[3..len]).await?;
+    Ok(rtu::crc_ok(&reply[..len]) && reply[1] & 0x80 == 0)
 }
 
 /// One Modbus TCP transaction on `stream`: the MBAP request, then the reply by its own length.
@@ -82,17 +102,8 @@ impl Conn {
         match self {
             Conn::Tcp(stream) => mbap_exchange(stream, tid, slave, pdu, reply).await,
             Conn::Tls(stream) => mbap_exchange(stream.as_mut(), tid, slave, pdu, reply).await,
-            Conn::RtuOverTcp(stream) => {
-                stream.write_all(&rtu::encode(slave, pdu)).await?;
-                // Address and function, then the rest by the reply's own length.
-                stream.read_exact(&mut reply[..3]).await?;
-                let len = match rtu::reply_len(&reply[..3], slave, pdu) {
-                    rtu::FrameLen::Exact(n) => n,
-                    _ => return Ok(false),
-                };
-                stream.read_exact(&mut reply[3..len]).await?;
-                Ok(rtu::crc_ok(&reply[..len]) && reply[1] & 0x80 == 0)
-            }
+            Conn::RtuOverTcp(stream) => rtu_exchange(stream, slave, pdu, reply).await,
+            Conn::Port(stream) => rtu_exchange(stream, slave, pdu, reply).await,
             Conn::Udp(socket) => {
                 socket.send(&mbap(tid, slave, pdu)).await?;
                 let len = socket.recv(reply).await?;
@@ -211,9 +222,19 @@ pub(crate) async fn connect_all(
     Ok((conns, setup))
 }
 
-/// The priority master: a Modbus TCP connection from 127.0.0.2, which `server.priority` names.
+/// The priority master: a Modbus TCP connection from 127.0.0.2, which `server.priority` names;
+/// or, if the gateway has a serial master port, the port's pty, opened as a serial master would.
 pub(crate) async fn priority_connect(gateway: &Gateway) -> Result<Conn, String> {
     let failed = |e: std::io::Error| format!("priority master: {e}");
+    if let Some(link) = &gateway.port {
+        let path = link.0.to_string_lossy();
+        let stream = tokio_serial::SerialPortBuilderExt::open_native_async(tokio_serial::new(
+            path.as_ref(),
+            9600,
+        ))
+        .map_err(|e| format!("priority master: {path}: {e}"))?;
+        return Ok(Conn::Port(stream));
+    }
     let socket = TcpSocket::new_v4().map_err(failed)?;
     socket
         .bind(SocketAddr::new(PRIORITY_IP.into(), 0))

@@ -226,6 +226,9 @@ pub(crate) struct Scenario {
     /// One more master, connecting from 127.0.0.2 (in `server.priority`), reading a block of its
     /// own: back to back (`Some(ZERO)`) or one read per period.
     pub(crate) priority: Option<Duration>,
+    /// The priority master is a serial master on a serial master port of the gateway
+    /// (`[[server.serial]]`, a `pty:` port with `priority = true`), not a TCP connection.
+    pub(crate) priority_on_port: bool,
     pub(crate) journal: Journal,
 }
 
@@ -244,6 +247,7 @@ impl Scenario {
             in_flight: 1,
             device_delay: Duration::ZERO,
             priority: None,
+            priority_on_port: false,
             journal: Journal::Off,
         }
     }
@@ -474,6 +478,19 @@ fn many_scenarios(all: &mut Vec<Scenario>) {
         all.push(Scenario {
             priority: Some(period),
             ..Scenario::sim(name, sim_9600, 100, Load::Own)
+        });
+    }
+    // The split bus: the line's old master on a serial master port of the gateway (a pty,
+    // `priority = true`), polling every 100 ms, and 100 Modbus TCP masters saturating the line;
+    // then the same master on TCP, for the port's own cost.
+    for (on_port, name) in [
+        (true, "serial-port-9600-8E1-priority-100ms-100"),
+        (false, "many-9600-8E1-priority-100ms-100"),
+    ] {
+        all.push(Scenario {
+            priority: Some(Duration::from_millis(100)),
+            priority_on_port: on_port,
+            ..Scenario::sim(name.to_owned(), sim_9600, 100, Load::Own)
         });
     }
 }

@@ -333,3 +333,20 @@ fn the_journal_scenarios_journal_every_write_and_compare_with_journal_off() {
         assert!(!dir.exists(), "{} is left behind", dir.display());
     }
 }
+
+#[test]
+fn the_serial_port_scenarios_priority_master_polls_through_the_ports_pty_and_its_link_goes() {
+    let scenario = "serial-port-9600-8E1-priority-100ms-100";
+    let report = bench_json(&[scenario], |_| {}).remove(0);
+    assert_eq!(report["scenario"], scenario);
+    // The port's master had its reads answered, at its period, among 100 TCP masters.
+    let port_reads = report["priority_tx"].as_u64().unwrap();
+    assert!(port_reads >= 5, "{report}");
+    assert!(report["line_tx"].as_u64().unwrap() > port_reads, "{report}");
+    let links = std::fs::read_dir(std::env::temp_dir())
+        .unwrap()
+        .filter_map(|e| e.ok()?.file_name().into_string().ok())
+        .filter(|name| name.starts_with("mbgw-bench-port-") && name.ends_with(scenario))
+        .count();
+    assert_eq!(links, 0, "the port's pty link is left behind");
+}

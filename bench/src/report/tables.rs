@@ -53,11 +53,15 @@ pub(crate) fn print_row(r: &Report) {
     );
 }
 
-/// The many-masters scenarios' own columns: answered reads against the line's transactions.
+/// The many-masters (and serial master port) scenarios' own columns: answered reads against the
+/// line's transactions.
 pub(crate) fn print_line_table(reports: &[Report]) {
     let rows: Vec<_> = reports
         .iter()
-        .filter(|r| r.scenario.starts_with("many-") && r.line_tx.is_some())
+        .filter(|r| {
+            (r.scenario.starts_with("many-") || r.scenario.starts_with("serial-port-"))
+                && r.line_tx.is_some()
+        })
         .collect();
     if rows.is_empty() {
         return;
