@@ -110,6 +110,44 @@ fn a_file_with_three_mistakes_reports_all_three_in_one_run_with_a_suggestion() {
 }
 
 #[test]
+fn bad_serial_master_ports_exit_2_naming_every_key_in_one_run() {
+    // A missing device, baud 0, framing "tcp", a duplicate name, units past 247, and a port on
+    // the device a bus opens (a loop).
+    let path = temp_config(
+        "bad-ports.toml",
+        "[[bus]]\nname = \"line\"\ndevice = \"/dev/ttyS3\"\n\
+         [[server.serial]]\nname = \"a\"\nbaud = 0\nframing = \"tcp\"\n\
+         [[server.serial]]\nname = \"a\"\ndevice = \"/dev/ttyS2\"\nunits = \"1-250\"\n\
+         [[server.serial]]\nname = \"b\"\ndevice = \"/dev/ttyS3\"\n",
+    );
+    for command in ["check-config", "run"] {
+        let out = gateway(&["--config", path.to_str().unwrap(), command], &[]);
+        assert_eq!(out.status.code(), Some(2), "{command}");
+        let err = String::from_utf8(out.stderr).unwrap();
+        let keys: Vec<&str> = err
+            .lines()
+            .filter_map(|line| line.split(": ").nth(2))
+            .collect();
+        assert_eq!(
+            keys,
+            [
+                "server.serial[0].device",
+                "server.serial[0].baud",
+                "server.serial[0].framing",
+                "server.serial[1].name",
+                "server.serial[1].units",
+                "server.serial[2].device",
+            ],
+            "{command}: {err}"
+        );
+        assert!(
+            err.contains("bus[0].device"),
+            "the loop names both keys: {err}"
+        );
+    }
+}
+
+#[test]
 fn the_manual_page_and_completions_need_no_configuration_and_name_every_subcommand() {
     let missing = "/nonexistent/gateway.toml";
     let out = gateway(&["--config", missing, "man"], &[]);
