@@ -3,7 +3,9 @@
 //! the demo line and stops cleanly on SIGTERM, and each log line is one JSON object or carries
 //! the journal's priority.
 
-use crate::support::{connect_when_listening, demo_path, exit_status, free_addr, signal, within};
+use crate::support::{
+    connect_when_listening, demo_path, exit_status, free_addr, signal, within, Bus, GatewayConfig,
+};
 use std::path::PathBuf;
 use std::process::{Command, Output, Stdio};
 
@@ -113,13 +115,14 @@ fn a_file_with_three_mistakes_reports_all_three_in_one_run_with_a_suggestion() {
 fn bad_serial_master_ports_exit_2_naming_every_key_in_one_run() {
     // A missing device, baud 0, framing "tcp", a duplicate name, units past 247, and a port on
     // the device a bus opens (a loop).
-    let path = temp_config(
-        "bad-ports.toml",
-        "[[bus]]\nname = \"line\"\ndevice = \"/dev/ttyS3\"\n\
-         [[server.serial]]\nname = \"a\"\nbaud = 0\nframing = \"tcp\"\n\
-         [[server.serial]]\nname = \"a\"\ndevice = \"/dev/ttyS2\"\nunits = \"1-250\"\n\
-         [[server.serial]]\nname = \"b\"\ndevice = \"/dev/ttyS3\"\n",
-    );
+    let ports = "[[server.serial]]\nname = \"a\"\nbaud = 0\nframing = \"tcp\"\n\
+                 [[server.serial]]\nname = \"a\"\ndevice = \"/dev/ttyS2\"\nunits = \"1-250\"\n\
+                 [[server.serial]]\nname = \"b\"\ndevice = \"/dev/ttyS3\"\n";
+    let config = GatewayConfig::new()
+        .server_table(ports)
+        .bus(Bus::on("line", "/dev/ttyS3"))
+        .to_toml();
+    let path = temp_config("bad-ports.toml", &config);
     for command in ["check-config", "run"] {
         let out = gateway(&["--config", path.to_str().unwrap(), command], &[]);
         assert_eq!(out.status.code(), Some(2), "{command}");

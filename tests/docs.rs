@@ -312,9 +312,9 @@ fn the_serial_ports_pages_split_bus_and_its_rules_load_as_written() {
     assert_eq!(config.server.serial.len(), 1);
     assert!(config.server.serial[0].priority);
     // The page's opening example is a port's whole section.
-    let port = format!(
-        "{}\n[[bus]]\nname = \"line\"\ndevice = \"sim\"\n",
-        blocks[0]
-    );
+    let port = crate::support::GatewayConfig::new()
+        .server_table(&blocks[0])
+        .bus(crate::support::sim_line())
+        .to_toml();
     Config::from_toml_str(&port).unwrap_or_else(|errors| panic!("{errors:?}\n{port}"));
 }

@@ -734,7 +734,7 @@ async fn port_counted(metrics: SocketAddr, outcome: &str, n: f64) -> String {
 /// serving the network, nothing of it reaches the line (the line's sent bytes are only the good
 /// reads'), the forbidden slave's register is as it was, and memory and series stay flat.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_hostile_master_on_a_serial_port_takes_nothing_down_and_reaches_no_forbidden_slave() {
+async fn a_hostile_serial_port_master_takes_nothing_down_and_reaches_no_forbidden_slave() {
     use tokio::io::AsyncReadExt;
     let dir = std::env::temp_dir().join(format!("mbgw-hostile-port-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
