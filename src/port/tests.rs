@@ -25,6 +25,8 @@ type Sent = Arc<Mutex<Vec<(Instant, Vec<u8>)>>>;
 struct MemPort {
     incoming: mpsc::UnboundedReceiver<Vec<u8>>,
     sent: Sent,
+    /// A line that echoes (`[server.serial.rs485] echo`): each frame sent comes back in.
+    echo: Option<mpsc::UnboundedSender<Vec<u8>>>,
 }
 
 impl Transport for MemPort {
@@ -33,6 +35,9 @@ impl Transport for MemPort {
             .lock()
             .unwrap()
             .push((Instant::now(), frame.to_vec()));
+        if let Some(echo) = &self.echo {
+            let _ = echo.send(frame.to_vec());
+        }
         Ok(())
     }
 
@@ -70,8 +75,14 @@ struct Rig {
 
 impl Rig {
     async fn new(port_keys: &str, delay: Duration) -> Rig {
+        // A pty unless the keys name a device (a UART's, for `[server.serial.rs485]`).
+        let device = if port_keys.contains("device =") {
+            ""
+        } else {
+            "device = \"pty:/run/p\"\n"
+        };
         let text = format!(
-            "[[server.serial]]\nname = \"p\"\ndevice = \"pty:/run/p\"\n{port_keys}\n\
+            "[[server.serial]]\nname = \"p\"\n{device}{port_keys}\n\
              [[bus]]\nname = \"line\"\ndevice = \"sim\"\nbaud = 19200\n\
              [[bus]]\nname = \"spare\"\ndevice = \"sim\"\n\
              [[route]]\nunits = \"0-8\"\nbus = \"line\"\n"
@@ -97,6 +108,7 @@ impl Rig {
         let mut port = MemPort {
             incoming,
             sent: sent.clone(),
+            echo: settings.echo.then(|| master.clone()),
         };
         let trace = metrics.trace.register(Arc::from("serial:p"));
         let (serving, serving_view) = (dispatcher.clone(), view.clone());
@@ -221,6 +233,22 @@ async fn the_masters_next_request_drops_the_reply_it_no_longer_waits_for() {
     let sent: Vec<Vec<u8>> = rig.sent().into_iter().map(|(_, b)| b).collect();
     assert_eq!(sent, [rtu::encode(9, &[0x83, 0x0A])]);
     assert_eq!(rig.counted(PortOutcome::TooLate), 1);
+}
+
+#[tokio::test(start_paused = true)]
+async fn on_a_line_that_echoes_each_replys_echo_is_dropped_not_taken_for_a_request() {
+    let keys = "device = \"/dev/ttyS9\"\n[server.serial.rs485]\necho = true";
+    let rig = Rig::new(keys, Duration::from_millis(5)).await;
+    for n in 1..=3 {
+        rig.send(&read(1));
+        sleep(Duration::from_millis(100)).await;
+        assert_eq!(rig.sent().len(), n);
+    }
+    // Each reply came back in and was dropped: had one been read, it would have been a frame
+    // of the wrong length for its function (bad_frame) or a request from the master.
+    assert_eq!(rig.counted(PortOutcome::Answered), 3);
+    assert_eq!(rig.counted(PortOutcome::BadFrame), 0);
+    assert_eq!(rig.on_the_line(), [read(1), read(1), read(1)]);
 }
 
 #[tokio::test(start_paused = true)]
