@@ -116,11 +116,15 @@ impl From<SocketAddr> for Peer {
     }
 }
 
+/// How a serial master port's master is named (`serial:NAME`): in the journal, on the status
+/// page, and as the port's bus on the trace.
+pub(crate) const PORT_PEER_PREFIX: &str = "serial:";
+
 impl fmt::Display for Peer {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Peer::Net(addr) => addr.fmt(f),
-            Peer::Port(name) => write!(f, "serial:{name}"),
+            Peer::Port(name) => write!(f, "{PORT_PEER_PREFIX}{name}"),
         }
     }
 }

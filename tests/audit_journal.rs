@@ -14,7 +14,8 @@
 
 use crate::simulate::Simulator;
 use crate::support::{
-    addr, connect_when_listening, free_addr, rtu, within, Bus, GatewayConfig, Scrape, Value,
+    addr, connect_when_listening, free_addr, rtu, within, Bus, GatewayConfig, Scrape, TempDir,
+    Value,
 };
 use modbus_gateway::Gateway;
 use serde_json::Value as Json;
@@ -44,28 +45,6 @@ const WRITABLE: &str = "modbus_gateway_audit_journal_writable";
 const BYTES: &str = "modbus_gateway_audit_journal_bytes";
 const REFUSED_BY_THE_GATEWAY: &str =
     "modbus_gateway_writes_total{action=\"allow\",outcome=\"gateway_exception\",protocol=\"tcp\"}";
-
-/// A folder of the test's own under the system's temporary folder, removed with what is in it.
-struct TempDir(PathBuf);
-
-impl TempDir {
-    fn new(name: &str) -> TempDir {
-        let dir = std::env::temp_dir().join(format!("mbgw-audit-{}-{name}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).expect("a temporary folder");
-        TempDir(dir)
-    }
-
-    fn join(&self, name: &str) -> PathBuf {
-        self.0.join(name)
-    }
-}
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
 
 /// A child process, killed (if it still runs) on drop: a failed test leaves no gateway behind.
 struct Process(std::process::Child);
@@ -281,7 +260,7 @@ fn burst_write(m: u16, k: u16) -> (u16, u16) {
 /// Every write the slave carried out before a kill -9 has its write line.
 #[tokio::test]
 async fn every_write_carried_out_before_a_kill_9_has_its_line_in_the_journal() {
-    let dir = TempDir::new("kill");
+    let dir = TempDir::new("audit-kill");
     // The line outlives the gateway: `simulate --listen` serves it in a process of its own. The
     // slave carries a write out as it hears it and answers 20 ms later, so a kill most likely
     // finds one carried out and not yet answered.

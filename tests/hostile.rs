@@ -15,7 +15,6 @@ use crate::support::{
 };
 use modbus_gateway::testing::line::rtu;
 use modbus_gateway::testing::sim::Source;
-use std::ffi::OsString;
 use std::io::{BufRead, BufReader, Write};
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -144,19 +143,7 @@ impl Libmodbus {
     /// `None` (the test checks nothing) without Python's ctypes or libmodbus, unless
     /// `MBGW_REQUIRE_TOOLS` is set: then their absence fails the test.
     async fn start() -> Option<Libmodbus> {
-        let python = std::env::var_os("MBGW_PYTHON").unwrap_or_else(|| OsString::from("python3"));
-        let usable = Command::new(&python)
-            .args(["-c", "import ctypes; ctypes.CDLL('libmodbus.so.5')"])
-            .status()
-            .is_ok_and(|status| status.success());
-        if !usable {
-            assert!(
-                std::env::var_os("MBGW_REQUIRE_TOOLS").is_none(),
-                "libmodbus (libmodbus5) is required (MBGW_REQUIRE_TOOLS is set) but cannot be loaded"
-            );
-            eprintln!("libmodbus cannot be loaded: this test checks nothing here");
-            return None;
-        }
+        let python = crate::support::python_with_libmodbus()?;
         let script =
             PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/peers/libmodbus_slave.py");
         let mut child = Command::new(python)
@@ -707,11 +694,14 @@ async fn register_over_tcp(addr: SocketAddr, unit: u8, register: u16) -> Vec<u8>
     master.call(1, unit, &[0x03, hi, lo, 0x00, 0x01]).await
 }
 
+/// The series of the hostile port's frames that ended in `outcome`.
+fn port_series(outcome: &str) -> String {
+    format!("modbus_gateway_serial_requests_total{{outcome=\"{outcome}\",port=\"hostile\"}}")
+}
+
 /// The port's count of `outcome` in `text`, a scrape.
 fn port_count(text: &str, outcome: &str) -> f64 {
-    Scrape::parse(text.to_owned()).value(&format!(
-        "modbus_gateway_serial_requests_total{{outcome=\"{outcome}\",port=\"hostile\"}}"
-    ))
+    Scrape::parse(text.to_owned()).value(&port_series(outcome))
 }
 
 /// Scrape `metrics` until the port's count of `outcome` is at least `n`; that scrape.
@@ -736,8 +726,7 @@ async fn port_counted(metrics: SocketAddr, outcome: &str, n: f64) -> String {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_hostile_serial_port_master_takes_nothing_down_and_reaches_no_forbidden_slave() {
     use tokio::io::AsyncReadExt;
-    let dir = std::env::temp_dir().join(format!("mbgw-hostile-port-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = crate::support::TempDir::new("hostile-port");
     let link = dir.join("port");
     let (tcp, metrics) = (free_addr(), free_addr());
     let port = format!(
@@ -900,17 +889,14 @@ async fn a_hostile_serial_port_master_takes_nothing_down_and_reaches_no_forbidde
     let before = Scrape::parse(before);
     // Only the good reads went on the line, 8 bytes each: the port's answered requests (the
     // refused writes are its exceptions).
-    let port = |outcome: &str| {
-        format!("modbus_gateway_serial_requests_total{{outcome=\"{outcome}\",port=\"hostile\"}}")
-    };
-    let answered_reads = scrape.delta(&before, &port("answered"));
+    let answered_reads = scrape.delta(&before, &port_series("answered"));
     assert!(answered_reads >= 4.0, "{answered_reads} reads answered");
     assert_eq!(
         scrape.delta(&before, "modbus_gateway_line_sent_bytes_total{bus=\"sim\"}"),
         8.0 * answered_reads,
         "bytes on the line beyond the good reads'"
     );
-    assert_eq!(scrape.delta(&before, &port("exception")), 1000.0);
+    assert_eq!(scrape.delta(&before, &port_series("exception")), 1000.0);
     assert_eq!(
         register_over_tcp(tcp, 2, 0).await,
         register_2,
@@ -929,5 +915,4 @@ async fn a_hostile_serial_port_master_takes_nothing_down_and_reaches_no_forbidde
         rss < rss_before + 8 * 1024,
         "resident memory grew from {rss_before} KiB to {rss} KiB"
     );
-    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -2,9 +2,10 @@
 //! TCP client (tokio-modbus) reads and writes the slave behind it; a reply with a bad CRC or from
 //! another address is never forwarded, and a port that vanishes gives 0x0A until it is back.
 
-use crate::support::{addr, pty_config, start, start_sim, wait_for_bus, PtySlave, RawMaster};
+use crate::support::{
+    addr, pty_config, start, start_sim, wait_for_bus, PtySlave, RawMaster, TempDir,
+};
 use modbus_gateway::testing::line::rtu;
-use std::path::PathBuf;
 use tokio_modbus::client::{tcp, Reader, Writer};
 use tokio_modbus::Slave;
 
@@ -95,19 +96,10 @@ async fn reads_are_retried_on_a_bad_reply_and_succeed() {
     assert_eq!(slave.received().len(), 2);
 }
 
-struct TempDir(PathBuf);
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
-
 #[tokio::test]
 async fn a_serial_port_that_vanishes_gives_0x0a_at_once_and_is_reopened_when_back() {
-    let dir = TempDir(std::env::temp_dir().join(format!("mbgw-vanish-{}", std::process::id())));
-    std::fs::create_dir_all(&dir.0).unwrap();
-    let device = dir.0.join("ttyRS485");
+    let dir = TempDir::new("vanish");
+    let device = dir.join("ttyRS485");
     let first = PtySlave::registers();
     std::os::unix::fs::symlink(&first.path, &device).unwrap();
     let keys = "response_timeout = \"1h\"\nreopen_delay = \"10ms\"\nreopen_delay_max = \"50ms\"";

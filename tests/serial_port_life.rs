@@ -4,31 +4,15 @@
 //! and gone once it stops.
 
 use crate::support::{
-    http_get, rtu, sim_line, start, within, Accepter, GatewayConfig, Scrape, Ser2net,
+    http_get, rtu, sim_line, start, within, Accepter, GatewayConfig, Scrape, Ser2net, TempDir,
 };
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_serial::{SerialPort, SerialPortBuilderExt, SerialStream};
 
 /// Read two holding registers from 0 of `unit`.
 const READ: [u8; 5] = [0x03, 0x00, 0x00, 0x00, 0x02];
-
-struct TempDir(PathBuf);
-
-impl TempDir {
-    fn new(what: &str) -> TempDir {
-        let dir = std::env::temp_dir().join(format!("mbgw-{what}-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        TempDir(dir)
-    }
-}
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
 
 /// A gateway with register slaves 1-4 on a simulated line and one serial master port `scada` on
 /// `device`.
@@ -64,7 +48,7 @@ async fn port_up(gateway: &modbus_gateway::Gateway) -> f64 {
 #[tokio::test]
 async fn a_uart_missing_at_start_is_served_once_it_appears_and_is_on_the_status_page() {
     let dir = TempDir::new("serial-port-uart");
-    let device = dir.0.join("ttyS9");
+    let device = dir.join("ttyS9");
     let gateway = gateway_with_port(device.to_str().unwrap()).await;
     assert_eq!(port_up(&gateway).await, 0.0);
     // The device appears: the far end of a pty pair, the gateway's UART.
@@ -106,7 +90,7 @@ async fn a_uart_missing_at_start_is_served_once_it_appears_and_is_on_the_status_
 #[tokio::test]
 async fn a_pty_port_is_linked_while_the_gateway_runs_and_unlinked_when_it_stops() {
     let dir = TempDir::new("serial-port-pty");
-    let link = dir.0.join("scada");
+    let link = dir.join("scada");
     let gateway = gateway_with_port(&format!("pty:{}", link.display())).await;
     within("the link", async {
         while !Path::new(&link).exists() {

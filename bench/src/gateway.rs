@@ -178,8 +178,7 @@ impl Gateway {
         } else {
             None
         };
-        let (config, port) = serial_port(scenario, config);
-        let mut config = config;
+        let (mut config, port) = serial_port(scenario, config);
         if let Some(journal) = &journal {
             let path = journal.file().to_string_lossy().into_owned();
             let fsync = scenario.journal == Journal::Fsync;

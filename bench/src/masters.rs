@@ -228,6 +228,8 @@ pub(crate) async fn priority_connect(gateway: &Gateway) -> Result<Conn, String> 
     let failed = |e: std::io::Error| format!("priority master: {e}");
     if let Some(link) = &gateway.port {
         let path = link.0.to_string_lossy();
+        // A pty carries bytes at once whatever its baud rate: the port's own format is the
+        // gateway's side of it.
         let stream = tokio_serial::SerialPortBuilderExt::open_native_async(tokio_serial::new(
             path.as_ref(),
             9600,

@@ -5,6 +5,7 @@
 
 use super::stop_signal;
 use crate::line::{ascii, rtu};
+use crate::master::PORT_PEER_PREFIX;
 use crate::mbap;
 use crate::pdu::{self, code};
 use bytes::Bytes;
@@ -312,7 +313,7 @@ impl Frame {
         let function = self.function;
         // On a serial master port (bus `serial:NAME`; a bus's name has no colon) the gateway
         // is the slave: there `rx` is the master's request and `tx` the reply.
-        let request = (self.direction == "tx") != self.bus.starts_with("serial:");
+        let request = (self.direction == "tx") != self.bus.starts_with(PORT_PEER_PREFIX);
         if request {
             let name = pdu::function(function).map_or("function", |f| f.name);
             let _ = write!(line, "{} 0x{function:02x}", name.to_lowercase());

@@ -140,7 +140,7 @@ pub(crate) fn start(
         views.push(planned.view.clone());
         let trace = metrics
             .trace
-            .register(Arc::from(format!("serial:{}", port.name)));
+            .register(Arc::from(Peer::Port(planned.view.name.clone()).to_string()));
         let format = port.format();
         let driver = SerialDriver {
             rs485: port.rs485.clone(),

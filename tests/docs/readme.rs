@@ -9,8 +9,8 @@
 //! under `MBGW_REQUIRE_TOOLS=1`.
 
 use crate::simulate::Simulator;
-use crate::support::{start, tool, within, Scrape};
-use std::path::{Path, PathBuf};
+use crate::support::{start, tool, until_exists, within, Scrape, TempDir};
+use std::path::Path;
 use std::process::{Command, Output};
 
 const README: &str = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md"));
@@ -130,28 +130,6 @@ fn put(text: &str, from: &str, to: &str) -> String {
     text.replace(from, to)
 }
 
-/// A fresh directory for a test's files; removed when dropped.
-struct Dir(PathBuf);
-
-impl Dir {
-    fn new(name: &str) -> Dir {
-        let dir = std::env::temp_dir().join(format!("mbgw-readme-{name}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).expect("a fresh directory");
-        Dir(dir)
-    }
-
-    fn path(&self, name: &str) -> PathBuf {
-        self.0.join(name)
-    }
-}
-
-impl Drop for Dir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
-
 /// config/demo-writes.toml on loopback ports of the system's choosing, its journal at `journal`.
 fn demo_writes_config(journal: &Path) -> String {
     let config = put(DEMO_WRITES, "\"127.0.0.1:5023\"", "\"127.0.0.1:0\"");
@@ -181,9 +159,9 @@ async fn the_writes_walkthrough_prints_what_the_readme_shows() {
     if tool("mbpoll").is_none() {
         return;
     }
-    let dir = Dir::new("writes");
-    let config = demo_writes_config(&dir.path("writes.jsonl"));
-    let config_path = dir.path("demo-writes.toml");
+    let dir = TempDir::new("readme-writes");
+    let config = demo_writes_config(&dir.join("writes.jsonl"));
+    let config_path = dir.join("demo-writes.toml");
     std::fs::write(&config_path, &config).unwrap();
     let gateway = start(&config).await;
     let port = gateway.tcp_addrs()[0].port();
@@ -341,8 +319,8 @@ async fn the_serial_port_walkthrough_prints_what_the_readme_shows() {
     if tool("mbpoll").is_none() || tool("curl").is_none() {
         return;
     }
-    let dir = Dir::new("serial");
-    let link = dir.path("scada").display().to_string();
+    let dir = TempDir::new("readme-serial");
+    let link = dir.join("scada").display().to_string();
     let demo = include_str!(concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/config/demo-serial.toml"
@@ -355,12 +333,7 @@ async fn the_serial_port_walkthrough_prints_what_the_readme_shows() {
         &format!("\"pty:{link}\""),
     );
     let gateway = start(&config).await;
-    within("the port's pty is linked", async {
-        while !Path::new(&link).exists() {
-            tokio::time::sleep(std::time::Duration::from_millis(10)).await;
-        }
-    })
-    .await;
+    until_exists(Path::new(&link)).await;
     let port = gateway.tcp_addrs()[0].port();
     for (command, shown) in &steps {
         let command = if command.contains(" -m rtu ") {

@@ -23,6 +23,8 @@ import ctypes
 import errno
 import sys
 
+from libmodbus_rtu import rtu_library
+
 # libmodbus's errno base for Modbus exceptions (MODBUS_ENOBASE) and its codes past it.
 MODBUS_ENOBASE = 112345678
 
@@ -38,33 +40,14 @@ def say(line):
 
 
 def main(path, ops):
-    lib = ctypes.CDLL("libmodbus.so.5", use_errno=True)
-    lib.modbus_new_rtu.restype = ctypes.c_void_p
-    lib.modbus_new_rtu.argtypes = [
-        ctypes.c_char_p,
-        ctypes.c_int,
-        ctypes.c_char,
-        ctypes.c_int,
-        ctypes.c_int,
-    ]
-    for name in ("modbus_set_slave", "modbus_set_debug"):
-        getattr(lib, name).argtypes = [ctypes.c_void_p, ctypes.c_int]
-    lib.modbus_connect.argtypes = [ctypes.c_void_p]
+    lib = rtu_library()
+    lib.modbus_set_debug.argtypes = [ctypes.c_void_p, ctypes.c_int]
     lib.modbus_flush.argtypes = [ctypes.c_void_p]
     lib.modbus_set_response_timeout.argtypes = [ctypes.c_void_p, ctypes.c_uint32, ctypes.c_uint32]
-    lib.modbus_read_registers.argtypes = [
-        ctypes.c_void_p,
-        ctypes.c_int,
-        ctypes.c_int,
-        ctypes.POINTER(ctypes.c_uint16),
-    ]
+    words = [ctypes.c_void_p, ctypes.c_int, ctypes.c_int, ctypes.POINTER(ctypes.c_uint16)]
+    lib.modbus_read_registers.argtypes = words
+    lib.modbus_write_registers.argtypes = words
     lib.modbus_write_register.argtypes = [ctypes.c_void_p, ctypes.c_int, ctypes.c_uint16]
-    lib.modbus_write_registers.argtypes = [
-        ctypes.c_void_p,
-        ctypes.c_int,
-        ctypes.c_int,
-        ctypes.POINTER(ctypes.c_uint16),
-    ]
 
     ctx = lib.modbus_new_rtu(path.encode(), 9600, b"N", 8, 1)
     if not ctx or lib.modbus_connect(ctx) != 0:

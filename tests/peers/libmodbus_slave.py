@@ -23,6 +23,8 @@ import sys
 import threading
 import tty
 
+from libmodbus_rtu import rtu_library
+
 SLAVE_ID = 10
 REGISTERS = 16
 MAX_ADU = 256
@@ -66,17 +68,7 @@ def cable(a, b):
 
 
 def main():
-    lib = ctypes.CDLL("libmodbus.so.5")
-    lib.modbus_new_rtu.restype = ctypes.c_void_p
-    lib.modbus_new_rtu.argtypes = [
-        ctypes.c_char_p,
-        ctypes.c_int,
-        ctypes.c_char,
-        ctypes.c_int,
-        ctypes.c_int,
-    ]
-    lib.modbus_set_slave.argtypes = [ctypes.c_void_p, ctypes.c_int]
-    lib.modbus_connect.argtypes = [ctypes.c_void_p]
+    lib = rtu_library()
     lib.modbus_mapping_new.restype = ctypes.POINTER(Mapping)
     lib.modbus_receive.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
     lib.modbus_reply.argtypes = [

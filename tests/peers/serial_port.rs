@@ -8,12 +8,10 @@
 //! master read no byte at all. Its writes meet the rules and the journal as protocol `serial`.
 
 use super::{ascii_frames, python_with_pymodbus, run_to_end, unhex, Pymodbus, UNIT};
-use crate::support::{start, within, Scrape};
+use crate::support::{python_with_libmodbus, start, until_exists, Scrape, TempDir};
 use modbus_gateway::testing::line::rtu;
 use std::ffi::OsString;
 use std::path::PathBuf;
-use std::process::Command;
-use std::time::Duration;
 
 const PYMODBUS_MASTER: &str = concat!(
     env!("CARGO_MANIFEST_DIR"),
@@ -89,30 +87,12 @@ fn ops_of(stdout: &str) -> Vec<Op> {
     ops
 }
 
-/// A directory of the test's own, removed when dropped.
-struct Dir(PathBuf);
-
-impl Dir {
-    fn new(what: &str) -> Dir {
-        let dir = std::env::temp_dir().join(format!("mbgw-{what}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
-        Dir(dir)
-    }
-}
-
-impl Drop for Dir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
-}
-
 /// The gateway: port `scada` (`framing`) at `dir`/scada, port `hmi` (RTU, read only) at
 /// `dir`/hmi; the demo's GD20 and GD300 on a simulated line (units 1-2 and broadcasts), the
 /// pymodbus server on `slave` (unit 10); a rule for serial masters on the drives' run command;
 /// the journal in `dir`.
-fn config(framing: &str, slave: &str, dir: &Dir) -> String {
-    let dir = dir.0.display();
+fn config(framing: &str, slave: &str, dir: &TempDir) -> String {
+    let dir = dir.path().display();
     format!(
         r#"
 [server]
@@ -191,14 +171,10 @@ async fn master(python: &OsString, script: &str, args: &[String]) -> Vec<Op> {
 }
 
 /// The gateway with its ports' links in place.
-async fn gateway(framing: &str, slave: &Pymodbus, dir: &Dir) -> modbus_gateway::Gateway {
+async fn gateway(framing: &str, slave: &Pymodbus, dir: &TempDir) -> modbus_gateway::Gateway {
     let gateway = start(&config(framing, &slave.path, dir)).await;
-    within("the ports' ptys are linked", async {
-        while !(dir.0.join("scada").exists() && dir.0.join("hmi").exists()) {
-            tokio::time::sleep(Duration::from_millis(10)).await;
-        }
-    })
-    .await;
+    until_exists(&dir.join("scada")).await;
+    until_exists(&dir.join("hmi")).await;
     gateway
 }
 
@@ -223,16 +199,12 @@ fn check_results(ops: &[Op]) {
 
 /// The ops to the pymodbus server (unit 10), as RTU frames each way: what its line must carry.
 fn to_pymodbus_slave(frames: impl Iterator<Item = (Vec<u8>, Vec<u8>)>) -> (Vec<u8>, Vec<u8>) {
-    let mut wire = (Vec::new(), Vec::new());
-    for (request, reply) in frames {
-        wire.0.extend(request);
-        wire.1.extend(reply);
-    }
-    wire
+    let (requests, replies): (Vec<Vec<u8>>, Vec<Vec<u8>>) = frames.unzip();
+    (requests.concat(), replies.concat())
 }
 
 /// The port's counts, the journal's lines for the two denied writes, and the read-only port.
-async fn check_counts_and_journal(gateway: &modbus_gateway::Gateway, dir: &Dir) {
+async fn check_counts_and_journal(gateway: &modbus_gateway::Gateway, dir: &TempDir) {
     let scrape = Scrape::of(gateway).await;
     let counted = |outcome: &str| {
         scrape.value(&format!(
@@ -251,7 +223,7 @@ async fn check_counts_and_journal(gateway: &modbus_gateway::Gateway, dir: &Dir) 
     .map(|o| counted(o))
     .collect();
     assert_eq!(counts, [7.0, 2.0, 2.0, 1.0, 0.0, 0.0]);
-    let journal = std::fs::read_to_string(dir.0.join("journal.jsonl")).expect("the journal");
+    let journal = std::fs::read_to_string(dir.join("journal.jsonl")).expect("the journal");
     let writes: Vec<serde_json::Value> = journal
         .lines()
         .map(|line| serde_json::from_str(line).expect("a journal line is JSON"))
@@ -289,10 +261,10 @@ async fn pymodbus_rtu_and_ascii_masters_on_a_port_reach_both_lines_byte_for_byte
         let Some(slave) = Pymodbus::start("rtu").await else {
             return;
         };
-        let dir = Dir::new(&format!("port-peers-{framing}"));
+        let dir = TempDir::new(&format!("port-peers-{framing}"));
         let gateway = gateway(framing, &slave, &dir).await;
         let mut args = vec![framing.to_owned()];
-        args.extend(op_args(&dir.0.join("scada")));
+        args.extend(op_args(&dir.join("scada")));
         let ops = master(&python, PYMODBUS_MASTER, &args).await;
         check_results(&ops);
         // Each op's frames as RTU, whatever the port's framing: (unit, PDU) each way.
@@ -331,7 +303,7 @@ async fn pymodbus_rtu_and_ascii_masters_on_a_port_reach_both_lines_byte_for_byte
             PYMODBUS_MASTER,
             &[
                 "rtu".to_owned(),
-                dir.0.join("hmi").display().to_string(),
+                dir.join("hmi").display().to_string(),
                 "read:10:0:2".to_owned(),
                 "write:10:0:99".to_owned(),
                 "read:10:0:2".to_owned(),
@@ -340,7 +312,7 @@ async fn pymodbus_rtu_and_ascii_masters_on_a_port_reach_both_lines_byte_for_byte
         .await;
         let results: Vec<&str> = ops.iter().map(|op| op.result.as_str()).collect();
         assert_eq!(results, ["7 8", "exception 1", "7 8"], "{framing}");
-        let journal = std::fs::read_to_string(dir.0.join("journal.jsonl")).unwrap();
+        let journal = std::fs::read_to_string(dir.join("journal.jsonl")).unwrap();
         assert!(
             journal.contains(r#""master":"serial:hmi","protocol":"serial""#)
                 && journal.contains(r#""rule":"server.serial[1].read_only","action":"deny""#),
@@ -352,26 +324,16 @@ async fn pymodbus_rtu_and_ascii_masters_on_a_port_reach_both_lines_byte_for_byte
 
 #[tokio::test]
 async fn libmodbus_rtu_master_on_a_port_reaches_both_lines_byte_for_byte() {
-    let python = std::env::var_os("MBGW_PYTHON").unwrap_or_else(|| OsString::from("python3"));
-    let usable = Command::new(&python)
-        .args(["-c", "import ctypes; ctypes.CDLL('libmodbus.so.5')"])
-        .status()
-        .is_ok_and(|status| status.success());
-    if !usable {
-        assert!(
-            std::env::var_os("MBGW_REQUIRE_TOOLS").is_none(),
-            "libmodbus (libmodbus5) is required (MBGW_REQUIRE_TOOLS is set) but cannot be loaded"
-        );
-        eprintln!("libmodbus cannot be loaded: this test checks nothing here");
+    let Some(python) = python_with_libmodbus() else {
         return;
-    }
+    };
     // The slave behind the gateway is pymodbus's: it needs pymodbus's Python.
     let Some(slave) = Pymodbus::start("rtu").await else {
         return;
     };
-    let dir = Dir::new("port-peers-libmodbus");
+    let dir = TempDir::new("port-peers-libmodbus");
     let gateway = gateway("rtu", &slave, &dir).await;
-    let ops = master(&python, LIBMODBUS_MASTER, &op_args(&dir.0.join("scada"))).await;
+    let ops = master(&python, LIBMODBUS_MASTER, &op_args(&dir.join("scada"))).await;
     check_results(&ops);
     assert_eq!(ops[0].sent, unhex("0203210300017e05"));
     assert_eq!(ops[0].received, unhex("020302010a7dd3"));
@@ -393,8 +355,8 @@ async fn a_reply_later_than_answer_within_never_reaches_a_pymodbus_master() {
     let Some(python) = python_with_pymodbus() else {
         return;
     };
-    let dir = Dir::new("port-peers-late");
-    let link = dir.0.join("late");
+    let dir = TempDir::new("port-peers-late");
+    let link = dir.join("late");
     // A drive that takes 400 ms to answer, behind a port that must answer within 100 ms.
     let config = format!(
         r#"
@@ -425,12 +387,7 @@ model = "gd300"
         link.display()
     );
     let gateway = start(&config).await;
-    within("the port's pty is linked", async {
-        while !link.exists() {
-            tokio::time::sleep(Duration::from_millis(10)).await;
-        }
-    })
-    .await;
+    until_exists(&link).await;
     let args: Vec<String> = [
         "rtu",
         &link.display().to_string(),
