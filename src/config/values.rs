@@ -218,7 +218,7 @@ impl Value {
     }
 
     /// Every problem with it, each with its key under `at` (`bus[0].slave[1].value[2]`).
-    fn check(&self, at: &str, errors: &mut Vec<ConfigError>) {
+    pub(super) fn check(&self, at: &str, errors: &mut Vec<ConfigError>) {
         let mut fail = |key: &str, reason: String| {
             errors.push(ConfigError {
                 key: format!("{at}.{key}"),
@@ -366,6 +366,7 @@ const SHIPPED: &[(&str, &str)] = shipped![
     "goodrive10",
     "pd-inverter",
     "eastron-sdm120",
+    "eastron-sdm630",
 ];
 
 /// The templates a configuration may name: the shipped ones, and those of `template_dir`, which
@@ -746,6 +747,7 @@ mod tests {
             names,
             [
                 "eastron-sdm120",
+                "eastron-sdm630",
                 "goodrive10",
                 "goodrive20",
                 "goodrive300",
