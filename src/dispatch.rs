@@ -14,9 +14,10 @@ use crate::config::{Action, UnitSet};
 use crate::error::{Answer, Outcome, RequestError};
 use crate::master::{Class, MasterId, Origin, Peer, Protocol, Rights};
 use crate::metrics::{Metrics, Refusal};
-use crate::pdu::{self, RequestLen};
+use crate::pdu::{self, RequestLen, EXCEPTION_BIT};
 use crate::routing::{Inbound, Router, Target};
 use crate::rules::{self, Rules};
+use crate::virtuals::{Refused, Unit, Units};
 use std::net::SocketAddr;
 use std::sync::{Arc, PoisonError, RwLock};
 use tokio::sync::oneshot;
@@ -115,11 +116,13 @@ impl Client {
     }
 }
 
-/// The routes, the buses they index and the rules, replaced whole on a reload.
+/// The routes, the buses they index, the rules and the virtual units, replaced whole on a
+/// reload.
 struct Table {
     router: Router,
     buses: Vec<BusHandle>,
     rules: Rules,
+    virtuals: Arc<Units>,
 }
 
 pub struct Dispatcher {
@@ -133,13 +136,15 @@ impl Dispatcher {
     #[cfg(any(test, feature = "test-util"))]
     pub fn new(router: Router, buses: Vec<BusHandle>, metrics: Arc<Metrics>) -> Self {
         let audit = Audit::new(metrics.clone());
-        Self::with_rules(router, buses, Rules::default(), audit, metrics)
+        let virtuals = Arc::new(Units::none(Arc::default()));
+        Self::with_rules(router, buses, (Rules::default(), virtuals), audit, metrics)
     }
 
+    /// Routing by `router` to `buses`, under `rules`, answering `virtuals` itself.
     pub(crate) fn with_rules(
         router: Router,
         buses: Vec<BusHandle>,
-        rules: Rules,
+        (rules, virtuals): (Rules, Arc<Units>),
         audit: Arc<Audit>,
         metrics: Arc<Metrics>,
     ) -> Self {
@@ -148,6 +153,7 @@ impl Dispatcher {
                 router,
                 buses,
                 rules,
+                virtuals,
             })),
             metrics,
             audit,
@@ -166,14 +172,25 @@ impl Dispatcher {
             .clone()
     }
 
-    /// Route by `router` to `buses` under `rules` from the next request on; requests already
-    /// queued stay where they are.
-    pub(crate) fn replace(&self, router: Router, buses: Vec<BusHandle>, rules: Rules) {
+    /// Route by `router` to `buses` under `rules`, answering `virtuals`, from the next request
+    /// on; requests already queued stay where they are.
+    pub(crate) fn replace(
+        &self,
+        router: Router,
+        buses: Vec<BusHandle>,
+        (rules, virtuals): (Rules, Arc<Units>),
+    ) {
         *self.table.write().unwrap_or_else(PoisonError::into_inner) = Arc::new(Table {
             router,
             buses,
             rules,
+            virtuals,
         });
+    }
+
+    /// The virtual units answered now.
+    pub(crate) fn virtual_units(&self) -> Arc<Units> {
+        self.table().virtuals.clone()
     }
 
     pub fn buses(&self) -> Vec<BusHandle> {
@@ -190,6 +207,7 @@ impl Dispatcher {
         pdu: Vec<u8>,
     ) -> oneshot::Receiver<Outcome> {
         let table = self.table();
+        let emulated = table.virtuals.get(unit);
         let target = table.router.resolve(unit);
         let inbound = Inbound {
             peer: &client.peer,
@@ -199,49 +217,155 @@ impl Dispatcher {
             unit,
             bus: target.map(|t| table.buses[t.bus].name()),
             target,
+            virtual_unit: emulated.map(|v| &*v.name),
             pdu: &pdu,
         };
+        let to = match (emulated, target) {
+            (Some(unit), _) => Some(To::Virtual(unit)),
+            (None, target) => target.map(To::Bus),
+        };
+        self.dispatch(client, &table, &inbound, to)
+    }
+
+    /// `inbound` from `client`, going `to` a slave or a virtual unit (`None`: no route):
+    /// refused unsent, or decided by the first matching rule; a write journaled first.
+    fn dispatch(
+        &self,
+        client: &Client,
+        table: &Table,
+        inbound: &Inbound<'_>,
+        to: Option<To<'_>>,
+    ) -> oneshot::Receiver<Outcome> {
+        let pdu = inbound.pdu;
         let function = pdu.first().copied().unwrap_or(0);
-        let (by, admitted) = match admit(client, unit, &pdu, target) {
-            Ok(target) => {
-                let decision = table.rules.decide(&inbound);
+        let (by, admitted) = match admit(client, inbound.unit, pdu, to) {
+            Ok(to) => {
+                let decision = table.rules.decide(inbound);
                 let by = Decided {
                     rule: decision.rule.map(|at| table.rules.name(at)),
                     action: decision.action,
                 };
-                (by, Ok((target, decision)))
+                (by, Ok((to, decision)))
             }
             // Refused before any rule: journaled with the setting that refused it.
             Err(refusal) => (refused_by(client, refusal), Err(refusal)),
         };
         // Everything that may change a slave is journaled: its entry begins here, and only here.
-        let journaled = pdu::is_valid_request_function(function) && !pdu::is_read_only(&pdu);
-        let pending = match journaled.then(|| self.audit.begin(&inbound, by)) {
+        let journaled = pdu::is_valid_request_function(function) && !pdu::is_read_only(pdu);
+        let pending = match journaled.then(|| self.audit.begin(inbound, by)) {
             None => None,
             Some(Ok(pending)) => Some(pending),
             Some(Err(audit::Refused)) => {
                 let refusal = admitted.err().unwrap_or(RequestError::Unrecorded(function));
-                self.audit.unjournaled(&inbound, by, refusal);
-                return self.refuse(client, &table, &inbound, refusal, None);
+                self.audit.unjournaled(inbound, by, refusal);
+                return self.refuse(client, table, inbound, refusal, None);
             }
         };
-        let (target, decision) = match admitted {
+        let (to, decision) = match admitted {
             Ok(admitted) => admitted,
-            Err(refusal) => return self.refuse(client, &table, &inbound, refusal, pending),
+            Err(refusal) => return self.refuse(client, table, inbound, refusal, pending),
+        };
+        let rule = by.rule.unwrap_or("a rule");
+        let target = match to {
+            To::Bus(target) => target,
+            To::Virtual(unit) => {
+                return match ruling(&table.rules, decision, rule, pdu, None, pending) {
+                    Ruling::Send(pending) => self.emulate(client, table, inbound, unit, pending),
+                    Ruling::Acknowledge(answer) => {
+                        self.answer_virtual(client, unit, inbound, Ok(answer))
+                    }
+                    Ruling::Refuse(refusal) => self.refuse(client, table, inbound, refusal, None),
+                };
+            }
         };
         let bus = &table.buses[target.bus];
-        let rule = by.rule.unwrap_or("a rule");
-        match ruling(&table.rules, decision, rule, &pdu, target, bus, pending) {
+        match ruling(
+            &table.rules,
+            decision,
+            rule,
+            pdu,
+            Some((target, bus)),
+            pending,
+        ) {
             Ruling::Send(pending) => {
-                bus.submit_journaled(origin_of(client), target.address, pdu, pending)
+                bus.submit_journaled(origin_of(client), target.address, pdu.to_vec(), pending)
             }
             Ruling::Acknowledge(answer) => {
                 let (waiter, receiver) = Waiter::new(origin_of(client), Instant::now());
                 waiter.answer(bus.tally(), target.address, function, Ok(answer));
                 receiver
             }
-            Ruling::Refuse(refusal) => self.refuse(client, &table, &inbound, refusal, None),
+            Ruling::Refuse(refusal) => self.refuse(client, table, inbound, refusal, None),
         }
+    }
+
+    /// `inbound` to virtual `unit`, allowed: a read answered from memory at once; a write (its
+    /// journal entry `pending`) sent on as one write to each source slave it covers, each
+    /// decided and journaled as any write to that slave, and answered when they are all done.
+    fn emulate(
+        &self,
+        client: &Client,
+        table: &Table,
+        inbound: &Inbound<'_>,
+        unit: &Unit,
+        pending: Option<Pending>,
+    ) -> oneshot::Receiver<Outcome> {
+        let pdu = inbound.pdu;
+        let function = pdu.first().copied().unwrap_or(0);
+        let exception =
+            |Refused(code)| Ok(Answer::Reply(pdu::exception_pdu(function, code).to_vec()));
+        let Some(pending) = pending else {
+            let outcome = table
+                .virtuals
+                .read(unit, pdu, Instant::now())
+                .map_or_else(exception, |reply| Ok(Answer::Reply(reply)));
+            return self.answer_virtual(client, unit, inbound, outcome);
+        };
+        let (waiter, receiver) = Waiter::new(origin_of(client), Instant::now());
+        let waiter = waiter.journaled(Some(pending));
+        let (writes, normal) = match table.virtuals.write(unit, pdu) {
+            Ok(translated) => translated,
+            Err(refused) => {
+                let tally = Tally::Virtual(&self.metrics.virtual_units, &unit.name);
+                waiter.answer(tally, unit.id, function, exception(refused));
+                return receiver;
+            }
+        };
+        let sent: Vec<oneshot::Receiver<Outcome>> = writes
+            .iter()
+            .map(|write| {
+                let through = Inbound {
+                    bus: Some(table.buses[write.target.bus].name()),
+                    target: Some(write.target),
+                    pdu: &write.pdu,
+                    ..*inbound
+                };
+                self.dispatch(client, table, &through, Some(To::Bus(write.target)))
+            })
+            .collect();
+        let metrics = self.metrics.clone();
+        let (id, name) = (unit.id, unit.name.clone());
+        tokio::spawn(async move {
+            let outcome = written(function, normal, sent).await;
+            let tally = Tally::Virtual(&metrics.virtual_units, &name);
+            waiter.answer(tally, id, function, outcome);
+        });
+        receiver
+    }
+
+    /// `inbound` to virtual `unit` ends in `outcome` now.
+    fn answer_virtual(
+        &self,
+        client: &Client,
+        unit: &Unit,
+        inbound: &Inbound<'_>,
+        outcome: Outcome,
+    ) -> oneshot::Receiver<Outcome> {
+        let (waiter, receiver) = Waiter::new(origin_of(client), Instant::now());
+        let function = inbound.pdu.first().copied().unwrap_or(0);
+        let tally = Tally::Virtual(&self.metrics.virtual_units, &unit.name);
+        waiter.answer(tally, unit.id, function, outcome);
+        receiver
     }
 
     /// Answer `refusal` to `client`'s request `inbound` at once, unsent; a journaled write's
@@ -258,9 +382,13 @@ impl Dispatcher {
         let origin = origin_of(client);
         // Counted against the bus and slave the unit routes to, if any; without a route, with
         // no bus and no slave (the unit id is the master's to choose).
-        let (tally, slave) = match inbound.target {
-            Some(target) => (table.buses[target.bus].tally(), target.address),
-            None => (Tally::Unrouted(&self.metrics), inbound.unit),
+        let (tally, slave) = match (inbound.target, inbound.virtual_unit) {
+            (Some(target), _) => (table.buses[target.bus].tally(), target.address),
+            (None, Some(name)) => (
+                Tally::Virtual(&self.metrics.virtual_units, name),
+                inbound.unit,
+            ),
+            (None, None) => (Tally::Unrouted(&self.metrics), inbound.unit),
         };
         let function = inbound.pdu.first().copied().unwrap_or(0);
         let (waiter, receiver) = Waiter::new(origin, Instant::now());
@@ -314,15 +442,15 @@ enum Ruling {
     Refuse(RequestError),
 }
 
-/// What `decision` (by the rule named `rule`) makes of `pdu` to `target` on `bus`, whose journal
-/// entry is `pending` if it is a write; that entry is told of a refusal or an acknowledgement.
+/// What `decision` (by the rule named `rule`) makes of `pdu` to `target` on `bus` (`None`: to a
+/// virtual unit), whose journal entry is `pending` if it is a write; that entry is told of a
+/// refusal or an acknowledgement.
 fn ruling(
     rules: &Rules,
     decision: rules::Decision,
     rule: &str,
     pdu: &[u8],
-    target: Target,
-    bus: &BusHandle,
+    on: Option<(Target, &BusHandle)>,
     pending: Option<Pending>,
 ) -> Ruling {
     let function = pdu.first().copied().unwrap_or(0);
@@ -330,7 +458,7 @@ fn ruling(
         (Action::Allow, pending) => Ruling::Send(pending),
         // A read under an `acknowledge` rule goes on: only writes are kept back.
         (Action::Acknowledge, None) => Ruling::Send(None),
-        (Action::Acknowledge, Some(pending)) => match acknowledgement(pdu, target, bus) {
+        (Action::Acknowledge, Some(pending)) => match acknowledgement(pdu, on) {
             Some(answer) => {
                 pending.acknowledged();
                 Ruling::Acknowledge(answer)
@@ -394,14 +522,21 @@ fn origin_of(client: &Client) -> Origin {
     }
 }
 
-/// Where `pdu` from `client` to `unit` (routed to `target`) goes, or why the gateway refuses it
+/// Where a request goes: a slave of a bus, or a virtual unit.
+#[derive(Clone, Copy)]
+enum To<'a> {
+    Bus(Target),
+    Virtual(&'a Unit),
+}
+
+/// Where `pdu` from `client` to `unit` (going `to`) goes, or why the gateway refuses it
 /// unsent: the first reason in this order.
-fn admit(
+fn admit<'a>(
     client: &Client,
     unit: u8,
     pdu: &[u8],
-    target: Option<Target>,
-) -> Result<Target, RequestError> {
+    to: Option<To<'a>>,
+) -> Result<To<'a>, RequestError> {
     let function = pdu.first().copied().unwrap_or(0);
     let length = pdu::request_len(pdu);
     let refusal = if !pdu::is_valid_request_function(function) {
@@ -421,25 +556,48 @@ fn admit(
     } else if client.rights == Rights::ReadOnly && !pdu::is_read_only(pdu) {
         RequestError::ReadOnly(function)
     } else {
-        match target {
+        match to {
             None => RequestError::NoRoute(unit),
-            Some(target) if target.broadcast && pdu::broadcast_response(pdu).is_none() => {
+            Some(To::Bus(target)) if target.broadcast && pdu::broadcast_response(pdu).is_none() => {
                 RequestError::NotBroadcastable(function)
             }
-            Some(target) => return Ok(target),
+            Some(to) => return Ok(to),
         }
     };
     Err(refusal)
 }
 
-/// The reply an `acknowledge` rule gives a write in place of the slave: the normal reply the
-/// slave would give (the one the gateway makes for a broadcast), or for a broadcast unit what a
-/// broadcast gets. `None` for a write whose normal reply only the slave can make (it carries
-/// data read, or is the vendor's).
-fn acknowledgement(pdu: &[u8], target: Target, bus: &BusHandle) -> Option<Answer> {
+/// The reply an `acknowledge` rule gives a write in place of the slave (`on` a bus, or a
+/// virtual unit): the normal reply the slave would give (the one the gateway makes for a
+/// broadcast), or for a broadcast unit what a broadcast gets. `None` for a write whose normal
+/// reply only the slave can make (it carries data read, or is the vendor's).
+fn acknowledgement(pdu: &[u8], on: Option<(Target, &BusHandle)>) -> Option<Answer> {
     let reply = pdu::broadcast_response(pdu)?;
-    if target.broadcast && !bus.broadcast_reply() {
+    if on.is_some_and(|(target, bus)| target.broadcast && !bus.broadcast_reply()) {
         return Some(Answer::Nothing);
     }
     Some(Answer::Acknowledged(reply))
+}
+
+/// What the writes `sent` on for a write with `function` to a virtual unit came to: its
+/// `normal` reply when every one was carried out, else the first failure, as the master's
+/// exception (the slave's code under the master's function code) or the gateway's.
+async fn written(function: u8, normal: Vec<u8>, sent: Vec<oneshot::Receiver<Outcome>>) -> Outcome {
+    let mut failed = None;
+    for receiver in sent {
+        let ended = receiver.await.unwrap_or(Err(RequestError::ShuttingDown));
+        let failure = match ended {
+            Ok(Answer::Reply(reply)) if reply.first().is_some_and(|f| f & EXCEPTION_BIT != 0) => {
+                let code = reply.get(1).copied().unwrap_or(0x04);
+                Some(Ok(Answer::Reply(vec![function | EXCEPTION_BIT, code])))
+            }
+            Ok(Answer::Reply(_) | Answer::Acknowledged(_) | Answer::Nothing) => None,
+            Ok(Answer::Malformed(_)) => Some(Ok(Answer::Reply(
+                pdu::exception_pdu(function, pdu::ExceptionCode::ServerDeviceFailure).to_vec(),
+            ))),
+            Err(error) => Some(Err(error)),
+        };
+        failed = failed.or(failure);
+    }
+    failed.unwrap_or(Ok(Answer::Reply(normal)))
 }

@@ -18,6 +18,7 @@ use crate::rules::Rules;
 use crate::shutdown::{self, Stop};
 use crate::sim::{self, SimLine};
 use crate::values::{Exported, Store, Values};
+use crate::virtuals::Units;
 use crate::web;
 use std::io;
 use std::net::SocketAddr;
@@ -170,6 +171,10 @@ impl web::Inspect for Inspected {
         &self.values
     }
 
+    fn virtual_units(&self) -> Vec<crate::virtuals::ShownUnit> {
+        self.shared.dispatcher.virtual_units().shown(Instant::now())
+    }
+
     fn writes(&self) -> Vec<crate::audit::Recent> {
         self.shared.dispatcher.audit().recent()
     }
@@ -297,6 +302,16 @@ fn device_for(
     power_on_line(settings).map(Device::Sim)
 }
 
+/// The virtual units of `config`, their values found in `store` (configured for it), their
+/// series declared.
+fn virtual_units(config: &Config, store: &Arc<Store>, metrics: &Metrics) -> Arc<Units> {
+    let units = Units::new(config, store.clone());
+    for (unit, name) in units.ids() {
+        metrics.virtual_units.declare(unit, name);
+    }
+    Arc::new(units)
+}
+
 impl Gateway {
     /// Bind every listener and start every bus. Fails only if a listen address cannot be bound;
     /// a serial port that cannot be opened yet is retried by its bus while the rest serves.
@@ -315,7 +330,9 @@ impl Gateway {
         let audit = open_audit(config, &metrics)?;
         let router = Router::new(config);
         let rules = Rules::new(&config.rule, &router);
-        let dispatcher = Dispatcher::with_rules(router, handles, rules, audit, metrics.clone());
+        let virtuals = virtual_units(config, values.store(), &metrics);
+        let dispatcher =
+            Dispatcher::with_rules(router, handles, (rules, virtuals), audit, metrics.clone());
         let (stop, stopping) = shutdown::channel();
         let shared = Arc::new(Shared::new(
             dispatcher,
@@ -479,9 +496,15 @@ impl Gateway {
         // A rule's units are the slaves they route to: new routes make new rules of old ones.
         let router = Router::new(new);
         let rules = Rules::new(&new.rule, &router);
-        self.shared.dispatcher.replace(router, handles, rules);
+        let virtuals = virtual_units(new, self.values.store(), &self.shared.metrics);
+        self.shared
+            .dispatcher
+            .replace(router, handles, (rules, virtuals));
         if new.rule != old.rule {
             done.applied.push("rules".to_owned());
+        }
+        if new.virtual_units != old.virtual_units {
+            done.applied.push("virtual units".to_owned());
         }
         match self.shared.dispatcher.audit().apply(new.audit.as_ref()) {
             Ok(Some(what)) => done.applied.push(what),

@@ -86,6 +86,7 @@ pub mod testing;
 mod timer;
 mod trace;
 mod values;
+mod virtuals;
 mod web;
 
 pub use config::Config;

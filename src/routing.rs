@@ -6,7 +6,7 @@
 //! reads the config, never the other way round. Also [`Inbound`], a request as it entered, with
 //! where it routes: what the rules decide by and the journal records.
 
-use crate::config::Config;
+use crate::config::{Config, UnitSet};
 use crate::line::BROADCAST;
 use crate::master::{Peer, Protocol};
 
@@ -35,6 +35,8 @@ pub(crate) struct Inbound<'a> {
     /// The bus its unit routes to, and where on it; `None` without a route.
     pub(crate) bus: Option<&'a str>,
     pub(crate) target: Option<Target>,
+    /// The virtual unit it addresses, or whose register it writes through: its name.
+    pub(crate) virtual_unit: Option<&'a str>,
     pub(crate) pdu: &'a [u8],
 }
 
@@ -52,6 +54,8 @@ impl Target {
 #[derive(Clone, Debug)]
 pub struct Router {
     table: [Option<Target>; 256],
+    /// The unit ids of the virtual units, which no bus has.
+    virtuals: UnitSet,
 }
 
 impl Router {
@@ -73,7 +77,19 @@ impl Router {
                 });
             }
         }
-        Router { table }
+        // A virtual unit's id is its own: no route names it (the check sees to that), and the
+        // only bus's addresses yield it.
+        let mut virtuals = UnitSet::default();
+        for unit in &config.virtual_units {
+            table[usize::from(unit.unit)] = None;
+            virtuals.insert(unit.unit);
+        }
+        Router { table, virtuals }
+    }
+
+    /// The unit ids of the virtual units.
+    pub(crate) fn virtuals(&self) -> UnitSet {
+        self.virtuals
     }
 
     pub(crate) fn resolve(&self, unit: u8) -> Option<Target> {

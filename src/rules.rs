@@ -48,9 +48,10 @@ pub(crate) struct Rules {
 }
 
 /// The slaves some unit ids reach through the routes: for each bus, by its index, the
-/// addresses there (the broadcast address among them when a unit routes to it).
+/// addresses there (the broadcast address among them when a unit routes to it), and the virtual
+/// units among them.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
-pub(crate) struct Reach(Vec<UnitSet>);
+pub(crate) struct Reach(Vec<UnitSet>, UnitSet);
 
 impl Reach {
     /// Where `units` go by `router`: a unit with no route reaches nothing.
@@ -62,7 +63,16 @@ impl Reach {
             }
             buses[target.bus].insert(target.address);
         }
-        Reach(buses)
+        let mut virtuals = UnitSet::default();
+        for unit in units.iter().filter(|&u| router.virtuals().contains(u)) {
+            virtuals.insert(unit);
+        }
+        Reach(buses, virtuals)
+    }
+
+    /// The virtual units among them.
+    pub(crate) fn virtual_units(&self) -> UnitSet {
+        self.1
     }
 
     /// The addresses reached on each bus that any are, by bus index.
@@ -157,10 +167,10 @@ fn matches(
         asked
             .bus
             .is_some_and(|bus| rule.buses.iter().any(|b| b == bus)),
-    ) && slaves.is_none_or(|slaves| {
-        asked
-            .target
-            .is_some_and(|target| slaves.hold(target, rule.action))
+    ) && slaves.is_none_or(|slaves| match asked.target {
+        Some(target) => slaves.hold(target, rule.action),
+        // A virtual unit is a slave of the gateway's: its unit id names it.
+        None => asked.virtual_unit.is_some() && slaves.1.contains(asked.unit),
     }) && any(
         rule.functions.is_empty(),
         rule.functions
@@ -257,6 +267,7 @@ mod tests {
             unit: 3,
             bus: Some("line1"),
             target: slave(3),
+            virtual_unit: None,
             pdu,
         }
     }

@@ -49,6 +49,9 @@ pub(crate) struct Write {
     pub(crate) bus: Option<String>,
     #[serde(default)]
     pub(crate) slave: Option<u8>,
+    /// The virtual unit it was made to, or whose register it writes through.
+    #[serde(default, rename = "virtual", skip_serializing_if = "Option::is_none")]
+    pub(crate) virtual_unit: Option<String>,
     pub(crate) function: u8,
     /// The table and addresses it writes, when its bytes say (`coil`, `holding`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -191,6 +194,7 @@ mod tests {
             unit: 3,
             bus: Some("line1".into()),
             slave: Some(3),
+            virtual_unit: None,
             function: 0x10,
             table: Some("holding".into()),
             start: Some(0x2000),

@@ -538,6 +538,7 @@ mod tests {
             unit: 1,
             bus: Some("line1".into()),
             slave: Some(1),
+            virtual_unit: None,
             function: 0x06,
             table: Some("holding".into()),
             start: Some(5),

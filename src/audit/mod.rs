@@ -137,6 +137,7 @@ impl Audit {
             unit: asked.unit,
             bus: asked.bus.map(str::to_owned),
             slave: asked.target.map(|t| t.address),
+            virtual_unit: asked.virtual_unit.map(str::to_owned),
             function: asked.pdu.first().copied().unwrap_or(0),
             table: span.map(|s| s.table.word().to_owned()),
             start: span.map(|s| s.first),

@@ -6,7 +6,7 @@
 use crate::audit::Pending;
 use crate::error::Outcome;
 use crate::master::{Class, Origin};
-use crate::metrics::{BusMetrics, Metrics};
+use crate::metrics::{BusMetrics, Metrics, VirtualMetrics};
 use tokio::sync::oneshot;
 use tokio::time::Instant;
 
@@ -16,6 +16,8 @@ use tokio::time::Instant;
 pub(crate) enum Tally<'a> {
     Bus(&'a BusMetrics),
     Unrouted(&'a Metrics),
+    /// A virtual unit, by its name (its `slave` the unit id).
+    Virtual(&'a VirtualMetrics, &'a str),
 }
 
 impl Tally<'_> {
@@ -27,6 +29,11 @@ impl Tally<'_> {
         match self {
             Tally::Bus(metrics) => metrics.request(slave, function, origin.protocol, outcome),
             Tally::Unrouted(metrics) => metrics.unrouted(function, origin.protocol, outcome),
+            Tally::Virtual(metrics, name) => {
+                if let Some(outcome) = outcome {
+                    metrics.request(slave, name, function, outcome);
+                }
+            }
         }
     }
 }

@@ -167,6 +167,7 @@ fn describe(path: &Path, config: &Config, tls: Option<&TlsServer>, now: SystemTi
         }
     }
     out += &describe_ports(config);
+    out += &describe_virtual_units(config);
     if let Some(tls) = tls {
         out += &describe_tls(config, tls, now);
     }
@@ -207,6 +208,57 @@ fn describe_ports(config: &Config) -> String {
     out
 }
 
+/// Each virtual unit's layout: every register, how it holds its value, where the value comes
+/// from and how old it may be (docs/virtual-units.md).
+fn describe_virtual_units(config: &Config) -> String {
+    let mut out = String::new();
+    for (at, unit) in config.virtual_units.iter().enumerate() {
+        let (slots, _) = config.virtual_layout(at);
+        out += &format!(
+            "# virtual unit {} ({}): answered from memory, never from a line; a read touching a \
+             register not laid out is 0x02, one whose value is too old, never read or failed \
+             0x0B.\n",
+            unit.unit, unit.name
+        );
+        let mut slots: Vec<_> = slots.iter().collect();
+        slots.sort_by_key(|s| (s.encoding.table, s.first(), s.encoding.bit));
+        for slot in slots {
+            let encoding = &slot.encoding;
+            let mut held = encoding.kind().name().to_owned();
+            if let Some(bit) = encoding.bit {
+                held += &format!(" bit {bit}");
+            }
+            if encoding.width() > 1 && encoding.word_order == crate::config::Order::Little {
+                held += " word order little";
+            }
+            if encoding.byte_order == crate::config::Order::Little {
+                held += " byte order little";
+            }
+            if encoding.scale != 1.0 || encoding.offset != 0.0 {
+                held += &format!(" x {} + {}", encoding.scale, encoding.offset);
+            }
+            let source = match &slot.source {
+                Some(found) => format!(
+                    "{}, max age {}",
+                    found.at,
+                    humantime::format_duration(slot.max_age)
+                ),
+                None => "not in its source: always 0x0B".to_owned(),
+            };
+            let range = match encoding.width() {
+                1 => slot.first().to_string(),
+                _ => format!("{}-{}", slot.first(), slot.last()),
+            };
+            out += &format!(
+                "#   {} {range}: {held} <- {source}{}\n",
+                encoding.table.name(),
+                if slot.writable { ", writable" } else { "" }
+            );
+        }
+    }
+    out
+}
+
 /// The slaves a rule's `units` hold, whichever unit id a master reaches them by.
 fn describe_slaves(
     config: &Config,
@@ -235,6 +287,9 @@ fn describe_slaves(
         if broadcasts && by_broadcast {
             held.push(format!("broadcasts on {}", bus.name));
         }
+    }
+    for unit in slaves.virtual_units().iter() {
+        held.push(format!("virtual unit {unit}"));
     }
     let name = rule.display_name(at);
     if held.is_empty() {

@@ -24,6 +24,7 @@ mod server;
 mod tls;
 mod unit_set;
 mod values;
+mod virtual_unit;
 
 pub use audit::{Audit, ByteSize, OnError};
 pub use bus::{Bus, Slave};
@@ -57,6 +58,8 @@ pub use tls::{DeviceTls, Role, Tls};
 pub use unit_set::UnitSet;
 pub use values::{Order, Table, Template, Templates, Value, ValueType};
 pub(crate) use values::{MAX_READ_BITS, MAX_READ_REGISTERS};
+pub(crate) use virtual_unit::Slot;
+pub use virtual_unit::{Source, VirtualRegister, VirtualUnit};
 
 use serde::{Deserialize, Serialize};
 
@@ -86,6 +89,9 @@ pub struct Config {
     /// The journal of writes; none without it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub audit: Option<Audit>,
+    /// Units the gateway answers itself, from the values it polls.
+    #[serde(default, rename = "virtual", skip_serializing_if = "Vec::is_empty")]
+    pub virtual_units: Vec<VirtualUnit>,
     /// The templates slaves may name: the shipped ones and `template_dir`'s, read at load.
     #[serde(skip)]
     pub templates: Templates,

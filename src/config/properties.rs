@@ -541,6 +541,7 @@ fn config() -> impl Strategy<Value = Config> {
                     route,
                     rule,
                     audit,
+                    virtual_units: Vec::new(),
                     templates: crate::config::Templates::load(None, "template_dir")
                         .expect("the shipped templates"),
                 }

@@ -17,6 +17,7 @@ mod tcp;
 mod throttle;
 mod tls;
 mod udp;
+mod virtual_units;
 
 pub(crate) use audit::AuditMetrics;
 pub(crate) use bus::BusMetrics;
@@ -36,6 +37,7 @@ pub(crate) use tls::TlsMaster;
 pub(crate) use tls::TlsMetrics;
 pub(crate) use udp::UdpDrop;
 pub(crate) use udp::UdpMetrics;
+pub(crate) use virtual_units::VirtualMetrics;
 
 use crate::config;
 use crate::error::{Answer, Outcome};
@@ -148,6 +150,8 @@ pub struct Metrics {
     pub tls: TlsMetrics,
     /// The serial master ports.
     pub serial: SerialMetrics,
+    /// The virtual units.
+    pub(crate) virtual_units: VirtualMetrics,
     /// The writes, and the audit journal.
     pub audit: AuditMetrics,
     /// The live trace of the lines' frames (`GET /trace`).
@@ -185,6 +189,7 @@ impl Metrics {
             udp: UdpMetrics::new(&define),
             tls: TlsMetrics::new(&define),
             serial: SerialMetrics::new(&define),
+            virtual_units: VirtualMetrics::new(&define),
             audit: AuditMetrics::new(&define),
             trace: Arc::new(crate::trace::TraceHub::new()),
             scrape_hooks: Mutex::new(Vec::new()),

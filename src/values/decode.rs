@@ -113,6 +113,91 @@ fn raw(kind: ValueType, words: &[u16], word_order: Order, byte_order: Order) -> 
     }
 }
 
+/// The registers that hold `number` as `value` is held, from its first on: the inverse of
+/// [`decode`], raw = (number - offset) / scale, rounded to the nearest whole for an integer
+/// type. `None` if the raw number is out of its type's range (or not a number). A bit of a
+/// register gives the register with that bit alone set (or none); a `bool` 0 or 1.
+pub(crate) fn encode(value: &Value, number: f64) -> Option<Vec<u16>> {
+    let raw = unscaled(number - value.offset, value.scale);
+    if let Some(bit) = value.bit {
+        let word = u16::from(raw != 0.0) << bit;
+        return Some(vec![match value.byte_order {
+            Order::Big => word,
+            Order::Little => word.swap_bytes(),
+        }]);
+    }
+    let kind = value.kind();
+    let bytes = raw_bytes(kind, raw)?;
+    let mut words: Vec<u16> = bytes
+        .chunks_exact(2)
+        .take(usize::from(kind.registers()))
+        .map(|pair| match value.byte_order {
+            Order::Big => u16::from_be_bytes([pair[0], pair[1]]),
+            Order::Little => u16::from_le_bytes([pair[0], pair[1]]),
+        })
+        .collect();
+    if value.word_order == Order::Little {
+        words.reverse();
+    }
+    Some(words)
+}
+
+/// `number` / `scale`, exact where [`scaled`] is: a scale of one over a whole number
+/// multiplies by that number.
+fn unscaled(number: f64, scale: f64) -> f64 {
+    let inverse = 1.0 / scale;
+    let whole = inverse.round();
+    if scale.abs() < 1.0 && (inverse - whole).abs() <= 1e-9 * whole.abs() {
+        number * whole
+    } else {
+        number / scale
+    }
+}
+
+/// `raw` as `kind`'s big-endian bytes (the first `2 x registers` of eight), rounded to the
+/// nearest whole for an integer; `None` out of its range.
+#[allow(clippy::cast_possible_truncation, clippy::cast_sign_loss)] // range checked first
+fn raw_bytes(kind: ValueType, raw: f64) -> Option<[u8; 8]> {
+    let mut bytes = [0u8; 8];
+    if !raw.is_finite() {
+        return None;
+    }
+    let whole = raw.round();
+    let within = |low: f64, high: f64| (low..=high).contains(&whole).then_some(whole);
+    match kind {
+        ValueType::U16 => {
+            bytes[..2].copy_from_slice(&(within(0.0, 65_535.0)? as u16).to_be_bytes())
+        }
+        ValueType::I16 => {
+            bytes[..2].copy_from_slice(&(within(-32_768.0, 32_767.0)? as i16).to_be_bytes())
+        }
+        ValueType::Bool => bytes[..2].copy_from_slice(&u16::from(raw != 0.0).to_be_bytes()),
+        ValueType::U32 => {
+            bytes[..4].copy_from_slice(&(within(0.0, f64::from(u32::MAX))? as u32).to_be_bytes())
+        }
+        ValueType::I32 => bytes[..4].copy_from_slice(
+            &(within(f64::from(i32::MIN), f64::from(i32::MAX))? as i32).to_be_bytes(),
+        ),
+        ValueType::F32 => {
+            let single = raw as f32;
+            if !single.is_finite() {
+                return None;
+            }
+            bytes[..4].copy_from_slice(&single.to_be_bytes());
+        }
+        // 2^64 and 2^63 are the first numbers past the range an f64 can hold exactly.
+        ValueType::U64 => {
+            bytes = (within(0.0, 18_446_744_073_709_549_568.0)? as u64).to_be_bytes();
+        }
+        ValueType::I64 => {
+            let bound = 9_223_372_036_854_774_784.0;
+            bytes = (within(-bound - 1024.0, bound)? as i64).to_be_bytes();
+        }
+        ValueType::F64 => bytes = raw.to_be_bytes(),
+    }
+    Some(bytes)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -241,5 +326,55 @@ mod tests {
             words(Table::Holding, 1, &[0x04, 0x02, 0, 1]),
             Err(BadBlock::BadReply)
         );
+    }
+
+    #[test]
+    fn encoding_is_decoding_inverted_in_every_layout_and_out_of_range_is_none() {
+        for (kind, expected) in [
+            ("f32", 1234.5),
+            ("i32", -123_456.0),
+            ("u32", 123_456.0),
+            ("f64", -123_456.5),
+            ("i64", -123_456.0),
+            ("u64", 9_007_199_254_740_991.0),
+        ] {
+            for (words, bytes) in [
+                ("big", "big"),
+                ("little", "big"),
+                ("big", "little"),
+                ("little", "little"),
+            ] {
+                let v = value(kind, words, bytes);
+                let held = encode(&v, expected).expect("in range");
+                assert_eq!(held.len(), usize::from(v.width()));
+                assert_eq!(decode(&v, &held), Some(expected), "{kind} {words}/{bytes}");
+            }
+        }
+        // f32 1234.5 in CDAB is 5000 449A, as docs/plant-values.md writes it.
+        assert_eq!(
+            encode(&value("f32", "little", "big"), 1234.5),
+            Some(vec![0x5000, 0x449A])
+        );
+        let mut hertz = value("u16", "big", "big");
+        hertz.scale = 0.01;
+        assert_eq!(encode(&hertz, 50.0), Some(vec![5000]));
+        assert_eq!(encode(&hertz, 29.25), Some(vec![2925]));
+        // Rounded to the nearest: 0.004 Hz is no step of 0.01.
+        assert_eq!(encode(&hertz, 50.004), Some(vec![5000]));
+        assert_eq!(encode(&hertz, 655.36), None, "past 65535");
+        assert_eq!(encode(&hertz, -0.01), None, "below 0");
+        let mut offset = value("i16", "big", "big");
+        (offset.scale, offset.offset) = (0.1, -40.0);
+        assert_eq!(encode(&offset, 21.5), Some(vec![615]));
+        assert_eq!(encode(&value("i16", "big", "big"), 32_768.0), None);
+        assert_eq!(encode(&value("u16", "big", "big"), f64::NAN), None);
+        assert_eq!(encode(&value("f32", "big", "big"), 1e39), None, "no f32");
+        assert_eq!(encode(&value("bool", "big", "big"), 3.0), Some(vec![1]));
+        let mut bit = value("u16", "big", "big");
+        bit.bit = Some(3);
+        assert_eq!(encode(&bit, 1.0), Some(vec![0b1000]));
+        assert_eq!(encode(&bit, 0.0), Some(vec![0]));
+        bit.byte_order = Order::Little;
+        assert_eq!(encode(&bit, 1.0), Some(vec![0x0800]));
     }
 }

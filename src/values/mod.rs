@@ -11,6 +11,7 @@ mod plan;
 mod poller;
 mod store;
 
+pub(crate) use decode::{decode, encode};
 pub(crate) use store::{Exported, Store, ValueQuery};
 
 use crate::bus::BusHandle;

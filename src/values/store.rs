@@ -8,8 +8,10 @@ use prometheus::core::{Collector, Desc};
 use prometheus::proto::{Gauge, LabelPair, Metric, MetricFamily, MetricType};
 use serde::Serialize;
 use std::collections::{BTreeMap, VecDeque};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use tokio::time::Instant;
 
 /// How far back a value's readings are kept for its plot.
 pub(crate) const HISTORY: Duration = Duration::from_secs(600);
@@ -35,6 +37,8 @@ struct Entry {
     value: Option<f64>,
     /// When the last good poll was, even if a later one failed.
     read_at: Option<SystemTime>,
+    /// The same, on the gateway's clock: how old the reading is.
+    fresh_at: Option<Instant>,
     /// Why the last poll failed, if it did.
     error: Option<&'static str>,
     /// Good readings of the last [`HISTORY`], oldest first: Unix milliseconds and value.
@@ -47,6 +51,7 @@ impl Entry {
             spec,
             value: None,
             read_at: None,
+            fresh_at: None,
             error: None,
             history: VecDeque::new(),
         }
@@ -57,6 +62,45 @@ impl Entry {
 #[derive(Default)]
 pub(crate) struct Store {
     entries: Mutex<Vec<Entry>>,
+    /// Counts the configurations: an entry's place means something only in its own.
+    generation: AtomicU64,
+}
+
+/// What was last read of one value, for a virtual unit's answer.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct Reading {
+    /// The last good reading, if the last poll was good.
+    pub(crate) value: Option<f64>,
+    /// When that was, on the gateway's clock.
+    pub(crate) fresh_at: Option<Instant>,
+}
+
+/// The store held still while a virtual unit's answer is made of it: every reading of one
+/// answer from one moment.
+pub(crate) struct Readings<'a> {
+    entries: MutexGuard<'a, Vec<Entry>>,
+    generation: u64,
+}
+
+impl Readings<'_> {
+    /// The configuration the entries' places are of.
+    pub(crate) fn generation(&self) -> u64 {
+        self.generation
+    }
+
+    /// Entry `at`'s reading.
+    pub(crate) fn get(&self, at: usize) -> Reading {
+        self.entries.get(at).map_or(
+            Reading {
+                value: None,
+                fresh_at: None,
+            },
+            |e| Reading {
+                value: e.value,
+                fresh_at: e.fresh_at,
+            },
+        )
+    }
 }
 
 /// Which values `GET /values` asks for.
@@ -105,6 +149,7 @@ impl Store {
     /// place in `specs` from now on.
     pub(crate) fn configure(&self, specs: Vec<ValueSpec>) {
         let mut entries = self.lock();
+        self.generation.fetch_add(1, Ordering::Relaxed);
         let mut old: Vec<Option<Entry>> = entries.drain(..).map(Some).collect();
         for spec in specs {
             let kept = old
@@ -123,6 +168,7 @@ impl Store {
         };
         entry.value = Some(value);
         entry.read_at = Some(when);
+        entry.fresh_at = Some(Instant::now());
         entry.error = None;
         let now = unix_ms(when);
         let horizon = now.saturating_sub(u64::try_from(HISTORY.as_millis()).unwrap_or(0));
@@ -142,6 +188,35 @@ impl Store {
             entry.value = None;
             entry.error = Some(outcome);
         }
+    }
+
+    /// The readings as they are now, held still until the guard is dropped.
+    pub(crate) fn readings(&self) -> Readings<'_> {
+        let entries = self.lock();
+        Readings {
+            generation: self.generation.load(Ordering::Relaxed),
+            entries,
+        }
+    }
+
+    /// Where each of `series` (bus, slave, name, labels) is in the store, and the
+    /// configuration those places are of.
+    pub(crate) fn locate<'a>(
+        &self,
+        series: impl Iterator<Item = (&'a str, u8, &'a str, &'a BTreeMap<String, String>)>,
+    ) -> (u64, Vec<Option<usize>>) {
+        let readings = self.readings();
+        let places = series
+            .map(|(bus, slave, name, labels)| {
+                readings.entries.iter().position(|e| {
+                    *e.spec.bus == *bus
+                        && e.spec.slave == slave
+                        && e.spec.name == name
+                        && e.spec.labels == *labels
+                })
+            })
+            .collect();
+        (readings.generation, places)
     }
 
     /// The values `filter` asks for, in configuration order, as `GET /values`'s JSON: written

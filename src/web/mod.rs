@@ -35,6 +35,10 @@ pub(crate) trait Inspect: Send + Sync + 'static {
     }
     /// The plant values as last read.
     fn values(&self) -> &crate::values::Store;
+    /// The virtual units and their registers, as they stand now.
+    fn virtual_units(&self) -> Vec<crate::virtuals::ShownUnit> {
+        Vec::new()
+    }
     /// The last writes, newest last.
     fn writes(&self) -> Vec<crate::audit::Recent>;
 }
@@ -126,6 +130,7 @@ impl StatusSource {
                 .map(|m| master_status(m, wall))
                 .collect(),
             serial_ports: gateway.ports().iter().map(|p| port_status(p)).collect(),
+            virtual_units: gateway.virtual_units(),
             writes: gateway.writes(),
         }
     }

@@ -183,6 +183,25 @@ function renderPorts(ports) {
   ])), "no serial master port configured", 10);
 }
 
+function renderVirtual(units) {
+  const rows = units.flatMap((u) => u.registers.map((r) => {
+    const state = cell(r.fresh ? "fresh" : "stale");
+    state.className = r.fresh ? "up" : "down";
+    return row([
+      u.unit + " " + u.name,
+      r.table + " " + r.register + (r.bit === undefined || r.bit === null ? "" : "." + r.bit)
+        + (r.writable ? " (writable)" : ""),
+      r.type,
+      r.source || "not in its source",
+      cell(r.value === null || r.value === undefined ? "\u2013" : String(r.value), "num"),
+      cell(r.age_seconds === null || r.age_seconds === undefined ? "never read"
+        : r.age_seconds.toFixed(1) + " s", "num"),
+      state,
+    ]);
+  }));
+  fill($("virtual"), rows, "no virtual unit configured", 7);
+}
+
 // The public function codes a write may carry, named as the Modbus Application Protocol names
 // them; any other code shows in hex.
 const FUNCTION_NAMES = new Map([
@@ -560,6 +579,7 @@ async function poll() {
     renderSlaves(s.buses);
     renderMasters(s.masters);
     renderPorts(s.serial_ports || []);
+    renderVirtual(s.virtual_units || []);
     renderWrites(s.writes || [], Date.parse(s.time));
     renderValues(v.values, s.buses, Date.parse(s.time));
     $("problem").textContent = "";

@@ -44,6 +44,8 @@ pub(crate) struct Status {
     pub(crate) masters: Vec<MasterStatus>,
     /// The serial master ports (`[[server.serial]]`) and their masters' traffic.
     pub(crate) serial_ports: Vec<SerialPortStatus>,
+    /// The virtual units (`[[virtual]]`): each register's source, value and age.
+    pub(crate) virtual_units: Vec<crate::virtuals::ShownUnit>,
     /// The last writes (every function that may change a slave), newest last, each with its
     /// outcome once it has one: the journal's lines (docs/writes.md).
     pub(crate) writes: Vec<crate::audit::Recent>,

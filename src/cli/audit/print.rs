@@ -114,7 +114,15 @@ fn describe_write(record: &Record) -> String {
         (None, Some(slave)) => {
             let _ = write!(line, "slave {slave}");
         }
-        (None, None) => line.push_str("no route"),
+        (None, None) => match &write.virtual_unit {
+            Some(name) => {
+                let _ = write!(line, "virtual {}", field(name));
+            }
+            None => line.push_str("no route"),
+        },
+    }
+    if let (Some(name), Some(_)) = (&write.virtual_unit, write.slave) {
+        let _ = write!(line, " (through virtual {})", field(name));
     }
     line.push_str("  ");
     line.push_str(&what(write));
