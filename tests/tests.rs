@@ -58,6 +58,9 @@
 //! - `service`: the gateway under a service manager: graceful stop.
 //! - `metrics`: `/metrics`, `/healthz`, `/readyz` after known traffic; promtool; shipped rules.
 //! - `status`: the status page `/` and its data `/status` after known traffic.
+//! - `virtual_units`: `[[virtual]]` in a running gateway: the demo's drives, every encoding, a meter
+//!   through its own template, staleness, the exceptions, writes through, ruled and journaled,
+//!   a hundred masters at once.
 //! - `trace`: `GET /trace` and the `trace` subcommand: frames, filters, slow readers, limits.
 //! - `templates`: the shipped device templates against the simulated devices they were made
 //!   for, each in a known state.
@@ -120,4 +123,5 @@ mod transparency;
 mod udp;
 mod values;
 mod values_peers;
+mod virtual_units;
 mod writes;

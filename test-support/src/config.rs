@@ -248,6 +248,15 @@ impl GatewayConfig {
         self
     }
 
+    /// Top-level tables given as text (`[[virtual]]`, `[[rule]]`), after the buses and routes.
+    pub fn tables(mut self, toml: &str) -> Self {
+        self.tail.push_str(toml);
+        if !toml.is_empty() && !toml.ends_with('\n') {
+            self.tail.push('\n');
+        }
+        self
+    }
+
     /// One more `[[route]]`: `units` to `bus`, each to the slave of its id plus `offset`.
     pub fn route_offset(mut self, units: &str, bus: &str, offset: i16) -> Self {
         let _ = write!(
