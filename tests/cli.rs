@@ -151,6 +151,75 @@ fn bad_serial_master_ports_exit_2_naming_every_key_in_one_run() {
 }
 
 #[test]
+fn bad_virtual_units_exit_2_naming_every_key_in_one_run() {
+    // A routed unit, unit 0, a value that does not exist, overlapping registers, a coil of u16,
+    // a template without a source, and a register past 65535 for its width.
+    let units = r#"
+[[virtual]]
+unit = 5
+name = "routed"
+[[virtual.register]]
+register = 0
+value = "line1/2/nope"
+[[virtual.register]]
+register = 0
+value = "line1/2/power_watts"
+type = "f32"
+[[virtual.register]]
+register = 1
+value = "line1/2/power_watts"
+[[virtual.register]]
+register = 0
+table = "coil"
+type = "u16"
+value = "line1/2/power_watts"
+
+[[virtual]]
+unit = 0
+name = "meter"
+template = "eastron-sdm120"
+[[virtual.register]]
+register = 65535
+type = "u32"
+value = "line1/2/power_watts"
+"#;
+    let config = GatewayConfig::new()
+        .bus(Bus::sim("line1").text(
+            "[[bus.slave]]\naddress = 2\n[[bus.slave.value]]\nname = \"power_watts\"\n\
+             register = 0\ntype = \"f32\"\n",
+        ))
+        .bus(Bus::sim("line2"))
+        .route("1-10", "line1", None)
+        .tables(units)
+        .to_toml();
+    let path = temp_config("bad-virtual.toml", &config);
+    for command in ["check-config", "run"] {
+        let out = gateway(&["--config", path.to_str().unwrap(), command], &[]);
+        assert_eq!(out.status.code(), Some(2), "{command}");
+        let err = String::from_utf8(out.stderr).unwrap();
+        let keys: Vec<&str> = err
+            .lines()
+            .filter_map(|line| line.split(": ").nth(2))
+            .collect();
+        assert_eq!(
+            keys,
+            [
+                "virtual[0].unit",
+                "virtual[1].unit",
+                "virtual[0].register[0].value",
+                "virtual[0].register[3].type",
+                "virtual[0].register[2]",
+                "virtual[1].source",
+                "virtual[1].register[0].register",
+            ],
+            "{command}: {err}"
+        );
+        assert!(err.contains("its values are power_watts"), "{err}");
+        assert!(err.contains("by route[0]"), "{err}");
+    }
+}
+
+#[test]
 fn the_manual_page_and_completions_need_no_configuration_and_name_every_subcommand() {
     let missing = "/nonexistent/gateway.toml";
     let out = gateway(&["--config", missing, "man"], &[]);

@@ -30,6 +30,8 @@ fn every_configuration_key_is_documented_in_the_configuration_reference() {
          latency_timer = \"1ms\"\n\
          [[bus]]\nname = \"a\"\ndevice = \"sim\"\n\
          [[bus.slave]]\naddress = 1\ncoalesce_reads = false\ncache = \"1s\"\n\
+         template = \"eastron-sdm120\"\n\
+         [[bus.slave.value]]\nname = \"setpoint\"\nregister = 0x2001\n\
          [[bus.sim_slave]]\naddress = 1\n\
          [[bus]]\nname = \"b\"\ndevice = \"/dev/ttyS1\"\nlatency_timer = \"1ms\"\n\
          [bus.rs485]\nmode = \"kernel\"\nrts_on_send = false\nrts_after_send = true\n\
@@ -46,7 +48,12 @@ fn every_configuration_key_is_documented_in_the_configuration_reference() {
          protocols = \"tls\"\nbuses = \"a\"\nunits = \"1-4\"\nfunctions = \"write\"\n\
          registers = \"0x2000-0x2001\"\naction = \"deny\"\n\
          [audit]\npath = \"w.jsonl\"\nmax_size = \"1MiB\"\nkeep = 2\non_error = \"allow\"\n\
-         fsync = true\n",
+         fsync = true\n\
+         [[virtual]]\nunit = 200\nname = \"copy\"\ntemplate = \"eastron-sdm630\"\n\
+         source = { bus = \"a\", slave = 1 }\nmax_age = \"10s\"\n\
+         [[virtual.register]]\nregister = 0x1000\ntable = \"holding\"\nvalue = \"setpoint\"\n\
+         type = \"f32\"\nword_order = \"little\"\nbyte_order = \"little\"\nscale = 0.01\n\
+         offset = 1\nwritable = true\n",
     )
     .expect("a valid configuration");
     let printed = config.to_toml();
@@ -317,4 +324,31 @@ fn the_serial_ports_pages_split_bus_and_its_rules_load_as_written() {
         .bus(crate::support::sim_line())
         .to_toml();
     Config::from_toml_str(&port).unwrap_or_else(|errors| panic!("{errors:?}\n{port}"));
+}
+
+#[test]
+fn the_virtual_units_pages_examples_load_as_written() {
+    let text = page("docs/virtual-units.md");
+    let blocks = toml_blocks(&text);
+    assert_eq!(blocks.len(), 3, "{blocks:?}");
+    let load = |config: String| {
+        Config::from_toml_str(&config).unwrap_or_else(|errors| panic!("{errors}\n{config}"))
+    };
+    // The opening example: registers of the demo's drives.
+    let drives = "[[bus]]\nname = \"demo\"\ndevice = \"sim\"\n\
+                  [[bus.slave]]\naddress = 1\ntemplate = \"goodrive20\"\n\
+                  [[bus.slave]]\naddress = 2\ntemplate = \"goodrive300\"\n";
+    let config = load(format!("{drives}{}", blocks[0]));
+    assert_eq!(config.virtual_units[0].register.len(), 2);
+    // The SDM120 presented as an SDM630: a whole configuration.
+    let config = load(blocks[1].clone());
+    let meter = &config.virtual_units[0];
+    assert_eq!(
+        (meter.unit, meter.template.as_deref()),
+        (200, Some("eastron-sdm630"))
+    );
+    // The writable setpoint, under the demo's slave 2.
+    let slave = "[[bus]]\nname = \"demo\"\ndevice = \"sim\"\n[[bus.slave]]\naddress = 2\n";
+    let config = load(format!("{slave}{}", blocks[2]));
+    assert!(config.virtual_units[0].register[0].writable);
 }

@@ -465,6 +465,15 @@ struct Addrs {
 /// Run the binary on `buses` (their buses and routes) with read-only masters, its log (warn and
 /// up) in `log`.
 async fn run_binary(name: &str, buses: GatewayConfig, log: Option<&PathBuf>) -> (Process, Addrs) {
+    run_binary_as(name, buses.read_only(&["127.0.0.0/8"]), log).await
+}
+
+/// Run the binary on `config` (buses, routes, masters' rights), its log (warn and up) in `log`.
+async fn run_binary_as(
+    name: &str,
+    buses: GatewayConfig,
+    log: Option<&PathBuf>,
+) -> (Process, Addrs) {
     let addrs = Addrs {
         tcp: free_addr(),
         udp: free_addr(),
@@ -478,7 +487,6 @@ async fn run_binary(name: &str, buses: GatewayConfig, log: Option<&PathBuf>) -> 
         .listen(addrs.tcp)
         .listen_udp(addrs.udp)
         .listen_rtu_over_tcp(addrs.rtu)
-        .read_only(&["127.0.0.0/8"])
         .metrics_listen(addrs.metrics)
         .table("log", &[("level", "warn".into())])
         .to_toml();
@@ -623,6 +631,122 @@ async fn every_unit_function_and_protocol_leaves_series_and_memory_flat() {
         .series_of("modbus_gateway_requests_total")
         .len();
     assert!(refused > 0);
+}
+
+/// A master reading and writing every address of a virtual unit (`[[virtual]]`), and every
+/// function code at its unit id: it gets exceptions, never a reply it should not, while memory
+/// and the series stay flat and the polls stay on time (every read of the laid-out block in
+/// between is answered fresh, never 0x0B).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_hostile_master_at_a_virtual_unit_leaves_memory_flat_and_the_polls_on_time() {
+    let bus = Bus::sim("sim")
+        .baud(115_200)
+        .parity("none")
+        .sim_slaves("1")
+        .text(
+            "[[bus.slave]]\naddress = 1\npoll_interval = \"100ms\"\n\
+             [[bus.slave.value]]\nname = \"level\"\nregister = 0\n\
+             [[bus.slave.value]]\nname = \"setpoint\"\nregister = 1\n",
+        );
+    let unit = "[[virtual]]\nunit = 200\nname = \"v\"\nmax_age = \"2s\"\n\
+                [[virtual.register]]\nregister = 0\nvalue = \"sim/1/level\"\n\
+                [[virtual.register]]\nregister = 1\nvalue = \"sim/1/setpoint\"\nwritable = true\n\
+                [[virtual.register]]\nregister = 0\ntable = \"coil\"\nvalue = \"sim/1/level\"\n";
+    let config = GatewayConfig::new().bus(bus).tables(unit);
+    let (gateway, addrs) = run_binary_as("virtual", config, None).await;
+    let mut master = RawMaster::connect(addrs.tcp).await;
+    let block = [0x03, 0, 0, 0, 2];
+    let fresh = within("the first poll", async {
+        loop {
+            let reply = master.call(1, 200, &block).await;
+            if reply[0] == 0x03 {
+                return reply;
+            }
+        }
+    })
+    .await;
+    assert_eq!(fresh.len(), 6);
+    let (_, before) = http_get(addrs.metrics, "/metrics").await;
+    let rss_before = gateway.rss_kib();
+    let mut transaction = 0u16;
+    let mut call = async |master: &mut RawMaster, pdu: &[u8]| {
+        transaction = transaction.wrapping_add(1);
+        master.call(transaction, 200, pdu).await
+    };
+    // Every function code.
+    for function in 1..=u8::MAX {
+        let reply = call(&mut master, &well_formed(function)).await;
+        assert!(
+            reply[0] == function || reply[0] == function | 0x80,
+            "{function:#04x}: {reply:02X?}"
+        );
+    }
+    // Reads of the most a read may ask across the whole address space, each table.
+    for function in 1..=4u8 {
+        let most: u32 = if function <= 2 { 2000 } else { 125 };
+        for first in (0..=0xFFFFu32).step_by(usize::try_from(most).unwrap()) {
+            let count = most.min(0x1_0000 - first);
+            let [a, b] = u16::try_from(first).unwrap().to_be_bytes();
+            let [c, d] = u16::try_from(count).unwrap().to_be_bytes();
+            let reply = call(&mut master, &[function, a, b, c, d]).await;
+            assert_eq!(reply, [function | 0x80, 0x02], "{function} from {first}");
+        }
+        assert_eq!(
+            call(&mut master, &block).await[0],
+            0x03,
+            "fresh after FC {function}"
+        );
+    }
+    // A write to every register and every coil; register 1 alone is writable.
+    let mut written = 0;
+    for address in 0..=0xFFFFu16 {
+        let [a, b] = address.to_be_bytes();
+        let reply = call(&mut master, &[0x06, a, b, 0x00, 0x07]).await;
+        if reply == [0x06, a, b, 0x00, 0x07] {
+            written += 1;
+        } else {
+            let expected = if address == 0 { 0x01 } else { 0x02 };
+            assert_eq!(reply, [0x86, expected], "register {address}");
+        }
+        let coil = call(&mut master, &[0x05, a, b, 0xFF, 0x00]).await;
+        let expected = if address == 0 { 0x01 } else { 0x02 };
+        assert_eq!(coil, [0x85, expected], "coil {address}");
+        if address % 4096 == 0 {
+            assert_eq!(
+                call(&mut master, &block).await[0],
+                0x03,
+                "fresh at {address}"
+            );
+        }
+    }
+    assert_eq!(written, 1, "register 1, on slave 1 of the line");
+    assert_eq!(call(&mut master, &[0x03, 0, 1, 0, 1]).await[0], 0x03);
+    let (_, after) = http_get(addrs.metrics, "/metrics").await;
+    let rss = gateway.rss_kib();
+    let grown = series_count(&after) - series_count(&before);
+    eprintln!(
+        "the virtual unit's sweep: {grown} new series, resident memory {rss_before} KiB before, \
+         {rss} KiB after"
+    );
+    assert!(grown < 100, "{grown} new series:\n{after}");
+    assert!(
+        rss < rss_before + 8 * 1024,
+        "resident memory grew from {rss_before} to {rss} KiB"
+    );
+    let scrape = Scrape::parse(after);
+    assert_eq!(
+        scrape
+            .get("modbus_gateway_poll_errors_total{bus=\"sim\",slave=\"1\",outcome=\"timeout\"}")
+            .unwrap_or(0.0),
+        0.0
+    );
+    assert_eq!(
+        scrape.value(
+            "modbus_gateway_virtual_requests_total{name=\"v\",outcome=\"stale\",unit=\"200\"}"
+        ),
+        0.0,
+        "the polls kept every read fresh"
+    );
 }
 
 /// Lines of `log` that contain `what`.

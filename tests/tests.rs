@@ -26,7 +26,8 @@
 //! - `access`: `server.allow` and `server.read_only`.
 //! - `hostile`: masters that break the rules on purpose: frames hidden after a request, every
 //!   unit and function code to swell the metrics, floods of errors to drown the log, a serial
-//!   master port's master sending noise, short frames and forbidden requests.
+//!   master port's master sending noise, short frames and forbidden requests; a master reading
+//!   and writing every address of a virtual unit.
 //! - `answers`: what the gateway answers itself: no route, broadcast, queue full, port down/back.
 //! - `ascii`: Modbus ASCII on the line, end to end: the manuals' frames, every function code, the
 //!   fault knobs in ASCII, metrics, reload.

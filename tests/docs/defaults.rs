@@ -35,11 +35,13 @@ const BARE: &[(&str, &str, &[&str])] = &[
         &["name = \"line1\"", "device = \"/dev/ttyUSB0\""],
     ),
     ("bus.rs485", "[bus.rs485]", &[]),
-    ("bus.slave", "[[bus.slave]]", &["address = 1"]),
+    // The address and name of config/gateway.toml's slave and value, which its virtual unit
+    // shows.
+    ("bus.slave", "[[bus.slave]]", &["address = 3"]),
     (
         "bus.slave.value",
         "[[bus.slave.value]]",
-        &["name = \"v\"", "register = 0"],
+        &["name = \"pump_pressure_pascals\"", "register = 0"],
     ),
     // [[bus.sim_slave]] is only on a simulated line: a second bus.
     ("sim", "[[bus]]", &["name = \"sim\"", "device = \"sim\""]),
@@ -48,6 +50,27 @@ const BARE: &[(&str, &str, &[&str])] = &[
     ("rule", "[[rule]]", &["action = \"deny\""]),
     ("audit", "[audit]", &["path = \"writes.jsonl\""]),
 ];
+
+/// The `[[virtual]]` sections, written after [`BARE`] only while one of theirs is checked: their
+/// register shows [`BARE`]'s value, which the examples of `[[bus.slave.value]]` rename and label
+/// (a virtual register naming a value that is not there is refused).
+const VIRTUAL: &[(&str, &str, &[&str])] = &[
+    ("virtual", "[[virtual]]", &["unit = 250", "name = \"copy\""]),
+    (
+        "virtual.register",
+        "[[virtual.register]]",
+        &["register = 0", "value = \"line1/3/pump_pressure_pascals\""],
+    ),
+];
+
+/// The sections of the bare configuration that `section` is checked in.
+fn sections_for(
+    section: &str,
+) -> impl Iterator<Item = &'static (&'static str, &'static str, &'static [&'static str])> {
+    let virtual_too = section.starts_with("virtual");
+    BARE.iter()
+        .chain(VIRTUAL.iter().filter(move |_| virtual_too))
+}
 
 /// Commented lines of config/gateway.toml that show an example, not the default, by section and
 /// key, with why, and the lines it needs beside it to be uncommented as it is.
@@ -86,7 +109,6 @@ const EXAMPLES: &[(&str, &str, &str, &[&str])] = &[
         "none by default: left as it is",
         &[],
     ),
-    ("bus.slave", "address", "required", &[]),
     ("bus.slave", "response_timeout", "default the bus's", &[]),
     (
         "bus.slave",
@@ -107,7 +129,6 @@ const EXAMPLES: &[(&str, &str, &str, &[&str])] = &[
         "default the template's, else 125",
         &[],
     ),
-    ("bus.slave.value", "name", "required", &[]),
     ("bus.slave.value", "register", "required", &[]),
     ("bus.slave.value", "unit", "none by default", &[]),
     ("bus.slave.value", "help", "default the name", &[]),
@@ -181,6 +202,27 @@ const EXAMPLES: &[(&str, &str, &str, &[&str])] = &[
     ("rule", "registers", "any by default", &[]),
     ("rule", "action", "required", &[]),
     ("audit", "path", "required", &[]),
+    ("virtual", "unit", "required", &[]),
+    ("virtual", "name", "required", &[]),
+    (
+        "virtual",
+        "template",
+        "none by default",
+        &["source = { bus = \"line1\", slave = 3 }"],
+    ),
+    ("virtual", "source", "none by default", &[]),
+    (
+        "virtual",
+        "max_age",
+        "default three of the value's poll_interval",
+        &[],
+    ),
+    (
+        "virtual.register",
+        "type",
+        "u16 by default, but printed only when given: a virtual register's type is not filled in",
+        &[],
+    ),
 ];
 
 /// Defaults the reference gives in words, as (section, key, the value in [`BARE`]): the value
@@ -203,7 +245,7 @@ fn bare_with(section: &str, added: &[String]) -> String {
         .map(|key| format!("{key} ="))
         .collect();
     let mut text = String::new();
-    for (name, header, lines) in BARE {
+    for (name, header, lines) in sections_for(section) {
         text.push_str(header);
         text.push('\n');
         let replaced = |line: &&&str| *name == section && keys.iter().any(|k| line.starts_with(k));
@@ -231,8 +273,14 @@ fn resolved(text: &str) -> Result<String, String> {
 /// What writing `lines` into `section` does to the bare configuration: `None` if nothing
 /// changes, else what did.
 fn changes(section: &str, lines: &[String]) -> Option<String> {
-    static BASE: std::sync::OnceLock<String> = std::sync::OnceLock::new();
-    let base = BASE.get_or_init(|| resolved(&bare_with("", &[])).expect("the bare one loads"));
+    // With and without the virtual sections.
+    static BASES: [std::sync::OnceLock<String>; 2] =
+        [std::sync::OnceLock::new(), std::sync::OnceLock::new()];
+    let which = usize::from(section.starts_with("virtual"));
+    let base = BASES[which].get_or_init(|| {
+        resolved(&bare_with(if which == 1 { "virtual" } else { "" }, &[]))
+            .expect("the bare one loads")
+    });
     match resolved(&bare_with(section, lines)) {
         Err(e) => Some(format!("refused: {e}")),
         Ok(printed) if printed == *base => None,
@@ -295,7 +343,11 @@ fn literal(cell: &str) -> Option<String> {
 /// Every documented default of `text` (a page with "Default" columns) that is not the code's,
 /// and how many were checked.
 fn wrong_defaults(text: &str) -> (Vec<String>, usize) {
-    let known: Vec<&str> = BARE.iter().map(|(name, _, _)| *name).collect();
+    let known: Vec<&str> = BARE
+        .iter()
+        .chain(VIRTUAL)
+        .map(|(name, _, _)| *name)
+        .collect();
     let mut wrong = Vec::new();
     let mut checked = 0;
     for (section, key, default) in documented(text) {
