@@ -547,3 +547,103 @@ async fn a_hundred_masters_reading_a_virtual_unit_at_once_are_all_answered() {
         .iter()
         .all(|r| normal(r) && r.len() == expected.len()));
 }
+
+/// A read of unit 200's block from another master: the reply PDU.
+const BLOCK: [u8; 5] = [0x03, 0, 0, 0, 6];
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rtu_over_tcp_udp_tls_roles_and_a_serial_port_all_reach_a_virtual_unit() {
+    use modbus_gateway::testing::line::rtu;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let pki = crate::support::tls::Pki::new("virtual-ca");
+    let server = pki.server("gateway", "gateway", 365);
+    let tls = pki.tls_table(
+        &server,
+        "roles = { reader = { access = \"read_only\", units = \"200\" }, \
+         line = { access = \"read_write\", units = \"1-2\" } }",
+    );
+    let dir = crate::support::TempDir::new("virtual-protocols");
+    let link = dir.path().join("port");
+    let port = format!(
+        "[[server.serial]]\nname = \"scada\"\ndevice = \"pty:{}\"\nbaud = 115200\n\
+         parity = \"none\"\nunits = \"200\"\n",
+        link.display()
+    );
+    let gateway = two_buses(UNIT_200)
+        .listen_rtu_over_tcp("127.0.0.1:0")
+        .listen_udp("127.0.0.1:0")
+        .listen_tls("127.0.0.1:0")
+        .server_table(&format!("{tls}{port}"))
+        .start()
+        .await;
+    let mut tcp = RawMaster::connect(addr(&gateway)).await;
+    let expected = answered(&mut tcp, 200, &BLOCK, normal).await;
+
+    // RTU over TCP: the same PDU in an RTU frame, its CRC the gateway's.
+    let mut rtu_master = tokio::net::TcpStream::connect(gateway.rtu_over_tcp_addrs()[0])
+        .await
+        .unwrap();
+    rtu_master
+        .write_all(&rtu::encode(200, &BLOCK))
+        .await
+        .unwrap();
+    let mut frame = vec![0u8; 1 + expected.len() + 2];
+    within("an RTU reply", rtu_master.read_exact(&mut frame))
+        .await
+        .unwrap();
+    assert_eq!(frame, rtu::encode(200, &expected));
+
+    // UDP.
+    let socket = tokio::net::UdpSocket::bind("127.0.0.1:0").await.unwrap();
+    let adu = RawMaster::adu(7, 200, &BLOCK);
+    socket.send_to(&adu, gateway.udp_addrs()[0]).await.unwrap();
+    let mut buf = [0u8; 300];
+    let (n, _) = within("a UDP reply", socket.recv_from(&mut buf))
+        .await
+        .unwrap();
+    assert_eq!(buf[7..n], expected[..]);
+
+    // TLS: a reader of unit 200 reads and may not write; a role held to units 1-2 reaches
+    // neither.
+    let tls_at = gateway.tls_addrs()[0];
+    let reader = pki.master("reader", crate::support::tls::Role::Named("reader"));
+    let mut master = crate::support::tls::tls_master(tls_at, &pki.connector(Some(&reader))).await;
+    assert_eq!(master.call(1, 200, &BLOCK).await, expected);
+    assert_eq!(
+        master.call(2, 200, &[0x06, 0, 20, 0, 1]).await,
+        [0x86, 0x01]
+    );
+    let line = pki.master("line", crate::support::tls::Role::Named("line"));
+    let mut master = crate::support::tls::tls_master(tls_at, &pki.connector(Some(&line))).await;
+    assert_eq!(master.call(3, 200, &BLOCK).await, [0x83, 0x01]);
+
+    // A master on the serial port.
+    let mut serial = within("the port's pty is linked", async {
+        loop {
+            let opened = tokio_serial::SerialPortBuilderExt::open_native_async(tokio_serial::new(
+                link.to_str().unwrap(),
+                115_200,
+            ));
+            if let Ok(port) = opened {
+                return port;
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    })
+    .await;
+    serial.write_all(&rtu::encode(200, &BLOCK)).await.unwrap();
+    let mut frame = vec![0u8; 1 + expected.len() + 2];
+    within("the port's reply", serial.read_exact(&mut frame))
+        .await
+        .unwrap();
+    assert_eq!(frame, rtu::encode(200, &expected));
+
+    let scrape = Scrape::of(&gateway).await;
+    let denied =
+        "modbus_gateway_virtual_requests_total{name=\"copy\",outcome=\"denied\",unit=\"200\"}";
+    assert_eq!(
+        scrape.value(denied),
+        2.0,
+        "the reader's write, the line role's read"
+    );
+}
