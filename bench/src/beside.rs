@@ -54,7 +54,8 @@ async fn drive(seconds: f64, conns: Vec<Conn>, pid: Option<u32>) -> Result<Drive
         let done: Vec<Done> = task
             .await
             .map_err(|e| e.to_string())?
-            .map_err(|e| e.to_string())?;
+            .map_err(|e| e.to_string())?
+            .done;
         latencies.extend(
             done.iter()
                 .filter(|(at, _, _)| (start..=end).contains(at))

@@ -4,6 +4,7 @@
 use crate::journal::JournalDir;
 use crate::plant;
 use crate::scenarios::{Journal, Kind, Line, Load, Scenario, PRIORITY_IP, SLAVES};
+use crate::virtual_unit;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -15,6 +16,8 @@ use tokio_rustls::client::TlsStream;
 use tokio_rustls::rustls::pki_types::ServerName;
 use tokio_rustls::TlsConnector;
 
+/// The bench's bus's name.
+pub(crate) const BUS: &str = "bench";
 /// The role of the bench's master certificate, given read-only access in `[server.tls]`.
 const ROLE: &str = "bench";
 /// How long the gateway (or the device server's `simulate`) may take to listen.
@@ -108,11 +111,12 @@ fn tls_for(scenario: &str, listen: SocketAddr) -> (String, Tls) {
 
 /// The bench's bus on `device`: the scenario's line (its serial format, but for a Modbus TCP
 /// device), a queue for every master twice over, the plant values' `[[bus.slave]]`s in the
-/// `values-` scenario, and the simulated slaves if `device` is the simulated line.
+/// `values-` scenario, and the simulated slaves if `device` is the simulated line; in the
+/// `virtual-unit-` scenario, the demo's drives instead, each polled by its template.
 pub(crate) fn bus(scenario: &Scenario, device: &str) -> Bus {
     let f = &scenario.format;
     let masters = connections(scenario);
-    let mut bus = Bus::on("bench", device)
+    let mut bus = Bus::on(BUS, device)
         .framing(scenario.framing.name())
         .key("queue_depth", masters * 2 + 16)
         .key("queue_timeout", "1h");
@@ -133,7 +137,9 @@ pub(crate) fn bus(scenario: &Scenario, device: &str) -> Bus {
     if scenario.load == Load::Values {
         bus = bus.text(&plant::slaves());
     }
-    if device == "sim" {
+    if scenario.load == Load::Virtual {
+        bus = virtual_unit::drives(bus);
+    } else if device == "sim" {
         bus = bus.sim_slaves(&format!("1-{SLAVES}"));
     }
     bus
@@ -193,7 +199,11 @@ impl Gateway {
             std::process::id(),
             scenario.name
         ));
-        std::fs::write(&path, config.to_toml()).map_err(|e| e.to_string())?;
+        let mut text = config.to_toml();
+        if scenario.load == Load::Virtual {
+            text.push_str(&virtual_unit::table(BUS));
+        }
+        std::fs::write(&path, text).map_err(|e| e.to_string())?;
         let child = Command::new(binary)
             .args(["--config", &path.to_string_lossy(), "run"])
             .env_remove("RUST_LOG")

@@ -13,18 +13,20 @@
 //! behind a device server), it measures what polling costs the gateway, its memory, and each
 //! page that serves the values. With the mixed load and the audit journal off, on, and synced to
 //! the disk (the `-journal-` scenarios, run one after the other), it measures what the journal
-//! costs each write against the same load without it.
+//! costs each write against the same load without it. With 100 masters reading a virtual unit
+//! (`virtual-unit-100`), answered from memory while the line polls the values it shows, it
+//! measures the gateway's own rate, latency and CPU per read: no line time, so no efficiency.
 //! A workspace member of its own: `cargo install` and the Debian package carry only the daemon.
 //!
 //! The modules, in the order a run goes through them: `scenarios` (what to measure),
 //! `device_server` (the far end of the device-server line), `tcp_device` (the Modbus TCP device
 //! of the tcp-device line), `beside` (what is measured beside the gateway on that line: a direct
 //! client, modbus-proxy), `journal` (the audit journal's directory, its file system and what a
-//! sync costs there), `gateway` (the process under test),
-//! `masters` (the load), `plant` (no load but the gateway's own polls of plant values: the
-//! cost of polling and of each page serving them), `watch` (its HTTP endpoint: metrics, trace,
-//! scraper, pages), `run` (one scenario's warm-up and window), `report` (the figures and their
-//! tables).
+//! sync costs there), `gateway` (the process under test), `virtual_unit` (the drives and the
+//! virtual unit of that scenario, and the wait until it answers), `masters` (the load), `plant`
+//! (no load but the gateway's own polls of plant values: the cost of polling and of each page
+//! serving them), `watch` (its HTTP endpoint: metrics, trace, scraper, pages), `run` (one
+//! scenario's warm-up and window), `report` (the figures and their tables).
 
 // The harness times other processes on the real clock, and paces its masters on tokio's
 // timer; it has no paused clock to keep, nor the product's choice of precision to make.
@@ -40,6 +42,7 @@ mod report;
 mod run;
 mod scenarios;
 mod tcp_device;
+mod virtual_unit;
 mod watch;
 
 use clap::Parser;
@@ -179,4 +182,5 @@ fn print_tables(reports: &[report::Report]) {
     report::print_tcp_device_table(reports);
     report::print_plant_table(reports);
     report::print_journal_table(reports);
+    report::print_virtual_table(reports);
 }

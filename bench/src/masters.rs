@@ -1,8 +1,10 @@
 //! The load: the bench's masters, each on a connection of its own kind, requesting back to back
-//! (or at a period) until told to stop; and the untimed RTU slaves of the pty scenarios.
+//! (or at a period) until told to stop, and how each request was answered; and the untimed RTU
+//! slaves of the pty scenarios.
 
 use crate::gateway::{tls_connect, Gateway};
 use crate::scenarios::{Kind, Load, PRIORITY_IP, READ_10, SLAVES, WRITE_1};
+use crate::virtual_unit;
 use mio_serial::SerialPort;
 use modbus_gateway::testing::bus::Port;
 use modbus_gateway::testing::line::{rtu, LineTiming, SerialFormat};
@@ -63,16 +65,20 @@ async fn rtu_exchange<S: AsyncRead + AsyncWrite + Unpin>(
     slave: u8,
     pdu: &[u8],
     reply: &mut [u8],
-) -> std::io::Result<bool> {
+) -> std::io::Result<Answer> {
     stream.write_all(&rtu::encode(slave, pdu)).await?;
     // Address and function, then the rest by the reply's own length.
     stream.read_exact(&mut reply[..3]).await?;
     let len = match rtu::reply_len(&reply[..3], slave, pdu) {
         rtu::FrameLen::Exact(n) => n,
-        _ => return Ok(false),
+        _ => return Ok(Answer::Unexpected),
     };
     stream.read_exact(&mut reply[3..len]).await?;
-    Ok(rtu::crc_ok(&reply[..len]) && reply[1] & 0x80 == 0)
+    Ok(if rtu::crc_ok(&reply[..len]) {
+        Answer::of_function(reply[1])
+    } else {
+        Answer::Unexpected
+    })
 }
 
 /// One Modbus TCP transaction on `stream`: the MBAP request, then the reply by its own length.
@@ -82,23 +88,54 @@ async fn mbap_exchange<S: AsyncRead + AsyncWrite + Unpin>(
     slave: u8,
     pdu: &[u8],
     reply: &mut [u8],
-) -> std::io::Result<bool> {
+) -> std::io::Result<Answer> {
     stream.write_all(&mbap(tid, slave, pdu)).await?;
     stream.read_exact(&mut reply[..7]).await?;
     let len = usize::from(u16::from_be_bytes([reply[4], reply[5]]));
     stream.read_exact(&mut reply[7..6 + len]).await?;
-    Ok(reply[..2] == tid.to_be_bytes() && reply[7] & 0x80 == 0)
+    Ok(Answer::of_mbap(reply, 7 + len, tid))
+}
+
+/// How a request was answered.
+#[derive(Clone, Copy, PartialEq, Debug)]
+pub(crate) enum Answer {
+    /// Its normal reply.
+    Normal,
+    /// An exception reply to it (the function code's high bit set).
+    Exception,
+    /// Not a reply to it: a wrong transaction id, a bad CRC, a length that does not fit.
+    Unexpected,
+}
+
+impl Answer {
+    /// The answer whose function code is `function`.
+    fn of_function(function: u8) -> Answer {
+        if function & 0x80 == 0 {
+            Answer::Normal
+        } else {
+            Answer::Exception
+        }
+    }
+
+    /// The answer in the MBAP frame of `len` bytes at the start of `reply`, to request `tid`.
+    fn of_mbap(reply: &[u8], len: usize, tid: u16) -> Answer {
+        if len > 7 && reply[..2] == tid.to_be_bytes() {
+            Answer::of_function(reply[7])
+        } else {
+            Answer::Unexpected
+        }
+    }
 }
 
 impl Conn {
-    /// Send `pdu` to `slave` and wait for its answer; true if it is a normal reply.
-    async fn exchange(
+    /// Send `pdu` to `slave` and wait for its answer.
+    pub(crate) async fn exchange(
         &mut self,
         tid: u16,
         slave: u8,
         pdu: &[u8],
         reply: &mut [u8],
-    ) -> std::io::Result<bool> {
+    ) -> std::io::Result<Answer> {
         match self {
             Conn::Tcp(stream) => mbap_exchange(stream, tid, slave, pdu, reply).await,
             Conn::Tls(stream) => mbap_exchange(stream.as_mut(), tid, slave, pdu, reply).await,
@@ -107,24 +144,36 @@ impl Conn {
             Conn::Udp(socket) => {
                 socket.send(&mbap(tid, slave, pdu)).await?;
                 let len = socket.recv(reply).await?;
-                Ok(len > 7 && reply[..2] == tid.to_be_bytes() && reply[7] & 0x80 == 0)
+                Ok(Answer::of_mbap(reply, len, tid))
             }
         }
     }
 }
 
+/// What one master saw: its completed requests, and when each request that was answered with
+/// an exception came back (the virtual load only: there an exception is an error the report
+/// counts; in any other load it ends the run).
+pub(crate) struct Served {
+    pub(crate) done: Vec<Done>,
+    pub(crate) exceptions: Vec<Instant>,
+}
+
 /// One master's loop: request, reply, again (after `period` from the last request, if not
-/// zero), until `stop`. Returns (completed at, latency).
+/// zero), until `stop`.
 pub(crate) async fn master(
     mut conn: Conn,
     index: usize,
     load: Load,
     period: Duration,
     stop: Arc<AtomicBool>,
-) -> std::io::Result<Vec<Done>> {
-    let mut done = Vec::new();
+) -> std::io::Result<Served> {
+    let mut served = Served {
+        done: Vec::new(),
+        exceptions: Vec::new(),
+    };
     let mut slave = match load {
         Load::Same | Load::Own => 1,
+        Load::Virtual => virtual_unit::UNIT,
         _ => u8::try_from(index % usize::from(SLAVES)).unwrap_or(0) + 1,
     };
     // Its own block, 10 registers from 10 x index, so that no two masters' reads are identical
@@ -142,27 +191,30 @@ pub(crate) async fn master(
         }
         tid = tid.wrapping_add(1);
         let write = load == Load::Mix && tid.is_multiple_of(4);
-        let pdu: &[u8] = if write {
-            &WRITE_1
-        } else if load == Load::Same {
-            &READ_10
-        } else {
-            &own
+        let pdu: &[u8] = match load {
+            _ if write => &WRITE_1,
+            Load::Same => &READ_10,
+            Load::Virtual => &virtual_unit::READ,
+            _ => &own,
         };
         let sent = Instant::now();
-        if !conn.exchange(tid, slave, pdu, &mut reply).await? {
-            return Err(std::io::Error::other(format!(
-                "master {index}: unexpected reply {:02X?}",
-                &reply[..16]
-            )));
-        }
+        let answer = conn.exchange(tid, slave, pdu, &mut reply).await?;
         let now = Instant::now();
-        done.push((now, now - sent, write));
-        if !matches!(load, Load::Same | Load::Own) {
+        match answer {
+            Answer::Normal => served.done.push((now, now - sent, write)),
+            Answer::Exception if load == Load::Virtual => served.exceptions.push(now),
+            Answer::Exception | Answer::Unexpected => {
+                return Err(std::io::Error::other(format!(
+                    "master {index}: unexpected reply {:02X?}",
+                    &reply[..16]
+                )))
+            }
+        }
+        if !matches!(load, Load::Same | Load::Own | Load::Virtual) {
             slave = slave % SLAVES + 1;
         }
     }
-    Ok(done)
+    Ok(served)
 }
 
 /// One master of `kind` (not `Mixed`), master `i` of the run.

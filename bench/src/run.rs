@@ -1,21 +1,24 @@
 //! One scenario's run: the gateway started, the masters connected, a warm-up, then a window in
 //! which the masters' completions, the gateway's CPU time, (on a timed line) its metrics and
 //! (with an audit journal) the journal's growth are taken; on the tcp-device line with reads, one
-//! direct client before and modbus-proxy after; with no master but plant values to poll, `plant`'s.
+//! direct client before and modbus-proxy after; with no master but plant values to poll, `plant`'s;
+//! with masters reading a virtual unit, a wait first until it answers (`virtual_unit`).
 //! The figures are `report`'s.
 
 use crate::beside;
 use crate::device_server::DeviceServer;
 use crate::gateway::{cpu_time, rss_mb, Gateway};
 use crate::journal::JournalDir;
-use crate::masters::{connect_all, master, priority_connect, untimed_slave, Done};
+use crate::masters::{connect_all, master, priority_connect, untimed_slave, Done, Served};
 use crate::plant;
 use crate::report::Report;
 use crate::scenarios::{Journal, Line, Load, Scenario, READ_10, WRITE_1};
 use crate::tcp_device::TcpDevice;
+use crate::virtual_unit;
 use crate::watch::{scrape, watch_trace, Scraped, Scraper};
 use crate::Cli;
 use modbus_gateway::testing::line::LineTiming;
+use std::ops::RangeInclusive;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -39,6 +42,9 @@ pub(crate) struct Window {
     /// Every master's completions, in the order the masters were connected (the priority
     /// master last); `start..=end` is the window's share.
     pub(crate) masters: Vec<Vec<Done>>,
+    /// Requests answered with an exception within the window (the virtual load only: in any
+    /// other, one ends the run).
+    pub(crate) exceptions: u64,
     /// The metrics page at the window's start and end (timed lines only).
     pub(crate) metrics: Option<(String, String)>,
     /// The `--scrape` scraper's scrapes within the window.
@@ -114,6 +120,9 @@ pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report
     let file_system = journal.as_ref().and_then(JournalDir::file_system);
     let gateway = Gateway::start(binary, s, &device, journal).await?;
     let listening = Instant::now();
+    if s.load == Load::Virtual {
+        virtual_unit::until_answered(&gateway).await?;
+    }
     let pid = gateway.pid();
     let cpu_before = cpu_time(pid);
     let (mut streams, mut setup) = connect_all(&gateway, s.kind, s.masters).await?;
@@ -141,11 +150,12 @@ pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report
         return Ok(report);
     }
     let minimum = Minimum::of(s, &timing);
-    // Long enough for every master to complete `rounds` requests at the line's pace.
-    let pace = if s.line.timed() {
-        minimum.read
-    } else {
-        timing.t35
+    // Long enough for every master to complete `rounds` requests at the line's pace; a read
+    // answered from memory has none.
+    let pace = match (s.load, s.line.timed()) {
+        (Load::Virtual, _) => Duration::ZERO,
+        (_, true) => minimum.read,
+        (_, false) => timing.t35,
     };
     let far_pid = far.as_ref().map(DeviceServer::pid);
     let window = measure(cli, (&gateway, far_pid), s, streams, pace).await?;
@@ -219,14 +229,7 @@ async fn measure(
     let rss_mb = rss_mb(pid);
     stop.store(true, Ordering::Relaxed);
     let scrapes = scraper.map(|scraper| scraper.within(start, end));
-    let mut masters = Vec::with_capacity(tasks.len());
-    for task in tasks {
-        masters.push(
-            task.await
-                .map_err(|e| e.to_string())?
-                .map_err(|e| e.to_string())?,
-        );
-    }
+    let (masters, exceptions) = join(tasks, start..=end).await?;
     Ok(Window {
         start,
         end,
@@ -234,10 +237,31 @@ async fn measure(
         far_cpu,
         rss_mb,
         masters,
+        exceptions,
         metrics: before.zip(after),
         scrapes,
         journal_bytes: journal_end
             .zip(journal_start)
             .map(|(e, s)| e.saturating_sub(s)),
     })
+}
+
+/// The masters' completions, once each has stopped, in order; and how many of their requests
+/// were answered with an exception within `window`.
+async fn join(
+    tasks: Vec<tokio::task::JoinHandle<std::io::Result<Served>>>,
+    window: RangeInclusive<Instant>,
+) -> Result<(Vec<Vec<Done>>, u64), String> {
+    let mut masters = Vec::with_capacity(tasks.len());
+    let mut exceptions = 0;
+    for task in tasks {
+        let served = task
+            .await
+            .map_err(|e| e.to_string())?
+            .map_err(|e| e.to_string())?;
+        let within = served.exceptions.iter().filter(|&&at| window.contains(&at));
+        exceptions += within.count() as u64;
+        masters.push(served.done);
+    }
+    Ok((masters, exceptions))
 }

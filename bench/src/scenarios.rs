@@ -169,6 +169,9 @@ pub(crate) enum Load {
     /// No master: every slave lists [`PLANT_VALUES`], which the gateway polls; the bench reads
     /// its metrics endpoint (`plant`).
     Values,
+    /// Every master reads the whole of a virtual unit, back to back: answered from memory, from
+    /// the values the gateway polls of the drives on the line (`virtual_unit`), no line time.
+    Virtual,
 }
 
 /// The gateway's audit journal (`[audit]`), which takes an entry for every write before it is
@@ -233,6 +236,12 @@ pub(crate) struct Scenario {
 }
 
 impl Scenario {
+    /// Whether the masters' transactions take the line's time, so that they are paced by it and
+    /// its efficiency means something: a timed line, and not answered from memory.
+    pub(crate) fn on_the_line(&self) -> bool {
+        self.line.timed() && self.load != Load::Virtual
+    }
+
     /// Modbus TCP masters on the simulated RTU line, reads coalescing, no priority master.
     fn sim(name: String, format: SerialFormat, masters: usize, load: Load) -> Scenario {
         Scenario {
@@ -334,6 +343,13 @@ pub(crate) fn scenarios() -> Vec<Scenario> {
         ..Scenario::sim(String::new(), values.format, 0, Load::Values)
     };
     all.extend([values, twin]);
+    // 100 masters reading a virtual unit, on the demo's 9600 8E1 line whose drives it shows.
+    all.push(Scenario::sim(
+        "virtual-unit-100".to_owned(),
+        format(9600, Parity::Even),
+        100,
+        Load::Virtual,
+    ));
     all
 }
 

@@ -119,11 +119,12 @@ pub(crate) fn sample(page: &str, name: &str, labels: &[&str]) -> f64 {
         .sum()
 }
 
-/// What the window's metrics say: line transactions, coalesced requests, and the queue wait's
-/// sum and count by class.
+/// What the window's metrics say: line transactions, the gateway's own polls among them,
+/// coalesced requests, and the queue wait's sum and count by class.
 #[derive(Default)]
 pub(crate) struct Counters {
     pub(crate) line_tx: f64,
+    pub(crate) polls: f64,
     pub(crate) coalesced: f64,
     pub(crate) wait: [(f64, f64); 2],
 }
@@ -139,6 +140,7 @@ impl Counters {
         };
         Counters {
             line_tx: sample(page, "modbus_gateway_round_trip_seconds_count", &[]),
+            polls: sample(page, "modbus_gateway_polls_total", &[]),
             coalesced: sample(page, "modbus_gateway_coalesced_requests_total", &[]),
             wait: [wait("normal"), wait("priority")],
         }

@@ -350,3 +350,33 @@ fn the_serial_port_scenarios_priority_master_polls_through_the_ports_pty_and_its
         .count();
     assert_eq!(links, 0, "the port's pty link is left behind");
 }
+
+/// The scenario starts its masters once the unit answers; from then on no value it shows is
+/// too old.
+#[test]
+fn masters_reading_a_virtual_unit_are_answered_from_memory_every_read_normally() {
+    let scenario = "virtual-unit-100";
+    let report = bench_json(&[scenario], |_| {}).remove(0);
+    assert_eq!(report["scenario"], scenario);
+    assert_eq!(report["masters"].as_u64(), Some(100), "{report}");
+    // A read answered with an exception is counted apart; an unexpected reply fails the run.
+    assert!(report["transactions"].as_u64().unwrap() > 0, "{report}");
+    assert_eq!(report["exceptions"].as_u64(), Some(0), "{report}");
+    assert_eq!(report["virtual_registers"].as_u64(), Some(8), "{report}");
+    // No line time: no efficiency, and every transaction on the line one of the gateway's polls
+    // (give or take one in flight at each end of the window).
+    assert_eq!(report["answered_from_memory"], true, "{report}");
+    assert!(report["efficiency"].is_null(), "{report}");
+    let seconds = report["seconds"].as_f64().unwrap();
+    let (polls, line) = (
+        report["line_polls_per_s"].as_f64().unwrap() * seconds,
+        report["line_tx_per_s"].as_f64().unwrap() * seconds,
+    );
+    assert!(polls > 0.0 && (polls - line).abs() <= 2.0, "{report}");
+    for field in ["p50_ms", "p99_ms", "cpu_us_per_tx", "fairness"] {
+        assert!(
+            report[field].as_f64().is_some_and(|v| v > 0.0),
+            "{field}: {report}"
+        );
+    }
+}

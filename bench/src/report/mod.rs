@@ -7,12 +7,14 @@ mod tables;
 pub(crate) use tables::{
     print_device_server_table, print_header, print_journal_table, print_line_table,
     print_plant_table, print_priority_table, print_row, print_scrape_table, print_tcp_device_table,
+    print_virtual_table,
 };
 
 use crate::beside::Driven;
 use crate::plant::{Gets, PlantWindow};
 use crate::run::{Minimum, Window};
 use crate::scenarios::{journal_off_twin, Line, Load, Scenario};
+use crate::virtual_unit;
 use crate::watch::Counters;
 use serde::Serialize;
 use std::time::Duration;
@@ -102,6 +104,26 @@ pub(crate) struct Report {
     /// The mixed load only.
     #[serde(flatten)]
     journal: Option<JournalFigures>,
+    /// The virtual load only.
+    #[serde(flatten)]
+    pub(crate) virtual_unit: Option<VirtualFigures>,
+}
+
+/// The `virtual-unit-` scenario's: masters reading a virtual unit, answered from memory while
+/// the line polls the values it shows.
+#[derive(Serialize)]
+pub(crate) struct VirtualFigures {
+    /// Always true: the reads took no line time, so there is no efficiency (`efficiency` is
+    /// null) and `tx_per_s` is the gateway's own rate.
+    answered_from_memory: bool,
+    /// Registers each read asks for, and reads answered with an exception in the window (0x0B:
+    /// a value it shows too old or never read): errors, not among the `transactions`.
+    pub(crate) virtual_registers: u16,
+    pub(crate) exceptions: u64,
+    /// The gateway's polls of the drives a second in the window (`modbus_gateway_polls_total`);
+    /// `line_tx_per_s` beside it is every transaction on the line, the same when no master's
+    /// read went there.
+    pub(crate) line_polls_per_s: Option<f64>,
 }
 
 /// The mixed load's writes, and what the audit journal took for them.
@@ -326,12 +348,14 @@ impl Report {
         if s.priority.is_some() {
             self.priority(&mut priority, t_min);
         }
-        if let Some((before, after)) = &w.metrics {
+        if s.load == Load::Virtual {
+            self.virtual_figures(w);
+        } else if let Some((before, after)) = &w.metrics {
             self.counters(s, &Counters::of(before), &Counters::of(after), t_min);
         }
         self.cpu_us_per_tx = per_tx(w.cpu, transactions);
         self.simulate_cpu_us_per_tx = w.far_cpu.and_then(|cpu| per_tx(cpu, transactions));
-        if s.line.timed() {
+        if s.on_the_line() {
             self.efficiency = Some(physical.as_secs_f64() / wall);
             // Coalesced reads took no time of the line: count its transactions instead.
             if s.load == Load::Same {
@@ -461,6 +485,27 @@ impl Report {
         self.priority_wait_p99_tmin = in_tmin(0.99).map(|t| t - 1.0);
         self.others_share = (transactions > 0)
             .then(|| (transactions - priority.len() as u64) as f64 / transactions as f64);
+    }
+
+    /// The virtual load's figures: its exceptions, and the line's transactions and polls from
+    /// the gateway's metrics at the window's ends.
+    fn virtual_figures(&mut self, w: &Window) {
+        let wall = self.seconds;
+        let counts = w
+            .metrics
+            .as_ref()
+            .map(|(before, after)| (Counters::of(before), Counters::of(after)));
+        if let Some((before, after)) = &counts {
+            let line_tx = after.line_tx - before.line_tx;
+            self.line_tx = Some(count(line_tx));
+            self.line_tx_per_s = Some(line_tx / wall);
+        }
+        self.virtual_unit = Some(VirtualFigures {
+            answered_from_memory: true,
+            virtual_registers: virtual_unit::REGISTERS,
+            exceptions: w.exceptions,
+            line_polls_per_s: counts.map(|(before, after)| (after.polls - before.polls) / wall),
+        });
     }
 
     /// The figures from the gateway's metrics at the window's ends.

@@ -1,7 +1,7 @@
 //! How a run's figures are shown: the table of every scenario, one row each as it ends, then the
 //! own tables of the scenarios that have them (line, priority, scrape, device-server, tcp-device,
-//! plant-values, journal). It formats what `Report` holds, and a few ratios of one scenario's
-//! figures to its twin's; the figures themselves are computed in the parent module.
+//! plant-values, journal, virtual-unit). It formats what `Report` holds, and a few ratios of one
+//! scenario's figures to its twin's; the figures themselves are computed in the parent module.
 
 use super::Report;
 
@@ -352,6 +352,49 @@ pub(crate) fn print_journal_table(reports: &[Report]) {
             cell(j.write_p50_ms_vs_journal_off, 3),
             cell(j.journal_bytes_per_write, 0),
             j.journal_fs.as_deref().unwrap_or("-"),
+        );
+    }
+}
+
+/// The virtual-unit scenarios' own columns: reads answered from memory, which take no line time,
+/// so they have no efficiency; the rate, latency and CPU are the gateway's alone.
+pub(crate) fn print_virtual_table(reports: &[Report]) {
+    let rows: Vec<_> = reports
+        .iter()
+        .filter_map(|r| Some((r, r.virtual_unit.as_ref()?)))
+        .collect();
+    if rows.is_empty() {
+        return;
+    }
+    println!("\nanswered from memory: no line time, so no efficiency");
+    println!(
+        "{:<33} {:>7} {:>5} {:>9} {:>8} {:>8} {:>8} {:>9} {:>10} {:>9} {:>10}",
+        "scenario (virtual unit)",
+        "masters",
+        "regs",
+        "tx/s",
+        "p50 ms",
+        "p99 ms",
+        "max ms",
+        "cpu us/tx",
+        "exceptions",
+        "polls/s",
+        "line tx/s"
+    );
+    for (r, v) in rows {
+        println!(
+            "{:<33} {:>7} {:>5} {:>9.0} {:>8} {:>8} {:>8} {:>9} {:>10} {:>9} {:>10}",
+            r.scenario,
+            r.masters,
+            v.virtual_registers,
+            r.tx_per_s,
+            cell(r.p50_ms, 3),
+            cell(r.p99_ms, 3),
+            cell(r.max_ms, 1),
+            cell(r.cpu_us_per_tx, 1),
+            v.exceptions,
+            cell(v.line_polls_per_s, 1),
+            cell(r.line_tx_per_s, 1),
         );
     }
 }
