@@ -17,7 +17,7 @@ use crate::metrics::{Metrics, Refusal};
 use crate::pdu::{self, RequestLen, EXCEPTION_BIT};
 use crate::routing::{Inbound, Router, Target};
 use crate::rules::{self, Rules};
-use crate::virtuals::{Refused, Unit, Units};
+use crate::virtuals::{Refused, SourceWrite, Unit, Units};
 use std::net::SocketAddr;
 use std::sync::{Arc, PoisonError, RwLock};
 use tokio::sync::oneshot;
@@ -312,8 +312,7 @@ impl Dispatcher {
     ) -> oneshot::Receiver<Outcome> {
         let pdu = inbound.pdu;
         let function = pdu.first().copied().unwrap_or(0);
-        let exception =
-            |Refused(code)| Ok(Answer::Reply(pdu::exception_pdu(function, code).to_vec()));
+        let exception = |Refused(code)| Err(RequestError::Emulated(code));
         let Some(pending) = pending else {
             let outcome = table
                 .virtuals
@@ -321,26 +320,31 @@ impl Dispatcher {
                 .map_or_else(exception, |reply| Ok(Answer::Reply(reply)));
             return self.answer_virtual(client, unit, inbound, outcome);
         };
-        let (waiter, receiver) = Waiter::new(origin_of(client), Instant::now());
-        let waiter = waiter.journaled(Some(pending));
         let (writes, normal) = match table.virtuals.write(unit, pdu) {
             Ok(translated) => translated,
             Err(refused) => {
+                let (waiter, receiver) = Waiter::new(origin_of(client), Instant::now());
                 let tally = Tally::Virtual(&self.metrics.virtual_units, &unit.name);
+                let waiter = waiter.journaled(Some(pending));
                 waiter.answer(tally, unit.id, function, exception(refused));
                 return receiver;
             }
         };
+        // Every write it becomes is decided before any is sent: none goes if a rule denies one.
+        if let Some((refusal, detail)) = first_denial(
+            &table.rules,
+            writes.iter().map(|w| through(table, inbound, w)),
+        ) {
+            pending.denied(refusal.exception_code() as u8, detail);
+            return self.refuse(client, table, inbound, refusal, None);
+        }
+        let (waiter, receiver) = Waiter::new(origin_of(client), Instant::now());
+        let waiter = waiter.journaled(Some(pending));
         let sent: Vec<oneshot::Receiver<Outcome>> = writes
             .iter()
             .map(|write| {
-                let through = Inbound {
-                    bus: Some(table.buses[write.target.bus].name()),
-                    target: Some(write.target),
-                    pdu: &write.pdu,
-                    ..*inbound
-                };
-                self.dispatch(client, table, &through, Some(To::Bus(write.target)))
+                let to = Some(To::Bus(write.target));
+                self.dispatch(client, table, &through(table, inbound, write), to)
             })
             .collect();
         let metrics = self.metrics.clone();
@@ -577,6 +581,44 @@ fn acknowledgement(pdu: &[u8], on: Option<(Target, &BusHandle)>) -> Option<Answe
         return Some(Answer::Nothing);
     }
     Some(Answer::Acknowledged(reply))
+}
+
+/// `inbound`, a write to a virtual unit, as the `write` to a source slave it becomes.
+fn through<'a>(table: &'a Table, inbound: &Inbound<'a>, write: &'a SourceWrite) -> Inbound<'a> {
+    Inbound {
+        bus: Some(table.buses[write.target.bus].name()),
+        target: Some(write.target),
+        pdu: &write.pdu,
+        ..*inbound
+    }
+}
+
+/// The first of a virtual unit's source writes `through` that a rule denies: the refusal, and
+/// the journal's detail for the master's write.
+fn first_denial<'a>(
+    rules: &Rules,
+    mut through: impl Iterator<Item = Inbound<'a>>,
+) -> Option<(RequestError, String)> {
+    through.find_map(|write| {
+        let decision = rules.decide(&write);
+        (decision.action == Action::Deny).then(|| {
+            let rule = decision.rule.map_or("a rule", |at| rules.name(at));
+            let function = write.pdu.first().copied().unwrap_or(0);
+            let registers = decision.exception(rules) == pdu::ExceptionCode::IllegalDataAddress;
+            let detail = format!(
+                "{rule}: deny, of the write to slave {} of {} it becomes",
+                write.target.map_or(0, |t| t.address),
+                write.bus.unwrap_or("its bus")
+            );
+            (
+                RequestError::Denied {
+                    function,
+                    registers,
+                },
+                detail,
+            )
+        })
+    })
 }
 
 /// What the writes `sent` on for a write with `function` to a virtual unit came to: its

@@ -67,6 +67,10 @@ pub enum RequestError {
     Unrecorded(u8),
     #[error("no route for unit {0}")]
     NoRoute(u8),
+    /// A virtual unit's own exception: what it does not lay out (0x02), answer (0x01) or hold
+    /// (0x03), or a value too old (0x0B). Nothing was sent.
+    #[error("the virtual unit answers it with exception {0:?}; nothing was sent")]
+    Emulated(ExceptionCode),
     #[error("function code {0:#04x} cannot be broadcast")]
     NotBroadcastable(u8),
     #[error("serial port is down")]
@@ -103,6 +107,7 @@ impl RequestError {
                 registers: true, ..
             } => ExceptionCode::IllegalDataAddress,
             RequestError::BadLength { .. } => ExceptionCode::IllegalDataValue,
+            RequestError::Emulated(code) => *code,
             RequestError::NoRoute(_)
             | RequestError::PortDown
             | RequestError::PortLost

@@ -185,6 +185,13 @@ value = "a/1/level_ratio"
 type = "i16"
 scale = 0.1
 writable = true
+
+[[virtual.register]]
+register = 21
+value = "b/1/level_ratio"
+type = "i16"
+scale = 0.1
+writable = true
 "#;
 
 fn two_buses(tail: &str) -> GatewayConfig {
@@ -481,38 +488,55 @@ async fn a_writable_registers_write_reaches_its_slave_in_its_encoding_journaled_
 
     // A rule protecting slave 1 of bus "a" stops a write through the virtual unit; one on the
     // virtual unit itself too. Neither reaches the line, and both are journaled.
-    for rule in [
-        "[[rule]]\nname = \"protect\"\nbuses = [\"a\"]\nunits = \"1\"\nfunctions = [\"write\"]\naction = \"deny\"\n",
-        "[[rule]]\nname = \"protect\"\nunits = \"200\"\nfunctions = [\"write\"]\naction = \"deny\"\n",
+    // A write of registers 20 and 21 (slave 1 of bus "a", then of bus "b") under a rule
+    // protecting bus b's: decided whole before either is sent.
+    let both = [0x10, 0x00, 0x14, 0x00, 0x02, 0x04, 0x00, 0xFF, 0x00, 0xFF];
+    for (rule, pdu) in [
+        ("buses = [\"a\"]\nunits = \"1\"\n", &write[..]),
+        ("units = \"200\"\n", &write[..]),
+        ("buses = [\"b\"]\nunits = \"2\"\n", &both[..]),
     ] {
+        let rule = format!(
+            "[[rule]]\nname = \"protect\"\n{rule}functions = [\"write\"]\naction = \"deny\"\n"
+        );
         let ruled = two_buses(&format!("{UNIT_200}{audit}{rule}")).load();
         gateway.reload(&ruled).expect("reloads");
-        assert_eq!(master.call(4, 200, &write).await, [0x86, 0x01], "{rule}");
-        assert_eq!(
-            sent(&gateway, "a").iter().filter(|(_, pdu)| pdu[0] == 0x06).count(),
-            1,
-            "{rule}"
-        );
+        let expected = [pdu[0] | 0x80, 0x01];
+        assert_eq!(master.call(4, 200, pdu).await, expected, "{rule}");
+        for bus in ["a", "b"] {
+            let writes = sent(&gateway, bus)
+                .iter()
+                .filter(|(_, p)| p[0] == 0x06 || p[0] == 0x10)
+                .count();
+            assert_eq!(writes, usize::from(bus == "a"), "{rule}: bus {bus}");
+        }
     }
     let writes = journaled(&path, 6).await;
-    let denied: Vec<_> = writes
+    let (refused, outcome) = &writes[2];
+    assert_eq!(refused["values"], "09C4");
+    assert_eq!(
+        (&outcome["outcome"], &outcome["carried_out"]),
+        (&"gateway_exception".into(), &"no".into()),
+        "the virtual unit refused it, no slave: {outcome}"
+    );
+    // One entry each, the master's write to the virtual unit: none of them became a write to
+    // a slave.
+    let denied: Vec<_> = writes[3..]
         .iter()
-        .filter(|(w, _)| w["action"] == "deny")
         .map(|(w, o)| {
             (
                 w["bus"].clone(),
-                w["rule"].clone(),
+                o["outcome"].clone(),
                 o["carried_out"].clone(),
             )
         })
         .collect();
     assert_eq!(
         denied,
-        [
-            ("a".into(), "protect".into(), "no".into()),
-            (serde_json::Value::Null, "protect".into(), "no".into()),
-        ]
+        vec![(serde_json::Value::Null, "denied".into(), "no".into()); 3]
     );
+    let detail = writes[5].1["detail"].as_str().unwrap_or_default();
+    assert!(detail.contains("write to slave 1 of b"), "{detail}");
     let scrape = Scrape::of(&gateway).await;
     let count = |outcome: &str| {
         scrape.value(&format!(
@@ -520,7 +544,7 @@ async fn a_writable_registers_write_reaches_its_slave_in_its_encoding_journaled_
         ))
     };
     assert_eq!((count("written"), count("exception")), (1.0, 1.0));
-    assert_eq!(count("denied") + count("failed"), 2.0);
+    assert_eq!(count("denied"), 3.0);
 }
 
 #[tokio::test]

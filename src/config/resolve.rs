@@ -23,6 +23,13 @@ impl Config {
             port.data_bits = Some(format.data_bits);
             port.stop_bits = Some(format.stop_bits);
         }
+        for register in self.virtual_units.iter_mut().flat_map(|u| &mut u.register) {
+            register.kind = Some(register.kind.unwrap_or(if register.table.is_bits() {
+                ValueType::Bool
+            } else {
+                ValueType::U16
+            }));
+        }
         for route in &mut self.route {
             if route.address.is_none() {
                 route.offset = Some(route.unit_offset());

@@ -105,9 +105,9 @@ impl Fate {
             Ok(_) => (Fate::Ok, None),
             Err(error) => {
                 let fate = match error {
-                    RequestError::InvalidFunction(_) | RequestError::NotBroadcastable(_) => {
-                        Fate::Refused
-                    }
+                    RequestError::InvalidFunction(_)
+                    | RequestError::NotBroadcastable(_)
+                    | RequestError::Emulated(_) => Fate::Refused,
                     RequestError::ReadOnly(_) => Fate::ReadOnly,
                     RequestError::BadLength { .. } => Fate::BadLength,
                     RequestError::NoAccess(_)

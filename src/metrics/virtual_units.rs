@@ -52,16 +52,14 @@ impl VirtualOutcome {
     /// What `outcome` of a request with `function` to a virtual unit was.
     pub(crate) fn of(function: u8, outcome: &Outcome) -> VirtualOutcome {
         match outcome {
+            Err(RequestError::Emulated(code)) => match code {
+                ExceptionCode::GatewayTargetFailedToRespond => VirtualOutcome::Stale,
+                ExceptionCode::IllegalDataAddress => VirtualOutcome::NotMapped,
+                _ => VirtualOutcome::Exception,
+            },
+            // A write's source slave answered with an exception.
             Ok(Answer::Reply(pdu)) if pdu.first().is_some_and(|f| f & EXCEPTION_BIT != 0) => {
-                match pdu.get(1).copied() {
-                    Some(c) if c == ExceptionCode::GatewayTargetFailedToRespond as u8 => {
-                        VirtualOutcome::Stale
-                    }
-                    Some(c) if c == ExceptionCode::IllegalDataAddress as u8 => {
-                        VirtualOutcome::NotMapped
-                    }
-                    _ => VirtualOutcome::Exception,
-                }
+                VirtualOutcome::Failed
             }
             Ok(_) if (0x01..=0x04).contains(&function) => VirtualOutcome::Answered,
             Ok(_) => VirtualOutcome::Written,

@@ -8,9 +8,7 @@
 
 mod answer;
 
-pub(crate) use answer::Refused;
-#[cfg(test)]
-use answer::SourceWrite;
+pub(crate) use answer::{Refused, SourceWrite};
 
 use crate::config::{Config, Slot, Table};
 use crate::routing::Target;
