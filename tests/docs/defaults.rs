@@ -52,24 +52,51 @@ const BARE: &[(&str, &str, &[&str])] = &[
 ];
 
 /// The `[[virtual]]` sections, written after [`BARE`] only while one of theirs is checked: their
-/// register shows [`BARE`]'s value, which the examples of `[[bus.slave.value]]` rename and label
-/// (a virtual register naming a value that is not there is refused).
+/// register shows config/gateway.toml's value, labels and all, which the examples of
+/// `[[bus.slave.value]]` rename and label otherwise (a virtual register naming a series that is
+/// not there is refused). [`VALUE`] stands for [`BARE`]'s value meanwhile.
 const VIRTUAL: &[(&str, &str, &[&str])] = &[
     ("virtual", "[[virtual]]", &["unit = 250", "name = \"copy\""]),
     (
         "virtual.register",
         "[[virtual.register]]",
-        &["register = 0", "value = \"line1/3/pump_pressure_pascals\""],
+        &[
+            "register = 0",
+            "value = \"line1/3/pump_pressure_pascals{site=\\\"north\\\"}\"",
+        ],
     ),
 ];
+
+/// [`BARE`]'s value with the labels config/gateway.toml gives it, beside [`VIRTUAL`].
+const VALUE: (&str, &str, &[&str]) = (
+    "bus.slave.value",
+    "[[bus.slave.value]]",
+    &[
+        "name = \"pump_pressure_pascals\"",
+        "register = 0",
+        "labels = { site = \"north\" }",
+    ],
+);
 
 /// The sections of the bare configuration that `section` is checked in.
 fn sections_for(
     section: &str,
-) -> impl Iterator<Item = &'static (&'static str, &'static str, &'static [&'static str])> {
+) -> Vec<&'static (&'static str, &'static str, &'static [&'static str])> {
     let virtual_too = section.starts_with("virtual");
-    BARE.iter()
-        .chain(VIRTUAL.iter().filter(move |_| virtual_too))
+    let mut sections: Vec<_> = BARE
+        .iter()
+        .map(|s| {
+            if virtual_too && s.0 == VALUE.0 {
+                &VALUE
+            } else {
+                s
+            }
+        })
+        .collect();
+    if virtual_too {
+        sections.extend(VIRTUAL);
+    }
+    sections
 }
 
 /// Commented lines of config/gateway.toml that show an example, not the default, by section and
@@ -215,12 +242,6 @@ const EXAMPLES: &[(&str, &str, &str, &[&str])] = &[
         "virtual",
         "max_age",
         "default three of the value's poll_interval",
-        &[],
-    ),
-    (
-        "virtual.register",
-        "type",
-        "u16 by default, but printed only when given: a virtual register's type is not filled in",
         &[],
     ),
 ];

@@ -1,6 +1,7 @@
 //! The README's walkthroughs, run as a user would: "Writes under control" (config/demo-writes.toml,
 //! mbpoll's writes and `modbus-gateway audit` on the journal), "A master on a serial line"
-//! (config/demo-serial.toml, mbpoll's RTU mode on the port's pty) and the metric greps of the
+//! (config/demo-serial.toml, mbpoll's RTU mode on the port's pty), "A unit the gateway answers
+//! itself" (config/demo.toml's virtual unit, read with mbpoll as drive 2 ramps) and the metric greps of the
 //! ASCII and device server demos. The commands are the README's, with this gateway's ports, journal and
 //! binary put in place of the demo's; what they print must be what the README shows, but for the
 //! times and the masters' ports, which are the user's own. A missing section or block fails.
@@ -9,7 +10,7 @@
 //! under `MBGW_REQUIRE_TOOLS=1`.
 
 use crate::simulate::Simulator;
-use crate::support::{start, tool, until_exists, within, Scrape, TempDir};
+use crate::support::{start, tool, until_exists, within, Scrape, TempDir, PATIENCE};
 use std::path::Path;
 use std::process::{Command, Output};
 
@@ -347,5 +348,98 @@ async fn the_serial_port_walkthrough_prints_what_the_readme_shows() {
         assert_eq!(last, &shown[..], "{command}");
     }
     assert_eq!(grep_of(&grep, 9024, gateway.metrics_addr()).await, counted);
+    gateway.shutdown().await;
+}
+
+/// How long drive 2 of the demo takes to ramp to 50.00 Hz (P00.11 = 15.0 s), and to be polled
+/// there (every 2 s): the virtual unit's read waits this on top of the usual patience.
+const RAMP_AND_POLL: std::time::Duration = std::time::Duration::from_secs(17);
+
+#[tokio::test]
+async fn the_virtual_unit_walkthrough_prints_what_the_readme_shows() {
+    let text = section("A unit the gateway answers itself");
+    assert_eq!(
+        blocks(text, "sh")[0],
+        "cargo run --release -- --config config/demo.toml\n"
+    );
+    let steps: Vec<(String, Vec<String>)> = blocks(text, "console")
+        .iter()
+        .flat_map(|block| session(block))
+        .collect();
+    let virtual_reads = steps.iter().filter(|(c, _)| c.contains(" -a 100 ")).count();
+    assert_eq!((steps.len(), virtual_reads), (5, 3), "{steps:?}");
+    // The README's grep of the counter, and the series it shows.
+    let grep_line = text
+        .lines()
+        .find(|line| line.starts_with("curl -s 127.0.0.1:9020/metrics | grep "))
+        .expect("a grep of the virtual unit's counter");
+    let counted: Vec<String> = text
+        .lines()
+        .skip_while(|line| *line != grep_line)
+        .skip(1)
+        .map_while(|line| line.strip_prefix("# modbus_gateway_"))
+        .map(|line| format!("modbus_gateway_{line}"))
+        .collect();
+    assert_eq!(counted.len(), 2, "{counted:?}");
+    if tool("mbpoll").is_none() || tool("curl").is_none() {
+        return;
+    }
+    let demo = include_str!(concat!(env!("CARGO_MANIFEST_DIR"), "/config/demo.toml"));
+    let config = put(demo, "\"127.0.0.1:5020\"", "\"127.0.0.1:0\"");
+    let config = put(&config, "\"127.0.0.1:9020\"", "\"127.0.0.1:0\"");
+    let gateway = start(&config).await;
+    let port = gateway.tcp_addrs()[0].port();
+    // The README's first read is answered once the drives have been polled: until then, 0x0B.
+    let (first, _) = &steps[0];
+    let first = put(first, "-p 5020 ", &format!("-p {port} "));
+    within("the drives' first polls", async {
+        while !run(&first).await.0.status.success() {
+            tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+        }
+    })
+    .await;
+    for (at, (command, shown)) in steps.iter().enumerate() {
+        let command = put(command, "-p 5020 ", &format!("-p {port} "));
+        let failed = shown.iter().any(|line| line.contains(" failed: "));
+        // The read after drive 2 started shows it at 50.00 Hz: "a few seconds later", repeated
+        // until it does.
+        let repeated = at > 0 && command.contains(" -a 100 ") && !failed;
+        let deadline = tokio::time::Instant::now() + RAMP_AND_POLL + PATIENCE;
+        loop {
+            let (output, printed) = run(&command).await;
+            let last = &printed[printed.len().saturating_sub(shown.len())..];
+            if repeated && last != &shown[..] && tokio::time::Instant::now() < deadline {
+                tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+                continue;
+            }
+            assert_eq!(output.status.success(), !failed, "{command}: {printed:?}");
+            assert_eq!(last, &shown[..], "{command}");
+            break;
+        }
+    }
+    // The counter's series as the README shows them: not_mapped once (the read of register 11),
+    // answered at least as often as the README's reads (this test repeats them).
+    let printed = grep_of(grep_line, 9020, gateway.metrics_addr()).await;
+    let series = |lines: &[String]| -> Vec<(String, String)> {
+        lines
+            .iter()
+            .map(|line| {
+                let (series, value) = series_and_value(line);
+                (series.to_owned(), value.to_owned())
+            })
+            .collect()
+    };
+    let (printed, counted) = (series(&printed), series(&counted));
+    assert_eq!(
+        printed.iter().map(|(s, _)| s).collect::<Vec<_>>(),
+        counted.iter().map(|(s, _)| s).collect::<Vec<_>>(),
+        "{printed:?}"
+    );
+    assert_eq!(printed[1], counted[1]);
+    let answered = |value: &str| value.parse::<u64>().expect("a count");
+    assert!(
+        answered(&printed[0].1) >= answered(&counted[0].1),
+        "{printed:?}"
+    );
     gateway.shutdown().await;
 }
