@@ -326,7 +326,9 @@ impl Dispatcher {
                 let (waiter, receiver) = Waiter::new(origin_of(client), Instant::now());
                 let tally = Tally::Virtual(&self.metrics.virtual_units, &unit.name);
                 let waiter = waiter.journaled(Some(pending));
-                waiter.answer(tally, unit.id, function, exception(refused));
+                let outcome = exception(refused);
+                unit.trace(pdu, &outcome);
+                waiter.answer(tally, unit.id, function, outcome);
                 return receiver;
             }
         };
@@ -347,10 +349,13 @@ impl Dispatcher {
                 self.dispatch(client, table, &through(table, inbound, write), to)
             })
             .collect();
-        let metrics = self.metrics.clone();
-        let (id, name) = (unit.id, unit.name.clone());
+        let (metrics, units) = (self.metrics.clone(), table.virtuals.clone());
+        let (id, name, request) = (unit.id, unit.name.clone(), pdu.to_vec());
         tokio::spawn(async move {
             let outcome = written(function, normal, sent).await;
+            if let Some(unit) = units.get(id) {
+                unit.trace(&request, &outcome);
+            }
             let tally = Tally::Virtual(&metrics.virtual_units, &name);
             waiter.answer(tally, id, function, outcome);
         });
@@ -367,6 +372,7 @@ impl Dispatcher {
     ) -> oneshot::Receiver<Outcome> {
         let (waiter, receiver) = Waiter::new(origin_of(client), Instant::now());
         let function = inbound.pdu.first().copied().unwrap_or(0);
+        unit.trace(inbound.pdu, &outcome);
         let tally = Tally::Virtual(&self.metrics.virtual_units, &unit.name);
         waiter.answer(tally, unit.id, function, outcome);
         receiver

@@ -305,7 +305,7 @@ fn device_for(
 /// The virtual units of `config`, their values found in `store` (configured for it), their
 /// series declared.
 fn virtual_units(config: &Config, store: &Arc<Store>, metrics: &Metrics) -> Arc<Units> {
-    let units = Units::new(config, store.clone());
+    let units = Units::new(config, store.clone(), &metrics.trace);
     for (unit, name) in units.ids() {
         metrics.virtual_units.declare(unit, name);
     }

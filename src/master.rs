@@ -120,6 +120,10 @@ impl From<SocketAddr> for Peer {
 /// page, and as the port's bus on the trace.
 pub(crate) const PORT_PEER_PREFIX: &str = "serial:";
 
+/// How a virtual unit's requests are named on the trace (`virtual:NAME`), where, as on a serial
+/// master port, the gateway is the slave.
+pub(crate) const VIRTUAL_TRACE_PREFIX: &str = "virtual:";
+
 impl fmt::Display for Peer {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {

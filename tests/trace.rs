@@ -237,6 +237,54 @@ fn two_buses() -> GatewayConfig {
         .route_offset("11-12", "b", -10)
 }
 
+/// A virtual unit's requests are on the trace as bus `virtual:NAME`, the master's request `rx`
+/// and the unit's answer `tx`, as on a serial master port: no frame of them on a line.
+#[tokio::test]
+async fn a_virtual_units_requests_and_answers_are_on_the_trace_as_its_own_bus() {
+    let gateway = GatewayConfig::new()
+        .bus(
+            Bus::sim("a")
+                .baud(19_200)
+                .sim_slave("1", &[("offline", true.into())])
+                .text("[[bus.slave]]\naddress = 1\n[[bus.slave.value]]\nname = \"v\"\nregister = 0\n"),
+        )
+        .tables("[[virtual]]\nunit = 100\nname = \"copy\"\n[[virtual.register]]\nregister = 0\nvalue = \"a/1/v\"\n")
+        .start()
+        .await;
+    let mut trace = Trace::open(gateway.metrics_addr(), "?bus=virtual:copy").await;
+    let mut master = RawMaster::connect(gateway.tcp_addrs()[0]).await;
+    // Never read (its slave is offline): stale. Register 5 is not laid out.
+    let stale = [0x03, 0x00, 0x00, 0x00, 0x01];
+    assert_eq!(master.call(1, 100, &stale).await, [0x83, 0x0B]);
+    let unmapped = [0x03, 0x00, 0x05, 0x00, 0x01];
+    assert_eq!(master.call(2, 100, &unmapped).await, [0x83, 0x02]);
+    let got = trace.fields_of_next(4).await;
+    let bus = "virtual:copy";
+    assert_eq!(
+        got,
+        [
+            expect(bus, "rx", 100, 3, &hex(&rtu(100, &stale)), "stale"),
+            expect(
+                bus,
+                "tx",
+                100,
+                0x83,
+                &hex(&rtu(100, &[0x83, 0x0B])),
+                "stale"
+            ),
+            expect(bus, "rx", 100, 3, &hex(&rtu(100, &unmapped)), "not_mapped"),
+            expect(
+                bus,
+                "tx",
+                100,
+                0x83,
+                &hex(&rtu(100, &[0x83, 0x02])),
+                "not_mapped"
+            ),
+        ]
+    );
+}
+
 #[tokio::test]
 async fn a_trace_filtered_by_bus_and_slave_gets_only_their_frames() {
     let gateway = two_buses().start().await;

@@ -5,7 +5,7 @@
 
 use super::stop_signal;
 use crate::line::{ascii, rtu};
-use crate::master::PORT_PEER_PREFIX;
+use crate::master::{PORT_PEER_PREFIX, VIRTUAL_TRACE_PREFIX};
 use crate::mbap;
 use crate::pdu::{self, code};
 use bytes::Bytes;
@@ -311,9 +311,13 @@ impl Frame {
             self.bus, self.direction, self.slave
         );
         let function = self.function;
-        // On a serial master port (bus `serial:NAME`; a bus's name has no colon) the gateway
-        // is the slave: there `rx` is the master's request and `tx` the reply.
-        let request = (self.direction == "tx") != self.bus.starts_with(PORT_PEER_PREFIX);
+        // On a serial master port (bus `serial:NAME`; a bus's name has no colon) and a virtual
+        // unit (`virtual:NAME`) the gateway is the slave: there `rx` is the master's request
+        // and `tx` the reply.
+        let answering = [PORT_PEER_PREFIX, VIRTUAL_TRACE_PREFIX]
+            .iter()
+            .any(|prefix| self.bus.starts_with(prefix));
+        let request = (self.direction == "tx") != answering;
         if request {
             let name = pdu::function(function).map_or("function", |f| f.name);
             let _ = write!(line, "{} 0x{function:02x}", name.to_lowercase());
@@ -425,6 +429,18 @@ mod tests {
         rx.bus = "serial:scada".into();
         assert!(
             rx.describe().contains("count 1  (not_addressed)   09 03"),
+            "{}",
+            rx.describe()
+        );
+    }
+
+    #[test]
+    fn on_a_virtual_unit_too_the_masters_rx_is_the_request() {
+        let mut rx = frame("rx", "01 03 21 03 00 01 7e 36", "answered");
+        rx.bus = "virtual:copy".into();
+        assert!(
+            rx.describe()
+                .contains("virtual:copy rx  slave 1    read holding registers 0x03"),
             "{}",
             rx.describe()
         );

@@ -37,7 +37,7 @@ pub(crate) use tls::TlsMaster;
 pub(crate) use tls::TlsMetrics;
 pub(crate) use udp::UdpDrop;
 pub(crate) use udp::UdpMetrics;
-pub(crate) use virtual_units::VirtualMetrics;
+pub(crate) use virtual_units::{VirtualMetrics, VirtualOutcome};
 
 use crate::config;
 use crate::error::{Answer, Outcome};

@@ -11,10 +11,16 @@ mod answer;
 pub(crate) use answer::{Refused, SourceWrite};
 
 use crate::config::{Config, Slot, Table};
+use crate::error::Outcome;
+use crate::line::rtu;
+use crate::master::VIRTUAL_TRACE_PREFIX;
+use crate::metrics::VirtualOutcome;
+use crate::pdu::exception_pdu;
 use crate::routing::Target;
+use crate::trace::{BusTap, Direction, TraceEvent, TraceHub};
 use crate::values::Store;
 use std::sync::Arc;
-use std::time::Duration;
+use std::time::{Duration, SystemTime};
 use tokio::time::Instant;
 
 /// One register (run, bit) of a unit, and where its value is in the store.
@@ -28,12 +34,42 @@ struct Placed {
 }
 
 /// One virtual unit.
-#[derive(Debug)]
 pub(crate) struct Unit {
     pub(crate) id: u8,
     pub(crate) name: Arc<str>,
     /// Each table's registers by first address (holding, input, coil, discrete).
     tables: [Vec<Placed>; 4],
+    /// Its requests and answers on the trace, as bus `virtual:NAME`.
+    tap: BusTap,
+}
+
+impl Unit {
+    /// Show the request `pdu` that ended in `outcome` on the trace: `rx` the master's request,
+    /// `tx` the answer, each as an RTU frame to the unit.
+    pub(crate) fn trace(&self, pdu: &[u8], outcome: &Outcome) {
+        let hub = self.tap.hub();
+        if !hub.active() {
+            return;
+        }
+        let function = pdu.first().copied().unwrap_or(0);
+        let label = VirtualOutcome::of(function, outcome).label();
+        let reply = match outcome {
+            Ok(answer) => answer.clone().into_pdu().unwrap_or_default(),
+            Err(error) => exception_pdu(function, error.exception_code()).to_vec(),
+        };
+        for (direction, pdu) in [(Direction::Rx, pdu), (Direction::Tx, &reply[..])] {
+            hub.publish(TraceEvent {
+                time: SystemTime::now(),
+                bus: self.tap.bus().clone(),
+                direction,
+                slave: self.id,
+                function: pdu.first().copied().unwrap_or(0),
+                bytes: rtu::encode(self.id, pdu),
+                framing: "rtu",
+                outcome: label,
+            });
+        }
+    }
 }
 
 fn table_index(table: Table) -> usize {
@@ -95,8 +131,8 @@ impl Units {
     }
 
     /// The units `config` lays out (checked), their values found in `store` as it is configured
-    /// for `config` now.
-    pub(crate) fn new(config: &Config, store: Arc<Store>) -> Units {
+    /// for `config` now, their requests shown on `trace`.
+    pub(crate) fn new(config: &Config, store: Arc<Store>, trace: &Arc<TraceHub>) -> Units {
         let mut list = Vec::new();
         let mut all: Vec<Vec<Slot>> = Vec::new();
         for at in 0..config.virtual_units.len() {
@@ -141,6 +177,7 @@ impl Units {
                 id: unit.unit,
                 name: unit.name.as_str().into(),
                 tables,
+                tap: trace.register(format!("{VIRTUAL_TRACE_PREFIX}{}", unit.name).into()),
             });
         }
         Units {

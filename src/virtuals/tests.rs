@@ -56,7 +56,7 @@ fn units(virtual_units: &str) -> (Config, Arc<Store>, Units) {
     let values = Values::new();
     values.apply(&config, &[]);
     let store = values.store().clone();
-    let units = Units::new(&config, store.clone());
+    let units = Units::new(&config, store.clone(), &Arc::new(TraceHub::new()));
     (config, store, units)
 }
 
