@@ -138,6 +138,8 @@ SNAPSHOT = """JSON.stringify({
     ({id: r.dataset.id === undefined ? null : Number(r.dataset.id),
       unit: r.dataset.unit === undefined ? null : Number(r.dataset.unit),
       outcome: r.dataset.outcome ?? null, cells: [...r.cells].map(c => c.textContent)})),
+  // The virtual units' registers: each row's cells.
+  virtual: [...document.querySelectorAll('#virtual tr')].map(r => [...r.cells].map(c => c.textContent)),
   frames: [...document.querySelectorAll('#trace tr')].map(r =>
     ({direction: r.dataset.direction, slave: Number(r.dataset.slave), bus: r.dataset.bus,
       cells: [...r.cells].map(c => c.textContent)})),
@@ -623,6 +625,15 @@ def reads_under_pointer(browser):
     return read
 
 
+def shows_virtual_unit(snapshot):
+    """The demo's unit 100: the four drives' frequencies, each from its drive, fresh once polled."""
+    rows = snapshot["virtual"]
+    return len(rows) == 4 and all(
+        row[0] == "100 drives" and row[1] == f"holding {i}" and row[2] == "u16"
+        and row[3] == f"demo/{i + 1}/drive_output_frequency_hertz" and row[6] == "fresh"
+        for i, row in enumerate(rows))
+
+
 def shows_demo(snapshot):
     buses = [b for b in snapshot["buses"] if b["bus"] == DEMO_BUS and "open" in b["text"]]
     drives = {s["slave"]: s["text"] for s in snapshot["slaves"] if s["bus"] == DEMO_BUS}
@@ -659,6 +670,8 @@ def main():
         browser.open(f"http://127.0.0.1:{metrics_port}/")
         browser.wait_for("the demo bus and its four drives", shows_demo)
         browser.wait_for("the live trace connected", lambda s: s["trace"] == "live")
+        virtual = browser.wait_for("the demo's virtual unit 100, its four registers fresh",
+                                   shows_virtual_unit)["virtual"]
         for call, wanted in PAGE_FUNCTIONS.items():
             got = browser.evaluate(call)
             if got != wanted:
@@ -702,6 +715,7 @@ def main():
             f"slave {FAILED_SLAVE}'s value marked: poll failed", marks_failed), FAILED_SLAVE)
         captions = [fits(browser, width) for width in WIDTHS][-1]
         browser.resize(1280)
+        print("virtual unit: " + "; ".join(" | ".join(row) for row in virtual))
         print(f"status page in {CHROMIUM}: bus {DEMO_BUS}, drives {sorted(DEMO_DRIVES)}, "
               f"the frame {request} in the trace panel ({len(frame['frames'])} frames shown), "
               f"and with the slave filter only slave 2's; at "

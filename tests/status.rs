@@ -249,3 +249,72 @@ async fn the_status_page_is_one_html_page_that_loads_nothing_from_elsewhere() {
     assert!(body.contains("/ (the status page), /status"), "{body}");
     gateway.shutdown().await;
 }
+
+/// `/status` lists each virtual unit's registers with their source, value and age, and says
+/// which are fresh: one polled every 100 ms, one whose slave never answers.
+#[tokio::test]
+async fn status_lists_a_virtual_units_registers_with_source_value_age_and_freshness() {
+    let gateway = GatewayConfig::new()
+        .bus(
+            crate::support::Bus::sim("a")
+                .baud(115_200)
+                .parity("none")
+                .sim_slaves("1")
+                .sim_slave("2", &[("offline", true.into())])
+                .response_timeout("20ms")
+                .text(
+                    "[[bus.slave]]\naddress = 1\npoll_interval = \"100ms\"\n\
+                     [[bus.slave.value]]\nname = \"level\"\nregister = 0\n\
+                     [[bus.slave]]\naddress = 2\npoll_interval = \"100ms\"\n\
+                     [[bus.slave.value]]\nname = \"level\"\nregister = 0\n",
+                ),
+        )
+        .route("1-2", "a", None)
+        .tables(
+            "[[virtual]]\nunit = 100\nname = \"pair\"\n\
+             [[virtual.register]]\nregister = 0\nvalue = \"a/1/level\"\n\
+             [[virtual.register]]\nregister = 1\nvalue = \"a/2/level\"\nwritable = true\n",
+        )
+        .start()
+        .await;
+    let metrics = gateway.metrics_addr();
+    let units = crate::support::within("slave 1's level read", async {
+        loop {
+            let status = get_status(metrics).await;
+            if status["virtual_units"][0]["registers"][0]["fresh"] == true {
+                return status["virtual_units"].clone();
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    assert_eq!(units[0]["unit"], 100);
+    assert_eq!(units[0]["name"], "pair");
+    let registers = units[0]["registers"].as_array().unwrap();
+    let fresh = &registers[0];
+    assert_eq!(
+        (
+            &fresh["table"],
+            &fresh["register"],
+            &fresh["type"],
+            &fresh["source"]
+        ),
+        (
+            &"holding".into(),
+            &0.into(),
+            &"u16".into(),
+            &"a/1/level".into()
+        )
+    );
+    assert_eq!(fresh["value"], 0.0);
+    assert!(fresh["age_seconds"].as_f64().unwrap() <= 0.3, "{fresh}");
+    assert_eq!(fresh["max_age_seconds"], 0.3, "three of its 100 ms polls");
+    let never = &registers[1];
+    assert_eq!(never["source"], "a/2/level");
+    assert_eq!(never["writable"], true);
+    assert_eq!(
+        (&never["value"], &never["age_seconds"], &never["fresh"]),
+        (&Value::Null, &Value::Null, &false.into()),
+        "never read: {never}"
+    );
+}
