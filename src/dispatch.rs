@@ -10,14 +10,15 @@
 
 use crate::audit::{self, Audit, Decided, Pending};
 use crate::bus::{BusHandle, Tally, Waiter};
-use crate::config::{Action, UnitSet};
+use crate::config::{Action, Config, UnitSet};
 use crate::error::{Answer, Outcome, RequestError};
 use crate::master::{Class, MasterId, Origin, Peer, Protocol, Rights};
 use crate::metrics::{Metrics, Refusal};
 use crate::pdu::{self, RequestLen, EXCEPTION_BIT};
 use crate::routing::{Inbound, Router, Target};
 use crate::rules::{self, Rules};
-use crate::virtuals::{Refused, SourceWrite, Unit, Units};
+use crate::values::Store;
+use crate::virtuals::{Declined, SourceWrite, Units, Virtual};
 use std::net::SocketAddr;
 use std::sync::{Arc, PoisonError, RwLock};
 use tokio::sync::oneshot;
@@ -138,6 +139,18 @@ impl Dispatcher {
         let audit = Audit::new(metrics.clone());
         let virtuals = Arc::new(Units::none(Arc::default()));
         Self::with_rules(router, buses, (Rules::default(), virtuals), audit, metrics)
+    }
+
+    /// What decides `config`'s requests beside `router`: its rules, and its virtual units, their
+    /// values found in `store`.
+    pub(crate) fn decided(
+        config: &Config,
+        router: &Router,
+        store: &Arc<Store>,
+        metrics: &Metrics,
+    ) -> (Rules, Arc<Units>) {
+        let rules = Rules::new(&config.rule, router);
+        (rules, Units::serving(config, store, metrics))
     }
 
     /// Routing by `router` to `buses`, under `rules`, answering `virtuals` itself.
@@ -307,12 +320,12 @@ impl Dispatcher {
         client: &Client,
         table: &Table,
         inbound: &Inbound<'_>,
-        unit: &Unit,
+        unit: &Virtual,
         pending: Option<Pending>,
     ) -> oneshot::Receiver<Outcome> {
         let pdu = inbound.pdu;
         let function = pdu.first().copied().unwrap_or(0);
-        let exception = |Refused(code)| Err(RequestError::Emulated(code));
+        let exception = |Declined(code)| Err(RequestError::Emulated(code));
         let Some(pending) = pending else {
             let outcome = table
                 .virtuals
@@ -366,7 +379,7 @@ impl Dispatcher {
     fn answer_virtual(
         &self,
         client: &Client,
-        unit: &Unit,
+        unit: &Virtual,
         inbound: &Inbound<'_>,
         outcome: Outcome,
     ) -> oneshot::Receiver<Outcome> {
@@ -536,7 +549,7 @@ fn origin_of(client: &Client) -> Origin {
 #[derive(Clone, Copy)]
 enum To<'a> {
     Bus(Target),
-    Virtual(&'a Unit),
+    Virtual(&'a Virtual),
 }
 
 /// Where `pdu` from `client` to `unit` (going `to`) goes, or why the gateway refuses it

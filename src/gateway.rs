@@ -14,11 +14,9 @@ use crate::net::server::Shared;
 use crate::net::tls::TlsServer;
 use crate::net::{self, ListenAddrs, Policy};
 use crate::routing::Router;
-use crate::rules::Rules;
 use crate::shutdown::{self, Stop};
 use crate::sim::{self, SimLine};
 use crate::values::{Exported, Store, Values};
-use crate::virtuals::Units;
 use crate::web;
 use std::io;
 use std::net::SocketAddr;
@@ -302,16 +300,6 @@ fn device_for(
     power_on_line(settings).map(Device::Sim)
 }
 
-/// The virtual units of `config`, their values found in `store` (configured for it), their
-/// series declared.
-fn virtual_units(config: &Config, store: &Arc<Store>, metrics: &Metrics) -> Arc<Units> {
-    let units = Units::new(config, store.clone(), &metrics.trace);
-    for (unit, name) in units.ids() {
-        metrics.virtual_units.declare(unit, name);
-    }
-    Arc::new(units)
-}
-
 impl Gateway {
     /// Bind every listener and start every bus. Fails only if a listen address cannot be bound;
     /// a serial port that cannot be opened yet is retried by its bus while the rest serves.
@@ -329,10 +317,8 @@ impl Gateway {
         values.apply(config, &handles);
         let audit = open_audit(config, &metrics)?;
         let router = Router::new(config);
-        let rules = Rules::new(&config.rule, &router);
-        let virtuals = virtual_units(config, values.store(), &metrics);
-        let dispatcher =
-            Dispatcher::with_rules(router, handles, (rules, virtuals), audit, metrics.clone());
+        let decided = Dispatcher::decided(config, &router, values.store(), &metrics);
+        let dispatcher = Dispatcher::with_rules(router, handles, decided, audit, metrics.clone());
         let (stop, stopping) = shutdown::channel();
         let shared = Arc::new(Shared::new(
             dispatcher,
@@ -495,11 +481,8 @@ impl Gateway {
         }
         // A rule's units are the slaves they route to: new routes make new rules of old ones.
         let router = Router::new(new);
-        let rules = Rules::new(&new.rule, &router);
-        let virtuals = virtual_units(new, self.values.store(), &self.shared.metrics);
-        self.shared
-            .dispatcher
-            .replace(router, handles, (rules, virtuals));
+        let decided = Dispatcher::decided(new, &router, self.values.store(), &self.shared.metrics);
+        self.shared.dispatcher.replace(router, handles, decided);
         if new.rule != old.rule {
             done.applied.push("rules".to_owned());
         }

@@ -335,9 +335,15 @@ fn the_virtual_units_pages_examples_load_as_written() {
         Config::from_toml_str(&config).unwrap_or_else(|errors| panic!("{errors}\n{config}"))
     };
     // The opening example: registers of the demo's drives.
-    let drives = "[[bus]]\nname = \"demo\"\ndevice = \"sim\"\n\
-                  [[bus.slave]]\naddress = 1\ntemplate = \"goodrive20\"\n\
-                  [[bus.slave]]\naddress = 2\ntemplate = \"goodrive300\"\n";
+    let demo = |slaves: &str| {
+        crate::support::GatewayConfig::new()
+            .bus(crate::support::Bus::sim("demo").text(slaves))
+            .to_toml()
+    };
+    let drives = demo(
+        "[[bus.slave]]\naddress = 1\ntemplate = \"goodrive20\"\n\
+         [[bus.slave]]\naddress = 2\ntemplate = \"goodrive300\"\n",
+    );
     let config = load(format!("{drives}{}", blocks[0]));
     assert_eq!(config.virtual_units[0].register.len(), 2);
     // The SDM120 presented as an SDM630: a whole configuration.
@@ -348,7 +354,7 @@ fn the_virtual_units_pages_examples_load_as_written() {
         (200, Some("eastron-sdm630"))
     );
     // The writable setpoint, under the demo's slave 2.
-    let slave = "[[bus]]\nname = \"demo\"\ndevice = \"sim\"\n[[bus.slave]]\naddress = 2\n";
+    let slave = demo("[[bus.slave]]\naddress = 2\n");
     let config = load(format!("{slave}{}", blocks[2]));
     assert!(config.virtual_units[0].register[0].writable);
 }

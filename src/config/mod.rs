@@ -59,7 +59,7 @@ pub use unit_set::UnitSet;
 pub use values::{Order, Table, Template, Templates, Value, ValueType};
 pub(crate) use values::{MAX_READ_BITS, MAX_READ_REGISTERS};
 pub(crate) use virtual_unit::Slot;
-pub use virtual_unit::{Source, VirtualRegister, VirtualUnit};
+pub use virtual_unit::{VirtualRegister, VirtualSource, VirtualUnit};
 
 use serde::{Deserialize, Serialize};
 

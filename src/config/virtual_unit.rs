@@ -25,7 +25,7 @@ pub struct VirtualUnit {
     pub template: Option<String>,
     /// The slave whose values the template's registers take.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub source: Option<Source>,
+    pub source: Option<VirtualSource>,
     /// How old a register's number may be when it is read; left out, three of its value's poll
     /// intervals.
     #[serde(
@@ -42,7 +42,7 @@ pub struct VirtualUnit {
 /// A slave of a bus.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct Source {
+pub struct VirtualSource {
     pub bus: String,
     pub slave: u8,
 }
@@ -152,7 +152,7 @@ impl Slot {
 }
 
 /// Parse `BUS/SLAVE/NAME{k="v",...}` (or `NAME{...}` of `source`).
-fn parse_ref(text: &str, source: Option<&Source>) -> Result<ValueRef, String> {
+fn parse_ref(text: &str, source: Option<&VirtualSource>) -> Result<ValueRef, String> {
     let (path, labels) = match text.split_once('{') {
         Some((path, rest)) => {
             let inner = rest
@@ -246,7 +246,7 @@ impl Config {
                     format!("virtual[{at}].source"),
                     format!(
                         "template `{name}` lays out registers for a slave's values: give \
-                         `source = {{ bus = \"...\", slave = N }}`"
+                         `source`, the bus and slave address of the slave"
                     ),
                 ),
                 (Some(template), Some(source)) => {
@@ -277,7 +277,7 @@ impl Config {
         at: usize,
         unit: &VirtualUnit,
         template: &super::Template,
-        source: &Source,
+        source: &VirtualSource,
         slots: &mut Vec<Slot>,
         fail: &mut impl FnMut(String, String),
     ) {

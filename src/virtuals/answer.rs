@@ -3,7 +3,7 @@
 //! in its source value's encoding, or the exception it gets. Every check comes before anything
 //! is sent: a write refused for one register sends nothing.
 
-use super::{table_index, too_old, Placed, Unit, Units};
+use super::{table_index, too_old, Placed, Units, Virtual};
 use crate::config::Table;
 use crate::pdu::{broadcast_response, ExceptionCode};
 use crate::routing::Target;
@@ -12,7 +12,7 @@ use tokio::time::Instant;
 
 /// The exception a virtual unit answers a request with.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) struct Refused(pub(crate) ExceptionCode);
+pub(crate) struct Declined(pub(crate) ExceptionCode);
 
 /// A write to one source slave, to send as any master's write is sent.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -22,7 +22,7 @@ pub(crate) struct SourceWrite {
 }
 
 /// A request's table, first address and quantity, as its function code and bytes say.
-fn span(pdu: &[u8]) -> Result<(Table, u16, u16), Refused> {
+fn span(pdu: &[u8]) -> Result<(Table, u16, u16), Declined> {
     let word = |at: usize| {
         pdu.get(at..at + 2)
             .map(|b| u16::from_be_bytes([b[0], b[1]]))
@@ -36,13 +36,13 @@ fn span(pdu: &[u8]) -> Result<(Table, u16, u16), Refused> {
         Some(0x06) => (Table::Holding, true),
         Some(0x0F) => (Table::Coil, false),
         Some(0x10) => (Table::Holding, false),
-        _ => return Err(Refused(ExceptionCode::IllegalFunction)),
+        _ => return Err(Declined(ExceptionCode::IllegalFunction)),
     };
-    let first = word(1).ok_or(Refused(ExceptionCode::IllegalDataValue))?;
+    let first = word(1).ok_or(Declined(ExceptionCode::IllegalDataValue))?;
     let count = if single {
         1
     } else {
-        word(3).ok_or(Refused(ExceptionCode::IllegalDataValue))?
+        word(3).ok_or(Declined(ExceptionCode::IllegalDataValue))?
     };
     // Modbus Application Protocol V1.1b3, 6.1-6.4, 6.11, 6.12: the quantities a request may ask.
     let most = match pdu[0] {
@@ -53,18 +53,18 @@ fn span(pdu: &[u8]) -> Result<(Table, u16, u16), Refused> {
         _ => 1,
     };
     if count == 0 || count > most {
-        return Err(Refused(ExceptionCode::IllegalDataValue));
+        return Err(Declined(ExceptionCode::IllegalDataValue));
     }
     if u32::from(first) + u32::from(count) > 0x1_0000 {
-        return Err(Refused(ExceptionCode::IllegalDataAddress));
+        return Err(Declined(ExceptionCode::IllegalDataAddress));
     }
     Ok((table, first, count))
 }
 
-impl Unit {
+impl Virtual {
     /// The registers of `table` that `first..=last` touches, every address of it laid out;
     /// 0x02 if one is not.
-    fn touched(&self, table: Table, first: u16, last: u16) -> Result<&[Placed], Refused> {
+    fn touched(&self, table: Table, first: u16, last: u16) -> Result<&[Placed], Declined> {
         let placed = &self.tables[table_index(table)];
         // Laid out without overlaps (bits of one register apart), so their ends are in order.
         let from = placed.partition_point(|p| p.slot.last() < first);
@@ -73,12 +73,12 @@ impl Unit {
         let mut next = u32::from(first);
         for p in touched {
             if u32::from(p.slot.first()) > next {
-                return Err(Refused(ExceptionCode::IllegalDataAddress));
+                return Err(Declined(ExceptionCode::IllegalDataAddress));
             }
             next = next.max(u32::from(p.slot.last()) + 1);
         }
         if next <= u32::from(last) {
-            return Err(Refused(ExceptionCode::IllegalDataAddress));
+            return Err(Declined(ExceptionCode::IllegalDataAddress));
         }
         Ok(touched)
     }
@@ -86,19 +86,24 @@ impl Unit {
 
 impl Units {
     /// The reply to the read `pdu` (FC 01-04) of `unit` at `now`, or its exception.
-    pub(crate) fn read(&self, unit: &Unit, pdu: &[u8], now: Instant) -> Result<Vec<u8>, Refused> {
+    pub(crate) fn read(
+        &self,
+        unit: &Virtual,
+        pdu: &[u8],
+        now: Instant,
+    ) -> Result<Vec<u8>, Declined> {
         let (table, first, count) = span(pdu)?;
         if !matches!(pdu[0], 0x01..=0x04) {
-            return Err(Refused(ExceptionCode::IllegalFunction));
+            return Err(Declined(ExceptionCode::IllegalFunction));
         }
         let last = first + (count - 1);
         let touched = unit.touched(table, first, last)?;
         let readings = self.store.readings();
         if readings.generation() != self.generation {
             // The configuration is being replaced: the places are of the other one.
-            return Err(Refused(ExceptionCode::ServerDeviceBusy));
+            return Err(Declined(ExceptionCode::ServerDeviceBusy));
         }
-        let stale = Refused(ExceptionCode::GatewayTargetFailedToRespond);
+        let stale = Declined(ExceptionCode::GatewayTargetFailedToRespond);
         let mut words = vec![0u16; usize::from(count)];
         for placed in touched {
             let slot = &placed.slot;
@@ -127,9 +132,9 @@ impl Units {
     /// the normal reply the master gets once they are done; or its exception, nothing sent.
     pub(crate) fn write(
         &self,
-        unit: &Unit,
+        unit: &Virtual,
         pdu: &[u8],
-    ) -> Result<(Vec<SourceWrite>, Vec<u8>), Refused> {
+    ) -> Result<(Vec<SourceWrite>, Vec<u8>), Declined> {
         let (table, first, count) = span(pdu)?;
         let words = written(pdu, count)?;
         let last = first + (count - 1);
@@ -139,32 +144,32 @@ impl Units {
             let slot = &placed.slot;
             let (Some(found), Some(target), true) = (&slot.source, placed.target, slot.writable)
             else {
-                return Err(Refused(ExceptionCode::IllegalFunction));
+                return Err(Declined(ExceptionCode::IllegalFunction));
             };
             // A write carries whole values: none begins before it or ends after it.
             if slot.first() < first || slot.last() > last {
-                return Err(Refused(ExceptionCode::IllegalDataAddress));
+                return Err(Declined(ExceptionCode::IllegalDataAddress));
             }
             let from = usize::from(slot.first() - first);
             let mine = &words[from..from + usize::from(slot.encoding.width())];
             let number =
-                decode(&slot.encoding, mine).ok_or(Refused(ExceptionCode::IllegalDataValue))?;
+                decode(&slot.encoding, mine).ok_or(Declined(ExceptionCode::IllegalDataValue))?;
             let held =
-                encode(&found.value, number).ok_or(Refused(ExceptionCode::IllegalDataValue))?;
+                encode(&found.value, number).ok_or(Declined(ExceptionCode::IllegalDataValue))?;
             let register = u16::try_from(found.value.register).unwrap_or(u16::MAX);
             writes.push(SourceWrite {
                 target,
                 pdu: source_pdu(found.value.table, register, &held),
             });
         }
-        let normal = broadcast_response(pdu).ok_or(Refused(ExceptionCode::IllegalFunction))?;
+        let normal = broadcast_response(pdu).ok_or(Declined(ExceptionCode::IllegalFunction))?;
         Ok((writes, normal))
     }
 }
 
 /// The registers (or coils as 0 and 1) a write of `count` carries.
-fn written(pdu: &[u8], count: u16) -> Result<Vec<u16>, Refused> {
-    let bad = Refused(ExceptionCode::IllegalDataValue);
+fn written(pdu: &[u8], count: u16) -> Result<Vec<u16>, Declined> {
+    let bad = Declined(ExceptionCode::IllegalDataValue);
     let count = usize::from(count);
     match pdu[0] {
         0x05 => match pdu.get(3..5) {

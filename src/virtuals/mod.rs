@@ -8,13 +8,13 @@
 
 mod answer;
 
-pub(crate) use answer::{Refused, SourceWrite};
+pub(crate) use answer::{Declined, SourceWrite};
 
 use crate::config::{Config, Slot, Table};
 use crate::error::Outcome;
 use crate::line::rtu;
 use crate::master::VIRTUAL_TRACE_PREFIX;
-use crate::metrics::VirtualOutcome;
+use crate::metrics::{Metrics, VirtualOutcome};
 use crate::pdu::exception_pdu;
 use crate::routing::Target;
 use crate::trace::{BusTap, Direction, TraceEvent, TraceHub};
@@ -34,7 +34,7 @@ struct Placed {
 }
 
 /// One virtual unit.
-pub(crate) struct Unit {
+pub(crate) struct Virtual {
     pub(crate) id: u8,
     pub(crate) name: Arc<str>,
     /// Each table's registers by first address (holding, input, coil, discrete).
@@ -43,7 +43,7 @@ pub(crate) struct Unit {
     tap: BusTap,
 }
 
-impl Unit {
+impl Virtual {
     /// Show the request `pdu` that ended in `outcome` on the trace: `rx` the master's request,
     /// `tx` the answer, each as an RTU frame to the unit.
     pub(crate) fn trace(&self, pdu: &[u8], outcome: &Outcome) {
@@ -84,7 +84,7 @@ fn table_index(table: Table) -> usize {
 /// Every virtual unit of a configuration, and the store their values are read from.
 pub(crate) struct Units {
     by_id: [Option<u16>; 256],
-    list: Vec<Unit>,
+    list: Vec<Virtual>,
     store: Arc<Store>,
     /// The store's configuration the entries' places are of.
     generation: u64,
@@ -173,7 +173,7 @@ impl Units {
                 table.sort_by_key(|p| p.slot.first());
             }
             by_id[usize::from(unit.unit)] = u16::try_from(at).ok();
-            list.push(Unit {
+            list.push(Virtual {
                 id: unit.unit,
                 name: unit.name.as_str().into(),
                 tables,
@@ -188,14 +188,20 @@ impl Units {
         }
     }
 
-    /// The virtual unit with id `unit`, if there is one.
-    pub(crate) fn get(&self, unit: u8) -> Option<&Unit> {
-        let at = self.by_id[usize::from(unit)]?;
-        self.list.get(usize::from(at))
+    /// The units `config` lays out, their values found in `store` (configured for it), their
+    /// requests on `metrics`' trace and their series declared: for a running gateway.
+    pub(crate) fn serving(config: &Config, store: &Arc<Store>, metrics: &Metrics) -> Arc<Units> {
+        let units = Units::new(config, store.clone(), &metrics.trace);
+        for unit in &units.list {
+            metrics.virtual_units.declare(unit.id, &unit.name);
+        }
+        Arc::new(units)
     }
 
-    pub(crate) fn ids(&self) -> impl Iterator<Item = (u8, &str)> {
-        self.list.iter().map(|u| (u.id, &*u.name))
+    /// The virtual unit with id `unit`, if there is one.
+    pub(crate) fn get(&self, unit: u8) -> Option<&Virtual> {
+        let at = self.by_id[usize::from(unit)]?;
+        self.list.get(usize::from(at))
     }
 
     /// Every unit and register as it stands `now`, for `/status`.

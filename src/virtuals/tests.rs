@@ -67,7 +67,7 @@ fn set(store: &Store, slave: u8, name: &str, value: f64) {
     store.read(at[0].expect("configured"), value, SystemTime::now());
 }
 
-fn read(units: &Units, pdu: &[u8]) -> Result<Vec<u8>, Refused> {
+fn read(units: &Units, pdu: &[u8]) -> Result<Vec<u8>, Declined> {
     units.read(units.get(200).expect("unit 200"), pdu, Instant::now())
 }
 
@@ -153,7 +153,7 @@ async fn each_encoding_reads_back_exactly_from_the_polled_values() {
 #[tokio::test(start_paused = true)]
 async fn a_block_touching_one_stale_register_is_0x0b_whole_and_fresh_parts_still_answer() {
     let (_, store, units) = units(OWN);
-    let stale = Err(Refused(GatewayTargetFailedToRespond));
+    let stale = Err(Declined(GatewayTargetFailedToRespond));
     assert_eq!(read(&units, &[0x03, 0, 0, 0, 1]), stale, "never read");
     set(&store, 2, "frequency_hertz", 50.0);
     set(&store, 2, "power_watts", 1.0);
@@ -179,7 +179,7 @@ async fn what_is_not_laid_out_is_0x02_and_out_of_range_values_0x0b() {
     for name in ["frequency_hertz", "power_watts", "energy_joules"] {
         set(&store, 2, name, 1.0);
     }
-    let unmapped = Err(Refused(IllegalDataAddress));
+    let unmapped = Err(Declined(IllegalDataAddress));
     assert_eq!(
         read(&units, &[0x03, 0, 8, 0, 2]),
         unmapped,
@@ -193,16 +193,16 @@ async fn what_is_not_laid_out_is_0x02_and_out_of_range_values_0x0b() {
     assert_eq!(read(&units, &[0x03, 0xFF, 0x83, 0, 125]), unmapped);
     assert_eq!(
         read(&units, &[0x03, 0, 0, 0, 0]),
-        Err(Refused(IllegalDataValue))
+        Err(Declined(IllegalDataValue))
     );
     assert_eq!(
         read(&units, &[0x03, 0, 0, 0, 126]),
-        Err(Refused(IllegalDataValue))
+        Err(Declined(IllegalDataValue))
     );
     set(&store, 2, "frequency_hertz", 700.0);
     assert_eq!(
         read(&units, &[0x03, 0, 0, 0, 1]),
-        Err(Refused(GatewayTargetFailedToRespond)),
+        Err(Declined(GatewayTargetFailedToRespond)),
         "70000 is no u16"
     );
 }
@@ -242,27 +242,27 @@ async fn a_write_becomes_its_source_registers_write_in_the_sources_encoding() {
     let refused = |pdu: &[u8]| units.write(unit, pdu).err();
     assert_eq!(
         refused(&[0x06, 0, 0, 0, 1]),
-        Some(Refused(IllegalFunction)),
+        Some(Declined(IllegalFunction)),
         "read-only"
     );
     assert_eq!(
         refused(&[0x06, 0, 11, 0, 1]),
-        Some(Refused(IllegalDataAddress)),
+        Some(Declined(IllegalDataAddress)),
         "half"
     );
     assert_eq!(
         refused(&[0x06, 0, 12, 0, 1]),
-        Some(Refused(IllegalDataAddress)),
+        Some(Declined(IllegalDataAddress)),
         "half"
     );
     assert_eq!(
         refused(&[0x06, 0, 20, 0, 1]),
-        Some(Refused(IllegalDataAddress))
+        Some(Declined(IllegalDataAddress))
     );
     // 6553.6 Hz is no u16 in 0.01 Hz.
     assert_eq!(
         refused(&[0x06, 0, 10, 0xFF, 0xFF]),
-        Some(Refused(IllegalDataValue))
+        Some(Declined(IllegalDataValue))
     );
 }
 
@@ -281,6 +281,6 @@ async fn a_meter_presented_through_its_own_template_gives_the_meters_words() {
     // 0002H-0005H are not the SDM120's.
     assert_eq!(
         units.read(units.get(200).unwrap(), &[0x04, 0, 0, 0, 8], Instant::now()),
-        Err(Refused(IllegalDataAddress))
+        Err(Declined(IllegalDataAddress))
     );
 }
