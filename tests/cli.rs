@@ -6,7 +6,7 @@
 use crate::support::{
     connect_when_listening, demo_path, exit_status, free_addr, signal, within, Bus, GatewayConfig,
 };
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 
 const BINARY: &str = env!("CARGO_BIN_EXE_modbus-gateway");
@@ -111,6 +111,20 @@ fn a_file_with_three_mistakes_reports_all_three_in_one_run_with_a_suggestion() {
     );
 }
 
+/// `command` on the configuration at `path` exits 2: the keys its errors name, in order, and
+/// the whole of standard error.
+fn refused_keys(path: &Path, command: &str) -> (Vec<String>, String) {
+    let out = gateway(&["--config", path.to_str().unwrap(), command], &[]);
+    assert_eq!(out.status.code(), Some(2), "{command}");
+    let err = String::from_utf8(out.stderr).unwrap();
+    let keys = err
+        .lines()
+        .filter_map(|line| line.split(": ").nth(2))
+        .map(str::to_owned)
+        .collect();
+    (keys, err)
+}
+
 #[test]
 fn bad_serial_master_ports_exit_2_naming_every_key_in_one_run() {
     // A missing device, baud 0, framing "tcp", a duplicate name, units past 247, and a port on
@@ -124,13 +138,7 @@ fn bad_serial_master_ports_exit_2_naming_every_key_in_one_run() {
         .to_toml();
     let path = temp_config("bad-ports.toml", &config);
     for command in ["check-config", "run"] {
-        let out = gateway(&["--config", path.to_str().unwrap(), command], &[]);
-        assert_eq!(out.status.code(), Some(2), "{command}");
-        let err = String::from_utf8(out.stderr).unwrap();
-        let keys: Vec<&str> = err
-            .lines()
-            .filter_map(|line| line.split(": ").nth(2))
-            .collect();
+        let (keys, err) = refused_keys(&path, command);
         assert_eq!(
             keys,
             [
@@ -194,13 +202,7 @@ value = "line1/2/power_watts"
         .to_toml();
     let path = temp_config("bad-virtual.toml", &config);
     for command in ["check-config", "run"] {
-        let out = gateway(&["--config", path.to_str().unwrap(), command], &[]);
-        assert_eq!(out.status.code(), Some(2), "{command}");
-        let err = String::from_utf8(out.stderr).unwrap();
-        let keys: Vec<&str> = err
-            .lines()
-            .filter_map(|line| line.split(": ").nth(2))
-            .collect();
+        let (keys, err) = refused_keys(&path, command);
         assert_eq!(
             keys,
             [

@@ -82,18 +82,8 @@ const FREQUENCY: &str = "drive_output_frequency_hertz{bus=\"demo\",slave=\"2\"}"
 /// Set to 50 Hz and run; the output frequency reads in Hz.
 #[tokio::test]
 async fn the_demos_unit_2_run_at_50_hz_shows_its_output_frequency_ramping_to_50_hz() {
-    // The demo as shipped, its Goodrive300 exporting its template's values, but read every
-    // 300 ms and ramping in 3.0 s (P00.11) rather than 15: the test's patience is shorter.
-    let mut config = crate::support::demo_config();
-    let bus = &mut config.bus[0];
-    let unit_2 = bus.slave.iter_mut().find(|s| s.address == 2).unwrap();
-    assert_eq!(unit_2.template.as_deref(), Some("goodrive300"));
-    unit_2.poll_interval = Some(Duration::from_millis(300));
-    let drive = bus
-        .sim_slave
-        .iter_mut()
-        .find(|s| s.address.iter().any(|a| a == 2));
-    drive.unwrap().params.insert("P00.11".to_owned(), 30);
+    // The demo as shipped, its Goodrive300 exporting its template's values.
+    let config = crate::support::demo_with_a_quick_drive_2();
     let gateway = modbus_gateway::Gateway::start(&config)
         .await
         .expect("the demo starts");

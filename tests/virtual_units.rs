@@ -51,15 +51,7 @@ fn sent(gateway: &Gateway, bus: &str) -> Vec<(u8, Vec<u8>)> {
 /// its reads reaches the line.
 #[tokio::test]
 async fn the_demos_gd300_run_to_50_hz_reads_5000_at_its_virtual_register_off_the_line() {
-    let mut config = crate::support::demo_config();
-    let bus = &mut config.bus[0];
-    let unit_2 = bus.slave.iter_mut().find(|s| s.address == 2).unwrap();
-    unit_2.poll_interval = Some(Duration::from_millis(300));
-    let drive = bus
-        .sim_slave
-        .iter_mut()
-        .find(|s| s.address.iter().any(|a| a == 2));
-    drive.unwrap().params.insert("P00.11".to_owned(), 30);
+    let config = crate::support::demo_with_a_quick_drive_2();
     assert_eq!(config.virtual_units[0].unit, 100, "the demo's virtual unit");
     let gateway = Gateway::start(&config).await.expect("the demo starts");
     let mut master = RawMaster::connect(addr(&gateway)).await;

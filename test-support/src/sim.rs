@@ -48,6 +48,21 @@ pub fn demo_config() -> Config {
     load_config(Path::new(demo_path()), env).expect("config/demo.toml is valid")
 }
 
+/// The demo as shipped, but its Goodrive300 at unit 2 polled every 300 ms and ramping to
+/// 50 Hz in 3.0 s (P00.11) rather than 15: a test's patience is shorter.
+pub fn demo_with_a_quick_drive_2() -> Config {
+    let mut config = demo_config();
+    let bus = &mut config.bus[0];
+    let unit_2 = bus.slave.iter_mut().find(|s| s.address == 2);
+    let unit_2 = unit_2.expect("the demo's unit 2");
+    assert_eq!(unit_2.template.as_deref(), Some("goodrive300"));
+    unit_2.poll_interval = Some(std::time::Duration::from_millis(300));
+    let drive = bus.sim_slave.iter_mut().find(|s| s.address.contains(2));
+    let drive = drive.expect("the demo's drive 2");
+    drive.params.insert("P00.11".to_owned(), 30);
+    config
+}
+
 /// The demo's bus with its simulated drives, its task running: call on the paused clock.
 pub fn demo_bus() -> (SimLine, BusHandle) {
     sim_bus_of(demo_config().bus.remove(0))
