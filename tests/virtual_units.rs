@@ -304,6 +304,39 @@ async fn an_sdm120_presented_through_its_own_template_gives_the_meters_own_words
     );
 }
 
+/// The SDM120 presented as an SDM630: its system registers (total power at 0034H, the
+/// frequency and energies from 0046H) carry the SDM120's own words; a per-phase register,
+/// which a single-phase meter has no value for, reads 0x0B.
+#[tokio::test]
+async fn an_sdm120_presented_as_an_sdm630_answers_the_system_registers_from_its_own() {
+    let gateway = GatewayConfig::new()
+        .listen("127.0.0.1:0")
+        .bus(meter_bus())
+        .tables(
+            "[[virtual]]\nunit = 200\nname = \"sdm630\"\ntemplate = \"eastron-sdm630\"\n\
+             source = { bus = \"m\", slave = 5 }\n",
+        )
+        .start()
+        .await;
+    let mut master = RawMaster::connect(addr(&gateway)).await;
+    // (SDM630 register, SDM120 register, count): total power is the SDM120's active power.
+    for (sdm630, sdm120, count) in [(0x0034u16, 0x000Cu16, 2u8), (0x0046, 0x0046, 10)] {
+        let [a, b] = sdm630.to_be_bytes();
+        let emulated = answered(&mut master, 200, &[0x04, a, b, 0, count], normal).await;
+        let [a, b] = sdm120.to_be_bytes();
+        let meter = master.call(7, 5, &[0x04, a, b, 0, count]).await;
+        assert_eq!(
+            emulated, meter,
+            "SDM630 {sdm630:#06x} from SDM120 {sdm120:#06x}"
+        );
+    }
+    assert_eq!(
+        master.call(8, 200, &[0x04, 0, 0, 0, 2]).await,
+        [0x84, 0x0B],
+        "phase 1's voltage: the SDM120 has no such value"
+    );
+}
+
 #[tokio::test]
 async fn a_stopped_slaves_registers_read_0x0b_while_another_buss_still_answer() {
     let config = two_buses(UNIT_200);
