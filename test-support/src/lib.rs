@@ -9,6 +9,8 @@
 //! - `pty`: an RTU slave on a pty pair (the real serial path).
 //! - `ser2net`: ser2net as a serial device server in front of a pty (a `tcp://` or `rfc2217://`
 //!   bus's far side).
+//! - `mosquitto`: mosquitto as an MQTT broker (anonymous, with a password file, on TLS), and
+//!   mosquitto_sub / mosquitto_pub as the subscriber and the publisher on its far side.
 //! - `tls`: a test PKI (CA, server and master certificates with the Modbus/TCP Security RoleOID)
 //!   and TLS masters.
 //! - `http`: the metrics endpoint: GETs, `/metrics` parsed, `/trace` readers.
@@ -16,9 +18,10 @@
 //! - `load`: many masters: rotation and fairness, floods.
 //! - `wait`: every wait bounded; panics counted.
 //!
-//! Everything but `tls`, `device` and `cases` is also at the crate's root. It uses the
-//! library's `testing`-grade items (`bus::BusTask`, `gateway::power_on_line`, `sim::*`...), so
-//! it is a dev-dependency: unit tests inside `src/` may use only what names none of the
+//! Everything but `tls`, `device`, `cases` and `mosquitto` (whose `Broker` would meet the
+//! library's `config::Broker`) is also at the crate's root. It uses the library's
+//! `testing`-grade items (`bus::BusTask`, `gateway::power_on_line`, `sim::*`...), so it is a
+//! dev-dependency: unit tests inside `src/` may use only what names none of the
 //! library's types (`device`), or they would see two copies of them.
 
 pub mod cases;
@@ -30,6 +33,7 @@ pub mod gateway;
 pub mod http;
 pub mod load;
 pub mod master;
+pub mod mosquitto;
 pub mod process;
 pub mod pty;
 pub mod ser2net;
