@@ -240,6 +240,39 @@ impl Dispatcher {
         self.dispatch(client, &table, &inbound, to)
     }
 
+    /// `pdu` from `client`, a master that names slaves rather than unit ids (MQTT), to slave
+    /// `address` of bus `bus`: decided as [`Dispatcher::submit`] decides any request, with the
+    /// name of the rule that decides it. `None`: no such bus.
+    pub(crate) fn submit_to_slave(
+        &self,
+        client: &Client,
+        (bus, address): (&str, u8),
+        pdu: &[u8],
+    ) -> Option<(Option<String>, oneshot::Receiver<Outcome>)> {
+        let table = self.table();
+        let index = table.buses.iter().position(|b| b.name() == bus)?;
+        let target = Target {
+            bus: index,
+            address,
+            broadcast: false,
+        };
+        let inbound = Inbound {
+            peer: &client.peer,
+            protocol: client.protocol,
+            subject: None,
+            role: None,
+            unit: address,
+            bus: Some(table.buses[index].name()),
+            target: Some(target),
+            virtual_unit: None,
+            pdu,
+        };
+        let decision = table.rules.decide(&inbound);
+        let rule = decision.rule.map(|at| table.rules.name(at).to_owned());
+        let outcome = self.dispatch(client, &table, &inbound, Some(To::Bus(target)));
+        Some((rule, outcome))
+    }
+
     /// `inbound` from `client`, going `to` a slave or a virtual unit (`None`: no route):
     /// refused unsent, or decided by the first matching rule; a write journaled first.
     fn dispatch(

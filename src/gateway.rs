@@ -16,8 +16,9 @@ use crate::net::{self, ListenAddrs, Policy};
 use crate::routing::Router;
 use crate::shutdown::{self, Stop};
 use crate::sim::{self, SimLine};
-use crate::values::{Exported, Store, Values};
+use crate::values::{Exported, Values};
 use crate::web;
+use inspected::Inspected;
 use std::io;
 use std::net::SocketAddr;
 use std::path::Path;
@@ -27,6 +28,8 @@ use tokio::net::TcpListener;
 use tokio::task::{JoinHandle, JoinSet};
 use tokio::time::Instant;
 use tracing::{info, warn};
+
+mod inspected;
 
 #[derive(Debug, thiserror::Error)]
 pub enum StartError {
@@ -78,6 +81,8 @@ pub struct Gateway {
     shared: Arc<Shared>,
     /// The plant values and their pollers.
     values: Values,
+    /// Their publisher to `[mqtt]`'s broker.
+    mqtt: Option<crate::mqtt::Publishing>,
     tasks: JoinSet<()>,
 }
 
@@ -134,48 +139,6 @@ impl config::TlsFilesCheck for TlsFiles {
 /// [`Gateway::start`] to read.
 pub fn config_from_toml(text: &str) -> Result<Config, ConfigErrors> {
     Config::from_toml_str_with(text, &sim::Drives)
-}
-
-/// What the status page and `/readyz` read of the gateway: the buses the dispatcher routes to,
-/// the configuration in force, the masters the listeners serve.
-struct Inspected {
-    shared: Arc<Shared>,
-    ports: Vec<Arc<crate::port::PortView>>,
-    config: Arc<Mutex<Config>>,
-    values: Arc<Store>,
-}
-
-impl web::Inspect for Inspected {
-    fn buses(&self) -> Vec<BusHandle> {
-        self.shared.dispatcher.buses()
-    }
-
-    fn settings(&self, name: &str) -> Option<config::Bus> {
-        let config = self.config.lock().unwrap_or_else(PoisonError::into_inner);
-        config.bus.iter().find(|bus| bus.name == name).cloned()
-    }
-
-    fn masters(&self) -> Vec<net::server::Connected> {
-        let mut masters = self.shared.masters();
-        masters.extend(self.ports.iter().filter_map(|port| port.master()));
-        masters
-    }
-
-    fn ports(&self) -> &[Arc<crate::port::PortView>] {
-        &self.ports
-    }
-
-    fn values(&self) -> &Store {
-        &self.values
-    }
-
-    fn virtual_units(&self) -> Vec<crate::virtuals::ShownUnit> {
-        self.shared.dispatcher.virtual_units().shown(Instant::now())
-    }
-
-    fn writes(&self) -> Vec<crate::audit::Recent> {
-        self.shared.dispatcher.audit().recent()
-    }
 }
 
 /// The TLS server of `[server.tls]`, read from its files now, with its certificate's expiry
@@ -329,6 +292,7 @@ impl Gateway {
         ));
         let mut listener_tasks = JoinSet::new();
         let ports = crate::port::start(&config.server.serial, &shared, &mut listener_tasks);
+        let mqtt = crate::mqtt::Publishing::start(config, values.store(), &shared, &metrics);
         let config = Arc::new(Mutex::new(config.clone()));
         let inspected = Inspected {
             shared: shared.clone(),
@@ -356,6 +320,7 @@ impl Gateway {
             listeners: listener_tasks,
             shared,
             values,
+            mqtt,
             tasks,
         })
     }
@@ -476,6 +441,9 @@ impl Gateway {
             done.applied.push("routes".to_owned());
         }
         self.values.apply(new, &handles);
+        if let Some(mqtt) = &self.mqtt {
+            mqtt.apply(new);
+        }
         if diff.values {
             done.applied.push("plant values".to_owned());
         }
@@ -673,6 +641,9 @@ impl Gateway {
         }
         for abort in aborts {
             abort.abort();
+        }
+        if let Some(mqtt) = self.mqtt.take() {
+            mqtt.stop().await;
         }
         shutdown::abort_all(&mut self.tasks, "metrics endpoint").await;
     }

@@ -72,6 +72,7 @@ mod logging;
 mod master;
 mod mbap;
 mod metrics;
+mod mqtt;
 mod net;
 mod pdu;
 mod pem;

@@ -79,6 +79,8 @@ pub enum Protocol {
     Tls,
     /// A master on a serial line, the gateway its slave (`[[server.serial]]`), in RTU or ASCII.
     Serial,
+    /// A value's `set` topic on the MQTT broker (`[mqtt] writes`): the gateway makes the write.
+    Mqtt,
 }
 
 /// Where a master is: a socket address on the network, or a serial master port of the gateway's.
@@ -89,6 +91,8 @@ pub enum Peer {
     Net(SocketAddr),
     /// `[[server.serial]]`'s `name`.
     Port(Arc<str>),
+    /// Whoever published to a `set` topic on the MQTT broker (MQTT does not say who).
+    Mqtt,
 }
 
 impl Peer {
@@ -97,7 +101,7 @@ impl Peer {
     pub fn ip(&self) -> Option<IpAddr> {
         match self {
             Peer::Net(addr) => Some(addr.ip().to_canonical()),
-            Peer::Port(_) => None,
+            Peer::Port(_) | Peer::Mqtt => None,
         }
     }
 
@@ -106,6 +110,7 @@ impl Peer {
         match self {
             Peer::Net(addr) => Host::Ip(addr.ip()),
             Peer::Port(name) => Host::Port(name.clone()),
+            Peer::Mqtt => Host::Port(Arc::from(MQTT_PEER)),
         }
     }
 }
@@ -120,6 +125,9 @@ impl From<SocketAddr> for Peer {
 /// page, and as the port's bus on the trace.
 pub(crate) const PORT_PEER_PREFIX: &str = "serial:";
 
+/// What the journal, the status page and the logs call the MQTT broker's `set` messages' master.
+pub(crate) const MQTT_PEER: &str = "mqtt";
+
 /// How a virtual unit's requests are named on the trace (`virtual:NAME`), where, as on a serial
 /// master port, the gateway is the slave.
 pub(crate) const VIRTUAL_TRACE_PREFIX: &str = "virtual:";
@@ -129,6 +137,7 @@ impl fmt::Display for Peer {
         match self {
             Peer::Net(addr) => addr.fmt(f),
             Peer::Port(name) => write!(f, "{PORT_PEER_PREFIX}{name}"),
+            Peer::Mqtt => f.write_str(MQTT_PEER),
         }
     }
 }
@@ -157,6 +166,8 @@ pub enum UpstreamTransport {
     Udp,
     /// A serial line (a UART, a pty, or one behind a serial device server) to one master.
     Serial,
+    /// Messages through an MQTT broker.
+    Broker,
 }
 
 impl UpstreamTransport {
@@ -188,12 +199,13 @@ pub struct Spec {
 }
 
 impl Protocol {
-    pub(crate) const ALL: [Protocol; 5] = [
+    pub(crate) const ALL: [Protocol; 6] = [
         Protocol::Tcp,
         Protocol::RtuOverTcp,
         Protocol::Udp,
         Protocol::Tls,
         Protocol::Serial,
+        Protocol::Mqtt,
     ];
 
     /// The one table of the protocols: their transport, framing, name and label.
@@ -229,6 +241,14 @@ impl Protocol {
                 UpstreamFraming::Rtu,
                 "serial master port",
                 "serial",
+            ),
+            // No Modbus framing reaches the gateway: it makes the PDU of a value's write itself;
+            // MBAP is the table's, as RTU is the serial port's.
+            Protocol::Mqtt => (
+                UpstreamTransport::Broker,
+                UpstreamFraming::Mbap,
+                "MQTT",
+                "mqtt",
             ),
         };
         Spec {
@@ -315,7 +335,8 @@ mod tests {
                 "RTU over TCP",
                 "Modbus UDP",
                 "Modbus/TCP Security",
-                "serial master port"
+                "serial master port",
+                "MQTT"
             ]
         );
     }

@@ -1,6 +1,6 @@
 //! Reading the PEM files of TLS, on both sides of the gateway: the listeners' server certificate,
 //! key, client CA and CRLs (`net::tls`), and a Modbus TCP device's client certificate, key and CA
-//! (`bus::device::tls`). Every error names the file and says what it lacks. Knows nothing of what
+//! (`bus::device::tls`), and the MQTT broker's CA and the gateway's certificate (`mqtt`). Every error names the file and says what it lacks. Knows nothing of what
 //! the files are for.
 
 use rustls::pki_types::pem::PemObject;
@@ -25,6 +25,19 @@ pub(crate) fn certificates(path: &Path) -> Result<Vec<CertificateDer<'static>>, 
         ));
     }
     Ok(certificates)
+}
+
+/// The certificates of a PEM file as the CAs a client trusts, or why they cannot be.
+pub(crate) fn roots(path: &Path) -> Result<rustls::RootCertStore, String> {
+    let mut roots = rustls::RootCertStore::empty();
+    let (_, unusable) = roots.add_parsable_certificates(certificates(path)?);
+    match (roots.is_empty(), unusable) {
+        (false, 0) => Ok(roots),
+        _ => Err(format!(
+            "{}: {unusable} of its certificates cannot be a CA",
+            path.display()
+        )),
+    }
 }
 
 /// The private key of a PEM file, or why there is none.

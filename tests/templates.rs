@@ -302,6 +302,7 @@ const GD300_POWER_ON: &[(&str, f64)] = &[
     ("drive_external_length", 0.0),
     ("drive_external_counting_value", 0.0),
     ("drive_torque_reference_ratio", 0.0),
+    ("drive_frequency_setpoint_hertz", 0.0),
 ];
 /// goodrive300 running forward at 50.00 Hz.
 const GD300_RUNNING: &[(&str, f64)] = &[
@@ -332,6 +333,7 @@ const GD300_RUNNING: &[(&str, f64)] = &[
     ("drive_external_length", 0.0),
     ("drive_external_counting_value", 0.0),
     ("drive_torque_reference_ratio", 0.0),
+    ("drive_frequency_setpoint_hertz", 0.0),
 ];
 /// goodrive10 running forward at 50.00 Hz.
 const GD10_RUNNING: &[(&str, f64)] = &[
@@ -358,6 +360,7 @@ const GD10_RUNNING: &[(&str, f64)] = &[
     ("drive_analog_input_2_volts", 0.0),
     ("drive_external_counting_value", 0.0),
     ("drive_torque_reference_ratio", 0.0),
+    ("drive_frequency_setpoint_hertz", 0.0),
 ];
 /// goodrive10 tripped on fault 35 (STo) at power-on.
 const GD10_TRIPPED: &[(&str, f64)] = &[
@@ -384,6 +387,7 @@ const GD10_TRIPPED: &[(&str, f64)] = &[
     ("drive_analog_input_2_volts", 0.0),
     ("drive_external_counting_value", 0.0),
     ("drive_torque_reference_ratio", 0.0),
+    ("drive_frequency_setpoint_hertz", 0.0),
 ];
 /// pd-inverter right after power-on (Pd-05 = 1: standard read replies).
 const PD_POWER_ON: &[(&str, f64)] = &[

@@ -106,6 +106,7 @@ impl Config {
         check_rules(&self.rule, &self.server, &names, &mut report);
         super::serial_port::check(&self.server.serial, &self.bus, &mut report.0);
         super::virtual_unit::check(self, &mut report.0);
+        super::mqtt::check(self, &mut report.0);
         if let Some(audit) = &self.audit {
             check_audit(audit, &mut report);
         }

@@ -135,6 +135,26 @@ pub(crate) fn audit_max_size() -> super::audit::ByteSize {
 pub(crate) fn audit_keep() -> u32 {
     5
 }
+/// What a `true` by default reads.
+pub(crate) fn yes() -> bool {
+    true
+}
+/// The first level of every MQTT topic the gateway publishes.
+pub(crate) fn mqtt_topic_prefix() -> String {
+    "modbus-gateway".to_owned()
+}
+/// At least once.
+pub(crate) fn mqtt_qos() -> i64 {
+    1
+}
+/// An unchanged value is published again this often.
+pub(crate) fn mqtt_publish_interval() -> Duration {
+    Duration::from_secs(60)
+}
+/// Home Assistant's own default.
+pub(crate) fn mqtt_discovery_prefix() -> String {
+    "homeassistant".to_owned()
+}
 
 #[cfg(test)]
 mod tests {

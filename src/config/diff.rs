@@ -80,6 +80,11 @@ impl ConfigDiff {
         if new.metrics != old.metrics {
             need_restart.push("metrics.listen");
         }
+        // The broker's session is the client's from its start; the values it publishes follow
+        // a reload.
+        if new.mqtt != old.mqtt {
+            need_restart.push("mqtt");
+        }
         // The level is the logger's own business; the format is fixed when the logger starts.
         if new.log.format != old.log.format {
             need_restart.push("log.format");

@@ -14,6 +14,7 @@ pub(crate) mod diff;
 mod load;
 mod log;
 mod metrics;
+mod mqtt;
 mod resolve;
 mod route;
 mod rs485;
@@ -46,6 +47,7 @@ pub(crate) use load::ENV_PREFIX;
 pub use log::Log;
 pub use log::LogFormat;
 pub use metrics::Metrics;
+pub use mqtt::{Broker, Mqtt};
 pub use route::Route;
 pub use rs485::{Rs485, Rs485Mode};
 pub use rules::{Action, Functions, Registers, Rule};
@@ -92,6 +94,9 @@ pub struct Config {
     /// Units the gateway answers itself, from the values it polls.
     #[serde(default, rename = "virtual", skip_serializing_if = "Vec::is_empty")]
     pub virtual_units: Vec<VirtualUnit>,
+    /// The plant values published to an MQTT broker; none without it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mqtt: Option<Mqtt>,
     /// The templates slaves may name: the shipped ones and `template_dir`'s, read at load.
     #[serde(skip)]
     pub templates: Templates,

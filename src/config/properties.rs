@@ -542,6 +542,7 @@ fn config() -> impl Strategy<Value = Config> {
                     rule,
                     audit,
                     virtual_units: Vec::new(),
+                    mqtt: None,
                     templates: crate::config::Templates::load(None, "template_dir")
                         .expect("the shipped templates"),
                 }

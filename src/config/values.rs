@@ -4,7 +4,7 @@
 //! Plain values and the reading of template files; knows nothing of polling or exporting.
 
 use super::load::{ConfigError, ConfigErrors};
-use super::serde_adapters::{is_zero_f64, opt_duration, words, Choice};
+use super::serde_adapters::{is_false, is_zero_f64, opt_duration, words, Choice};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -51,6 +51,11 @@ impl Table {
     /// Coils and discrete inputs: one bit each, not a register.
     pub fn is_bits(self) -> bool {
         matches!(self, Table::Coil | Table::Discrete)
+    }
+
+    /// Input registers and discrete inputs: no function code writes them.
+    pub fn is_read_only(self) -> bool {
+        matches!(self, Table::Input | Table::Discrete)
     }
 
     /// As the configuration spells it.
@@ -200,6 +205,12 @@ pub struct Value {
         skip_serializing_if = "Option::is_none"
     )]
     pub poll_interval: Option<Duration>,
+    /// MQTT: a change of at most this much (in its units) is not published (0: every change).
+    #[serde(default, skip_serializing_if = "is_zero_f64")]
+    pub deadband: f64,
+    /// MQTT: `PREFIX/BUS/SLAVE/NAME/set` may write it (with `mqtt.writes`).
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub writable: bool,
 }
 
 fn one() -> f64 {
@@ -217,6 +228,32 @@ impl Value {
         self.kind().registers()
     }
 
+    /// `deadband` and `writable`, the keys MQTT reads.
+    fn check_mqtt_keys(&self, fail: &mut impl FnMut(&str, String)) {
+        if !(self.deadband.is_finite() && self.deadband >= 0.0) {
+            fail(
+                "deadband",
+                format!(
+                    "{} is not a change of zero or more, in the value's units",
+                    self.deadband
+                ),
+            );
+        }
+        if self.writable && self.table.is_read_only() {
+            fail(
+                "writable",
+                format!("a {} cannot be written", self.table.name()),
+            );
+        } else if self.writable && self.bit.is_some() {
+            fail(
+                "writable",
+                "one bit of a register cannot be written without writing its other bits: \
+                 make a coil or a whole register writable"
+                    .to_owned(),
+            );
+        }
+    }
+
     /// Every problem with it, each with its key under `at` (`bus[0].slave[1].value[2]`).
     pub(super) fn check(&self, at: &str, errors: &mut Vec<ConfigError>) {
         let mut fail = |key: &str, reason: String| {
@@ -228,6 +265,7 @@ impl Value {
         if let Err(why) = metric_name(&self.name) {
             fail("name", why);
         }
+        self.check_mqtt_keys(&mut fail);
         let kind = self.kind();
         if self.table.is_bits() && kind != ValueType::Bool {
             fail(

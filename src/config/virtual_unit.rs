@@ -340,6 +340,8 @@ impl Config {
             help: None,
             labels: BTreeMap::new(),
             poll_interval: None,
+            deadband: 0.0,
+            writable: false,
         };
         encoding.check_encoding(key, &mut problems);
         let at = match parse_ref(&register.value, unit.source.as_ref()) {

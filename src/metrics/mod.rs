@@ -10,6 +10,7 @@ mod audit;
 mod bus;
 mod labels;
 mod median;
+mod mqtt;
 mod polls;
 mod port;
 mod serial;
@@ -31,6 +32,7 @@ pub(crate) use port::PortLoss;
 pub(crate) use serial::{PortMetrics, PortOutcome, SerialMetrics};
 
 use labels::{hex, OTHER};
+pub(crate) use mqtt::{MqttFailure, MqttMessage, MqttMetrics};
 pub(crate) use tcp::Refusal;
 pub(crate) use tcp::TcpMetrics;
 pub(crate) use tls::TlsMaster;
@@ -158,6 +160,8 @@ pub struct Metrics {
     pub trace: Arc<crate::trace::TraceHub>,
     /// Gauges read from their source at scrape time (queue depths).
     scrape_hooks: Mutex<Vec<ScrapeHook>>,
+    /// The MQTT client's, defined when it starts.
+    mqtt: std::sync::OnceLock<MqttMetrics>,
 }
 
 impl Default for Metrics {
@@ -193,6 +197,7 @@ impl Metrics {
             audit: AuditMetrics::new(&define),
             trace: Arc::new(crate::trace::TraceHub::new()),
             scrape_hooks: Mutex::new(Vec::new()),
+            mqtt: std::sync::OnceLock::new(),
             registry: registry.clone(),
         };
         define
@@ -230,6 +235,13 @@ impl Metrics {
         if let Err(e) = self.registry.register(collector) {
             tracing::error!(%e, "a collector of the metrics could not be registered");
         }
+    }
+
+    /// The MQTT client's metrics, defined at the first call.
+    pub(crate) fn mqtt(&self) -> MqttMetrics {
+        self.mqtt
+            .get_or_init(|| MqttMetrics::new(&self.registry))
+            .clone()
     }
 
     /// Run `hook` before every scrape, to read a gauge from its source.

@@ -142,6 +142,29 @@ pub(crate) fn encode(value: &Value, number: f64) -> Option<Vec<u16>> {
     Some(words)
 }
 
+/// The request that writes `words` to `table` from `register` on a slave: FC 05 for a coil,
+/// FC 06 for one register, FC 10 for more.
+pub(crate) fn write_request(table: Table, register: u16, words: &[u16]) -> Vec<u8> {
+    let [a, b] = register.to_be_bytes();
+    match (table, words) {
+        (Table::Coil, [word, ..]) => {
+            let on = if *word != 0 { 0xFF } else { 0x00 };
+            vec![0x05, a, b, on, 0x00]
+        }
+        (_, [word]) => {
+            let [c, d] = word.to_be_bytes();
+            vec![0x06, a, b, c, d]
+        }
+        _ => {
+            let count = u16::try_from(words.len()).unwrap_or(u16::MAX);
+            let [c, d] = count.to_be_bytes();
+            let mut pdu = vec![0x10, a, b, c, d, u8::try_from(2 * words.len()).unwrap_or(0)];
+            pdu.extend(words.iter().flat_map(|w| w.to_be_bytes()));
+            pdu
+        }
+    }
+}
+
 /// `number` / `scale`, exact where [`scaled`] is: a scale of one over a whole number
 /// multiplies by that number.
 fn unscaled(number: f64, scale: f64) -> f64 {

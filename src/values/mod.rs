@@ -11,14 +11,13 @@ mod plan;
 mod poller;
 mod store;
 
-pub(crate) use decode::{decode, encode};
-pub(crate) use store::{Exported, Store, ValueQuery};
+pub(crate) use decode::{decode, encode, write_request};
+pub(crate) use store::{Exported, Sample, Store, ValueQuery, ValueSpec};
 
 use crate::bus::BusHandle;
 use crate::config::{Config, Value};
 use poller::Poll;
 use std::sync::{Arc, Mutex, PoisonError};
-use store::ValueSpec;
 use tokio::task::JoinHandle;
 
 /// What a configuration asks to poll: every value's entry, and per bus its reads and share.

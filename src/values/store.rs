@@ -64,6 +64,17 @@ pub(crate) struct Store {
     entries: Mutex<Vec<Entry>>,
     /// Counts the configurations: an entry's place means something only in its own.
     generation: AtomicU64,
+    /// Told of every poll's outcome and every new configuration (the MQTT publisher waits on
+    /// it).
+    changed: tokio::sync::Notify,
+}
+
+/// What one value is now, for the MQTT publisher: its last good reading if its last poll was
+/// good, and whether its last poll failed.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub(crate) struct Sample {
+    pub(crate) value: Option<f64>,
+    pub(crate) failed: bool,
 }
 
 /// What was last read of one value, for a virtual unit's answer.
@@ -158,6 +169,32 @@ impl Store {
                 .and_then(Option::take);
             entries.push(kept.unwrap_or_else(|| Entry::new(spec)));
         }
+        drop(entries);
+        self.changed.notify_one();
+    }
+
+    /// Wait until a poll ended or the values were configured anew since the last wait ended.
+    pub(crate) async fn changed(&self) {
+        self.changed.notified().await;
+    }
+
+    /// Every value's [`Sample`] into `out` (cleared first), and the configuration its places
+    /// are of.
+    pub(crate) fn samples(&self, out: &mut Vec<Sample>) -> u64 {
+        let readings = self.readings();
+        out.clear();
+        out.extend(readings.entries.iter().map(|e| Sample {
+            value: e.value,
+            failed: e.error.is_some(),
+        }));
+        readings.generation
+    }
+
+    /// What every value is, in the store's order, and the configuration that order is of.
+    pub(crate) fn specs(&self) -> (u64, Vec<ValueSpec>) {
+        let readings = self.readings();
+        let specs = readings.entries.iter().map(|e| e.spec.clone()).collect();
+        (readings.generation, specs)
     }
 
     /// Value `at` read `value` at `when`.
@@ -180,6 +217,8 @@ impl Store {
             entry.history.pop_front();
         }
         entry.history.push_back((now, value));
+        drop(entries);
+        self.changed.notify_one();
     }
 
     /// The poll of value `at` failed as `outcome`: it is not exported until a good one.
@@ -188,6 +227,7 @@ impl Store {
             entry.value = None;
             entry.error = Some(outcome);
         }
+        self.changed.notify_one();
     }
 
     /// The readings as they are now, held still until the guard is dropped.

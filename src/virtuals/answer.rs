@@ -7,7 +7,7 @@ use super::{table_index, too_old, Placed, Units, Virtual};
 use crate::config::Table;
 use crate::pdu::{broadcast_response, ExceptionCode};
 use crate::routing::Target;
-use crate::values::{decode, encode};
+use crate::values::{decode, encode, write_request};
 use tokio::time::Instant;
 
 /// The exception a virtual unit answers a request with.
@@ -159,7 +159,7 @@ impl Units {
             let register = u16::try_from(found.value.register).unwrap_or(u16::MAX);
             writes.push(SourceWrite {
                 target,
-                pdu: source_pdu(found.value.table, register, &held),
+                pdu: write_request(found.value.table, register, &held),
             });
         }
         let normal = broadcast_response(pdu).ok_or(Declined(ExceptionCode::IllegalFunction))?;
@@ -190,29 +190,6 @@ fn written(pdu: &[u8], count: u16) -> Result<Vec<u16>, Declined> {
                 .chunks_exact(2)
                 .map(|w| u16::from_be_bytes([w[0], w[1]]))
                 .collect())
-        }
-    }
-}
-
-/// The request that writes `words` to `table` from `register` on a slave: FC 05 for a coil,
-/// FC 06 for one register, FC 10 for more.
-fn source_pdu(table: Table, register: u16, words: &[u16]) -> Vec<u8> {
-    let [a, b] = register.to_be_bytes();
-    match (table, words) {
-        (Table::Coil, [word, ..]) => {
-            let on = if *word != 0 { 0xFF } else { 0x00 };
-            vec![0x05, a, b, on, 0x00]
-        }
-        (_, [word]) => {
-            let [c, d] = word.to_be_bytes();
-            vec![0x06, a, b, c, d]
-        }
-        _ => {
-            let count = u16::try_from(words.len()).unwrap_or(u16::MAX);
-            let [c, d] = count.to_be_bytes();
-            let mut pdu = vec![0x10, a, b, c, d, u8::try_from(2 * words.len()).unwrap_or(0)];
-            pdu.extend(words.iter().flat_map(|w| w.to_be_bytes()));
-            pdu
         }
     }
 }

@@ -7,7 +7,7 @@
 use crate::config::DeviceTls;
 use crate::pem;
 use rustls::pki_types::ServerName;
-use rustls::{ClientConfig, RootCertStore};
+use rustls::ClientConfig;
 use std::io;
 use std::sync::Arc;
 use tokio::net::TcpStream;
@@ -36,18 +36,7 @@ impl TlsDevice {
         let key = pem::private_key(&settings.private_key)
             .map_err(|e| problems.push(("private_key", e)))
             .ok();
-        let roots = pem::certificates(&settings.ca)
-            .and_then(|cas| {
-                let mut roots = RootCertStore::empty();
-                let (_, unusable) = roots.add_parsable_certificates(cas);
-                match (roots.is_empty(), unusable) {
-                    (false, 0) => Ok(roots),
-                    _ => Err(format!(
-                        "{}: {unusable} of its certificates cannot be a CA",
-                        settings.ca.display()
-                    )),
-                }
-            })
+        let roots = pem::roots(&settings.ca)
             .map_err(|e| problems.push(("ca", e)))
             .ok();
         let wanted = settings.server_name.as_deref().unwrap_or(host);

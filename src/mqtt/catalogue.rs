@@ -1,0 +1,192 @@
+//! What the gateway publishes for one configuration: every polled value's topic (in the
+//! store's order, so a sample's place is its value's), deadband and encoding; every slave's
+//! availability topic; Home Assistant's discovery configs; the `set` topics of writable values.
+//! Made anew at start and at every reload, from the store's values and the configuration.
+
+use super::discovery;
+use crate::config::{Config, Mqtt, Value, ValueType};
+use crate::values::ValueSpec;
+use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
+
+/// One published value.
+pub(super) struct Item {
+    pub(super) topic: Arc<str>,
+    pub(super) deadband: f64,
+    /// Where it is and how it is held, for a `set`: its bus, slave and configured value.
+    pub(super) bus: Arc<str>,
+    pub(super) slave: u8,
+    pub(super) value: Value,
+    /// Its place in [`Catalogue::slaves`].
+    pub(super) owner: usize,
+}
+
+impl Item {
+    /// A coil, a discrete input, a `bool` or a bit of a register: published as 0 or 1.
+    pub(super) fn is_bool(&self) -> bool {
+        self.value.table.is_bits()
+            || self.value.kind() == ValueType::Bool
+            || self.value.bit.is_some()
+    }
+
+    /// Its `set` topic, when it takes one.
+    pub(super) fn writable(&self) -> bool {
+        self.value.writable && !self.value.table.is_read_only()
+    }
+}
+
+/// One slave with values.
+pub(super) struct Owner {
+    pub(super) availability: Arc<str>,
+}
+
+/// Everything one configuration publishes.
+pub(super) struct Catalogue {
+    /// The store's configuration these places are of.
+    pub(super) generation: u64,
+    pub(super) values: Vec<Item>,
+    pub(super) slaves: Vec<Owner>,
+    /// Discovery topic and its retained config, one per value (with `home_assistant`).
+    pub(super) discovery: Vec<(Arc<str>, String)>,
+    /// The writable values by their `set` topic (with `writes`).
+    pub(super) sets: HashMap<String, usize>,
+    pub(super) status: Arc<str>,
+    /// Whose discovery configs are the gateway's: `DISCOVERY_PREFIX/COMPONENT/NODE_PREFIX...`.
+    pub(super) node_prefix: String,
+    pub(super) discovery_prefix: String,
+}
+
+/// `text` as Home Assistant's ids take it: letters, digits, `_` and `-`.
+pub(super) fn id(text: &str) -> String {
+    text.chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}
+
+/// A value's topic below its slave's: its name, then `key=value` for each label, in order.
+pub(super) fn value_level(name: &str, labels: &BTreeMap<String, String>) -> String {
+    if labels.is_empty() {
+        return name.to_owned();
+    }
+    let labels: Vec<String> = labels.iter().map(|(k, v)| format!("{k}={v}")).collect();
+    format!("{name}/{}", labels.join(","))
+}
+
+impl Catalogue {
+    /// Nothing to publish (before the first configuration).
+    pub(super) fn empty() -> Catalogue {
+        Catalogue {
+            generation: u64::MAX,
+            values: Vec::new(),
+            slaves: Vec::new(),
+            discovery: Vec::new(),
+            sets: HashMap::new(),
+            status: Arc::from(""),
+            node_prefix: String::new(),
+            discovery_prefix: String::new(),
+        }
+    }
+
+    /// What `settings` publishes of `config`'s values, the store holding `specs` in its
+    /// configuration `generation`.
+    pub(super) fn new(
+        settings: &Mqtt,
+        config: &Config,
+        (generation, specs): (u64, Vec<ValueSpec>),
+    ) -> Catalogue {
+        let prefix = &settings.topic_prefix;
+        let mut values = Vec::with_capacity(specs.len());
+        let mut slaves: Vec<Owner> = Vec::new();
+        let mut owners: HashMap<(Arc<str>, u8), usize> = HashMap::new();
+        let mut discovery = Vec::new();
+        let mut sets = HashMap::new();
+        let node_prefix = format!("{}_", id(prefix));
+        for spec in specs {
+            let key = (spec.bus.clone(), spec.slave);
+            let owner = *owners.entry(key).or_insert_with(|| {
+                slaves.push(Owner {
+                    availability: format!("{prefix}/{}/{}/availability", spec.bus, spec.slave)
+                        .into(),
+                });
+                slaves.len() - 1
+            });
+            let configured = config.values_of(&spec.bus, spec.slave).and_then(|values| {
+                values
+                    .into_iter()
+                    .find(|(v, _)| v.name == spec.name && v.labels == spec.labels)
+                    .map(|(v, _)| v.clone())
+            });
+            let Some(value) = configured else { continue };
+            let level = value_level(&spec.name, &spec.labels);
+            let topic: Arc<str> = format!("{prefix}/{}/{}/{level}", spec.bus, spec.slave).into();
+            let item = Item {
+                topic,
+                deadband: value.deadband,
+                bus: spec.bus.clone(),
+                slave: spec.slave,
+                value,
+                owner,
+            };
+            if settings.writes && item.writable() {
+                sets.insert(format!("{}/set", item.topic), values.len());
+            }
+            if settings.home_assistant {
+                let model = template_of(config, &spec.bus, spec.slave);
+                discovery.push(discovery::config(
+                    settings,
+                    &node_prefix,
+                    &item,
+                    &spec,
+                    model,
+                    &slaves[owner],
+                ));
+            }
+            values.push(item);
+        }
+        Catalogue {
+            generation,
+            values,
+            slaves,
+            discovery,
+            sets,
+            status: format!("{prefix}/status").into(),
+            node_prefix,
+            discovery_prefix: settings.discovery_prefix.clone(),
+        }
+    }
+
+    /// Whether `topic` is a discovery config of this gateway's (by its node id).
+    pub(super) fn is_ours(&self, topic: &str) -> bool {
+        let Some(rest) = topic.strip_prefix(&self.discovery_prefix) else {
+            return false;
+        };
+        let mut levels = rest.trim_start_matches('/').split('/');
+        let (_component, node) = (levels.next(), levels.next());
+        node.is_some_and(|n| n.starts_with(&self.node_prefix)) && topic.ends_with("/config")
+    }
+
+    /// Every retained topic it publishes: values, availabilities, discovery configs.
+    pub(super) fn retained_topics(&self) -> impl Iterator<Item = &Arc<str>> {
+        let values = self.values.iter().map(|v| &v.topic);
+        let slaves = self.slaves.iter().map(|s| &s.availability);
+        values
+            .chain(slaves)
+            .chain(self.discovery.iter().map(|(t, _)| t))
+    }
+}
+
+/// The template slave `slave` of `bus` names, if any.
+fn template_of<'a>(config: &'a Config, bus: &str, slave: u8) -> Option<&'a str> {
+    let bus = config.bus.iter().find(|b| b.name == bus)?;
+    bus.slave
+        .iter()
+        .find(|s| s.address == slave)?
+        .template
+        .as_deref()
+}
