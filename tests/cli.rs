@@ -222,6 +222,49 @@ value = "line1/2/power_watts"
 }
 
 #[test]
+fn a_bad_mqtt_table_exits_2_naming_every_key_in_one_run() {
+    // A url that is no broker's, qos 2, a password written inline, a password file that is not
+    // there, a negative deadband, and a writable input register.
+    let mqtt = r#"
+[mqtt]
+url = "http://127.0.0.1:1883"
+qos = 2
+username = "gw"
+password = "secret"
+password_file = "/nonexistent/mqtt.password"
+"#;
+    let config = GatewayConfig::new()
+        .bus(Bus::sim("line1").text(
+            "[[bus.slave]]\naddress = 2\n[[bus.slave.value]]\nname = \"power_watts\"\n\
+             register = 0\ndeadband = -1.5\n[[bus.slave.value]]\nname = \"energy\"\n\
+             register = 1\ntable = \"input\"\nwritable = true\n",
+        ))
+        .tables(mqtt)
+        .to_toml();
+    let path = temp_config("bad-mqtt.toml", &config);
+    for command in ["check-config", "run"] {
+        let (keys, err) = refused_keys(&path, command);
+        assert_eq!(
+            keys,
+            [
+                "bus[0].slave[0].value[0].deadband",
+                "bus[0].slave[0].value[1].writable",
+                "mqtt.url",
+                "mqtt.qos",
+                "mqtt.password",
+                "mqtt.password_file",
+            ],
+            "{command}: {err}"
+        );
+        assert!(err.contains("/nonexistent/mqtt.password"), "{err}");
+        assert!(
+            !err.contains("secret"),
+            "the password is never shown: {err}"
+        );
+    }
+}
+
+#[test]
 fn the_manual_page_and_completions_need_no_configuration_and_name_every_subcommand() {
     let missing = "/nonexistent/gateway.toml";
     let out = gateway(&["--config", missing, "man"], &[]);

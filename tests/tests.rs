@@ -58,6 +58,10 @@
 //! - `simulate`: the `simulate` subcommand answering RTU masters on a pty.
 //! - `service`: the gateway under a service manager: graceful stop.
 //! - `metrics`: `/metrics`, `/healthz`, `/readyz` after known traffic; promtool; shipped rules.
+//! - `mqtt`: `[mqtt]` against Debian's mosquitto and mosquitto_sub: values on change, deadband
+//!   and publish_interval, retained flags, the last will, availability, Home Assistant discovery
+//!   across restarts, sets under the rules and the journal, the broker down, mqtts, a wrong
+//!   password, a publisher sending what its rules forbid.
 //! - `status`: the status page `/` and its data `/status` after known traffic.
 //! - `virtual_units`: `[[virtual]]` in a running gateway: the demo's drives, every encoding, a meter
 //!   through its own template, staleness, the exceptions, writes through, ruled and journaled,
@@ -106,6 +110,7 @@ mod hostile;
 mod layers;
 mod line;
 mod metrics;
+mod mqtt;
 mod peers;
 mod reads;
 mod rs485;

@@ -35,6 +35,8 @@ const BACKOFF_MAX: Duration = Duration::from_secs(30);
 /// A failure like the last one is logged again after this.
 const LOG_AGAIN: Duration = Duration::from_secs(60);
 const KEEP_ALIVE: Duration = Duration::from_secs(30);
+/// The largest message the client takes or sends.
+const MAX_PACKET: usize = 1 << 20;
 
 pub(super) fn qos(settings: &Mqtt) -> QoS {
     if settings.qos() == 1 {
@@ -50,6 +52,9 @@ pub(super) fn client(settings: &Mqtt) -> Result<(AsyncClient, EventLoop, String)
     let broker: Broker = settings.broker()?;
     let mut options = MqttOptions::new(settings.client_id(), broker.host.clone(), broker.port);
     options.set_keep_alive(KEEP_ALIVE);
+    // rumqttc closes the connection on a bigger message (it reconnects); other integrations'
+    // discovery configs arrive on the subscription too, and are rarely past a few KiB.
+    options.set_max_packet_size(MAX_PACKET, MAX_PACKET);
     options.set_clean_session(true);
     let status = format!("{}/status", settings.topic_prefix);
     options.set_last_will(LastWill::new(status, "offline", qos(settings), true));

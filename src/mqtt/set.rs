@@ -2,8 +2,10 @@
 //! the value in its units, encoded as it is decoded (scale, offset, type, word and byte order)
 //! and written with FC 06 or 16 (05 for a coil) by the master `mqtt`, through the dispatcher as
 //! any master's write: decided by the rules (`protocols = ["mqtt"]`), journaled, queued. What
-//! became of it is published at `.../set/result` as JSON. A retained `set` is refused: the
-//! broker would hand it over again at every reconnect, and a write must never be sent twice.
+//! became of it is published at `.../set/result` as JSON. A `set` the broker hands over as
+//! retained (its stored message, at a subscription) is refused: it may have been carried out
+//! already, and a write must never be sent twice. (MQTT 3.1.1 does not flag a retained message
+//! delivered live: that one is carried out, once.)
 
 use super::catalogue::Item;
 use crate::dispatch::{Client, Dispatcher};
@@ -65,8 +67,8 @@ pub(super) fn set(
 ) -> Set {
     if retained {
         return Set::Refused(
-            "a retained set is not carried out: the broker would hand it over again at every \
-             reconnect; publish it without retain"
+            "a retained set handed over at a subscription is not carried out: it may have \
+             been carried out already; publish sets without retain"
                 .to_owned(),
         );
     }
