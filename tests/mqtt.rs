@@ -815,3 +815,45 @@ async fn a_wrong_password_is_logged_and_counted_and_modbus_still_served() {
     signal(&gateway.child, "TERM");
     assert_eq!(exit_status(gateway.child).await.code(), Some(0));
 }
+
+#[tokio::test]
+async fn a_reload_publishes_the_new_values_and_clears_the_removed_ones() {
+    let Some(broker) = Broker::start().await else {
+        return;
+    };
+    let config = with_mqtt(demo_with_a_quick_drive_2(), &broker, "");
+    let live = Subscriber::start(&broker, &["modbus-gateway/demo/3/#", "homeassistant/#"]).await;
+    let gateway = start(&config).await;
+    let state = "modbus-gateway/demo/3/drive_state";
+    let discovery = "homeassistant/sensor/modbus-gateway_demo_3/drive_state/config";
+    live.until("unit 3 published", |m| {
+        last(m, state).is_some() && last(m, discovery).is_some()
+    })
+    .await;
+    // Unit 3 out: its values, availability and discovery configs are cleared (empty, retained).
+    let mut without_3 = config.clone();
+    without_3.bus[0].slave.retain(|s| s.address != 3);
+    live.clear();
+    let done = gateway.reload(&without_3).expect("the reload applies");
+    assert!(done.applied.iter().any(|a| a == "plant values"), "{done:?}");
+    assert!(done.need_restart.is_empty(), "{done:?}");
+    let availability = "modbus-gateway/demo/3/availability";
+    let cleared = |m: &[Message]| {
+        [state, availability, discovery]
+            .iter()
+            .all(|t| last(m, t) == Some(""))
+    };
+    live.until("unit 3 cleared", cleared).await;
+    let retained = Subscriber::start(&broker, &["modbus-gateway/demo/3/#"]).await;
+    assert!(retained.messages().is_empty(), "{:?}", retained.messages());
+    // Back: published again. A change to [mqtt] itself takes a restart.
+    live.clear();
+    let mut moved = config.clone();
+    moved.mqtt.as_mut().unwrap().topic_prefix = "plant".to_owned();
+    let done = gateway.reload(&moved).expect("the reload applies");
+    assert_eq!(done.need_restart, ["mqtt"], "{done:?}");
+    live.until("unit 3 again, under the prefix it started with", |m| {
+        last(m, state).is_some_and(|p| !p.is_empty())
+    })
+    .await;
+}
