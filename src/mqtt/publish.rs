@@ -407,7 +407,7 @@ mod tests {
         let mut sent = Vec::new();
         outbox.drain(|t, p, _| {
             sent.push(format!("{t}={p}"));
-            sent.len() < 1
+            false
         });
         assert_eq!(sent, ["a=3"]);
         assert_eq!(outbox.len(), 2, "refused: still waiting");
