@@ -1,7 +1,7 @@
 //! Reading the PEM files of TLS, on both sides of the gateway: the listeners' server certificate,
-//! key, client CA and CRLs (`net::tls`), and a Modbus TCP device's client certificate, key and CA
-//! (`bus::device::tls`), and the MQTT broker's CA and the gateway's certificate (`mqtt`). Every error names the file and says what it lacks. Knows nothing of what
-//! the files are for.
+//! key, client CA and CRLs (`net::tls`), a Modbus TCP device's client certificate, key and CA
+//! (`bus::device::tls`), and the MQTT broker's CA and the gateway's certificate (`mqtt`). Every
+//! error names the file and says what it lacks. Knows nothing of what the files are for.
 
 use rustls::pki_types::pem::PemObject;
 use rustls::pki_types::{CertificateDer, CertificateRevocationListDer, PrivateKeyDer};

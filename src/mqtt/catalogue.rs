@@ -10,7 +10,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::sync::Arc;
 
 /// One published value.
-pub(super) struct Item {
+pub(super) struct Publishable {
     pub(super) topic: Arc<str>,
     pub(super) deadband: f64,
     /// Where it is and how it is held, for a `set`: its bus, slave and configured value.
@@ -21,7 +21,7 @@ pub(super) struct Item {
     pub(super) owner: usize,
 }
 
-impl Item {
+impl Publishable {
     /// A coil, a discrete input, a `bool` or a bit of a register: published as 0 or 1.
     pub(super) fn is_bool(&self) -> bool {
         self.value.table.is_bits()
@@ -44,7 +44,7 @@ pub(super) struct Owner {
 pub(super) struct Catalogue {
     /// The store's configuration these places are of.
     pub(super) generation: u64,
-    pub(super) values: Vec<Item>,
+    pub(super) values: Vec<Publishable>,
     pub(super) slaves: Vec<Owner>,
     /// Discovery topic and its retained config, one per value (with `home_assistant`).
     pub(super) discovery: Vec<(Arc<str>, String)>,
@@ -125,7 +125,7 @@ impl Catalogue {
             let Some(value) = configured else { continue };
             let level = value_level(&spec.name, &spec.labels);
             let topic: Arc<str> = format!("{prefix}/{}/{}/{level}", spec.bus, spec.slave).into();
-            let item = Item {
+            let item = Publishable {
                 topic,
                 deadband: value.deadband,
                 bus: spec.bus.clone(),

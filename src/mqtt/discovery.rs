@@ -4,7 +4,7 @@
 //! says, and one device per slave. The ids are made of the topic prefix, the bus, the slave and
 //! the value, so they stay the same across restarts.
 
-use super::catalogue::{id, Item, Owner};
+use super::catalogue::{id, Owner, Publishable};
 use crate::config::Mqtt;
 use crate::values::ValueSpec;
 use serde_json::{json, Value};
@@ -46,7 +46,7 @@ fn words(name: &str) -> String {
 pub(super) fn config(
     settings: &Mqtt,
     node_prefix: &str,
-    item: &Item,
+    item: &Publishable,
     spec: &ValueSpec,
     model: Option<&str>,
     owner: &Owner,

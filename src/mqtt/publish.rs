@@ -7,7 +7,7 @@
 //! anew: the status, the discovery configs, every value and availability.
 
 use super::catalogue::Catalogue;
-use super::link::{self, Link};
+use super::link::{self, Heard};
 use super::set::{self, Set};
 use crate::config::Mqtt;
 use crate::dispatch::Client;
@@ -137,7 +137,7 @@ struct Publisher {
 }
 
 /// Publish for as long as the gateway runs, hearing the connection on `link`.
-pub(super) async fn run(mut parts: Parts, mut link: mpsc::Receiver<Link>) {
+pub(super) async fn run(mut parts: Parts, mut link: mpsc::Receiver<Heard>) {
     let store = parts.store.clone();
     let mut catalogues = parts.catalogues.clone();
     let catalogue = parts.catalogues.borrow_and_update().clone();
@@ -206,11 +206,11 @@ impl Publisher {
         });
     }
 
-    fn heard(&mut self, event: Link) {
+    fn heard(&mut self, event: Heard) {
         match event {
-            Link::Up => self.up(),
-            Link::Down => self.connected = false,
-            Link::Message(message) => self.message(&message),
+            Heard::Up => self.up(),
+            Heard::Down => self.connected = false,
+            Heard::Message(message) => self.message(&message),
         }
     }
 

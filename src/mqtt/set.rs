@@ -7,7 +7,7 @@
 //! already, and a write must never be sent twice. (MQTT 3.1.1 does not flag a retained message
 //! delivered live: that one is carried out, once.)
 
-use super::catalogue::Item;
+use super::catalogue::Publishable;
 use crate::dispatch::{Client, Dispatcher};
 use crate::error::{Answer, Outcome, RequestError};
 use crate::pdu::EXCEPTION_BIT;
@@ -29,7 +29,7 @@ pub(super) enum Set {
 
 /// The number `payload` says for `item`: a decimal number, or for a bit also `true`/`false`
 /// and `ON`/`OFF` (what Home Assistant's switches send).
-fn number(item: &Item, payload: &[u8]) -> Result<f64, String> {
+fn number(item: &Publishable, payload: &[u8]) -> Result<f64, String> {
     let text = std::str::from_utf8(payload)
         .map_err(|_| "the payload is not UTF-8 text".to_owned())?
         .trim();
@@ -61,7 +61,7 @@ fn shown(text: &str) -> String {
 pub(super) fn set(
     dispatcher: &Dispatcher,
     client: &Client,
-    item: &Item,
+    item: &Publishable,
     payload: &[u8],
     retained: bool,
 ) -> Set {
