@@ -20,7 +20,7 @@ use tracing::{debug, warn};
 
 /// What the publisher hears from the connection.
 #[derive(Debug)]
-pub(super) enum Heard {
+pub(super) enum FromBroker {
     Up,
     Down,
     Message(Publish),
@@ -113,7 +113,7 @@ fn failure(error: &ConnectionError) -> MqttFailure {
 pub(super) async fn run(
     mut events: EventLoop,
     broker: String,
-    publisher: mpsc::Sender<Heard>,
+    publisher: mpsc::Sender<FromBroker>,
     metrics: MqttMetrics,
     stopped: Arc<tokio::sync::Notify>,
 ) {
@@ -125,12 +125,12 @@ pub(super) async fn run(
                 metrics.connected(&broker);
                 backoff = BACKOFF_FIRST;
                 logged = None;
-                if publisher.send(Heard::Up).await.is_err() {
+                if publisher.send(FromBroker::Up).await.is_err() {
                     return;
                 }
             }
             Ok(Event::Incoming(Packet::Publish(message))) => {
-                if publisher.try_send(Heard::Message(message)).is_err() {
+                if publisher.try_send(FromBroker::Message(message)).is_err() {
                     metrics.count(MqttMessage::SetRefused, 1);
                     debug!(target: "modbus_gateway::mqtt", "a message from the broker dropped: the publisher is behind");
                 }
@@ -153,7 +153,7 @@ pub(super) async fn run(
                     logged = Some((why.clone(), Instant::now()));
                 }
                 metrics.disconnected(&broker, &why);
-                if publisher.send(Heard::Down).await.is_err() {
+                if publisher.send(FromBroker::Down).await.is_err() {
                     return;
                 }
                 tokio::time::sleep(backoff).await;
@@ -164,6 +164,6 @@ pub(super) async fn run(
 }
 
 /// Messages from the broker waiting for the publisher.
-pub(super) fn channel() -> (mpsc::Sender<Heard>, mpsc::Receiver<Heard>) {
+pub(super) fn channel() -> (mpsc::Sender<FromBroker>, mpsc::Receiver<FromBroker>) {
     mpsc::channel(MESSAGES)
 }

@@ -7,7 +7,7 @@
 //! anew: the status, the discovery configs, every value and availability.
 
 use super::catalogue::Catalogue;
-use super::link::{self, Heard};
+use super::link::{self, FromBroker};
 use super::set::{self, Set};
 use crate::config::Mqtt;
 use crate::dispatch::Client;
@@ -137,7 +137,7 @@ struct Publisher {
 }
 
 /// Publish for as long as the gateway runs, hearing the connection on `link`.
-pub(super) async fn run(mut parts: Parts, mut link: mpsc::Receiver<Heard>) {
+pub(super) async fn run(mut parts: Parts, mut link: mpsc::Receiver<FromBroker>) {
     let store = parts.store.clone();
     let mut catalogues = parts.catalogues.clone();
     let catalogue = parts.catalogues.borrow_and_update().clone();
@@ -206,11 +206,11 @@ impl Publisher {
         });
     }
 
-    fn heard(&mut self, event: Heard) {
+    fn heard(&mut self, event: FromBroker) {
         match event {
-            Heard::Up => self.up(),
-            Heard::Down => self.connected = false,
-            Heard::Message(message) => self.message(&message),
+            FromBroker::Up => self.up(),
+            FromBroker::Down => self.connected = false,
+            FromBroker::Message(message) => self.message(&message),
         }
     }
 
