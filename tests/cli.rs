@@ -222,6 +222,36 @@ value = "line1/2/power_watts"
 }
 
 #[test]
+fn check_config_says_what_mqtt_publishes_and_which_sets_write() {
+    let env = [
+        ("MBGW__MQTT__URL", "mqtt://127.0.0.1:1883"),
+        ("MBGW__MQTT__WRITES", "true"),
+    ];
+    let out = gateway(&["--config", demo_path(), "check-config"], &env);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(
+        text.contains("# mqtt: 100 values of 4 slaves published to mqtt://127.0.0.1:1883"),
+        "{text}"
+    );
+    // The demo's GD300 and GD10 take their 2001H; the GD20's is write-only, so not polled.
+    for set in [
+        "demo/2/drive_frequency_setpoint_hertz/set",
+        "demo/3/drive_frequency_setpoint_hertz/set",
+    ] {
+        assert!(
+            text.contains(&format!("#   modbus-gateway/{set}\n")),
+            "{text}"
+        );
+    }
+    assert!(!text.contains("demo/1/drive_frequency_setpoint"), "{text}");
+}
+
+#[test]
 fn a_bad_mqtt_table_exits_2_naming_every_key_in_one_run() {
     // A url that is no broker's, qos 2, a password written inline, a password file that is not
     // there, a negative deadband, and a writable input register.

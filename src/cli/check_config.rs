@@ -168,6 +168,7 @@ fn describe(path: &Path, config: &Config, tls: Option<&TlsServer>, now: SystemTi
     }
     out += &describe_ports(config);
     out += &describe_virtual_units(config);
+    out += &describe_mqtt(config);
     if let Some(tls) = tls {
         out += &describe_tls(config, tls, now);
     }
@@ -204,6 +205,58 @@ fn describe_ports(config: &Config) -> String {
             ms(port.answer_within),
             port.name,
         );
+    }
+    out
+}
+
+/// What `[mqtt]` publishes, and which values a `set` writes (docs/mqtt.md).
+fn describe_mqtt(config: &Config) -> String {
+    let Some(mqtt) = &config.mqtt else {
+        return String::new();
+    };
+    let mut values = 0;
+    let mut slaves = 0;
+    let mut writable = Vec::new();
+    for bus in &config.bus {
+        for slave in &bus.slave {
+            let listed = config
+                .values_of(&bus.name, slave.address)
+                .unwrap_or_default();
+            slaves += usize::from(!listed.is_empty());
+            values += listed.len();
+            for (value, _) in listed.iter().filter(|(v, _)| v.writable) {
+                writable.push(format!("{}/{}/{}", bus.name, slave.address, value.name));
+            }
+        }
+    }
+    let retained = if mqtt.retain {
+        "retained"
+    } else {
+        "not retained"
+    };
+    let mut out = format!(
+        "# mqtt: {values} values of {slaves} slaves published to {} at {}/BUS/SLAVE/NAME \
+         ({retained}, QoS {}) when they change, and again every {} unchanged",
+        mqtt.url,
+        mqtt.topic_prefix,
+        mqtt.qos(),
+        humantime::format_duration(mqtt.publish_interval),
+    );
+    if mqtt.home_assistant {
+        out += &format!("; Home Assistant discovery under {}", mqtt.discovery_prefix);
+    }
+    out += ".\n";
+    match (mqtt.writes, writable.is_empty()) {
+        (false, _) => out += "# mqtt: writes = false: no set topic is subscribed to.\n",
+        (true, true) => {
+            out += "# mqtt: writes = true, but no value is writable: no set is ever carried out.\n"
+        }
+        (true, false) => {
+            out += "# mqtt: a set writes (master mqtt, protocol mqtt, under the rules):\n";
+            for value in writable {
+                out += &format!("#   {}/{value}/set\n", mqtt.topic_prefix);
+            }
+        }
     }
     out
 }
