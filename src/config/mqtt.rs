@@ -197,7 +197,7 @@ pub(super) fn check(config: &Config, errors: &mut Vec<ConfigError>) {
     }
     if let Some(id) = &mqtt.client_id {
         if id.is_empty() || id.len() > 65_535 {
-            fail("client_id", "must not be empty".to_owned());
+            fail("client_id", "must be 1 to 65535 bytes long".to_owned());
         }
     }
     check_tls(mqtt, broker.as_ref().ok(), &mut fail);
@@ -235,8 +235,16 @@ fn check_tls(mqtt: &Mqtt, broker: Option<&Broker>, fail: &mut impl FnMut(&str, S
                 key,
                 "is for an mqtts:// broker; the url is mqtt://".to_owned(),
             );
-        } else if let Err(e) = std::fs::metadata(path) {
-            fail(key, format!("cannot read `{}`: {e}", path.display()));
+        } else {
+            // Read as the client will read it, so a file it cannot use is this check's error.
+            let read = match key {
+                "ca_file" => crate::pem::roots(path).map(|_| ()),
+                "cert_file" => crate::pem::certificates(path).map(|_| ()),
+                _ => crate::pem::private_key(path).map(|_| ()),
+            };
+            if let Err(why) = read {
+                fail(key, why);
+            }
         }
     }
     if broker.is_some_and(|b| b.tls) && mqtt.ca_file.is_none() {
@@ -270,13 +278,13 @@ fn check_labels(config: &Config, errors: &mut Vec<ConfigError>) {
                 if let Some((label, text)) = value
                     .labels
                     .iter()
-                    .find(|(_, v)| v.is_empty() || v.contains(['/', '+', '#', '\0']))
+                    .find(|(_, v)| v.is_empty() || v.contains(['/', '+', '#', '\0', ',', '=']))
                 {
                     errors.push(ConfigError {
                         key: format!("bus[{i}].slave[{j}]"),
                         reason: format!(
                             "value {}'s label {label} = `{text}` cannot be a topic level \
-                             (no /, + or #, not empty), and [mqtt] publishes it as one",
+                             (no /, +, #, `,` or =, not empty), and [mqtt] publishes it as one",
                             value.name
                         ),
                     });
@@ -380,5 +388,27 @@ mod tests {
         ] {
             assert!(errors.contains(key), "{key} not named in:\n{errors}");
         }
+    }
+
+    #[test]
+    fn tls_files_are_read_as_the_client_reads_them() {
+        let dir = std::env::temp_dir().join(format!("mbgw-mqtt-check-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let ca = dir.join("ca.pem");
+        std::fs::write(&ca, "not a certificate").unwrap();
+        let text = format!(
+            "{MINIMAL}\n[mqtt]\nurl = \"mqtts://127.0.0.1\"\nca_file = {:?}\n",
+            ca.display().to_string()
+        );
+        let errors = errors(&text).join("\n");
+        assert!(errors.contains("mqtt.ca_file"), "{errors}");
+        assert!(errors.contains("no PEM certificate"), "{errors}");
+        let plain = format!("{MINIMAL}\n[mqtt]\nurl = \"mqtt://127.0.0.1\"\nca_file = \"x\"\n");
+        assert!(errors_of(&plain).contains("is for an mqtts:// broker"));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    fn errors_of(text: &str) -> String {
+        errors(text).join("\n")
     }
 }

@@ -240,9 +240,16 @@ impl Value {
             );
         }
         if self.writable && self.table.is_read_only() {
+            let what = match self.table {
+                Table::Input => "input registers",
+                _ => "discrete inputs",
+            };
             fail(
                 "writable",
-                format!("a {} cannot be written", self.table.name()),
+                format!(
+                    "{what} cannot be written (table = \"{}\")",
+                    self.table.name()
+                ),
             );
         } else if self.writable && self.bit.is_some() {
             fail(

@@ -54,6 +54,8 @@ pub(super) struct Catalogue {
     /// Whose discovery configs are the gateway's: `DISCOVERY_PREFIX/COMPONENT/NODE_PREFIX...`.
     pub(super) node_prefix: String,
     pub(super) discovery_prefix: String,
+    /// `PREFIX/`: where its values' state topics begin.
+    pub(super) state_prefix: Arc<str>,
 }
 
 /// `text` as Home Assistant's ids take it: letters, digits, `_` and `-`.
@@ -90,6 +92,7 @@ impl Catalogue {
             status: Arc::from(""),
             node_prefix: String::new(),
             discovery_prefix: String::new(),
+            state_prefix: Arc::from("\0"),
         }
     }
 
@@ -158,17 +161,29 @@ impl Catalogue {
             status: format!("{prefix}/status").into(),
             node_prefix,
             discovery_prefix: settings.discovery_prefix.clone(),
+            state_prefix: format!("{prefix}/").into(),
         }
     }
 
-    /// Whether `topic` is a discovery config of this gateway's (by its node id).
-    pub(super) fn is_ours(&self, topic: &str) -> bool {
+    /// Whether `topic`, holding `config`, is a discovery config of this gateway's: under its
+    /// node prefix, and of a value under its topic prefix.
+    pub(super) fn is_ours(&self, topic: &str, config: &[u8]) -> bool {
         let Some(rest) = topic.strip_prefix(&self.discovery_prefix) else {
             return false;
         };
         let mut levels = rest.trim_start_matches('/').split('/');
         let (_component, node) = (levels.next(), levels.next());
-        node.is_some_and(|n| n.starts_with(&self.node_prefix)) && topic.ends_with("/config")
+        let ours =
+            node.is_some_and(|n| n.starts_with(&self.node_prefix)) && topic.ends_with("/config");
+        #[derive(serde::Deserialize)]
+        struct Config<'a> {
+            #[serde(borrow)]
+            state_topic: Option<std::borrow::Cow<'a, str>>,
+        }
+        let state = serde_json::from_slice::<Config<'_>>(config)
+            .ok()
+            .and_then(|c| c.state_topic);
+        ours && state.is_some_and(|t| t.starts_with(&*self.state_prefix))
     }
 
     /// Every retained topic it publishes: values, availabilities, discovery configs.
@@ -189,4 +204,62 @@ fn template_of<'a>(config: &'a Config, bus: &str, slave: u8) -> Option<&'a str> 
         .find(|s| s.address == slave)?
         .template
         .as_deref()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn catalogue(prefix: &str) -> Catalogue {
+        let text = format!(
+            "[[bus]]\nname = \"line\"\ndevice = \"sim\"\n[[bus.slave]]\naddress = 2\n\
+             [[bus.slave.value]]\nname = \"power_watts\"\nregister = 0\nunit = \"W\"\n\
+             [mqtt]\nurl = \"mqtt://127.0.0.1\"\ntopic_prefix = \"{prefix}\"\n"
+        );
+        let config = Config::from_toml_str(&text).unwrap();
+        let spec = ValueSpec {
+            bus: "line".into(),
+            slave: 2,
+            name: "power_watts".to_owned(),
+            help: String::new(),
+            unit: Some("W".to_owned()),
+            labels: BTreeMap::new(),
+        };
+        Catalogue::new(config.mqtt.as_ref().unwrap(), &config, (7, vec![spec]))
+    }
+
+    #[test]
+    fn a_gateway_claims_the_discovery_configs_of_its_own_prefix_only() {
+        let plant = catalogue("plant");
+        let north = catalogue("plant_north");
+        let (topic, config) = &north.discovery[0];
+        assert_eq!(
+            &**topic,
+            "homeassistant/sensor/plant_north_line_2/power_watts/config"
+        );
+        assert!(north.is_ours(topic, config.as_bytes()));
+        assert!(
+            !plant.is_ours(topic, config.as_bytes()),
+            "plant_north's is not plant's"
+        );
+        let (own, own_config) = &plant.discovery[0];
+        assert!(plant.is_ours(own, own_config.as_bytes()));
+        assert!(
+            !plant.is_ours(own, b"not json"),
+            "no state topic of its own"
+        );
+        assert_eq!(&*plant.values[0].topic, "plant/line/2/power_watts");
+        assert_eq!(plant.generation, 7);
+    }
+
+    #[test]
+    fn labels_make_a_level_of_their_own_in_key_order() {
+        let labels = BTreeMap::from([
+            ("phase".to_owned(), "2".to_owned()),
+            ("kind".to_owned(), "l-n".to_owned()),
+        ]);
+        assert_eq!(value_level("voltage", &labels), "voltage/kind=l-n,phase=2");
+        assert_eq!(value_level("voltage", &BTreeMap::new()), "voltage");
+        assert_eq!(id("modbus-gateway/a.b"), "modbus-gateway_a_b");
+    }
 }

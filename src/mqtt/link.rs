@@ -28,8 +28,9 @@ pub(super) enum FromBroker {
 
 /// Requests waiting for the event loop (publishes, subscriptions); the publisher keeps the rest.
 pub(super) const REQUESTS: usize = 256;
-/// Messages from the broker waiting for the publisher; more are dropped (and refused if sets).
-const MESSAGES: usize = 256;
+/// Messages from the broker waiting for the publisher (a large Home Assistant's discovery
+/// configs all come at once at a connection); more are dropped, a set among them refused.
+const MESSAGES: usize = 4096;
 const BACKOFF_FIRST: Duration = Duration::from_secs(1);
 const BACKOFF_MAX: Duration = Duration::from_secs(30);
 /// A failure like the last one is logged again after this.
@@ -130,9 +131,13 @@ pub(super) async fn run(
                 }
             }
             Ok(Event::Incoming(Packet::Publish(message))) => {
+                let set = message.topic.ends_with("/set");
                 if publisher.try_send(FromBroker::Message(message)).is_err() {
-                    metrics.count(MqttMessage::SetRefused, 1);
-                    debug!(target: "modbus_gateway::mqtt", "a message from the broker dropped: the publisher is behind");
+                    if set {
+                        metrics.count(MqttMessage::SetReceived, 1);
+                        metrics.count(MqttMessage::SetRefused, 1);
+                    }
+                    debug!(target: "modbus_gateway::mqtt", set, "a message from the broker dropped: the publisher is behind");
                 }
             }
             Ok(Event::Outgoing(Outgoing::Publish(_))) => metrics.count(MqttMessage::Published, 1),

@@ -56,9 +56,12 @@ impl Outbox {
         self.order.len()
     }
 
-    fn clear(&mut self) {
-        self.order.clear();
-        self.waiting.clear();
+    /// Forget, unsent and uncounted, every message `keep` says no to.
+    fn keep(&mut self, keep: impl Fn(&str, &str) -> bool) {
+        self.waiting
+            .retain(|topic, (payload, _)| keep(topic, payload));
+        let waiting = &self.waiting;
+        self.order.retain(|topic| waiting.contains_key(topic));
     }
 
     /// Hand the waiting messages to `send` in order, until it takes no more.
@@ -217,7 +220,10 @@ impl Publisher {
     /// Connected (again): subscribe, and publish everything anew.
     fn up(&mut self) {
         self.connected = true;
-        self.outbox.clear();
+        // What the broker is told anew is made again below; a set's result and a removed
+        // value's clearing are not: they wait on.
+        self.outbox
+            .keep(|topic, payload| payload.is_empty() || topic.ends_with("/set/result"));
         let settings = &self.parts.settings;
         let prefix = &settings.topic_prefix;
         let client = &self.parts.client;
@@ -259,14 +265,45 @@ impl Publisher {
         for topic in gone {
             self.put(topic, String::new(), true);
         }
+        // What stays the same keeps what was published of it: a reload that changes nothing
+        // publishes nothing.
+        let old = std::mem::replace(&mut self.catalogue, catalogue.clone());
+        let last: HashMap<&str, Option<(f64, Instant)>> = old
+            .values
+            .iter()
+            .zip(&self.last)
+            .map(|(item, last)| (&*item.topic, *last))
+            .collect();
+        self.last = catalogue
+            .values
+            .iter()
+            .map(|item| last.get(&*item.topic).copied().flatten())
+            .collect();
+        let said: HashMap<&str, Option<bool>> = old
+            .slaves
+            .iter()
+            .zip(&self.availability)
+            .map(|(slave, said)| (&*slave.availability, *said))
+            .collect();
+        self.availability = catalogue
+            .slaves
+            .iter()
+            .map(|slave| said.get(&*slave.availability).copied().flatten())
+            .collect();
+        let configs: HashMap<&str, &str> = old
+            .discovery
+            .iter()
+            .map(|(topic, config)| (&**topic, config.as_str()))
+            .collect();
+        if self.connected {
+            for (topic, config) in &catalogue.discovery {
+                if configs.get(&**topic) != Some(&config.as_str()) {
+                    self.outbox.put(topic.clone(), config.clone(), true);
+                }
+            }
+        }
         self.discovery = catalogue.discovery.iter().map(|(t, _)| t.clone()).collect();
         self.retained = retained;
-        self.last = vec![None; catalogue.values.len()];
-        self.availability = vec![None; catalogue.slaves.len()];
-        self.catalogue = catalogue;
-        if self.connected {
-            self.announce();
-        }
     }
 
     /// Look at the store: the values due, the availabilities changed.
@@ -316,7 +353,7 @@ impl Publisher {
             self.set(message);
         } else if message.retain
             && !message.payload.is_empty()
-            && self.catalogue.is_ours(&message.topic)
+            && self.catalogue.is_ours(&message.topic, &message.payload)
             && !self.discovery.contains(message.topic.as_str())
         {
             // A value no longer configured: its config is cleared, and Home Assistant drops it.

@@ -40,20 +40,18 @@ fn layout(config: &Config) -> Layout {
                 .template
                 .as_deref()
                 .and_then(|t| config.templates.get(t));
-            let interval = slave.poll_interval();
-            let values: Vec<&Value> = template
-                .into_iter()
-                .flat_map(|t| &t.value)
-                .chain(&slave.value)
-                .collect();
-            if values.is_empty() {
+            let with_intervals = config
+                .values_of(&bus.name, slave.address)
+                .unwrap_or_default();
+            if with_intervals.is_empty() {
                 continue;
             }
+            let values: Vec<&Value> = with_intervals.iter().map(|(v, _)| *v).collect();
             let first = specs.len();
-            let listed: Vec<(usize, &Value, std::time::Duration)> = values
+            let listed: Vec<(usize, &Value, std::time::Duration)> = with_intervals
                 .iter()
                 .enumerate()
-                .map(|(i, v)| (first + i, *v, v.poll_interval.unwrap_or(interval)))
+                .map(|(i, (v, interval))| (first + i, *v, *interval))
                 .collect();
             specs.extend(values.iter().map(|v| ValueSpec {
                 bus: name.clone(),

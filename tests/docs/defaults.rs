@@ -49,6 +49,7 @@ const BARE: &[(&str, &str, &[&str])] = &[
     ("route", "[[route]]", &["units = \"100\"", "bus = \"sim\""]),
     ("rule", "[[rule]]", &["action = \"deny\""]),
     ("audit", "[audit]", &["path = \"writes.jsonl\""]),
+    ("mqtt", "[mqtt]", &["url = \"mqtt://127.0.0.1:1883\""]),
 ];
 
 /// The `[[virtual]]` sections, written after [`BARE`] only while one of theirs is checked: their
