@@ -488,10 +488,13 @@ fn names_in(text: &str) -> BTreeSet<String> {
 #[tokio::test]
 async fn the_shipped_alerts_and_dashboard_use_only_metrics_the_gateway_exports() {
     // The mixed traffic's line, with a plant value on a slave that never answers: its polls
-    // time out, so the poll metrics have series too; and a journal of writes.
+    // time out, so the poll metrics have series too; a journal of writes; and an MQTT client
+    // (its metrics exist with [mqtt], whether a broker answers or not).
     let journal = std::env::temp_dir().join(format!("mbgw-alerts-{}.jsonl", std::process::id()));
+    let broker = format!("mqtt://{}", crate::support::free_addr());
     let gateway = GatewayConfig::new()
         .table("audit", &[("path", journal.display().to_string().into())])
+        .table("mqtt", &[("url", broker.into())])
         .bus(
             sim_line()
                 .slave(5, &[("response_timeout", "50ms".into())])
