@@ -3,7 +3,9 @@
 //! modbus-proxy, a separate program (run as a process, never linked), if it is installed. The
 //! direct client is a process of its own (this program again, `--direct-client`), as a master
 //! is: a client in the device's own process would cross no process boundary at all, and the
-//! gateway's masters cross two to reach it and two to come back.
+//! gateway's masters cross two to reach it and two to come back. The masters' loop here
+//! (`drive_every`) also drives the `mqtt-` scenarios' masters, each reading at a period beside
+//! the gateway's polls and publishing.
 
 use crate::gateway::{cpu_time, free_addr, START_LIMIT};
 use crate::masters::{master, Conn, Done};
@@ -28,6 +30,8 @@ pub(crate) const DIRECT_FLAG: &str = "--direct-client";
 
 /// One load's figures in its window.
 pub(crate) struct Driven {
+    /// The window (none for the direct client's, which is taken in its own process).
+    pub(crate) window: Option<(Instant, Instant)>,
     pub(crate) tx_per_s: f64,
     /// Latencies, sorted.
     pub(crate) latencies: Vec<Duration>,
@@ -38,13 +42,33 @@ pub(crate) struct Driven {
 /// Modbus TCP masters on `conns` reading back to back: a warm-up, then a window of `seconds`,
 /// across which the CPU time of process `pid` (if any) is taken.
 async fn drive(seconds: f64, conns: Vec<Conn>, pid: Option<u32>) -> Result<Driven, String> {
+    drive_every(seconds, conns, pid, Duration::ZERO).await
+}
+
+/// Modbus TCP masters on `conns` reading back to back, or each one read every `period` (if not
+/// zero), the masters' turns spread evenly over it: a warm-up, then a window of `seconds`,
+/// across which the CPU time of process `pid` (if any) is taken.
+pub(crate) async fn drive_every(
+    seconds: f64,
+    conns: Vec<Conn>,
+    pid: Option<u32>,
+    period: Duration,
+) -> Result<Driven, String> {
     let stop = Arc::new(AtomicBool::new(false));
+    let n = u32::try_from(conns.len()).unwrap_or(u32::MAX).max(1);
     let tasks: Vec<_> = conns
         .into_iter()
         .enumerate()
-        .map(|(i, conn)| tokio::spawn(master(conn, i, Load::Read, Duration::ZERO, stop.clone())))
+        .map(|(i, conn)| {
+            let stop = stop.clone();
+            let offset = period * u32::try_from(i).unwrap_or(0) / n;
+            tokio::spawn(async move {
+                tokio::time::sleep(offset).await;
+                master(conn, i, Load::Read, period, stop).await
+            })
+        })
         .collect();
-    tokio::time::sleep(WARM_UP).await;
+    tokio::time::sleep(WARM_UP.max(period)).await;
     let (start, cpu_start) = (Instant::now(), pid.map(cpu_time));
     tokio::time::sleep(Duration::from_secs_f64(seconds)).await;
     let (end, cpu_end) = (Instant::now(), pid.map(cpu_time));
@@ -64,6 +88,7 @@ async fn drive(seconds: f64, conns: Vec<Conn>, pid: Option<u32>) -> Result<Drive
     }
     latencies.sort();
     Ok(Driven {
+        window: Some((start, end)),
         tx_per_s: latencies.len() as f64 / (end - start).as_secs_f64(),
         latencies,
         cpu: cpu_end.zip(cpu_start).map(|(e, s)| e - s),
@@ -71,7 +96,7 @@ async fn drive(seconds: f64, conns: Vec<Conn>, pid: Option<u32>) -> Result<Drive
 }
 
 /// `n` Modbus TCP connections to `addr`.
-async fn connect(addr: SocketAddr, n: usize) -> Result<Vec<Conn>, String> {
+pub(crate) async fn connect(addr: SocketAddr, n: usize) -> Result<Vec<Conn>, String> {
     let mut conns = Vec::with_capacity(n);
     for _ in 0..n {
         let stream = TcpStream::connect(addr)
@@ -113,6 +138,7 @@ pub(crate) async fn direct(cli: &Cli, device: SocketAddr) -> Result<Driven, Stri
         .collect();
     match (tx_per_s, latencies) {
         (Some(tx_per_s), Some(latencies)) => Ok(Driven {
+            window: None,
             tx_per_s,
             latencies,
             cpu: None,

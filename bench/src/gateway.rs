@@ -111,8 +111,8 @@ fn tls_for(scenario: &str, listen: SocketAddr) -> (String, Tls) {
 
 /// The bench's bus on `device`: the scenario's line (its serial format, but for a Modbus TCP
 /// device), a queue for every master twice over, the plant values' `[[bus.slave]]`s in the
-/// `values-` scenario, and the simulated slaves if `device` is the simulated line; in the
-/// `virtual-unit-` scenario, the demo's drives instead, each polled by its template.
+/// `values-` and `mqtt-` scenarios, and the simulated slaves if `device` is the simulated line;
+/// in the `virtual-unit-` scenario, the demo's drives instead, each polled by its template.
 pub(crate) fn bus(scenario: &Scenario, device: &str) -> Bus {
     let f = &scenario.format;
     let masters = connections(scenario);
@@ -134,7 +134,7 @@ pub(crate) fn bus(scenario: &Scenario, device: &str) -> Bus {
     if scenario.in_flight > 1 {
         bus = bus.key("max_in_flight", scenario.in_flight);
     }
-    if scenario.load == Load::Values {
+    if matches!(scenario.load, Load::Values | Load::Mqtt) {
         bus = bus.text(&plant::slaves());
     }
     if scenario.load == Load::Virtual {
@@ -158,6 +158,18 @@ impl Gateway {
         scenario: &Scenario,
         device: &str,
         journal: Option<JournalDir>,
+    ) -> Result<Gateway, String> {
+        Gateway::start_with(binary, scenario, device, journal, "").await
+    }
+
+    /// As [`Gateway::start`], with `tables` (TOML: whole tables, such as `[mqtt]`) at the end of
+    /// its configuration.
+    pub(crate) async fn start_with(
+        binary: &Path,
+        scenario: &Scenario,
+        device: &str,
+        journal: Option<JournalDir>,
+        tables: &str,
     ) -> Result<Gateway, String> {
         let listen = free_addr().map_err(|e| e.to_string())?;
         let listen_rtu_over_tcp = free_addr().map_err(|e| e.to_string())?;
@@ -203,6 +215,7 @@ impl Gateway {
         if scenario.load == Load::Virtual {
             text.push_str(&virtual_unit::table(BUS));
         }
+        text.push_str(tables);
         std::fs::write(&path, text).map_err(|e| e.to_string())?;
         let child = Command::new(binary)
             .args(["--config", &path.to_string_lossy(), "run"])

@@ -16,6 +16,11 @@
 //! costs each write against the same load without it. With 100 masters reading a virtual unit
 //! (`virtual-unit-100`), answered from memory while the line polls the values it shows, it
 //! measures the gateway's own rate, latency and CPU per read: no line time, so no efficiency.
+//! With the `values-` scenario's slaves and their values published through a local mosquitto
+//! (`mqtt-247x20`, every value again each 10 s, and `mqtt-1s-247x20`, each second), it measures
+//! the first full publication, the rate of messages received and sent, the gateway's CPU and
+//! memory against the same gateway without `[mqtt]`, the broker's CPU, and the latency of
+//! masters reading beside it, with MQTT and without.
 //! A workspace member of its own: `cargo install` and the Debian package carry only the daemon.
 //!
 //! The modules, in the order a run goes through them: `scenarios` (what to measure),
@@ -25,7 +30,8 @@
 //! sync costs there), `gateway` (the process under test), `virtual_unit` (the drives and the
 //! virtual unit of that scenario, and the wait until it answers), `masters` (the load), `plant`
 //! (no load but the gateway's own polls of plant values: the cost of polling and of each page
-//! serving them), `watch` (its HTTP endpoint: metrics, trace, scraper, pages), `run` (one
+//! serving them), `mqtt` (those values published through a local mosquitto, beside the gateway
+//! without it), `watch` (its HTTP endpoint: metrics, trace, scraper, pages), `run` (one
 //! scenario's warm-up and window), `report` (the figures and their tables).
 
 // The harness times other processes on the real clock, and paces its masters on tokio's
@@ -37,6 +43,7 @@ mod device_server;
 mod gateway;
 mod journal;
 mod masters;
+mod mqtt;
 mod plant;
 mod report;
 mod run;
@@ -183,4 +190,5 @@ fn print_tables(reports: &[report::Report]) {
     report::print_plant_table(reports);
     report::print_journal_table(reports);
     report::print_virtual_table(reports);
+    report::print_mqtt_table(reports);
 }

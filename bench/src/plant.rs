@@ -140,7 +140,7 @@ pub(crate) async fn measure(
 
 /// Wait (at most [`FIRST_PASS_LIMIT`]) until `GET /values` lists no value unread; how many it
 /// lists.
-async fn first_pass(addr: SocketAddr) -> Result<usize, String> {
+pub(crate) async fn first_pass(addr: SocketAddr) -> Result<usize, String> {
     let started = Instant::now();
     loop {
         let listed = listing(&get(addr, "/values", Acks::Delayed).await?)?;

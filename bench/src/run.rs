@@ -2,7 +2,8 @@
 //! which the masters' completions, the gateway's CPU time, (on a timed line) its metrics and
 //! (with an audit journal) the journal's growth are taken; on the tcp-device line with reads, one
 //! direct client before and modbus-proxy after; with no master but plant values to poll, `plant`'s;
-//! with masters reading a virtual unit, a wait first until it answers (`virtual_unit`).
+//! with masters reading a virtual unit, a wait first until it answers (`virtual_unit`); with the
+//! plant values published over MQTT, `mqtt`'s, which starts its own two gateways.
 //! The figures are `report`'s.
 
 use crate::beside;
@@ -10,6 +11,7 @@ use crate::device_server::DeviceServer;
 use crate::gateway::{cpu_time, rss_mb, Gateway};
 use crate::journal::JournalDir;
 use crate::masters::{connect_all, master, priority_connect, untimed_slave, Done, Served};
+use crate::mqtt;
 use crate::plant;
 use crate::report::Report;
 use crate::scenarios::{Journal, Line, Load, Scenario, READ_10, WRITE_1};
@@ -100,6 +102,16 @@ impl FarEnd {
 
 /// Run scenario `s` on the gateway binary at `binary`.
 pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report, String> {
+    if s.load == Load::Mqtt {
+        // Two gateways of its own, one after the other, on the simulated line.
+        let window = mqtt::measure(cli, binary, s, "sim").await?;
+        return Ok(Report::mqtt(s, &window));
+    }
+    run_gateway(cli, binary, s).await
+}
+
+/// Run scenario `s` (any but the MQTT load) on one gateway, the binary at `binary`.
+async fn run_gateway(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report, String> {
     let timing = LineTiming::new(&s.format);
     let FarEnd {
         device,

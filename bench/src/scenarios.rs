@@ -172,6 +172,10 @@ pub(crate) enum Load {
     /// Every master reads the whole of a virtual unit, back to back: answered from memory, from
     /// the values the gateway polls of the drives on the line (`virtual_unit`), no line time.
     Virtual,
+    /// The `Values` load's slaves, their values published through a local mosquitto
+    /// (`[mqtt]`), measured beside the same gateway without it; the masters read at a period
+    /// beside the polls (`mqtt`).
+    Mqtt,
 }
 
 /// The gateway's audit journal (`[audit]`), which takes an entry for every write before it is
@@ -233,6 +237,8 @@ pub(crate) struct Scenario {
     /// (`[[server.serial]]`, a `pty:` port with `priority = true`), not a TCP connection.
     pub(crate) priority_on_port: bool,
     pub(crate) journal: Journal,
+    /// The MQTT load's `[mqtt] publish_interval`.
+    pub(crate) publish_interval: Option<Duration>,
 }
 
 impl Scenario {
@@ -258,6 +264,7 @@ impl Scenario {
             priority: None,
             priority_on_port: false,
             journal: Journal::Off,
+            publish_interval: None,
         }
     }
 }
@@ -333,6 +340,20 @@ pub(crate) fn scenarios() -> Vec<Scenario> {
             Load::Idle,
         ));
     }
+    plant_scenarios(&mut all);
+    // 100 masters reading a virtual unit, on the demo's 9600 8E1 line whose drives it shows.
+    all.push(Scenario::sim(
+        "virtual-unit-100".to_owned(),
+        format(9600, Parity::Even),
+        100,
+        Load::Virtual,
+    ));
+    all
+}
+
+/// The gateway polling plant values with no master, on the simulated line and behind a device
+/// server; and the same values published over MQTT, with masters reading beside.
+fn plant_scenarios(all: &mut Vec<Scenario>) {
     // The gateway polling plant values with no master; behind a device server, the simulated
     // slaves' CPU is `simulate`'s, so the gateway's own cost of polling shows.
     let name = format!("values-{SLAVES}x{}", PLANT_VALUES.len());
@@ -343,14 +364,20 @@ pub(crate) fn scenarios() -> Vec<Scenario> {
         ..Scenario::sim(String::new(), values.format, 0, Load::Values)
     };
     all.extend([values, twin]);
-    // 100 masters reading a virtual unit, on the demo's 9600 8E1 line whose drives it shows.
-    all.push(Scenario::sim(
-        "virtual-unit-100".to_owned(),
-        format(9600, Parity::Even),
-        100,
-        Load::Virtual,
-    ));
-    all
+    // The same values published through a local mosquitto, with masters reading beside: every
+    // value again each 10 s (the poll interval; the simulated values never change, so that is
+    // the steady rate), then each second, the least `publish_interval` takes.
+    for (interval, label) in [(10, ""), (1, "-1s")] {
+        all.push(Scenario {
+            publish_interval: Some(Duration::from_secs(interval)),
+            ..Scenario::sim(
+                format!("mqtt{label}-{SLAVES}x{}", PLANT_VALUES.len()),
+                format(115_200, Parity::None),
+                crate::mqtt::MASTERS,
+                Load::Mqtt,
+            )
+        });
+    }
 }
 
 /// Modbus TCP masters reading (and writing) on the simulated RTU and ASCII lines; for 1 and 100

@@ -106,15 +106,21 @@ pub(crate) async fn get(addr: SocketAddr, path: &str, acks: Acks) -> Result<Stri
 
 /// The sum of the samples of `name` on the bench's bus with every one of `labels`.
 pub(crate) fn sample(page: &str, name: &str, labels: &[&str]) -> f64 {
+    let mut on_bus = labels.to_vec();
+    on_bus.push("bus=\"bench\"");
+    sample_any(page, name, &on_bus)
+}
+
+/// The sum of the samples of `name` with every one of `labels`, whatever their bus, if any (the
+/// MQTT metrics have none).
+pub(crate) fn sample_any(page: &str, name: &str, labels: &[&str]) -> f64 {
     page.lines()
         .filter(|l| !l.starts_with('#'))
         .filter_map(|l| {
             let (series, value) = l.rsplit_once(' ')?;
             let (metric, set) = series.split_once('{').unwrap_or((series, ""));
-            (metric == name
-                && set.contains("bus=\"bench\"")
-                && labels.iter().all(|x| set.contains(x)))
-            .then(|| value.parse::<f64>().ok())?
+            (metric == name && labels.iter().all(|x| set.contains(x)))
+                .then(|| value.parse::<f64>().ok())?
         })
         .sum()
 }

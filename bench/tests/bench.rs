@@ -380,3 +380,84 @@ fn masters_reading_a_virtual_unit_are_answered_from_memory_every_read_normally()
         );
     }
 }
+
+/// mosquitto and its clients, as the MQTT scenarios need them; if one is missing, nothing to
+/// check (what test-support's `tool` says, and it fails the test if MBGW_REQUIRE_TOOLS is set).
+fn mosquitto_installed() -> bool {
+    let broker = std::path::Path::new("/usr/sbin/mosquitto").is_file()
+        || test_support::process::tool("mosquitto").is_some();
+    let clients = ["mosquitto_sub", "mosquitto_pub"].map(test_support::process::tool);
+    broker && clients.iter().all(Option::is_some)
+}
+
+/// The gateway without MQTT first, then publishing to the bench's mosquitto: every value and
+/// discovery config received, nothing lost, the masters read beside both. About 30 s: two first
+/// passes of 9 s and two short windows each.
+#[test]
+fn the_mqtt_scenario_receives_every_value_and_config_and_measures_the_masters_beside_both() {
+    if !mosquitto_installed() {
+        return;
+    }
+    let scenario = "mqtt-247x20";
+    let mut dir = String::new();
+    let mqtt = bench_json(&[scenario], |id| dir = format!("mbgw-mosquitto-{id}-")).remove(0);
+    assert_eq!(mqtt["scenario"], scenario);
+    assert_eq!(mqtt["plant_values"].as_u64(), Some(247 * 20), "{mqtt}");
+    assert_eq!(mqtt["publish_interval_s"].as_f64(), Some(10.0), "{mqtt}");
+    for (field, topics) in [
+        ("value_topics", 247 * 20),
+        ("discovery_topics", 247 * 20),
+        ("availability_topics", 247),
+    ] {
+        assert_eq!(mqtt[field].as_u64(), Some(topics), "{field}: {mqtt}");
+    }
+    // The status, every config, value and availability: the first publication came whole.
+    let first = mqtt["first_publication_messages"].as_u64().unwrap();
+    assert!(first > 2 * 247 * 20 + 247, "{mqtt}");
+    // The gateway counts a message as it leaves, the subscriber as it comes: at the end, about
+    // the same (not exactly: some are on their way either side of the count).
+    for field in ["published", "received"] {
+        assert!(mqtt[field].as_u64().unwrap() >= first, "{field}: {mqtt}");
+    }
+    assert_eq!(mqtt["mqtt_connected"].as_u64(), Some(1), "{mqtt}");
+    for field in ["dropped", "set_refused", "connection_failures"] {
+        assert_eq!(mqtt[field].as_u64(), Some(0), "{field}: {mqtt}");
+    }
+    for field in [
+        "first_pass_s",
+        "first_pass_s_without_mqtt",
+        "discovery_s",
+        "first_publication_s",
+        "poll_cpu_ms_per_s",
+        "poll_cpu_ms_per_s_without_mqtt",
+        "rss_polling_mb",
+        "rss_polling_mb_without_mqtt",
+        "p50_ms",
+        "p99_ms",
+        "p50_ms_without_mqtt",
+        "p99_ms_without_mqtt",
+        "tx_per_s_without_mqtt",
+        "masters_cpu_ms_per_s",
+    ] {
+        assert!(
+            mqtt[field].as_f64().is_some_and(|v| v > 0.0),
+            "{field}: {mqtt}"
+        );
+    }
+    // A one-second window may fall between two rounds of republishing: rates, not positive ones.
+    for field in ["received_per_s", "published_per_s", "broker_cpu_ms_per_s"] {
+        assert!(mqtt[field].as_f64().is_some(), "{field}: {mqtt}");
+    }
+    assert!(mqtt["transactions"].as_u64().unwrap() > 0, "{mqtt}");
+    // The broker's temp dir is removed with it.
+    let left = std::fs::read_dir(std::env::temp_dir())
+        .unwrap()
+        .filter_map(|e| e.ok()?.file_name().into_string().ok())
+        .filter(|name| name.starts_with(&dir))
+        .count();
+    assert_eq!(left, 0, "the broker's dir is left behind");
+    assert!(
+        processes_mentioning(&dir).is_empty(),
+        "mosquitto still runs"
+    );
+}

@@ -1,7 +1,7 @@
 //! How a run's figures are shown: the table of every scenario, one row each as it ends, then the
 //! own tables of the scenarios that have them (line, priority, scrape, device-server, tcp-device,
-//! plant-values, journal, virtual-unit). It formats what `Report` holds, and a few ratios of one
-//! scenario's figures to its twin's; the figures themselves are computed in the parent module.
+//! plant-values, journal, virtual-unit, MQTT). It formats what `Report` holds, and a few ratios of
+//! one scenario's figures to its twin's; the figures themselves are computed in the parent module.
 
 use super::Report;
 
@@ -395,6 +395,77 @@ pub(crate) fn print_virtual_table(reports: &[Report]) {
             v.exceptions,
             cell(v.line_polls_per_s, 1),
             cell(r.line_tx_per_s, 1),
+        );
+    }
+}
+
+/// The MQTT scenarios' own columns: the first publication, the steady rate, and the gateway with
+/// MQTT beside itself without it (`w/o`): CPU while it only polls, memory, and the latency of the
+/// masters reading beside it.
+pub(crate) fn print_mqtt_table(reports: &[Report]) {
+    for r in reports {
+        let Some(m) = &r.mqtt else {
+            continue;
+        };
+        println!(
+            "\n{:<33} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>8} {:>9} {:>8} {:>8} {:>7} {:>7}",
+            "scenario (MQTT)",
+            "values",
+            "every s",
+            "gap s",
+            "max gap",
+            "pass s",
+            "discov s",
+            "publ s",
+            "discov/s",
+            "recv/s",
+            "sent/s",
+            "peak/s",
+            "dropped"
+        );
+        println!(
+            "{:<33} {:>7} {:>7.0} {:>7} {:>7} {:>7.1} {:>8} {:>8} {:>9} {:>8.1} {:>8.1} {:>7} {:>7}",
+            r.scenario,
+            m.plant_values,
+            m.publish_interval_s,
+            cell(m.value_gap_mean_s, 2),
+            cell(m.value_gap_max_s, 2),
+            m.first_pass_s,
+            cell(m.discovery_s, 2),
+            cell(m.first_publication_s, 2),
+            cell(m.discovery_msgs_per_s, 0),
+            m.received_per_s,
+            m.published_per_s,
+            m.peak_received_per_s,
+            m.dropped
+        );
+        println!(
+            "{:<33} {:>9} {:>9} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}",
+            "with MQTT / without",
+            "cpu ms/s",
+            "w/o",
+            "us/msg",
+            "broker",
+            "rss MB",
+            "w/o",
+            "p50 ms",
+            "w/o",
+            "p99 ms",
+            "w/o"
+        );
+        println!(
+            "{:<33} {:>9.2} {:>9.2} {:>8} {:>8} {:>8.1} {:>8.1} {:>8} {:>8} {:>8} {:>8}",
+            format!("{} masters every {:.0} ms", r.masters, m.master_period_ms),
+            m.poll_cpu_ms_per_s,
+            m.poll_cpu_ms_per_s_without_mqtt,
+            cell(m.mqtt_cpu_us_per_message, 1),
+            cell(m.broker_cpu_ms_per_s, 2),
+            m.rss_polling_mb,
+            m.rss_polling_mb_without_mqtt,
+            cell(r.p50_ms, 2),
+            cell(m.p50_ms_without_mqtt, 2),
+            cell(r.p99_ms, 2),
+            cell(m.p99_ms_without_mqtt, 2),
         );
     }
 }
