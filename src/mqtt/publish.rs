@@ -27,8 +27,6 @@ use tracing::debug;
 const SCAN_GAP: Duration = Duration::from_millis(50);
 /// How soon a message the client could not take yet is offered again.
 const RETRY: Duration = Duration::from_millis(20);
-/// How often the store is looked at anyway, for the values due again by `publish_interval`.
-const TICK: Duration = Duration::from_secs(1);
 /// A set's result waiting to be published.
 const RESULTS: usize = 64;
 
@@ -137,6 +135,8 @@ struct Publisher {
     discovery: HashSet<Arc<str>>,
     samples: Vec<Sample>,
     results: mpsc::Sender<(Arc<str>, String)>,
+    /// When the first value is due again by `publish_interval`.
+    next_due: Instant,
 }
 
 /// Publish for as long as the gateway runs, hearing the connection on `link`.
@@ -145,6 +145,7 @@ pub(super) async fn run(mut parts: Parts, mut link: mpsc::Receiver<FromBroker>) 
     let mut catalogues = parts.catalogues.clone();
     let catalogue = parts.catalogues.borrow_and_update().clone();
     let (results, mut finished) = mpsc::channel(RESULTS);
+    let parts_interval = parts.settings.publish_interval;
     let mut publisher = Publisher {
         qos: link::qos(&parts.settings),
         parts,
@@ -157,9 +158,9 @@ pub(super) async fn run(mut parts: Parts, mut link: mpsc::Receiver<FromBroker>) 
         discovery: HashSet::new(),
         samples: Vec::new(),
         results,
+        next_due: Instant::now() + parts_interval,
     };
     publisher.reconfigure(catalogue);
-    let mut tick = tokio::time::interval(TICK);
     let (mut scan_due, mut next_scan) = (true, Instant::now());
     loop {
         let waiting = publisher.connected && publisher.outbox.len() > 0;
@@ -174,7 +175,10 @@ pub(super) async fn run(mut parts: Parts, mut link: mpsc::Receiver<FromBroker>) 
                 scan_due = true;
             }
             () = store.changed(), if !scan_due => scan_due = true,
-            _ = tick.tick() => scan_due = true,
+            // The first value due again by `publish_interval`, unchanged.
+            () = crate::timer::coarse_sleep_until(publisher.next_due), if !scan_due => {
+                scan_due = true;
+            }
             () = crate::timer::coarse_sleep_until(next_scan), if scan_due => {
                 publisher.scan();
                 scan_due = false;
@@ -236,10 +240,14 @@ impl Publisher {
                 let _ = client.try_subscribe(filter, QoS::AtMostOnce);
             }
         }
+        // The broker hands over the retained discovery configs at the subscription; the
+        // unsubscription right after it (in order on the connection) spares the gateway the echo
+        // of its own configs, and later traffic of other integrations'.
         if settings.home_assistant {
             for component in ["sensor", "binary_sensor"] {
                 let filter = format!("{}/{component}/+/+/config", settings.discovery_prefix);
-                let _ = client.try_subscribe(filter, QoS::AtMostOnce);
+                let _ = client.try_subscribe(filter.clone(), QoS::AtMostOnce);
+                let _ = client.try_unsubscribe(filter);
             }
         }
         self.outbox
@@ -310,15 +318,18 @@ impl Publisher {
     fn scan(&mut self) {
         let generation = self.parts.store.samples(&mut self.samples);
         let catalogue = self.catalogue.clone();
-        if generation != catalogue.generation {
-            return;
-        }
         let now = Instant::now();
         let interval = self.parts.settings.publish_interval;
+        if generation != catalogue.generation {
+            // The new configuration's catalogue is on its way, and its arrival looks again.
+            self.next_due = now + interval;
+            return;
+        }
         let retain = self.parts.settings.retain;
         let mut failed = vec![false; catalogue.slaves.len()];
         let mut good = vec![false; catalogue.slaves.len()];
         let samples = std::mem::take(&mut self.samples);
+        let mut next_due = now + interval;
         for (at, (item, sample)) in catalogue.values.iter().zip(&samples).enumerate() {
             failed[item.owner] |= sample.failed;
             let Some(value) = sample.value else { continue };
@@ -326,9 +337,12 @@ impl Publisher {
             if due(item.deadband, self.last[at], value, now, interval) {
                 self.last[at] = Some((value, now));
                 self.put(item.topic.clone(), payload(value, item.is_bool()), retain);
+            } else if let Some((_, at)) = self.last[at] {
+                next_due = next_due.min(at + interval);
             }
         }
         self.samples = samples;
+        self.next_due = next_due;
         for (at, slave) in catalogue.slaves.iter().enumerate() {
             let state = if failed[at] {
                 Some(false)
