@@ -266,7 +266,8 @@ fn check_tls(mqtt: &Mqtt, broker: Option<&Broker>, fail: &mut impl FnMut(&str, S
     }
 }
 
-/// Every label of a value published: its value is a topic level.
+/// Every value published: its labels' values are a topic level, its name is not the slave's
+/// availability's.
 fn check_labels(config: &Config, errors: &mut Vec<ConfigError>) {
     // A label's value is a topic level of its value's: no wildcard, no `/`.
     for (i, bus) in config.bus.iter().enumerate() {
@@ -275,6 +276,15 @@ fn check_labels(config: &Config, errors: &mut Vec<ConfigError>) {
                 continue;
             };
             for (value, _) in values {
+                // `PREFIX/BUS/SLAVE/availability` is the slave's own topic.
+                if value.name == "availability" {
+                    errors.push(ConfigError {
+                        key: format!("bus[{i}].slave[{j}]"),
+                        reason: "a value named availability would publish at the slave's \
+                                 availability topic, which [mqtt] keeps for the slave: rename it"
+                            .to_owned(),
+                    });
+                }
                 if let Some((label, text)) = value
                     .labels
                     .iter()
@@ -406,6 +416,19 @@ mod tests {
         let plain = format!("{MINIMAL}\n[mqtt]\nurl = \"mqtt://127.0.0.1\"\nca_file = \"x\"\n");
         assert!(errors_of(&plain).contains("is for an mqtts:// broker"));
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_value_cannot_take_its_slaves_availability_topic() {
+        let text = format!(
+            "{MINIMAL}[[bus.slave]]\naddress = 1\n[[bus.slave.value]]\nname = \"availability\"\n\
+             register = 0\n[mqtt]\nurl = \"mqtt://127.0.0.1\"\n"
+        );
+        let errors = errors_of(&text);
+        assert!(
+            errors.contains("bus[0].slave[0]") && errors.contains("availability topic"),
+            "{errors}"
+        );
     }
 
     fn errors_of(text: &str) -> String {
