@@ -10,112 +10,21 @@
 
 use crate::audit::{self, Audit, Decided, Pending};
 use crate::bus::{BusHandle, Tally, Waiter};
-use crate::config::{Action, Config, UnitSet};
+use crate::config::{Action, Config};
 use crate::error::{Answer, Outcome, RequestError};
-use crate::master::{Class, MasterId, Origin, Peer, Protocol, Rights};
+use crate::master::{Class, MasterId, Origin, Rights};
 use crate::metrics::{Metrics, Refusal};
 use crate::pdu::{self, RequestLen, EXCEPTION_BIT};
 use crate::routing::{Inbound, Router, Target};
 use crate::rules::{self, Rules};
 use crate::values::Store;
 use crate::virtuals::{Declined, SourceWrite, Units, Virtual};
-use std::net::SocketAddr;
+pub(crate) mod client;
+
+pub(crate) use client::{Client, Identity};
 use std::sync::{Arc, PoisonError, RwLock};
 use tokio::sync::oneshot;
 use tokio::time::Instant;
-
-/// The master requests come from: one per connection.
-#[derive(Debug)]
-pub struct Client {
-    pub master: MasterId,
-    pub peer: Peer,
-    pub rights: Rights,
-    /// The unit ids it may address (its TLS role's `units`); `None`: any.
-    pub units: Option<UnitSet>,
-    /// Served before the others (`server.priority`).
-    pub priority: bool,
-    /// How it talks to the gateway: Modbus TCP unless [`Client::speaking`] says otherwise.
-    pub protocol: Protocol,
-    /// Whose share of a full bus queue its requests count against and whose turn on the line
-    /// they take: its own, or one its listener gives all the masters of one source address
-    /// (Modbus UDP).
-    pub admission: MasterId,
-    /// Who a TLS master's certificate says it is.
-    pub identity: Option<Arc<Identity>>,
-    /// The setting that limits its rights, as the journal names it (`server.read_only`,
-    /// `server.tls.roles.NAME`); `None` while it may read and write.
-    pub limited_by: Option<Arc<str>>,
-}
-
-/// A TLS master's certificate: its subject and the role it carries, as written.
-#[derive(Debug)]
-pub struct Identity {
-    pub subject: String,
-    pub role: Option<String>,
-}
-
-impl Client {
-    pub fn new(master: MasterId, peer: SocketAddr, rights: Rights) -> Self {
-        Self::at(master, Peer::Net(peer), rights)
-    }
-
-    /// A master at `peer`, a socket address or a serial master port.
-    pub(crate) fn at(master: MasterId, peer: Peer, rights: Rights) -> Self {
-        Client {
-            master,
-            peer,
-            rights,
-            units: None,
-            priority: false,
-            protocol: Protocol::Tcp,
-            admission: master,
-            identity: None,
-            limited_by: (rights < Rights::ReadWrite).then(|| Arc::from("server.read_only")),
-        }
-    }
-
-    /// The same master, speaking `protocol`.
-    pub fn speaking(self, protocol: Protocol) -> Self {
-        Client { protocol, ..self }
-    }
-
-    /// The same master, served before the others if `priority`.
-    pub(crate) fn prioritised(self, priority: bool) -> Self {
-        Client { priority, ..self }
-    }
-
-    /// The same master, allowed to address `units` only (`None`: any).
-    pub(crate) fn addressing(self, units: Option<UnitSet>) -> Self {
-        Client { units, ..self }
-    }
-
-    /// The same master, with its certificate's `identity`, its rights narrowed to `role_rights`
-    /// by the role `role_key` names (`server.tls.roles.NAME` or
-    /// `server.tls.default_role_access`).
-    pub(crate) fn identified(
-        self,
-        identity: Identity,
-        role_rights: Rights,
-        role_key: String,
-        role_units: bool,
-    ) -> Self {
-        let limited_by = match self.limited_by {
-            Some(by) if self.rights <= role_rights => Some(by),
-            _ if role_rights < Rights::ReadWrite || role_units => Some(Arc::from(role_key)),
-            by => by,
-        };
-        Client {
-            rights: self.rights.min(role_rights),
-            identity: Some(Arc::new(identity)),
-            limited_by,
-            ..self
-        }
-    }
-
-    fn role(&self) -> Option<&str> {
-        self.identity.as_ref().and_then(|i| i.role.as_deref())
-    }
-}
 
 /// The routes, the buses they index, the rules and the virtual units, replaced whole on a
 /// reload.
@@ -222,22 +131,12 @@ impl Dispatcher {
         let table = self.table();
         let emulated = table.virtuals.get(unit);
         let target = table.router.resolve(unit);
-        let inbound = Inbound {
-            peer: &client.peer,
-            protocol: client.protocol,
-            subject: client.identity.as_ref().map(|i| i.subject.as_str()),
-            role: client.role(),
-            unit,
-            bus: target.map(|t| table.buses[t.bus].name()),
-            target,
-            virtual_unit: emulated.map(|v| &*v.name),
-            pdu: &pdu,
-        };
+        let inbound = client.asking(&table, unit, target, emulated.map(|v| &*v.name), &pdu);
         let to = match (emulated, target) {
             (Some(unit), _) => Some(To::Virtual(unit)),
             (None, target) => target.map(To::Bus),
         };
-        self.dispatch(client, &table, &inbound, to)
+        self.dispatch(client, &table, &inbound, to).1
     }
 
     /// `pdu` from `client`, a master that names slaves rather than unit ids (MQTT), to slave
@@ -256,35 +155,22 @@ impl Dispatcher {
             address,
             broadcast: false,
         };
-        let inbound = Inbound {
-            peer: &client.peer,
-            protocol: client.protocol,
-            subject: None,
-            role: None,
-            unit: address,
-            bus: Some(table.buses[index].name()),
-            target: Some(target),
-            virtual_unit: None,
-            pdu,
-        };
-        let decision = table.rules.decide(&inbound);
-        let rule = decision.rule.map(|at| table.rules.name(at).to_owned());
-        let outcome = self.dispatch(client, &table, &inbound, Some(To::Bus(target)));
-        Some((rule, outcome))
+        let inbound = client.asking(&table, address, Some(target), None, pdu);
+        let (by, outcome) = self.dispatch(client, &table, &inbound, Some(To::Bus(target)));
+        Some((by.map(str::to_owned), outcome))
     }
 
     /// `inbound` from `client`, going `to` a slave or a virtual unit (`None`: no route):
-    /// refused unsent, or decided by the first matching rule; a write journaled first.
-    fn dispatch(
+    /// refused unsent, or decided by the first matching rule; a write journaled first. With
+    /// the name of what decided it (a rule, or the setting that limits the master), if anything.
+    fn dispatch<'a>(
         &self,
-        client: &Client,
-        table: &Table,
+        client: &'a Client,
+        table: &'a Table,
         inbound: &Inbound<'_>,
         to: Option<To<'_>>,
-    ) -> oneshot::Receiver<Outcome> {
-        let pdu = inbound.pdu;
-        let function = pdu.first().copied().unwrap_or(0);
-        let (by, admitted) = match admit(client, inbound.unit, pdu, to) {
+    ) -> (Option<&'a str>, oneshot::Receiver<Outcome>) {
+        let (by, admitted) = match admit(client, inbound.unit, inbound.pdu, to) {
             Ok(to) => {
                 let decision = table.rules.decide(inbound);
                 let by = Decided {
@@ -296,6 +182,24 @@ impl Dispatcher {
             // Refused before any rule: journaled with the setting that refused it.
             Err(refusal) => (refused_by(client, refusal), Err(refusal)),
         };
+        (
+            by.rule,
+            self.carry_out(client, table, inbound, by, admitted),
+        )
+    }
+
+    /// `inbound` as `by` decided it (`admitted` where it goes and the rules' decision, or the
+    /// refusal before any rule): journaled, then sent, acknowledged or refused.
+    fn carry_out(
+        &self,
+        client: &Client,
+        table: &Table,
+        inbound: &Inbound<'_>,
+        by: Decided<'_>,
+        admitted: Result<(To<'_>, rules::Decision), RequestError>,
+    ) -> oneshot::Receiver<Outcome> {
+        let pdu = inbound.pdu;
+        let function = pdu.first().copied().unwrap_or(0);
         // Everything that may change a slave is journaled: its entry begins here, and only here.
         let journaled = pdu::is_valid_request_function(function) && !pdu::is_read_only(pdu);
         let pending = match journaled.then(|| self.audit.begin(inbound, by)) {
@@ -393,6 +297,7 @@ impl Dispatcher {
             .map(|write| {
                 let to = Some(To::Bus(write.target));
                 self.dispatch(client, table, &through(table, inbound, write), to)
+                    .1
             })
             .collect();
         let (metrics, units) = (self.metrics.clone(), table.virtuals.clone());

@@ -56,7 +56,8 @@ pub mod trace {
     pub use crate::trace::{Traced, MAX_READERS};
 }
 
-pub use crate::dispatch::{Client, Dispatcher};
+pub use crate::dispatch::client::Client;
+pub use crate::dispatch::Dispatcher;
 pub use crate::master::UpstreamFraming;
 pub use crate::master::{Protocol, Rights};
 pub use crate::net::server::RECENTLY_ANSWERED;

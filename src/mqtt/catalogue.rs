@@ -6,7 +6,7 @@
 use super::discovery;
 use crate::config::{Config, Mqtt, Value, ValueType};
 use crate::values::ValueSpec;
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::sync::Arc;
 
 /// One published value.
@@ -28,16 +28,44 @@ impl Publishable {
             || self.value.kind() == ValueType::Bool
             || self.value.bit.is_some()
     }
-
-    /// Its `set` topic, when it takes one.
-    pub(super) fn writable(&self) -> bool {
-        self.value.writable && !self.value.table.is_read_only()
-    }
 }
 
 /// One slave with values.
 pub(super) struct Owner {
     pub(super) availability: Arc<str>,
+}
+
+/// The slaves with values, as a catalogue is made: each one's place, and its configured values
+/// (read once a slave, not once a value).
+#[derive(Default)]
+struct Slaves<'c> {
+    list: Vec<Owner>,
+    by: HashMap<(Arc<str>, u8), Known<'c>>,
+}
+
+/// A slave's place in [`Slaves::list`] and its configured values.
+type Known<'c> = (usize, Vec<&'c Value>);
+
+impl<'c> Slaves<'c> {
+    /// The place of `spec`'s slave (added if new), and the configured value `spec` is of.
+    fn of(&mut self, prefix: &str, config: &'c Config, spec: &ValueSpec) -> (usize, Option<Value>) {
+        let list = &mut self.list;
+        let (at, values) = self
+            .by
+            .entry((spec.bus.clone(), spec.slave))
+            .or_insert_with(|| {
+                let topic = format!("{prefix}/{}/{}/availability", spec.bus, spec.slave);
+                list.push(Owner {
+                    availability: topic.into(),
+                });
+                let values = config.values_of(&spec.bus, spec.slave).unwrap_or_default();
+                (list.len() - 1, values.into_iter().map(|(v, _)| v).collect())
+            });
+        let value = values
+            .iter()
+            .find(|v| v.name == spec.name && v.labels == spec.labels);
+        (*at, value.map(|v| (*v).clone()))
+    }
 }
 
 /// Everything one configuration publishes.
@@ -56,6 +84,10 @@ pub(super) struct Catalogue {
     pub(super) discovery_prefix: String,
     /// `PREFIX/`: where its values' state topics begin.
     pub(super) state_prefix: Arc<str>,
+    /// Every retained topic it publishes (values, availabilities, discovery configs), and the
+    /// discovery configs' alone.
+    pub(super) retained: HashSet<Arc<str>>,
+    pub(super) configs: HashSet<Arc<str>>,
 }
 
 /// `text` as Home Assistant's ids take it: letters, digits, `_` and `-`.
@@ -93,6 +125,8 @@ impl Catalogue {
             node_prefix: String::new(),
             discovery_prefix: String::new(),
             state_prefix: Arc::from("\0"),
+            retained: HashSet::new(),
+            configs: HashSet::new(),
         }
     }
 
@@ -105,27 +139,15 @@ impl Catalogue {
     ) -> Catalogue {
         let prefix = &settings.topic_prefix;
         let mut values = Vec::with_capacity(specs.len());
-        let mut slaves: Vec<Owner> = Vec::new();
-        let mut owners: HashMap<(Arc<str>, u8), usize> = HashMap::new();
+        let mut slaves = Slaves::default();
         let mut discovery = Vec::new();
         let mut sets = HashMap::new();
         let node_prefix = format!("{}_", id(prefix));
         for spec in specs {
-            let key = (spec.bus.clone(), spec.slave);
-            let owner = *owners.entry(key).or_insert_with(|| {
-                slaves.push(Owner {
-                    availability: format!("{prefix}/{}/{}/availability", spec.bus, spec.slave)
-                        .into(),
-                });
-                slaves.len() - 1
-            });
-            let configured = config.values_of(&spec.bus, spec.slave).and_then(|values| {
-                values
-                    .into_iter()
-                    .find(|(v, _)| v.name == spec.name && v.labels == spec.labels)
-                    .map(|(v, _)| v.clone())
-            });
-            let Some(value) = configured else { continue };
+            let (owner, value) = slaves.of(prefix, config, &spec);
+            let Some(value) = value else {
+                continue;
+            };
             let level = value_level(&spec.name, &spec.labels);
             let topic: Arc<str> = format!("{prefix}/{}/{}/{level}", spec.bus, spec.slave).into();
             let item = Publishable {
@@ -136,7 +158,7 @@ impl Catalogue {
                 value,
                 owner,
             };
-            if settings.writes && item.writable() {
+            if settings.writes && item.value.writable {
                 sets.insert(format!("{}/set", item.topic), values.len());
             }
             if settings.home_assistant {
@@ -147,11 +169,19 @@ impl Catalogue {
                     &item,
                     &spec,
                     model,
-                    &slaves[owner],
+                    &slaves.list[owner],
                 ));
             }
             values.push(item);
         }
+        let slaves = slaves.list;
+        let configs: HashSet<Arc<str>> = discovery.iter().map(|(t, _)| t.clone()).collect();
+        let retained = values
+            .iter()
+            .map(|v| v.topic.clone())
+            .chain(slaves.iter().map(|s| s.availability.clone()))
+            .chain(configs.iter().cloned())
+            .collect();
         Catalogue {
             generation,
             values,
@@ -162,6 +192,8 @@ impl Catalogue {
             node_prefix,
             discovery_prefix: settings.discovery_prefix.clone(),
             state_prefix: format!("{prefix}/").into(),
+            retained,
+            configs,
         }
     }
 
@@ -173,26 +205,18 @@ impl Catalogue {
         };
         let mut levels = rest.trim_start_matches('/').split('/');
         let (_component, node) = (levels.next(), levels.next());
-        let ours =
-            node.is_some_and(|n| n.starts_with(&self.node_prefix)) && topic.ends_with("/config");
+        if !(node.is_some_and(|n| n.starts_with(&self.node_prefix)) && topic.ends_with("/config")) {
+            return false;
+        }
         #[derive(serde::Deserialize)]
-        struct Config<'a> {
+        struct Discovered<'a> {
             #[serde(borrow)]
             state_topic: Option<std::borrow::Cow<'a, str>>,
         }
-        let state = serde_json::from_slice::<Config<'_>>(config)
+        let state = serde_json::from_slice::<Discovered<'_>>(config)
             .ok()
             .and_then(|c| c.state_topic);
-        ours && state.is_some_and(|t| t.starts_with(&*self.state_prefix))
-    }
-
-    /// Every retained topic it publishes: values, availabilities, discovery configs.
-    pub(super) fn retained_topics(&self) -> impl Iterator<Item = &Arc<str>> {
-        let values = self.values.iter().map(|v| &v.topic);
-        let slaves = self.slaves.iter().map(|s| &s.availability);
-        values
-            .chain(slaves)
-            .chain(self.discovery.iter().map(|(t, _)| t))
+        state.is_some_and(|t| t.starts_with(&*self.state_prefix))
     }
 }
 

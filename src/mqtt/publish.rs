@@ -15,7 +15,7 @@ use crate::metrics::{MqttMessage, MqttMetrics};
 use crate::net::server::Shared;
 use crate::values::{Sample, Store};
 use rumqttc::{AsyncClient, Publish, QoS};
-use std::collections::{HashMap, HashSet, VecDeque};
+use std::collections::{HashMap, VecDeque};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::sync::{mpsc, watch};
@@ -98,6 +98,15 @@ pub(super) fn due(
     changed || now.duration_since(at) >= interval
 }
 
+/// What was said of each of `now`'s topics, carried from `said` of the same topic among
+/// `before`'s; `None` for a topic that is new.
+fn carried<T: Copy>(before: &[Arc<str>], said: &[Option<T>], now: &[Arc<str>]) -> Vec<Option<T>> {
+    let said: HashMap<&Arc<str>, Option<T>> = before.iter().zip(said.iter().copied()).collect();
+    now.iter()
+        .map(|topic| said.get(topic).copied().flatten())
+        .collect()
+}
+
 /// A value's payload: the plain decimal number (0 or 1 for a bit).
 pub(super) fn payload(value: f64, is_bool: bool) -> String {
     if is_bool {
@@ -130,9 +139,6 @@ struct Publisher {
     last: Vec<Option<(f64, Instant)>>,
     /// Per slave: online, offline, or not said yet.
     availability: Vec<Option<bool>>,
-    /// Every retained topic of the catalogue and which are discovery configs.
-    retained: HashSet<Arc<str>>,
-    discovery: HashSet<Arc<str>>,
     samples: Vec<Sample>,
     results: mpsc::Sender<(Arc<str>, String)>,
     /// When the first value is due again by `publish_interval`.
@@ -154,8 +160,6 @@ pub(super) async fn run(mut parts: Parts, mut link: mpsc::Receiver<FromBroker>) 
         outbox: Outbox::default(),
         last: Vec::new(),
         availability: Vec::new(),
-        retained: HashSet::new(),
-        discovery: HashSet::new(),
         samples: Vec::new(),
         results,
         next_due: Instant::now() + parts_interval,
@@ -268,50 +272,33 @@ impl Publisher {
     /// Publish what `catalogue` says from now on; clear what the one before published and this
     /// one does not.
     fn reconfigure(&mut self, catalogue: Arc<Catalogue>) {
-        let retained: HashSet<Arc<str>> = catalogue.retained_topics().cloned().collect();
-        let gone: Vec<Arc<str>> = self.retained.difference(&retained).cloned().collect();
-        for topic in gone {
-            self.put(topic, String::new(), true);
+        let old = std::mem::replace(&mut self.catalogue, catalogue.clone());
+        for topic in old.retained.difference(&catalogue.retained) {
+            self.put(topic.clone(), String::new(), true);
         }
         // What stays the same keeps what was published of it: a reload that changes nothing
         // publishes nothing.
-        let old = std::mem::replace(&mut self.catalogue, catalogue.clone());
-        let last: HashMap<&str, Option<(f64, Instant)>> = old
-            .values
-            .iter()
-            .zip(&self.last)
-            .map(|(item, last)| (&*item.topic, *last))
-            .collect();
-        self.last = catalogue
-            .values
-            .iter()
-            .map(|item| last.get(&*item.topic).copied().flatten())
-            .collect();
-        let said: HashMap<&str, Option<bool>> = old
-            .slaves
-            .iter()
-            .zip(&self.availability)
-            .map(|(slave, said)| (&*slave.availability, *said))
-            .collect();
-        self.availability = catalogue
-            .slaves
-            .iter()
-            .map(|slave| said.get(&*slave.availability).copied().flatten())
-            .collect();
-        let configs: HashMap<&str, &str> = old
-            .discovery
-            .iter()
-            .map(|(topic, config)| (&**topic, config.as_str()))
-            .collect();
+        let values = |c: &Catalogue| c.values.iter().map(|v| v.topic.clone()).collect::<Vec<_>>();
+        let slaves = |c: &Catalogue| {
+            c.slaves
+                .iter()
+                .map(|s| s.availability.clone())
+                .collect::<Vec<_>>()
+        };
+        self.last = carried(&values(&old), &self.last, &values(&catalogue));
+        self.availability = carried(&slaves(&old), &self.availability, &slaves(&catalogue));
         if self.connected {
+            let before: HashMap<&str, &str> = old
+                .discovery
+                .iter()
+                .map(|(topic, config)| (&**topic, config.as_str()))
+                .collect();
             for (topic, config) in &catalogue.discovery {
-                if configs.get(&**topic) != Some(&config.as_str()) {
+                if before.get(&**topic) != Some(&config.as_str()) {
                     self.outbox.put(topic.clone(), config.clone(), true);
                 }
             }
         }
-        self.discovery = catalogue.discovery.iter().map(|(t, _)| t.clone()).collect();
-        self.retained = retained;
     }
 
     /// Look at the store: the values due, the availabilities changed.
@@ -368,7 +355,7 @@ impl Publisher {
         } else if message.retain
             && !message.payload.is_empty()
             && self.catalogue.is_ours(&message.topic, &message.payload)
-            && !self.discovery.contains(message.topic.as_str())
+            && !self.catalogue.configs.contains(message.topic.as_str())
         {
             // A value no longer configured: its config is cleared, and Home Assistant drops it.
             self.put(message.topic.as_str().into(), String::new(), true);
