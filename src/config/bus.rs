@@ -4,6 +4,7 @@
 
 use super::defaults;
 use super::device::DeviceName;
+use super::listen::{BusMode, SimMaster};
 use super::serde_adapters::{
     duration, is_false, is_true, is_zero, is_zero_f64, is_zero_usize, opt_duration,
 };
@@ -30,6 +31,13 @@ pub struct Bus {
     /// `rtu` or `ascii`: how frames look on this line.
     #[serde(default)]
     pub framing: Framing,
+    /// `master`: the gateway drives the line; `listen`: another master does, and the gateway
+    /// never transmits on it.
+    #[serde(default, skip_serializing_if = "BusMode::is_master")]
+    pub mode: BusMode,
+    /// A listen line: how old what it saw may be when a master reads it.
+    #[serde(default = "defaults::listen_max_age", with = "duration")]
+    pub max_age: Duration,
     /// 7 or 8; left out: 8 for RTU, 7 for ASCII (filled in by `resolve`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub data_bits: Option<u8>,
@@ -125,6 +133,9 @@ pub struct Bus {
     pub slave: Vec<Slave>,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub sim_slave: Vec<SimSlave>,
+    /// A simulated listen line: the other master, whose traffic the gateway hears.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sim_master: Option<SimMaster>,
 }
 
 /// Per-slave overrides of the bus settings.

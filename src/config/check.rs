@@ -272,6 +272,7 @@ fn check_bus(
     check_device(bus, &key, report);
     check_line(bus, &key, report);
     check_serial_driver(bus, &key, report);
+    super::listen::check(bus, &key, &mut report.0);
     check_slaves(i, bus, report);
     if !bus.sim_slave.is_empty() && !bus.is_sim() {
         report.fail(

@@ -167,3 +167,7 @@ mod tests {
         assert_eq!(stop_bits(Parity::Odd), 1);
     }
 }
+/// A listen line's shadow data older than this is not served: most masters poll more often.
+pub(crate) fn listen_max_age() -> Duration {
+    Duration::from_secs(10)
+}

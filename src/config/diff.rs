@@ -74,6 +74,18 @@ impl ConfigDiff {
         if new.server.listen_tls != old.server.listen_tls {
             need_restart.push("server.listen_tls");
         }
+        // A line's mode is its task's for life: a listen line must never become a master's by a
+        // reload, nor the other way.
+        let mode_of = |config: &Config, name: &str| {
+            config.bus.iter().find(|b| b.name == name).map(|b| b.mode)
+        };
+        if new
+            .bus
+            .iter()
+            .any(|b| mode_of(old, &b.name).is_some_and(|m| m != b.mode))
+        {
+            need_restart.push("bus.mode");
+        }
         if new.server.serial != old.server.serial {
             need_restart.push("server.serial");
         }
