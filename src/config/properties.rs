@@ -340,6 +340,9 @@ fn bus() -> impl Strategy<Value = Bus> {
                 max_in_flight: 1,
                 tls: None,
                 poll_share: crate::config::defaults::poll_share(),
+                mode: crate::config::BusMode::Master,
+                max_age: crate::config::defaults::listen_max_age(),
+                sim_master: None,
             };
             if bus.transport().is_network() {
                 bus.packing_delay = down.3;
