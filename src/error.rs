@@ -71,6 +71,16 @@ pub enum RequestError {
     /// (0x03), or a value too old (0x0B). Nothing was sent.
     #[error("the virtual unit answers it with exception {0:?}; nothing was sent")]
     Emulated(ExceptionCode),
+    /// A listen-only line's answer to anything that is not a read: nothing is sent on it.
+    #[error("function code {0:#04x} refused: the line is listen-only (mode = \"listen\"); nothing is sent on it")]
+    ListenOnly(u8),
+    /// A listen-only line's answer to a read of registers its other master has not read within
+    /// `max_age`, or never.
+    #[error("not seen on the listen-only line within its max_age; nothing was sent")]
+    Unseen,
+    /// A listen-only line's answer to a read of no registers or more than a read may take.
+    #[error("function code {0:#04x}: a read of a quantity no slave answers; nothing was sent")]
+    Unreadable(u8),
     #[error("function code {0:#04x} cannot be broadcast")]
     NotBroadcastable(u8),
     #[error("serial port is down")]
@@ -99,7 +109,9 @@ impl RequestError {
             | RequestError::ReadOnly(_)
             | RequestError::NoAccess(_)
             | RequestError::Unverifiable(_)
-            | RequestError::UnitNotPermitted(_) => ExceptionCode::IllegalFunction,
+            | RequestError::UnitNotPermitted(_)
+            | RequestError::ListenOnly(_) => ExceptionCode::IllegalFunction,
+            RequestError::Unreadable(_) => ExceptionCode::IllegalDataValue,
             RequestError::Denied {
                 registers: false, ..
             } => ExceptionCode::IllegalFunction,
@@ -114,9 +126,9 @@ impl RequestError {
             | RequestError::Unrecorded(_)
             | RequestError::ShuttingDown => ExceptionCode::GatewayPathUnavailable,
             RequestError::QueueFull | RequestError::Expired => ExceptionCode::ServerDeviceBusy,
-            RequestError::NoResponse { .. } | RequestError::SlaveDown { .. } => {
-                ExceptionCode::GatewayTargetFailedToRespond
-            }
+            RequestError::NoResponse { .. }
+            | RequestError::SlaveDown { .. }
+            | RequestError::Unseen => ExceptionCode::GatewayTargetFailedToRespond,
         }
     }
 }

@@ -24,8 +24,13 @@ const BACKLOG: usize = 1024;
 pub enum Direction {
     /// Gateway to slave.
     Tx,
-    /// Slave (or anything else on the line) to gateway.
+    /// Slave (or anything else on the line) to gateway; on a listen line, what paired with
+    /// nothing.
     Rx,
+    /// On a listen-only line: the other master's request, heard.
+    Request,
+    /// On a listen-only line: a slave's reply to it, heard.
+    Reply,
 }
 
 /// The `outcome` of a frame that answered no request of the gateway's: another slave's reply, a

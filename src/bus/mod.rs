@@ -15,12 +15,14 @@
 
 pub(crate) mod device;
 pub(crate) mod health;
+mod listen;
 mod outage;
 mod pipelined;
 pub(crate) mod queue;
 mod ready;
 mod reconfigure;
 mod serve;
+pub(crate) mod shadow;
 mod task;
 mod transaction;
 mod waiter;
@@ -100,6 +102,9 @@ pub struct BusHandle {
     /// The line's time the gateway's polls have taken so far, in nanoseconds: what a poll led
     /// took from its first frame to its end, retries included.
     poll_time: Arc<AtomicU64>,
+    /// A listen-only line's shadow of its slaves, which answers every request to it: such a
+    /// line never queues anything.
+    shadow: Option<Arc<shadow::Shadow>>,
 }
 
 impl BusHandle {
@@ -109,6 +114,11 @@ impl BusHandle {
 
     pub fn metrics(&self) -> &BusMetrics {
         &self.metrics
+    }
+
+    /// A listen-only line's shadow, if this is one.
+    pub(crate) fn shadow(&self) -> Option<&Arc<shadow::Shadow>> {
+        self.shadow.as_ref()
     }
 
     /// Requests waiting in its queue now.
@@ -225,6 +235,11 @@ impl BusHandle {
         };
         let (waiter, outcome) = Waiter::new(origin, deadline);
         let mut job = Job::new(waiter.journaled(pending), slave, pdu);
+        if let Some(shadow) = &self.shadow {
+            let answered = shadow.answer(slave, &job.pdu, Instant::now());
+            self.answer(job, answered.map(Answer::Reply));
+            return outcome;
+        }
         job.coalesce = coalesce;
         if !self.is_up() {
             self.answer(job, Err(RequestError::PortDown));

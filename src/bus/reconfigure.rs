@@ -107,7 +107,12 @@ impl Derived {
                 Duration::ZERO
             },
             down: super::health::DownPolicy {
-                after: settings.slave_down_after,
+                // A listen line sends no probes: a slave is answering or not, never left alone.
+                after: if settings.mode == config::BusMode::Listen {
+                    0
+                } else {
+                    settings.slave_down_after
+                },
                 probe_interval: settings.slave_probe_interval,
             },
         };
@@ -151,7 +156,9 @@ impl Current {
 
     /// Take `update`, and pass on what others read of it through `handle`. Returns whether the
     /// port must be reopened.
-    pub(super) fn apply(&mut self, update: Reconfigure, handle: &BusHandle) -> bool {
+    pub(super) fn apply(&mut self, mut update: Reconfigure, handle: &BusHandle) -> bool {
+        // A line's mode is its task's for life (a change takes a restart).
+        update.settings.mode = self.settings.mode;
         let reopen = needs_reopen(&self.device, &self.settings, &update);
         self.derived = Derived::of(&update.settings);
         *handle

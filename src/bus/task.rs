@@ -102,6 +102,8 @@ impl BusTask {
             }),
             attempted: Arc::new(tokio::sync::Notify::new()),
             poll_time: Arc::default(),
+            shadow: (settings.mode == config::BusMode::Listen)
+                .then(|| Arc::new(super::shadow::Shadow::new(settings.max_age))),
         };
         BusTask {
             outages: Outages::new(settings.reopen_delay),
@@ -187,7 +189,9 @@ impl BusTask {
         self.adjust_latency_timer();
         self.told_wrong_mode = false;
         self.told_mismatch = false;
-        let end = if self.current.settings.max_in_flight > 1 {
+        let end = if let Some(shadow) = self.handle.shadow.clone() {
+            self.serve_listening(port, &shadow, stopping).await
+        } else if self.current.settings.max_in_flight > 1 {
             self.serve_pipelined(port, stopping).await
         } else {
             let master = self.master_on(port);

@@ -209,22 +209,33 @@ impl BusTask {
     /// Tell the slave's health how the request ended, and the metrics what changed; an answer
     /// shows the port serves.
     pub(super) fn record(&mut self, job: &Job, outcome: &Outcome) {
+        self.record_of(job.slave, job.function(), Response::of(outcome), outcome);
+    }
+
+    /// [`BusTask::record`] for a request to `slave` of `function` that got `response`, as
+    /// `outcome` says it.
+    pub(super) fn record_of(
+        &mut self,
+        slave: u8,
+        function: u8,
+        response: Response,
+        outcome: &Outcome,
+    ) {
         let down = self.current.derived.down;
-        let response = Response::of(outcome);
         if response == Response::Answered {
             self.served();
         }
         let change = self
             .health
-            .record(job.slave, job.function(), response, Instant::now(), down);
+            .record(slave, function, response, Instant::now(), down);
         let metrics = &self.handle.metrics;
         match change {
             Change::None => {}
-            Change::Answering => metrics.slave_answering(job.slave, false),
-            Change::Up => metrics.slave_answering(job.slave, true),
-            Change::Failing => metrics.slave_failing(job.slave, outcome),
+            Change::Answering => metrics.slave_answering(slave, false),
+            Change::Up => metrics.slave_answering(slave, true),
+            Change::Failing => metrics.slave_failing(slave, outcome),
             Change::Down { timeouts } => {
-                metrics.slave_down(job.slave, timeouts, down.probe_interval);
+                metrics.slave_down(slave, timeouts, down.probe_interval);
             }
         }
     }

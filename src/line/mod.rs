@@ -9,6 +9,7 @@ pub(crate) mod ascii;
 pub(crate) mod engine;
 pub(crate) mod framing;
 pub(crate) mod inbound;
+pub(crate) mod listen;
 pub(crate) mod pipeline;
 pub(crate) mod reply;
 pub mod rtu;

@@ -107,7 +107,10 @@ impl Fate {
                 let fate = match error {
                     RequestError::InvalidFunction(_)
                     | RequestError::NotBroadcastable(_)
-                    | RequestError::Emulated(_) => Fate::Refused,
+                    | RequestError::Emulated(_)
+                    | RequestError::ListenOnly(_)
+                    | RequestError::Unseen
+                    | RequestError::Unreadable(_) => Fate::Refused,
                     RequestError::ReadOnly(_) => Fate::ReadOnly,
                     RequestError::BadLength { .. } => Fate::BadLength,
                     RequestError::NoAccess(_)
@@ -293,11 +296,11 @@ impl Closing {
 
 /// The label value of what a master chose and the configuration does not bound: a unit id
 /// nobody answers at, a function code the gateway does not know.
-pub(super) const OTHER: &str = "other";
+pub(in crate::metrics) const OTHER: &str = "other";
 
 /// The `function` label of a request: its code, as the spec writes it, if the gateway knows
 /// the function, else [`OTHER`]; so no master can make more series than the table has rows.
-pub(super) fn function(code: u8) -> &'static str {
+pub(in crate::metrics) fn function(code: u8) -> &'static str {
     if crate::pdu::function(code).is_some() {
         hex(code)
     } else {
@@ -306,13 +309,13 @@ pub(super) fn function(code: u8) -> &'static str {
 }
 
 /// Label values for addresses and codes, made once: the request path formats nothing.
-pub(super) fn decimal(n: u8) -> &'static str {
+pub(in crate::metrics) fn decimal(n: u8) -> &'static str {
     static TABLE: OnceLock<Vec<String>> = OnceLock::new();
     &TABLE.get_or_init(|| (0..=u8::MAX).map(|n| n.to_string()).collect())[usize::from(n)]
 }
 
 /// `0x03`, as the Modbus spec writes function and exception codes.
-pub(super) fn hex(n: u8) -> &'static str {
+pub(in crate::metrics) fn hex(n: u8) -> &'static str {
     static TABLE: OnceLock<Vec<String>> = OnceLock::new();
     &TABLE.get_or_init(|| (0..=u8::MAX).map(|n| format!("0x{n:02X}")).collect())[usize::from(n)]
 }

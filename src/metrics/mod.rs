@@ -24,6 +24,7 @@ pub(crate) use audit::AuditMetrics;
 pub(crate) use bus::BusMetrics;
 
 use bus::BusFamilies;
+pub(crate) use bus::Discarded;
 pub(crate) use labels::Closing;
 pub(crate) use labels::Fate;
 pub(crate) use labels::LinkDrop;

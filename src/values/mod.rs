@@ -7,6 +7,7 @@
 //! handle.
 
 mod decode;
+mod follow;
 mod plan;
 mod poller;
 mod store;
@@ -25,6 +26,8 @@ struct Layout {
     specs: Vec<ValueSpec>,
     /// By bus name: its polls and `poll_share`.
     buses: Vec<(String, Vec<Poll>, f64)>,
+    /// By listen line's name: its values, which are never polled.
+    listened: Vec<(String, Vec<follow::Followed>)>,
 }
 
 /// The values of `config`'s slaves, in configuration order (a slave's template's first, then
@@ -32,7 +35,10 @@ struct Layout {
 fn layout(config: &Config) -> Layout {
     let mut specs = Vec::new();
     let mut buses = Vec::new();
+    let mut listened = Vec::new();
     for bus in &config.bus {
+        let listening = bus.mode == crate::config::BusMode::Listen;
+        let mut followed = Vec::new();
         let name: Arc<str> = bus.name.as_str().into();
         let mut polls = Vec::new();
         for slave in &bus.slave {
@@ -61,6 +67,11 @@ fn layout(config: &Config) -> Layout {
                 unit: v.unit.clone(),
                 labels: v.labels.clone(),
             }));
+            if listening {
+                let values = listed.iter().map(|&(entry, v, _)| (entry, v.clone()));
+                followed.extend(values.map(|(e, v)| follow::Followed::new(e, slave.address, v)));
+                continue;
+            }
             let max = slave.read_limit(template);
             polls.extend(
                 plan::plan(slave.address, &listed, max)
@@ -75,9 +86,17 @@ fn layout(config: &Config) -> Layout {
                     }),
             );
         }
-        buses.push((bus.name.clone(), polls, bus.poll_share));
+        if listening {
+            listened.push((bus.name.clone(), followed));
+        } else {
+            buses.push((bus.name.clone(), polls, bus.poll_share));
+        }
     }
-    Layout { specs, buses }
+    Layout {
+        specs,
+        buses,
+        listened,
+    }
 }
 
 /// The plant values of a running gateway: what was read, and the pollers reading them.
@@ -108,6 +127,12 @@ impl Values {
         }
         let layout = layout(config);
         self.store.configure(layout.specs);
+        for (name, followed) in layout.listened {
+            if let Some(bus) = buses.iter().find(|b| b.name() == name) {
+                let store = self.store.clone();
+                pollers.push(tokio::spawn(follow::run(bus.clone(), followed, store)));
+            }
+        }
         for (name, polls, share) in layout.buses {
             let Some(bus) = buses.iter().find(|b| b.name() == name) else {
                 continue;

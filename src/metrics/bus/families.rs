@@ -19,6 +19,7 @@ pub(in crate::metrics) struct BusFamilies {
     pub(in crate::metrics) queue: QueueFamilies,
     port: PortFamilies,
     slave: SlaveFamilies,
+    observed: super::ObservedFamilies,
 }
 
 /// What went over the line: its round trips, busy time and bytes.
@@ -120,9 +121,9 @@ impl QueueFamilies {
             info: define.int_gauge(
                 "modbus_gateway_bus_info",
                 "The bus's line: its framing (rtu, ascii, or tcp for a Modbus TCP device), serial \
-                 format (none on a Modbus TCP device) and transport (serial, sim, tcp, rfc2217, \
-                 tls); always 1.",
-                &["bus", "framing", "format", "transport"],
+                 format (none on a Modbus TCP device), transport (serial, sim, tcp, rfc2217, \
+                 tls) and mode (master, or listen: the gateway never transmits); always 1.",
+                &["bus", "framing", "format", "transport", "mode"],
             ),
             queue_capacity: define.int_gauge(
                 "modbus_gateway_queue_capacity",
@@ -236,6 +237,7 @@ impl BusFamilies {
             queue: QueueFamilies::new(define),
             port: PortFamilies::new(define),
             slave: SlaveFamilies::new(define),
+            observed: super::ObservedFamilies::new(define),
         }
     }
 
@@ -284,6 +286,7 @@ impl BusFamilies {
             polls: self.slave.polls.clone(),
             poll_errors: self.slave.poll_errors.clone(),
             slaves: BusMetrics::no_slaves(),
+            observed: self.observed.clone(),
         };
         metrics.reconfigured(settings);
         metrics
@@ -325,6 +328,7 @@ impl BusFamilies {
                 .queue_wait
                 .remove_label_values(&[&*bus.name, class.label()]);
         }
+        self.observed.forget(&bus.name, bus.known_slaves());
         for address in bus.known_slaves() {
             let labels = &[&*bus.name, decimal(address)];
             let _ = self.slave.slave_up.remove_label_values(labels);

@@ -5,9 +5,12 @@
 
 mod families;
 mod link;
+mod observed;
 
 pub(super) use families::BusFamilies;
 use link::LinkSnapshot;
+pub(crate) use observed::Discarded;
+use observed::ObservedFamilies;
 
 use super::labels::{decimal, seconds_since_epoch, Fate, LinkDrop, OTHER};
 use super::{RequestCounters, BUS_EVENTS};
@@ -59,7 +62,7 @@ pub struct BusMetrics {
     pub(super) info: IntGaugeVec,
     /// The framing, format and transport labels of the bus's info series, to remove when they
     /// change.
-    pub(super) info_labels: Mutex<Option<[String; 3]>>,
+    pub(super) info_labels: Mutex<Option<[String; 4]>>,
     pub(super) queue_capacity: IntGauge,
     /// Seconds per character on the line, to turn bytes into busy time.
     pub(super) char_time: f64,
@@ -91,6 +94,8 @@ pub struct BusMetrics {
     pub(super) polls: IntCounterVec,
     pub(super) poll_errors: IntCounterVec,
     pub(super) slaves: Box<[OnceLock<SlaveMetrics>; 256]>,
+    /// What a listen-only line hears.
+    pub(super) observed: ObservedFamilies,
 }
 
 impl BusMetrics {
@@ -161,7 +166,11 @@ impl BusMetrics {
             settings.framing.name().to_owned(),
             settings.format_label(),
             transport.label().to_owned(),
+            settings.mode.name().to_owned(),
         ]));
+        if settings.mode == config::BusMode::Listen {
+            self.observed.start(&self.name);
+        }
         self.queue_capacity
             .set(i64::try_from(settings.queue_depth).unwrap_or(i64::MAX));
         let sim_slaves = settings.sim_slave.iter().flat_map(|s| s.address.iter());
@@ -170,8 +179,9 @@ impl BusMetrics {
         }
     }
 
-    /// Replace the bus's info series with one of `labels` (framing, format, transport), or none.
-    fn set_info(&self, labels: Option<[String; 3]>) {
+    /// Replace the bus's info series with one of `labels` (framing, format, transport, mode), or
+    /// none.
+    fn set_info(&self, labels: Option<[String; 4]>) {
         let mut current = self
             .info_labels
             .lock()
@@ -179,14 +189,14 @@ impl BusMetrics {
         if *current == labels {
             return;
         }
-        if let Some([framing, format, transport]) = current.take() {
-            let _ = self
-                .info
-                .remove_label_values(&[&*self.name, &framing, &format, &transport]);
+        if let Some([framing, format, transport, mode]) = current.take() {
+            let _ =
+                self.info
+                    .remove_label_values(&[&*self.name, &framing, &format, &transport, &mode]);
         }
-        if let Some([framing, format, transport]) = &labels {
+        if let Some([framing, format, transport, mode]) = &labels {
             self.info
-                .with_label_values(&[&*self.name, framing, format, transport])
+                .with_label_values(&[&*self.name, framing, format, transport, mode])
                 .set(1);
         }
         *current = labels;
