@@ -156,6 +156,11 @@ pub(crate) fn mqtt_discovery_prefix() -> String {
     "homeassistant".to_owned()
 }
 
+/// A listen line's shadow data older than this is not served: most masters poll more often.
+pub(crate) fn listen_max_age() -> Duration {
+    Duration::from_secs(10)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -166,8 +171,4 @@ mod tests {
         assert_eq!(stop_bits(Parity::Even), 1);
         assert_eq!(stop_bits(Parity::Odd), 1);
     }
-}
-/// A listen line's shadow data older than this is not served: most masters poll more often.
-pub(crate) fn listen_max_age() -> Duration {
-    Duration::from_secs(10)
 }

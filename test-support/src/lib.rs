@@ -38,6 +38,7 @@ pub mod process;
 pub mod pty;
 pub mod ser2net;
 pub mod sim;
+pub mod tap;
 pub mod tls;
 pub mod wait;
 
