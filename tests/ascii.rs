@@ -179,7 +179,7 @@ async fn the_bus_info_metric_names_the_framing_and_bytes_count_characters_on_the
     let scrape = Scrape::of(&gateway).await;
     assert_eq!(
         scrape.value(
-            "modbus_gateway_bus_info{bus=\"sim\",format=\"9600 baud 7E1\",framing=\"ascii\",transport=\"sim\"}"
+            "modbus_gateway_bus_info{bus=\"sim\",format=\"9600 baud 7E1\",framing=\"ascii\",mode=\"master\",transport=\"sim\"}"
         ),
         1.0
     );

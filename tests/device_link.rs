@@ -65,7 +65,7 @@ async fn the_gateway_connects_to_the_device_server_at_start_before_any_request()
     assert_eq!(
         scrape.value(
             "modbus_gateway_bus_info{bus=\"remote\",format=\"115200 baud 8N2\",\
-             framing=\"rtu\",transport=\"tcp\"}"
+             framing=\"rtu\",mode=\"master\",transport=\"tcp\"}"
         ),
         1.0
     );

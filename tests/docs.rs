@@ -44,6 +44,9 @@ fn every_configuration_key_is_documented_in_the_configuration_reference() {
          match_transaction_id = false\n\
          [bus.tls]\ncertificate = \"e\"\nprivate_key = \"f\"\nca = \"g\"\nserver_name = \"h\"\n\
          [[bus]]\nname = \"e\"\ndevice = \"tcp://h:3\"\nframing = \"tcp\"\nmax_in_flight = 4\n\
+         [[bus]]\nname = \"f\"\ndevice = \"sim\"\nmode = \"listen\"\nmax_age = \"5s\"\n\
+         [bus.sim_master]\npause = \"1ms\"\nresponse_timeout = \"200ms\"\n\
+         [[bus.sim_master.read]]\nslave = 1\ntable = \"input\"\nregister = 0\ncount = 2\n\
          [[route]]\nunits = \"255\"\nbus = \"a\"\naddress = 1\n\
          [[rule]]\nname = \"r\"\nmasters = \"10.3.0.0/16\"\nroles = \"viewer\"\n\
          protocols = \"tls\"\nbuses = \"a\"\nunits = \"1-4\"\nfunctions = \"write\"\n\

@@ -102,7 +102,7 @@ async fn many_masters_share_one_connection_to_the_device_and_each_gets_its_own_a
     let scrape = Scrape::of(&gateway).await;
     assert_eq!(
         scrape.value(
-            "modbus_gateway_bus_info{bus=\"dev\",format=\"none\",framing=\"tcp\",transport=\"tcp\"}"
+            "modbus_gateway_bus_info{bus=\"dev\",format=\"none\",framing=\"tcp\",mode=\"master\",transport=\"tcp\"}"
         ),
         1.0
     );
@@ -588,7 +588,7 @@ async fn a_tls_device_gets_the_gateways_certificate_and_applies_its_role_itself(
     let scrape = Scrape::of(&gateway).await;
     assert_eq!(
         scrape.value(
-            "modbus_gateway_bus_info{bus=\"dev\",format=\"none\",framing=\"tcp\",transport=\"tls\"}"
+            "modbus_gateway_bus_info{bus=\"dev\",format=\"none\",framing=\"tcp\",mode=\"master\",transport=\"tls\"}"
         ),
         1.0
     );

@@ -218,6 +218,14 @@ impl BusTask {
             .then(|| reply.pdu.get(1).copied().unwrap_or(0));
         metrics.observed_reply(request.address, request.function(), exception, response);
         let outcome = Ok(Answer::Reply(reply.pdu.clone()));
+        let request_time = self
+            .current
+            .derived
+            .timing
+            .line
+            .frame_time(request.bytes.len());
+        let round_trip = reply.end.saturating_duration_since(request.end) + request_time;
+        metrics.transaction(request.address, 1, Some(round_trip), &outcome);
         self.record_of(
             request.address,
             request.function(),

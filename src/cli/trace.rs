@@ -317,7 +317,9 @@ impl Frame {
         let answering = [PORT_PEER_PREFIX, VIRTUAL_TRACE_PREFIX]
             .iter()
             .any(|prefix| self.bus.starts_with(prefix));
-        let request = (self.direction == "tx") != answering;
+        // On a listen-only line both are heard, and the direction says which is which.
+        let request = self.direction == "request"
+            || (self.direction != "reply" && (self.direction == "tx") != answering);
         if request {
             let name = pdu::function(function).map_or("function", |f| f.name);
             let _ = write!(line, "{} 0x{function:02x}", name.to_lowercase());
@@ -332,7 +334,7 @@ impl Frame {
             let _ = write!(line, "0x{function:02x} ");
             let readable = matches!(
                 self.outcome.as_str(),
-                "ok" | "foreign" | "malformed_reply" | "answered"
+                "ok" | "foreign" | "malformed_reply" | "answered" | "unpaired"
             );
             match &pdu {
                 Some(pdu) if function & pdu::EXCEPTION_BIT != 0 && pdu.len() > 1 => {
@@ -460,6 +462,33 @@ mod tests {
             rx.describe(),
             "14:00:00.123456 line1 rx  slave 1    0x03 ok  2 registers: 0x0000 0x0001   \
              01 03 04 00 00 00 01 3b f3"
+        );
+    }
+
+    #[test]
+    fn a_listen_lines_heard_request_and_reply_are_decoded_as_such() {
+        // Heard on a listen-only line: another master's read of 2 registers, and the answer.
+        let request = frame("request", "01 03 00 00 00 02 c4 0b", "ok");
+        assert!(
+            request
+                .describe()
+                .contains("line1 request slave 1    read holding registers 0x03  addr 0x0000 (0)"),
+            "{}",
+            request.describe()
+        );
+        let reply = frame("reply", "01 03 04 00 00 00 01 3b f3", "ok");
+        assert!(
+            reply
+                .describe()
+                .contains("line1 reply slave 1    0x03 ok  2 registers: 0x0000 0x0001"),
+            "{}",
+            reply.describe()
+        );
+        let timeout = frame("request", "05 03 00 00 00 02 c5 8f", "timeout");
+        assert!(
+            timeout.describe().contains("(timeout)"),
+            "{}",
+            timeout.describe()
         );
     }
 

@@ -214,6 +214,11 @@ fn bus_status(
         framing: settings.framing.name(),
         format: settings.format_label(),
         transport: settings.transport().label(),
+        mode: if handle.shadow().is_some() {
+            config::BusMode::Listen.name()
+        } else {
+            config::BusMode::Master.name()
+        },
         port_up: handle.is_up(),
         link: metrics.link_snapshot().map(|link| LinkStatus {
             peer: link.peer,

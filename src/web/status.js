@@ -126,7 +126,8 @@ function port(b) {
 
 function renderBuses(buses) {
   fill($("buses"), buses.map((b) => row([
-    b.name, b.device, b.framing.toUpperCase() + ", " + b.format,
+    b.name, b.device,
+    b.framing.toUpperCase() + ", " + b.format + (b.mode === "listen" ? ", listen-only" : ""),
     port(b),
     utilisation(b.utilisation),
     cell(b.queue_depth + " / " + b.queue_capacity, "num"),

@@ -62,6 +62,9 @@ pub(crate) struct BusStatus {
     pub(crate) format: String,
     /// What carries the line: `serial`, `sim`, `tcp` or `rfc2217`.
     pub(crate) transport: &'static str,
+    /// `master`, or `listen`: another master drives the line, and its transactions are the
+    /// ones heard.
+    pub(crate) mode: &'static str,
     /// The serial port is open, or the device server connected.
     pub(crate) port_up: bool,
     /// A line behind a device server, while connected: its link.
