@@ -10,7 +10,7 @@ use super::shadow::Shadow;
 use super::task::{BusTask, Served};
 use super::{Port, HEARTBEAT};
 use crate::error::{Answer, NoReply, Outcome, RequestError};
-use crate::line::listen::{Ear, EarTiming, Frame, Heard};
+use crate::line::listen::{Ear, EarTiming, Event, HeardFrame};
 use crate::line::Transport;
 use crate::metrics::Discarded;
 use crate::shutdown::Stopping;
@@ -139,15 +139,15 @@ impl BusTask {
 
     /// One thing the line carried: into the shadow, the metrics, the slaves' health and the
     /// trace.
-    fn heard(&mut self, event: Heard, shadow: &Shadow, cadence: &mut Cadence) {
+    fn heard(&mut self, event: Event, shadow: &Shadow, cadence: &mut Cadence) {
         let metrics = self.handle.metrics.clone();
         match event {
-            Heard::Answered {
+            Event::Answered {
                 request,
                 reply,
                 response,
             } => self.answered(&request, &reply, response, shadow, cadence),
-            Heard::Unanswered(request) => {
+            Event::Unanswered(request) => {
                 self.asked(&request, cadence);
                 metrics.observed_timeout(request.address);
                 let outcome = no_reply(NoReply::Timeout);
@@ -159,11 +159,11 @@ impl BusTask {
                 );
                 self.trace_heard(&request, Direction::Request, "timeout");
             }
-            Heard::Broadcast(request) => {
+            Event::Broadcast(request) => {
                 self.asked(&request, cadence);
                 self.trace_heard(&request, Direction::Request, "broadcast");
             }
-            Heard::Corrupt {
+            Event::Corrupt {
                 bytes,
                 end,
                 request,
@@ -186,11 +186,11 @@ impl BusTask {
                 };
                 self.trace_bytes(bytes, end, (address, function), direction, "crc_error");
             }
-            Heard::Unpaired(frame) => {
+            Event::Unpaired(frame) => {
                 metrics.observed_discarded(Discarded::Unpaired);
                 self.trace_heard(&frame, Direction::Rx, "unpaired");
             }
-            Heard::Broken { bytes, end } => {
+            Event::Broken { bytes, end } => {
                 metrics.observed_discarded(Discarded::Broken);
                 let header = self.current.derived.framing.header(&bytes);
                 self.trace_bytes(bytes, end, header, Direction::Rx, "broken");
@@ -201,8 +201,8 @@ impl BusTask {
     /// The other master's `request`, answered by `reply` after `response`.
     fn answered(
         &mut self,
-        request: &Frame,
-        reply: &Frame,
+        request: &HeardFrame,
+        reply: &HeardFrame,
         response: Duration,
         shadow: &Shadow,
         cadence: &mut Cadence,
@@ -242,13 +242,13 @@ impl BusTask {
     }
 
     /// The other master asked `request`: counted, with how long since it last asked the same.
-    fn asked(&self, request: &Frame, cadence: &mut Cadence) {
+    fn asked(&self, request: &HeardFrame, cadence: &mut Cadence) {
         let interval = cadence.asked(request.address, &request.pdu, request.end);
         let metrics = &self.handle.metrics;
         metrics.observed_request(request.address, request.function(), interval);
     }
 
-    fn trace_heard(&self, frame: &Frame, direction: Direction, outcome: &'static str) {
+    fn trace_heard(&self, frame: &HeardFrame, direction: Direction, outcome: &'static str) {
         let header = (Some(frame.address), Some(frame.function()));
         self.trace_bytes(frame.bytes.clone(), frame.end, header, direction, outcome);
     }

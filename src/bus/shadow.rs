@@ -72,7 +72,7 @@ impl Block {
 
 /// What was seen of some registers: their values, when the oldest of them was seen.
 #[derive(Clone, Debug, PartialEq)]
-pub(crate) struct Seen {
+pub(crate) struct Shadowed {
     pub(crate) values: Vec<u16>,
     pub(crate) at: Instant,
     pub(crate) wall: SystemTime,
@@ -164,7 +164,7 @@ impl Shadow {
 
     /// `count` registers (or bits) of `slave`'s `function`'s table from `first`, if every one
     /// was seen, each from the newest block that holds it.
-    pub(crate) fn seen(&self, slave: u8, function: u8, first: u16, count: u16) -> Option<Seen> {
+    pub(crate) fn seen(&self, slave: u8, function: u8, first: u16, count: u16) -> Option<Shadowed> {
         let kind = Kind::of_read(function)?;
         let state = self.lock();
         let blocks = &state.tables[usize::from(slave)][kind.index()];
@@ -181,7 +181,7 @@ impl Shadow {
             }
         }
         let oldest = oldest?;
-        Some(Seen {
+        Some(Shadowed {
             values,
             at: oldest.at,
             wall: oldest.wall,

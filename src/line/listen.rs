@@ -13,7 +13,7 @@ use tokio::time::Instant;
 
 /// One whole frame heard, checked.
 #[derive(Clone, Debug, PartialEq, Eq)]
-pub(crate) struct Frame {
+pub(crate) struct HeardFrame {
     /// As on the wire.
     pub(crate) bytes: Vec<u8>,
     pub(crate) address: u8,
@@ -22,7 +22,7 @@ pub(crate) struct Frame {
     pub(crate) end: Instant,
 }
 
-impl Frame {
+impl HeardFrame {
     pub(crate) fn function(&self) -> u8 {
         self.pdu.first().copied().unwrap_or(0)
     }
@@ -34,28 +34,28 @@ impl Frame {
 
 /// What the line carried, in the order it came.
 #[derive(Clone, Debug, PartialEq, Eq)]
-pub(crate) enum Heard {
+pub(crate) enum Event {
     /// A request and the reply that answered it (normally or with an exception).
     Answered {
-        request: Frame,
-        reply: Frame,
+        request: HeardFrame,
+        reply: HeardFrame,
         /// From the end of the request to the start of the reply, as far as the bytes' times tell.
         response: Duration,
     },
     /// A request that no reply answered before its response timeout, or before the master's
     /// next request.
-    Unanswered(Frame),
+    Unanswered(HeardFrame),
     /// A request to the broadcast address: no reply is due.
-    Broadcast(Frame),
+    Broadcast(HeardFrame),
     /// A frame whose check failed. Where the reply to `request` was due, it ends that
     /// transaction.
     Corrupt {
         bytes: Vec<u8>,
         end: Instant,
-        request: Option<Frame>,
+        request: Option<HeardFrame>,
     },
     /// A good frame that answers no request: a reply to nobody, another slave's reply, a late one.
-    Unpaired(Frame),
+    Unpaired(HeardFrame),
     /// Bytes that made no frame: cut short by silence, or more than a frame holds.
     Broken { bytes: Vec<u8>, end: Instant },
 }
@@ -79,7 +79,7 @@ pub(crate) struct Ear {
     /// When the last bytes came.
     last: Option<Instant>,
     /// The request whose reply is due.
-    pending: Option<Frame>,
+    pending: Option<HeardFrame>,
     pdu: Vec<u8>,
 }
 
@@ -123,12 +123,12 @@ impl Ear {
         }
     }
 
-    fn reply_due_by(&self, request: &Frame) -> Instant {
+    fn reply_due_by(&self, request: &HeardFrame) -> Instant {
         request.end + self.response_timeout[usize::from(request.address)]
     }
 
     /// `bytes` came at `at`: what they complete goes to `out`.
-    pub(crate) fn feed(&mut self, bytes: &[u8], at: Instant, out: &mut Vec<Heard>) {
+    pub(crate) fn feed(&mut self, bytes: &[u8], at: Instant, out: &mut Vec<Event>) {
         if let Some(last) = self.last {
             if !self.buf.is_empty() && at.saturating_duration_since(last) >= self.timing.silence {
                 self.silent(last, out);
@@ -148,7 +148,7 @@ impl Ear {
 
     /// Time has come to `now` with no more bytes: silence ends what is held, and a request past
     /// its response timeout is unanswered.
-    pub(crate) fn tick(&mut self, now: Instant, out: &mut Vec<Heard>) {
+    pub(crate) fn tick(&mut self, now: Instant, out: &mut Vec<Event>) {
         if let Some(last) = self.last {
             if !self.buf.is_empty() && now.saturating_duration_since(last) >= self.timing.silence {
                 self.silent(last, out);
@@ -161,24 +161,24 @@ impl Ear {
 
     /// The port was lost or reopened: what was held is dropped, and the request waiting is
     /// unanswered as far as this ear can tell.
-    pub(crate) fn reset(&mut self, out: &mut Vec<Heard>) {
+    pub(crate) fn reset(&mut self, out: &mut Vec<Event>) {
         if let Some(request) = self.pending.take() {
-            out.push(Heard::Unanswered(request));
+            out.push(Event::Unanswered(request));
         }
         self.buf.clear();
         self.last = None;
     }
 
-    fn expire(&mut self, now: Instant, out: &mut Vec<Heard>) {
+    fn expire(&mut self, now: Instant, out: &mut Vec<Event>) {
         let due = self.pending.as_ref().map(|r| self.reply_due_by(r));
         if due.is_some_and(|due| now >= due) {
-            out.extend(self.pending.take().map(Heard::Unanswered));
+            out.extend(self.pending.take().map(Event::Unanswered));
         }
     }
 
     /// Silence after the bytes held, which last came at `last`: a frame that only silence ends
     /// is whole, anything else held is broken.
-    fn silent(&mut self, last: Instant, out: &mut Vec<Heard>) {
+    fn silent(&mut self, last: Instant, out: &mut Vec<Event>) {
         self.cut(last, out);
         if self.buf.is_empty() {
             return;
@@ -198,7 +198,7 @@ impl Ear {
         if whole {
             self.frame(bytes, last, reply, out);
         } else {
-            out.push(Heard::Broken { bytes, end: last });
+            out.push(Event::Broken { bytes, end: last });
         }
     }
 
@@ -228,7 +228,7 @@ impl Ear {
     }
 
     /// Cut every whole frame off the bytes held.
-    fn cut(&mut self, at: Instant, out: &mut Vec<Heard>) {
+    fn cut(&mut self, at: Instant, out: &mut Vec<Event>) {
         loop {
             if self.buf.is_empty() {
                 return;
@@ -249,7 +249,7 @@ impl Ear {
                 }
                 _ if self.buf.len() > self.framing.max_frame_len() => {
                     let bytes = std::mem::take(&mut self.buf);
-                    out.push(Heard::Broken { bytes, end: at });
+                    out.push(Event::Broken { bytes, end: at });
                 }
                 _ => return,
             }
@@ -274,20 +274,20 @@ impl Ear {
 
     /// A whole frame, `bytes`, ended at `end`, cut as a reply (`reply`) or as a request:
     /// checked, and paired if it is the reply due.
-    fn frame(&mut self, bytes: Vec<u8>, end: Instant, reply: bool, out: &mut Vec<Heard>) {
+    fn frame(&mut self, bytes: Vec<u8>, end: Instant, reply: bool, out: &mut Vec<Event>) {
         let Some(address) = self.framing.decode_into(&bytes, &mut self.pdu) else {
             let (claimed, function) = self.framing.header(&bytes);
             let request = self
                 .pending
                 .take_if(|request| claims(request, claimed, function));
-            out.push(Heard::Corrupt {
+            out.push(Event::Corrupt {
                 bytes,
                 end,
                 request,
             });
             return;
         };
-        let frame = Frame {
+        let frame = HeardFrame {
             bytes,
             address,
             pdu: std::mem::take(&mut self.pdu),
@@ -300,19 +300,19 @@ impl Ear {
         }
         if let Some(request) = self.pending.take() {
             // The master has moved on: its request went unanswered.
-            out.push(Heard::Unanswered(request));
+            out.push(Event::Unanswered(request));
         }
         if frame.address == BROADCAST {
-            out.push(Heard::Broadcast(frame));
+            out.push(Event::Broadcast(frame));
         } else {
             self.pending = Some(frame);
         }
     }
 
     /// A good frame cut as a reply: the answer to the request due, or unpaired.
-    fn reply(&mut self, frame: Frame, out: &mut Vec<Heard>) {
+    fn reply(&mut self, frame: HeardFrame, out: &mut Vec<Event>) {
         let Some(request) = self.pending.take() else {
-            out.push(Heard::Unpaired(frame));
+            out.push(Event::Unpaired(frame));
             return;
         };
         let verdict = reply::judge(
@@ -328,39 +328,39 @@ impl Ear {
                 .end
                 .saturating_duration_since(request.end)
                 .saturating_sub(on_wire);
-            out.push(Heard::Answered {
+            out.push(Event::Answered {
                 request,
                 reply: frame,
                 response,
             });
         } else {
             self.pending = Some(request);
-            out.push(Heard::Unpaired(frame));
+            out.push(Event::Unpaired(frame));
         }
     }
 }
 
 /// Whether a frame from `address` with `function` claims to answer `request`.
-fn claims(request: &Frame, address: Option<u8>, function: Option<u8>) -> bool {
+fn claims(request: &HeardFrame, address: Option<u8>, function: Option<u8>) -> bool {
     address == Some(request.address)
         && function.is_some_and(|f| f & !EXCEPTION_BIT == request.function())
 }
 
 /// Whether a good frame can be a request: no exception bit.
-fn is_request(frame: &Frame) -> bool {
+fn is_request(frame: &HeardFrame) -> bool {
     frame.function() & EXCEPTION_BIT == 0 && frame.function() != 0
 }
 
 /// One byte of noise, joined to the noise just before it.
-fn push_broken(out: &mut Vec<Heard>, byte: u8, at: Instant) {
-    if let Some(Heard::Broken { bytes, end }) = out.last_mut() {
+fn push_broken(out: &mut Vec<Event>, byte: u8, at: Instant) {
+    if let Some(Event::Broken { bytes, end }) = out.last_mut() {
         if bytes.len() < 256 {
             bytes.push(byte);
             *end = at;
             return;
         }
     }
-    out.push(Heard::Broken {
+    out.push(Event::Broken {
         bytes: vec![byte],
         end: at,
     });

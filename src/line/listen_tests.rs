@@ -20,7 +20,7 @@ fn read() -> (Vec<u8>, Vec<u8>) {
     (request, reply)
 }
 
-fn heard(ear: &mut Ear, chunks: &[&[u8]], start: Instant) -> Vec<Heard> {
+fn heard(ear: &mut Ear, chunks: &[&[u8]], start: Instant) -> Vec<Event> {
     let mut out = Vec::new();
     let mut at = start;
     for chunk in chunks {
@@ -30,10 +30,10 @@ fn heard(ear: &mut Ear, chunks: &[&[u8]], start: Instant) -> Vec<Heard> {
     out
 }
 
-fn answered(out: &[Heard]) -> Vec<(u8, Vec<u8>, Vec<u8>)> {
+fn answered(out: &[Event]) -> Vec<(u8, Vec<u8>, Vec<u8>)> {
     out.iter()
         .filter_map(|h| match h {
-            Heard::Answered { request, reply, .. } => {
+            Event::Answered { request, reply, .. } => {
                 Some((request.address, request.pdu.clone(), reply.pdu.clone()))
             }
             _ => None,
@@ -70,7 +70,7 @@ fn byte_by_byte_frames_pair_the_same_and_the_response_time_is_the_silence_betwee
         ear.feed(&[*byte], at, &mut out);
     }
     match out.as_slice() {
-        [Heard::Answered { response, .. }] => {
+        [Event::Answered { response, .. }] => {
             assert_eq!(*response, Duration::from_millis(5));
         }
         other => panic!("heard {other:?}"),
@@ -84,7 +84,7 @@ fn a_reply_with_a_bad_crc_ends_its_request_as_corrupt() {
     let mut ear = ear(Framing::Rtu);
     let out = heard(&mut ear, &[&request, &reply], Instant::now());
     match out.as_slice() {
-        [Heard::Corrupt {
+        [Event::Corrupt {
             request: Some(r), ..
         }] => assert_eq!(r.address, 1),
         other => panic!("heard {other:?}"),
@@ -102,14 +102,14 @@ fn a_request_nobody_answers_is_unanswered_at_its_timeout_or_the_next_request() {
     ear.tick(deadline - Duration::from_millis(1), &mut out);
     assert!(out.is_empty());
     ear.tick(deadline, &mut out);
-    assert!(matches!(out.as_slice(), [Heard::Unanswered(r)] if r.address == 1));
+    assert!(matches!(out.as_slice(), [Event::Unanswered(r)] if r.address == 1));
     // The next request comes before the timeout: the first went unanswered all the same.
     let other = rtu::encode(0x02, &[0x03, 0x00, 0x00, 0x00, 0x01]);
     let mut out = heard(&mut ear, &[&request, &other], deadline);
-    assert!(matches!(out.as_slice(), [Heard::Unanswered(r)] if r.address == 1));
+    assert!(matches!(out.as_slice(), [Event::Unanswered(r)] if r.address == 1));
     out.clear();
     ear.tick(deadline + TIMEOUT * 3, &mut out);
-    assert!(matches!(out.as_slice(), [Heard::Unanswered(r)] if r.address == 2));
+    assert!(matches!(out.as_slice(), [Event::Unanswered(r)] if r.address == 2));
     drop(reply);
 }
 
@@ -119,7 +119,7 @@ fn another_slaves_reply_is_unpaired_and_the_asked_slaves_still_pairs() {
     let foreign = rtu::encode(0x02, &[0x03, 0x04, 0xDE, 0xAD, 0xBE, 0xEF]);
     let mut ear = ear(Framing::Rtu);
     let out = heard(&mut ear, &[&request, &foreign, &reply], Instant::now());
-    assert!(matches!(&out[0], Heard::Unpaired(f) if f.address == 2));
+    assert!(matches!(&out[0], Event::Unpaired(f) if f.address == 2));
     assert_eq!(answered(&out).len(), 1);
     assert_eq!(answered(&out)[0].0, 1);
 }
@@ -133,7 +133,7 @@ fn a_reply_to_nobody_is_unpaired_and_a_wrong_shape_reply_is_no_answer() {
     let mut out = heard(&mut ear, &[&nobody], start);
     ear.tick(start + SILENCE * 2, &mut out);
     assert!(
-        matches!(out.as_slice(), [Heard::Unpaired(f)] if f.address == 5),
+        matches!(out.as_slice(), [Event::Unpaired(f)] if f.address == 5),
         "{out:?}"
     );
     // Straight before a request, with no silence between: its bytes alone tell its length.
@@ -143,7 +143,7 @@ fn a_reply_to_nobody_is_unpaired_and_a_wrong_shape_reply_is_no_answer() {
         start,
     );
     assert!(
-        matches!(&out[..], [Heard::Unpaired(f)] if f.address == 5),
+        matches!(&out[..], [Event::Unpaired(f)] if f.address == 5),
         "{out:?}"
     );
     // Slave 1 answers a read of two registers with one: intact, but not the answer.
@@ -163,8 +163,8 @@ fn an_exception_answers_and_a_broadcast_awaits_no_reply() {
         &[&request, &exception, &broadcast],
         Instant::now(),
     );
-    assert!(matches!(&out[0], Heard::Answered { reply, .. } if reply.is_exception()));
-    assert!(matches!(&out[1], Heard::Broadcast(f) if f.address == 0));
+    assert!(matches!(&out[0], Event::Answered { reply, .. } if reply.is_exception()));
+    assert!(matches!(&out[1], Event::Broadcast(f) if f.address == 0));
     assert_eq!(ear.next_deadline(), None);
 }
 
@@ -175,7 +175,7 @@ fn noise_then_silence_is_broken_and_the_next_frames_pair() {
     let start = Instant::now();
     let mut out = heard(&mut ear, &[&[0x01, 0x03, 0x00]], start);
     ear.tick(start + Duration::from_millis(10), &mut out);
-    assert!(matches!(out.as_slice(), [Heard::Broken { bytes, .. }] if bytes.len() == 3));
+    assert!(matches!(out.as_slice(), [Event::Broken { bytes, .. }] if bytes.len() == 3));
     let out = heard(
         &mut ear,
         &[&request, &reply],
@@ -201,7 +201,7 @@ fn random_bytes_never_pair_and_never_pile_up() {
         at += CHAR * 16;
         ear.feed(&chunk, at, &mut out);
         assert!(ear.buf.len() <= 2 * rtu::MAX_FRAME_LEN);
-        out.retain(|h| matches!(h, Heard::Answered { .. }));
+        out.retain(|h| matches!(h, Event::Answered { .. }));
     }
     assert!(out.len() <= 2, "{} chance pairings", out.len());
 }
@@ -220,7 +220,7 @@ fn ascii_frames_pair_by_their_characters_and_a_bad_lrc_is_corrupt() {
     assert!(
         matches!(
             out.as_slice(),
-            [Heard::Corrupt {
+            [Event::Corrupt {
                 request: Some(_),
                 ..
             }]
