@@ -290,3 +290,7 @@ fn wall_time(at: Instant) -> SystemTime {
         .checked_sub(ago)
         .unwrap_or_else(SystemTime::now)
 }
+
+#[cfg(test)]
+#[path = "listen_tests.rs"]
+mod tests;
