@@ -132,6 +132,27 @@ fn describe(path: &Path, config: &Config, tls: Option<&TlsServer>, now: SystemTi
         let format = bus.format();
         let master = bus.master_timing();
         let line = master.line;
+        if bus.mode == crate::config::BusMode::Listen {
+            out += &format!(
+                "# bus {}: listen-only at {format} ({}): the gateway never transmits on it; a \
+                 frame ends by its length or {} of silence, a reply is paired with the request \
+                 before it within {}; masters' reads are answered from what was heard in the \
+                 last {} (else 0x0B), anything else 0x01; its values are never polled.\n",
+                bus.name,
+                bus.framing.name(),
+                ms(master.silence),
+                humantime::format_duration(bus.response_timeout),
+                humantime::format_duration(bus.max_age),
+            );
+            match bus.device_name() {
+                DeviceName::Server(addr) => {
+                    out += &describe_link(&bus.name, &addr, master.packing);
+                }
+                DeviceName::Serial(_) => out += &describe_driver(bus),
+                DeviceName::Sim => {}
+            }
+            continue;
+        }
         out += &match bus.framing {
             Framing::Rtu => format!(
                 "# bus {}: {format}, character {}, t3.5 {}; frames start {} after the line \
