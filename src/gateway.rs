@@ -97,7 +97,8 @@ pub struct Reloaded {
     pub kept: Vec<String>,
 }
 
-/// A new simulated line for a `device = "sim"` bus, with its slaves powered on.
+/// A new simulated line for a `device = "sim"` bus, with its slaves powered on and its other
+/// master, if it has one (`[bus.sim_master]`, which runs while the line is listened to).
 pub fn power_on_line(bus: &config::Bus) -> Result<SimLine, StartError> {
     let line = SimLine::with_framing(bus.line_timing(), bus.framing);
     for slaves in &bus.sim_slave {
@@ -111,6 +112,9 @@ pub fn power_on_line(bus: &config::Bus) -> Result<SimLine, StartError> {
             })?;
             line.add_slave(address, slave);
         }
+    }
+    if let Some(master) = &bus.sim_master {
+        line.set_master(master);
     }
     Ok(line)
 }
@@ -213,8 +217,8 @@ fn take(buses: &mut Vec<Running>, name: &str) -> Option<Running> {
 }
 
 /// The device `bus[index]`'s settings name (the one place a `device` key becomes a transport); a
-/// simulated line is kept when its format and slaves are unchanged (`current`), so its slaves
-/// keep their state.
+/// simulated line is kept when its format, slaves and other master are unchanged (`current`), so
+/// its slaves keep their state.
 fn device_for(
     index: usize,
     settings: &config::Bus,
@@ -256,6 +260,7 @@ fn device_for(
             && old.format() == settings.format()
             && old.framing == settings.framing
             && old.sim_slave == settings.sim_slave
+            && old.sim_master == settings.sim_master
         {
             return Ok(device.clone());
         }

@@ -1,4 +1,4 @@
-//! A timed, half-duplex RS-485 line with one master port and simulated slaves.
+//! A timed, half-duplex RS-485 line with one adapter port and simulated slaves.
 //!
 //! The line is lazy: nothing runs between calls. When the master sends a frame, the line works out
 //! when it occupies the wire, whether it started a full t3.5 after the previous frame, whether it
@@ -6,9 +6,16 @@
 //! the wire, byte by byte. The port then hands each byte over once its time has come. That keeps
 //! the simulation exact under tokio's paused clock and costs no task. A bus monitor keeps counts
 //! and the recent frames with their times, for tests and benchmarks.
+//!
+//! The adapter may instead be opened to listen ([`SimLine::open_listening`]): that port hears
+//! every byte on the wire and cannot send. The line's other master ([`SimLine::set_master`],
+//! `[bus.sim_master]`) runs only while such a port is open, advanced as the port is polled, as
+//! the slaves' replies are scheduled: exact under the paused clock, and idle when nobody listens.
 
+use super::master::{OtherMaster, Outcome, Step};
 use super::slaves::{Heard, Slaves};
 use super::{Simulated, Transmission};
+use crate::config;
 use crate::line::framing::{Completion, Silence};
 use crate::line::{Framing, LineTiming, Transport};
 use crate::timer::sleep_until;
@@ -23,12 +30,17 @@ use tokio::time::Instant;
 const LOG_CAPACITY: usize = 4096;
 /// What two transmitters talking at once do to the bytes.
 const COLLISION_NOISE: u8 = 0xA5;
+/// Bytes the adapter holds for a port that does not read them, as a tty's buffer does: the
+/// rest are lost (a listener polled too seldom overruns).
+const INBOUND_CAPACITY: usize = 4096;
 
 /// Who put a frame on the wire.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Source {
     Master,
     Slave(u8),
+    /// The line's other master (`[bus.sim_master]`).
+    OtherMaster,
 }
 
 /// One frame as the wire carried it.
@@ -56,6 +68,17 @@ pub struct LineStats {
     pub min_gap: Option<Duration>,
     /// Total time frames occupied the wire.
     pub busy: Duration,
+    /// Frames handed to a listening port's `send`: refused, never on the wire. Zero is the proof
+    /// that a listen line's gateway transmitted nothing.
+    pub listener_frames: u64,
+    /// The other master's requests put on the wire.
+    pub other_requests: u64,
+    /// Its transactions that ended with a good reply from the slave asked.
+    pub other_replies: u64,
+    /// Its transactions that ended with a whole frame failing its check or from another address.
+    pub other_corrupt: u64,
+    /// Its transactions that ended at its response timeout.
+    pub other_timeouts: u64,
 }
 
 /// Handle on a simulated line; clones share it.
@@ -76,6 +99,9 @@ struct LineState {
     plugged: bool,
     /// Bumped by every open and unplug: a port of an older generation is dead.
     generation: u64,
+    /// The generation opened to listen, if the latest open was a listener's.
+    listening: Option<u64>,
+    other: Option<OtherMaster>,
     master_busy_until: Option<Instant>,
     /// End of the latest transmission known to be over.
     last_wire_end: Option<Instant>,
@@ -108,6 +134,8 @@ impl SimLine {
                     slaves: Slaves::new(framing),
                     plugged: true,
                     generation: 0,
+                    listening: None,
+                    other: None,
                     master_busy_until: None,
                     last_wire_end: None,
                     slave_tx: VecDeque::new(),
@@ -134,8 +162,31 @@ impl SimLine {
         self.shared.lock().slaves.insert(address, Box::new(slave));
     }
 
+    /// Put the other master `master` describes on the line, replacing any; it starts once a
+    /// listening port is open.
+    pub fn set_master(&self, master: &config::SimMaster) {
+        let mut state = self.shared.lock();
+        let framing = state.slaves.framing();
+        let mut other = OtherMaster::new(master, framing);
+        if state.listener_live() {
+            other.resume(Instant::now());
+        }
+        state.other = Some(other);
+    }
+
     /// Open the master port, as opening a serial device would. Any older port goes dead.
     pub fn open(&self) -> io::Result<SimPort> {
+        self.open_as(false)
+    }
+
+    /// Open the adapter to listen: the port hears every frame on the wire, the masters' and the
+    /// slaves', each byte once its time has come, and refuses to send (counted in
+    /// [`LineStats::listener_frames`]). Any older port goes dead; the other master, if any, runs.
+    pub fn open_listening(&self) -> io::Result<SimPort> {
+        self.open_as(true)
+    }
+
+    fn open_as(&self, listening: bool) -> io::Result<SimPort> {
         let mut state = self.shared.lock();
         if !state.plugged {
             return Err(io::Error::new(
@@ -143,11 +194,27 @@ impl SimLine {
                 "simulated adapter unplugged",
             ));
         }
+        let now = Instant::now();
+        // An older listener's master catches up to the moment it goes dead.
+        state.advance_other(now);
         state.generation += 1;
-        state.inbound.clear();
+        if listening {
+            // What is still on its way is on the wire, and the new port hears it.
+            while state.inbound.front().is_some_and(|&(at, _)| at <= now) {
+                state.inbound.pop_front();
+            }
+            state.listening = Some(state.generation);
+            if let Some(other) = state.other.as_mut() {
+                other.resume(now);
+            }
+        } else {
+            state.listening = None;
+            state.inbound.clear();
+        }
         Ok(SimPort {
             shared: self.shared.clone(),
             generation: state.generation,
+            listening,
         })
     }
 
@@ -156,6 +223,7 @@ impl SimLine {
     pub fn unplug(&self) {
         {
             let mut state = self.shared.lock();
+            state.advance_other(Instant::now());
             state.plugged = false;
             state.generation += 1;
             state.inbound.clear();
@@ -167,13 +235,18 @@ impl SimLine {
         self.shared.lock().plugged = true;
     }
 
+    /// The counts as of now (the other master advanced to now first).
     pub fn stats(&self) -> LineStats {
-        self.shared.lock().stats
+        let mut state = self.shared.lock();
+        state.advance_other(Instant::now());
+        state.stats
     }
 
-    /// The most recent frames, oldest first.
+    /// The most recent frames, oldest first, as of now.
     pub fn frames(&self) -> Vec<WireFrame> {
-        self.shared.lock().log.iter().cloned().collect()
+        let mut state = self.shared.lock();
+        state.advance_other(Instant::now());
+        state.log.iter().cloned().collect()
     }
 
     /// When the wire falls silent after every frame sent or scheduled so far (`None` before the
@@ -247,17 +320,7 @@ impl LineState {
     /// the wire's last frame.
     fn collides(&mut self, start: Instant, end: Instant) -> bool {
         let timing = self.timing;
-        let mut finished = None;
-        self.slave_tx.retain(|&(_, slave_end)| {
-            let over = slave_end <= start;
-            if over {
-                finished = finished.max(Some(slave_end));
-            }
-            !over
-        });
-        if let Some(slave_end) = finished {
-            self.extend_wire_end(slave_end);
-        }
+        self.settle(start);
         let collided = self
             .slave_tx
             .iter()
@@ -272,6 +335,93 @@ impl LineState {
             }
         }
         collided
+    }
+
+    /// Forget the slaves' transmissions over by `at`: they end the wire's last frame.
+    fn settle(&mut self, at: Instant) {
+        let mut finished = None;
+        self.slave_tx.retain(|&(_, slave_end)| {
+            let over = slave_end <= at;
+            if over {
+                finished = finished.max(Some(slave_end));
+            }
+            !over
+        });
+        if let Some(slave_end) = finished {
+            self.extend_wire_end(slave_end);
+        }
+    }
+
+    /// Whether the latest open was a listener's and its port is still live.
+    fn listener_live(&self) -> bool {
+        self.listening.is_some_and(|g| self.is_live(g))
+    }
+
+    /// Run the other master up to `now`, while a listener is live: each request it makes goes on
+    /// the wire, the slave asked answers as it would any master, and each ending is counted.
+    fn advance_other(&mut self, now: Instant) {
+        if !self.listener_live() {
+            return;
+        }
+        let Some(mut other) = self.other.take() else {
+            return;
+        };
+        while let Some(step) = other.step(now) {
+            match step {
+                Step::Ended(outcome) => match outcome {
+                    Outcome::Reply => self.stats.other_replies += 1,
+                    Outcome::Corrupt => self.stats.other_corrupt += 1,
+                    Outcome::Timeout => self.stats.other_timeouts += 1,
+                },
+                Step::Request { start, index } => {
+                    self.transmit_from_other(&mut other, index, start);
+                }
+            }
+        }
+        self.settle(now);
+        self.other = Some(other);
+    }
+
+    /// The other master sends read `index` from `start`; the slave's answer is scheduled and
+    /// the master told what came of it.
+    fn transmit_from_other(&mut self, other: &mut OtherMaster, index: usize, start: Instant) {
+        let timing = self.timing;
+        let frame = other.read(index).frame.clone();
+        let end = start + timing.frame_time(frame.len());
+        self.stats.other_requests += 1;
+        for n in 1..=frame.len() {
+            self.receive(start + timing.frame_time(n), frame[n - 1]);
+        }
+        self.record(WireFrame {
+            start,
+            end,
+            from: Source::OtherMaster,
+            bytes: frame.clone(),
+        });
+        self.extend_wire_end(end);
+        let ready_at = match self.slaves.framing() {
+            Framing::Rtu => end + timing.t35,
+            Framing::Ascii | Framing::Tcp => end,
+        };
+        match self.slaves.hear(&frame, end) {
+            Heard::Answered { address, reply, .. } => {
+                other.under_way(index, end, Some((&reply, ready_at + reply.delay)), &timing);
+                self.transmit_from_slave(address, reply, ready_at);
+            }
+            Heard::Corrupt | Heard::Broadcast | Heard::NotHere | Heard::Unanswered { .. } => {
+                other.under_way(index, end, None, &timing);
+            }
+        }
+    }
+
+    /// A byte on its way to the port, fully arrived at `at`; kept in time order, even when a
+    /// late reply was scheduled before this one, and lost past the adapter's buffer.
+    fn receive(&mut self, at: Instant, byte: u8) {
+        if self.inbound.len() >= INBOUND_CAPACITY {
+            return;
+        }
+        let position = self.inbound.partition_point(|&(due, _)| due <= at);
+        self.inbound.insert(position, (at, byte));
     }
 
     /// The slaves hear the master's `bytes`, which left the wire at `end`, and answer.
@@ -337,9 +487,7 @@ impl LineState {
             let mut at = start;
             for &byte in bytes {
                 at += char_time;
-                // Bytes arrive in time order, even when a late reply was scheduled before this one.
-                let position = self.inbound.partition_point(|&(due, _)| due <= at);
-                self.inbound.insert(position, (at, byte));
+                self.receive(at, byte);
             }
             self.record(WireFrame {
                 start,
@@ -368,10 +516,12 @@ impl LineState {
     }
 }
 
-/// The master's end of a [`SimLine`], as a serial port.
+/// The adapter's end of a [`SimLine`], as a serial port: the master's, or a listener's.
 pub struct SimPort {
     shared: Arc<Shared>,
     generation: u64,
+    /// Opened to listen: hears every frame, never sends.
+    listening: bool,
 }
 
 impl SimPort {
@@ -389,6 +539,13 @@ impl SimPort {
 impl Transport for SimPort {
     async fn send(&mut self, frame: &[u8]) -> io::Result<()> {
         let mut state = self.shared.lock();
+        if self.listening {
+            state.stats.listener_frames += 1;
+            return Err(io::Error::new(
+                io::ErrorKind::PermissionDenied,
+                "a listening port never transmits",
+            ));
+        }
         if !state.is_live(self.generation) {
             return Err(io::Error::new(
                 io::ErrorKind::BrokenPipe,
@@ -409,11 +566,17 @@ impl Transport for SimPort {
                 if !state.is_live(self.generation) {
                     return Ok(0);
                 }
-                let n = state.deliver(Instant::now(), buf);
+                let now = Instant::now();
+                state.advance_other(now);
+                let n = state.deliver(now, buf);
                 if n > 0 {
                     return Ok(n);
                 }
-                state.inbound.front().map(|&(at, _)| at)
+                let other = state.other.as_ref().and_then(OtherMaster::next_event);
+                let due = state.inbound.front().map(|&(at, _)| at);
+                due.into_iter()
+                    .chain(other.filter(|_| self.listening))
+                    .min()
             };
             match next_arrival {
                 Some(at) => tokio::select! {
@@ -428,6 +591,7 @@ impl Transport for SimPort {
     fn clear_input(&mut self, _stale: &mut Vec<u8>) -> io::Result<()> {
         let mut state = self.shared.lock();
         let now = Instant::now();
+        state.advance_other(now);
         while state.inbound.front().is_some_and(|&(at, _)| at <= now) {
             state.inbound.pop_front();
         }
@@ -436,248 +600,5 @@ impl Transport for SimPort {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::line::{rtu, Parity, SerialFormat};
-
-    fn line_9600_8e1() -> SimLine {
-        SimLine::new(LineTiming::new(&SerialFormat {
-            baud: 9600,
-            data_bits: 8,
-            parity: Parity::Even,
-            stop_bits: 1,
-        }))
-    }
-
-    /// Answers every request with the same PDU, after `delay`.
-    struct Echo {
-        delay: Duration,
-    }
-
-    impl Simulated for Echo {
-        fn handle(&mut self, address: u8, request: &[u8], _at: Instant) -> Option<Transmission> {
-            Some(Transmission {
-                bytes: rtu::encode(address, request),
-                delay: self.delay,
-                pause: None,
-            })
-        }
-    }
-
-    const READ: [u8; 8] = [0x01, 0x03, 0x00, 0x04, 0x00, 0x02, 0x85, 0xCA];
-    /// tokio's timer wakes sleepers on whole milliseconds, paused clock included.
-    const TIMER_RESOLUTION: Duration = Duration::from_millis(1);
-
-    fn assert_about(elapsed: Duration, expected: Duration) {
-        assert!(
-            elapsed >= expected && elapsed <= expected + TIMER_RESOLUTION,
-            "{elapsed:?} is not within the timer resolution after {expected:?}"
-        );
-    }
-
-    #[tokio::test(start_paused = true)]
-    async fn a_reply_arrives_byte_by_byte_after_the_request_and_t35() {
-        let line = line_9600_8e1();
-        line.add_slave(
-            1,
-            Echo {
-                delay: Duration::ZERO,
-            },
-        );
-        let timing = line.timing();
-        let mut port = line.open().unwrap();
-        let t0 = Instant::now();
-        port.send(&READ).await.unwrap();
-        let mut buf = Vec::new();
-        let n = port.recv(&mut buf).await.unwrap();
-        assert!(n >= 1);
-        // Request on the wire, slave waits t3.5, first reply byte takes one character time.
-        assert_about(
-            Instant::now() - t0,
-            timing.frame_time(8) + timing.t35 + timing.char_time,
-        );
-        while buf.len() < READ.len() {
-            port.recv(&mut buf).await.unwrap();
-        }
-        assert_eq!(buf, READ);
-        // The reply ends 16 characters and one t3.5 after the request started.
-        assert_about(Instant::now() - t0, timing.frame_time(16) + timing.t35);
-        let frames = line.frames();
-        assert_eq!(frames[1].start - frames[0].end, timing.t35);
-        assert_eq!(
-            frames[1].end - frames[0].start,
-            timing.frame_time(16) + timing.t35
-        );
-        let stats = line.stats();
-        assert_eq!((stats.master_frames, stats.slave_frames), (1, 1));
-        assert_eq!(stats.busy, timing.frame_time(16));
-    }
-
-    /// Answers with the request's own frame, pausing after `after` bytes for `gap`.
-    struct Stutter {
-        after: usize,
-        gap: Duration,
-    }
-
-    impl Simulated for Stutter {
-        fn handle(&mut self, address: u8, request: &[u8], _at: Instant) -> Option<Transmission> {
-            Some(Transmission {
-                bytes: rtu::encode(address, request),
-                delay: Duration::ZERO,
-                pause: Some(super::super::Pause {
-                    after: self.after,
-                    gap: self.gap,
-                }),
-            })
-        }
-    }
-
-    #[tokio::test(start_paused = true)]
-    async fn a_paused_reply_arrives_in_two_bursts_with_the_line_silent_between() {
-        let line = line_9600_8e1();
-        let gap = Duration::from_millis(20);
-        line.add_slave(1, Stutter { after: 3, gap });
-        let timing = line.timing();
-        let mut port = line.open().unwrap();
-        let t0 = Instant::now();
-        port.send(&READ).await.unwrap();
-        let mut buf = Vec::new();
-        while buf.len() < 3 {
-            port.recv(&mut buf).await.unwrap();
-        }
-        assert_eq!(
-            buf.len(),
-            3,
-            "nothing of the rest came with the first burst"
-        );
-        let first_done = Instant::now();
-        while buf.len() < READ.len() {
-            port.recv(&mut buf).await.unwrap();
-        }
-        assert_eq!(buf, READ);
-        // The fourth byte takes its character time after the gap.
-        assert_about(Instant::now() - first_done, gap + timing.frame_time(5));
-        assert_about(
-            Instant::now() - t0,
-            timing.frame_time(16) + timing.t35 + gap,
-        );
-        let frames = line.frames();
-        assert_eq!(frames.len(), 3, "the request and two bursts");
-        assert_eq!(frames[2].start - frames[1].end, gap);
-        assert_eq!(frames[1].bytes, READ[..3]);
-        let stats = line.stats();
-        assert_eq!(stats.slave_frames, 1, "one transmission");
-        assert_eq!(stats.busy, timing.frame_time(16), "the gap is not busy");
-    }
-
-    #[tokio::test(start_paused = true)]
-    async fn the_master_may_talk_in_a_slaves_pause_without_a_collision() {
-        let line = line_9600_8e1();
-        line.add_slave(
-            1,
-            Stutter {
-                after: 3,
-                gap: Duration::from_millis(50),
-            },
-        );
-        let timing = line.timing();
-        let mut port = line.open().unwrap();
-        port.send(&READ).await.unwrap();
-        tokio::time::advance(timing.frame_time(11) + 2 * timing.t35).await;
-        port.send(&rtu::encode(2, &[0x03, 0x00, 0x00, 0x00, 0x01]))
-            .await
-            .unwrap();
-        assert_eq!(line.stats().collisions, 0);
-        assert_eq!(line.stats().unread_frames, 0);
-    }
-
-    #[tokio::test(start_paused = true)]
-    async fn a_frame_sent_before_t35_of_silence_is_counted_and_not_read() {
-        let line = line_9600_8e1();
-        line.add_slave(
-            1,
-            Echo {
-                delay: Duration::ZERO,
-            },
-        );
-        let timing = line.timing();
-        let mut port = line.open().unwrap();
-        port.send(&READ).await.unwrap();
-        // The reply ends 16 characters and t3.5 later; resend one character time after that.
-        tokio::time::advance(timing.frame_time(16) + timing.t35 + timing.char_time).await;
-        port.clear_input(&mut Vec::new()).unwrap();
-        port.send(&READ).await.unwrap();
-        let stats = line.stats();
-        assert_eq!(stats.gap_violations, 1);
-        assert_eq!(stats.unread_frames, 1);
-        assert_eq!(
-            stats.slave_frames, 1,
-            "the slave did not answer the merged frame"
-        );
-        assert_eq!(stats.min_gap, Some(timing.char_time));
-    }
-
-    #[tokio::test(start_paused = true)]
-    async fn sending_while_a_slave_talks_garbles_both() {
-        let line = line_9600_8e1();
-        line.add_slave(
-            1,
-            Echo {
-                delay: Duration::ZERO,
-            },
-        );
-        let mut port = line.open().unwrap();
-        port.send(&READ).await.unwrap();
-        let mut buf = Vec::new();
-        port.recv(&mut buf).await.unwrap();
-        port.send(&READ).await.unwrap();
-        while buf.len() < READ.len() {
-            port.recv(&mut buf).await.unwrap();
-        }
-        assert_eq!(buf[0], READ[0], "the byte before the collision is intact");
-        assert!(!rtu::crc_ok(&buf));
-        assert_eq!(line.stats().collisions, 1);
-    }
-
-    #[tokio::test(start_paused = true)]
-    async fn an_unplugged_adapter_reads_zero_and_cannot_be_opened_until_plugged() {
-        let line = line_9600_8e1();
-        let mut port = line.open().unwrap();
-        let waiting = tokio::spawn(async move {
-            let mut buf = Vec::new();
-            port.recv(&mut buf).await
-        });
-        tokio::task::yield_now().await;
-        line.unplug();
-        assert_eq!(waiting.await.unwrap().unwrap(), 0);
-        assert!(line.open().is_err());
-        line.plug();
-        let mut port = line.open().unwrap();
-        port.send(&READ).await.unwrap();
-    }
-
-    #[tokio::test(start_paused = true)]
-    async fn broadcasts_reach_every_slave_and_nobody_answers() {
-        let line = line_9600_8e1();
-        line.add_slave(
-            1,
-            Echo {
-                delay: Duration::ZERO,
-            },
-        );
-        line.add_slave(
-            2,
-            Echo {
-                delay: Duration::ZERO,
-            },
-        );
-        let mut port = line.open().unwrap();
-        port.send(&rtu::encode(0, &[0x06, 0, 1, 0, 1]))
-            .await
-            .unwrap();
-        let mut buf = Vec::new();
-        let nothing = tokio::time::timeout(Duration::from_secs(1), port.recv(&mut buf)).await;
-        assert!(nothing.is_err());
-        assert_eq!(line.stats().slave_frames, 0);
-    }
-}
+#[path = "line_tests.rs"]
+mod tests;

@@ -3,15 +3,17 @@
 //! `slaves` is where a request frame reaches the slave at its address, each a [`Simulated`];
 //! `registers` holds plain register-bank slaves; `drive` models the drives of the reference manuals
 //! on one shared request pipeline; `meter` an Eastron SDM120 energy meter; [`faults`] bends any
-//! slave's replies; `scripted` plays a script for tests; [`responder`] serves the slaves on a real
-//! serial port (`modbus-gateway simulate`) and `device_server` the line on a byte stream, as a
-//! serial device server does (`simulate --listen`). Knows nothing of TCP or the bus queue; the bus
-//! opens the line like any port.
+//! slave's replies; `scripted` plays a script for tests; `master` is a listen line's other
+//! master (`[bus.sim_master]`); [`responder`] serves the slaves on a real serial port
+//! (`modbus-gateway simulate`) and `device_server` the line on a byte stream, as a serial device
+//! server does (`simulate --listen`). Knows nothing of TCP or the bus queue; the bus opens the
+//! line like any port, or to listen.
 
 pub(crate) mod device_server;
 pub(crate) mod drive;
 pub mod faults;
 pub(crate) mod line;
+pub(crate) mod master;
 pub(crate) mod meter;
 pub(crate) mod registers;
 pub mod responder;

@@ -129,18 +129,45 @@ impl Device {
     /// Open the transport for a line framed by `framing`: refused (`Unsupported`, which
     /// retrying does not cure) if the framing table does not let `framing` run over it.
     pub(crate) async fn open_for(&self, framing: Framing) -> io::Result<Port> {
-        let kind = self.kind();
-        if !framing.runs_over(kind) {
-            return Err(io::Error::new(
-                io::ErrorKind::Unsupported,
-                format!(
-                    "framing = \"{}\" cannot run over {}",
-                    framing.name(),
-                    kind.name()
-                ),
-            ));
-        }
+        self.carries(framing)?;
         self.open().await
+    }
+
+    /// Open the transport of a listen-only line framed by `framing`, as [`Device::open_for`]
+    /// does: the simulated line opens a listening port, which hears every frame on the wire
+    /// (its other master's too) and refuses to send; every other device opens as for a master,
+    /// and the bus never writes to it.
+    #[cfg_attr(
+        not(test),
+        expect(
+            dead_code,
+            reason = "the bus task of a listen line (issue 44) opens through it next"
+        )
+    )]
+    pub(crate) async fn open_to_listen(&self, framing: Framing) -> io::Result<Port> {
+        match self {
+            Device::Sim(line) => {
+                self.carries(framing)?;
+                sim::open_listening(line)
+            }
+            Device::Serial { .. } | Device::Server { .. } => self.open_for(framing).await,
+        }
+    }
+
+    /// Refused (`Unsupported`) unless the framing table lets `framing` run over this device.
+    fn carries(&self, framing: Framing) -> io::Result<()> {
+        let kind = self.kind();
+        if framing.runs_over(kind) {
+            return Ok(());
+        }
+        Err(io::Error::new(
+            io::ErrorKind::Unsupported,
+            format!(
+                "framing = \"{}\" cannot run over {}",
+                framing.name(),
+                kind.name()
+            ),
+        ))
     }
 
     /// The path of a serial device.
@@ -272,6 +299,22 @@ mod tests {
             },
             driver,
         }
+    }
+
+    #[tokio::test]
+    async fn the_simulated_line_opens_to_listen_as_a_port_that_refuses_to_send() {
+        let Device::Sim(line) = sim() else {
+            unreachable!("sim() is the simulated line")
+        };
+        let device = Device::Sim(line.clone());
+        let mut port = device.open_to_listen(Framing::Rtu).await.unwrap();
+        assert!(port
+            .send(&[0x01, 0x03, 0x00, 0x00, 0x00, 0x01])
+            .await
+            .is_err());
+        assert_eq!(line.stats().listener_frames, 1);
+        assert_eq!(line.stats().master_frames, 0);
+        assert!(device.open_to_listen(Framing::Tcp).await.is_err());
     }
 
     #[test]
