@@ -268,7 +268,15 @@ impl BusTask {
     /// takes a while): ends early on a stop, or on a new configuration that names another device.
     async fn open(&mut self, stopping: &mut Stopping) -> Opening {
         let device = self.current.device.clone();
-        let opening = device.open_for(self.current.derived.framing);
+        let framing = self.current.derived.framing;
+        let listening = self.handle.shadow.is_some();
+        let opening = async move {
+            if listening {
+                device.open_to_listen(framing).await
+            } else {
+                device.open_for(framing).await
+            }
+        };
         let mut opening = pin!(opening);
         loop {
             self.handle.beat();

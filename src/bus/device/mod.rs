@@ -137,13 +137,6 @@ impl Device {
     /// does: the simulated line opens a listening port, which hears every frame on the wire
     /// (its other master's too) and refuses to send; every other device opens as for a master,
     /// and the bus never writes to it.
-    #[cfg_attr(
-        not(test),
-        expect(
-            dead_code,
-            reason = "the bus task of a listen line (issue 44) opens through it next"
-        )
-    )]
     pub(crate) async fn open_to_listen(&self, framing: Framing) -> io::Result<Port> {
         match self {
             Device::Sim(line) => {
