@@ -109,6 +109,7 @@ mod faults;
 mod hostile;
 mod layers;
 mod line;
+mod listen;
 mod metrics;
 mod mqtt;
 mod peers;
