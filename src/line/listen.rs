@@ -113,9 +113,11 @@ impl Ear {
             .last
             .filter(|_| !self.buf.is_empty())
             .map(|last| last + self.timing.silence);
+        // While bytes that claim to be the reply are coming, silence decides, not the timeout.
         let timeout = self
             .pending
             .as_ref()
+            .filter(|_| !self.reply_under_way())
             .map(|request| self.reply_due_by(request));
         match (silence, timeout) {
             (Some(a), Some(b)) => Some(a.min(b)),
@@ -138,8 +140,9 @@ impl Ear {
         let start = at
             .checked_sub(self.timing.char_time * u32::try_from(bytes.len()).unwrap_or(u32::MAX))
             .unwrap_or(at);
-        if self.buf.is_empty() {
-            self.expire(start, out);
+        if !self.reply_under_way() {
+            let at = if self.buf.is_empty() { start } else { at };
+            self.expire(at, out);
         }
         self.buf.extend_from_slice(bytes);
         self.last = Some(at);
@@ -154,9 +157,14 @@ impl Ear {
                 self.silent(last, out);
             }
         }
-        if self.buf.is_empty() {
+        if !self.reply_under_way() {
             self.expire(now, out);
         }
+    }
+
+    /// Whether bytes held claim to be the reply to the request due: its timeout waits for them.
+    fn reply_under_way(&self) -> bool {
+        !self.buf.is_empty() && self.claims_due()
     }
 
     /// The port was lost or reopened: what was held is dropped, and the request waiting is
