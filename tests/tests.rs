@@ -58,6 +58,8 @@
 //! - `simulate`: the `simulate` subcommand answering RTU masters on a pty.
 //! - `service`: the gateway under a service manager: graceful stop.
 //! - `metrics`: `/metrics`, `/healthz`, `/readyz` after known traffic; promtool; shipped rules.
+//! - `listen`: listen-only lines (`mode = "listen"`) on a shared line of ptys (the tap): a
+//!   pymodbus master and slave heard, values and shadow reads, not a byte written; a hostile line.
 //! - `mqtt`: `[mqtt]` against Debian's mosquitto and mosquitto_sub: values on change, deadband
 //!   and publish_interval, retained flags, the last will, availability, Home Assistant discovery
 //!   across restarts, sets under the rules and the journal, the broker down, mqtts, a wrong

@@ -11,6 +11,8 @@
 //!   bus's far side).
 //! - `mosquitto`: mosquitto as an MQTT broker (anonymous, with a password file, on TLS), and
 //!   mosquitto_sub / mosquitto_pub as the subscriber and the publisher on its far side.
+//! - `tap`: a shared RS-485 line of ptys: a master and a slave relayed both ways, every byte
+//!   copied to the gateway's port, and whatever the gateway writes logged.
 //! - `tls`: a test PKI (CA, server and master certificates with the Modbus/TCP Security RoleOID)
 //!   and TLS masters.
 //! - `http`: the metrics endpoint: GETs, `/metrics` parsed, `/trace` readers.
