@@ -19,7 +19,7 @@ use crate::peers::{python_with_pymodbus, Pymodbus};
 use crate::support::tap::Tap;
 use crate::support::{
     connect_when_listening, exit_status, free_addr, http_get, rtu, signal, until_logged, within,
-    RawMaster, Scrape, TempDir,
+    Bus, GatewayConfig, RawMaster, Scrape, TempDir,
 };
 use bytes::Bytes;
 use http_body_util::{BodyExt, Empty};
@@ -297,16 +297,20 @@ impl Drop for Daemon {
     }
 }
 
-/// `[[bus]]` listening on `device`, its `max_age`, `response_timeout` 300 ms, and `slaves`
-/// (`[[bus.slave]]` tables).
+/// The bus listening on `device`, its `max_age`, `response_timeout` 300 ms, and `slaves`
+/// (`[[bus.slave]]` tables), as TOML.
 fn listen_bus(device: &Path, max_age: Duration, slaves: &str) -> String {
-    format!(
-        "[[bus]]\nname = \"{BUS}\"\ndevice = \"{}\"\nbaud = 115200\nparity = \"none\"\n\
-         mode = \"listen\"\nmax_age = \"{}ms\"\nresponse_timeout = \"300ms\"\n\
-         reopen_delay = \"100ms\"\nreopen_delay_max = \"200ms\"\n{slaves}",
-        device.display(),
+    let keys = format!(
+        "mode = \"listen\"\nmax_age = \"{}ms\"\nreopen_delay = \"100ms\"\n\
+         reopen_delay_max = \"200ms\"\n{slaves}",
         max_age.as_millis()
-    )
+    );
+    let bus = Bus::on(BUS, &device.display().to_string())
+        .baud(115_200)
+        .parity("none")
+        .response_timeout("300ms")
+        .text(&keys);
+    bus.to_toml()
 }
 
 /// The trace's frames, as `GET /trace` sends them, collected from the moment it is open.
@@ -1096,8 +1100,10 @@ fn check_config_refuses_every_key_that_would_transmit_on_a_listen_line_naming_it
         );
     }
 
-    let master_line = "[[bus]]\nname = \"line1\"\ndevice = \"/dev/ttyUSB0\"\nmax_age = \"5s\"\n";
-    let (code, err) = check_config(&dir, "master-max-age.toml", master_line);
+    let master_line = GatewayConfig::new()
+        .bus(Bus::on("line1", "/dev/ttyUSB0").key("max_age", "5s"))
+        .to_toml();
+    let (code, err) = check_config(&dir, "master-max-age.toml", &master_line);
     assert_eq!(code, Some(2), "{err}");
     assert!(err.contains("bus[0].max_age: "), "{err}");
 }

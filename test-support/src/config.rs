@@ -329,6 +329,14 @@ impl Bus {
         }
     }
 
+    /// This bus alone as TOML, its `[[bus]]` and its tables, for a test that writes the rest
+    /// of the file itself.
+    pub fn to_toml(&self) -> String {
+        let mut out = String::new();
+        self.write(&mut out);
+        out
+    }
+
     /// A bus named `name` on the built-in simulated line.
     pub fn sim(name: &str) -> Bus {
         Bus::on(name, "sim")
