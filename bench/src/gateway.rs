@@ -2,6 +2,7 @@
 //! started on it and stopped when dropped, and what /proc says of its CPU time and memory.
 
 use crate::journal::JournalDir;
+use crate::listen;
 use crate::plant;
 use crate::scenarios::{Journal, Kind, Line, Load, Scenario, PRIORITY_IP, SLAVES};
 use crate::virtual_unit;
@@ -128,6 +129,9 @@ pub(crate) fn bus(scenario: &Scenario, device: &str) -> Bus {
             .parity(f.parity.name())
             .key("stop_bits", f.stop_bits);
     }
+    if let Some(timeout) = scenario.byte_timeout {
+        bus = bus.key("byte_timeout", format!("{}ms", timeout.as_millis()));
+    }
     if !scenario.coalesce {
         bus = bus.key("coalesce_reads", false);
     }
@@ -139,6 +143,8 @@ pub(crate) fn bus(scenario: &Scenario, device: &str) -> Bus {
     }
     if scenario.load == Load::Virtual {
         bus = virtual_unit::drives(bus);
+    } else if scenario.load == Load::Listen {
+        bus = listen::line(bus);
     } else if device == "sim" {
         bus = bus.sim_slaves(&format!("1-{SLAVES}"));
     }

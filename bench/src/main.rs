@@ -20,7 +20,10 @@
 //! (`mqtt-247x20`, every value again each 10 s, and `mqtt-1s-247x20`, each second), it measures
 //! the first full publication, the rate of messages received and sent, the gateway's CPU and
 //! memory against the same gateway without `[mqtt]`, the broker's CPU, and the latency of
-//! masters reading beside it, with MQTT and without.
+//! masters reading beside it, with MQTT and without. On a listen-only line (`listen-115200`,
+//! `mode = "listen"`) saturated by the simulated line's other master, it measures what the
+//! gateway hears and pairs against what that master made, its CPU per observed transaction, and
+//! a master reading the shadow; its twin ends frames by their lengths alone (`byte_timeout`).
 //! A workspace member of its own: `cargo install` and the Debian package carry only the daemon.
 //!
 //! The modules, in the order a run goes through them: `scenarios` (what to measure),
@@ -31,8 +34,9 @@
 //! virtual unit of that scenario, and the wait until it answers), `masters` (the load), `plant`
 //! (no load but the gateway's own polls of plant values: the cost of polling and of each page
 //! serving them), `mqtt` (those values published through a local mosquitto, beside the gateway
-//! without it), `watch` (its HTTP endpoint: metrics, trace, scraper, pages), `run` (one
-//! scenario's warm-up and window), `report` (the figures and their tables).
+//! without it), `listen` (a listen-only line, its other master and the shadow's reader),
+//! `watch` (its HTTP endpoint: metrics, trace, scraper, pages), `run` (one scenario's warm-up
+//! and window), `report` (the figures and their tables).
 
 // The harness times other processes on the real clock, and paces its masters on tokio's
 // timer; it has no paused clock to keep, nor the product's choice of precision to make.
@@ -42,6 +46,7 @@ mod beside;
 mod device_server;
 mod gateway;
 mod journal;
+mod listen;
 mod masters;
 mod mqtt;
 mod plant;
@@ -191,4 +196,5 @@ fn print_tables(reports: &[report::Report]) {
     report::print_journal_table(reports);
     report::print_virtual_table(reports);
     report::print_mqtt_table(reports);
+    report::print_listen_table(reports);
 }

@@ -25,32 +25,35 @@ const FIRST_PASS_CHECK: Duration = Duration::from_millis(250);
 /// The `[[bus.slave]]` of every simulated slave, each listing [`PLANT_VALUES`] in the input
 /// registers of its own block, at the default `poll_interval` (10 s).
 pub(crate) fn slaves() -> String {
+    (1..=SLAVES).map(slave).collect()
+}
+
+/// The `[[bus.slave]]` of slave `address`, listing [`PLANT_VALUES`] in its block's input registers.
+pub(crate) fn slave(address: u8) -> String {
     let mut toml = String::new();
-    for address in 1..=SLAVES {
-        let base = plant_base(address);
-        let _ = writeln!(toml, "[[bus.slave]]\naddress = {address}");
-        for v in &PLANT_VALUES {
-            let _ = writeln!(
-                toml,
-                "[[bus.slave.value]]\nname = \"{}\"\nregister = {}\ntable = \"input\"\n\
-                 type = \"{}\"\nscale = {:?}",
-                v.name,
-                base + v.offset,
-                v.kind,
-                v.scale
-            );
-            if let Some(bit) = v.bit {
-                let _ = writeln!(toml, "bit = {bit}");
-            }
-            if v.words_little {
-                toml.push_str("word_order = \"little\"\n");
-            }
-            if v.bytes_little {
-                toml.push_str("byte_order = \"little\"\n");
-            }
-            if let Some(unit) = v.unit {
-                let _ = writeln!(toml, "unit = \"{unit}\"");
-            }
+    let base = plant_base(address);
+    let _ = writeln!(toml, "[[bus.slave]]\naddress = {address}");
+    for v in &PLANT_VALUES {
+        let _ = writeln!(
+            toml,
+            "[[bus.slave.value]]\nname = \"{}\"\nregister = {}\ntable = \"input\"\n\
+             type = \"{}\"\nscale = {:?}",
+            v.name,
+            base + v.offset,
+            v.kind,
+            v.scale
+        );
+        if let Some(bit) = v.bit {
+            let _ = writeln!(toml, "bit = {bit}");
+        }
+        if v.words_little {
+            toml.push_str("word_order = \"little\"\n");
+        }
+        if v.bytes_little {
+            toml.push_str("byte_order = \"little\"\n");
+        }
+        if let Some(unit) = v.unit {
+            let _ = writeln!(toml, "unit = \"{unit}\"");
         }
     }
     toml

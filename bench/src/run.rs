@@ -3,13 +3,15 @@
 //! (with an audit journal) the journal's growth are taken; on the tcp-device line with reads, one
 //! direct client before and modbus-proxy after; with no master but plant values to poll, `plant`'s;
 //! with masters reading a virtual unit, a wait first until it answers (`virtual_unit`); with the
-//! plant values published over MQTT, `mqtt`'s, which starts its own two gateways.
+//! plant values published over MQTT, `mqtt`'s, which starts its own two gateways; on a
+//! listen-only line, `listen`'s.
 //! The figures are `report`'s.
 
 use crate::beside;
 use crate::device_server::DeviceServer;
 use crate::gateway::{cpu_time, rss_mb, Gateway};
 use crate::journal::JournalDir;
+use crate::listen;
 use crate::masters::{connect_all, master, priority_connect, untimed_slave, Done, Served};
 use crate::mqtt;
 use crate::plant;
@@ -106,6 +108,12 @@ pub(crate) async fn run(cli: &Cli, binary: &Path, s: &Scenario) -> Result<Report
         // Two gateways of its own, one after the other, on the simulated line.
         let window = mqtt::measure(cli, binary, s, "sim").await?;
         return Ok(Report::mqtt(s, &window));
+    }
+    if s.load == Load::Listen {
+        let window = listen::measure(cli, binary, s).await?;
+        let mut report = Report::new(s, &[], Duration::ZERO);
+        report.listen(&window);
+        return Ok(report);
     }
     run_gateway(cli, binary, s).await
 }

@@ -176,6 +176,9 @@ pub(crate) enum Load {
     /// (`[mqtt]`), measured beside the same gateway without it; the masters read at a period
     /// beside the polls (`mqtt`).
     Mqtt,
+    /// A listen-only line: its other master (`[bus.sim_master]`) reads a few slaves back to
+    /// back; the gateway hears and pairs it, and one master reads the shadow (`listen`).
+    Listen,
 }
 
 /// The gateway's audit journal (`[audit]`), which takes an entry for every write before it is
@@ -239,6 +242,8 @@ pub(crate) struct Scenario {
     pub(crate) journal: Journal,
     /// The MQTT load's `[mqtt] publish_interval`.
     pub(crate) publish_interval: Option<Duration>,
+    /// `[[bus]] byte_timeout`: the silence that ends a frame, if longer than t3.5.
+    pub(crate) byte_timeout: Option<Duration>,
 }
 
 impl Scenario {
@@ -265,6 +270,7 @@ impl Scenario {
             priority_on_port: false,
             journal: Journal::Off,
             publish_interval: None,
+            byte_timeout: None,
         }
     }
 }
@@ -341,6 +347,7 @@ pub(crate) fn scenarios() -> Vec<Scenario> {
         ));
     }
     plant_scenarios(&mut all);
+    listen_scenarios(&mut all);
     // 100 masters reading a virtual unit, on the demo's 9600 8E1 line whose drives it shows.
     all.push(Scenario::sim(
         "virtual-unit-100".to_owned(),
@@ -349,6 +356,24 @@ pub(crate) fn scenarios() -> Vec<Scenario> {
         Load::Virtual,
     ));
     all
+}
+
+/// A listen-only 115200 line saturated by its other master, heard and paired, one master
+/// reading the shadow: frames told apart by t3.5 of silence, as the spec has it, then by their
+/// lengths alone, a silence of 10 ms (`byte_timeout`) ending only a frame they cannot measure:
+/// what a host whose scheduler may hold the gateway longer than t3.5 needs.
+fn listen_scenarios(all: &mut Vec<Scenario>) {
+    for (byte_timeout, label) in [(None, ""), (Some(10), "-byte-timeout-10ms")] {
+        all.push(Scenario {
+            byte_timeout: byte_timeout.map(Duration::from_millis),
+            ..Scenario::sim(
+                format!("listen-115200{label}"),
+                format(115_200, Parity::None),
+                1,
+                Load::Listen,
+            )
+        });
+    }
 }
 
 /// The gateway polling plant values with no master, on the simulated line and behind a device

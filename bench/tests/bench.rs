@@ -381,6 +381,48 @@ fn masters_reading_a_virtual_unit_are_answered_from_memory_every_read_normally()
     }
 }
 
+/// The listen-only line by lengths (the twin that tolerates a host's scheduling jitter): the
+/// other master's transactions heard and paired, none lost, the plant values and the shadow
+/// read from what was heard, nothing but reads.
+#[test]
+fn a_saturated_listen_line_is_heard_and_paired_whole_and_its_shadow_answers() {
+    let scenario = "listen-115200-byte-timeout-10ms";
+    let report = bench_json(&[scenario], |_| {}).remove(0);
+    assert_eq!(report["scenario"], scenario);
+    let made = report["made"].as_f64().unwrap();
+    let (heard, paired) = (
+        report["heard"].as_f64().unwrap(),
+        report["paired"].as_f64().unwrap(),
+    );
+    // Every request heard is paired; what was made and what was heard differ only by the
+    // transactions under way at the window's ends.
+    assert!(made > 100.0, "{report}");
+    assert_eq!(heard, paired, "{report}");
+    assert!((made - paired).abs() <= 2.0, "{report}");
+    for field in [
+        "timeouts",
+        "crc_errors",
+        "discarded",
+        "exceptions",
+        "shadow_exceptions",
+    ] {
+        assert_eq!(report[field].as_u64(), Some(0), "{field}: {report}");
+    }
+    let efficiency = report["efficiency"].as_f64().unwrap();
+    assert!(efficiency > 0.97 && efficiency <= 1.01, "{report}");
+    assert_eq!(report["plant_values"].as_u64(), Some(20), "{report}");
+    assert!(
+        report["shadow_reads_per_s"].as_f64().unwrap() > 100.0,
+        "{report}"
+    );
+    for field in ["p50_ms", "cpu_us_per_tx", "cpu_ms_per_s", "rss_mb"] {
+        assert!(
+            report[field].as_f64().is_some_and(|v| v > 0.0),
+            "{field}: {report}"
+        );
+    }
+}
+
 /// mosquitto and its clients, as the MQTT scenarios need them; if one is missing, nothing to
 /// check (what test-support's `tool` says, and it fails the test if MBGW_REQUIRE_TOOLS is set).
 fn mosquitto_installed() -> bool {

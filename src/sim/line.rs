@@ -18,7 +18,7 @@ use super::{Simulated, Transmission};
 use crate::config;
 use crate::line::framing::{Completion, Silence};
 use crate::line::{Framing, LineTiming, Transport};
-use crate::timer::sleep_until;
+use crate::timer::{sleep_until, LineTimer};
 use std::collections::VecDeque;
 use std::io;
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
@@ -215,6 +215,7 @@ impl SimLine {
             shared: self.shared.clone(),
             generation: state.generation,
             listening,
+            timer: LineTimer::new(),
         })
     }
 
@@ -522,6 +523,10 @@ pub struct SimPort {
     generation: u64,
     /// Opened to listen: hears every frame, never sends.
     listening: bool,
+    /// A listener wakes for every byte (the master port sleeps through a reply it can
+    /// measure): on a timer of its own, which costs it a syscall where the shared timer thread
+    /// costs two thread switches.
+    timer: LineTimer,
 }
 
 impl SimPort {
@@ -579,6 +584,10 @@ impl Transport for SimPort {
                     .min()
             };
             match next_arrival {
+                Some(at) if self.listening => tokio::select! {
+                    () = self.timer.sleep_until(at) => {}
+                    () = &mut changed => {}
+                },
                 Some(at) => tokio::select! {
                     () = sleep_until(at) => {}
                     () = &mut changed => {}

@@ -2,8 +2,11 @@
 //! the reports it is compared with. How they are shown, as the table and the scenarios' own
 //! tables, is `tables`'s.
 
+mod listen;
 mod mqtt;
 mod tables;
+
+pub(crate) use listen::print_listen_table;
 
 pub(crate) use tables::{
     print_device_server_table, print_header, print_journal_table, print_line_table,
@@ -18,6 +21,7 @@ use crate::run::{Minimum, Window};
 use crate::scenarios::{journal_off_twin, Line, Load, Scenario};
 use crate::virtual_unit;
 use crate::watch::Counters;
+pub(crate) use listen::ListenFigures;
 pub(crate) use mqtt::MqttFigures;
 use serde::Serialize;
 use std::time::Duration;
@@ -113,6 +117,9 @@ pub(crate) struct Report {
     /// The `mqtt-` scenarios only.
     #[serde(flatten)]
     pub(crate) mqtt: Option<MqttFigures>,
+    /// The `listen-` scenario only.
+    #[serde(flatten)]
+    pub(crate) listen: Option<ListenFigures>,
 }
 
 /// The `virtual-unit-` scenario's: masters reading a virtual unit, answered from memory while

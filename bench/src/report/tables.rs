@@ -5,7 +5,7 @@
 
 use super::Report;
 
-fn cell(value: Option<f64>, precision: usize) -> String {
+pub(super) fn cell(value: Option<f64>, precision: usize) -> String {
     value.map_or("-".into(), |v| format!("{v:.precision$}"))
 }
 
