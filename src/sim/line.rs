@@ -12,7 +12,7 @@
 //! `[bus.sim_master]`) runs only while such a port is open, advanced as the port is polled, as
 //! the slaves' replies are scheduled: exact under the paused clock, and idle when nobody listens.
 
-use super::master::{OtherMaster, Outcome, Step};
+use super::master::{Ending, OtherMaster, Step};
 use super::slaves::{Heard, Slaves};
 use super::{Simulated, Transmission};
 use crate::config;
@@ -370,9 +370,9 @@ impl LineState {
         while let Some(step) = other.step(now) {
             match step {
                 Step::Ended(outcome) => match outcome {
-                    Outcome::Reply => self.stats.other_replies += 1,
-                    Outcome::Corrupt => self.stats.other_corrupt += 1,
-                    Outcome::Timeout => self.stats.other_timeouts += 1,
+                    Ending::Reply => self.stats.other_replies += 1,
+                    Ending::Corrupt => self.stats.other_corrupt += 1,
+                    Ending::Timeout => self.stats.other_timeouts += 1,
                 },
                 Step::Request { start, index } => {
                     self.transmit_from_other(&mut other, index, start);

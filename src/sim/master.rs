@@ -12,7 +12,7 @@ use std::time::Duration;
 use tokio::time::Instant;
 
 /// One read of the list, framed once.
-pub(crate) struct Read {
+pub(crate) struct OtherRead {
     pub(crate) address: u8,
     /// The request PDU: function, first register, count.
     pub(crate) pdu: Vec<u8>,
@@ -22,7 +22,7 @@ pub(crate) struct Read {
 
 /// How the master's wait for a reply ended.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum Outcome {
+pub(crate) enum Ending {
     /// A whole frame by its length from the slave asked, its check good, within the timeout.
     Reply,
     /// A whole frame within the timeout whose check or address is wrong.
@@ -33,23 +33,23 @@ pub(crate) enum Outcome {
 
 /// The transaction under way: when the master is done with it, how, and when the next may start.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) struct Pending {
+pub(crate) struct UnderWay {
     pub(crate) done: Instant,
-    pub(crate) outcome: Outcome,
+    pub(crate) outcome: Ending,
     pub(crate) next_start: Instant,
 }
 
 /// What the master does next, by the time asked about.
 pub(crate) enum Step {
     /// The transaction under way has ended.
-    Ended(Outcome),
+    Ended(Ending),
     /// The next request starts at `start`: read `index` of the list.
     Request { start: Instant, index: usize },
 }
 
 /// The simulated other master.
 pub(crate) struct OtherMaster {
-    reads: Vec<Read>,
+    reads: Vec<OtherRead>,
     pause: Duration,
     response_timeout: Duration,
     framing: Framing,
@@ -57,7 +57,7 @@ pub(crate) struct OtherMaster {
     turn: usize,
     /// When the next request may start; `None` until a listener first opens.
     next_start: Option<Instant>,
-    pending: Option<Pending>,
+    pending: Option<UnderWay>,
 }
 
 impl OtherMaster {
@@ -72,7 +72,7 @@ impl OtherMaster {
                 let pdu = vec![read.table.function(), hi, lo, count_hi, count_lo];
                 let mut frame = Vec::new();
                 framing.encode_into(&mut frame, 0, read.slave, &pdu);
-                Read {
+                OtherRead {
                     address: read.slave,
                     pdu,
                     frame,
@@ -90,7 +90,7 @@ impl OtherMaster {
         }
     }
 
-    pub(crate) fn read(&self, index: usize) -> &Read {
+    pub(crate) fn read(&self, index: usize) -> &OtherRead {
         &self.reads[index]
     }
 
@@ -133,7 +133,7 @@ impl OtherMaster {
         end: Instant,
         reply: Option<(&Transmission, Instant)>,
         timing: &LineTiming,
-    ) -> Pending {
+    ) -> UnderWay {
         let timeout_at = end + self.response_timeout;
         let mut quiet = end;
         let mut ended = None;
@@ -150,21 +150,21 @@ impl OtherMaster {
                     let mut pdu = Vec::new();
                     let from = self.framing.decode_into(&bytes[..n], &mut pdu);
                     let outcome = if from == Some(read.address) {
-                        Outcome::Reply
+                        Ending::Reply
                     } else {
-                        Outcome::Corrupt
+                        Ending::Corrupt
                     };
                     Some((arrival(transmission, start, timing.char_time, n), outcome))
                 }
                 // The bytes cannot tell its end: the silence after it does.
-                Completion::Open(Silence::EndsFrame) => Some((last + timing.t35, Outcome::Reply)),
+                Completion::Open(Silence::EndsFrame) => Some((last + timing.t35, Ending::Reply)),
                 Completion::AtLeast(_) | Completion::Open(Silence::FailsFrame) => None,
                 Completion::Invalid => None,
             }
             .filter(|&(at, _)| at <= timeout_at);
         }
-        let (done, outcome) = ended.unwrap_or((timeout_at, Outcome::Timeout));
-        let pending = Pending {
+        let (done, outcome) = ended.unwrap_or((timeout_at, Ending::Timeout));
+        let pending = UnderWay {
             done,
             outcome,
             next_start: done.max(quiet + timing.t35) + self.pause,
