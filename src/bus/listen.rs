@@ -2,8 +2,8 @@
 //! its slaves say (`line::listen`'s [`Ear`]), keeps what the replies carried in the line's
 //! [`Shadow`], counts and traces what it heard, and tells the slaves' health. It never sends:
 //! the port is only ever read ([`Hearing`] has no way to write), and every request a master
-//! routes here is answered by the [`BusHandle`] from the shadow before it could be queued; one
-//! queued all the same (none is) is answered from the shadow too.
+//! routes here is answered by the [`BusHandle`] from the shadow, in the one place requests are
+//! submitted, so nothing is ever queued for this loop to take.
 
 use super::health::Response;
 use super::shadow::Shadow;
@@ -118,10 +118,6 @@ impl BusTask {
                     }
                     Err(error) => break Served::Lost(error),
                 },
-                job = self.handle.queue.pop() => {
-                    let outcome = shadow.answer(job.slave, &job.pdu, Instant::now());
-                    self.handle.answer(job, outcome.map(Answer::Reply));
-                }
                 () = coarse_sleep_until(deadline.unwrap_or_else(Instant::now)),
                     if deadline.is_some() => ear.tick(Instant::now(), &mut heard),
                 () = sleep(HEARTBEAT) => {}

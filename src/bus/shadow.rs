@@ -5,6 +5,7 @@
 //! slave's table keeps its newest [`MAX_BLOCKS`] blocks. Plain data behind one lock; knows
 //! nothing of ports or of how frames are heard.
 
+use crate::config::{Table, MAX_READ_BITS, MAX_READ_REGISTERS};
 use crate::error::RequestError;
 use crate::pdu::code;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -16,38 +17,16 @@ use tokio::time::Instant;
 /// Blocks kept per slave and table: a master polling more distinct blocks than this from one
 /// slave has its oldest forgotten, so a hostile line cannot grow the shadow.
 pub(crate) const MAX_BLOCKS: usize = 64;
-/// The most registers one read asks for, and of bits (Modbus's limits).
-const MAX_REGISTERS: u16 = 125;
-const MAX_BITS: u16 = 2000;
+/// The tables, in the order of their read function codes (01 to 04): a table's place here is
+/// its place in a slave's shadow.
+const TABLES: [Table; 4] = [Table::Coil, Table::Discrete, Table::Holding, Table::Input];
 
-/// The four tables, in the order their read function codes go (01 to 04).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum Kind {
-    Coils,
-    Discrete,
-    Holding,
-    Input,
-}
-
-impl Kind {
-    /// The table a read function code reads, and whether it reads bits.
-    fn of_read(function: u8) -> Option<Kind> {
-        match function {
-            code::READ_COILS => Some(Kind::Coils),
-            code::READ_DISCRETE_INPUTS => Some(Kind::Discrete),
-            code::READ_HOLDING_REGISTERS => Some(Kind::Holding),
-            code::READ_INPUT_REGISTERS => Some(Kind::Input),
-            _ => None,
-        }
-    }
-
-    fn is_bits(self) -> bool {
-        matches!(self, Kind::Coils | Kind::Discrete)
-    }
-
-    fn index(self) -> usize {
-        self as usize
-    }
+/// The table a read function code (01 to 04) reads, and its place in [`TABLES`].
+fn table_read_by(function: u8) -> Option<(Table, usize)> {
+    TABLES
+        .iter()
+        .position(|t| t.function() == function)
+        .map(|at| (TABLES[at], at))
 }
 
 /// One reply's worth of one table: registers, or bits as 0 and 1.
@@ -126,10 +105,10 @@ impl Shadow {
         reply: &[u8],
         at: (Instant, SystemTime),
     ) {
-        let Some((kind, first, count)) = read_of(request) else {
+        let Some(((table, place), first, count)) = read_of(request) else {
             return;
         };
-        let Some(values) = carried(kind, count, reply) else {
+        let Some(values) = carried(table, count, reply) else {
             return;
         };
         let block = Block {
@@ -139,7 +118,7 @@ impl Shadow {
             wall: at.1,
         };
         let mut state = self.lock();
-        let blocks = &mut state.tables[usize::from(slave)][kind.index()];
+        let blocks = &mut state.tables[usize::from(slave)][place];
         blocks.retain(|b| b.first < block.first || b.end() > block.end());
         blocks.push(block);
         if blocks.len() > MAX_BLOCKS {
@@ -165,9 +144,9 @@ impl Shadow {
     /// `count` registers (or bits) of `slave`'s `function`'s table from `first`, if every one
     /// was seen, each from the newest block that holds it.
     pub(crate) fn seen(&self, slave: u8, function: u8, first: u16, count: u16) -> Option<Shadowed> {
-        let kind = Kind::of_read(function)?;
+        let (_, at) = table_read_by(function)?;
         let state = self.lock();
-        let blocks = &state.tables[usize::from(slave)][kind.index()];
+        let blocks = &state.tables[usize::from(slave)][at];
         let mut values = Vec::with_capacity(usize::from(count));
         let mut oldest: Option<&Block> = None;
         for address in u32::from(first)..u32::from(first) + u32::from(count) {
@@ -196,14 +175,15 @@ impl Shadow {
         now: Instant,
     ) -> Result<Vec<u8>, RequestError> {
         let function = pdu.first().copied().unwrap_or(0);
-        let Some((kind, first, count)) = read_of(pdu).filter(|_| Kind::of_read(function).is_some())
+        let Some(((table, _), first, count)) =
+            read_of(pdu).filter(|_| table_read_by(function).is_some())
         else {
             return Err(RequestError::ListenOnly(function));
         };
-        let most = if kind.is_bits() {
-            MAX_BITS
+        let most = if table.is_bits() {
+            MAX_READ_BITS
         } else {
-            MAX_REGISTERS
+            MAX_READ_REGISTERS
         };
         if count == 0 || count > most || u32::from(first) + u32::from(count) > 0x1_0000 {
             return Err(RequestError::Unreadable(function));
@@ -214,7 +194,7 @@ impl Shadow {
         if now.saturating_duration_since(seen.at) > self.max_age() {
             return Err(RequestError::Unseen);
         }
-        Ok(reply_of(function, kind, &seen.values))
+        Ok(reply_of(function, table, &seen.values))
     }
 }
 
@@ -223,24 +203,24 @@ fn nanos(d: Duration) -> u64 {
 }
 
 /// The table, first register and count a request reads: 01 to 04, and 17's read half.
-fn read_of(pdu: &[u8]) -> Option<(Kind, u16, u16)> {
+fn read_of(pdu: &[u8]) -> Option<((Table, usize), u16, u16)> {
     let word = |at: usize| Some(u16::from_be_bytes([*pdu.get(at)?, *pdu.get(at + 1)?]));
     let function = *pdu.first()?;
-    let kind = match function {
-        code::READ_WRITE_MULTIPLE_REGISTERS => Kind::Holding,
-        _ => Kind::of_read(function)?,
+    let table = match function {
+        code::READ_WRITE_MULTIPLE_REGISTERS => table_read_by(code::READ_HOLDING_REGISTERS)?,
+        _ => table_read_by(function)?,
     };
     if function != code::READ_WRITE_MULTIPLE_REGISTERS && pdu.len() != 5 {
         return None;
     }
-    Some((kind, word(1)?, word(3)?))
+    Some((table, word(1)?, word(3)?))
 }
 
-/// The registers or bits a normal reply of `count` of `kind` carries.
-fn carried(kind: Kind, count: u16, reply: &[u8]) -> Option<Vec<u16>> {
+/// The registers or bits a normal reply of `count` of `table` carries.
+fn carried(table: Table, count: u16, reply: &[u8]) -> Option<Vec<u16>> {
     let (&bytes, data) = reply.get(1..)?.split_first()?;
     let count = usize::from(count);
-    if kind.is_bits() {
+    if table.is_bits() {
         if usize::from(bytes) != count.div_ceil(8) || data.len() != usize::from(bytes) {
             return None;
         }
@@ -262,9 +242,9 @@ fn carried(kind: Kind, count: u16, reply: &[u8]) -> Option<Vec<u16>> {
 }
 
 /// The normal reply of `function` carrying `values`.
-fn reply_of(function: u8, kind: Kind, values: &[u16]) -> Vec<u8> {
+fn reply_of(function: u8, table: Table, values: &[u16]) -> Vec<u8> {
     let mut pdu = vec![function, 0];
-    if kind.is_bits() {
+    if table.is_bits() {
         let mut bytes = vec![0u8; values.len().div_ceil(8)];
         for (i, &bit) in values.iter().enumerate() {
             if bit != 0 {

@@ -119,10 +119,7 @@ impl Ear {
             .as_ref()
             .filter(|_| !self.reply_under_way())
             .map(|request| self.reply_due_by(request));
-        match (silence, timeout) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
-        }
+        silence.into_iter().chain(timeout).min()
     }
 
     fn reply_due_by(&self, request: &HeardFrame) -> Instant {
