@@ -1,8 +1,9 @@
 //! The `modbus-gateway` command: `run` (the default) serves the configured gateway until SIGINT or
 //! SIGTERM; `check-config` validates the file and prints the resolved configuration; `simulate`
 //! serves a bus's simulated slaves on a real serial device or a pty; `trace` prints the frames on
-//! the lines of a running gateway; `audit` prints the journal of writes (`[audit]`), each write
-//! with its outcome; `completions` and `man` describe this command line. This file
+//! the lines of a running gateway; `health` asks a running gateway's /healthz; `audit` prints
+//! the journal of writes (`[audit]`), each write with its outcome; `completions` and `man`
+//! describe this command line. This file
 //! is the command line and the dispatch; each subcommand but those two is in the library's
 //! [`modbus_gateway::cli`].
 
@@ -11,6 +12,7 @@ use clap_mangen::roff::{bold, italic, roman, Inline, Roff};
 use modbus_gateway::cli::{
     self, audit,
     check_config::check_config,
+    health,
     run::run,
     simulate::{simulate, Serve},
     trace,
@@ -22,6 +24,9 @@ use std::process::ExitCode;
 
 #[derive(Parser)]
 #[command(
+    // The command's name, not the crate's (modbus-gatewayd): in --help, --version, the manual
+    // pages and the completions.
+    name = "modbus-gateway",
     version,
     about = "Modbus TCP to Modbus RTU (RS-485) gateway",
     long_about = "Modbus TCP to Modbus RTU (RS-485) gateway. Masters on Ethernet (Modbus TCP, RTU \
@@ -74,6 +79,18 @@ enum Command {
         #[arg(long)]
         slave: Option<u8>,
         /// The trace's URL (default: `metrics.listen` of the configuration, path /trace).
+        #[arg(long)]
+        url: Option<String>,
+    },
+    /// Ask a running gateway whether it is alive: GET /healthz on its metrics endpoint (exit
+    /// 0 on 200, printing its answer; 1 otherwise, saying why), within 5 s. The container
+    /// image's health check.
+    Health {
+        /// Ask /readyz instead: every bus has its port open.
+        #[arg(long)]
+        ready: bool,
+        /// The URL to ask (default: `metrics.listen` of the configuration, path /healthz, or
+        /// /readyz with --ready).
         #[arg(long)]
         url: Option<String>,
     },
@@ -173,6 +190,9 @@ fn main() -> ExitCode {
     {
         return trace::trace(url, bus.as_deref(), *slave);
     }
+    if let Some(Command::Health { url: Some(url), .. }) = &cli.command {
+        return health::health(url);
+    }
     // Given its path, the journal needs no configuration: it may be a copy on another machine.
     if let Some(Command::Audit {
         journal: Some(journal),
@@ -203,6 +223,9 @@ fn main() -> ExitCode {
         Command::Trace { bus, slave, .. } => {
             let url = trace::url_of(config.metrics.listen);
             trace::trace(&url, bus.as_deref(), slave)
+        }
+        Command::Health { ready, .. } => {
+            health::health(&health::url_of(config.metrics.listen, ready))
         }
         Command::Audit { filters, .. } => match audit::journal_of(&cli.config, &config) {
             Ok(journal) => audit::audit(&journal, &filters.options()),

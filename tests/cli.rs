@@ -318,7 +318,7 @@ fn the_manual_page_and_completions_need_no_configuration_and_name_every_subcomma
             "{section}: {page}"
         );
     }
-    for subcommand in ["check\\-config", "simulate", "completions"] {
+    for subcommand in ["check\\-config", "simulate", "health", "completions"] {
         assert!(page.contains(subcommand), "{subcommand}: {page}");
     }
     let dir = temp_config("unused", "").with_file_name("man");
@@ -397,6 +397,62 @@ async fn run_serves_the_demo_line_and_stops_cleanly_on_sigterm() {
     signal(&child, "TERM");
     let status = exit_status(child).await;
     assert_eq!(status.code(), Some(0));
+}
+
+/// `health` of the gateway configured by `config`, with `args`, until it
+/// says something other than that it cannot reach it (the endpoint may not listen yet).
+fn health_of(config: &Path, args: &[&str]) -> Output {
+    let config = config.to_str().unwrap();
+    for _ in 0..100 {
+        let out = gateway(&[&["--config", config, "health"], args].concat(), &[]);
+        if !String::from_utf8_lossy(&out.stderr).contains("cannot reach") {
+            return out;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    panic!("the metrics endpoint never listened");
+}
+
+#[tokio::test]
+async fn health_says_ok_and_ready_of_a_running_gateway_and_exits_1_when_it_cannot() {
+    let metrics = free_addr();
+    let text = std::fs::read_to_string(demo_path()).unwrap();
+    let text = text
+        .replace("127.0.0.1:5020", &free_addr().to_string())
+        .replace("127.0.0.1:9020", &metrics.to_string());
+    let config = temp_config("health.toml", &text);
+    let child = Command::new(BINARY)
+        .args(["--config", config.to_str().unwrap(), "run"])
+        .env("MBGW__LOG__LEVEL", "warn")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let alive = health_of(&config, &[]);
+    assert_eq!(alive.status.code(), Some(0), "{alive:?}");
+    assert_eq!(String::from_utf8_lossy(&alive.stdout), "ok\n");
+    let ready = health_of(&config, &["--ready"]);
+    assert_eq!(ready.status.code(), Some(0), "{ready:?}");
+    assert_eq!(String::from_utf8_lossy(&ready.stdout), "ready\n");
+    // Another path of the endpoint: its status and its words.
+    let url = format!("http://{metrics}/nothing");
+    let missing = gateway(&["health", "--url", &url], &[]);
+    assert_eq!(missing.status.code(), Some(1));
+    let said = String::from_utf8_lossy(&missing.stderr);
+    assert!(said.contains("404 Not Found"), "{said}");
+    signal(&child, "TERM");
+    assert_eq!(exit_status(child).await.code(), Some(0));
+    // Stopped: nothing answers, and it says so.
+    let gone = gateway(&["--config", config.to_str().unwrap(), "health"], &[]);
+    assert_eq!(gone.status.code(), Some(1));
+    let said = String::from_utf8_lossy(&gone.stderr);
+    assert!(
+        said.contains("cannot reach the gateway's metrics endpoint"),
+        "{said}"
+    );
+    let wrong = gateway(&["health", "--url", "ftp://example"], &[]);
+    assert_eq!(wrong.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&wrong.stderr).contains("an http:// URL"));
 }
 
 #[test]

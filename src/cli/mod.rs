@@ -7,6 +7,8 @@
 
 pub mod audit;
 pub mod check_config;
+pub mod health;
+mod http;
 pub mod run;
 pub mod simulate;
 pub mod trace;

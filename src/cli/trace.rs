@@ -8,27 +8,17 @@ use crate::line::{ascii, rtu};
 use crate::master::{PORT_PEER_PREFIX, VIRTUAL_TRACE_PREFIX};
 use crate::mbap;
 use crate::pdu::{self, code};
-use bytes::Bytes;
-use http_body_util::{BodyExt, Empty};
-use hyper::header::HOST;
-use hyper::{Request, StatusCode, Uri};
-use hyper_util::rt::TokioIo;
+use http_body_util::BodyExt;
+use hyper::{StatusCode, Uri};
 use serde::Deserialize;
 use std::fmt::Write as _;
 use std::io::Write as _;
-use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
+use std::net::SocketAddr;
 use std::process::ExitCode;
-use tokio::net::TcpStream;
 
-/// The trace URL of the metrics endpoint listening on `listen` (a wildcard address is reached
-/// on loopback).
+/// The trace URL of the metrics endpoint listening on `listen`.
 pub fn url_of(listen: SocketAddr) -> String {
-    let ip = match listen.ip() {
-        IpAddr::V4(ip) if ip.is_unspecified() => IpAddr::V4(Ipv4Addr::LOCALHOST),
-        IpAddr::V6(ip) if ip.is_unspecified() => IpAddr::V6(Ipv6Addr::LOCALHOST),
-        ip => ip,
-    };
-    format!("http://{}/trace", SocketAddr::new(ip, listen.port()))
+    super::http::url_of(listen, "/trace")
 }
 
 /// `url` (`/trace` when it names no path) with the filters in its query.
@@ -94,37 +84,14 @@ pub fn trace(url: &str, bus: Option<&str>, slave: Option<u8>) -> ExitCode {
 /// Read the stream at `uri` and print it; returns why it ended, or `None` if
 /// the reader of stdout went away.
 async fn follow(uri: &Uri) -> Option<String> {
-    let authority = uri.authority().map(ToString::to_string).unwrap_or_default();
-    let stream = match TcpStream::connect(&authority).await {
-        Ok(stream) => stream,
-        Err(e) => return Some(format!("cannot reach the gateway's metrics endpoint: {e}")),
-    };
-    let (mut sender, connection) = match hyper::client::conn::http1::handshake::<_, Empty<Bytes>>(
-        TokioIo::new(stream),
-    )
-    .await
-    {
-        Ok(handshake) => handshake,
-        Err(e) => return Some(format!("cannot talk HTTP to it: {e}")),
-    };
-    tokio::spawn(connection);
-    let path = uri.path_and_query().map_or("/trace", |p| p.as_str());
-    let request = match Request::get(path)
-        .header(HOST, &authority)
-        .body(Empty::new())
-    {
-        Ok(request) => request,
-        Err(e) => return Some(e.to_string()),
-    };
-    let mut response = match sender.send_request(request).await {
+    let mut response = match super::http::get(uri).await {
         Ok(response) => response,
-        Err(e) => return Some(format!("no answer: {e}")),
+        Err(e) => return Some(e),
     };
     let status = response.status();
     if status != StatusCode::OK {
-        let body = response.into_body().collect().await.ok();
-        let text = body.map(|b| String::from_utf8_lossy(&b.to_bytes()).trim().to_owned());
-        return Some(format!("refused ({status}): {}", text.unwrap_or_default()));
+        let text = super::http::text_of(response).await;
+        return Some(format!("refused ({status}): {text}"));
     }
     let mut events = Events::default();
     let mut out = std::io::stdout().lock();
