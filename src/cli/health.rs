@@ -18,12 +18,7 @@ pub fn url_of(listen: SocketAddr, ready: bool) -> String {
 
 /// GET `url`; print its answer and exit 0 if it is 200, else say why on stderr and exit 1.
 pub fn health(url: &str) -> ExitCode {
-    let answer = match url.parse::<Uri>() {
-        Ok(uri) if uri.scheme_str() == Some("http") && uri.authority().is_some() => check(&uri),
-        Ok(_) => Err("an http:// URL with host and port is needed".to_owned()),
-        Err(e) => Err(format!("no URL: {e}")),
-    };
-    match answer {
+    match super::http::uri_of(url).and_then(|uri| check(&uri)) {
         Ok(text) => {
             // A health check's output is kept by the container runtime: the one line it said.
             // A reader gone (`| true`) changes nothing: the answer was had.

@@ -21,6 +21,15 @@ pub(super) fn url_of(listen: SocketAddr, path: &str) -> String {
     format!("http://{}{path}", SocketAddr::new(ip, listen.port()))
 }
 
+/// `url` if it is an `http://HOST:PORT...` URL, else what it lacks.
+pub(super) fn uri_of(url: &str) -> Result<Uri, String> {
+    let uri: Uri = url.parse().map_err(|e| format!("no URL: {e}"))?;
+    if uri.scheme_str() != Some("http") || uri.authority().is_none() {
+        return Err("an http:// URL with host and port is needed".into());
+    }
+    Ok(uri)
+}
+
 /// `GET` the path and query of `uri` (an `http://HOST:PORT/...` URL) on a connection of its own;
 /// the response, or what went wrong in words for the user.
 pub(super) async fn get(uri: &Uri) -> Result<Response<Incoming>, String> {

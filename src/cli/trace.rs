@@ -23,12 +23,7 @@ pub fn url_of(listen: SocketAddr) -> String {
 
 /// `url` (`/trace` when it names no path) with the filters in its query.
 fn with_filters(url: &str, bus: Option<&str>, slave: Option<u8>) -> Result<Uri, String> {
-    let uri: Uri = url.parse().map_err(|e| format!("`{url}` is no URL: {e}"))?;
-    if uri.scheme_str() != Some("http") || uri.authority().is_none() {
-        return Err(format!(
-            "`{url}`: an http:// URL with host and port is needed"
-        ));
-    }
+    let uri = super::http::uri_of(url).map_err(|e| format!("`{url}`: {e}"))?;
     let path = match uri.path() {
         "" | "/" => "/trace",
         path => path,
