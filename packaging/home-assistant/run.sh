@@ -17,6 +17,11 @@ gateway=${GATEWAY:-/usr/bin/modbus-gateway}
 # The password goes in a file of its own, readable by this account only: the gateway takes it
 # from `mqtt.password_file`, never from its configuration.
 umask 077
+# The gateway reads the file's first line: a password of several lines would be cut.
+if jq -e '(.mqtt_password // "") | test("[\r\n]")' "$options" >/dev/null; then
+    echo "run.sh: option mqtt_password: a line break cannot be part of a password" >&2
+    exit 2
+fi
 if jq -e '(.mqtt_password // "") != ""' "$options" >/dev/null; then
     jq -j '.mqtt_password' "$options" >"$data/mqtt-password"
 elif [ -e "$data/mqtt-password" ]; then
